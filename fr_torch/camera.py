@@ -1,0 +1,158 @@
+"""Camera model and angle conventions shared by the whole project.
+
+Conventions (used everywhere: estimator, datasets, metrics, baselines)
+---------------------------------------------------------------------
+* Image coordinates: pixels, x right, y down, origin at the top-left corner of the
+  top-left pixel's centre (OpenCV / LSD convention).
+* Camera frame: x right, y down, z forward (OpenCV).  K = [[f, 0, cx], [0, f, cy], [0, 0, 1]],
+  square pixels, no skew, no distortion.  The principal point defaults to the image centre
+  (w / 2, h / 2).
+* World (Manhattan) frame: x = first horizontal Manhattan direction, **y = vertical, pointing
+  down (gravity)**, z = second horizontal Manhattan direction.  A level camera with pan = 0
+  therefore has R = I.
+* ``R`` maps world to camera (``X_cam = R @ X_world``).  Its columns are the three Manhattan
+  directions expressed in the camera frame; **column 1 (0-based) is the vertical one**
+  (``R[:, 1]`` points down, world-up is ``-R[:, 1]``).  Vanishing point i is ``K @ R[:, i]``
+  (homogeneous).
+* Angles: the camera-to-world rotation is ``R.T = Ry(pan) @ Rx(pitch) @ Rz(roll)`` (elementary
+  active rotations about the world-down y axis, then the camera x axis, then the optical axis).
+  Positive pan turns the camera to the right, positive pitch/tilt looks up, positive roll
+  rotates the camera clockwise as seen from behind (the scene, and the horizon, appear rotated
+  anticlockwise in the image).  All public angles are in **degrees**; internal tensors that end
+  in ``_rad`` are radians.
+* Reported roll and tilt follow the paper's horizon-based definitions, computed from the
+  world-up direction ``c`` expressed in a y-up camera frame (``c = diag(1,-1,1) @ (-R[:, 1])``):
+  ``roll = atan(-c_x / c_y)``, ``tilt = atan(c_z / c_y)``.  ``pitch = asin(c_z)`` is the
+  elevation of the optical axis.  With the parametrisation above ``roll`` equals the roll
+  angle exactly and ``pitch`` equals the pitch angle exactly, while
+  ``tan(tilt) = tan(pitch) / cos(roll)`` (tilt 30.38 deg for pitch 30, roll 10).
+* Field of view is horizontal: ``hfov = 2 atan(w / (2 f))``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+VERTICAL_AXIS = 1  # column of R holding the (downward) vertical Manhattan direction
+Y_UP = (1.0, -1.0, 1.0)  # diag flipping the camera y axis (y-down <-> y-up frames)
+
+
+def focal_from_hfov(hfov_deg, width):
+    """Focal length in pixels from the horizontal field of view (degrees) and width (pixels)."""
+    hfov = torch.as_tensor(hfov_deg, dtype=torch.float64) if not torch.is_tensor(hfov_deg) else hfov_deg
+    out = (width / 2.0) / torch.tan(torch.deg2rad(hfov) / 2.0)
+    return out if torch.is_tensor(hfov_deg) else float(out)
+
+
+def hfov_from_focal(focal_px, width):
+    """Horizontal field of view in degrees from the focal length (pixels) and width (pixels)."""
+    f = torch.as_tensor(focal_px, dtype=torch.float64) if not torch.is_tensor(focal_px) else focal_px
+    out = torch.rad2deg(2.0 * torch.atan((width / 2.0) / f))
+    return out if torch.is_tensor(focal_px) else float(out)
+
+
+def intrinsics(focal_px: torch.Tensor, principal_point: torch.Tensor) -> torch.Tensor:
+    """K matrices, shape (..., 3, 3), from focal (...) and principal point (..., 2), pixels."""
+    focal_px = torch.as_tensor(focal_px)
+    pp = torch.as_tensor(principal_point, dtype=focal_px.dtype, device=focal_px.device)
+    pp = pp.expand(focal_px.shape + (2,))
+    zeros, ones = torch.zeros_like(focal_px), torch.ones_like(focal_px)
+    rows = [
+        torch.stack([focal_px, zeros, pp[..., 0]], -1),
+        torch.stack([zeros, focal_px, pp[..., 1]], -1),
+        torch.stack([zeros, zeros, ones], -1),
+    ]
+    return torch.stack(rows, -2)
+
+
+def _axis_rotation(angle_rad: torch.Tensor, axis: int) -> torch.Tensor:
+    """Active rotation by ``angle_rad`` about coordinate axis ``axis`` (0=x, 1=y, 2=z), via kornia."""
+    axis_angle = torch.zeros(angle_rad.shape + (3,), dtype=angle_rad.dtype, device=angle_rad.device)
+    axis_angle = axis_angle.index_copy(-1, torch.tensor([axis], device=angle_rad.device), angle_rad.unsqueeze(-1))
+    flat = axis_angle.reshape(-1, 3)
+    return axis_angle_to_rotation_matrix(flat).reshape(angle_rad.shape + (3, 3))
+
+
+def rotation_from_angles(pan_deg, pitch_deg, roll_deg) -> torch.Tensor:
+    """World->camera rotation(s) R, shape (..., 3, 3), from pan / pitch / roll in degrees.
+
+    ``R.T = Ry(pan) Rx(pitch) Rz(roll)``; see the module docstring for the meaning of each angle.
+    Inputs broadcast; gradients flow (used by the refinement).
+    """
+    pan, pitch, roll = torch.broadcast_tensors(*(torch.as_tensor(a) for a in (pan_deg, pitch_deg, roll_deg)))
+    if not pan.is_floating_point():
+        pan, pitch, roll = pan.double(), pitch.double(), roll.double()
+    cam_to_world = (
+        _axis_rotation(torch.deg2rad(pan), 1)
+        @ _axis_rotation(torch.deg2rad(pitch), 0)  # Rx(+a) raises the optical axis in a y-down world
+        @ _axis_rotation(torch.deg2rad(roll), 2)
+    )
+    return cam_to_world.transpose(-1, -2)
+
+
+def world_up_in_camera_yup(rotation: torch.Tensor, vertical_axis: int = VERTICAL_AXIS) -> torch.Tensor:
+    """World-up unit vector c in a y-up camera frame (x right, y up, z forward), shape (..., 3)."""
+    down = rotation[..., :, vertical_axis]
+    flip = torch.tensor(Y_UP, dtype=rotation.dtype, device=rotation.device)
+    up = -down * flip
+    # The vertical direction carries no sign in a vanishing-point model: take the one with c_y >= 0.
+    sign = torch.where(up[..., 1:2] < 0, -1.0, 1.0).to(up.dtype)
+    return up * sign
+
+
+def horizon_angles(rotation: torch.Tensor, vertical_axis: int = VERTICAL_AXIS) -> dict[str, torch.Tensor]:
+    """Paper definitions of roll, tilt and the optical-axis pitch, degrees, from R (..., 3, 3).
+
+    roll = atan(-c_x / c_y), tilt = atan(c_z / c_y), pitch = asin(c_z) with c the world-up
+    direction in a y-up camera frame.  ``atan`` (not atan2) as in the paper: range (-90, 90).
+    """
+    c = world_up_in_camera_yup(rotation, vertical_axis)
+    cy = c[..., 1].clamp_min(1e-12)
+    return {
+        "roll_deg": torch.rad2deg(torch.atan(-c[..., 0] / cy)),
+        "tilt_deg": torch.rad2deg(torch.atan(c[..., 2] / cy)),
+        "pitch_deg": torch.rad2deg(torch.asin(c[..., 2].clamp(-1.0, 1.0))),
+    }
+
+
+def pan_from_rotation(rotation: torch.Tensor, vertical_axis: int = VERTICAL_AXIS) -> torch.Tensor:
+    """Pan in degrees, folded into [-45, 45) (a Manhattan frame is symmetric under 90 deg turns).
+
+    Pan is the heading of the optical axis measured from the nearest horizontal Manhattan
+    direction, about the vertical; positive to the right.
+    """
+    horizontal = [i for i in range(3) if i != vertical_axis]
+    # Optical axis (camera z) in world coordinates is row 2 of R.
+    axis_world = rotation[..., 2, :]
+    heading = torch.atan2(axis_world[..., horizontal[0]], axis_world[..., horizontal[1]])
+    deg = torch.rad2deg(heading)
+    return torch.remainder(deg + 45.0, 90.0) - 45.0
+
+
+def angles_from_rotation(rotation: torch.Tensor, vertical_axis: int = VERTICAL_AXIS) -> dict[str, torch.Tensor]:
+    """pan (folded to [-45, 45)), roll, tilt and pitch in degrees from world->camera R (..., 3, 3)."""
+    out = horizon_angles(rotation, vertical_axis)
+    out["pan_deg"] = pan_from_rotation(rotation, vertical_axis)
+    return out
+
+
+def vanishing_points(focal_px: torch.Tensor, principal_point: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+    """Homogeneous vanishing points K @ R, shape (..., 3, 3): column i is VP i (never dehomogenised)."""
+    return intrinsics(focal_px, principal_point) @ rotation
+
+
+def rotation_angle_deg(r_a: torch.Tensor, r_b: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle (degrees) between rotations r_a and r_b, (..., 3, 3)."""
+    rel = r_a.transpose(-1, -2) @ r_b
+    cos = ((rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.acos(cos))
+
+
+def image_centre(width: float, height: float) -> tuple[float, float]:
+    """Default principal point (pixels): the exact image centre (w / 2, h / 2)."""
+    return (width / 2.0, height / 2.0)
+
+
+DEG = math.pi / 180.0

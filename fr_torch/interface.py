@@ -1,0 +1,143 @@
+"""The common interface every calibration method implements, and the method registry.
+
+A method is any object with a ``name`` and ``estimate(image, meta) -> CameraEstimate``.  Methods
+are looked up by registered name (``fr``, ``fast-fr``, ``lee2009``, ...) or by import path
+(``"my_package.my_module:MyCalibrator"`` or ``"my_package.my_module:make_calibrator"``), so a
+third party plugs one in without editing this project::
+
+    fr eval --dataset yud --methods fr,my_package.my_module:MyCalibrator
+
+Conventions for every field are those of :mod:`fr_torch.camera` (pixels, degrees, R world->camera
+with x right / y down / z forward, vertical Manhattan direction in column 1).
+"""
+from __future__ import annotations
+
+import importlib
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass
+class ImageMeta:
+    """What a method may know about an image besides its pixels.
+
+    ``segments``: optional (N, 4) array of line segments [x1, y1, x2, y2] in pixels (for methods
+    that take segments, e.g. the oracle run on hand-labelled lines).  ``focal_px`` and
+    ``principal_point``: known intrinsics, if any (None = unknown / image centre).
+    """
+
+    name: str = ""
+    width: int = 0
+    height: int = 0
+    focal_px: float | None = None
+    principal_point: tuple[float, float] | None = None
+    segments: np.ndarray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class CameraEstimate:
+    """One method's answer for one image.  ``None`` means "this method does not estimate it".
+
+    ``ok`` is False when the method failed (no vanishing point found, bad input...); ``reason``
+    then says why.  Failed estimates are counted by the tables, never silently dropped.
+    """
+
+    method: str
+    focal_px: float | None = None
+    hfov_deg: float | None = None
+    rotation: np.ndarray | None = None  # (3, 3) world->camera, vertical in column 1
+    roll_deg: float | None = None
+    tilt_deg: float | None = None
+    pitch_deg: float | None = None
+    pan_deg: float | None = None
+    predicted_error: dict[str, float] | None = None  # {"roll_deg", "tilt_deg", "focal_pct"}
+    reliable: bool | None = None
+    runtime_s: float = float("nan")
+    ok: bool = True
+    reason: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def failure(cls, method: str, reason: str, runtime_s: float = float("nan")) -> "CameraEstimate":
+        return cls(method=method, ok=False, reason=reason, runtime_s=runtime_s, reliable=False)
+
+
+@runtime_checkable
+class Calibrator(Protocol):
+    """What every method implements (fR, Fast-fR, baselines, CTRL-C, external predictions)."""
+
+    name: str
+
+    def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
+        """Estimate the camera of one image (H x W x 3 uint8 BGR, or H x W grey; may be None
+        for methods that only read ``meta``)."""
+        ...
+
+
+_REGISTRY: dict[str, Callable[..., Calibrator]] = {}
+
+
+def register(name: str) -> Callable:
+    """Decorator: register a factory (class or function returning a Calibrator) under ``name``."""
+
+    def deco(factory: Callable[..., Calibrator]):
+        _REGISTRY[name] = factory
+        return factory
+
+    return deco
+
+
+# Modules that register built-in methods when imported (kept lazy: importing them is cheap, but
+# they may pull optional dependencies such as onnxruntime).
+_BUILTIN_MODULES = ("fr_torch.methods", "baselines")
+
+
+def _load_builtins() -> None:
+    for module in _BUILTIN_MODULES:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as exc:  # a package not present in this installation
+            if exc.name != module and not module.startswith(exc.name or "\0"):
+                raise
+
+
+def available_methods() -> list[str]:
+    """Names of all registered methods."""
+    _load_builtins()
+    return sorted(_REGISTRY)
+
+
+def get_calibrator(spec: str, **kwargs) -> Calibrator:
+    """Build a method from a registered name or an import path ``module:attribute``."""
+    _load_builtins()
+    if spec in _REGISTRY:
+        return _REGISTRY[spec](**kwargs)
+    if ":" in spec:
+        module_name, attr = spec.split(":", 1)
+        try:
+            factory = getattr(importlib.import_module(module_name), attr)
+        except (ImportError, AttributeError) as exc:
+            raise ValueError(f"cannot import calibrator {spec!r}: {exc}") from None
+        method = factory(**kwargs)
+        if not isinstance(method, Calibrator):
+            raise ValueError(f"{spec!r} did not produce a Calibrator (needs .name and .estimate())")
+        return method
+    raise ValueError(f"unknown method {spec!r}; available: {', '.join(available_methods())} "
+                     "(or give an import path module:Class)")
+
+
+class Timer:
+    """Context manager measuring wall time in seconds (``with Timer() as t: ...; t.seconds``)."""
+
+    def __enter__(self):
+        self._start = time.perf_counter()
+        self.seconds = float("nan")
+        return self
+
+    def __exit__(self, *exc):
+        self.seconds = time.perf_counter() - self._start
+        return False

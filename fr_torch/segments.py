@@ -1,0 +1,224 @@
+"""Line segments: image loading, pluggable detectors, filters, and padded batches.
+
+A segment is a row ``[x1, y1, x2, y2]`` in pixels (x right, y down, origin at the centre of the
+top-left pixel).  The estimator never depends on which detector produced the segments.
+
+Detectors are registered by name (``lsd`` is the default).  A detector is any callable object
+taking a 2-D ``uint8`` grey image and returning an ``(N, 4)`` float array; register new ones with
+:func:`register_detector` or pass the object itself.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Protocol, Sequence
+
+import cv2
+import numpy as np
+import torch
+
+
+class FRInputError(ValueError):
+    """Bad user input (unreadable file, wrong shape, NaNs...): reported as one clear line."""
+
+
+# --------------------------------------------------------------------------- images
+
+def load_image(path: str | Path) -> np.ndarray:
+    """Read an image file as an 8-bit BGR array (H, W, 3).  Raises FRInputError on any problem."""
+    path = Path(path)
+    if not path.exists():
+        raise FRInputError(f"{path}: no such file")
+    if path.is_dir():
+        raise FRInputError(f"{path}: is a directory, not an image")
+    data = np.fromfile(str(path), dtype=np.uint8)
+    if data.size == 0:
+        raise FRInputError(f"{path}: empty file")
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FRInputError(f"{path}: not a readable image")
+    return to_bgr8(image, str(path))
+
+
+def to_bgr8(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """Normalise grey / BGR / BGRA, 8- or 16-bit or float images to 8-bit BGR (H, W, 3)."""
+    image = np.asarray(image)
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
+        raise FRInputError(f"{name}: expected an H x W or H x W x {{1,3,4}} image, got shape {image.shape}")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise FRInputError(f"{name}: zero-size image {image.shape}")
+    if image.dtype == np.uint16:
+        image = (image / 257.0).round().astype(np.uint8)
+    elif image.dtype.kind == "f":
+        if not np.isfinite(image).all():
+            raise FRInputError(f"{name}: image has NaN or infinite pixels")
+        scale = 255.0 if image.max() <= 1.0 else 1.0
+        image = np.clip(image * scale, 0, 255).round().astype(np.uint8)
+    elif image.dtype == np.bool_:
+        image = image.astype(np.uint8) * 255
+    elif image.dtype != np.uint8:
+        image = np.clip(image, 0, 255).astype(np.uint8)
+    if image.ndim == 2:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    if image.shape[2] == 1:
+        return cv2.cvtColor(image[:, :, 0], cv2.COLOR_GRAY2BGR)
+    if image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    return image
+
+
+def to_gray8(image: np.ndarray) -> np.ndarray:
+    """8-bit single-channel grey image from any image :func:`to_bgr8` accepts."""
+    return cv2.cvtColor(to_bgr8(image), cv2.COLOR_BGR2GRAY)
+
+
+# --------------------------------------------------------------------------- detectors
+
+class Detector(Protocol):
+    """A line-segment detector: grey uint8 (H, W) -> (N, 4) float64 [x1, y1, x2, y2] pixels."""
+
+    name: str
+
+    def __call__(self, gray: np.ndarray) -> np.ndarray: ...
+
+
+class LSDDetector:
+    """OpenCV's LSD (von Gioi et al.) with its default parameters (same as LSD 1.5)."""
+
+    name = "lsd"
+
+    def __init__(self, refine: int = cv2.LSD_REFINE_STD):
+        factory = getattr(cv2, "createLineSegmentDetector", None)
+        if factory is None:  # LSD may move to opencv-contrib's ximgproc in a later OpenCV 5.x
+            factory = getattr(getattr(cv2, "ximgproc", None), "createLineSegmentDetector", None)
+        if factory is None:
+            raise RuntimeError("this OpenCV build has no LSD (cv2.createLineSegmentDetector)")
+        self._lsd = factory(refine)
+
+    def __call__(self, gray: np.ndarray) -> np.ndarray:
+        lines = self._lsd.detect(gray)[0]
+        if lines is None:  # OpenCV returns None when nothing is found
+            return np.zeros((0, 4))
+        return lines.reshape(-1, 4).astype(np.float64)  # OpenCV 4: (N,1,4); OpenCV 5: (N,4)
+
+
+_DETECTORS: dict[str, Callable[..., Detector]] = {"lsd": LSDDetector}
+
+
+def register_detector(name: str, factory: Callable[..., Detector]) -> None:
+    """Make a detector available by name (``--detector NAME``)."""
+    _DETECTORS[name] = factory
+
+
+def available_detectors() -> list[str]:
+    _load_detector_plugins()
+    return sorted(_DETECTORS)
+
+
+def _load_detector_plugins() -> None:
+    # Detectors living in their own modules register themselves on import.
+    import importlib
+
+    for module in ("fr_torch.detectors",):
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as exc:
+            if exc.name != module:
+                raise
+
+
+def get_detector(detector: str | Detector | None = None, **kwargs) -> Detector:
+    """A detector from its name (default ``lsd``) or the object itself."""
+    if detector is None:
+        detector = "lsd"
+    if not isinstance(detector, str):
+        return detector
+    if detector not in _DETECTORS:
+        _load_detector_plugins()
+    if detector not in _DETECTORS:
+        raise FRInputError(f"unknown detector {detector!r}; available: {', '.join(available_detectors())}")
+    return _DETECTORS[detector](**kwargs)
+
+
+# --------------------------------------------------------------------------- filters
+
+@dataclass(frozen=True)
+class SegmentFilter:
+    """Segment filters of the fR pipeline.
+
+    ``min_length_px``: drop segments whose length is <= this (pixels).  ``border_fraction``: drop
+    segments whose *both* endpoints lie in the same border band of this width (fraction of the
+    image width for left/right, of the height for top/bottom).
+    """
+
+    min_length_px: float = 1.0
+    border_fraction: float = 0.01
+
+    def __call__(self, segments: np.ndarray, width: int, height: int) -> np.ndarray:
+        segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+        length = np.hypot(segments[:, 2] - segments[:, 0], segments[:, 3] - segments[:, 1])
+        keep = length > self.min_length_px
+        bx, by = self.border_fraction * width, self.border_fraction * height
+        x, y = segments[:, [0, 2]], segments[:, [1, 3]]
+        in_band = ((x < bx).all(1) | (x > width - bx).all(1) | (y < by).all(1) | (y > height - by).all(1))
+        return segments[keep & ~in_band]
+
+
+def validate_segments(segments, name: str = "segments") -> np.ndarray:
+    """Check user-supplied segments: an (N, 4) array of finite numbers.  Returns float64 (N, 4)."""
+    if torch.is_tensor(segments):
+        segments = segments.detach().cpu().numpy()
+    try:
+        array = np.asarray(segments, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise FRInputError(f"{name}: not a numeric array") from None
+    if array.ndim == 1 and array.size == 0:
+        array = array.reshape(0, 4)
+    if array.ndim != 2 or array.shape[1] != 4:
+        raise FRInputError(f"{name}: expected shape (N, 4) [x1, y1, x2, y2], got {array.shape}")
+    if not np.isfinite(array).all():
+        bad = int((~np.isfinite(array)).any(1).sum())
+        raise FRInputError(f"{name}: {bad} segment(s) have NaN or infinite coordinates")
+    return array
+
+
+def detect_segments(image: np.ndarray, detector: Detector | str | None = None,
+                    segment_filter: SegmentFilter | None = None) -> np.ndarray:
+    """Detect and filter line segments in an image (any format :func:`to_bgr8` accepts)."""
+    gray = to_gray8(image)
+    raw = get_detector(detector)(gray)
+    return (segment_filter or SegmentFilter())(raw, gray.shape[1], gray.shape[0])
+
+
+# --------------------------------------------------------------------------- batches
+
+@dataclass
+class SegmentBatch:
+    """Segments of B images padded to a common count.
+
+    ``endpoints``: (B, N, 4) pixels; ``mask``: (B, N) bool, True for real segments;
+    ``image_size``: (B, 2) [width, height] pixels.
+    """
+
+    endpoints: torch.Tensor
+    mask: torch.Tensor
+    image_size: torch.Tensor
+
+    @classmethod
+    def from_list(cls, segments: Sequence[np.ndarray], image_sizes: Sequence[tuple[int, int]],
+                  device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> "SegmentBatch":
+        count = max([len(s) for s in segments] + [1])
+        endpoints = torch.zeros(len(segments), count, 4, dtype=dtype)
+        mask = torch.zeros(len(segments), count, dtype=torch.bool)
+        for b, seg in enumerate(segments):
+            if len(seg):
+                endpoints[b, : len(seg)] = torch.as_tensor(np.asarray(seg), dtype=dtype)
+                mask[b, : len(seg)] = True
+        size = torch.as_tensor(np.asarray(image_sizes, dtype=np.float64), dtype=dtype).reshape(-1, 2)
+        return cls(endpoints.to(device), mask.to(device), size.to(device))
+
+    @property
+    def lengths(self) -> torch.Tensor:
+        """Segment lengths in pixels, (B, N); zero for padding."""
+        d = self.endpoints[..., 2:] - self.endpoints[..., :2]
+        return torch.linalg.vector_norm(d, dim=-1) * self.mask
