@@ -1,0 +1,50 @@
+"""Shared test fixtures.
+
+Tests that need the real datasets take the ``data_root`` fixture: it points at ``$FR_DATA``
+(default: ``../shared/data`` beside the repository).  When the data is missing the test is skipped
+on a developer machine but **fails** in CI (``CI=true``), so a broken data set-up never passes
+silently.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _data_root() -> Path:
+    return Path(os.environ.get("FR_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def data_root() -> Path:
+    root = _data_root()
+    if not root.is_dir():
+        message = f"dataset root {root} not found (set FR_DATA)"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    return root
+
+
+def require_dataset(root: Path, name: str) -> Path:
+    """Path of dataset folder ``name`` under ``root``; fail in CI / skip elsewhere if absent."""
+    path = root / name
+    if not path.is_dir():
+        message = f"dataset {name!r} not found under {root}"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    return path
+
+
+def has_cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+gpu = pytest.mark.skipif(not has_cuda(), reason="needs a CUDA device")
