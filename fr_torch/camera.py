@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 
 import torch
-from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+from kornia.geometry.conversions import quaternion_to_rotation_matrix
 
 VERTICAL_AXIS = 1  # column of R holding the (downward) vertical Manhattan direction
 Y_UP = (1.0, -1.0, 1.0)  # diag flipping the camera y axis (y-down <-> y-up frames)
@@ -67,28 +67,26 @@ def intrinsics(focal_px: torch.Tensor, principal_point: torch.Tensor) -> torch.T
     return torch.stack(rows, -2)
 
 
-def _axis_rotation(angle_rad: torch.Tensor, axis: int) -> torch.Tensor:
-    """Active rotation by ``angle_rad`` about coordinate axis ``axis`` (0=x, 1=y, 2=z), via kornia."""
-    axis_angle = torch.zeros(angle_rad.shape + (3,), dtype=angle_rad.dtype, device=angle_rad.device)
-    axis_angle = axis_angle.index_copy(-1, torch.tensor([axis], device=angle_rad.device), angle_rad.unsqueeze(-1))
-    flat = axis_angle.reshape(-1, 3)
-    return axis_angle_to_rotation_matrix(flat).reshape(angle_rad.shape + (3, 3))
-
-
 def rotation_from_angles(pan_deg, pitch_deg, roll_deg) -> torch.Tensor:
     """World->camera rotation(s) R, shape (..., 3, 3), from pan / pitch / roll in degrees.
 
     ``R.T = Ry(pan) Rx(pitch) Rz(roll)``; see the module docstring for the meaning of each angle.
-    Inputs broadcast; gradients flow (used by the refinement).
+    Built as the unit quaternion ``q_y(pan) q_x(pitch) q_z(roll)`` (closed form) converted by
+    kornia; inputs broadcast and gradients flow (the refinement differentiates through it).
+    Python numbers and integer inputs give float64.
     """
-    pan, pitch, roll = torch.broadcast_tensors(*(torch.as_tensor(a) for a in (pan_deg, pitch_deg, roll_deg)))
-    if not pan.is_floating_point():
-        pan, pitch, roll = pan.double(), pitch.double(), roll.double()
-    cam_to_world = (
-        _axis_rotation(torch.deg2rad(pan), 1)
-        @ _axis_rotation(torch.deg2rad(pitch), 0)  # Rx(+a) raises the optical axis in a y-down world
-        @ _axis_rotation(torch.deg2rad(roll), 2)
-    )
+    tensors = [a for a in (pan_deg, pitch_deg, roll_deg) if torch.is_tensor(a) and a.is_floating_point()]
+    dtype = tensors[0].dtype if tensors else torch.float64
+    device = tensors[0].device if tensors else None
+    half = torch.broadcast_tensors(
+        *(torch.deg2rad(torch.as_tensor(a, dtype=dtype, device=device)) / 2 for a in (pan_deg, pitch_deg, roll_deg)))
+    cp, ct, cr = (torch.cos(a) for a in half)
+    sp, st, sr = (torch.sin(a) for a in half)
+    quaternion = torch.stack([cp * ct * cr + sp * st * sr,  # w
+                              cp * st * cr + sp * ct * sr,  # x
+                              sp * ct * cr - cp * st * sr,  # y
+                              cp * ct * sr - sp * st * cr], -1)  # z
+    cam_to_world = quaternion_to_rotation_matrix(quaternion)  # kornia: (w, x, y, z) order
     return cam_to_world.transpose(-1, -2)
 
 

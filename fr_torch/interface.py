@@ -111,9 +111,30 @@ def available_methods() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def parse_method_spec(spec: str) -> tuple[str, dict[str, str]]:
+    """Split ``"fr[measure=a,detector=mcmlsd]"`` into ``("fr", {"measure": "a", "detector": "mcmlsd"})``."""
+    spec = spec.strip()
+    if not spec.endswith("]") or "[" not in spec:
+        return spec, {}
+    name, options = spec[:-1].split("[", 1)
+    kwargs = {}
+    for item in filter(None, (part.strip() for part in options.split(","))):
+        if "=" not in item:
+            raise ValueError(f"bad option {item!r} in method {spec!r}: use key=value")
+        key, value = item.split("=", 1)
+        kwargs[key.strip()] = value.strip()
+    return name, kwargs
+
+
 def get_calibrator(spec: str, **kwargs) -> Calibrator:
-    """Build a method from a registered name or an import path ``module:attribute``."""
+    """Build a method from a registered name or an import path ``module:attribute``.
+
+    Options in brackets are passed to the factory as keyword arguments (strings):
+    ``fr[measure=a]``, ``fast-fr[detector=mcmlsd]``.
+    """
     _load_builtins()
+    spec, options = parse_method_spec(spec)
+    kwargs = {**options, **kwargs}
     if spec in _REGISTRY:
         return _REGISTRY[spec](**kwargs)
     if ":" in spec:

@@ -1,0 +1,2 @@
+class OnnxLineDetector:  # placeholder
+    name = "onnx"

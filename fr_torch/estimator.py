@@ -1,0 +1,302 @@
+"""The fR estimator: segments -> likelihood -> two-stage search -> result with reliability cues.
+
+Usage::
+
+    from fr_torch import FREstimator
+    est = FREstimator(mode="fr")                      # or "fast" (Fast-fR)
+    [result] = est.calibrate_images(["photo.jpg"])    # paths or arrays; batches welcome
+    result.focal_px, result.roll_deg, result.rotation
+
+    est.calibrate_segments([segments], image_sizes=[(640, 480)])   # your own (N, 4) segments
+
+Conventions: see :mod:`fr_torch.camera` (pixels; degrees; R world->camera, x right / y down /
+z forward, vertical Manhattan direction in column 1).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from .camera import VERTICAL_AXIS, angles_from_rotation, hfov_from_focal, intrinsics
+from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
+from .search import SearchConfig, grid_hypotheses, hypothesis_rotations, parameter_box, refine, score_grid
+from .segments import (FRInputError, SegmentBatch, SegmentFilter, detect_segments, get_detector, load_image,
+                       to_bgr8, validate_segments)
+
+BACKGROUND_LABEL = 3
+
+
+@dataclass
+class CalibrationResult:
+    """Everything fR says about one image.  Angles in degrees, lengths in pixels.
+
+    ``ok`` is False when no estimate could be made (then the camera fields are None and
+    ``reason`` says why).  ``reliable`` is False when the estimate exists but should not be
+    trusted (too few segments, a Manhattan family nearly empty, or predicted errors above the
+    threshold once a reliability model is loaded); ``reason`` lists why.
+    """
+
+    image: str
+    width: int
+    height: int
+    ok: bool = True
+    reliable: bool = False
+    reason: str = ""
+    focal_px: float | None = None
+    hfov_deg: float | None = None
+    principal_point: tuple[float, float] | None = None
+    rotation: np.ndarray | None = None  # (3, 3) world->camera
+    vertical_axis: int = VERTICAL_AXIS
+    pan_deg: float | None = None
+    tilt_deg: float | None = None
+    roll_deg: float | None = None
+    pitch_deg: float | None = None
+    vanishing_points: np.ndarray | None = None  # (3, 3): row i = homogeneous VP i (x, y, w), w >= 0
+    log_likelihood: float | None = None
+    num_segments: int = 0
+    segments: np.ndarray | None = None  # (N, 4) the segments used
+    labels: np.ndarray | None = None  # (N,) 0, 1, 2 = Manhattan column (1 = vertical), 3 = background
+    cues: dict[str, float] = field(default_factory=dict)
+    predicted_error: dict[str, float] | None = None
+    runtime_s: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self, include_segments: bool = False) -> dict[str, Any]:
+        """JSON-ready dict (the CLI's output schema; arrays become nested lists)."""
+        out = {k: v for k, v in asdict(self).items() if k not in ("segments", "labels")}
+        for key in ("rotation", "vanishing_points"):
+            if out[key] is not None:
+                out[key] = np.asarray(out[key]).tolist()
+        if include_segments and self.segments is not None:
+            out["segments"] = self.segments.tolist()
+            out["labels"] = self.labels.tolist()
+        if self.labels is not None:
+            out["segments_per_family"] = np.bincount(self.labels, minlength=4).tolist()
+        return out
+
+
+class FREstimator:
+    """fR / Fast-fR (Qian & Elder, ECCV 2022) on CPU or CUDA, batched over images.
+
+    ``mode``: ``"fr"`` (refine to convergence) or ``"fast"`` (10 refinement iterations).
+    ``measure``: deviation measure a-e (default from ``configs/likelihood.json``: b).
+    ``detector``: name of a registered detector (``lsd`` default) or a detector object.
+    ``dtype``: float32 (default) or float64 (reference).
+    ``min_segments``: fewer segments than this -> ``reliable = False``.
+    """
+
+    def __init__(self, mode: str = "fr", measure: str | None = None, detector="lsd", device: str = "cpu",
+                 dtype: torch.dtype = torch.float32, likelihood_params: LikelihoodParams | None = None,
+                 search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
+                 min_segments: int = 10, min_family_segments: int = 2):
+        self.mode = mode
+        self.search = search_config or SearchConfig.from_config()
+        self.iterations = self.search.iterations(mode)
+        self.likelihood = MixtureLikelihood(likelihood_params or LikelihoodParams.from_config(measure))
+        self.detector = get_detector(detector)
+        self.device = torch.device(device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise FRInputError("--device cuda requested but no CUDA device is available")
+        self.dtype = dtype
+        self.segment_filter = segment_filter or SegmentFilter()
+        self.min_segments = min_segments
+        self.min_family_segments = min_family_segments
+
+    # ------------------------------------------------------------------ public API
+
+    def calibrate_images(self, images: Sequence, names: Sequence[str] | None = None, focal_px=None,
+                         principal_point=None) -> list[CalibrationResult]:
+        """Calibrate images given as file paths or arrays (grey, BGR, BGRA; 8/16-bit or float).
+
+        ``focal_px``: None (unknown), a number for all images, or one value (or None) per image.
+        ``principal_point``: None (image centre), an (x, y) pair for all, or one per image.
+        A bad image yields a result with ``ok=False`` and the reason; the others are unaffected.
+        """
+        names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
+                                                       for i, im in enumerate(images)]
+        segments, sizes, errors, detect_times = [], [], {}, []
+        for i, image in enumerate(images):
+            start = time.perf_counter()
+            try:
+                array = load_image(image) if isinstance(image, (str, Path)) else to_bgr8(image, names[i])
+                segments.append(detect_segments(array, self.detector, self.segment_filter))
+                sizes.append((array.shape[1], array.shape[0]))
+            except FRInputError as exc:
+                errors[i] = str(exc)
+                segments.append(np.zeros((0, 4)))
+                sizes.append((0, 0))
+            detect_times.append(time.perf_counter() - start)
+        results = self._calibrate(segments, sizes, names, focal_px, principal_point, errors, filtered=True)
+        for result, seconds in zip(results, detect_times):
+            result.runtime_s["detect"] = seconds
+            result.runtime_s["total"] = result.runtime_s.get("total", 0.0) + seconds
+        return results
+
+    def calibrate_segments(self, segments: Sequence, image_sizes: Sequence[tuple[int, int]],
+                           names: Sequence[str] | None = None, focal_px=None, principal_point=None,
+                           apply_filter: bool = True) -> list[CalibrationResult]:
+        """Calibrate from user-supplied segments: one (N_i, 4) array [x1, y1, x2, y2] per image.
+
+        ``image_sizes``: (width, height) per image, pixels.  Segments are filtered like detected
+        ones unless ``apply_filter`` is False.
+        """
+        if len(segments) != len(image_sizes):
+            raise FRInputError(f"got {len(segments)} segment sets but {len(image_sizes)} image sizes")
+        names = list(names) if names is not None else [f"image{i}" for i in range(len(segments))]
+        checked, errors = [], {}
+        for i, seg in enumerate(segments):
+            try:
+                size = tuple(image_sizes[i])
+                if len(size) != 2 or not all(np.isfinite(size)) or min(size) <= 0:
+                    raise FRInputError(f"{names[i]}: image size must be (width, height) > 0, got {size}")
+                array = validate_segments(seg, f"{names[i]} segments")
+                checked.append(self.segment_filter(array, *size) if apply_filter else array)
+            except FRInputError as exc:
+                errors[i] = str(exc)
+                checked.append(np.zeros((0, 4)))
+        return self._calibrate(checked, image_sizes, names, focal_px, principal_point, errors, filtered=True)
+
+    # ------------------------------------------------------------------ internals
+
+    @staticmethod
+    def _per_image(value, count: int, name: str, width: int = 1) -> list:
+        if value is None:
+            return [None] * count
+        if np.isscalar(value) or (width == 2 and len(value) == 2 and np.isscalar(value[0])):
+            return [value] * count
+        value = list(value)
+        if len(value) != count:
+            raise FRInputError(f"{name}: expected one value per image ({count}), got {len(value)}")
+        return value
+
+    def _calibrate(self, segments, sizes, names, focal_px, principal_point, errors, filtered) -> list[CalibrationResult]:
+        count = len(segments)
+        focal_list = self._per_image(focal_px, count, "focal_px")
+        pp_list = self._per_image(principal_point, count, "principal_point", width=2)
+        results = [CalibrationResult(image=names[i], width=int(sizes[i][0]), height=int(sizes[i][1]))
+                   for i in range(count)]
+        for i, message in errors.items():
+            results[i].ok, results[i].reason = False, message
+        for i in range(count):
+            if i in errors:
+                continue
+            f = focal_list[i]
+            if f is not None and not (np.isfinite(f) and f > 0):
+                results[i].ok, results[i].reason = False, f"{names[i]}: focal length must be a positive number, got {f}"
+            elif len(segments[i]) == 0:
+                results[i].ok, results[i].reason = False, "no line segments found: cannot calibrate"
+                results[i].segments, results[i].labels = np.zeros((0, 4)), np.zeros(0, int)
+        todo = [i for i in range(count) if results[i].ok]
+        # Images with and without a known focal length are searched separately (4-D vs 3-D grid).
+        for known in (False, True):
+            group = [i for i in todo if (focal_list[i] is not None) == known]
+            if group:
+                self._search_group(group, segments, sizes, focal_list, pp_list, results, known)
+        return results
+
+    def _search_group(self, group, segments, sizes, focal_list, pp_list, results, known_focal: bool):
+        start_all = time.perf_counter()
+        device, dtype = self.device, self.dtype
+        batch = SegmentBatch.from_list([segments[i] for i in group], [sizes[i] for i in group], device, dtype)
+        width = torch.tensor([float(sizes[i][0]) for i in group], dtype=torch.float64)
+        height = torch.tensor([float(sizes[i][1]) for i in group], dtype=torch.float64)
+        pp = torch.stack([torch.tensor(pp_list[i], dtype=torch.float64) if pp_list[i] is not None
+                          else torch.stack([width[j] / 2, height[j] / 2]) for j, i in enumerate(group)])
+        features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
+        focal = torch.tensor([float(focal_list[i]) for i in group], dtype=torch.float64) if known_focal else None
+
+        t0 = time.perf_counter()
+        hypotheses = grid_hypotheses(self.search, width, focal)
+        grid_scores = score_grid(self.likelihood, features, hypotheses, self.search.max_chunk_elements)
+        t1 = time.perf_counter()
+
+        top_l = min(self.search.top_l, grid_scores.shape[1])
+        top_scores, top_index = grid_scores.topk(top_l, dim=1)
+        starts = torch.gather(hypotheses.to(device), 1, top_index[..., None].expand(-1, -1, 4))
+        lower, upper = parameter_box(self.search, width, focal)
+        refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
+                                         fast=self.mode == "fast")
+        # Keep the best of {best grid point, refined points}.
+        candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
+        candidate_scores = torch.cat([top_scores[:, :1], refined_scores], 1)
+        best = candidate_scores.argmax(1)
+        rows = torch.arange(len(group), device=device)
+        best_params = candidates[rows, best].to(torch.float64)
+        best_scores = candidate_scores[rows, best]
+        t2 = time.perf_counter()
+
+        rotation = hypothesis_rotations(best_params)  # float64 (B, 3, 3)
+        posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, 3].to(dtype))
+        labels = posterior[:, 0].argmax(-1)
+        cues = self._cues(grid_scores, labels, log_p[:, 0], batch.mask)
+        t3 = time.perf_counter()
+
+        angles = angles_from_rotation(rotation)
+        vps = (intrinsics(best_params[:, 3], pp) @ rotation).transpose(-1, -2)  # rows = VPs
+        vps = vps * torch.where(vps[..., 2:] < 0, -1.0, 1.0)
+        timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
+        for j, i in enumerate(group):
+            n = int(batch.mask[j].sum())
+            r = results[i]
+            r.focal_px = float(best_params[j, 3])
+            r.hfov_deg = float(hfov_from_focal(best_params[j, 3], width[j]))
+            r.principal_point = (float(pp[j, 0]), float(pp[j, 1]))
+            r.rotation = rotation[j].cpu().numpy()
+            for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg"):
+                setattr(r, key, float(angles[key][j]))
+            r.vanishing_points = vps[j].cpu().numpy()
+            r.log_likelihood = float(best_scores[j])
+            r.num_segments = n
+            r.segments = segments[i]
+            r.labels = labels[j, :n].cpu().numpy()
+            r.cues = {key: float(value[j]) for key, value in cues.items()}
+            r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
+            r.reliable, r.reason = self._sanity(r)
+
+    def _cues(self, grid_scores, labels, log_p, mask) -> dict[str, torch.Tensor]:
+        """The three reliability cues (paper §3.4), per image.
+
+        * ``min_family_segments``: smallest number of segments labelled (argmax posterior) with one
+          of the three Manhattan families; background excluded; raw counts.
+        * ``grid_entropy``: entropy (nats) of the stage-1 grid likelihoods normalised into a
+          distribution, ``p_j = softmax_j(L_j / N)`` with N the number of segments (a softmax at
+          temperature N, as in the authors' code; unlike the code we do not divide the entropy by N
+          again — reference spec §12 D7).
+        * ``mean_log_likelihood``: mean over segments of log p_i at the final estimate (the
+          paper's definition; the MATLAB release uses the mean log max-posterior, §12 D6).
+        """
+        n = mask.sum(-1).clamp_min(1)
+        counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
+        log_q = torch.log_softmax(grid_scores / n[:, None].to(grid_scores), -1)
+        entropy = -(log_q.exp() * log_q).sum(-1)
+        mean_log = (log_p * mask).sum(-1) / n
+        return {"min_family_segments": counts.min(-1).values.to(torch.float64),
+                "grid_entropy": entropy.to(torch.float64),
+                "mean_log_likelihood": mean_log.to(torch.float64)}
+
+    def _sanity(self, r: CalibrationResult) -> tuple[bool, str]:
+        reasons = []
+        if r.num_segments < self.min_segments:
+            reasons.append(f"only {r.num_segments} segments (< {self.min_segments})")
+        if r.cues.get("min_family_segments", 0) < self.min_family_segments:
+            reasons.append(f"a Manhattan family has only {int(r.cues['min_family_segments'])} segments "
+                           "(scene may not be Manhattan)")
+        if not all(math.isfinite(v) for v in (r.focal_px, r.roll_deg, r.tilt_deg)):
+            reasons.append("non-finite estimate")
+        return (not reasons), "; ".join(reasons)
+
+
+def calibrate(inputs: Sequence, mode: str = "fr", **kwargs) -> list[CalibrationResult]:
+    """One-call API: calibrate images (paths or arrays) with fR (``mode="fr"``) or Fast-fR (``"fast"``).
+
+    Keyword arguments go to :class:`FREstimator` (measure, detector, device, dtype, ...) or to
+    :meth:`FREstimator.calibrate_images` (focal_px, principal_point, names).
+    """
+    call_keys = {"focal_px", "principal_point", "names"}
+    call_kwargs = {k: kwargs.pop(k) for k in list(kwargs) if k in call_keys}
+    return FREstimator(mode=mode, **kwargs).calibrate_images(inputs, **call_kwargs)

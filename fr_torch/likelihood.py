@@ -1,0 +1,252 @@
+"""Deviation measures (a)-(e) and the 4-way mixture likelihood of line segments.
+
+Every segment is explained by one of the three Manhattan families (vanishing point i = K R[:, i];
+column 1 is the vertical) or by a uniform background.  Shapes: B images, H hypotheses per image,
+N segments per image (padded; ``mask`` marks the real ones), 3 vanishing points.
+
+All computations use the *homogeneous* vanishing point, so a VP at infinity (third coordinate
+0) needs no special case: for a segment with unit direction d, midpoint m and homogeneous line
+``l = (-d_y, d_x, d_y m_x - d_x m_y)`` (unit normal, so ``l . (x, y, 1)`` is the signed distance
+of pixel (x, y) from the segment's line), and ``g = (d_x, d_y, -d . m)`` (``g . (x, y, 1)`` is the
+signed position of (x, y) along the segment from its midpoint), a VP ``v`` gives
+
+* ``s = l . v`` — v3 times the signed distance of the VP from the segment's line;
+* ``t = g . v`` — v3 times the VP's position along the segment direction.
+
+Deviation measures (internal units: radians for b and e, pixels for a, c, d):
+
+(a) distance from the VP to the segment's line, ``|s| / |v3|`` (saturates at ``range`` px);
+(b) angle between the segment and the line from its midpoint to the VP, ``atan2(|s|, |t|)`` —
+    the default; a segment whose midpoint coincides with the VP gets 0;
+(c) distance from an endpoint to the line through the midpoint and the VP, ``(len/2) sin(b)``;
+(d) endpoint distance measured orthogonally to the segment, ``(len/2) tan(b)``;
+(e) Gauss-sphere angle between the VP direction ``D = K^-1 v`` and the segment's interpretation
+    plane (normal ``n = K^T l``): ``asin(|n . D| / (|n| |D|))``, where ``n . D = s``.
+
+Likelihoods: exponential ``exp(-x / lambda) / lambda`` for a, b, c, e; half-normal (a central
+Gaussian on the signed deviation, sigma = 1 px by default) for d; background uniform over the
+measure's range (pi/2 for b and e, ``range`` px for a, the half length for c and d; measures are
+clamped to their range).  Objective: ``sum_i len_i * log p_i``.
+
+The vertical parameters (lambda and prior) go on the world-up column (column 1), as in the
+paper.  The authors' MATLAB release attaches them to a horizontal column (reference spec §12 D1);
+we follow the paper.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from .camera import VERTICAL_AXIS, intrinsics
+from .segments import SegmentBatch
+
+MEASURES = ("a", "b", "c", "d", "e")
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+DEFAULT_LIKELIHOOD_CONFIG = CONFIG_DIR / "likelihood.json"
+_TINY = 1e-6  # guards atan2(0, 0) and its gradient when a segment midpoint sits on a VP
+
+
+@dataclass(frozen=True)
+class LikelihoodParams:
+    """Mixture parameters for one deviation measure, in internal units (radians or pixels).
+
+    ``scale_vertical`` / ``scale_horizontal``: exponential mean lambda (or Gaussian sigma for d).
+    ``range_px``: background range for measure a (pixels).  Priors sum to 1.
+    """
+
+    measure: str = "b"
+    scale_vertical: float = math.radians(0.57)
+    scale_horizontal: float = math.radians(1.46)
+    prior_vertical: float = 0.45
+    prior_horizontal: float = 0.26
+    prior_background: float = 0.03
+    range_px: float = 2000.0
+
+    @classmethod
+    def from_config(cls, measure: str | None = None, path: str | Path | None = None) -> "LikelihoodParams":
+        """Read ``configs/likelihood.json`` (or ``path``); angles there are in degrees."""
+        path = Path(path) if path is not None else DEFAULT_LIKELIHOOD_CONFIG
+        config = json.loads(path.read_text())
+        measure = measure or config.get("default_measure", "b")
+        if measure not in MEASURES:
+            raise ValueError(f"unknown deviation measure {measure!r}; choose one of {', '.join(MEASURES)}")
+        entry = config["measures"][measure]
+        to_internal = math.radians if entry.get("unit") == "deg" else float
+        if measure == "d":
+            scale_v = scale_h = float(entry.get("sigma", 1.0))
+        else:
+            scale_v, scale_h = to_internal(entry["lambda_vertical"]), to_internal(entry["lambda_horizontal"])
+        priors = config["priors"]
+        total = priors["vertical"] + 2 * priors["horizontal"] + priors["background"]
+        return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h,
+                   prior_vertical=priors["vertical"] / total, prior_horizontal=priors["horizontal"] / total,
+                   prior_background=priors["background"] / total,
+                   range_px=float(entry.get("range_px", cls.range_px)))
+
+
+@dataclass
+class SegmentFeatures:
+    """Per-segment quantities the likelihood needs, (B, N, ...) tensors (see module docstring)."""
+
+    line: torch.Tensor  # (B, N, 3) l, unit normal
+    along: torch.Tensor  # (B, N, 3) g
+    half_length: torch.Tensor  # (B, N) pixels
+    weight: torch.Tensor  # (B, N) length in pixels, 0 for padding
+    mask: torch.Tensor  # (B, N) bool
+    principal_point: torch.Tensor  # (B, 2) pixels
+
+    @classmethod
+    def from_batch(cls, batch: SegmentBatch, principal_point: torch.Tensor) -> "SegmentFeatures":
+        return cls.from_endpoints(batch.endpoints, batch.mask, principal_point)
+
+    @classmethod
+    def from_endpoints(cls, endpoints: torch.Tensor, mask: torch.Tensor | None,
+                       principal_point: torch.Tensor) -> "SegmentFeatures":
+        p1, p2 = endpoints[..., :2], endpoints[..., 2:]
+        delta = p2 - p1
+        length = torch.linalg.vector_norm(delta, dim=-1)
+        if mask is None:
+            mask = torch.ones_like(length, dtype=torch.bool)
+        mask = mask & (length > 0)
+        d = delta / length.clamp_min(1e-12).unsqueeze(-1)
+        m = (p1 + p2) / 2
+        line = torch.stack([-d[..., 1], d[..., 0], d[..., 1] * m[..., 0] - d[..., 0] * m[..., 1]], -1)
+        along = torch.stack([d[..., 0], d[..., 1], -(d * m).sum(-1)], -1)
+        pp = principal_point.to(endpoints).expand(endpoints.shape[0], 2)
+        return cls(line, along, length / 2, length * mask, mask, pp)
+
+
+def _incidence(features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor):
+    """s = l . v and t = g . v for the homogeneous VPs v = K R[:, k].
+
+    Returns s, t with shape (B, N, H, 3) (segments before hypotheses: the layout of one batched
+    matrix product, (B, N, 3) x (B, 3, 3H)) and v3 with shape (B, 1, H, 3).
+    """
+    vps = intrinsics(focal, features.principal_point[:, None, :]) @ rotation  # (B, H, 3, 3)
+    batch, hyp = vps.shape[:2]
+    flat = vps.permute(0, 2, 1, 3).reshape(batch, 3, hyp * 3)  # (B, 3 coords, H * 3 VPs)
+    s = torch.bmm(features.line, flat).view(batch, -1, hyp, 3)
+    t = torch.bmm(features.along, flat).view(batch, -1, hyp, 3)
+    return s, t, vps[:, None, :, 2, :]
+
+
+def deviations_from_incidence(measure: str, s: torch.Tensor, t: torch.Tensor, v3: torch.Tensor,
+                              features: SegmentFeatures, focal: torch.Tensor,
+                              range_px: float = LikelihoodParams.range_px) -> torch.Tensor:
+    """Deviation of every segment from every VP, internal units (rad or px).
+
+    ``s``, ``t``: (B, N, H, 3); ``v3``: (B, 1, H, 3); ``focal``: (B, H).  Returns (B, N, H, 3).
+    """
+    abs_s = s.abs()
+    if measure == "a":
+        return range_px * abs_s / (torch.maximum(abs_s, range_px * v3.abs()) + _TINY)
+    if measure == "e":
+        # |n| for n = K^T l: (f l_x, f l_y, l . (c, 1)) with (l_x, l_y) a unit vector; |D| = |R[:, k]| = 1.
+        pp_h = torch.cat([features.principal_point, torch.ones_like(features.principal_point[:, :1])], -1)
+        offset = (features.line * pp_h[:, None, :]).sum(-1)
+        normal_norm = torch.sqrt(focal[:, None, :] ** 2 + offset[:, :, None] ** 2)  # (B, N, H)
+        return torch.asin((abs_s / normal_norm[..., None]).clamp(max=1.0))
+    angle = torch.atan2(abs_s, t.abs() + _TINY)
+    if measure == "b":
+        return angle
+    half = features.half_length[:, :, None, None]
+    if measure == "c":
+        return half * torch.sin(angle)
+    if measure == "d":
+        return torch.minimum(half * torch.tan(angle.clamp(max=math.pi / 2 - 1e-6)), half)
+    raise ValueError(f"unknown deviation measure {measure!r}")
+
+
+def deviations(measure: str, endpoints: torch.Tensor, vps: torch.Tensor, focal: torch.Tensor,
+               principal_point: torch.Tensor, mask: torch.Tensor | None = None,
+               range_px: float = LikelihoodParams.range_px) -> torch.Tensor:
+    """Deviation of segments (B, N, 4) from homogeneous VPs ``vps`` (B, H, 3, 3; column k = VP k).
+
+    ``focal`` (B, H) and ``principal_point`` (B, 2) in pixels (needed by measure e).  Returns
+    (B, H, N, 3) in radians (b, e) or pixels (a, c, d).
+    """
+    features = SegmentFeatures.from_endpoints(endpoints, mask, principal_point)
+    if measure == "e":  # normalise so that |K^-1 v| = 1, as for a column of R
+        pp = features.principal_point[:, None, :, None]
+        direction = torch.stack([(vps[:, :, 0] - pp[..., 0, :] * vps[:, :, 2]) / focal[..., None],
+                                 (vps[:, :, 1] - pp[..., 1, :] * vps[:, :, 2]) / focal[..., None],
+                                 vps[:, :, 2]], -2)
+        vps = vps / torch.linalg.vector_norm(direction, dim=-2)[:, :, None, :]
+    s = torch.einsum("bnc,bhck->bnhk", features.line, vps)
+    t = torch.einsum("bnc,bhck->bnhk", features.along, vps)
+    x = deviations_from_incidence(measure, s, t, vps[:, None, :, 2, :], features, focal, range_px)
+    return x.transpose(1, 2)
+
+
+class MixtureLikelihood:
+    """The fR mixture model for one deviation measure; all methods are batched tensor ops.
+
+    Hypotheses come as rotations (B, H, 3, 3) and focal lengths (B, H) in pixels.
+    """
+
+    def __init__(self, params: LikelihoodParams | None = None):
+        self.params = params or LikelihoodParams.from_config()
+
+    def _family_constants(self, like: torch.Tensor):
+        """Per-family prior and scale, (3,) tensors, vertical parameters on column 1."""
+        p = self.params
+        scale = like.new_tensor([p.scale_horizontal] * 3)
+        scale[VERTICAL_AXIS] = p.scale_vertical
+        prior = like.new_tensor([p.prior_horizontal] * 3)
+        prior[VERTICAL_AXIS] = p.prior_vertical
+        return prior, scale
+
+    def _log_background(self, x: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:
+        """log(prior * uniform density) of the background, broadcastable to (B, N, H, 1)."""
+        p = self.params
+        if p.measure in ("b", "e"):
+            return x.new_full((1, 1, 1, 1), math.log(p.prior_background / (math.pi / 2)))
+        if p.measure == "a":
+            return x.new_full((1, 1, 1, 1), math.log(p.prior_background / p.range_px))
+        half = features.half_length.clamp_min(1e-6)[:, :, None, None]  # c, d: uniform on [0, len/2]
+        return math.log(p.prior_background) - torch.log(half)
+
+    def _deviations(self, features, rotation, focal) -> torch.Tensor:
+        s, t, v3 = _incidence(features, rotation, focal)
+        return deviations_from_incidence(self.params.measure, s, t, v3, features, focal, self.params.range_px)
+
+    def _component_log_densities(self, x: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:
+        """log(prior * density) of the 3 families and the background, (B, N, H, 4)."""
+        prior, scale = self._family_constants(x)
+        if self.params.measure == "d":
+            family = torch.log(prior * math.sqrt(2 / math.pi) / scale) - 0.5 * (x / scale) ** 2
+        else:
+            family = torch.log(prior / scale) - x / scale
+        background = self._log_background(x, features).expand_as(x[..., :1])
+        return torch.cat([family, background], -1)
+
+    def segment_log_likelihood(self, features: SegmentFeatures, rotation: torch.Tensor,
+                               focal: torch.Tensor) -> torch.Tensor:
+        """log p_i of every segment under every hypothesis, (B, N, H).
+
+        Fast path: the background term keeps p_i >= prior_bg * density_bg > 0, so the mixture is
+        summed directly, without a log-sum-exp.
+        """
+        x = self._deviations(features, rotation, focal)
+        prior, scale = self._family_constants(x)
+        if self.params.measure == "d":
+            density = torch.exp(-0.5 * (x / scale) ** 2) * (prior * math.sqrt(2 / math.pi) / scale)
+        else:
+            density = torch.exp(x * (-1.0 / scale)) * (prior / scale)
+        background = torch.exp(self._log_background(density, features))[..., 0]
+        return torch.log(density.sum(-1) + background)
+
+    def objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor) -> torch.Tensor:
+        """Length-weighted log-likelihood sum_i len_i log p_i, (B, H)."""
+        log_p = self.segment_log_likelihood(features, rotation, focal)
+        return torch.einsum("bnh,bn->bh", log_p, features.weight)
+
+    def posteriors(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor):
+        """(posterior over the 4 components (B, H, N, 4), log p_i (B, H, N)); column 3 = background."""
+        log_components = self._component_log_densities(self._deviations(features, rotation, focal), features)
+        log_p = torch.logsumexp(log_components, -1)
+        return torch.exp(log_components - log_p[..., None]).transpose(1, 2), log_p.transpose(1, 2)

@@ -1,0 +1,69 @@
+"""fR and Fast-fR behind the common :class:`~fr_torch.interface.Calibrator` interface.
+
+Registered names: ``fr``, ``fast-fr`` (image in, LSD or another detector), and ``oracle-fr``
+(fR run on the segments given in ``ImageMeta.segments``, e.g. YUD's hand-labelled lines: the
+upper bound of a line-based method).  Options select configurations:
+``fr[measure=a]`` ... ``fr[measure=e]`` (deviation measure), ``fr[detector=mcmlsd]``.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .estimator import CalibrationResult, FREstimator
+from .interface import CameraEstimate, ImageMeta, register
+
+
+def estimate_from_result(method: str, result: CalibrationResult, runtime_s: float) -> CameraEstimate:
+    """Convert an fR result into the common estimate record."""
+    if not result.ok:
+        return CameraEstimate.failure(method, result.reason, runtime_s)
+    return CameraEstimate(
+        method=method, focal_px=result.focal_px, hfov_deg=result.hfov_deg, rotation=result.rotation,
+        roll_deg=result.roll_deg, tilt_deg=result.tilt_deg, pitch_deg=result.pitch_deg, pan_deg=result.pan_deg,
+        predicted_error=result.predicted_error, reliable=result.reliable, runtime_s=runtime_s, reason=result.reason,
+        extra={"cues": result.cues, "num_segments": result.num_segments, "log_likelihood": result.log_likelihood,
+               "stage_runtime_s": result.runtime_s},
+    )
+
+
+class FRCalibrator:
+    """fR / Fast-fR as a Calibrator.  ``use_meta_segments``: calibrate from ``meta.segments``."""
+
+    def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
+                 use_meta_segments: bool = False, name: str | None = None, **estimator_kwargs):
+        self.estimator = FREstimator(mode=mode, measure=measure, detector=detector, device=device, **estimator_kwargs)
+        self.use_meta_segments = use_meta_segments
+        base = name or ("fr" if mode == "fr" else "fast-fr")
+        options = [f"measure={measure}"] if measure else []
+        options += [f"detector={detector}"] if detector != "lsd" else []
+        self.name = f"{base}[{','.join(options)}]" if options else base
+
+    def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
+        start = time.perf_counter()
+        if self.use_meta_segments:
+            if meta.segments is None:
+                return CameraEstimate.failure(self.name, "n/a (no segments supplied)")
+            [result] = self.estimator.calibrate_segments([meta.segments], [(meta.width, meta.height)],
+                                                         names=[meta.name], focal_px=meta.focal_px,
+                                                         principal_point=meta.principal_point)
+        else:
+            [result] = self.estimator.calibrate_images([image], names=[meta.name], focal_px=meta.focal_px,
+                                                       principal_point=meta.principal_point)
+        return estimate_from_result(self.name, result, time.perf_counter() - start)
+
+
+@register("fr")
+def make_fr(**kwargs) -> FRCalibrator:
+    return FRCalibrator(mode="fr", **kwargs)
+
+
+@register("fast-fr")
+def make_fast_fr(**kwargs) -> FRCalibrator:
+    return FRCalibrator(mode="fast", **kwargs)
+
+
+@register("oracle-fr")
+def make_oracle_fr(**kwargs) -> FRCalibrator:
+    return FRCalibrator(mode="fr", use_meta_segments=True, name="oracle-fr", **kwargs)

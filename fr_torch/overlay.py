@@ -1,0 +1,60 @@
+"""Draw an fR result over its image: segments coloured by Manhattan family, and the horizon."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .camera import VERTICAL_AXIS
+from .estimator import BACKGROUND_LABEL, CalibrationResult
+
+# BGR colours: family of column 0 red, vertical (column 1) green, column 2 blue, background grey.
+FAMILY_COLOURS = {0: (40, 40, 230), 1: (40, 200, 40), 2: (230, 120, 30), BACKGROUND_LABEL: (150, 150, 150)}
+HORIZON_COLOUR = (0, 220, 255)
+
+
+def horizon_endpoints(result: CalibrationResult):
+    """The horizon (vanishing line of horizontal planes, l = K^-T R[:, vertical]) clipped to the image.
+
+    Returns ((x1, y1), (x2, y2)) in pixels, or None when the horizon is outside the image.
+    """
+    if result.rotation is None:
+        return None
+    cx, cy = result.principal_point
+    K = np.array([[result.focal_px, 0, cx], [0, result.focal_px, cy], [0, 0, 1.0]])
+    line = np.linalg.inv(K).T @ result.rotation[:, VERTICAL_AXIS]
+    w, h = result.width, result.height
+    points = []
+    if abs(line[1]) > 1e-12:  # intersections with the left and right borders
+        points += [(x, -(line[0] * x + line[2]) / line[1]) for x in (0.0, w - 1.0)]
+    if abs(line[0]) > 1e-12:  # with the top and bottom borders
+        points += [(-(line[1] * y + line[2]) / line[0], y) for y in (0.0, h - 1.0)]
+    inside = [(x, y) for x, y in points if -0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5]
+    if len(inside) < 2:
+        return None
+    inside.sort()
+    return inside[0], inside[-1]
+
+
+def draw_overlay(image_bgr: np.ndarray, result: CalibrationResult) -> np.ndarray:
+    """A copy of the image (darkened) with coloured segments, the horizon and a caption."""
+    canvas = (image_bgr.astype(np.float32) * 0.6).astype(np.uint8)
+    if result.segments is not None and result.labels is not None:
+        order = np.argsort(result.labels == BACKGROUND_LABEL)[::-1]  # background first, families on top
+        for idx in order:
+            x1, y1, x2, y2 = result.segments[idx]
+            colour = FAMILY_COLOURS[int(result.labels[idx])]
+            cv2.line(canvas, (int(round(x1)), int(round(y1))), (int(round(x2)), int(round(y2))), colour, 2, cv2.LINE_AA)
+    ends = horizon_endpoints(result)
+    if ends is not None:
+        a, b = (tuple(int(round(v)) for v in p) for p in ends)
+        cv2.line(canvas, a, b, HORIZON_COLOUR, 2, cv2.LINE_AA)
+    if result.ok:
+        caption = (f"f={result.focal_px:.0f}px hfov={result.hfov_deg:.1f}  roll={result.roll_deg:+.2f}  "
+                   f"tilt={result.tilt_deg:+.2f}  pan={result.pan_deg:+.1f} deg")
+        if not result.reliable:
+            caption += "  [UNRELIABLE]"
+    else:
+        caption = f"no estimate: {result.reason}"
+    cv2.putText(canvas, caption, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(canvas, caption, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return canvas

@@ -1,0 +1,162 @@
+"""Two-stage search for (f, R): a k^4 grid, then batched refinement of the best l grid points.
+
+Stage 1 scores every grid hypothesis (pan x pitch x roll x focal, k values each, cell centres
+of the ranges; focal spaced linearly in f between f(hfov_max) and f(hfov_min)) as one batched
+tensor computation, chunked so that at most ``max_chunk_elements`` per-segment deviations exist at
+once.  Stage 2 refines the top ``top_l`` grid points of every image together with ``torch.optim``
+(Adam on box-normalised parameters, projected back into the box after every step), focal length
+included (the MATLAB release pins f to its grid value; we refine it continuously, as the paper
+does).  ``fr`` mode runs ``refine_iterations_fr`` steps with a decaying step size, ``fast`` mode
+``refine_iterations_fast`` (10).  Each hypothesis' update depends only on its own gradient, so a
+batch gives the same answer as images one by one.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import torch
+
+from .camera import focal_from_hfov, rotation_from_angles
+from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures
+
+PARAMS = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """Search settings (angles in degrees).  Defaults are the paper's; see ``configs/search.json``."""
+
+    grid_points_per_dim: int = 8
+    pan_range_deg: tuple[float, float] = (-45.0, 45.0)
+    pitch_range_deg: tuple[float, float] = (-35.0, 35.0)
+    roll_range_deg: tuple[float, float] = (-15.0, 15.0)
+    hfov_range_deg: tuple[float, float] = (50.0, 130.0)
+    top_l: int = 4
+    refine_iterations_fr: int = 100
+    refine_iterations_fast: int = 10
+    max_chunk_elements: int = 1 << 24
+
+    @classmethod
+    def from_config(cls, path: str | Path | None = None, **overrides) -> "SearchConfig":
+        path = Path(path) if path is not None else CONFIG_DIR / "search.json"
+        values = json.loads(path.read_text()) if path.exists() else {}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+        return replace(cls(**values), **overrides)
+
+    def iterations(self, mode: str) -> int:
+        if mode not in ("fr", "fast"):
+            raise ValueError(f"mode must be 'fr' or 'fast', got {mode!r}")
+        return self.refine_iterations_fr if mode == "fr" else self.refine_iterations_fast
+
+
+def _cell_centres(low: float, high: float, k: int) -> torch.Tensor:
+    return low + (torch.arange(k, dtype=torch.float64) + 0.5) * (high - low) / k
+
+
+def focal_bounds(config: SearchConfig, width: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(f_min, f_max) in pixels for each image width (B,): f(hfov_max), f(hfov_min)."""
+    width = width.to(torch.float64)
+    return focal_from_hfov(torch.tensor(config.hfov_range_deg[1], dtype=torch.float64), width), \
+        focal_from_hfov(torch.tensor(config.hfov_range_deg[0], dtype=torch.float64), width)
+
+
+def parameter_box(config: SearchConfig, width: torch.Tensor, known_focal: torch.Tensor | None):
+    """Lower and upper bounds, (B, 4) float64, of [pan, pitch, roll, focal] per image."""
+    f_lo, f_hi = focal_bounds(config, width)
+    if known_focal is not None:
+        f_lo = f_hi = known_focal.to(torch.float64)
+    lo = torch.stack([torch.full_like(f_lo, config.pan_range_deg[0]), torch.full_like(f_lo, config.pitch_range_deg[0]),
+                      torch.full_like(f_lo, config.roll_range_deg[0]), f_lo], -1)
+    hi = torch.stack([torch.full_like(f_hi, config.pan_range_deg[1]), torch.full_like(f_hi, config.pitch_range_deg[1]),
+                      torch.full_like(f_hi, config.roll_range_deg[1]), f_hi], -1)
+    return lo, hi
+
+
+def grid_hypotheses(config: SearchConfig, width: torch.Tensor, known_focal: torch.Tensor | None = None):
+    """Grid of [pan, pitch, roll, focal] per image: (B, G, 4) float64, G = k^4 (k^3 with known f).
+
+    Order: focal slowest, then pitch, pan, roll fastest.
+    """
+    k = config.grid_points_per_dim
+    pan = _cell_centres(*config.pan_range_deg, k)
+    pitch = _cell_centres(*config.pitch_range_deg, k)
+    roll = _cell_centres(*config.roll_range_deg, k)
+    angles = torch.cartesian_prod(pitch, pan, roll)[:, [1, 0, 2]]  # (k^3, 3) as [pan, pitch, roll]
+    if known_focal is not None:
+        focal = known_focal.to(torch.float64)[:, None]
+    else:
+        f_lo, f_hi = focal_bounds(config, width)
+        focal = f_lo[:, None] + (torch.arange(k, dtype=torch.float64) + 0.5) * (f_hi - f_lo)[:, None] / k
+    batch, n_focal = focal.shape
+    hyp = torch.cat([angles.expand(batch, n_focal, -1, -1),
+                     focal[:, :, None, None].expand(-1, -1, angles.shape[0], 1)], -1)
+    return hyp.reshape(batch, -1, 4)
+
+
+def hypothesis_rotations(params: torch.Tensor) -> torch.Tensor:
+    """World->camera R (..., 3, 3) from [pan, pitch, roll, focal] parameters (..., 4)."""
+    return rotation_from_angles(params[..., 0], params[..., 1], params[..., 2])
+
+
+def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypotheses: torch.Tensor,
+               max_chunk_elements: int) -> torch.Tensor:
+    """Length-weighted log-likelihood of every hypothesis, (B, G), in chunks of hypotheses."""
+    batch, count = hypotheses.shape[:2]
+    n_seg = max(1, features.weight.shape[1])
+    chunk = max(1, max_chunk_elements // (batch * n_seg * 3))
+    dtype = features.weight.dtype
+    scores = []
+    with torch.no_grad():
+        for start in range(0, count, chunk):
+            part = hypotheses[:, start:start + chunk].to(features.weight.device)
+            rotation = hypothesis_rotations(part).to(dtype)
+            scores.append(likelihood.objective(features, rotation, part[..., 3].to(dtype)))
+    return torch.cat(scores, 1)
+
+
+def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
+           lower: torch.Tensor, upper: torch.Tensor, iterations: int, fast: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """Refine starts (B, L, 4) inside the box [lower, upper] (B, 4).  Returns (params, objective).
+
+    Parameters are optimised as u = (p - lower) / (upper - lower) in [0, 1] (a degenerate box,
+    e.g. a known focal length, keeps that parameter fixed).  The loss of every hypothesis is its
+    negative log-likelihood divided by the image's total segment length, so step sizes do not
+    depend on how many segments an image has.
+    """
+    dtype, device = features.weight.dtype, features.weight.device
+    lower = lower.to(device=device, dtype=dtype)[:, None, :]
+    upper = upper.to(device=device, dtype=dtype)[:, None, :]
+    span = (upper - lower)
+    free = span > 0
+    span_safe = torch.where(free, span, torch.ones_like(span))
+    u = ((starts.to(device=device, dtype=dtype) - lower) / span_safe).clamp(0, 1).detach().requires_grad_(True)
+    total_length = features.weight.sum(-1).clamp_min(1e-9)[:, None]
+    # Step sizes in box units: about a quarter of a grid cell at first, decaying geometrically.
+    cell = 1.0 / 8
+    lr0 = 0.25 * cell
+    lr_final = (0.02 if fast else 0.002) * cell
+    gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
+    optimiser = torch.optim.Adam([u], lr=lr0, betas=(0.5, 0.9))
+    schedule = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
+
+    def evaluate(u_value):
+        params = lower + u_value * span
+        rotation = rotation_from_angles(params[..., 0], params[..., 1], params[..., 2])
+        return params, likelihood.objective(features, rotation, params[..., 3])
+
+    for _ in range(iterations):
+        optimiser.zero_grad(set_to_none=True)
+        _, objective = evaluate(u)
+        loss = -(objective / total_length).sum()
+        loss.backward()
+        u.grad = torch.where(free, u.grad, torch.zeros_like(u.grad))
+        optimiser.step()
+        schedule.step()
+        with torch.no_grad():
+            u.clamp_(0.0, 1.0)
+    with torch.no_grad():
+        params, objective = evaluate(u)
+    return params.detach(), objective.detach()
