@@ -60,6 +60,7 @@ class CalibrationResult:
     vanishing_points: np.ndarray | None = None  # (3, 3): row i = homogeneous VP i (x, y, w), w >= 0
     log_likelihood: float | None = None
     num_segments: int = 0
+    manhattan_fraction: float | None = None  # share of total segment length labelled with a family
     segments: np.ndarray | None = None  # (N, 4) the segments used
     labels: np.ndarray | None = None  # (N,) 0, 1, 2 = Manhattan column (1 = vertical), 3 = background
     cues: dict[str, float] = field(default_factory=dict)
@@ -87,13 +88,16 @@ class FREstimator:
     ``measure``: deviation measure a-e (default from ``configs/likelihood.json``: b).
     ``detector``: name of a registered detector (``lsd`` default) or a detector object.
     ``dtype``: float32 (default) or float64 (reference).
-    ``min_segments``: fewer segments than this -> ``reliable = False``.
+    ``min_segments``: fewer segments than this -> ``reliable = False``; likewise when a Manhattan
+    family has fewer than ``min_family_segments`` segments, or when less than
+    ``min_manhattan_fraction`` of the total segment length is labelled with a Manhattan family
+    (random texture, nature scenes: real built scenes measure 0.75-0.95 with LSD).
     """
 
     def __init__(self, mode: str = "fr", measure: str | None = None, detector="lsd", device: str = "cpu",
                  dtype: torch.dtype = torch.float32, likelihood_params: LikelihoodParams | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
-                 min_segments: int = 10, min_family_segments: int = 2):
+                 min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6):
         self.mode = mode
         self.search = search_config or SearchConfig.from_config()
         self.iterations = self.search.iterations(mode)
@@ -106,6 +110,7 @@ class FREstimator:
         self.segment_filter = segment_filter or SegmentFilter()
         self.min_segments = min_segments
         self.min_family_segments = min_family_segments
+        self.min_manhattan_fraction = min_manhattan_fraction
 
     # ------------------------------------------------------------------ public API
 
@@ -254,6 +259,8 @@ class FREstimator:
             r.num_segments = n
             r.segments = segments[i]
             r.labels = labels[j, :n].cpu().numpy()
+            lengths = batch.lengths[j, :n].cpu().numpy()
+            r.manhattan_fraction = float(lengths[r.labels != BACKGROUND_LABEL].sum() / max(lengths.sum(), 1e-12))
             r.cues = {key: float(value[j]) for key, value in cues.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             r.reliable, r.reason = self._sanity(r)
@@ -286,6 +293,9 @@ class FREstimator:
         if r.cues.get("min_family_segments", 0) < self.min_family_segments:
             reasons.append(f"a Manhattan family has only {int(r.cues['min_family_segments'])} segments "
                            "(scene may not be Manhattan)")
+        if r.manhattan_fraction is not None and r.manhattan_fraction < self.min_manhattan_fraction:
+            reasons.append(f"only {100 * r.manhattan_fraction:.0f} % of the segment length follows a Manhattan "
+                           "frame (scene may not be Manhattan)")
         if not all(math.isfinite(v) for v in (r.focal_px, r.roll_deg, r.tilt_deg)):
             reasons.append("non-finite estimate")
         return (not reasons), "; ".join(reasons)

@@ -47,7 +47,7 @@ from .segments import SegmentBatch
 MEASURES = ("a", "b", "c", "d", "e")
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 DEFAULT_LIKELIHOOD_CONFIG = CONFIG_DIR / "likelihood.json"
-_TINY = 1e-6  # guards atan2(0, 0) and its gradient when a segment midpoint sits on a VP
+_TINY = 1e-30  # guards 0 / 0 in measure a
 
 
 @dataclass(frozen=True)
@@ -150,7 +150,9 @@ def deviations_from_incidence(measure: str, s: torch.Tensor, t: torch.Tensor, v3
         offset = (features.line * pp_h[:, None, :]).sum(-1)
         normal_norm = torch.sqrt(focal[:, None, :] ** 2 + offset[:, :, None] ** 2)  # (B, N, H)
         return torch.asin((abs_s / normal_norm[..., None]).clamp(max=1.0))
-    angle = torch.atan2(abs_s, t.abs() + _TINY)
+    abs_t = t.abs()
+    # A midpoint exactly on the VP (s = t = 0) gets angle 0 with a finite gradient.
+    angle = torch.atan2(abs_s, torch.where((abs_s == 0) & (abs_t == 0), torch.ones_like(abs_t), abs_t))
     if measure == "b":
         return angle
     half = features.half_length[:, :, None, None]

@@ -1,0 +1,79 @@
+"""End-to-end recovery of (f, R) from synthetic segments, batching, known focal, determinism."""
+import numpy as np
+import pytest
+import torch
+
+from fr_torch import FREstimator
+from fr_torch.camera import focal_from_hfov, horizon_angles, rotation_from_angles
+from fr_torch.synthetic import synthetic_segments
+from tests.conftest import gpu
+
+# Cameras (hfov, pan, pitch, roll) inside the search box; 0.5 px endpoint noise, 30 % clutter.
+CAMERAS = [(60.0, 20.0, 12.0, 4.0), (95.0, -33.0, -18.0, -7.0), (75.0, 8.0, 25.0, 9.0)]
+
+
+def _scene(i, hfov, pan, pitch, roll):
+    focal = focal_from_hfov(hfov, 640)
+    R = rotation_from_angles(torch.tensor(pan, dtype=torch.float64), pitch, roll).numpy()
+    segments, _ = synthetic_segments(focal, R, 640, 480, n_per_family=60, noise_px=0.5, clutter_fraction=0.3, seed=i)
+    return segments, focal, R
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return [_scene(i, *cam) for i, cam in enumerate(CAMERAS)]
+
+
+@pytest.mark.parametrize("mode", ["fr", "fast"])
+def test_recovers_synthetic_cameras(scenes, mode):
+    results = FREstimator(mode=mode).calibrate_segments([s for s, _, _ in scenes], [(640, 480)] * len(scenes))
+    for result, (_, focal, R) in zip(results, scenes):
+        truth = horizon_angles(torch.as_tensor(R))
+        assert result.ok and result.reliable, result.reason
+        assert abs(result.focal_px - focal) / focal < 0.02
+        assert abs(result.roll_deg - float(truth["roll_deg"])) < 0.3
+        assert abs(result.tilt_deg - float(truth["tilt_deg"])) < 0.3
+        assert np.allclose(result.rotation @ result.rotation.T, np.eye(3), atol=1e-6)
+        assert result.labels.shape == (result.num_segments,)
+        assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood"}
+        assert result.cues["min_family_segments"] >= 30
+
+
+def test_batch_equals_one_by_one_and_is_deterministic(scenes):
+    est = FREstimator(mode="fast")
+    segments = [s for s, _, _ in scenes]
+    batch = est.calibrate_segments(segments, [(640, 480)] * 3)
+    for i, seg in enumerate(segments):
+        [single] = est.calibrate_segments([seg], [(640, 480)])
+        for key in ("focal_px", "roll_deg", "tilt_deg", "pan_deg", "log_likelihood"):
+            assert getattr(batch[i], key) == pytest.approx(getattr(single, key), rel=1e-4, abs=1e-3)
+    again = est.calibrate_segments(segments, [(640, 480)] * 3)
+    assert all(a.focal_px == b.focal_px and np.array_equal(a.rotation, b.rotation) for a, b in zip(batch, again))
+
+
+def test_known_focal_searches_rotation_only(scenes):
+    segments, focal, R = scenes[1]
+    [result] = FREstimator(mode="fast").calibrate_segments([segments], [(640, 480)], focal_px=focal)
+    truth = horizon_angles(torch.as_tensor(R))
+    assert result.focal_px == pytest.approx(focal)
+    assert abs(result.roll_deg - float(truth["roll_deg"])) < 0.3
+    assert abs(result.tilt_deg - float(truth["tilt_deg"])) < 0.3
+
+
+def test_float32_matches_float64_reference(scenes):
+    segments = [scenes[0][0]]
+    a = FREstimator(mode="fast", dtype=torch.float32).calibrate_segments(segments, [(640, 480)])[0]
+    b = FREstimator(mode="fast", dtype=torch.float64).calibrate_segments(segments, [(640, 480)])[0]
+    assert a.log_likelihood == pytest.approx(b.log_likelihood, rel=1e-4)
+    assert a.focal_px == pytest.approx(b.focal_px, rel=1e-3)
+    assert a.roll_deg == pytest.approx(b.roll_deg, abs=0.02)
+
+
+@gpu
+def test_cuda_equals_cpu(scenes):
+    segments = [s for s, _, _ in scenes]
+    cpu = FREstimator(mode="fast").calibrate_segments(segments, [(640, 480)] * 3)
+    cuda = FREstimator(mode="fast", device="cuda").calibrate_segments(segments, [(640, 480)] * 3)
+    for a, b in zip(cpu, cuda):
+        assert a.focal_px == pytest.approx(b.focal_px, rel=1e-4)
+        assert a.log_likelihood == pytest.approx(b.log_likelihood, rel=1e-4)
