@@ -1,0 +1,127 @@
+"""Evaluation datasets: the common sample record and a small name -> loader registry.
+
+Dataset interface (all a new dataset has to provide)
+----------------------------------------------------
+A dataset loader is a callable ``loader(root, split, **kwargs) -> Sequence[CalibrationSample]``
+(any iterable with ``len`` works; a plain list is fine) where
+
+* ``root`` is the data root (:func:`eval.paths.data_root`, i.e. the folder that holds
+  ``yorkurbandb/`` ...) or ``None`` for the default, and
+* ``split`` is a split name (``"train"``, ``"test"``, ``"all"``; a dataset may define more).
+
+Each sample is a :class:`CalibrationSample` (or any object with the same attributes).  All fields
+follow :mod:`fr_torch.camera`: pixels with a 0-based pixel-centre origin, degrees, ``rotation`` the
+3x3 world->camera matrix (camera x right / y down / z forward, world y = gravity/down, vertical
+Manhattan direction in column 1, det +1), ``roll/tilt/pitch`` from
+:func:`fr_torch.camera.horizon_angles` and ``hfov_deg`` the horizontal field of view.  Quantities a
+dataset does not know are ``None`` (the metrics then show "n/a").  ``segments`` (N, 4)
+``[x1, y1, x2, y2]`` and ``segment_labels`` (N,) (column of ``rotation`` each segment belongs to,
+-1 = none/background) are optional hand labels, used by oracle runs and likelihood fitting.
+
+Register a loader with the decorator::
+
+    from eval.datasets.registry import register_dataset
+
+    @register_dataset("zind-fr")
+    def load_panoviews(root=None, split="test", **kwargs):
+        return [CalibrationSample(...), ...]
+
+and add its module to ``_BUILTIN_MODULES`` below (modules that are missing are skipped), or name it
+by import path on the command line: ``fr eval --dataset my_pkg.my_mod:load_my_data``.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from fr_torch.camera import hfov_from_focal, horizon_angles
+
+
+@dataclass
+class CalibrationSample:
+    """One evaluation image with its ground truth (see the module docstring for conventions)."""
+
+    name: str
+    image_path: Path
+    width: int
+    height: int
+    focal_px: float | None
+    principal_point: tuple[float, float] | None  # calibrated pp (0-based pixel centres); None = unknown
+    rotation: np.ndarray | None  # (3, 3) world->camera, vertical in column 1, det +1
+    roll_deg: float | None = None
+    tilt_deg: float | None = None
+    pitch_deg: float | None = None
+    hfov_deg: float | None = None
+    segments: np.ndarray | None = None  # (N, 4) hand-labelled segments, pixels, 0-based
+    segment_labels: np.ndarray | None = None  # (N,) column index of `rotation`, -1 = unlabelled
+    split: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """Fill roll / tilt / pitch / hfov from rotation / focal when they are not given."""
+        if self.rotation is not None:
+            self.rotation = np.asarray(self.rotation, dtype=np.float64)
+            if any(v is None for v in (self.roll_deg, self.tilt_deg, self.pitch_deg)):
+                angles = horizon_angles(torch.as_tensor(self.rotation))
+                self.roll_deg = float(angles["roll_deg"]) if self.roll_deg is None else self.roll_deg
+                self.tilt_deg = float(angles["tilt_deg"]) if self.tilt_deg is None else self.tilt_deg
+                self.pitch_deg = float(angles["pitch_deg"]) if self.pitch_deg is None else self.pitch_deg
+        if self.hfov_deg is None and self.focal_px is not None:
+            self.hfov_deg = hfov_from_focal(float(self.focal_px), self.width)
+
+
+DatasetLoader = Callable[..., Sequence[CalibrationSample]]
+
+_DATASETS: dict[str, DatasetLoader] = {}
+
+# Modules that register datasets when imported; a module that does not exist (yet) is skipped.
+_BUILTIN_MODULES = ("eval.datasets.yud", "eval.datasets.panoviews")
+
+
+def register_dataset(name: str) -> Callable[[DatasetLoader], DatasetLoader]:
+    """Decorator registering ``loader(root, split, **kwargs)`` under ``name``."""
+
+    def deco(loader: DatasetLoader) -> DatasetLoader:
+        _DATASETS[name] = loader
+        return loader
+
+    return deco
+
+
+def _load_builtins() -> None:
+    for module in _BUILTIN_MODULES:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as exc:
+            if exc.name != module:  # the module exists but one of its imports is missing
+                raise
+
+
+def available_datasets() -> list[str]:
+    _load_builtins()
+    return sorted(_DATASETS)
+
+
+def get_dataset_loader(spec: str) -> DatasetLoader:
+    """Loader for a registered dataset name or an import path ``module:attribute``."""
+    _load_builtins()
+    if spec in _DATASETS:
+        return _DATASETS[spec]
+    if ":" in spec:
+        module_name, attr = spec.split(":", 1)
+        try:
+            return getattr(importlib.import_module(module_name), attr)
+        except (ImportError, AttributeError) as exc:
+            raise ValueError(f"cannot import dataset loader {spec!r}: {exc}") from None
+    raise ValueError(f"unknown dataset {spec!r}; available: {', '.join(available_datasets())} "
+                     "(or give an import path module:function)")
+
+
+def load_dataset(spec: str, root: str | Path | None = None, split: str = "test", **kwargs) -> list[CalibrationSample]:
+    """Samples of dataset ``spec`` (name or import path) for ``split`` as a list."""
+    return list(get_dataset_loader(spec)(root=root, split=split, **kwargs))

@@ -1,0 +1,192 @@
+"""Evaluation metrics (fR paper, spec §8): per-image errors and mean +- standard error summaries.
+
+Per image (``image_errors``):
+
+* ``roll_err_deg`` / ``tilt_err_deg``: ``|est - gt|`` in degrees, both angles with the paper's
+  horizon definitions (:func:`fr_torch.camera.horizon_angles`; an estimate that only gives a
+  rotation gets its roll / tilt from it).
+* ``fov_err_pct``: ``100 |hfov_est - hfov_gt| / hfov_gt``; ``focal_err_pct``:
+  ``100 |f_est - f_gt| / f_gt`` (normalised by the ground truth).  An estimate giving only one of
+  focal / hfov gets the other from the image width.
+* ``frame_err_deg``: ``min_{P in G24} angle(R_gt, R_est P)`` over the 24 proper signed permutation
+  matrices (the rotation group of the cube), i.e. the rotation error up to relabelling of the
+  Manhattan axes.
+
+Summaries (``summarize``): mean and standard error ``SE = std(ddof=1) / sqrt(n)`` over the images
+where the method succeeded and reported the quantity.  Failed estimates (``None`` or
+``ok == False``) are **counted** (``failures``, ``failure_pct``), never silently dropped; a quantity
+a method never reports is "n/a" (NaN mean, ``n = 0``).
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import torch
+
+from fr_torch.camera import focal_from_hfov, hfov_from_focal, horizon_angles
+
+METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
+
+
+def proper_signed_permutations() -> np.ndarray:
+    """The 24 signed permutation matrices with det +1, shape (24, 3, 3)."""
+    mats = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            p = np.zeros((3, 3))
+            for row, col in enumerate(perm):
+                p[row, col] = signs[row]
+            if np.linalg.det(p) > 0:
+                mats.append(p)
+    return np.stack(mats)
+
+
+_G24 = proper_signed_permutations()
+
+
+def rotation_angle_deg(r_a: np.ndarray, r_b: np.ndarray) -> np.ndarray:
+    """Geodesic angle(s) in degrees between rotations (..., 3, 3)."""
+    rel = np.swapaxes(np.asarray(r_a), -1, -2) @ np.asarray(r_b)
+    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def frame_error_deg(r_gt: np.ndarray, r_est: np.ndarray) -> float:
+    """Frame error (degrees): min over the 24 proper signed permutations P of angle(R_gt, R_est P).
+
+    Both matrices must be proper rotations (det +1); a left-handed input raises ValueError.
+    """
+    r_gt = np.asarray(r_gt, dtype=np.float64)
+    r_est = np.asarray(r_est, dtype=np.float64)
+    for name, r in (("ground truth", r_gt), ("estimate", r_est)):
+        if r.shape != (3, 3) or not np.isfinite(r).all():
+            raise ValueError(f"frame error: {name} rotation must be a finite 3x3 matrix")
+        if np.linalg.det(r) < 0:
+            raise ValueError(f"frame error: {name} rotation is left-handed (det < 0)")
+    return float(rotation_angle_deg(r_gt[None], r_est[None] @ _G24).min())
+
+
+def mean_se(values: Iterable[float]) -> tuple[float, float, int]:
+    """(mean, standard error = std(ddof=1)/sqrt(n), n) over the finite values; NaNs for n = 0."""
+    arr = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    arr = arr[np.isfinite(arr)]
+    n = int(arr.size)
+    if n == 0:
+        return math.nan, math.nan, 0
+    se = float(arr.std(ddof=1) / math.sqrt(n)) if n > 1 else math.nan
+    return float(arr.mean()), se, n
+
+
+def _get(obj: Any, name: str):
+    if obj is None:
+        return None
+    if isinstance(obj, dict):
+        return obj.get(name)
+    return getattr(obj, name, None)
+
+
+def _finite(x) -> float | None:
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def estimate_quantities(est: Any, width: int) -> dict[str, Any]:
+    """roll / tilt / pitch / hfov / focal / rotation of an estimate, derived where possible.
+
+    ``est`` is a :class:`fr_torch.interface.CameraEstimate` (or dict with the same keys).  Roll and
+    tilt come from the estimate's own fields if given, else from its rotation; focal and hfov are
+    converted into each other with the image width.
+    """
+    rotation = _get(est, "rotation")
+    rotation = None if rotation is None else np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    out = {k: _finite(_get(est, k)) for k in ("roll_deg", "tilt_deg", "pitch_deg", "focal_px", "hfov_deg")}
+    if rotation is not None and np.isfinite(rotation).all():
+        angles = horizon_angles(torch.as_tensor(rotation))
+        for key in ("roll_deg", "tilt_deg", "pitch_deg"):
+            if out[key] is None:
+                out[key] = float(angles[key])
+    else:
+        rotation = None
+    if out["hfov_deg"] is None and out["focal_px"] is not None and out["focal_px"] > 0:
+        out["hfov_deg"] = hfov_from_focal(out["focal_px"], width)
+    if out["focal_px"] is None and out["hfov_deg"] is not None and 0 < out["hfov_deg"] < 180:
+        out["focal_px"] = focal_from_hfov(out["hfov_deg"], width)
+    out["rotation"] = rotation
+    return out
+
+
+def is_failure(est: Any) -> bool:
+    """True for a missing estimate (None) or one flagged ``ok == False``."""
+    return est is None or _get(est, "ok") is False
+
+
+def image_errors(sample: Any, est: Any) -> dict[str, float | None]:
+    """Per-image errors of estimate ``est`` against ground-truth ``sample`` (None = not available).
+
+    ``sample`` has ``width``, ``rotation``, ``roll_deg``, ``tilt_deg``, ``hfov_deg``, ``focal_px``
+    (a :class:`eval.datasets.registry.CalibrationSample`).  A failed estimate gives all None.
+    """
+    keys = ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
+    out: dict[str, float | None] = dict.fromkeys(keys)
+    if is_failure(est):
+        return out
+    q = estimate_quantities(est, int(_get(sample, "width")))
+    gt_roll, gt_tilt = _finite(_get(sample, "roll_deg")), _finite(_get(sample, "tilt_deg"))
+    gt_hfov, gt_focal = _finite(_get(sample, "hfov_deg")), _finite(_get(sample, "focal_px"))
+    gt_rot = _get(sample, "rotation")
+    if q["roll_deg"] is not None and gt_roll is not None:
+        out["roll_err_deg"] = abs(q["roll_deg"] - gt_roll)
+    if q["tilt_deg"] is not None and gt_tilt is not None:
+        out["tilt_err_deg"] = abs(q["tilt_deg"] - gt_tilt)
+    if q["hfov_deg"] is not None and gt_hfov:
+        out["fov_err_pct"] = 100.0 * abs(q["hfov_deg"] - gt_hfov) / gt_hfov
+    if q["focal_px"] is not None and gt_focal:
+        out["focal_err_pct"] = 100.0 * abs(q["focal_px"] - gt_focal) / gt_focal
+    if q["rotation"] is not None and gt_rot is not None:
+        r = q["rotation"]
+        if np.linalg.det(r) < 0:  # sign-free VP columns: make a left-handed answer proper
+            r = r.copy()
+            r[:, 0] = -r[:, 0]
+        out["frame_err_deg"] = frame_error_deg(gt_rot, r)
+    return out
+
+
+@dataclass
+class Summary:
+    """Mean +- SE of each metric for one method; ``n[m]`` images entered metric m."""
+
+    method: str
+    n_images: int
+    failures: int
+    mean: dict[str, float]
+    se: dict[str, float]
+    n: dict[str, int]
+
+    @property
+    def failure_pct(self) -> float:
+        return 100.0 * self.failures / self.n_images if self.n_images else math.nan
+
+    def as_row(self) -> dict[str, Any]:
+        row: dict[str, Any] = {"method": self.method, "n": self.n_images, "failures": self.failures,
+                               "failure_pct": self.failure_pct}
+        for m in METRICS:
+            row[f"{m}_mean"] = self.mean[m]
+            row[f"{m}_se"] = self.se[m]
+            row[f"{m}_n"] = self.n[m]
+        return row
+
+
+def summarize(method: str, rows: Sequence[dict[str, Any]]) -> Summary:
+    """Summary of per-image rows (dicts with ``failed`` and the METRICS keys) for one method."""
+    failures = sum(1 for r in rows if r.get("failed"))
+    mean, se, n = {}, {}, {}
+    for m in METRICS:
+        values = [r.get(m) for r in rows if not r.get("failed") or m == "runtime_s"]
+        mean[m], se[m], n[m] = mean_se(values)
+    return Summary(method=method, n_images=len(rows), failures=failures, mean=mean, se=se, n=n)

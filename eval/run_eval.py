@@ -1,0 +1,279 @@
+"""``fr eval``: run calibration methods on a dataset and write predictions, tables and histograms.
+
+Example::
+
+    fr eval --dataset yud --split test --methods fr,fast-fr --out results/yud
+    fr eval --dataset yud --methods fr --measures a,b,c,d,e      # the deviation-measure table
+    fr eval --dataset yud --methods "fr,fr@labelled,my_pkg.mod:MyCalibrator" --pp calibrated
+
+Methods are anything :func:`fr_torch.interface.get_calibrator` accepts (registered names,
+``module:attr`` import paths, configuration variants such as ``fr[measure=a]`` passed through
+verbatim).  A ``@labelled`` suffix feeds that method the dataset's hand-labelled segments
+(``meta.segments``; oracle run); methods named ``oracle*`` (``oracle-fr``) always get them.  Every method also finds them in
+``meta.extra["labelled_segments"]`` / ``meta.extra["labelled_segment_labels"]`` when the dataset has
+them; ground-truth *camera* values are never passed (except the focal length with
+``--known-focal``).
+
+Outputs (``--out``, default ``results/<dataset>``):
+
+* ``predictions.csv``: one row per (method, image): GT, estimate, errors, run time, failure reason;
+* ``summary.{md,csv,tex}``: rows = methods, columns n, failures, run time, roll / tilt MAE,
+  FOV / focal MAE %, frame error, each mean ± SE over the successful images ("n/a" when the method
+  does not estimate the quantity); failures are counted, never dropped silently;
+* ``deviation_measures.{md,csv,tex}``: the same table restricted to ``[measure=x]`` variants, one
+  row per deviation measure (written when such variants ran);
+* ``hist_<method>.png``: estimated vs GT roll, tilt and FOV histograms;
+* ``run_info.json``: the command line and settings.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from eval.datasets.registry import available_datasets, load_dataset
+from eval.metrics import estimate_quantities, image_errors, is_failure, summarize
+from eval.paths import REPO
+from eval.plots import histogram_figure, safe_name
+from eval.tables import deviation_measure_summaries, with_option, write_tables
+from fr_torch.interface import CameraEstimate, ImageMeta, get_calibrator
+from fr_torch.segments import load_image
+
+LABELLED_SUFFIX = "@labelled"
+
+
+def split_methods(text: str) -> list[str]:
+    """Split a comma-separated method list, keeping commas inside ``[...]`` options."""
+    out, depth, current = [], 0, []
+    for ch in text:
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth = max(0, depth - 1)
+        if ch == "," and depth == 0:
+            out.append("".join(current).strip())
+            current = []
+        else:
+            current.append(ch)
+    out.append("".join(current).strip())
+    return [m for m in out if m]
+
+
+def expand_methods(methods: Sequence[str], measures: Sequence[str] | None) -> list[str]:
+    """``--measures a,b`` turns each method ``m`` into ``m[measure=a]``, ``m[measure=b]``."""
+    if not measures:
+        return list(methods)
+    out = []
+    for method in methods:
+        spec, labelled = _strip_labelled(method)
+        for measure in measures:
+            out.append(with_option(spec, "measure", measure) + (LABELLED_SUFFIX if labelled else ""))
+    return out
+
+
+def _strip_labelled(method: str) -> tuple[str, bool]:
+    """(method spec without ``@labelled``, whether it gets the hand-labelled segments).
+
+    Methods whose name starts with ``oracle`` (e.g. ``oracle-fr``) always get them.
+    """
+    if method.endswith(LABELLED_SUFFIX):
+        return method[: -len(LABELLED_SUFFIX)], True
+    return method, method.strip().lower().startswith("oracle")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--dataset", default="yud",
+                        help="dataset name (%s) or import path module:function" % ", ".join(_dataset_names()))
+    parser.add_argument("--split", default="test", help="split (train / test / all; default test)")
+    parser.add_argument("--methods", default="fr,fast-fr",
+                        help="comma-separated methods: registered names, module:attr import paths, "
+                             "variants like 'fr[measure=a]'; suffix @labelled = use hand-labelled segments")
+    parser.add_argument("--measures", default=None,
+                        help="comma-separated deviation measures (e.g. a,b,c,d,e): run every method as "
+                             "<method>[measure=x] and write the deviation-measure table")
+    parser.add_argument("--out", default=None, help="output folder (default results/<dataset>)")
+    parser.add_argument("--data-root", default=None, help="dataset root (default $FR_DATA or ../shared/data)")
+    parser.add_argument("--pp", choices=("centre", "calibrated"), default="centre",
+                        help="principal point given to the methods: image centre (paper, default) or "
+                             "the dataset's calibrated one")
+    parser.add_argument("--known-focal", action="store_true",
+                        help="give the methods the ground-truth focal length (known-focal evaluation)")
+    parser.add_argument("--limit", type=int, default=None, help="evaluate only the first N images")
+    parser.add_argument("--device", default="cpu", help="torch device passed to the methods (default cpu)")
+    parser.add_argument("--no-plots", action="store_true", help="skip the histograms")
+
+
+def _dataset_names() -> list[str]:
+    try:
+        return available_datasets()
+    except Exception:  # never let a broken plugin break --help
+        return ["yud"]
+
+
+def make_calibrator(spec: str, device: str):
+    """Build a method; passes ``device`` to factories that accept it."""
+    try:
+        return get_calibrator(spec, device=device)
+    except TypeError as exc:
+        if "device" not in str(exc):
+            raise
+        if device not in ("cpu", None):
+            print(f"warning: method {spec!r} takes no device argument; it runs on its own default",
+                  file=sys.stderr)
+        return get_calibrator(spec)
+
+
+def build_meta(sample: Any, pp_mode: str, labelled: bool, known_focal: bool, dataset: str, device: str) -> ImageMeta:
+    extra: dict[str, Any] = {"dataset": dataset, "split": getattr(sample, "split", ""), "device": device}
+    segments = getattr(sample, "segments", None)
+    if segments is not None:
+        extra["labelled_segments"] = np.asarray(segments, dtype=np.float64)
+        extra["labelled_segment_labels"] = getattr(sample, "segment_labels", None)
+    if labelled and segments is None:
+        raise ValueError(f"{sample.name}: @labelled needs hand-labelled segments, the dataset has none")
+    pp = None
+    if pp_mode == "calibrated":
+        pp = getattr(sample, "principal_point", None)
+        if pp is None:
+            raise ValueError(f"{sample.name}: --pp calibrated but the dataset gives no principal point")
+        pp = (float(pp[0]), float(pp[1]))
+    return ImageMeta(
+        name=sample.name,
+        width=int(sample.width),
+        height=int(sample.height),
+        focal_px=float(sample.focal_px) if known_focal and sample.focal_px is not None else None,
+        principal_point=pp,
+        segments=np.asarray(segments, dtype=np.float64) if labelled else None,
+        extra=extra,
+    )
+
+
+def _num(x) -> float:
+    return float(x) if x is not None else math.nan
+
+
+def evaluate_method(spec: str, samples: Sequence[Any], *, pp_mode: str = "centre", known_focal: bool = False,
+                    dataset: str = "", device: str = "cpu", calibrator=None, progress: bool = True) -> list[dict]:
+    """Per-image prediction rows of one method on ``samples`` (exceptions count as failures)."""
+    base_spec, labelled = _strip_labelled(spec)
+    method = calibrator if calibrator is not None else make_calibrator(base_spec, device)
+    rows = []
+    for sample in tqdm(samples, desc=spec, unit="img", disable=not progress, file=sys.stderr):
+        image = load_image(sample.image_path) if getattr(sample, "image_path", None) is not None else None
+        meta = build_meta(sample, pp_mode, labelled, known_focal, dataset, device)
+        start = time.perf_counter()
+        try:
+            est = method.estimate(image, meta)
+            if est is not None and not isinstance(est, CameraEstimate):
+                raise TypeError(f"estimate() returned {type(est).__name__}, not CameraEstimate")
+        except Exception as exc:  # noqa: BLE001 - a crash on one image is a counted failure
+            est = CameraEstimate.failure(spec, f"{type(exc).__name__}: {exc}")
+        wall = time.perf_counter() - start
+        rows.append(prediction_row(spec, sample, est, wall))
+    return rows
+
+
+def prediction_row(spec: str, sample: Any, est: CameraEstimate | None, wall_s: float) -> dict:
+    failed = is_failure(est)
+    q = estimate_quantities(est, int(sample.width)) if not failed else {}
+    errors = image_errors(sample, est)
+    row: dict[str, Any] = {
+        "method": spec,
+        "image": sample.name,
+        "split": getattr(sample, "split", ""),
+        "failed": bool(failed),
+        "reason": ("no estimate" if est is None else (est.reason or "failed")) if failed else "",
+        "runtime_s": wall_s,
+        "method_runtime_s": _num(getattr(est, "runtime_s", None)),
+    }
+    for key in ("roll_deg", "tilt_deg", "pitch_deg", "hfov_deg", "focal_px"):
+        row[f"gt_{key}"] = _num(getattr(sample, key, None))
+        row[f"est_{key}"] = _num(q.get(key))
+    for key, value in errors.items():
+        row[key] = _num(value)
+    rotation = q.get("rotation")
+    for i in range(3):
+        for j in range(3):
+            row[f"est_r{i}{j}"] = float(rotation[i, j]) if rotation is not None else math.nan
+    row["reliable"] = getattr(est, "reliable", None) if est is not None else None
+    predicted = (getattr(est, "predicted_error", None) or {}) if est is not None else {}
+    for key in ("roll_deg", "tilt_deg", "focal_pct"):
+        row[f"pred_err_{key}"] = _num(predicted.get(key))
+    return row
+
+
+def run(args: argparse.Namespace) -> int:
+    methods = expand_methods(split_methods(args.methods),
+                             [m.strip() for m in args.measures.split(",") if m.strip()] if args.measures else None)
+    if not methods:
+        print("error: no methods given", file=sys.stderr)
+        return 2
+    try:
+        samples = load_dataset(args.dataset, root=args.data_root, split=args.split)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.limit is not None:
+        samples = samples[: max(0, args.limit)]
+    if not samples:
+        print(f"error: dataset {args.dataset!r} split {args.split!r} has no samples", file=sys.stderr)
+        return 2
+    calibrators = {}
+    for spec in methods:  # build every method first: a typo fails before hours of work
+        try:
+            calibrators[spec] = make_calibrator(_strip_labelled(spec)[0], args.device)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    out_dir = Path(args.out) if args.out else REPO / "results" / safe_name(args.dataset)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    all_rows: list[dict] = []
+    summaries = []
+    for spec in methods:
+        rows = evaluate_method(spec, samples, pp_mode=args.pp, known_focal=args.known_focal,
+                               dataset=args.dataset, device=args.device, calibrator=calibrators[spec])
+        all_rows.extend(rows)
+        pd.DataFrame(all_rows).to_csv(out_dir / "predictions.csv", index=False)  # after each method
+        summaries.append(summarize(spec, rows))
+        if not args.no_plots:
+            histogram_figure(pd.DataFrame(rows), spec, out_dir / f"hist_{safe_name(spec)}.png",
+                             title=f"{spec} on {args.dataset} ({args.split}): estimated vs ground truth")
+    settings = (f"dataset {args.dataset}, split {args.split} ({len(samples)} images), principal point "
+                f"{args.pp}, focal {'known' if args.known_focal else 'estimated'}")
+    note = ("Mean ± standard error (std(ddof=1)/√n) over the images a method succeeded on; failures are "
+            "counted in 'failures' (share of all images) and excluded from the error means only; run time "
+            f"(wall time of estimate(), all images) includes them. n/a = not estimated. Settings: {settings}.")
+    written = write_tables(summaries, out_dir, "summary", title=f"Calibration results: {args.dataset} {args.split}",
+                           note=note)
+    deviation = deviation_measure_summaries(summaries)
+    if deviation:
+        written += write_tables(deviation, out_dir, "deviation_measures", label="deviation measure",
+                                title=f"Deviation measures: {args.dataset} {args.split}", note=note)
+    info = {"argv": sys.argv, "methods": methods, "dataset": args.dataset, "split": args.split,
+            "n_images": len(samples), "pp": args.pp, "known_focal": args.known_focal, "device": args.device,
+            "limit": args.limit, "python": platform.python_version(),
+            "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+    (out_dir / "run_info.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
+    print((out_dir / "summary.md").read_text(encoding="utf-8"))
+    print(f"wrote {out_dir}/predictions.csv, " + ", ".join(p.name for p in written))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="fr eval", description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
