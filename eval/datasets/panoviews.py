@@ -1,0 +1,130 @@
+"""Loader for planar-view datasets generated from panoramas by ``fr make-dataset``.
+
+A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``images/``; see
+:mod:`eval.make_dataset` for the columns.  Registered datasets:
+
+* ``zind-fr``: ``<cache_root>/zind-fr`` (``$FR_CACHE``, default ``<repo>/data_local``), built with
+  the command in :mod:`eval.make_dataset`'s docstring;
+* ``panoviews``: any generated folder, passed as ``path=`` (or as ``root`` when ``root`` itself holds
+  a ``gt.csv``).
+
+Each view becomes a :class:`eval.datasets.registry.CalibrationSample` with the exact ground truth
+(focal, principal point (w/2, h/2), R world->camera, tilt / roll / pitch from
+:func:`fr_torch.camera.horizon_angles`).  When the panorama's Manhattan yaw was unknown
+(``manhattan_known`` False) ``rotation`` is still the exact camera orientation but in the
+panorama frame, so its columns 0 and 2 are not vanishing directions: the sample's
+``extra["manhattan_known"]`` says so, and ``rotation`` is set to ``None`` unless
+``keep_unknown_manhattan_rotation=True`` (gravity-based numbers -- tilt, roll, pitch, focal -- are
+always ground truth).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import pandas as pd
+
+from eval.datasets.registry import CalibrationSample, register_dataset
+from eval.paths import cache_root
+
+R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
+SPLITS = ("train", "test", "all")
+
+
+@dataclass
+class PanoView:
+    """One generated view with its ground truth (conventions of :mod:`fr_torch.camera`)."""
+
+    name: str
+    image_path: Path
+    pano: str
+    split: str
+    width: int
+    height: int
+    focal_px: float
+    hfov_deg: float
+    rotation: np.ndarray  # (3, 3) world->camera (room Manhattan frame when manhattan_known)
+    pan_deg: float
+    tilt_deg: float
+    roll_deg: float
+    pitch_deg: float
+    manhattan_known: bool
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        return (self.width / 2.0, self.height / 2.0)
+
+
+class PanoViews:
+    """A generated dataset folder: ``len()``, iteration over :class:`PanoView`, split filter."""
+
+    def __init__(self, folder: str | Path, split: str = "all"):
+        self.folder = Path(folder)
+        gt_path = self.folder / "gt.csv"
+        if not gt_path.is_file():
+            raise FileNotFoundError(f"{gt_path} not found: generate it with `fr make-dataset` "
+                                    "(see eval/make_dataset.py)")
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        table = pd.read_csv(gt_path)
+        if split != "all":
+            table = table[table["split"] == split]
+        self.table = table.reset_index(drop=True)
+        self.split = split
+
+    def __len__(self) -> int:
+        return len(self.table)
+
+    def __iter__(self) -> Iterator[PanoView]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def __getitem__(self, i: int) -> PanoView:
+        r = self.table.iloc[i]
+        return PanoView(
+            name=Path(r["file"]).stem, image_path=self.folder / r["file"], pano=str(r["pano"]),
+            split=str(r["split"]), width=int(r["width"]), height=int(r["height"]),
+            focal_px=float(r["focal_px"]), hfov_deg=float(r["hfov_deg"]),
+            rotation=r[R_COLUMNS].to_numpy(dtype=np.float64).reshape(3, 3),
+            pan_deg=float(r["pan_deg"]), tilt_deg=float(r["tilt_deg"]), roll_deg=float(r["roll_deg"]),
+            pitch_deg=float(r["pitch_deg"]), manhattan_known=bool(r["manhattan_known"]),
+        )
+
+    def samples(self, keep_unknown_manhattan_rotation: bool = False) -> list[CalibrationSample]:
+        """The views as evaluation-harness :class:`CalibrationSample` records."""
+        out = []
+        for v in self:
+            rot = v.rotation if (v.manhattan_known or keep_unknown_manhattan_rotation) else None
+            out.append(CalibrationSample(
+                name=v.name, image_path=v.image_path, width=v.width, height=v.height,
+                focal_px=v.focal_px, principal_point=v.principal_point, rotation=rot,
+                roll_deg=v.roll_deg, tilt_deg=v.tilt_deg, pitch_deg=v.pitch_deg, hfov_deg=v.hfov_deg,
+                split=v.split,
+                extra={"pano": v.pano, "pan_deg": v.pan_deg, "manhattan_known": v.manhattan_known},
+            ))
+        return out
+
+
+def _resolve(root, path, default_name: str | None) -> Path:
+    if path is not None:
+        return Path(path)
+    if root is not None and (Path(root) / "gt.csv").is_file():
+        return Path(root)
+    if default_name is None:
+        raise ValueError("panoviews: pass path=<generated dataset folder>")
+    return cache_root() / default_name
+
+
+@register_dataset("panoviews")
+def load_panoviews(root=None, split: str = "test", path=None, **kwargs) -> list[CalibrationSample]:
+    """Any ``fr make-dataset`` folder (``path=`` or ``root`` holding gt.csv)."""
+    return PanoViews(_resolve(root, path, None), split).samples(**kwargs)
+
+
+@register_dataset("zind-fr")
+def load_zind_fr(root=None, split: str = "test", path=None, **kwargs) -> list[CalibrationSample]:
+    """ZInD-fR views in ``<cache_root>/zind-fr`` (``root`` is the *data* root and is ignored
+    unless it holds a gt.csv itself)."""
+    return PanoViews(_resolve(root, path, "zind-fr"), split).samples(**kwargs)
