@@ -1,0 +1,193 @@
+"""``ctrlc``: CTRL-C (Lee et al., ICCV 2021) run through onnxruntime with user-supplied weights.
+
+J. Lee, H. Go, H. Lee, S. Cho, M. Sung, J. Kim, "CTRL-C: Camera calibration TRansformer with
+Line-Classification", ICCV 2021.  The network itself is not re-implemented: the user exports the
+official checkpoint to ONNX with :mod:`baselines.export_ctrlc_onnx` and points this adapter at
+the file (constructor argument ``onnx_path`` or environment variable ``FR_CTRLC_ONNX``).  Without
+weights the method is listed but ``available`` is False and every estimate is a flagged failure
+with reason ``"n/a (weights not supplied)"``.
+
+ONNX contract (what the export script produces)
+-----------------------------------------------
+Inputs
+  ``image``      [B, 3, 512, 512] float32: the whole image resized to 512 x 512 (bilinear, no
+                 crop), RGB, scaled to [0, 1] and normalised with the ImageNet mean / std.
+  ``lines``      [B, 512, 3] float32: LSD segments longer than 10 px (``meta.segments`` when
+                 given), endpoints normalised as ``2 / min(w, h) * (x - centre)`` with the centre
+                 at (w / 2, h / 2), converted to unit homogeneous lines (cross product of the
+                 homogeneous endpoints, normalised); when there are more than 512 segments, 512
+                 are drawn with replacement with probability proportional to length (fixed seed,
+                 so results are reproducible), otherwise all are used and the rest zero-padded.
+  ``line_mask``  [B, 512, 1] float32: 1 for real lines, 0 for padding.
+Outputs
+  ``pred_zvp``   [B, 3]: zenith VP, homogeneous, in the same normalised image coordinates.
+  ``pred_fovy``  [B, 1]: field of view in radians across the normalising side ``min(w, h)``.
+  ``pred_hl``    [B, 3]: horizon line in normalised coordinates (kept in ``extra``).
+
+Conversion to our conventions
+-----------------------------
+CTRL-C normalises image coordinates by ``min(w, h) / 2`` (unit = half the short side), so its
+focal length is ``f_n = 1 / tan(fovy / 2)`` in those units and ``f = (min(w, h) / 2) /
+tan(fovy / 2)`` pixels.  (For the landscape images of the benchmarks min(w, h) = h, so fovy is
+the vertical field of view.)  The vertical direction in the camera frame (x right, y down,
+z forward) is ``(x_z, y_z, f_n w_z)`` for ``pred_zvp = (x_z, y_z, w_z)``; its sign is not
+predicted, so we take the one pointing *up* (negative camera-y component), which is world-up
+without needing ground truth.  Roll, tilt and pitch follow from it with the project's horizon
+definitions (:func:`fr_torch.camera.horizon_angles`).  CTRL-C estimates no pan, so ``rotation``
+and ``pan_deg`` are None (an upright-consistent rotation with pan 0 is in
+``extra["rotation_pan0"]``); roll / tilt are reported directly.
+"""
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from fr_torch.camera import hfov_from_focal, horizon_angles, rotation_from_angles
+from fr_torch.interface import CameraEstimate, ImageMeta, Timer, register
+from fr_torch.segments import FRInputError, to_bgr8
+
+from . import vp_geometry as vg
+
+INPUT_SIZE = 512
+NUM_LINES = 512
+MIN_LINE_LENGTH = 10.0
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+NOT_SUPPLIED = "n/a (weights not supplied)"
+
+
+def preprocess_image(image: np.ndarray) -> np.ndarray:
+    """[1, 3, 512, 512] float32 network input from an image (BGR / grey, any :func:`to_bgr8` type)."""
+    bgr = to_bgr8(image)
+    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    resized = cv2.resize(rgb, (INPUT_SIZE, INPUT_SIZE), interpolation=cv2.INTER_LINEAR)
+    x = (resized.astype(np.float32) / 255.0 - IMAGENET_MEAN) / IMAGENET_STD
+    return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
+
+
+def preprocess_lines(segments: np.ndarray, width: int, height: int, num_lines: int = NUM_LINES,
+                     min_length: float = MIN_LINE_LENGTH, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(lines [1, num_lines, 3], line_mask [1, num_lines, 1]) float32 from pixel segments (N, 4)."""
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    segments = segments[vg.segment_lengths(segments) > min_length]
+    lines = np.zeros((num_lines, 3), np.float32)
+    mask = np.zeros((num_lines, 1), np.float32)
+    if len(segments) > num_lines:
+        lengths = vg.segment_lengths(segments)
+        rng = np.random.default_rng(seed)
+        segments = segments[rng.choice(len(segments), num_lines, replace=True, p=lengths / lengths.sum())]
+    count = len(segments)
+    if count:
+        centre = (width / 2.0, height / 2.0)
+        lines[:count] = vg.homogeneous_lines(segments, centre=centre, scale=2.0 / min(width, height))
+        mask[:count] = 1.0
+    return lines[None], mask[None]
+
+
+def camera_from_ctrlc(zvp: np.ndarray, fovy_rad: float, width: int, height: int) -> dict:
+    """focal / hfov / roll / tilt / pitch and an up direction from CTRL-C's normalised outputs."""
+    fovy_rad = float(np.clip(fovy_rad, 1e-4, math.pi - 1e-4))
+    focal_n = 1.0 / math.tan(fovy_rad / 2.0)
+    focal = (min(width, height) / 2.0) * focal_n
+    zvp = np.asarray(zvp, dtype=np.float64).reshape(3)
+    direction = np.array([zvp[0], zvp[1], focal_n * zvp[2]])
+    norm = np.linalg.norm(direction)
+    if not np.isfinite(norm) or norm < 1e-12:
+        raise ValueError("degenerate zenith prediction")
+    up = direction / norm
+    if up[1] > 0:  # the vertical pointing up has a negative y component (camera y is down)
+        up = -up
+    # Our R has the downward vertical in column 1; horizon_angles only needs that column.
+    down = -up
+    r = np.zeros((3, 3))
+    r[:, 1] = down
+    angles = horizon_angles(torch.as_tensor(r))
+    out = {k: float(v) for k, v in angles.items()}
+    out.update(focal_px=focal, hfov_deg=float(hfov_from_focal(focal, width)), up=up)
+    return out
+
+
+@register("ctrlc")
+class CTRLC:
+    """CTRL-C through onnxruntime (weights exported by the user; see the module docstring)."""
+
+    name = "ctrlc"
+
+    def __init__(self, onnx_path: str | os.PathLike | None = None, providers=None, seed: int = 0,
+                 num_lines: int = NUM_LINES, min_line_length: float = MIN_LINE_LENGTH):
+        path = onnx_path if onnx_path is not None else os.environ.get("FR_CTRLC_ONNX") or None
+        self.onnx_path = Path(path) if path else None
+        self.providers = providers
+        self.seed = int(seed)
+        self.num_lines = int(num_lines)
+        self.min_line_length = float(min_line_length)
+        self._session = None
+
+    @property
+    def available(self) -> bool:
+        """True when an ONNX file was supplied and exists."""
+        return self.onnx_path is not None and self.onnx_path.is_file()
+
+    def session(self):
+        if self._session is None:
+            import onnxruntime as ort  # optional dependency, only needed with weights
+
+            providers = self.providers or ["CPUExecutionProvider"]
+            self._session = ort.InferenceSession(str(self.onnx_path), providers=providers)
+        return self._session
+
+    def run(self, image_in: np.ndarray, lines: np.ndarray, line_mask: np.ndarray) -> dict[str, np.ndarray]:
+        """Raw network outputs for preprocessed inputs (see the module docstring)."""
+        sess = self.session()
+        feeds = {"image": image_in, "lines": lines, "line_mask": line_mask}
+        names = [i.name for i in sess.get_inputs()]
+        missing = [k for k in feeds if k not in names]
+        if missing:
+            raise RuntimeError(f"{self.onnx_path}: ONNX inputs are {names}, expected image, lines, line_mask")
+        outputs = sess.run(["pred_zvp", "pred_fovy", "pred_hl"], {k: feeds[k] for k in names})
+        return dict(zip(["pred_zvp", "pred_fovy", "pred_hl"], outputs))
+
+    def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
+        with Timer() as timer:
+            result = self._estimate(image, meta)
+        result.runtime_s = timer.seconds
+        return result
+
+    def _estimate(self, image, meta: ImageMeta) -> CameraEstimate:
+        if not self.available:
+            reason = NOT_SUPPLIED if self.onnx_path is None else f"n/a (weights not supplied: {self.onnx_path} not found)"
+            return CameraEstimate.failure(self.name, reason)
+        if image is None:
+            return CameraEstimate.failure(self.name, "bad input: CTRL-C needs the image")
+        try:
+            width, height = vg.image_size(image, meta)
+            image_in = preprocess_image(image)
+            segments = vg.input_segments(image, meta)
+        except FRInputError as exc:
+            return CameraEstimate.failure(self.name, f"bad input: {exc}")
+        if width <= 0 or height <= 0:
+            return CameraEstimate.failure(self.name, "unknown image size")
+        lines, mask = preprocess_lines(segments, width, height, self.num_lines, self.min_line_length, self.seed)
+        if mask.sum() < 1:
+            return CameraEstimate.failure(self.name, "no line segments longer than "
+                                                     f"{self.min_line_length:g} px")
+        out = self.run(image_in, lines, mask)
+        zvp, fovy, hl = out["pred_zvp"][0], float(out["pred_fovy"][0].reshape(-1)[0]), out["pred_hl"][0]
+        if not (np.isfinite(zvp).all() and math.isfinite(fovy)):
+            return CameraEstimate.failure(self.name, "non-finite network output")
+        try:
+            cam = camera_from_ctrlc(zvp, fovy, width, height)
+        except ValueError as exc:
+            return CameraEstimate.failure(self.name, str(exc))
+        rotation_pan0 = rotation_from_angles(0.0, cam["pitch_deg"], cam["roll_deg"]).numpy()
+        return CameraEstimate(
+            method=self.name, focal_px=cam["focal_px"], hfov_deg=cam["hfov_deg"], rotation=None,
+            roll_deg=cam["roll_deg"], tilt_deg=cam["tilt_deg"], pitch_deg=cam["pitch_deg"], pan_deg=None,
+            extra={"pred_zvp": zvp.tolist(), "pred_fovy_rad": fovy, "pred_hl": np.asarray(hl).tolist(),
+                   "up": cam["up"].tolist(), "rotation_pan0": rotation_pan0},
+        )

@@ -1,0 +1,158 @@
+"""``external``: per-image predictions of a method run elsewhere, read from a CSV file.
+
+For methods we cannot run here, e.g. Hold-Geoffroy et al. 2018 ("A perceptual measure for deep
+single image camera calibration", CVPR 2018), whose results come from the authors' web interface.
+
+CSV format (header row required, any column order, extra columns ignored, empty cells = unknown):
+
+``image``
+    image name as the dataset gives it (``ImageMeta.name``), or its file name, or its file stem.
+``focal_px``, ``hfov_deg``
+    focal length in pixels and/or horizontal field of view in degrees (the missing one is derived
+    from the image width).
+``roll_deg``, ``tilt_deg``, ``pitch_deg``, ``pan_deg``
+    angles in degrees with the conventions of :mod:`fr_torch.camera` (paper roll / tilt).
+``r00`` ... ``r22``
+    the world->camera rotation (row-major, vertical Manhattan direction in column 1); when all
+    nine are given, the angles not given explicitly are derived from it.
+
+When only roll and tilt are given, pitch follows from ``tan(tilt) = tan(pitch) / cos(roll)``;
+a rotation is built only when pan is given too.  The file comes from the constructor argument
+``csv_path`` or the environment variable ``FR_EXTERNAL_CSV``; the reported method name is the
+``method`` argument (e.g. ``"hold-geoffroy2018"``).  An image without a row (or without a file)
+is a flagged failure with reason ``"n/a (not supplied)"``.
+"""
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fr_torch.camera import focal_from_hfov, hfov_from_focal, horizon_angles, pan_from_rotation, rotation_from_angles
+from fr_torch.interface import CameraEstimate, ImageMeta, Timer, register
+from fr_torch.segments import FRInputError
+
+from . import vp_geometry as vg
+
+NOT_SUPPLIED = "n/a (not supplied)"
+VALUE_COLUMNS = ("focal_px", "hfov_deg", "roll_deg", "tilt_deg", "pitch_deg", "pan_deg")
+ROTATION_COLUMNS = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
+
+
+def _number(text) -> float | None:
+    if text is None:
+        return None
+    text = str(text).strip()
+    if not text:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def read_predictions(path: str | os.PathLike) -> dict[str, dict[str, float | None]]:
+    """Rows of a predictions CSV keyed by their ``image`` entry (values parsed to float / None)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FRInputError(f"{path}: predictions CSV not found")
+    with path.open(newline="", encoding="utf-8") as handle:
+        reader = csv.DictReader(handle)
+        if reader.fieldnames is None or "image" not in [c.strip() for c in reader.fieldnames]:
+            raise FRInputError(f"{path}: needs a header row with an 'image' column")
+        rows: dict[str, dict[str, float | None]] = {}
+        for line_no, raw in enumerate(reader, start=2):
+            raw = {(k or "").strip(): v for k, v in raw.items()}
+            key = (raw.get("image") or "").strip()
+            if not key:
+                continue
+            if key in rows:
+                raise FRInputError(f"{path}:{line_no}: duplicate row for image {key!r}")
+            rows[key] = {c: _number(raw.get(c)) for c in VALUE_COLUMNS + ROTATION_COLUMNS}
+    return rows
+
+
+@register("external")
+class ExternalPredictions:
+    """Predictions read from a CSV (see the module docstring for the columns)."""
+
+    def __init__(self, csv_path: str | os.PathLike | None = None, method: str = "external"):
+        path = csv_path if csv_path is not None else os.environ.get("FR_EXTERNAL_CSV") or None
+        self.csv_path = Path(path) if path else None
+        self.name = str(method)
+        self._rows = read_predictions(self.csv_path) if self.csv_path is not None else {}
+        self._by_stem: dict[str, str] = {}
+        for key in self._rows:
+            for alias in (Path(key).name, Path(key).stem):
+                self._by_stem.setdefault(alias, key)
+
+    @property
+    def available(self) -> bool:
+        return self.csv_path is not None
+
+    def lookup(self, name: str) -> dict[str, float | None] | None:
+        """The row for an image name (exact, then file name, then file stem), or None."""
+        if not name:
+            return None
+        if name in self._rows:
+            return self._rows[name]
+        for alias in (Path(name).name, Path(name).stem):
+            if alias in self._rows:
+                return self._rows[alias]
+            if alias in self._by_stem:
+                return self._rows[self._by_stem[alias]]
+        return None
+
+    def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
+        with Timer() as timer:
+            result = self._estimate(image, meta)
+        # The runtime of an external method is unknown; report the look-up time only in extra.
+        result.extra["lookup_s"] = timer.seconds
+        return result
+
+    def _estimate(self, image, meta: ImageMeta) -> CameraEstimate:
+        row = self.lookup(meta.name)
+        if row is None:
+            return CameraEstimate.failure(self.name, NOT_SUPPLIED)
+        width, _ = vg.image_size(image, meta)
+        est = CameraEstimate(method=self.name)
+        focal, hfov = row["focal_px"], row["hfov_deg"]
+        if focal is not None and focal <= 0:
+            return CameraEstimate.failure(self.name, f"invalid focal_px {focal}")
+        if hfov is not None and not 0 < hfov < 180:
+            return CameraEstimate.failure(self.name, f"invalid hfov_deg {hfov}")
+        if focal is None and hfov is not None and width > 0:
+            focal = float(focal_from_hfov(hfov, width))
+        if hfov is None and focal is not None and width > 0:
+            hfov = float(hfov_from_focal(focal, width))
+        est.focal_px, est.hfov_deg = focal, hfov
+
+        roll, tilt, pitch, pan = row["roll_deg"], row["tilt_deg"], row["pitch_deg"], row["pan_deg"]
+        r_values = [row[c] for c in ROTATION_COLUMNS]
+        rotation = None
+        if all(v is not None for v in r_values):
+            rotation = np.asarray(r_values, dtype=np.float64).reshape(3, 3)
+            if (np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-3 or np.linalg.det(rotation) < 0):
+                return CameraEstimate.failure(self.name, "invalid rotation (not a proper rotation matrix)")
+            rotation = vg.nearest_rotation(rotation)
+            angles = horizon_angles(torch.as_tensor(rotation))
+            roll = float(angles["roll_deg"]) if roll is None else roll
+            tilt = float(angles["tilt_deg"]) if tilt is None else tilt
+            pitch = float(angles["pitch_deg"]) if pitch is None else pitch
+            pan = float(pan_from_rotation(torch.as_tensor(rotation))) if pan is None else pan
+        else:
+            if pitch is None and roll is not None and tilt is not None:
+                pitch = math.degrees(math.atan(math.tan(math.radians(tilt)) * math.cos(math.radians(roll))))
+            if tilt is None and roll is not None and pitch is not None:
+                tilt = math.degrees(math.atan(math.tan(math.radians(pitch)) / math.cos(math.radians(roll))))
+            if pan is not None and pitch is not None and roll is not None:
+                rotation = rotation_from_angles(pan, pitch, roll).numpy()
+        est.rotation, est.roll_deg, est.tilt_deg, est.pitch_deg, est.pan_deg = rotation, roll, tilt, pitch, pan
+        if all(v is None for v in (focal, hfov, roll, tilt, pitch, pan)) and rotation is None:
+            return CameraEstimate.failure(self.name, "n/a (empty prediction)")
+        return est

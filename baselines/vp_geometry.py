@@ -1,0 +1,310 @@
+"""Vanishing-point geometry shared by the baselines (Lee 2009, Simon 2018, CTRL-C adapter).
+
+Conventions are those of :mod:`fr_torch.camera`: pixels x right / y down, camera x right / y down /
+z forward, ``R`` world->camera with the (downward) vertical Manhattan direction in column 1 and
+``det R = +1``.  Vanishing points (VPs) are homogeneous 3-vectors in *pixel* coordinates, never
+dehomogenised (a VP at infinity has a zero third coordinate); lines are homogeneous 3-vectors
+``l`` with ``l . x = 0`` for the points ``x`` on them.
+
+Everything here is numpy float64; the conversion to the reported angles goes through the project's
+torch helpers (:func:`fr_torch.camera.angles_from_rotation`) so that every method reports roll,
+tilt, pitch and pan with exactly the same definitions.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from fr_torch.camera import angles_from_rotation, hfov_from_focal
+from fr_torch.interface import CameraEstimate, ImageMeta
+from fr_torch.segments import FRInputError, detect_segments, validate_segments
+
+EPS = 1e-12
+
+
+# --------------------------------------------------------------------------- inputs
+
+def image_size(image: np.ndarray | None, meta: ImageMeta) -> tuple[int, int]:
+    """(width, height) in pixels from the metadata, else from the image; (0, 0) if unknown."""
+    width, height = int(meta.width or 0), int(meta.height or 0)
+    if (width <= 0 or height <= 0) and image is not None:
+        shape = np.asarray(image).shape
+        if len(shape) >= 2:
+            height, width = int(shape[0]), int(shape[1])
+    return width, height
+
+
+def principal_point(meta: ImageMeta, width: int, height: int) -> np.ndarray:
+    """Known principal point from the metadata, else the image centre (w / 2, h / 2)."""
+    if meta.principal_point is not None:
+        return np.asarray(meta.principal_point, dtype=np.float64).reshape(2)
+    return np.array([width / 2.0, height / 2.0])
+
+
+def input_segments(image: np.ndarray | None, meta: ImageMeta) -> np.ndarray:
+    """Segments (N, 4) [x1, y1, x2, y2] pixels: ``meta.segments`` when given, else LSD on the image.
+
+    Raises :class:`FRInputError` when neither is available or the input is malformed.
+    """
+    if meta.segments is not None:
+        return validate_segments(meta.segments, f"{meta.name or 'image'}: segments")
+    if image is None:
+        raise FRInputError(f"{meta.name or 'image'}: neither an image nor segments were given")
+    return detect_segments(image)
+
+
+# --------------------------------------------------------------------------- lines and VPs
+
+def segment_lengths(segments: np.ndarray) -> np.ndarray:
+    """Lengths (N,) of segments (N, 4), pixels."""
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    return np.hypot(segments[:, 2] - segments[:, 0], segments[:, 3] - segments[:, 1])
+
+
+def segment_midpoints(segments: np.ndarray) -> np.ndarray:
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    return 0.5 * (segments[:, :2] + segments[:, 2:])
+
+
+def segment_directions(segments: np.ndarray) -> np.ndarray:
+    """Unit direction vectors (N, 2) of the segments (sign arbitrary)."""
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    d = segments[:, 2:] - segments[:, :2]
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), EPS)
+
+
+def homogeneous_lines(segments: np.ndarray, centre=(0.0, 0.0), scale: float = 1.0) -> np.ndarray:
+    """Unit homogeneous lines (N, 3) through the segments' endpoints.
+
+    Endpoints are first mapped to ``scale * (x - centre)`` (e.g. normalised coordinates); the line
+    is the cross product of the homogeneous endpoints, normalised to unit length.
+    """
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    centre = np.asarray(centre, dtype=np.float64).reshape(2)
+    p = np.concatenate([(segments[:, :2] - centre) * scale, np.ones((len(segments), 1))], 1)
+    q = np.concatenate([(segments[:, 2:] - centre) * scale, np.ones((len(segments), 1))], 1)
+    lines = np.cross(p, q)
+    return lines / np.maximum(np.linalg.norm(lines, axis=1, keepdims=True), EPS)
+
+
+def conditioning(width: int, height: int, pp: np.ndarray | None = None) -> np.ndarray:
+    """Similarity T (3, 3) mapping pixels to centred coordinates of order 1 (for stable SVDs)."""
+    pp = np.array([width / 2.0, height / 2.0]) if pp is None else np.asarray(pp, np.float64)
+    s = 2.0 / max(width, height, 1)
+    return np.array([[s, 0, -s * pp[0]], [0, s, -s * pp[1]], [0, 0, 1.0]])
+
+
+def vp_least_squares(segments: np.ndarray, weights: np.ndarray | None = None,
+                     transform: np.ndarray | None = None) -> np.ndarray:
+    """Least-squares VP (unit homogeneous 3-vector, pixels) of the lines through ``segments``.
+
+    Minimises ``sum_i w_i (l_i . v)^2`` over unit ``v`` (the smallest right singular vector of
+    the weighted line matrix), computed in the conditioned frame ``transform`` (default: centred
+    coordinates scaled by the segment spread) and mapped back to pixels.
+    """
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    if len(segments) < 2:
+        raise ValueError("a vanishing point needs at least two lines")
+    if transform is None:
+        pts = segments.reshape(-1, 2)
+        centre = pts.mean(0)
+        s = 1.0 / max(np.abs(pts - centre).max(), 1.0)
+        transform = np.array([[s, 0, -s * centre[0]], [0, s, -s * centre[1]], [0, 0, 1.0]])
+    w = np.ones(len(segments)) if weights is None else np.asarray(weights, dtype=np.float64)
+    p = np.concatenate([segments[:, :2], np.ones((len(segments), 1))], 1) @ transform.T
+    q = np.concatenate([segments[:, 2:], np.ones((len(segments), 1))], 1) @ transform.T
+    lines = np.cross(p, q)
+    lines /= np.maximum(np.linalg.norm(lines, axis=1, keepdims=True), EPS)
+    _, _, vt = np.linalg.svd(lines * np.sqrt(w)[:, None], full_matrices=False)
+    v = np.linalg.solve(transform, vt[-1])
+    return v / np.linalg.norm(v)
+
+
+def vp_from_two_lines(line_a: np.ndarray, line_b: np.ndarray) -> np.ndarray:
+    """Intersection (unit homogeneous) of homogeneous lines, broadcasting over leading axes."""
+    v = np.cross(line_a, line_b)
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), EPS)
+
+
+def vp_angle_error(segments: np.ndarray, vps: np.ndarray) -> np.ndarray:
+    """Angle (radians, in [0, pi/2]) between each segment and the line joining its midpoint to a VP.
+
+    ``segments`` (N, 4) pixels; ``vps`` (..., 3) homogeneous pixels (finite or at infinity).
+    Returns (..., N).  This is the usual consistency measure of a segment with a VP.
+    """
+    mid = segment_midpoints(segments)  # (N, 2)
+    d = segment_directions(segments)  # (N, 2)
+    vps = np.asarray(vps, dtype=np.float64)
+    vx, vy, vw = vps[..., 0:1], vps[..., 1:2], vps[..., 2:3]  # (..., 1)
+    # Direction from the midpoint to the VP: v_xy - w * m (valid for w = 0 too).
+    ax = vx - vw * mid[:, 0]
+    ay = vy - vw * mid[:, 1]
+    norm = np.maximum(np.hypot(ax, ay), EPS)
+    sin = np.abs(ax * d[:, 1] - ay * d[:, 0]) / norm
+    return np.arcsin(np.clip(sin, 0.0, 1.0))
+
+
+def is_finite_vp(vp: np.ndarray, pp: np.ndarray, limit_px: float) -> bool:
+    """True when the VP lies within ``limit_px`` of the principal point (i.e. usefully finite)."""
+    vp = np.asarray(vp, dtype=np.float64)
+    return bool(abs(vp[2]) > EPS and np.linalg.norm(vp[:2] / vp[2] - pp) < limit_px)
+
+
+def dehomogenise(vp: np.ndarray) -> np.ndarray:
+    return np.asarray(vp[:2], dtype=np.float64) / vp[2]
+
+
+# --------------------------------------------------------------------------- calibration
+
+def intrinsics(focal_px: float, pp: np.ndarray) -> np.ndarray:
+    return np.array([[focal_px, 0, pp[0]], [0, focal_px, pp[1]], [0, 0, 1.0]])
+
+
+def focal_from_orthogonal_vps(vp_a: np.ndarray, vp_b: np.ndarray, pp: np.ndarray) -> float | None:
+    """Focal length (pixels) making two finite VPs orthogonal: ``f^2 = -(a - p) . (b - p)``.
+
+    Returns None when either VP is at infinity or the two are not compatible with orthogonality
+    (the product is not negative).
+    """
+    if abs(vp_a[2]) < EPS or abs(vp_b[2]) < EPS:
+        return None
+    f2 = -float(np.dot(dehomogenise(vp_a) - pp, dehomogenise(vp_b) - pp))
+    return math.sqrt(f2) if f2 > 0 else None
+
+
+def direction_from_vp(vp: np.ndarray, focal_px: float, pp: np.ndarray) -> np.ndarray:
+    """Unit 3-D direction (camera frame) ``K^-1 v`` of a homogeneous VP; sign arbitrary."""
+    vp = np.asarray(vp, dtype=np.float64)
+    d = np.array([vp[0] - pp[0] * vp[2], vp[1] - pp[1] * vp[2], focal_px * vp[2]])
+    return d / max(np.linalg.norm(d), EPS)
+
+
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """Closest proper rotation (Frobenius norm) to a 3 x 3 matrix (orthogonal Procrustes)."""
+    u, _, vt = np.linalg.svd(matrix)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def rotation_from_directions(vertical: np.ndarray, horizontal: np.ndarray,
+                             horizontal2: np.ndarray | None = None) -> np.ndarray:
+    """World->camera R (vertical in column 1, pointing down; det +1) from Manhattan directions.
+
+    ``vertical`` and ``horizontal`` (and optionally the second horizontal direction) are camera-
+    frame 3-vectors with arbitrary signs and lengths.  The vertical is signed to point down
+    (positive camera y), the first horizontal to point forward (or right when it is parallel to
+    the image plane); the third column is ``col0 x col1`` (det +1) and the measured second
+    horizontal, if given, is averaged into it with its sign aligned.  The triplet is then
+    orthogonalised by the SVD (orthogonal Procrustes), so noisy VPs give the closest rotation.
+    """
+    v = np.asarray(vertical, dtype=np.float64)
+    v = v / max(np.linalg.norm(v), EPS)
+    if v[1] < 0:
+        v = -v
+    h = np.asarray(horizontal, dtype=np.float64)
+    h = h / max(np.linalg.norm(h), EPS)
+    key = h[2] if abs(h[2]) > 1e-9 else h[0]
+    if key < 0:
+        h = -h
+    third = np.cross(h, v)
+    third /= max(np.linalg.norm(third), EPS)
+    if horizontal2 is not None:
+        h2 = np.asarray(horizontal2, dtype=np.float64)
+        h2 = h2 / max(np.linalg.norm(h2), EPS)
+        third = third + (h2 if np.dot(h2, third) >= 0 else -h2)
+    return nearest_rotation(np.stack([h, v, third], axis=1))
+
+
+def rotation_from_vps(vertical_vp: np.ndarray, horizontal_vp: np.ndarray, focal_px: float,
+                      pp: np.ndarray, horizontal_vp2: np.ndarray | None = None) -> np.ndarray:
+    """World->camera R from homogeneous pixel VPs and the focal length (see rotation_from_directions).
+
+    Column 0 is the horizontal direction closer to the camera x axis when both are given.
+    """
+    dv = direction_from_vp(vertical_vp, focal_px, pp)
+    dh = direction_from_vp(horizontal_vp, focal_px, pp)
+    dh2 = None if horizontal_vp2 is None else direction_from_vp(horizontal_vp2, focal_px, pp)
+    if dh2 is not None and abs(dh2[0]) > abs(dh[0]):
+        dh, dh2 = dh2, dh
+    return rotation_from_directions(dv, dh, dh2)
+
+
+def camera_estimate(method: str, focal_px: float | None, rotation: np.ndarray | None, width: int,
+                    runtime_s: float = float("nan"), **extra) -> CameraEstimate:
+    """A successful CameraEstimate with every angle derived from ``rotation`` by the project helpers."""
+    est = CameraEstimate(method=method, runtime_s=runtime_s, extra=dict(extra))
+    if focal_px is not None:
+        est.focal_px = float(focal_px)
+        est.hfov_deg = float(hfov_from_focal(float(focal_px), width))
+    if rotation is not None:
+        rotation = np.asarray(rotation, dtype=np.float64)
+        est.rotation = rotation
+        angles = angles_from_rotation(torch.as_tensor(rotation))
+        est.roll_deg = float(angles["roll_deg"])
+        est.tilt_deg = float(angles["tilt_deg"])
+        est.pitch_deg = float(angles["pitch_deg"])
+        est.pan_deg = float(angles["pan_deg"])
+    return est
+
+
+def roll_from_zenith(zenith_vp: np.ndarray, pp: np.ndarray) -> float:
+    """Roll (degrees, paper definition) from the vertical VP alone; it needs no focal length.
+
+    With c = K^-1 z the up direction in the y-up camera frame, roll = atan(-c_x / c_y) and the
+    focal length cancels in the ratio.
+    """
+    z = np.asarray(zenith_vp, dtype=np.float64)
+    dx, dy = z[0] - pp[0] * z[2], z[1] - pp[1] * z[2]
+    # y-up frame: c = (dx, -dy, .) up to a common sign, which cancels in the ratio.
+    if abs(dy) < EPS:
+        return 90.0 if dx > 0 else -90.0
+    return math.degrees(math.atan(-dx / -dy))
+
+
+# --------------------------------------------------------------------------- vertical VP
+
+def near_vertical_mask(segments: np.ndarray, max_angle_deg: float) -> np.ndarray:
+    """Segments within ``max_angle_deg`` of the image vertical."""
+    d = segment_directions(segments)
+    return np.abs(d[:, 1]) >= math.cos(math.radians(max_angle_deg))
+
+
+def vertical_vp(segments: np.ndarray, max_angle_deg: float = 30.0, inlier_deg: float = 1.5,
+                max_hypothesis_segments: int = 80) -> tuple[np.ndarray, np.ndarray] | None:
+    """Vertical VP (unit homogeneous, pixels) from the near-vertical segments, hypothesise-and-test.
+
+    Every pair among the (longest ``max_hypothesis_segments``) near-vertical segments proposes a
+    VP; a hypothesis scores the summed length of the near-vertical segments within ``inlier_deg``
+    of it (:func:`vp_angle_error`).  The best one is refined by least squares on its inliers
+    (twice).  Returns ``(vp, inlier mask over all segments)`` or None with fewer than two
+    near-vertical segments.
+    """
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+    cand = np.flatnonzero(near_vertical_mask(segments, max_angle_deg))
+    if len(cand) < 2:
+        return None
+    lengths = segment_lengths(segments)
+    cand_sorted = cand[np.argsort(-lengths[cand])][:max_hypothesis_segments]
+    lines = homogeneous_lines(segments[cand_sorted], centre=segments.reshape(-1, 2).mean(0),
+                              scale=1.0 / max(np.abs(segments).max(), 1.0))
+    i, j = np.triu_indices(len(cand_sorted), 1)
+    hyp_c = vp_from_two_lines(lines[i], lines[j])  # conditioned frame
+    centre = segments.reshape(-1, 2).mean(0)
+    s = 1.0 / max(np.abs(segments).max(), 1.0)
+    T = np.array([[s, 0, -s * centre[0]], [0, s, -s * centre[1]], [0, 0, 1.0]])
+    hyp = np.linalg.solve(T, hyp_c.T).T  # back to pixels
+    err = vp_angle_error(segments[cand], hyp)  # (H, Nv)
+    thr = math.radians(inlier_deg)
+    score = ((err < thr) * lengths[cand]).sum(1)
+    best = hyp[int(np.argmax(score))]
+    vp = best / np.linalg.norm(best)
+    for _ in range(2):
+        inl = cand[vp_angle_error(segments[cand], vp) < thr]
+        if len(inl) < 2:
+            break
+        vp = vp_least_squares(segments[inl], lengths[inl])
+    inliers = np.zeros(len(segments), bool)
+    inliers[cand] = vp_angle_error(segments[cand], vp) < thr
+    return vp, inliers
