@@ -28,10 +28,16 @@ Pipeline (every stage is a batched tensor computation; pass ``device="cuda"`` to
    angular-deviation histograms in 1-deg bins) is decoded exactly with the Viterbi algorithm; on
    runs are segments.  Segments are scored, as in the paper, by the sum of the forward-backward
    marginal posteriors P(on) over their samples (expected number of correctly labelled points).
+   Because our edge maps are denser than the authors', the edge-existence rates are adapted per
+   image (``calibrate``): P(edge | off) = the hit rate over all line samples, P(edge | on) keeps
+   the trained on/off odds ratio.  Default Hough bins are 0.006 rad (original 0.002) with sub-bin
+   parabolic peak fitting, for speed.
 5. **Explaining away + refinement** (our addition, replacing the original's sequential vote
    removal): segments are visited by decreasing score and dropped when more than ``max_shared``
-   of their supporting edges already support a better segment; each kept segment is refitted to
-   its supporting sub-pixel edges by total least squares.
+   of their supporting edges already support a better segment, or when fewer than
+   ``min_density`` of the samples between its first and last supporting edge (edges within
+   ``aligned_deg`` of the line) are supported; each kept segment is refitted to its supporting
+   sub-pixel edges by total least squares.  The HMM recursions run in numpy on the CPU.
 
 Output: ``(N, 4)`` float64 ``[x1, y1, x2, y2]``, 0-based pixel centres (LSD convention), sorted by
 decreasing score (``detect`` also returns the scores).
@@ -75,7 +81,7 @@ class MCMLSDConfig:
     # peaks
     max_lines: int = 5000
     frac: float = 0.05
-    min_votes: float = 8.0         # minimum peak height (~ edge pixels on the line)
+    min_votes: float = 16.0        # minimum peak height (~ edge pixels on the line)
     nms_theta_deg: float = 0.75    # half-size of the peak suppression window in phi
     nms_r: float = 1.5             # ... and in r (px)
     # HMM
@@ -84,10 +90,14 @@ class MCMLSDConfig:
     p_on: float = 0.247
     lines_per_bin: int = 125       # line-rank bin width of the edge-existence table
     perp_tol: float = 1.0          # max distance of a supporting edge from the line (px)
+    calibrate: bool = True         # adapt the edge-existence rates to this image (see _segment_lines)
     # output
     min_length: float = 8.0
+    aligned_deg: float = 10.0      # edges within this angle of the line count as its support
+    min_density: float = 0.6       # min fraction of supported samples between a segment's ends
     max_shared: float = 0.5
     refine: bool = True
+    cpu_threads: int | None = 1    # torch intra-op threads while detecting on the CPU (None: leave)
 
 
 class MCMLSDDetector:
@@ -102,9 +112,7 @@ class MCMLSDDetector:
         self._params = params
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=self.device)  # noqa: E731
         tiny = 1e-6
-        self._log_exist = torch.stack([t(np.log(params["exist_edge_off"] + tiny)), t(np.log(params["exist_edge_on"] + tiny))])
-        self._log_nexist = torch.stack([t(np.log(1 - params["exist_edge_off"] + tiny)),
-                                        t(np.log(1 - params["exist_edge_on"] + tiny))])
+        self._exist = torch.stack([t(params["exist_edge_off"]), t(params["exist_edge_on"])])
         self._log_ang = torch.stack([t(np.log(params["ang_dev_off"] + tiny)), t(np.log(params["ang_dev_on"] + tiny))])
 
     # ------------------------------------------------------------------ public API
@@ -112,9 +120,22 @@ class MCMLSDDetector:
     def __call__(self, gray: np.ndarray) -> np.ndarray:
         return self.detect(gray)[0]
 
-    @torch.no_grad()
     def detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Segments (N, 4) float64 and their scores (N,), sorted by decreasing score."""
+        threads = self.config.cpu_threads
+        if self.device.type != "cpu" or not threads or threads == torch.get_num_threads():
+            return self._detect(gray)
+        # Many medium-size tensor ops interleaved with numpy loops: torch's intra-op thread pool
+        # costs more than it gains here (5x slower with 2 threads on a busy 2-core machine).
+        previous = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            return self._detect(gray)
+        finally:
+            torch.set_num_threads(previous)
+
+    @torch.no_grad()
+    def _detect(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         gray = np.asarray(gray)
         if gray.ndim == 3:
             gray = gray.mean(axis=2)
@@ -218,20 +239,26 @@ class MCMLSDDetector:
         r_max = math.hypot(cx, cy) + 2.0
         n_r_half = int(math.ceil(r_max / cfg.r_res))
         n_r = 2 * n_r_half + 1
-        thetas = torch.arange(n_th, device=dev, dtype=torch.float32) * th_res
-        cos_t, sin_t = torch.cos(thetas), torch.sin(thetas)
 
         dx, dy, phi = edges["x"] - cx, edges["y"] - cy, edges["phi"]
         half = int(math.ceil(cfg.sig_bound * sig_th / th_res))
         offs = torch.arange(-half, half + 1, device=dev)
         base = torch.round(phi / th_res).long()
+        theta0 = base.float() * th_res
+        # r at theta0 + k th_res by angle addition (no gathers): r0 cos(k d) + t0 sin(k d)
+        r0 = dx * torch.cos(theta0) + dy * torch.sin(theta0)
+        t0 = -dx * torch.sin(theta0) + dy * torch.cos(theta0)
+        ck, sk = torch.cos(offs.float() * th_res), torch.sin(offs.float() * th_res)
         acc = torch.zeros(n_th * n_r, device=dev)
         chunk = max(1, 4_000_000 // len(offs))
         for s in range(0, dx.numel(), chunk):
-            b = base[s:s + chunk, None] + offs[None]                    # (E, K)
-            w = torch.exp(-0.5 * ((b.float() * th_res - phi[s:s + chunk, None]) / sig_th) ** 2)
+            sl = slice(s, s + chunk)
+            b = base[sl, None] + offs[None]                                 # (E, K) phi bins
+            w = torch.exp(-0.5 * ((offs[None].float() * th_res + (theta0[sl] - phi[sl])[:, None]) / sig_th) ** 2)
+            r = r0[sl, None] * ck[None] + t0[sl, None] * sk[None]
+            outside = (b < 0) | (b >= n_th)                                 # phi wraps: r -> -r
+            r = torch.where(outside, -r, r)
             bw = torch.remainder(b, n_th)
-            r = dx[s:s + chunk, None] * cos_t[bw] + dy[s:s + chunk, None] * sin_t[bw]
             ri = r / cfg.r_res + n_r_half
             i0 = torch.floor(ri)
             frac = ri - i0
@@ -244,14 +271,18 @@ class MCMLSDDetector:
         xr = torch.arange(-kr, kr + 1, device=dev, dtype=torch.float32) * cfg.r_res
         kernel = torch.exp(-0.5 * (xr / sig_r) ** 2)
         # peak 1: with the linear split over two r bins, one edge adds ~1 to its line
-        acc = F.conv2d(F.pad(acc, (kr, kr, 0, 0)), kernel.view(1, 1, 1, -1))
+        if dev.type == "cpu":  # OpenCV's row filter is much faster than conv2d on the CPU
+            acc = torch.from_numpy(cv2.filter2D(acc[0, 0].numpy(), -1, kernel.numpy()[None],
+                                                borderType=cv2.BORDER_CONSTANT))[None, None]
+        else:
+            acc = F.conv2d(F.pad(acc, (kr, kr, 0, 0)), kernel.view(1, 1, 1, -1))
         # peaks: local maxima with phi wrapping onto r -> -r
         wt = max(1, int(round(math.radians(cfg.nms_theta_deg) / th_res)))
         wr = max(1, int(round(cfg.nms_r / cfg.r_res)))
         wrapped = torch.cat([acc[:, :, -wt:].flip(-1), acc, acc[:, :, :wt].flip(-1)], dim=2)
-        pooled = F.max_pool2d(wrapped, (2 * wt + 1, 1), stride=1)          # separable max filter
-        pooled = F.max_pool2d(pooled, (1, 2 * wr + 1), stride=1, padding=(0, wr))
-        acc, pooled = acc[0, 0], pooled[0, 0]
+        pooled = _running_max(wrapped[0, 0], wt, 0)[wt:-wt]              # separable max filter
+        pooled = _running_max(F.pad(pooled, (wr, wr), value=-1.0), wr, 1)[:, wr:-wr]
+        acc = acc[0, 0]
         top = float(acc.max())
         threshold = max(cfg.frac * top, cfg.min_votes)
         peak = (acc >= pooled) & (acc >= threshold)
@@ -313,8 +344,8 @@ class MCMLSDDetector:
         best_dev = torch.full(px.shape, 1e3, device=dev)
         best_id = torch.full(px.shape, -1, dtype=torch.long, device=dev)
         for j in (-1.0, 0.0, 1.0):
-            qx = torch.round(px + j * nx[:, None]).long().clamp(0, width - 1)
-            qy = torch.round(py + j * ny[:, None]).long().clamp(0, height - 1)
+            qx = torch.floor(px + j * nx[:, None] + 0.5).long().clamp(0, width - 1)
+            qy = torch.floor(py + j * ny[:, None] + 0.5).long().clamp(0, height - 1)
             eid = index[qy * width + qx]
             has = (eid >= 0) & valid
             e = eid.clamp(min=0)
@@ -325,12 +356,22 @@ class MCMLSDDetector:
             best_id = torch.where(ok, eid, best_id)
         has_edge = best_id >= 0
         dev_bin = torch.round(torch.rad2deg(best_dev)).long().clamp(-90, 90) + 90
-        rank_bin = (rank // cfg.lines_per_bin).clamp(max=self._log_exist.shape[1] - 1)
+        rank_bin = (rank // cfg.lines_per_bin).clamp(max=self._exist.shape[1] - 1)
+        exist = self._exist
+        if cfg.calibrate:
+            # Our edge maps are denser than the authors' detector's: the background (off-state)
+            # edge rate is re-estimated on this image as the hit rate over all line samples (mostly
+            # off), and the on-state rates keep the trained on/off odds ratio of each rank bin.
+            rate = float((has_edge & valid).sum()) / max(1.0, float(valid.sum()))
+            off = torch.clamp(torch.full_like(exist[0], min(rate, 0.95)), min=exist[0])
+            odds = exist[1] / (1 - exist[1]) / (exist[0] / (1 - exist[0])) * off / (1 - off)
+            exist = torch.stack([off, odds / (1 + odds)])
+        log_exist, log_nexist = torch.log(exist + 1e-6), torch.log(1 - exist + 1e-6)
         # log-emissions (N, T, 2) for states off=0 / on=1
         log_e = []
         for s in (0, 1):
-            on_edge = self._log_exist[s][rank_bin][:, None] + self._log_ang[s][dev_bin]
-            no_edge = self._log_nexist[s][rank_bin][:, None].expand_as(on_edge)
+            on_edge = log_exist[s][rank_bin][:, None] + self._log_ang[s][dev_bin]
+            no_edge = log_nexist[s][rank_bin][:, None].expand_as(on_edge)
             log_e.append(torch.where(has_edge, on_edge, no_edge))
         log_e = torch.stack(log_e, -1) * valid[..., None]
 
@@ -345,6 +386,8 @@ class MCMLSDDetector:
         on_path = _viterbi(log_e_np, lengths_np, np.log(a), np.log(pi))
         post_on = _posterior_on(log_e_np, lengths_np, a, pi)
         on_path = torch.as_tensor(on_path.T.copy(), device=dev)
+        if getattr(self, "keep_debug", False):  # intermediate results, for inspection
+            self.debug = {"has_edge": has_edge, "valid": valid, "on": on_path, "rank": rank, "dev": best_dev}
         post_on = torch.as_tensor(post_on.T.copy(), device=dev, dtype=torch.float32)
 
         # on runs -> candidate segments
@@ -361,46 +404,66 @@ class MCMLSDDetector:
         li, start, stop, score = li[ok], start[ok], stop[ok], score[ok]
         order = torch.argsort(score, descending=True)
         li, start, stop, score = li[order], start[order], stop[order], score[order]
-        return self._explain_away(li, start, stop, score, has_edge, best_id, px, py, edges)
+        aligned = has_edge & (best_dev.abs() <= math.radians(cfg.aligned_deg))
+        return self._explain_away(li, start, stop, score, aligned, best_id, px, py, edges)
 
     def _explain_away(self, li, start, stop, score, has_edge, best_id, px, py, edges):
+        """Greedy: keep segments by decreasing score unless most of their edges are taken."""
         cfg = self.config
         li, start, stop, score = (v.cpu().numpy() for v in (li, start, stop, score))
-        has_edge, best_id = has_edge.cpu().numpy(), best_id.cpu().numpy()
-        px, py = px.cpu().numpy(), py.cpu().numpy()
+        steps = best_id.shape[1]
+        ids_flat = torch.where(has_edge, best_id, torch.full_like(best_id, -1)).reshape(-1).cpu().numpy()
+        px, py = px.reshape(-1).cpu().numpy(), py.reshape(-1).cpu().numpy()
         ex, ey = edges["x"].cpu().numpy().astype(np.float64), edges["y"].cpu().numpy().astype(np.float64)
-        claimed = np.zeros(ex.shape[0], bool)
+        claimed = np.zeros(ex.shape[0] + 1, bool)  # last slot: never claimed (padding id -1)
         out, out_score = [], []
-        for i, a, b, s in zip(li, start, stop, score):
-            sel = has_edge[i, a:b]
-            ids = np.unique(best_id[i, a:b][sel])
-            if ids.size < 2:
+        for i, a, b, sc in zip(li, start, stop, score):
+            base = i * steps
+            ids = ids_flat[base + a: base + b]
+            k = np.flatnonzero(ids >= 0)
+            if k.size < 3:
                 continue
-            if claimed[ids].mean() > cfg.max_shared:
+            if k.size < cfg.min_density * (k[-1] - k[0] + 1):
+                continue
+            ids = ids[k]
+            if np.count_nonzero(claimed[ids]) > cfg.max_shared * k.size:
                 continue
             claimed[ids] = True
-            # first / last supported samples bound the segment
-            k = np.flatnonzero(sel)
-            k0, k1 = a + k[0], a + k[-1]
-            p0 = np.array([px[i, k0], py[i, k0]], np.float64)
-            p1 = np.array([px[i, k1], py[i, k1]], np.float64)
-            if np.hypot(*(p1 - p0)) < cfg.min_length:
+            k0, k1 = base + a + k[0], base + a + k[-1]  # first / last supported samples
+            p0 = np.array([px[k0], py[k0]])
+            p1 = np.array([px[k1], py[k1]])
+            if cfg.refine:  # total least squares line through the supporting sub-pixel edges
+                x, y = ex[ids], ey[ids]
+                mx, my = x.mean(), y.mean()
+                sxx, syy, sxy = np.dot(x - mx, x - mx), np.dot(y - my, y - my), np.dot(x - mx, y - my)
+                ang = 0.5 * math.atan2(2 * sxy, sxx - syy)
+                d = np.array([math.cos(ang), math.sin(ang)])
+                c = np.array([mx, my])
+                p0 = c + np.dot(p0 - c, d) * d
+                p1 = c + np.dot(p1 - c, d) * d
+            if math.hypot(*(p1 - p0)) < cfg.min_length:
                 continue
-            if cfg.refine and ids.size >= 3:
-                pts = np.stack([ex[ids], ey[ids]], 1)
-                centre = pts.mean(0)
-                _, _, vt = np.linalg.svd(pts - centre, full_matrices=False)
-                direction = vt[0]
-                p0 = centre + np.dot(p0 - centre, direction) * direction
-                p1 = centre + np.dot(p1 - centre, direction) * direction
             out.append(np.concatenate([p0, p1]))
-            out_score.append(float(s))
+            out_score.append(float(sc))
         if not out:
             return np.zeros((0, 4)), np.zeros(0)
         return np.asarray(out, np.float64), np.asarray(out_score, np.float64)
 
 
 # ---------------------------------------------------------------------- helpers
+
+def _running_max(values: torch.Tensor, half: int, dim: int) -> torch.Tensor:
+    """Max over a window of +-half along dim (valid at least half away from the ends)."""
+    out = values.clone()
+    for k in range(1, half + 1):
+        out[(slice(None),) * dim + (slice(k, None),)] = torch.maximum(
+            out[(slice(None),) * dim + (slice(k, None),)], values[(slice(None),) * dim + (slice(None, -k),)])
+    result = out.clone()
+    for k in range(1, half + 1):
+        result[(slice(None),) * dim + (slice(None, -k),)] = torch.maximum(
+            result[(slice(None),) * dim + (slice(None, -k),)], out[(slice(None),) * dim + (slice(k, None),)])
+    return result
+
 
 def _gradients(image: torch.Tensor, g: np.ndarray, g1: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """Separable Gaussian-derivative gradients (d/dx, d/dy) with replicated borders."""
