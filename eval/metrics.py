@@ -15,7 +15,10 @@ Per image (``image_errors``):
 Summaries (``summarize``): mean and standard error ``SE = std(ddof=1) / sqrt(n)`` over the images
 where the method succeeded and reported the quantity.  Failed estimates (``None`` or
 ``ok == False``) are **counted** (``failures``, ``failure_pct``), never silently dropped; a quantity
-a method never reports is "n/a" (NaN mean, ``n = 0``).
+a method never reports is "n/a" (NaN mean, ``n = 0``).  ``valid_pct`` is the share of images with a
+valid (non-failed) result.  A method whose every estimate failed with a reason starting ``"n/a ("``
+(weights / predictions not supplied, e.g. CTRL-C without its ONNX file) is marked
+``na_reason = NOT_SUPPLIED``: the tables then show "n/a (not supplied)" in every cell of its row.
 """
 from __future__ import annotations
 
@@ -28,6 +31,9 @@ import numpy as np
 import torch
 
 from fr_torch.camera import focal_from_hfov, hfov_from_focal, horizon_angles
+
+NOT_SUPPLIED = "n/a (not supplied)"
+NA_PREFIX = "n/a ("
 
 METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
 
@@ -167,14 +173,32 @@ class Summary:
     mean: dict[str, float]
     se: dict[str, float]
     n: dict[str, int]
+    group: str | None = None  # e.g. the FOV bin of a per-FOV breakdown
+    na_reason: str = ""  # NOT_SUPPLIED when the method's weights / predictions are absent
 
     @property
     def failure_pct(self) -> float:
         return 100.0 * self.failures / self.n_images if self.n_images else math.nan
 
-    def as_row(self) -> dict[str, Any]:
-        row: dict[str, Any] = {"method": self.method, "n": self.n_images, "failures": self.failures,
-                               "failure_pct": self.failure_pct}
+    @property
+    def n_valid(self) -> int:
+        return self.n_images - self.failures
+
+    @property
+    def valid_pct(self) -> float:
+        """Share (%) of the images with a valid (non-failed) result."""
+        return 100.0 * self.n_valid / self.n_images if self.n_images else math.nan
+
+    @property
+    def not_supplied(self) -> bool:
+        return bool(self.na_reason)
+
+    def as_row(self, group_label: str | None = None) -> dict[str, Any]:
+        row: dict[str, Any] = {"method": self.method}
+        if group_label is not None:
+            row[group_label] = self.group
+        row.update({"n": self.n_images, "failures": self.failures, "failure_pct": self.failure_pct,
+                    "n_valid": self.n_valid, "valid_pct": self.valid_pct, "status": self.na_reason})
         for m in METRICS:
             row[f"{m}_mean"] = self.mean[m]
             row[f"{m}_se"] = self.se[m]
@@ -182,11 +206,45 @@ class Summary:
         return row
 
 
-def summarize(method: str, rows: Sequence[dict[str, Any]]) -> Summary:
-    """Summary of per-image rows (dicts with ``failed`` and the METRICS keys) for one method."""
+def not_supplied(rows: Sequence[dict[str, Any]]) -> bool:
+    """True when every row failed with a reason starting ``"n/a ("`` (weights / predictions absent)."""
+    return bool(rows) and all(r.get("failed") and str(r.get("reason") or "").startswith(NA_PREFIX) for r in rows)
+
+
+def summarize(method: str, rows: Sequence[dict[str, Any]], group: str | None = None) -> Summary:
+    """Summary of per-image rows (dicts with ``failed`` and the METRICS keys) for one method.
+
+    A method that was not supplied (:func:`not_supplied`) gets NaN means (never a made-up number)
+    and ``na_reason = NOT_SUPPLIED``.
+    """
     failures = sum(1 for r in rows if r.get("failed"))
+    na = not_supplied(rows)
     mean, se, n = {}, {}, {}
     for m in METRICS:
-        values = [r.get(m) for r in rows if not r.get("failed") or m == "runtime_s"]
+        values = [] if na else [r.get(m) for r in rows if not r.get("failed") or m == "runtime_s"]
         mean[m], se[m], n[m] = mean_se(values)
-    return Summary(method=method, n_images=len(rows), failures=failures, mean=mean, se=se, n=n)
+    return Summary(method=method, n_images=len(rows), failures=failures, mean=mean, se=se, n=n, group=group,
+                   na_reason=NOT_SUPPLIED if na else "")
+
+
+def group_sort_key(value: Any) -> tuple:
+    """Sort key putting numeric group labels in numeric order, then the others alphabetically."""
+    try:
+        return (0, float(value), "")
+    except (TypeError, ValueError):
+        return (1, 0.0, str(value))
+
+
+def summarize_groups(method: str, rows: Sequence[dict[str, Any]], key: str = "group") -> list[Summary]:
+    """One :class:`Summary` per distinct value of ``row[key]`` (rows without a value are skipped),
+    in :func:`group_sort_key` order.  A method not supplied (:func:`not_supplied`) gets a single
+    summary with group ``"all"`` (one "n/a (not supplied)" row instead of one per group)."""
+    if not_supplied(rows):
+        return [summarize(method, rows, group="all")]
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        value = r.get(key)
+        if value is None or (isinstance(value, float) and not math.isfinite(value)) or value == "":
+            continue
+        groups.setdefault(str(value), []).append(r)
+    return [summarize(method, groups[value], group=value) for value in sorted(groups, key=group_sort_key)]

@@ -1,4 +1,10 @@
-"""Histograms of estimated vs ground-truth roll, tilt and FOV (matplotlib, Agg backend)."""
+"""Figures of estimated vs ground-truth roll, tilt and FOV (matplotlib, Agg backend).
+
+* :func:`histogram_figure` (``hist_<method>.png``): one method, GT and estimated histograms overlaid;
+* :func:`distributions_figure` (``distributions.png``): the paper's Fig. 4 style comparison of all
+  methods -- top row: GT histogram (grey) with every method's estimated distribution overlaid (step
+  histograms); bottom row: estimate vs GT scatter per method with the identity line.
+"""
 from __future__ import annotations
 
 import re
@@ -55,5 +61,83 @@ def histogram_figure(predictions: pd.DataFrame, method: str, path: Path, title: 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _values(frame: pd.DataFrame, column: str) -> np.ndarray:
+    if column not in frame:
+        return np.full(len(frame), np.nan)
+    return pd.to_numeric(frame[column], errors="coerce").to_numpy(dtype=float)
+
+
+def distributions_figure(predictions: pd.DataFrame, path: Path, title: str = "",
+                         methods: list[str] | None = None) -> Path:
+    """GT vs estimated roll, tilt and FOV of all methods in one PNG (2 x 3 panels).
+
+    ``predictions`` is the per-image table of several methods (``method``, ``failed``, ``gt_<q>``,
+    ``est_<q>``).  Failed estimates are not drawn; each method's legend entry gives how many images
+    it has a valid estimate for.  Methods without any valid estimate are listed in the title.
+    """
+    methods = list(methods) if methods is not None else list(dict.fromkeys(predictions["method"].tolist()))
+    fig, axes = plt.subplots(2, 3, figsize=(14, 8.4), squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key().get("color", ["tab:blue"])
+    gt_frame = predictions.drop_duplicates("image") if "image" in predictions else predictions
+    empty = []
+    for col, (q, label) in enumerate(QUANTITIES):
+        hist_ax, scatter_ax = axes[0, col], axes[1, col]
+        gt_all = _values(gt_frame, f"gt_{q}")
+        gt_all = gt_all[np.isfinite(gt_all)]
+        per_method = []
+        for method in methods:
+            sub = predictions[predictions["method"] == method]
+            gt, est = _values(sub, f"gt_{q}"), _values(sub, f"est_{q}")
+            per_method.append((method, gt, est))
+        values = np.concatenate([gt_all] + [est[np.isfinite(est)] for _, _, est in per_method])
+        if values.size == 0:
+            for ax in (hist_ax, scatter_ax):
+                ax.text(0.5, 0.5, "n/a", ha="center", va="center", transform=ax.transAxes)
+            hist_ax.set_xlabel(label)
+            continue
+        lo, hi = float(np.percentile(values, 0.5)), float(np.percentile(values, 99.5))
+        if hi - lo < 1e-6:
+            lo, hi = lo - 1.0, hi + 1.0
+        bins = np.linspace(lo, hi, 31)
+        # outliers beyond the 0.5-99.5 percentiles are piled into the end bins
+        hist_ax.hist(np.clip(gt_all, lo, hi), bins=bins, color="0.75", label=f"ground truth (n={gt_all.size})")
+        for k, (method, gt, est) in enumerate(per_method):
+            colour = colours[k % len(colours)]
+            ok = np.isfinite(est)
+            if not ok.any():
+                if col == 0:
+                    empty.append(method)
+                continue
+            hist_ax.hist(np.clip(est[ok], lo, hi), bins=bins, histtype="step", linewidth=1.6, color=colour,
+                         label=f"{method} (n={int(ok.sum())})")
+            both = ok & np.isfinite(gt)
+            scatter_ax.scatter(gt[both], est[both], s=9, alpha=0.6, color=colour, label=method)
+        s_lo, s_hi = float(values.min()), float(values.max())  # the scatter shows outliers too
+        if s_hi - s_lo < 1e-6:
+            s_lo, s_hi = s_lo - 1.0, s_hi + 1.0
+        pad = 0.03 * (s_hi - s_lo)
+        s_lo, s_hi = s_lo - pad, s_hi + pad
+        scatter_ax.plot([s_lo, s_hi], [s_lo, s_hi], color="k", linewidth=1, linestyle="--", label="identity")
+        scatter_ax.set_xlim(s_lo, s_hi)
+        scatter_ax.set_ylim(s_lo, s_hi)
+        scatter_ax.set_xlabel(f"ground-truth {label}")
+        scatter_ax.set_ylabel(f"estimated {label}")
+        hist_ax.set_xlabel(label)
+        hist_ax.set_ylabel("images")
+        hist_ax.legend(fontsize=7)
+        if col == 0:
+            scatter_ax.legend(fontsize=7, markerscale=1.5)
+    head = title or "Estimated vs ground truth"
+    if empty:
+        head += "\n(no valid estimate: " + ", ".join(empty) + ")"
+    fig.suptitle(head)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

@@ -5,10 +5,12 @@ Example::
     fr eval --dataset yud --split test --methods fr,fast-fr --out results/yud
     fr eval --dataset yud --methods fr --measures a,b,c,d,e      # the deviation-measure table
     fr eval --dataset yud --methods "fr,fr@labelled,my_pkg.mod:MyCalibrator" --pp calibrated
+    fr eval --dataset zind-fr --methods all                        # every registered method, per-FOV table
 
 Methods are anything :func:`fr_torch.interface.get_calibrator` accepts (registered names,
 ``module:attr`` import paths, configuration variants such as ``fr[measure=a]`` passed through
-verbatim).  A ``@labelled`` suffix feeds that method the dataset's hand-labelled segments
+verbatim); ``all`` expands to every registered method (:func:`fr_torch.interface.available_methods`),
+oracle methods included only on datasets with hand-labelled segments.  A ``@labelled`` suffix feeds that method the dataset's hand-labelled segments
 (``meta.segments``; oracle run); methods named ``oracle*`` (``oracle-fr``) always get them.  Every method also finds them in
 ``meta.extra["labelled_segments"]`` / ``meta.extra["labelled_segment_labels"]`` when the dataset has
 them; ground-truth *camera* values are never passed (except the focal length with
@@ -16,10 +18,21 @@ them; ground-truth *camera* values are never passed (except the focal length wit
 
 Outputs (``--out``, default ``results/<dataset>``):
 
-* ``predictions.csv``: one row per (method, image): GT, estimate, errors, run time, failure reason;
-* ``summary.{md,csv,tex}``: rows = methods, columns n, failures, run time, roll / tilt MAE,
-  FOV / focal MAE %, frame error, each mean ± SE over the successful images ("n/a" when the method
-  does not estimate the quantity); failures are counted, never dropped silently;
+* ``predictions.csv``: one row per (method, image): GT, estimate, errors, run time, failure reason,
+  the method's predicted errors (``pred_err_*``), reliability flag and, for fR, its reliability
+  cues (``cue_<name>`` from ``extra["cues"]``) -- the input of the reliability analysis;
+* ``summary.{md,csv,tex}``: rows = methods, columns n, valid % (share of images with a valid
+  result), failures, run time, roll / tilt MAE, FOV / focal MAE %, frame error, each mean ± SE over
+  the successful images ("n/a" when the method does not estimate the quantity); failures are
+  counted, never dropped silently.  A method whose weights / predictions are absent (every estimate
+  failed with a reason starting "n/a (", e.g. ``ctrlc`` without ONNX weights, ``external`` without a
+  CSV) shows "n/a (not supplied)" in every cell; after its first such image it is only asked
+  without the image (no decoding), so it costs nothing;
+* ``by_fov.{md,csv,tex}`` (``--group-by hfov``; automatic when the GT horizontal FOV takes 2..10
+  distinct rounded values, as in ZInD-fR): rows method x FOV bin, columns n, valid %, roll, tilt,
+  FOV %, focal % mean ± SE (``--group-by <attribute>`` writes ``by_<attribute>.*``);
+* ``distributions.png``: GT vs estimated roll, tilt and FOV of all methods (overlaid histograms and
+  estimate-vs-GT scatter with the identity line; the paper's Fig. 4);
 * ``deviation_measures.{md,csv,tex}``: the same table restricted to ``[measure=x]`` variants, one
   row per deviation measure (written when such variants ran);
 * ``hist_<method>.png``: estimated vs GT roll, tilt and FOV histograms;
@@ -41,14 +54,17 @@ import pandas as pd
 from tqdm import tqdm
 
 from eval.datasets.registry import available_datasets, load_dataset
-from eval.metrics import estimate_quantities, image_errors, is_failure, summarize
+from eval.metrics import NA_PREFIX, estimate_quantities, image_errors, is_failure, summarize, summarize_groups
 from eval.paths import REPO
-from eval.plots import histogram_figure, safe_name
+from eval.plots import distributions_figure, histogram_figure, safe_name
 from eval.tables import deviation_measure_summaries, with_option, write_tables
-from fr_torch.interface import CameraEstimate, ImageMeta, get_calibrator
+from fr_torch.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
 from fr_torch.segments import load_image
 
 LABELLED_SUFFIX = "@labelled"
+ALL_METHODS = "all"
+GROUP_METRICS = ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct")
+AUTO_GROUP_MAX_VALUES = 10
 
 
 def split_methods(text: str) -> list[str]:
@@ -80,6 +96,25 @@ def expand_methods(methods: Sequence[str], measures: Sequence[str] | None) -> li
     return out
 
 
+def resolve_methods(methods: Sequence[str], has_segments: bool) -> tuple[list[str], list[str]]:
+    """Expand ``all`` into every registered method; returns (methods, skipped).
+
+    Oracle methods (``oracle*`` names) that ``all`` brings in are skipped on a dataset without
+    hand-labelled segments (``has_segments`` False).  Duplicates are removed, order kept.
+    """
+    out, skipped = [], []
+    for method in methods:
+        if method.strip().lower() != ALL_METHODS:
+            out.append(method)
+            continue
+        for name in available_methods():
+            if _strip_labelled(name)[1] and not has_segments:
+                skipped.append(name)
+            else:
+                out.append(name)
+    return list(dict.fromkeys(out)), skipped
+
+
 def _strip_labelled(method: str) -> tuple[str, bool]:
     """(method spec without ``@labelled``, whether it gets the hand-labelled segments).
 
@@ -109,7 +144,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="give the methods the ground-truth focal length (known-focal evaluation)")
     parser.add_argument("--limit", type=int, default=None, help="evaluate only the first N images")
     parser.add_argument("--device", default="cpu", help="torch device passed to the methods (default cpu)")
-    parser.add_argument("--no-plots", action="store_true", help="skip the histograms")
+    parser.add_argument("--no-plots", action="store_true",
+                        help="skip the figures (hist_<method>.png, distributions.png)")
+    parser.add_argument("--group-by", default="auto",
+                        help="per-group breakdown table: 'hfov' (per-FOV table by_fov.*), another sample "
+                             "attribute / extra key, 'none', or 'auto' (default: hfov when the GT "
+                             f"horizontal FOV takes 2..{AUTO_GROUP_MAX_VALUES} distinct rounded values)")
 
 
 def _dataset_names() -> list[str]:
@@ -161,23 +201,51 @@ def _num(x) -> float:
     return float(x) if x is not None else math.nan
 
 
+def _call(method, spec: str, image, meta: ImageMeta) -> tuple[CameraEstimate, float]:
+    start = time.perf_counter()
+    try:
+        est = method.estimate(image, meta)
+        if est is not None and not isinstance(est, CameraEstimate):
+            raise TypeError(f"estimate() returned {type(est).__name__}, not CameraEstimate")
+    except Exception as exc:  # noqa: BLE001 - a crash on one image is a counted failure
+        est = CameraEstimate.failure(spec, f"{type(exc).__name__}: {exc}")
+    return est, time.perf_counter() - start
+
+
+def _na_reason(est: CameraEstimate | None) -> str | None:
+    """The reason of an "n/a (...)" failure (weights / predictions not supplied), else None."""
+    if est is not None and is_failure(est) and (est.reason or "").startswith(NA_PREFIX):
+        return est.reason
+    return None
+
+
 def evaluate_method(spec: str, samples: Sequence[Any], *, pp_mode: str = "centre", known_focal: bool = False,
                     dataset: str = "", device: str = "cpu", calibrator=None, progress: bool = True) -> list[dict]:
-    """Per-image prediction rows of one method on ``samples`` (exceptions count as failures)."""
+    """Per-image prediction rows of one method on ``samples`` (exceptions count as failures).
+
+    A method whose answers so far are all the same "n/a (...)" failure (weights / predictions not
+    supplied) is first asked without the image; the same answer is taken as is (no image decoding),
+    any other makes it run on the decoded image as usual (and ends this shortcut).
+    """
     base_spec, labelled = _strip_labelled(spec)
     method = calibrator if calibrator is not None else make_calibrator(base_spec, device)
     rows = []
-    for sample in tqdm(samples, desc=spec, unit="img", disable=not progress, file=sys.stderr):
-        image = load_image(sample.image_path) if getattr(sample, "image_path", None) is not None else None
+    na_streak: str | None = None  # the n/a reason every answer so far had
+    for i, sample in enumerate(tqdm(samples, desc=spec, unit="img", disable=not progress, file=sys.stderr)):
         meta = build_meta(sample, pp_mode, labelled, known_focal, dataset, device)
-        start = time.perf_counter()
-        try:
-            est = method.estimate(image, meta)
-            if est is not None and not isinstance(est, CameraEstimate):
-                raise TypeError(f"estimate() returned {type(est).__name__}, not CameraEstimate")
-        except Exception as exc:  # noqa: BLE001 - a crash on one image is a counted failure
-            est = CameraEstimate.failure(spec, f"{type(exc).__name__}: {exc}")
-        wall = time.perf_counter() - start
+        has_image = getattr(sample, "image_path", None) is not None
+        est = None
+        if na_streak is not None and has_image:
+            probe, wall = _call(method, spec, None, meta)
+            if _na_reason(probe) == na_streak:
+                est = probe
+            else:
+                na_streak = None
+        if est is None:
+            image = load_image(sample.image_path) if has_image else None
+            est, wall = _call(method, spec, image, meta)
+            reason = _na_reason(est)
+            na_streak = reason if i == 0 or (na_streak is not None and reason == na_streak) else None
         rows.append(prediction_row(spec, sample, est, wall))
     return rows
 
@@ -208,13 +276,57 @@ def prediction_row(spec: str, sample: Any, est: CameraEstimate | None, wall_s: f
     predicted = (getattr(est, "predicted_error", None) or {}) if est is not None else {}
     for key in ("roll_deg", "tilt_deg", "focal_pct"):
         row[f"pred_err_{key}"] = _num(predicted.get(key))
+    extra = (getattr(est, "extra", None) or {}) if est is not None else {}
+    cues = extra.get("cues") if isinstance(extra, dict) else None
+    for key, value in (cues or {}).items():  # fR's reliability cues, for the reliability analysis
+        try:
+            row[f"cue_{key}"] = float(value)
+        except (TypeError, ValueError):
+            continue
+    if isinstance(extra, dict) and "num_segments" in extra:
+        row["num_segments"] = _num(extra["num_segments"])
     return row
 
 
+def group_value(sample: Any, key: str) -> str | None:
+    """The group label of a sample for ``--group-by key``: attribute ``key`` (or ``extra[key]``),
+    numbers rounded to integers ("60"), None when missing."""
+    value = getattr(sample, key, None)
+    if value is None:
+        value = (getattr(sample, "extra", None) or {}).get(key)
+    if value is None:
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return str(value)
+    return str(int(round(number))) if math.isfinite(number) else None
+
+
+def resolve_group_by(option: str | None, samples: Sequence[Any]) -> str | None:
+    """The grouping key for ``--group-by`` (None = no breakdown); ``auto`` picks ``hfov_deg`` when the
+    GT horizontal FOV takes 2..AUTO_GROUP_MAX_VALUES distinct rounded values."""
+    option = (option or "auto").strip()
+    if option.lower() in ("none", "off", ""):
+        return None
+    if option.lower() in ("hfov", "fov", "hfov_deg"):
+        return "hfov_deg"
+    if option.lower() == "auto":
+        values = {group_value(s, "hfov_deg") for s in samples} - {None}
+        return "hfov_deg" if 2 <= len(values) <= AUTO_GROUP_MAX_VALUES else None
+    return option
+
+
+def _group_names(key: str) -> tuple[str, str]:
+    """(file stem, column label) of the breakdown table for grouping key ``key``."""
+    if key == "hfov_deg":
+        return "by_fov", "GT FOV (°)"
+    return f"by_{safe_name(key)}", key
+
+
 def run(args: argparse.Namespace) -> int:
-    methods = expand_methods(split_methods(args.methods),
-                             [m.strip() for m in args.measures.split(",") if m.strip()] if args.measures else None)
-    if not methods:
+    requested = split_methods(args.methods)
+    if not requested:
         print("error: no methods given", file=sys.stderr)
         return 2
     try:
@@ -227,6 +339,22 @@ def run(args: argparse.Namespace) -> int:
     if not samples:
         print(f"error: dataset {args.dataset!r} split {args.split!r} has no samples", file=sys.stderr)
         return 2
+    has_segments = all(getattr(s, "segments", None) is not None for s in samples)
+    resolved, skipped = resolve_methods(requested, has_segments)
+    if skipped:
+        print(f"note: {args.dataset} has no hand-labelled segments; skipping oracle methods {', '.join(skipped)}",
+              file=sys.stderr)
+    methods = expand_methods(resolved, [m.strip() for m in args.measures.split(",") if m.strip()]
+                             if args.measures else None)
+    if not methods:
+        print("error: no methods to run", file=sys.stderr)
+        return 2
+    oracle = [m for m in methods if _strip_labelled(m)[1]]
+    if oracle and not has_segments:
+        print(f"error: {', '.join(oracle)} need hand-labelled segments; dataset {args.dataset!r} has none "
+              "(for every image)", file=sys.stderr)
+        return 2
+    group_key = resolve_group_by(getattr(args, "group_by", "auto"), samples)
     calibrators = {}
     for spec in methods:  # build every method first: a typo fails before hours of work
         try:
@@ -237,29 +365,48 @@ def run(args: argparse.Namespace) -> int:
     out_dir = Path(args.out) if args.out else REPO / "results" / safe_name(args.dataset)
     out_dir.mkdir(parents=True, exist_ok=True)
 
+    groups = {s.name: group_value(s, group_key) for s in samples} if group_key else {}
     all_rows: list[dict] = []
-    summaries = []
+    summaries, group_summaries = [], []
     for spec in methods:
         rows = evaluate_method(spec, samples, pp_mode=args.pp, known_focal=args.known_focal,
                                dataset=args.dataset, device=args.device, calibrator=calibrators[spec])
+        if group_key:
+            for row in rows:
+                row["group"] = groups.get(row["image"])
         all_rows.extend(rows)
         pd.DataFrame(all_rows).to_csv(out_dir / "predictions.csv", index=False)  # after each method
-        summaries.append(summarize(spec, rows))
-        if not args.no_plots:
+        summary = summarize(spec, rows)
+        summaries.append(summary)
+        if group_key:
+            group_summaries += summarize_groups(spec, rows, key="group")
+        if not args.no_plots and not summary.not_supplied:
             histogram_figure(pd.DataFrame(rows), spec, out_dir / f"hist_{safe_name(spec)}.png",
                              title=f"{spec} on {args.dataset} ({args.split}): estimated vs ground truth")
     settings = (f"dataset {args.dataset}, split {args.split} ({len(samples)} images), principal point "
                 f"{args.pp}, focal {'known' if args.known_focal else 'estimated'}")
-    note = ("Mean ± standard error (std(ddof=1)/√n) over the images a method succeeded on; failures are "
-            "counted in 'failures' (share of all images) and excluded from the error means only; run time "
-            f"(wall time of estimate(), all images) includes them. n/a = not estimated. Settings: {settings}.")
+    note = ("Mean ± standard error (std(ddof=1)/√n) over the images a method succeeded on; 'valid (%)' is "
+            "the share of images with a valid result; failures are counted in 'failures' (share of all "
+            "images) and excluded from the error means only; run time (wall time of estimate(), all images) "
+            "includes them. n/a = not estimated; n/a (not supplied) = the method's weights / predictions "
+            f"were not supplied (no numbers). Settings: {settings}.")
     written = write_tables(summaries, out_dir, "summary", title=f"Calibration results: {args.dataset} {args.split}",
                            note=note)
+    if group_key and group_summaries:
+        stem, column = _group_names(group_key)
+        written += write_tables(group_summaries, out_dir, stem, group_label=column, metrics=GROUP_METRICS,
+                                title=f"Results by {column}: {args.dataset} {args.split}", note=note)
+    if not args.no_plots and all_rows:
+        written.append(distributions_figure(
+            pd.DataFrame(all_rows), out_dir / "distributions.png",
+            methods=[s.method for s in summaries if not s.not_supplied],
+            title=f"{args.dataset} ({args.split}): ground truth vs estimates"))
     deviation = deviation_measure_summaries(summaries)
     if deviation:
         written += write_tables(deviation, out_dir, "deviation_measures", label="deviation measure",
                                 title=f"Deviation measures: {args.dataset} {args.split}", note=note)
     info = {"argv": sys.argv, "methods": methods, "dataset": args.dataset, "split": args.split,
+            "requested_methods": requested, "skipped_methods": skipped, "group_by": group_key,
             "n_images": len(samples), "pp": args.pp, "known_focal": args.known_focal, "device": args.device,
             "limit": args.limit, "python": platform.python_version(),
             "date": time.strftime("%Y-%m-%d %H:%M:%S")}

@@ -1,8 +1,11 @@
 """Summary tables (Markdown, CSV, LaTeX) from :class:`eval.metrics.Summary` objects.
 
-Rows are methods; columns n, failures, run time, roll MAE, tilt MAE, FOV MAE %, focal MAE %,
-frame error, each "mean ± SE" ("n/a" where the method does not estimate the quantity).  The CSV
-keeps the raw numbers (``<metric>_mean``, ``<metric>_se``, ``<metric>_n``).
+Rows are methods (optionally method x group, e.g. the per-FOV breakdown); columns n, valid
+(share of images with a valid result, %), failures, run time, roll MAE, tilt MAE, FOV MAE %, focal
+MAE %, frame error, each "mean ± SE" ("n/a" where the method does not estimate the quantity).  A
+method whose weights / predictions were not supplied shows "n/a (not supplied)" in every cell of its
+row.  The CSV keeps the raw numbers (``n_valid``, ``valid_pct``, ``<metric>_mean``, ``<metric>_se``,
+``<metric>_n``; NaN for a method not supplied, whose ``status`` column says so).
 """
 from __future__ import annotations
 
@@ -13,7 +16,7 @@ from typing import Sequence
 
 import pandas as pd
 
-from eval.metrics import METRICS, Summary
+from eval.metrics import METRICS, NOT_SUPPLIED, Summary
 
 HEADERS = {
     "runtime_s": "run time (s)",
@@ -24,6 +27,7 @@ HEADERS = {
     "frame_err_deg": "frame error (°)",
 }
 DECIMALS = {"runtime_s": 3}
+VALID_HEADER = "valid (%)"
 
 _SPEC = re.compile(r"^(?P<base>[^\[\]]+)\[(?P<opts>[^\[\]]*)\]$")
 
@@ -55,20 +59,35 @@ def format_mean_se(mean: float, se: float, n: int, decimals: int = 2) -> str:
     return f"{mean:.{decimals}f} ± {se:.{decimals}f}"
 
 
-def display_frame(summaries: Sequence[Summary], label: str = "method") -> pd.DataFrame:
-    """Human-readable table (strings) with one row per summary."""
+def display_frame(summaries: Sequence[Summary], label: str = "method", metrics: Sequence[str] = METRICS,
+                  group_label: str | None = None) -> pd.DataFrame:
+    """Human-readable table (strings) with one row per summary.
+
+    ``group_label``: add a column with each summary's ``group`` after the label column.  A summary
+    marked not supplied shows :data:`eval.metrics.NOT_SUPPLIED` in every cell but label and group.
+    """
     rows = []
     for s in summaries:
-        row = {label: s.method, "n": str(s.n_images),
-               "failures": f"{s.failures} ({s.failure_pct:.1f}%)" if s.n_images else "0"}
-        for m in METRICS:
-            row[HEADERS[m]] = format_mean_se(s.mean[m], s.se[m], s.n[m], DECIMALS.get(m, 2))
+        row = {label: s.method}
+        if group_label is not None:
+            row[group_label] = "" if s.group is None else str(s.group)
+        cells = {"n": str(s.n_images),
+                 VALID_HEADER: f"{s.valid_pct:.1f}" if s.n_images else "n/a",
+                 "failures": f"{s.failures} ({s.failure_pct:.1f}%)" if s.n_images else "0"}
+        for m in metrics:
+            cells[HEADERS[m]] = format_mean_se(s.mean[m], s.se[m], s.n[m], DECIMALS.get(m, 2))
+        if s.not_supplied:
+            cells = dict.fromkeys(cells, s.na_reason or NOT_SUPPLIED)
+        row.update(cells)
         rows.append(row)
     return pd.DataFrame(rows, dtype=object)
 
 
-def numeric_frame(summaries: Sequence[Summary]) -> pd.DataFrame:
-    return pd.DataFrame([s.as_row() for s in summaries])
+def numeric_frame(summaries: Sequence[Summary], metrics: Sequence[str] = METRICS,
+                  group_label: str | None = None) -> pd.DataFrame:
+    frame = pd.DataFrame([s.as_row(group_label) for s in summaries])
+    drop = [f"{m}_{k}" for m in METRICS if m not in metrics for k in ("mean", "se", "n")]
+    return frame.drop(columns=[c for c in drop if c in frame.columns])
 
 
 def to_markdown(frame: pd.DataFrame) -> str:
@@ -105,15 +124,16 @@ def to_latex(frame: pd.DataFrame, caption: str = "") -> str:
 
 
 def write_tables(summaries: Sequence[Summary], out_dir: Path, stem: str = "summary", title: str = "",
-                 label: str = "method", note: str = "") -> list[Path]:
+                 label: str = "method", note: str = "", metrics: Sequence[str] = METRICS,
+                 group_label: str | None = None) -> list[Path]:
     """Write ``<stem>.md``, ``<stem>.csv`` (raw numbers) and ``<stem>.tex``; returns the paths."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    display = display_frame(summaries, label=label)
+    display = display_frame(summaries, label=label, metrics=metrics, group_label=group_label)
     md = (f"# {title}\n\n" if title else "") + to_markdown(display) + (f"\n{note}\n" if note else "")
     paths = [out_dir / f"{stem}.md", out_dir / f"{stem}.csv", out_dir / f"{stem}.tex"]
     paths[0].write_text(md, encoding="utf-8")
-    numeric = numeric_frame(summaries)
+    numeric = numeric_frame(summaries, metrics=metrics, group_label=group_label)
     if label != "method":
         numeric.insert(0, label, display[label].tolist())
     numeric.to_csv(paths[1], index=False)
@@ -137,5 +157,5 @@ def deviation_measure_summaries(summaries: Sequence[Summary]) -> list[Summary]:
         others = {k: v for k, v in parse_method_spec(s.method)[1].items() if k != "measure"}
         suffix = "".join(f", {k}={v}" for k, v in others.items())
         out.append(Summary(method=f"{measure} ({base}{suffix})", n_images=s.n_images, failures=s.failures,
-                           mean=s.mean, se=s.se, n=s.n))
+                           mean=s.mean, se=s.se, n=s.n, group=s.group, na_reason=s.na_reason))
     return out

@@ -122,13 +122,17 @@ def test_eval_end_to_end_on_fake_dataset(tmp_path):
     assert 0 < oracle["roll_err_deg_mean"] < 2.5
     flaky = summary.loc["tests.test_eval:make_flaky"]
     assert flaky["failures"] == 2 and flaky["failure_pct"] == pytest.approx(100 / 3)
+    assert flaky["n_valid"] == 4 and flaky["valid_pct"] == pytest.approx(200 / 3)  # valid-result share
+    assert oracle["valid_pct"] == 100.0
     assert flaky["frame_err_deg_n"] == 4 and flaky["runtime_s_n"] == 6
     rot = summary.loc["tests.test_eval:RotationOnly@labelled"]
     assert rot["failures"] == 1 and rot["focal_err_pct_n"] == 0 and rot["fov_err_pct_n"] == 0
     crashed = pred[(pred.method == "tests.test_eval:RotationOnly@labelled") & (pred.image == "fake_1")]
     assert crashed["failed"].item() and "boom" in crashed["reason"].item()
     md = (tmp_path / "summary.md").read_text()
-    assert "n/a" in md and "2 (33.3%)" in md and "±" in md
+    assert "n/a" in md and "2 (33.3%)" in md and "±" in md and "valid (%)" in md and "| 66.7 |" in md
+    failed = pred[pred.method == "tests.test_eval:make_flaky"].set_index("image")
+    assert failed.loc["fake_2", "failed"] and failed.loc["fake_2", "reason"] == "no vanishing point"
     assert r"\pm" in (tmp_path / "summary.tex").read_text()
     for spec in ("tests.test_eval:OracleCalibrator", "tests.test_eval:make_flaky"):
         assert (tmp_path / f"hist_{run_eval.safe_name(spec)}.png").stat().st_size > 1000
@@ -189,6 +193,156 @@ def test_eval_on_two_yud_images(data_root, tmp_path):
     assert row["n"] == 2 and row["failures"] == 0
     for m in ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg"):
         assert row[f"{m}_mean"] == pytest.approx(0.0, abs=1e-4)
+
+
+# ----------------------------------------------------------------------------- --methods all, n/a rows, per-FOV
+
+FOVS = (60.0, 90.0, 120.0)
+
+
+def load_fake_fov(root=None, split="test", **_):
+    """Nine samples with GT horizontal FOV 60 / 90 / 120 (no hand-labelled segments); image files are
+    named but do not exist (the tests patch ``run_eval.load_image``)."""
+    from pathlib import Path
+
+    from fr_torch.camera import focal_from_hfov
+
+    samples = []
+    for i in range(9):
+        hfov = FOVS[i % 3]
+        s = CalibrationSample(name=f"fov_{i}", image_path=Path(f"/nonexistent/fov_{i}.png"), width=640, height=480,
+                              focal_px=float(focal_from_hfov(hfov, 640)), principal_point=(320.0, 240.0),
+                              rotation=rotation_from_angles(5.0 * i, -10.0 + 2 * i, i - 4.0).numpy(), split=split)
+        FAKE[s.name] = s
+        samples.append(s)
+    return samples
+
+
+class NotSupplied:
+    """A method whose weights are absent: every estimate is an instant "n/a (...)" failure."""
+
+    images_seen = 0
+
+    def __init__(self, device="cpu"):
+        self.name = "not-supplied"
+
+    def estimate(self, image, meta):
+        if image is not None:
+            NotSupplied.images_seen += 1
+        return CameraEstimate.failure(self.name, "n/a (weights not supplied)")
+
+
+class CueCalibrator(OracleCalibrator):
+    """Oracle with fR-like predicted errors and reliability cues; fails on every third image."""
+
+    def estimate(self, image, meta):
+        if meta.name in ("fov_2", "fov_5", "fov_8"):  # all the 120-degree views
+            return CameraEstimate.failure(self.name, "no orthogonal pair of finite horizontal VPs")
+        est = super().estimate(image, meta)
+        est.predicted_error = {"roll_deg": 0.5, "tilt_deg": 0.7, "focal_pct": 3.0}
+        est.extra["cues"] = {"min_family_segments": 12.0, "grid_entropy": 1.5, "mean_log_likelihood": -2.0}
+        return est
+
+
+@pytest.fixture
+def fake_images(monkeypatch):
+    """Patch image decoding: counts the decoded images, returns a black frame."""
+    calls = []
+
+    def fake_load(path):
+        calls.append(path)
+        return np.zeros((480, 640, 3), np.uint8)
+
+    monkeypatch.setattr(run_eval, "load_image", fake_load)
+    NotSupplied.images_seen = 0
+    return calls
+
+
+def test_methods_all_expansion(monkeypatch):
+    from fr_torch.interface import available_methods
+
+    registered = available_methods()
+    methods, skipped = run_eval.resolve_methods(["all"], has_segments=True)
+    assert methods == registered and skipped == []
+    methods, skipped = run_eval.resolve_methods(["fr", "all", "x:Y"], has_segments=False)
+    assert skipped == [m for m in registered if m.startswith("oracle")] and "oracle-fr" in skipped
+    assert methods[0] == "fr" and methods[-1] == "x:Y" and methods.count("fr") == 1
+    assert set(methods) == set(registered) - set(skipped) | {"x:Y"}
+    assert {"ctrlc", "external", "simon2018"} <= set(methods)
+
+
+def test_methods_all_run_with_na_row_and_by_fov(monkeypatch, fake_images, tmp_path):
+    monkeypatch.setattr(run_eval, "available_methods", lambda: [
+        "oracle-x", "tests.test_eval:NotSupplied", "tests.test_eval:CueCalibrator"])
+    args = parse(["--dataset", "tests.test_eval:load_fake_fov", "--methods", "all", "--out", str(tmp_path)])
+    assert run_eval.run(args) == 0
+    info = json.loads((tmp_path / "run_info.json").read_text())
+    assert info["skipped_methods"] == ["oracle-x"] and info["group_by"] == "hfov_deg"
+    assert info["methods"] == ["tests.test_eval:NotSupplied", "tests.test_eval:CueCalibrator"]
+    # the n/a method: decoded one image only, then answered without images; n/a in every cell
+    assert NotSupplied.images_seen == 1 and len(fake_images) == 1 + 9
+    md_rows = [line for line in (tmp_path / "summary.md").read_text().splitlines()
+               if line.startswith("| tests.test_eval:NotSupplied")]
+    cells = [c.strip() for c in md_rows[0].strip("|").split("|")]
+    assert cells[1:] and all(c == "n/a (not supplied)" for c in cells[1:])
+    summary = pd.read_csv(tmp_path / "summary.csv").set_index("method")
+    na = summary.loc["tests.test_eval:NotSupplied"]
+    assert na["status"] == "n/a (not supplied)" and na["n"] == 9
+    assert all(math.isnan(na[f"{m}_mean"]) for m in ("runtime_s", "roll_err_deg", "fov_err_pct"))
+    assert r"n/a (not supplied)" in (tmp_path / "summary.tex").read_text()
+    assert not (tmp_path / "hist_tests.test_eval_NotSupplied.png").exists()
+    # valid share: the 120-degree views failed
+    cue = summary.loc["tests.test_eval:CueCalibrator"]
+    assert cue["n_valid"] == 6 and cue["valid_pct"] == pytest.approx(200 / 3) and cue["failures"] == 3
+    # per-FOV breakdown: method x FOV bin
+    by_fov = pd.read_csv(tmp_path / "by_fov.csv")
+    rows = by_fov[by_fov.method == "tests.test_eval:CueCalibrator"]
+    assert rows["GT FOV (°)"].astype(str).tolist() == ["60", "90", "120"]
+    assert rows["n"].tolist() == [3, 3, 3] and rows["valid_pct"].tolist() == [100.0, 100.0, 0.0]
+    assert rows["focal_err_pct_mean"].iloc[:2].to_numpy() == pytest.approx([5.0, 5.0], abs=1e-6)
+    assert rows["fov_err_pct_mean"].iloc[0] > rows["fov_err_pct_mean"].iloc[1] > 0  # focal +5% shrinks small FOVs more
+    assert math.isnan(rows["roll_err_deg_mean"].iloc[2]) and rows["roll_err_deg_n"].iloc[2] == 0
+    assert "frame_err_deg_mean" not in by_fov.columns and "runtime_s_mean" not in by_fov.columns
+    na_rows = by_fov[by_fov.method == "tests.test_eval:NotSupplied"]
+    assert len(na_rows) == 1 and na_rows["status"].item() == "n/a (not supplied)"
+    md = (tmp_path / "by_fov.md").read_text()
+    assert "GT FOV (°)" in md and "| 120 |" in md and "roll MAE (°)" in md and "±" in md
+    # per-image predictions keep the predicted errors, cues and the FOV bin
+    pred = pd.read_csv(tmp_path / "predictions.csv")
+    ok = pred[(pred.method == "tests.test_eval:CueCalibrator") & ~pred.failed]
+    assert (ok["pred_err_roll_deg"] == 0.5).all() and (ok["cue_min_family_segments"] == 12.0).all()
+    assert (ok["cue_grid_entropy"] == 1.5).all() and (ok["cue_mean_log_likelihood"] == -2.0).all()
+    assert sorted(pred["group"].unique().tolist()) == [60, 90, 120]
+    assert (tmp_path / "distributions.png").stat().st_size > 5000
+
+
+def test_group_by_options(fake_images, tmp_path):
+    samples = load_fake_fov()
+    assert run_eval.resolve_group_by("auto", samples) == "hfov_deg"
+    assert run_eval.resolve_group_by("none", samples) is None
+    assert run_eval.resolve_group_by("hfov", samples[:1]) == "hfov_deg"
+    assert run_eval.resolve_group_by("auto", samples[:3:3]) is None  # a single FOV: no breakdown
+    assert run_eval.group_value(samples[0], "hfov_deg") == "60"
+    args = parse(["--dataset", "tests.test_eval:load_fake_fov", "--methods", "tests.test_eval:OracleCalibrator",
+                  "--out", str(tmp_path), "--group-by", "none", "--no-plots"])
+    assert run_eval.run(args) == 0
+    assert not (tmp_path / "by_fov.csv").exists() and not (tmp_path / "distributions.png").exists()
+
+
+def test_oracle_needs_labelled_segments(fake_images, tmp_path):
+    args = parse(["--dataset", "tests.test_eval:load_fake_fov",
+                  "--methods", "tests.test_eval:OracleCalibrator@labelled", "--out", str(tmp_path)])
+    assert run_eval.run(args) == 2
+
+
+def test_distributions_figure_handles_missing_estimates(tmp_path):
+    from eval.plots import distributions_figure
+
+    frame = pd.DataFrame({"method": ["a", "a", "b", "b"], "image": ["x", "y", "x", "y"], "failed": [0, 0, 1, 1],
+                          "gt_roll_deg": [1.0, 2.0, 1.0, 2.0], "est_roll_deg": [1.5, 2.5, np.nan, np.nan],
+                          "gt_tilt_deg": [3.0, 4.0, 3.0, 4.0], "est_tilt_deg": [3.0, 4.0, np.nan, np.nan]})
+    path = distributions_figure(frame, tmp_path / "d.png")  # no FOV columns at all
+    assert path.stat().st_size > 5000
 
 
 # ----------------------------------------------------------------------------- likelihood fit

@@ -8,11 +8,13 @@ import pytest
 import torch
 
 from eval.metrics import (
+    NOT_SUPPLIED,
     frame_error_deg,
     image_errors,
     mean_se,
     proper_signed_permutations,
     summarize,
+    summarize_groups,
 )
 from eval.datasets.registry import CalibrationSample
 from eval.tables import (
@@ -165,3 +167,29 @@ def test_deviation_measure_rows():
     summaries = [summarize(m, rows) for m in ("fr", "fr[measure=c]", "fr[measure=a]", "fast-fr[measure=b]")]
     picked = deviation_measure_summaries(summaries)
     assert [s.method for s in picked] == ["b (fast-fr)", "a (fr)", "c (fr)"]
+
+
+def test_valid_share_and_not_supplied_rows():
+    rows = [{"failed": False, "runtime_s": 1.0, "roll_err_deg": 1.0, "group": "60"},
+            {"failed": True, "reason": "no VP", "runtime_s": 1.0, "group": "90"},
+            {"failed": False, "runtime_s": 1.0, "roll_err_deg": 3.0, "group": "60"},
+            {"failed": True, "reason": "n/a (weights not supplied)", "runtime_s": 1.0, "group": "90"}]
+    s = summarize("m", rows)
+    assert s.n_valid == 2 and s.valid_pct == 50.0 and not s.not_supplied  # partial n/a = ordinary failures
+    table = display_frame([s])
+    assert table.loc[0, "valid (%)"] == "50.0" and table.loc[0, "failures"] == "2 (50.0%)"
+    na_rows = [{"failed": True, "reason": "n/a (not supplied)", "runtime_s": 0.001}] * 3
+    na = summarize("ctrlc", na_rows)
+    assert na.not_supplied and na.na_reason == NOT_SUPPLIED and na.n_images == 3
+    assert math.isnan(na.mean["runtime_s"]) and na.n["runtime_s"] == 0  # no number at all
+    row = display_frame([s, na]).iloc[1]
+    assert row["method"] == "ctrlc" and all(v == NOT_SUPPLIED for v in row.drop("method"))
+    assert na.as_row()["status"] == NOT_SUPPLIED and s.as_row()["status"] == ""
+    groups = summarize_groups("m", rows)
+    assert [(g.group, g.n_images, g.failures) for g in groups] == [("60", 2, 0), ("90", 2, 2)]
+    assert groups[0].mean["roll_err_deg"] == 2.0
+    assert [g.group for g in summarize_groups("ctrlc", na_rows)] == ["all"]
+    numbers = [{"failed": False, "group": g} for g in ("120", "60", "90")]
+    assert [g.group for g in summarize_groups("m", numbers)] == ["60", "90", "120"]
+    grouped = display_frame(groups, metrics=("roll_err_deg",), group_label="FOV")
+    assert list(grouped.columns) == ["method", "FOV", "n", "valid (%)", "failures", "roll MAE (°)"]
