@@ -245,21 +245,27 @@ class FREstimator:
         vps = (intrinsics(best_params[:, 3], pp) @ rotation).transpose(-1, -2)  # rows = VPs
         vps = vps * torch.where(vps[..., 2:] < 0, -1.0, 1.0)
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
+        # One device->host transfer per tensor, not one per image (keeps large batches O(B)).
+        counts_all = batch.mask.sum(-1).cpu().numpy()
+        lengths_all = batch.lengths.cpu().numpy()
+        labels_all = labels.cpu().numpy()
+        rotation_all = rotation.cpu().numpy()
+        vps_all = vps.cpu().numpy()
         for j, i in enumerate(group):
-            n = int(batch.mask[j].sum())
+            n = int(counts_all[j])
             r = results[i]
             r.focal_px = float(best_params[j, 3])
             r.hfov_deg = float(hfov_from_focal(best_params[j, 3], width[j]))
             r.principal_point = (float(pp[j, 0]), float(pp[j, 1]))
-            r.rotation = rotation[j].cpu().numpy()
+            r.rotation = rotation_all[j]
             for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg"):
                 setattr(r, key, float(angles[key][j]))
-            r.vanishing_points = vps[j].cpu().numpy()
+            r.vanishing_points = vps_all[j]
             r.log_likelihood = float(best_scores[j])
             r.num_segments = n
             r.segments = segments[i]
-            r.labels = labels[j, :n].cpu().numpy()
-            lengths = batch.lengths[j, :n].cpu().numpy()
+            r.labels = labels_all[j, :n]
+            lengths = lengths_all[j, :n]
             r.manhattan_fraction = float(lengths[r.labels != BACKGROUND_LABEL].sum() / max(lengths.sum(), 1e-12))
             r.cues = {key: float(value[j]) for key, value in cues.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))

@@ -9,6 +9,19 @@ included (the MATLAB release pins f to its grid value; we refine it continuously
 does).  ``fr`` mode runs ``refine_iterations_fr`` steps with a decaying step size, ``fast`` mode
 ``refine_iterations_fast`` (10).  Each hypothesis' update depends only on its own gradient, so a
 batch gives the same answer as images one by one.
+
+Speed and memory (same math; see also :mod:`fr_torch.likelihood`):
+
+* Grid: on CPU the hypotheses are scored in cache-sized chunks (``CPU_CHUNK_ELEMENTS`` deviations,
+  about 1 MB per buffer) that reuse the same buffers, instead of ``max_chunk_elements`` (which
+  still bounds the chunk on GPU and caps it on CPU); rotations / vanishing points are built once
+  per image slice, not per chunk.  Large batches are cut into image slices, so memory stays
+  bounded for any batch size.
+* Refinement: images are refined in independent slices of at most ``max_chunk_elements``
+  (``CPU_REFINE_ELEMENTS`` on CPU) deviations per step (identical results: every image's loss and Adam update are its own), and
+  the rotation is built in closed form (``R.T = Ry(pan) Rx(pitch) Rz(roll)``, equal to
+  :func:`fr_torch.camera.rotation_from_angles` to rounding) with fewer, smaller autograd nodes.
+  The iteration counts and step-size schedule are unchanged.
 """
 from __future__ import annotations
 
@@ -23,6 +36,8 @@ from .camera import focal_from_hfov, rotation_from_angles
 from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures
 
 PARAMS = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
+CPU_CHUNK_ELEMENTS = 1 << 17  # per-chunk deviations on CPU: two float32 buffers of ~0.5 MB stay in cache
+CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
 
 
 @dataclass(frozen=True)
@@ -103,29 +118,79 @@ def hypothesis_rotations(params: torch.Tensor) -> torch.Tensor:
 
 def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypotheses: torch.Tensor,
                max_chunk_elements: int) -> torch.Tensor:
-    """Length-weighted log-likelihood of every hypothesis, (B, G), in chunks of hypotheses."""
+    """Length-weighted log-likelihood of every hypothesis, (B, G), in chunks of hypotheses and images.
+
+    At most ``max_chunk_elements`` (``CPU_CHUNK_ELEMENTS`` on CPU, if smaller) per-segment
+    deviations exist at once; scores do not depend on the chunking.
+    """
     batch, count = hypotheses.shape[:2]
     n_seg = max(1, features.weight.shape[1])
-    chunk = max(1, max_chunk_elements // (batch * n_seg * 3))
-    dtype = features.weight.dtype
-    scores = []
+    dtype, device = features.weight.dtype, features.weight.device
+    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, CPU_CHUNK_ELEMENTS))
+    per_hypothesis = n_seg * 3
+    hyp_chunk = max(1, min(count, budget // per_hypothesis))
+    img_chunk = max(1, min(batch, budget // (per_hypothesis * hyp_chunk)))
+    scores = torch.empty(batch, count, dtype=dtype, device=device)
+    workspace: dict = {}
     with torch.no_grad():
-        for start in range(0, count, chunk):
-            part = hypotheses[:, start:start + chunk].to(features.weight.device)
-            rotation = hypothesis_rotations(part).to(dtype)
-            scores.append(likelihood.objective(features, rotation, part[..., 3].to(dtype)))
-    return torch.cat(scores, 1)
+        for b0 in range(0, batch, img_chunk):
+            b1 = min(batch, b0 + img_chunk)
+            sub = features.images(b0, b1)
+            # Rotations of this image slice: (b, G, 3, 3) -- small (9 numbers per hypothesis).
+            part = hypotheses[b0:b1].to(device)
+            rotation = fast_rotations(part.to(dtype))
+            focal = part[..., 3].to(dtype)
+            for h0 in range(0, count, hyp_chunk):
+                h1 = min(count, h0 + hyp_chunk)
+                scores[b0:b1, h0:h1] = likelihood.objective(sub, rotation[:, h0:h1], focal[:, h0:h1],
+                                                            workspace=workspace)
+    return scores
+
+
+def fast_rotations(params: torch.Tensor) -> torch.Tensor:
+    """World->camera R (..., 3, 3) from [pan, pitch, roll, ...] (degrees), closed form.
+
+    ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` -- the same rotation as :func:`hypothesis_rotations`
+    (kornia quaternion route) up to rounding, in fewer operations; differentiable.
+    """
+    rad = torch.deg2rad(params[..., :3])
+    cos, sin = torch.cos(rad), torch.sin(rad)
+    cp, ct, cr = cos.unbind(-1)
+    sp, st, sr = sin.unbind(-1)
+    spst, cpst = sp * st, cp * st
+    # Columns of R.T are the rows of R; build R row by row (row i of R = column i of R.T).
+    rows = torch.stack([cp * cr + spst * sr, ct * sr, cpst * sr - sp * cr,
+                        spst * cr - cp * sr, ct * cr, sp * sr + cpst * cr,
+                        sp * ct, -st, cp * ct], -1)
+    return rows.view(params.shape[:-1] + (3, 3))
+
 
 
 def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
-           lower: torch.Tensor, upper: torch.Tensor, iterations: int, fast: bool) -> tuple[torch.Tensor, torch.Tensor]:
+           lower: torch.Tensor, upper: torch.Tensor, iterations: int, fast: bool,
+           max_chunk_elements: int = 1 << 24) -> tuple[torch.Tensor, torch.Tensor]:
     """Refine starts (B, L, 4) inside the box [lower, upper] (B, 4).  Returns (params, objective).
 
     Parameters are optimised as u = (p - lower) / (upper - lower) in [0, 1] (a degenerate box,
     e.g. a known focal length, keeps that parameter fixed).  The loss of every hypothesis is its
     negative log-likelihood divided by the image's total segment length, so step sizes do not
-    depend on how many segments an image has.
+    depend on how many segments an image has.  Images are refined in independent slices of at
+    most ``max_chunk_elements`` deviations (bounded memory; same result as one big batch).
     """
+    batch, n_start = starts.shape[:2]
+    n_seg = max(1, features.weight.shape[1])
+    if features.weight.device.type == "cpu":
+        max_chunk_elements = min(max_chunk_elements, CPU_REFINE_ELEMENTS)
+    step = max(1, max_chunk_elements // (n_seg * n_start * 3))
+    if batch > step:
+        parts = [_refine_slice(likelihood, features.images(b, b + step), starts[b:b + step],
+                               lower[b:b + step], upper[b:b + step], iterations, fast)
+                 for b in range(0, batch, step)]
+        return torch.cat([p for p, _ in parts]), torch.cat([o for _, o in parts])
+    return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast)
+
+
+def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast):
     dtype, device = features.weight.dtype, features.weight.device
     lower = lower.to(device=device, dtype=dtype)[:, None, :]
     upper = upper.to(device=device, dtype=dtype)[:, None, :]
@@ -141,10 +206,11 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
     gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
     optimiser = torch.optim.Adam([u], lr=lr0, betas=(0.5, 0.9))
     schedule = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
+    all_free = bool(free.all())
 
     def evaluate(u_value):
         params = lower + u_value * span
-        rotation = rotation_from_angles(params[..., 0], params[..., 1], params[..., 2])
+        rotation = fast_rotations(params)
         return params, likelihood.objective(features, rotation, params[..., 3])
 
     for _ in range(iterations):
@@ -152,7 +218,8 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
         _, objective = evaluate(u)
         loss = -(objective / total_length).sum()
         loss.backward()
-        u.grad = torch.where(free, u.grad, torch.zeros_like(u.grad))
+        if not all_free:
+            u.grad = torch.where(free, u.grad, torch.zeros_like(u.grad))
         optimiser.step()
         schedule.step()
         with torch.no_grad():

@@ -1,0 +1,475 @@
+"""``fr bench``: speed benchmark of fR / Fast-fR -- latency, throughput, memory, scaling.
+
+Measures (warm-up first, medians over repeats) and writes ``<out>/bench.json``, ``<out>/bench.md``
+and ``<out>/scaling.png`` (default ``results/bench``):
+
+1. **End-to-end latency** per 640x480 image on CPU (decode + LSD + search), ``fr`` and ``fast``,
+   split by stage (``detect`` = decode + LSD, ``grid``, ``refine``, ``cues``), on a rendered room
+   (:func:`fr_torch.synthetic.render_manhattan_room`, written to a temporary PNG so decoding is
+   included) and, when the data root exists, a few YorkUrbanDB images.  The floors are reported
+   too: decode + LSD alone, and for the grid the time of its two transcendental passes (atan2 +
+   exp) over all G x N x 3 deviations at the in-cache speed measured on this machine.
+2. **Throughput** given segments (grid + refinement + cues), images/s, batch 1 ... 1024, on CPU
+   and on CUDA when available (timed with ``torch.cuda.synchronize``).
+3. **Peak memory** per batch size: on CPU the peak-RSS increase (``VmHWM`` after resetting it,
+   ``ru_maxrss`` where /proc is missing) of a fresh subprocess per setting (tracemalloc does not see torch); on CUDA ``torch.cuda.max_memory_allocated``.  With
+   ``--stress`` it also checks that a batch of 4096 images x 1000 segments stays bounded (with a
+   k=4 grid to keep it short: memory does not depend on k, since the grid is chunked).
+4. **Scaling**: time against the number of segments (100 ... 5000) and the grid size k (4 ... 12).
+
+``--quick`` is a tiny smoke run (seconds).  The machine (CPU model, cores, torch version, threads,
+device, load average) is recorded with the numbers: on a shared machine timings are noisy, so
+compare runs only on the same machine and look at the load average.
+
+Threads: single-threaded by default (``--threads 1``).  On a machine shared with other jobs an
+OpenMP/MKL parallel region waits for its slowest thread, and a thread that has lost its core
+stalls every op (seen here: 10-50x slower with 2 threads under load); ``--threads 0`` keeps
+torch's default, ``--threads 2`` uses both cores of an idle 2-core machine.
+
+Run ``fr bench [--quick] [--device cuda] [--out DIR] [--threads T]`` or ``python -m eval.bench``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_OUT = REPO / "results" / "bench"
+STAGES = ("detect", "grid", "refine", "cues", "total")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--quick", action="store_true", help="tiny smoke run (CI): a few seconds")
+    parser.add_argument("--device", default="auto", help="cpu, cuda or auto (cuda when available; CPU is always measured)")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (default 1: on a shared machine multi-threaded torch ops stall "
+                             "whenever another process holds a core; 0 = torch's default)")
+    parser.add_argument("--repeats", type=int, default=None, help="timed repeats per setting (default 7, quick 2)")
+    parser.add_argument("--data-root", default=None, help="dataset root (default: eval.paths.data_root())")
+    parser.add_argument("--no-memory", action="store_true", help="skip the memory subprocesses")
+    parser.add_argument("--stress", action="store_true",
+                        help="also run the bounded-memory check: batch 4096 x 1000 segments (k=4; minutes)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: "B,N,k,mode,device"
+
+
+# --------------------------------------------------------------------------- helpers
+
+def _median_times(fn, repeats: int, warmup: int = 1, sync=None) -> list[float]:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        if sync:
+            sync()
+        start = time.perf_counter()
+        fn()
+        if sync:
+            sync()
+        times.append(time.perf_counter() - start)
+    return times
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_description(device: str) -> dict:
+    import torch
+
+    info = {"cpu": _cpu_model(), "cores": os.cpu_count(), "torch": torch.__version__,
+            "threads": torch.get_num_threads(), "device": device, "python": platform.python_version(),
+            "platform": platform.platform()}
+    try:
+        info["load_average"] = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        pass
+    if device.startswith("cuda"):
+        info["gpu"] = torch.cuda.get_device_name(0)
+    return info
+
+
+def _segments(n: int, seed: int = 0) -> np.ndarray:
+    """About n synthetic segments of a 640x480 Manhattan scene (70 % Manhattan, 30 % clutter)."""
+    from fr_torch.camera import focal_from_hfov, rotation_from_angles
+    from fr_torch.synthetic import synthetic_segments
+
+    rng = np.random.default_rng(seed)
+    R = rotation_from_angles(*[np.float64(rng.uniform(-20, 20)) for _ in range(3)]).numpy()
+    per_family = max(2, int(round(n * 0.7 / 3)))
+    seg, _ = synthetic_segments(focal_from_hfov(70.0, 640), R, 640, 480, n_per_family=per_family,
+                                clutter_fraction=0.3, seed=seed, min_length_px=10.0, max_length_px=80.0)
+    if len(seg) < n:  # pad with jittered copies to reach exactly n
+        extra = seg[rng.integers(0, len(seg), n - len(seg))] + rng.normal(0, 0.5, (n - len(seg), 4))
+        seg = np.concatenate([seg, extra])
+    return seg[:n]
+
+
+def _estimator(mode: str, device: str = "cpu", k: int | None = None):
+    from fr_torch import FREstimator
+    from fr_torch.search import SearchConfig
+
+    config = SearchConfig.from_config(**({"grid_points_per_dim": k} if k else {}))
+    return FREstimator(mode=mode, device=device, search_config=config)
+
+
+def _sync(device: str):
+    if device.startswith("cuda"):
+        import torch
+
+        return torch.cuda.synchronize
+    return None
+
+
+def _progress(total: int, disable: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc="fr bench", unit="step", disable=disable, file=sys.stderr)
+
+
+# --------------------------------------------------------------------------- measurements
+
+def _transcendental_ns(device: str = "cpu") -> float:
+    """ns per element of atan2 + exp on an in-cache float32 buffer (the grid's floor per deviation)."""
+    import torch
+
+    n = 1 << 17
+    x, y = torch.rand(n, device=device), torch.rand(n, device=device)
+    z = torch.empty(n, device=device)
+    ta = statistics.median(_median_times(lambda: torch.atan2(x, y, out=z), 15, 3, _sync(device)))
+    te = statistics.median(_median_times(lambda: torch.exp(x, out=z), 15, 3, _sync(device)))
+    return (ta + te) / n * 1e9
+
+
+def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fast", "fr")) -> list[dict]:
+    """Latency of calibrate_images on single images (batch 1), per stage, medians (ms)."""
+    from fr_torch.segments import get_detector, load_image, to_gray8
+
+    rows = []
+    detector = get_detector("lsd")
+    for label, path in images:
+        gray = to_gray8(load_image(path))
+        decode = statistics.median(_median_times(lambda: load_image(path), repeats))
+        lsd = statistics.median(_median_times(lambda: detector(gray), repeats))
+        for mode in modes:
+            est = _estimator(mode)
+            est.calibrate_images([path])  # warm-up
+            runs = []
+            for _ in range(repeats):
+                start = time.perf_counter()
+                [result] = est.calibrate_images([path])
+                wall = time.perf_counter() - start
+                runs.append(dict(result.runtime_s, wall=wall))
+            row = {"image": label, "mode": mode, "segments": result.num_segments,
+                   "width": result.width, "height": result.height}
+            for key in STAGES + ("wall",):
+                row[f"{key}_ms"] = 1000 * statistics.median(r.get(key, 0.0) for r in runs)
+            row["decode_ms"], row["lsd_ms"] = 1000 * decode, 1000 * lsd
+            row["iterations"] = est.iterations
+            row["grid_hypotheses"] = est.search.grid_points_per_dim ** 4
+            rows.append(row)
+            progress.update(1)
+    return rows
+
+
+def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress, mode: str = "fast") -> list[dict]:
+    """Images/s of calibrate_segments (grid + refinement + cues) for each batch size."""
+    est = _estimator(mode, device)
+    pool = [_segments(n_segments, seed=i) for i in range(8)]
+    est.calibrate_segments(pool[:1], [(640, 480)])  # warm-up
+    rows = []
+    for batch in batch_sizes:
+        segs = [pool[i % len(pool)] for i in range(batch)]
+        sizes = [(640, 480)] * batch
+        reps = repeats if batch <= 64 else max(1, min(repeats, 2))
+        times = _median_times(lambda: est.calibrate_segments(segs, sizes), reps, warmup=1 if batch <= 64 else 0,
+                              sync=_sync(device))
+        t = statistics.median(times)
+        row = {"device": device, "mode": mode, "batch": batch, "segments": n_segments, "seconds": t,
+               "images_per_s": batch / t, "ms_per_image": 1000 * t / batch, "repeats": reps}
+        if device.startswith("cuda"):
+            import torch
+
+            torch.cuda.reset_peak_memory_stats()
+            est.calibrate_segments(segs, sizes)
+            torch.cuda.synchronize()
+            row["peak_memory_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
+        rows.append(row)
+        progress.update(1)
+    return rows
+
+
+def memory_probe(spec: str) -> dict:
+    """Run inside a fresh process: peak RSS increase of one calibrate_segments call (MB)."""
+    import torch
+
+    batch, n_seg, k, mode, device = spec.split(",")
+    batch, n_seg, k = int(batch), int(n_seg), int(k)
+    est = _estimator(mode, device, k)
+    pool = [_segments(n_seg, seed=i) for i in range(4)]
+    segs = [pool[i % 4] for i in range(batch)]
+    # Baseline after imports and inputs, before any search (so library warm-up counts, once).
+    # ru_maxrss survives fork + exec (it would report the parent's size), so read VmHWM, reset
+    # to the current RSS through /proc/self/clear_refs; ru_maxrss only where /proc is missing.
+    before = _reset_peak_rss()
+    start = time.perf_counter()
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    results = est.calibrate_segments(segs, [(640, 480)] * batch)
+    seconds = time.perf_counter() - start
+    after = _peak_rss()
+    out = {"batch": batch, "segments": n_seg, "k": k, "mode": mode, "device": device, "seconds": seconds,
+           "rss_before_mb": before / 1024, "peak_rss_mb": after / 1024, "peak_increase_mb": (after - before) / 1024,
+           "input_mb": batch * n_seg * 4 * 8 / 2 ** 20, "ok": all(r.ok for r in results)}
+    if device.startswith("cuda"):
+        out["cuda_peak_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
+    return out
+
+
+def _proc_status_kb(key: str) -> int | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _reset_peak_rss() -> float:
+    """Reset the peak-RSS mark to the current RSS (Linux); returns the current RSS in KiB."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+    current = _proc_status_kb("VmRSS")
+    return float(current if current is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+
+def _peak_rss() -> float:
+    """Peak RSS in KiB since the last reset (VmHWM), or ru_maxrss where /proc is missing."""
+    peak = _proc_status_kb("VmHWM")
+    return float(peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+
+
+def memory(settings, threads: int | None, progress) -> list[dict]:
+    rows = []
+    for batch, n_seg, k, mode, device in settings:
+        cmd = [sys.executable, "-m", "eval.bench", "--memory-probe", f"{batch},{n_seg},{k},{mode},{device}"]
+        if threads:
+            cmd += ["--threads", str(threads)]
+        proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+        if proc.returncode != 0:
+            rows.append({"batch": batch, "segments": n_seg, "k": k, "mode": mode, "device": device, "ok": False,
+                         "error": (proc.stderr or proc.stdout).strip().splitlines()[-1:]})
+        else:
+            rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+        progress.update(1)
+    return rows
+
+
+def scaling(segment_counts, grid_sizes, device: str, repeats: int, progress, mode: str = "fast") -> dict:
+    """Per-image time (ms, batch 1, given segments) against N segments and against grid size k."""
+    out = {"segments": [], "grid": []}
+    est = _estimator(mode, device)
+    for n in segment_counts:
+        seg = _segments(n, seed=1)
+        runs = []
+        est.calibrate_segments([seg], [(640, 480)])
+        for _ in range(repeats):
+            [r] = est.calibrate_segments([seg], [(640, 480)])
+            runs.append(r.runtime_s)
+        out["segments"].append({"segments": n, **{f"{k}_ms": 1000 * statistics.median(x[k] for x in runs)
+                                                  for k in ("grid", "refine", "cues", "total")}})
+        progress.update(1)
+    seg = _segments(500, seed=1)
+    for k in grid_sizes:
+        est_k = _estimator(mode, device, k)
+        est_k.calibrate_segments([seg], [(640, 480)])
+        runs = []
+        for _ in range(repeats):
+            [r] = est_k.calibrate_segments([seg], [(640, 480)])
+            runs.append(r.runtime_s)
+        out["grid"].append({"k": k, "hypotheses": k ** 4, "segments": 500,
+                            **{f"{key}_ms": 1000 * statistics.median(x[key] for x in runs)
+                               for key in ("grid", "refine", "cues", "total")}})
+        progress.update(1)
+    return out
+
+
+# --------------------------------------------------------------------------- report
+
+def _figure(scale: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key, xkey, xlabel in ((axes[0], "segments", "segments", "segments per image"),
+                                  (axes[1], "grid", "hypotheses", "grid hypotheses k^4")):
+        rows = scale[key]
+        if not rows:
+            continue
+        x = [r[xkey] for r in rows]
+        for stage in ("grid", "refine", "total"):
+            ax.plot(x, [r[f"{stage}_ms"] for r in rows], marker="o", label=stage)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("ms per image (fast, batch 1)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    axes[1].set_title("k = " + ", ".join(str(r["k"]) for r in scale["grid"]))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _markdown(report: dict) -> str:
+    m = report["machine"]
+    lines = ["# fR speed benchmark", "",
+             f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']}, {m['threads']} threads, "
+             f"device {m['device']}" + (f" ({m['gpu']})" if "gpu" in m else "")
+             + (f", load average {m.get('load_average')}" if m.get("load_average") else "") + ".",
+             f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up.", ""]
+    lines += ["## End-to-end latency per image (CPU, batch 1, ms)", "",
+              "| image | mode | segments | decode+LSD | grid | refine | cues | total | floor: decode | floor: LSD | grid floor |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in report["end_to_end"]:
+        lines.append(f"| {r['image']} | {r['mode']} | {r['segments']} | {r['detect_ms']:.1f} | {r['grid_ms']:.1f} | "
+                     f"{r['refine_ms']:.1f} | {r['cues_ms']:.1f} | **{r['wall_ms']:.1f}** | {r['decode_ms']:.1f} | "
+                     f"{r['lsd_ms']:.1f} | {r['grid_floor_ms']:.1f} |")
+    lines += ["", "Grid floor = G x N x 3 deviations x (atan2 + exp ns/element measured in cache: "
+              f"{report['transcendental_ns']:.2f} ns).", ""]
+    lines += ["## Throughput given segments (fast: grid + refinement + cues)", "",
+              "| device | batch | segments | images/s | ms/image | peak memory (MB) |", "|---|---|---|---|---|---|"]
+    mem = {(r["batch"], r["device"]): r for r in report["memory"] if r.get("ok")}
+    for r in report["throughput"]:
+        peak = r.get("peak_memory_mb")
+        if peak is None and (r["batch"], r["device"]) in mem:
+            peak = mem[(r["batch"], r["device"])]["peak_increase_mb"]
+        lines.append(f"| {r['device']} | {r['batch']} | {r['segments']} | {r['images_per_s']:.1f} | "
+                     f"{r['ms_per_image']:.2f} | {'' if peak is None else f'{peak:.0f}'} |")
+    if report["memory"]:
+        lines += ["", "## Peak memory (fresh subprocess per setting; CPU: peak RSS increase over the inputs)", "",
+                  "| device | mode | batch | segments | k | peak increase (MB) | peak RSS (MB) | seconds | ok |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in report["memory"]:
+            if "peak_increase_mb" in r:
+                lines.append(f"| {r['device']} | {r['mode']} | {r['batch']} | {r['segments']} | {r['k']} | "
+                             f"{r['peak_increase_mb']:.0f} | {r['peak_rss_mb']:.0f} | {r['seconds']:.1f} | {r['ok']} |")
+            else:
+                lines.append(f"| {r['device']} | {r['mode']} | {r['batch']} | {r['segments']} | {r['k']} | - | - | - | "
+                             f"FAILED: {r.get('error')} |")
+    lines += ["", "## Scaling (fast, batch 1, CPU, ms per image)", "", "| segments | grid | refine | cues | total |",
+              "|---|---|---|---|---|"]
+    for r in report["scaling"]["segments"]:
+        lines.append(f"| {r['segments']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['cues_ms']:.1f} | {r['total_ms']:.1f} |")
+    lines += ["", "| k | hypotheses | grid | refine | total |", "|---|---|---|---|---|"]
+    for r in report["scaling"]["grid"]:
+        lines.append(f"| {r['k']} | {r['hypotheses']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['total_ms']:.1f} |")
+    lines += ["", "![scaling](scaling.png)", ""]
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    if args.threads and args.threads > 0:
+        torch.set_num_threads(args.threads)
+    if args.memory_probe:
+        print(json.dumps(memory_probe(args.memory_probe)))
+        return 0
+    device = args.device
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError("--device cuda requested but no CUDA device is available")
+    quick = args.quick
+    repeats = args.repeats or (1 if quick else 7)
+
+    import cv2
+
+    from fr_torch.camera import focal_from_hfov, rotation_from_angles
+    from fr_torch.synthetic import render_manhattan_room
+
+    tmp = tempfile.TemporaryDirectory()
+    R = rotation_from_angles(np.float64(15.0), np.float64(8.0), np.float64(4.0)).numpy()
+    rendered = Path(tmp.name) / "room_640x480.png"
+    cv2.imwrite(str(rendered), render_manhattan_room(focal_from_hfov(70.0, 640), R, 640, 480))
+    images = [("rendered room", str(rendered))]
+    if not quick:
+        try:
+            from eval.paths import data_root
+
+            yud = sorted((data_root(args.data_root) / "yorkurbandb").glob("P*/P*.jpg"))[:3]
+            images += [(f"YUD {p.stem}", str(p)) for p in yud]
+        except FileNotFoundError:
+            pass
+
+    batches = [1, 4] if quick else [1, 8, 64, 256, 1024]
+    n_seg_tp = 50 if quick else 300
+    seg_counts = [100] if quick else [100, 300, 1000, 3000, 5000]
+    grid_sizes = [4] if quick else [4, 6, 8, 10, 12]
+    devices = ["cpu"] + ([device] if device != "cpu" else [])
+    mem_settings = [(4, 50, 4, "fast", "cpu")] if quick else (
+        [(b, n_seg_tp, 8, "fast", "cpu") for b in batches] + ([(4096, 1000, 4, "fast", "cpu")] if args.stress else [])
+        + ([(b, n_seg_tp, 8, "fast", device) for b in batches] + ([(4096, 1000, 8, "fast", device)] if args.stress else [])
+           if device != "cpu" else []))
+    if args.no_memory:
+        mem_settings = []
+    steps = (1 if quick else 2) * len(images) + len(batches) * len(devices) + len(mem_settings) + len(seg_counts) + len(grid_sizes)
+    progress = _progress(steps, args.no_progress or quick)
+
+    ns = _transcendental_ns("cpu")
+    e2e = end_to_end(images, repeats, progress, ("fast",) if quick else ("fast", "fr"))
+    for row in e2e:
+        row["grid_floor_ms"] = row["grid_hypotheses"] * row["segments"] * 3 * ns / 1e6
+    tp = []
+    for dev in devices:
+        tp += throughput(batches, n_seg_tp, dev, repeats, progress)
+    mem = memory(mem_settings, args.threads, progress)
+    scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)
+    progress.close()
+    tmp.cleanup()
+
+    report = {"machine": machine_description(device), "command": "fr bench " + " ".join(sys.argv[2:] if
+              sys.argv[1:2] == ["bench"] else sys.argv[1:]), "quick": quick, "repeats": repeats,
+              "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench.json").write_text(json.dumps(report, indent=1))
+    (out / "bench.md").write_text(_markdown(report))
+    _figure(scale, out / "scaling.png")
+    print(_markdown(report))
+    print(f"fr bench: wrote {out / 'bench.md'}, {out / 'bench.json'}, {out / 'scaling.png'}", file=sys.stderr)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="fr bench", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,211 @@
+"""The fast paths are exact: float32 vs an independent float64 reference, batch == one by one,
+chunking invariance, analytic gradient == autograd; plus a smoke run of ``fr bench --quick``."""
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import fr_torch.search as search
+from fr_torch import FREstimator
+from fr_torch.camera import focal_from_hfov, rotation_from_angles
+from fr_torch.likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
+from fr_torch.search import SearchConfig, fast_rotations, grid_hypotheses, refine, score_grid
+from fr_torch.segments import SegmentBatch
+from fr_torch.synthetic import synthetic_segments
+from tests.conftest import gpu
+
+PP = (320.0, 240.0)
+
+
+def _rotation_np(pan, pitch, roll):
+    """World->camera R with R.T = Ry(pan) Rx(pitch) Rz(roll), degrees (written independently)."""
+    p, t, r = np.radians([pan, pitch, roll])
+    ry = np.array([[np.cos(p), 0, np.sin(p)], [0, 1, 0], [-np.sin(p), 0, np.cos(p)]])
+    rx = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    rz = np.array([[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]])
+    return (ry @ rx @ rz).T
+
+
+def _reference_objective(segments, pan, pitch, roll, focal, params: LikelihoodParams, pp=PP):
+    """Measure-b mixture objective, float64 numpy, straight from the definitions (no shared code).
+
+    Angle between the segment and the line from its midpoint to each VP; exponential densities
+    with the vertical parameters on column 1; uniform background on [0, pi/2]; sum len * log p.
+    """
+    K = np.array([[focal, 0, pp[0]], [0, focal, pp[1]], [0, 0, 1.0]])
+    V = K @ _rotation_np(pan, pitch, roll)  # column k = homogeneous VP k
+    p1, p2 = segments[:, :2], segments[:, 2:]
+    d = p2 - p1
+    length = np.linalg.norm(d, axis=1)
+    m = (p1 + p2) / 2
+    total = np.full(len(segments), params.prior_background / (np.pi / 2))
+    for k in range(3):
+        v = V[:, k]
+        to_vp = v[None, :2] - m * v[2]  # direction from the midpoint towards the VP (times v3)
+        cross = d[:, 0] * to_vp[:, 1] - d[:, 1] * to_vp[:, 0]
+        dot = (d * to_vp).sum(1)
+        angle = np.arctan2(np.abs(cross), np.abs(dot))
+        lam = params.scale_vertical if k == 1 else params.scale_horizontal
+        prior = params.prior_vertical if k == 1 else params.prior_horizontal
+        total += prior / lam * np.exp(-angle / lam)
+    return float((length * np.log(total)).sum())
+
+
+def _features(segment_list, dtype, device="cpu"):
+    batch = SegmentBatch.from_list(segment_list, [(640, 480)] * len(segment_list), device, dtype)
+    pp = torch.tensor([PP] * len(segment_list), dtype=dtype, device=device)
+    return SegmentFeatures.from_batch(batch, pp)
+
+
+def _scene(seed, hfov=70.0, pan=15.0, pitch=10.0, roll=5.0, n_per_family=60):
+    focal = focal_from_hfov(hfov, 640)
+    R = _rotation_np(pan, pitch, roll)
+    seg, _ = synthetic_segments(focal, R, 640, 480, n_per_family=n_per_family, noise_px=0.5,
+                                clutter_fraction=0.3, seed=seed)
+    return seg
+
+
+def test_fast_rotations_equal_camera_convention():
+    rng = np.random.default_rng(0)
+    angles = torch.tensor(rng.uniform(-60, 60, (20, 3)), dtype=torch.float64)
+    expected = rotation_from_angles(angles[:, 0], angles[:, 1], angles[:, 2])
+    assert torch.allclose(fast_rotations(angles), expected, atol=1e-13)
+    assert np.allclose(fast_rotations(angles[:1])[0].numpy(), _rotation_np(*angles[0].tolist()), atol=1e-13)
+
+
+def test_float32_objective_matches_independent_float64_reference():
+    rng = np.random.default_rng(3)
+    model = MixtureLikelihood(LikelihoodParams.from_config("b"))
+    segs = [rng.uniform(0, 640, (80, 4)), _scene(1)]
+    hyp = np.stack([rng.uniform(-45, 45, 6), rng.uniform(-35, 35, 6), rng.uniform(-15, 15, 6),
+                    rng.uniform(150, 700, 6)], 1)
+    hyp_t = torch.tensor(hyp, dtype=torch.float32)
+    R = rotation_from_angles(hyp_t[:, 0], hyp_t[:, 1], hyp_t[:, 2])
+    for b, seg in enumerate(segs):
+        features = _features([seg], torch.float32)
+        got = model.objective(features, R[None], hyp_t[None, :, 3])[0].double().numpy()
+        with torch.no_grad():
+            got_nograd = model.objective(features, R[None], hyp_t[None, :, 3])[0].double().numpy()
+        expected = np.array([_reference_objective(seg, *h, model.params) for h in hyp.astype(np.float32).astype(float)])
+        assert np.allclose(got, expected, rtol=1e-4), (got, expected)
+        assert np.allclose(got_nograd, expected, rtol=1e-4)
+
+
+def test_grid_maximum_float32_matches_float64_and_reference():
+    config = SearchConfig.from_config()
+    segs = [_scene(0), _scene(2, 95.0, -30.0, -15.0, -7.0)]
+    width = torch.tensor([640.0, 640.0], dtype=torch.float64)
+    hyp = grid_hypotheses(config, width)
+    model = MixtureLikelihood()
+    s32 = score_grid(model, _features(segs, torch.float32), hyp, config.max_chunk_elements).double()
+    s64 = score_grid(model, _features(segs, torch.float64), hyp, config.max_chunk_elements)
+    best32, best64 = s32.max(1), s64.max(1)
+    assert torch.allclose(best32.values, best64.values, rtol=1e-4)
+    assert torch.allclose(s32, s64, rtol=1e-4, atol=1e-3 * s64.abs().max())
+    for b, seg in enumerate(segs):
+        h = hyp[b, best64.indices[b]].tolist()
+        assert best64.values[b].item() == pytest.approx(_reference_objective(seg, *h, model.params), rel=1e-9)
+
+
+@pytest.mark.parametrize("mode", ["fast", "fr"])
+def test_estimator_float32_matches_float64(mode):
+    segs = [_scene(4, 80.0, 20.0, 12.0, 4.0)]
+    a = FREstimator(mode=mode, dtype=torch.float32).calibrate_segments(segs, [(640, 480)])[0]
+    b = FREstimator(mode=mode, dtype=torch.float64).calibrate_segments(segs, [(640, 480)])[0]
+    # 100 Adam steps on a flat optimum need not land on the same point in both precisions; the two
+    # must agree far below the estimator's accuracy (0.1 % focal, 0.01 deg) and in objective value.
+    assert a.log_likelihood == pytest.approx(b.log_likelihood, rel=1e-4)
+    assert a.focal_px == pytest.approx(b.focal_px, rel=1e-3)
+    for key in ("pan_deg", "pitch_deg", "roll_deg"):
+        assert abs(getattr(a, key) - getattr(b, key)) < 0.01, key
+
+
+def test_batch_equals_one_by_one():
+    segs = [_scene(5), _scene(6, 100.0, -20.0, 5.0, -3.0, n_per_family=30), _scene(7, 60.0, 30.0, -20.0, 8.0, 90)]
+    est = FREstimator(mode="fast")
+    batch = est.calibrate_segments(segs, [(640, 480)] * 3)
+    for i, seg in enumerate(segs):
+        [single] = est.calibrate_segments([seg], [(640, 480)])
+        assert batch[i].focal_px == pytest.approx(single.focal_px, rel=1e-5)
+        assert batch[i].log_likelihood == pytest.approx(single.log_likelihood, rel=1e-5)
+        assert np.allclose(batch[i].rotation, single.rotation, atol=1e-5)
+        assert np.array_equal(batch[i].labels, single.labels)
+
+
+def test_chunking_does_not_change_scores_or_refinement(monkeypatch):
+    config = SearchConfig.from_config(grid_points_per_dim=3)
+    segs = [_scene(8, n_per_family=25), _scene(9, 90.0, -10.0, 20.0, 2.0, 15)]
+    features = _features(segs, torch.float64)
+    width = torch.tensor([640.0, 640.0], dtype=torch.float64)
+    hyp = grid_hypotheses(config, width)
+    model = MixtureLikelihood()
+    whole = score_grid(model, features, hyp, 1 << 30)
+    monkeypatch.setattr(search, "CPU_CHUNK_ELEMENTS", 1000)  # many tiny chunks, also split over images
+    assert torch.allclose(score_grid(model, features, hyp, 1 << 30), whole, rtol=1e-12)
+    assert torch.allclose(score_grid(model, features, hyp, 7), whole, rtol=1e-12)  # one hypothesis, one image
+    starts = hyp[:, :2]
+    lower, upper = search.parameter_box(config, width, None)
+    p1, o1 = refine(model, features, starts, lower, upper, 5, fast=True)
+    p2, o2 = refine(model, features, starts, lower, upper, 5, fast=True, max_chunk_elements=10)  # image by image
+    assert torch.allclose(p1, p2, rtol=1e-12) and torch.allclose(o1, o2, rtol=1e-12)
+
+
+def test_analytic_gradient_matches_autograd_of_generic_path():
+    rng = np.random.default_rng(11)
+    features = _features([rng.uniform(0, 640, (40, 4)), rng.uniform(0, 640, (25, 4))], torch.float64)
+    model = MixtureLikelihood()
+    angles = torch.tensor(rng.uniform(-30, 30, (2, 3, 3)), requires_grad=True)
+    focal = torch.tensor(rng.uniform(200, 800, (2, 3)), requires_grad=True)
+    R = fast_rotations(angles)
+    fast = model.objective(features, R, focal)
+    generic = torch.einsum("bnh,bn->bh", model.segment_log_likelihood(features, R, focal), features.weight)
+    assert torch.allclose(fast, generic, rtol=1e-12)
+    g_fast = torch.autograd.grad(fast.sum(), [angles, focal], retain_graph=True)
+    g_generic = torch.autograd.grad(generic.sum(), [angles, focal])
+    for a, b in zip(g_fast, g_generic):
+        assert torch.allclose(a, b, rtol=1e-9, atol=1e-9 * b.abs().max())
+    # Padding rows (s = t = 0) give finite gradients.
+    assert all(torch.isfinite(g).all() for g in g_fast)
+
+
+def test_posteriors_chunked_equal_whole():
+    segs = [_scene(12), _scene(13, n_per_family=20)]
+    features = _features(segs, torch.float64)
+    model = MixtureLikelihood()
+    R = rotation_from_angles(torch.tensor([[10.0], [-5.0]], dtype=torch.float64), 3.0, 1.0)
+    f = torch.tensor([[400.0], [500.0]], dtype=torch.float64)
+    q1, l1 = model.posteriors(features, R, f)
+    q2, l2 = model.posteriors(features, R, f, max_chunk_elements=1)
+    assert torch.allclose(q1, q2, rtol=1e-12, atol=1e-300) and torch.allclose(l1, l2, rtol=1e-12)
+
+
+@gpu
+def test_cuda_grid_and_estimate_equal_cpu():
+    config = SearchConfig.from_config()
+    segs = [_scene(0), _scene(2, 95.0, -30.0, -15.0, -7.0)]
+    hyp = grid_hypotheses(config, torch.tensor([640.0, 640.0], dtype=torch.float64))
+    model = MixtureLikelihood()
+    cpu = score_grid(model, _features(segs, torch.float32), hyp, config.max_chunk_elements)
+    cuda = score_grid(model, _features(segs, torch.float32, "cuda"), hyp, config.max_chunk_elements).cpu()
+    assert torch.allclose(cpu, cuda, rtol=1e-4, atol=1e-3 * cpu.abs().max())
+    a = FREstimator(mode="fast").calibrate_segments(segs, [(640, 480)] * 2)
+    b = FREstimator(mode="fast", device="cuda").calibrate_segments(segs, [(640, 480)] * 2)
+    for x, y in zip(a, b):
+        assert x.focal_px == pytest.approx(y.focal_px, rel=1e-4)
+
+
+def test_bench_quick_smoke(tmp_path):
+    from eval import bench
+
+    assert bench.main(["--quick", "--out", str(tmp_path), "--device", "cpu"]) == 0
+    report = json.loads((tmp_path / "bench.json").read_text())
+    assert {"machine", "end_to_end", "throughput", "memory", "scaling"} <= set(report)
+    assert report["machine"]["threads"] >= 1 and report["machine"]["torch"]
+    stages = report["end_to_end"][0]
+    assert all(math.isfinite(stages[f"{k}_ms"]) for k in ("detect", "grid", "refine", "cues", "total"))
+    assert report["throughput"][0]["images_per_s"] > 0
+    assert report["memory"] and report["memory"][0]["ok"]
+    assert (tmp_path / "bench.md").read_text().startswith("# fR speed benchmark")
+    assert (tmp_path / "scaling.png").stat().st_size > 0
