@@ -1,0 +1,277 @@
+"""Reliability prediction: predicted absolute errors of roll, tilt and focal length from fR's cues.
+
+The model follows the authors' online-fR error predictor (reference spec §7): the three cues of
+:meth:`fr_torch.estimator.FREstimator._cues` are normalised, whitened, and a K-nearest-neighbour
+regressor returns the **mean absolute error of the K most similar training images**, for roll
+(degrees), tilt (degrees) and focal length (percent of the true focal length).
+
+Cue normalisation (exactly; :func:`cue_features`)
+-------------------------------------------------
+Each image's cue vector ``c = (min_family_segments, grid_entropy, mean_log_likelihood)`` becomes
+the feature vector ``x``:
+
+* ``x0 = ln(1 + min_family_segments)`` -- the raw count of the smallest Manhattan family (the
+  authors use the raw count; the log makes 3 vs 6 segments as far apart as 30 vs 60);
+* ``x1 = ln(grid_entropy + 1e-6)`` -- the entropy (nats) of the stage-1 grid softmax spans
+  1e-9..8 nats, so it is compared on a log scale, floored at 1e-6 nats;
+* ``x2 = mean_log_likelihood`` -- unchanged (already a log quantity).
+
+Then ``x`` is **PCA-whitened** with the training mean ``mu``, the eigenvectors ``E`` (rows,
+descending eigenvalue) and eigenvalues ``lam`` of the training-feature covariance (ddof = 1):
+``w = ((x - mu) @ E.T) / sqrt(lam)``, so the whitened training cues have identity covariance and
+the Euclidean distance in ``w`` is the Mahalanobis distance of ``x`` (as the authors'
+``w = (c - meanx) F V``).  Prediction: the Euclidean K nearest training images in ``w`` (ties by
+training order), and for each of the three errors the arithmetic mean over them.  K is chosen by
+5-fold cross-validation (folds grouped by panorama / scene so that views of one panorama never
+sit in both halves) minimising the mean squared error of ``ln(error + eps)`` with eps = 0.1 deg,
+0.1 deg and 1 %: scale-free across the three targets and not dominated by a few failures.
+
+Storage (never pickle)
+----------------------
+``<name>.npz`` holds plain numeric arrays -- ``train_cues`` (n, 3) raw cues, ``train_errors``
+(n, 3) absolute errors [roll deg, tilt deg, focal %], ``feature_mean`` (3,),
+``feature_components`` (3, 3), ``feature_variance`` (3,), ``k`` -- plus ``meta_json``, a unicode
+string array with the JSON metadata; it is read with ``np.load(allow_pickle=False)``.  A
+human-readable copy of the metadata is written beside it as ``<name>.json``.  Fitting uses
+scikit-learn; prediction is plain numpy.
+
+Run-time use: ``fr calibrate`` calls :meth:`ReliabilityModel.load_default` (models
+``configs/reliability_fr.npz`` and ``configs/reliability_fast.npz``; thresholds in
+``configs/reliability.json``) and :meth:`ReliabilitySet.annotate` on each estimate, which fills
+``result.predicted_error`` and clears ``result.reliable`` when a predicted error exceeds its
+threshold.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")
+TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
+ERROR_COLUMNS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct")  # training-record column names
+LOG_EPS = np.array([0.1, 0.1, 1.0])  # CV loss: ln(error + eps)
+ENTROPY_FLOOR = 1e-6
+FEATURE_VERSION = "ln1p(min_family_segments), ln(grid_entropy + 1e-6), mean_log_likelihood; PCA-whitened"
+DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
+DEFAULT_K_GRID = (1, 2, 3, 5, 8, 12, 17, 25, 35, 50, 70, 90, 120, 160, 220, 300)
+MODES = ("fr", "fast")
+
+
+def cue_features(cues: np.ndarray | Sequence) -> np.ndarray:
+    """Raw cues (n, 3) in :data:`CUE_NAMES` order -> normalised features (n, 3) (module docstring)."""
+    c = np.atleast_2d(np.asarray(cues, dtype=np.float64))
+    if c.shape[-1] != 3:
+        raise ValueError(f"expected cues with 3 columns {CUE_NAMES}, got shape {c.shape}")
+    return np.stack([np.log1p(np.clip(c[:, 0], 0.0, None)),
+                     np.log(np.clip(c[:, 1], 0.0, None) + ENTROPY_FLOOR),
+                     c[:, 2]], 1)
+
+
+def cues_array(cues: dict | Sequence[dict]) -> np.ndarray:
+    """A result's ``cues`` dict (or a list of them) -> (n, 3) array in :data:`CUE_NAMES` order."""
+    items = [cues] if isinstance(cues, dict) else list(cues)
+    return np.array([[float(d.get(name, math.nan)) for name in CUE_NAMES] for d in items], dtype=np.float64)
+
+
+def load_thresholds(path: Path | None = None) -> dict[str, float]:
+    """Thresholds (roll deg, tilt deg, focal %) from ``configs/reliability.json`` (defaults if absent)."""
+    path = Path(path) if path is not None else CONFIG_DIR / "reliability.json"
+    out = dict(DEFAULT_THRESHOLDS)
+    if path.is_file():
+        out.update({k: float(v) for k, v in json.loads(path.read_text()).get("thresholds", {}).items()})
+    return out
+
+
+def _cv_loss(y_true: np.ndarray, y_pred: np.ndarray) -> float:
+    y_true, y_pred = np.atleast_2d(y_true), np.atleast_2d(y_pred)
+    return float(np.mean((np.log(y_pred + LOG_EPS) - np.log(y_true + LOG_EPS)) ** 2))
+
+
+@dataclass
+class ReliabilityModel:
+    """Whitening of the 3 cues + KNN regressor of |roll error| (deg), |tilt error| (deg), |focal error| (%)."""
+
+    train_cues: np.ndarray  # (n, 3) raw cues
+    train_errors: np.ndarray  # (n, 3) absolute errors: roll deg, tilt deg, focal %
+    feature_mean: np.ndarray  # (3,)
+    feature_components: np.ndarray  # (3, 3) rows = eigenvectors, descending eigenvalue
+    feature_variance: np.ndarray  # (3,) eigenvalues
+    k: int
+    meta: dict[str, Any] = field(default_factory=dict)
+    thresholds: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_THRESHOLDS))
+
+    def __post_init__(self) -> None:
+        self.train_cues = np.asarray(self.train_cues, np.float64)
+        self.train_errors = np.asarray(self.train_errors, np.float64)
+        self.feature_mean = np.asarray(self.feature_mean, np.float64)
+        self.feature_components = np.asarray(self.feature_components, np.float64)
+        self.feature_variance = np.asarray(self.feature_variance, np.float64)
+        self.k = int(min(self.k, len(self.train_cues)))
+        self._train_w = self.whiten(self.train_cues)
+
+    # ------------------------------------------------------------------ fitting
+
+    @classmethod
+    def fit(cls, cues: np.ndarray, errors: np.ndarray, groups: Sequence | None = None,
+            k_grid: Sequence[int] | None = None, folds: int = 5, seed: int = 0,
+            meta: dict | None = None, thresholds: dict | None = None) -> "ReliabilityModel":
+        """Fit on raw cues (n, 3) and absolute errors (n, 3); K by ``folds``-fold CV (scikit-learn).
+
+        ``groups`` (n,): images of one group (panorama, scene) stay in one fold.
+        """
+        from sklearn.decomposition import PCA
+        from sklearn.model_selection import GroupKFold, KFold
+
+        cues = np.asarray(cues, np.float64)
+        errors = np.asarray(errors, np.float64)
+        good = np.isfinite(cues).all(1) & np.isfinite(errors).all(1)
+        cues, errors = cues[good], errors[good]
+        groups = None if groups is None else np.asarray(groups)[good]
+        n = len(cues)
+        if n < 2 * folds:
+            raise ValueError(f"need at least {2 * folds} training images, got {n}")
+        features = cue_features(cues)
+        if groups is not None and len(np.unique(groups)) >= folds:
+            # GroupKFold is deterministic; shuffle group order through a seeded relabelling.
+            _, inverse = np.unique(groups, return_inverse=True)
+            perm = np.random.default_rng(seed).permutation(inverse.max() + 1)
+            splits = list(GroupKFold(n_splits=folds).split(features, errors, perm[inverse]))
+            cv_name = "GroupKFold"
+        else:
+            splits = list(KFold(n_splits=folds, shuffle=True, random_state=seed).split(features))
+            cv_name = "KFold(shuffle)"
+        min_train = min(len(train) for train, _ in splits)
+        grid = sorted({int(k) for k in (k_grid or DEFAULT_K_GRID) if 1 <= int(k) <= min_train}) or [1]
+        # One neighbour ranking per fold serves every K: the prediction for K is the mean of the
+        # first K ranked training errors (what KNeighborsRegressor(K, algorithm="brute") returns).
+        sq_err = np.zeros(len(grid))
+        for train, test in splits:
+            pca = PCA(n_components=3, whiten=True).fit(features[train])
+            wt, wv = pca.transform(features[train]), pca.transform(features[test])
+            order = np.argsort(((wv[:, None] - wt[None]) ** 2).sum(-1), axis=1, kind="stable")[:, :grid[-1]]
+            running = np.cumsum(errors[train][order], axis=1)  # (n_test, K_max, 3)
+            for j, k in enumerate(grid):
+                sq_err[j] += _cv_loss(errors[test], running[:, k - 1] / k) * len(test)
+        losses = sq_err / n
+        k = int(grid[int(np.argmin(losses))])
+        pca = PCA(n_components=3).fit(features)
+        info = dict(meta or {})
+        info.update(n_train=int(n), k=k, k_grid=grid, folds=folds,
+                    cv=cv_name,
+                    cv_loss={str(g): float(v) for g, v in zip(grid, losses)},
+                    cv_loss_definition="mean over images and targets of (ln(pred + eps) - ln(actual + eps))^2, "
+                                       f"eps = {LOG_EPS.tolist()}",
+                    features=FEATURE_VERSION, cue_names=list(CUE_NAMES), targets=list(TARGETS),
+                    train_error_median=dict(zip(TARGETS, np.median(errors, 0).tolist())),
+                    train_error_mean=dict(zip(TARGETS, errors.mean(0).tolist())))
+        return cls(cues, errors, pca.mean_, pca.components_, pca.explained_variance_, k, info,
+                   dict(thresholds) if thresholds else load_thresholds())
+
+    # ------------------------------------------------------------------ prediction (plain numpy)
+
+    def whiten(self, cues: np.ndarray) -> np.ndarray:
+        """Raw cues (n, 3) -> whitened features (n, 3)."""
+        x = cue_features(cues) - self.feature_mean
+        return (x @ self.feature_components.T) / np.sqrt(self.feature_variance)
+
+    def predict(self, cues: np.ndarray | dict | Sequence[dict]) -> np.ndarray:
+        """Predicted absolute errors (n, 3) [roll deg, tilt deg, focal %]; NaN rows for non-finite cues."""
+        if isinstance(cues, dict) or (isinstance(cues, (list, tuple)) and cues and isinstance(cues[0], dict)):
+            cues = cues_array(cues)
+        w = self.whiten(np.asarray(cues, np.float64))
+        out = np.full((len(w), 3), np.nan)
+        good = np.isfinite(w).all(1)
+        if good.any():
+            d2 = ((w[good, None, :] - self._train_w[None]) ** 2).sum(-1)
+            idx = np.argsort(d2, axis=1, kind="stable")[:, :self.k]
+            out[good] = self.train_errors[idx].mean(1)
+        return out
+
+    def predict_dict(self, cues: dict) -> dict[str, float]:
+        return dict(zip(TARGETS, (float(v) for v in self.predict(cues)[0])))
+
+    def annotate(self, result, mode: str | None = None):
+        """Set ``result.predicted_error`` and clear ``result.reliable`` above the thresholds."""
+        if not getattr(result, "ok", False):
+            return result
+        mine = self.meta.get("mode")
+        if mode is not None and mine is not None and mode != mine:
+            raise ValueError(f"reliability model was trained for mode {mine!r}, result comes from {mode!r}")
+        predicted = self.predict_dict(result.cues)
+        result.predicted_error = predicted
+        over = [f"{name.split('_')[0]} {predicted[name]:.1f}{' %' if name == 'focal_pct' else ' deg'} > "
+                f"{limit:g}{' %' if name == 'focal_pct' else ' deg'}"
+                for name, limit in self.thresholds.items()
+                if not (predicted.get(name, math.nan) <= limit)]
+        if over:
+            message = "predicted error above threshold: " + ", ".join(over)
+            result.reliable = False
+            result.reason = f"{result.reason}; {message}" if result.reason else message
+        return result
+
+    # ------------------------------------------------------------------ storage
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``path`` (.npz, no pickled objects) and the metadata sidecar ``path.with_suffix('.json')``."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        meta = dict(self.meta, k=self.k)
+        np.savez(path, train_cues=self.train_cues, train_errors=self.train_errors, feature_mean=self.feature_mean,
+                 feature_components=self.feature_components, feature_variance=self.feature_variance,
+                 k=np.array(self.k, np.int64), meta_json=np.array(json.dumps(meta, sort_keys=True)))
+        sidecar = dict(meta, arrays={"train_cues": list(self.train_cues.shape),
+                                     "train_errors": list(self.train_errors.shape),
+                                     "feature_mean": self.feature_mean.tolist(),
+                                     "feature_components": self.feature_components.tolist(),
+                                     "feature_variance": self.feature_variance.tolist()})
+        path.with_suffix(".json").write_text(json.dumps(sidecar, indent=1, sort_keys=True) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, thresholds: dict | None = None) -> "ReliabilityModel":
+        with np.load(Path(path), allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+        meta = json.loads(str(arrays["meta_json"]))
+        return cls(arrays["train_cues"], arrays["train_errors"], arrays["feature_mean"],
+                   arrays["feature_components"], arrays["feature_variance"], int(arrays["k"]), meta,
+                   dict(thresholds) if thresholds else load_thresholds())
+
+    @classmethod
+    def load_default(cls, mode: str | None = None, config_dir: str | Path | None = None):
+        """Default models from ``configs/``: with ``mode`` the :class:`ReliabilityModel` of that mode,
+        without it a :class:`ReliabilitySet` of the modes present; None when no model file exists
+        (or a file cannot be read: a warning goes to stderr)."""
+        folder = Path(config_dir) if config_dir is not None else CONFIG_DIR
+        thresholds = load_thresholds(folder / "reliability.json")
+        models = {}
+        for m in ([mode] if mode else MODES):
+            path = folder / f"reliability_{m}.npz"
+            if path.is_file():
+                try:
+                    models[m] = cls.load(path, thresholds)
+                except (OSError, ValueError, KeyError) as exc:
+                    print(f"fr: warning: cannot read reliability model {path}: {exc}", file=sys.stderr)
+        if not models:
+            return None
+        return models[mode] if mode else ReliabilitySet(models)
+
+
+@dataclass
+class ReliabilitySet:
+    """The default models per estimator mode (``fr``, ``fast``); :meth:`annotate` picks by mode."""
+
+    models: dict[str, ReliabilityModel]
+
+    def annotate(self, result, mode: str = "fr"):
+        model = self.models.get(mode)
+        return model.annotate(result, mode) if model is not None else result
+
+    def predict(self, cues, mode: str = "fr") -> np.ndarray:
+        return self.models[mode].predict(cues)

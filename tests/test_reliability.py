@@ -1,0 +1,146 @@
+"""Reliability model: storage without pickle, K by cross-validation, predictions, annotate."""
+from __future__ import annotations
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+from scipy.stats import spearmanr
+
+from fr_torch.estimator import CalibrationResult
+from fr_torch.reliability import (CONFIG_DIR, CUE_NAMES, TARGETS, ReliabilityModel, ReliabilitySet, cue_features,
+                                  load_thresholds)
+
+
+def make_training(n=400, noise=0.3, seed=0, informative=True):
+    """Cues like fR's: fewer family segments / larger entropy / lower likelihood -> larger errors."""
+    rng = np.random.default_rng(seed)
+    m = np.round(np.exp(rng.uniform(np.log(2), np.log(80), n)))
+    h = np.exp(rng.uniform(np.log(1e-7), np.log(3.0), n))
+    ll = rng.normal(0.0, 0.5, n)
+    difficulty = -np.log1p(m) + 0.3 * np.log(h + 1e-6) - 0.5 * ll if informative else rng.normal(size=n)
+    scale = np.exp(difficulty - difficulty.mean())
+    errors = np.stack([0.5 * scale, 1.0 * scale, 5.0 * scale], 1) * np.exp(noise * rng.normal(size=(n, 3)))
+    return np.stack([m, h, ll], 1), errors
+
+
+def test_cue_features_documented_transform():
+    x = cue_features([[9.0, 0.0, -0.25], [0.0, 1.0, 2.0]])
+    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25])
+    np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0])
+
+
+def test_save_load_round_trip_without_pickle(tmp_path):
+    cues, errors = make_training(200)
+    model = ReliabilityModel.fit(cues, errors, k_grid=[3, 10, 30], meta={"mode": "fr"})
+    path = model.save(tmp_path / "reliability_fr.npz")
+    # every member is a plain (non-object) array, loadable with allow_pickle=False
+    with np.load(path, allow_pickle=False) as data:
+        assert set(data.files) >= {"train_cues", "train_errors", "feature_mean", "feature_components",
+                                   "feature_variance", "k", "meta_json"}
+        assert all(data[key].dtype.kind != "O" for key in data.files)
+    with zipfile.ZipFile(path) as zf:  # no pickle protocol header in any member
+        assert all(b"\x80\x04\x95" not in zf.read(name)[:256] for name in zf.namelist())
+    sidecar = json.loads(path.with_suffix(".json").read_text())
+    assert sidecar["k"] == model.k and sidecar["mode"] == "fr"
+    loaded = ReliabilityModel.load(path)
+    probe = make_training(50, seed=1)[0]
+    np.testing.assert_array_equal(loaded.predict(probe), model.predict(probe))
+    assert loaded.k == model.k and loaded.meta["mode"] == "fr"
+    # whitened training cues have identity covariance
+    np.testing.assert_allclose(np.cov(loaded.whiten(loaded.train_cues).T), np.eye(3), atol=1e-8)
+
+
+def test_numpy_prediction_matches_sklearn():
+    from sklearn.neighbors import KNeighborsRegressor
+
+    cues, errors = make_training(300)
+    model = ReliabilityModel.fit(cues, errors, k_grid=[7])
+    probe = make_training(40, seed=3)[0]
+    knn = KNeighborsRegressor(n_neighbors=7, algorithm="brute").fit(model.whiten(cues), errors)
+    np.testing.assert_allclose(model.predict(probe), knn.predict(model.whiten(probe)), rtol=1e-10)
+
+
+def test_cv_picks_sensible_k():
+    # informative, moderately noisy cues: an intermediate K (neither 1 nor "everything")
+    cues, errors = make_training(500, noise=0.5)
+    k_mid = ReliabilityModel.fit(cues, errors).k
+    assert 5 <= k_mid <= 120, k_mid
+    # errors unrelated to the cues: the best predictor is the global mean -> the largest K
+    cues, errors = make_training(500, noise=0.5, informative=False)
+    k_noise = ReliabilityModel.fit(cues, errors).k
+    assert k_noise >= 90 and k_noise > k_mid, (k_noise, k_mid)
+    # nearly noise-free: few neighbours suffice
+    cues, errors = make_training(500, noise=0.01)
+    assert ReliabilityModel.fit(cues, errors).k <= 12
+
+
+def test_grouped_cv_keeps_groups_together():
+    cues, errors = make_training(200)
+    groups = np.repeat(np.arange(40), 5)
+    model = ReliabilityModel.fit(cues, errors, groups=groups, k_grid=[1, 5, 20])
+    assert model.meta["cv"] == "GroupKFold" and model.k in (1, 5, 20)
+
+
+def test_predictions_monotone_in_cues():
+    cues, errors = make_training(600, noise=0.3)
+    model = ReliabilityModel.fit(cues, errors)
+    counts = np.array([2, 3, 5, 8, 13, 20, 30, 45, 70], float)
+    probe = np.stack([counts, np.full_like(counts, 1e-3), np.zeros_like(counts)], 1)
+    predicted = model.predict(probe)
+    for j in range(3):  # more segments in the weakest family -> smaller predicted error
+        assert spearmanr(counts, predicted[:, j]).statistic < -0.8
+        assert predicted[0, j] > 2 * predicted[-1, j]
+
+
+def _result(cues):
+    r = CalibrationResult(image="x", width=640, height=480, ok=True, reliable=True, focal_px=500.0,
+                          roll_deg=0.0, tilt_deg=0.0)
+    r.cues = dict(zip(CUE_NAMES, cues))
+    return r
+
+
+def test_annotate_sets_fields_and_thresholds(tmp_path):
+    cues, errors = make_training(400, noise=0.2)
+    model = ReliabilityModel.fit(cues, errors, meta={"mode": "fast"},
+                                 thresholds={"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0})
+    easy, hard = _result([70.0, 1e-6, 0.5]), _result([2.0, 2.0, -1.0])
+    model.annotate(easy, mode="fast")
+    model.annotate(hard, mode="fast")
+    assert set(easy.predicted_error) == set(TARGETS) and set(hard.predicted_error) == set(TARGETS)
+    assert easy.reliable and easy.reason == ""
+    assert hard.predicted_error["focal_pct"] > 15.0
+    assert not hard.reliable and "predicted error above threshold" in hard.reason and "focal" in hard.reason
+    # an existing reason is kept, a failed result is left alone
+    prior = _result([2.0, 2.0, -1.0])
+    prior.reliable, prior.reason = False, "only 5 segments (< 10)"
+    model.annotate(prior, mode="fast")
+    assert prior.reason.startswith("only 5 segments (< 10); predicted error")
+    failed = CalibrationResult(image="y", width=1, height=1, ok=False, reason="boom")
+    assert model.annotate(failed).predicted_error is None
+    with pytest.raises(ValueError):
+        model.annotate(_result([10.0, 1e-3, 0.0]), mode="fr")
+    # load_default from a folder: a set keyed by mode, thresholds from reliability.json
+    model.save(tmp_path / "reliability_fast.npz")
+    (tmp_path / "reliability.json").write_text(json.dumps({"thresholds": {"focal_pct": 1000.0}}))
+    models = ReliabilityModel.load_default(config_dir=tmp_path)
+    assert isinstance(models, ReliabilitySet) and set(models.models) == {"fast"}
+    r = models.annotate(_result([2.0, 2.0, -1.0]), mode="fast")
+    assert r.predicted_error is not None and "focal" not in r.reason
+    assert models.annotate(_result([2.0, 2.0, -1.0]), mode="fr").predicted_error is None
+    assert ReliabilityModel.load_default(config_dir=tmp_path / "nothing") is None
+
+
+def test_shipped_models_and_thresholds():
+    thresholds = load_thresholds()
+    assert set(thresholds) == set(TARGETS)
+    shipped = [m for m in ("fr", "fast") if (CONFIG_DIR / f"reliability_{m}.npz").is_file()]
+    if not shipped:
+        pytest.skip("no trained default models in configs/")
+    models = ReliabilityModel.load_default()
+    for mode in shipped:
+        model = models.models[mode]
+        assert model.meta["mode"] == mode and len(model.train_cues) >= 100
+        good, bad = model.predict([[60.0, 1e-6, 0.3], [2.0, 1.0, -1.0]])
+        assert good[2] < bad[2]  # a clean scene is predicted better than a near-empty family
