@@ -116,11 +116,11 @@ def camera_from_ctrlc(zvp: np.ndarray, fovy_rad: float, width: int, height: int)
 class CTRLC:
     """CTRL-C through onnxruntime (weights exported by the user; see the module docstring)."""
 
-    name = "ctrlc"
-
     def __init__(self, onnx_path: str | os.PathLike | None = None, providers=None, seed: int = 0,
-                 num_lines: int = NUM_LINES, min_line_length: float = MIN_LINE_LENGTH):
-        path = onnx_path if onnx_path is not None else os.environ.get("FR_CTRLC_ONNX") or None
+                 num_lines: int = NUM_LINES, min_line_length: float = MIN_LINE_LENGTH, name: str = "ctrlc",
+                 env_var: str = "FR_CTRLC_ONNX"):
+        self.name = name
+        path = onnx_path if onnx_path is not None else os.environ.get(env_var) or None
         self.onnx_path = Path(path) if path else None
         self.providers = providers
         self.seed = int(seed)
@@ -191,3 +191,12 @@ class CTRLC:
             extra={"pred_zvp": zvp.tolist(), "pred_fovy_rad": fovy, "pred_hl": np.asarray(hl).tolist(),
                    "up": cam["up"].tolist(), "rotation_pan0": rotation_pan0},
         )
+
+
+
+@register("ctrlc-retrained")
+def make_ctrlc_retrained(onnx_path: str | os.PathLike | None = None, **kwargs) -> CTRLC:
+    """The paper reports CTRL-C with two trainings: the published checkpoint (``ctrlc``,
+    ``$FR_CTRLC_ONNX``) and a second training; this row takes the second checkpoint, exported the
+    same way, from ``onnx_path`` or ``$FR_CTRLC_RETRAINED_ONNX``."""
+    return CTRLC(onnx_path, name="ctrlc-retrained", env_var="FR_CTRLC_RETRAINED_ONNX", **kwargs)

@@ -156,3 +156,13 @@ class ExternalPredictions:
         if all(v is None for v in (focal, hfov, roll, tilt, pitch, pan)) and rotation is None:
             return CameraEstimate.failure(self.name, "n/a (empty prediction)")
         return est
+
+
+@register("hold-geoffroy2018")
+def make_hold_geoffroy2018(csv_path: str | os.PathLike | None = None) -> ExternalPredictions:
+    """Hold-Geoffroy et al. 2018 (a row of the paper's tables): its predictions cannot be computed here
+    (the authors serve the model through a web interface), so they are read from the CSV in
+    ``csv_path`` or ``$FR_HOLD_GEOFFROY_CSV`` (columns as above); without one every image is
+    ``n/a (not supplied)``."""
+    path = csv_path if csv_path is not None else os.environ.get("FR_HOLD_GEOFFROY_CSV") or None
+    return ExternalPredictions(path, method="hold-geoffroy2018")

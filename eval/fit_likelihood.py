@@ -345,6 +345,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", default="lsd", help="detector for the background EM (default lsd)")
     parser.add_argument("--no-em", action="store_true",
                         help="skip the background EM (background prior = the paper's 0.03)")
+    parser.add_argument("--priors", choices=("fitted", "paper"), default="fitted",
+                        help="priors written to the config: fitted (label shares + EM background, default) or "
+                             "the paper's 0.45 / 0.26 / 0.26 / 0.03 (lambdas are fitted either way)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -360,7 +363,7 @@ def run(args: argparse.Namespace) -> int:
     fitted = fit_measures(samples)
     shares = label_shares(samples)
     em_len = em_count = None
-    if args.no_em:
+    if args.no_em or args.priors == "paper":
         background = PAPER_PRIORS["background"]
         how_bg = "the paper's 0.03 (EM skipped)"
     else:
@@ -373,12 +376,17 @@ def run(args: argparse.Namespace) -> int:
                   f"{args.split} images at the GT camera with the fitted measure-b densities")
     priors = {"vertical": (1 - background) * shares["vertical_length_weighted"],
               "horizontal": (1 - background) * shares["horizontal_length_weighted"], "background": background}
-    command = "fr fit-likelihood " + " ".join(shlex.quote(a) for a in (getattr(args, "argv", None) or sys.argv[1:]))
+    how_priors = f"family priors = length-weighted label shares scaled by (1 - background); background = {how_bg}"
+    if args.priors == "paper":
+        priors = dict(PAPER_PRIORS)
+        how_priors = "priors = the paper's (not fitted)"
+    argv = list(getattr(args, "argv", None) or sys.argv[1:])
+    argv = argv[1:] if argv[:1] == ["fit-likelihood"] else argv  # run as `fr fit-likelihood ...`
+    command = "fr fit-likelihood " + " ".join(shlex.quote(a) for a in argv)
     source = (f"Fitted by `{command}` on {args.dataset} {args.split} ({len(samples)} images, "
               f"{shares['n_segments']} hand-labelled segments against the GT vanishing points with calibrated "
               f"focal and principal point): lambda = exponential MLE (sample mean) per family; d keeps the "
-              f"paper's sigma = 1 px (fitted sigma stored beside it); family priors = length-weighted label shares "
-              f"scaled by (1 - background); background = {how_bg}. See results/likelihood_fit.md.")
+              f"paper's sigma = 1 px (fitted sigma stored beside it); {how_priors}. See results/likelihood_fit.md.")
     config = build_config(fitted, priors, source)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import math
 import platform
 import sys
@@ -63,6 +64,8 @@ from fr_torch.segments import load_image
 
 LABELLED_SUFFIX = "@labelled"
 ALL_METHODS = "all"
+TABLE_ORDER = ("fr", "fast-fr", "oracle-fr", "lee2009", "simon2018", "hold-geoffroy2018", "ctrlc", "ctrlc-retrained",
+               "prior", "external")
 GROUP_METRICS = ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct")
 AUTO_GROUP_MAX_VALUES = 10
 
@@ -99,16 +102,22 @@ def expand_methods(methods: Sequence[str], measures: Sequence[str] | None) -> li
 def resolve_methods(methods: Sequence[str], has_segments: bool) -> tuple[list[str], list[str]]:
     """Expand ``all`` into every registered method; returns (methods, skipped).
 
+    ``all`` lists the paper's methods first (``TABLE_ORDER``), then any other registered ones.
     Oracle methods (``oracle*`` names) that ``all`` brings in are skipped on a dataset without
-    hand-labelled segments (``has_segments`` False).  Duplicates are removed, order kept.
+    hand-labelled segments (``has_segments`` False), and the generic ``external`` adapter unless
+    ``$FR_EXTERNAL_CSV`` is set.  Duplicates are removed, order kept.
     """
     out, skipped = [], []
     for method in methods:
         if method.strip().lower() != ALL_METHODS:
             out.append(method)
             continue
-        for name in available_methods():
-            if _strip_labelled(name)[1] and not has_segments:
+        registered = available_methods()
+        ordered = [m for m in TABLE_ORDER if m in registered] + [m for m in registered if m not in TABLE_ORDER]
+        for name in ordered:
+            if name == "external" and not os.environ.get("FR_EXTERNAL_CSV"):
+                skipped.append(name)  # the generic CSV adapter: a row only when a CSV is given
+            elif _strip_labelled(name)[1] and not has_segments:
                 skipped.append(name)
             else:
                 out.append(name)
@@ -342,8 +351,8 @@ def run(args: argparse.Namespace) -> int:
     has_segments = all(getattr(s, "segments", None) is not None for s in samples)
     resolved, skipped = resolve_methods(requested, has_segments)
     if skipped:
-        print(f"note: {args.dataset} has no hand-labelled segments; skipping oracle methods {', '.join(skipped)}",
-              file=sys.stderr)
+        print(f"note: 'all' leaves out {', '.join(skipped)} (oracle methods need hand-labelled segments; "
+              "'external' needs $FR_EXTERNAL_CSV)", file=sys.stderr)
     methods = expand_methods(resolved, [m.strip() for m in args.measures.split(",") if m.strip()]
                              if args.measures else None)
     if not methods:

@@ -87,6 +87,8 @@ class FREstimator:
     ``mode``: ``"fr"`` (refine to convergence) or ``"fast"`` (10 refinement iterations).
     ``measure``: deviation measure a-e (default from ``configs/likelihood.json``: b).
     ``detector``: name of a registered detector (``lsd`` default) or a detector object.
+    ``likelihood``: likelihood config, a name (``paper``, ``fitted``) or a JSON path (default
+    ``configs/likelihood.json``); ``likelihood_params`` overrides it with explicit parameters.
     ``dtype``: float32 (default) or float64 (reference).
     ``min_segments``: fewer segments than this -> ``reliable = False``; likewise when a Manhattan
     family has fewer than ``min_family_segments`` segments, or when less than
@@ -96,12 +98,13 @@ class FREstimator:
 
     def __init__(self, mode: str = "fr", measure: str | None = None, detector="lsd", device: str = "cpu",
                  dtype: torch.dtype = torch.float32, likelihood_params: LikelihoodParams | None = None,
+                 likelihood: str | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
                  min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6):
         self.mode = mode
         self.search = search_config or SearchConfig.from_config()
         self.iterations = self.search.iterations(mode)
-        self.likelihood = MixtureLikelihood(likelihood_params or LikelihoodParams.from_config(measure))
+        self.likelihood = MixtureLikelihood(likelihood_params or LikelihoodParams.from_config(measure, likelihood))
         self.detector = get_detector(detector)
         self.device = torch.device(device)
         if self.device.type == "cuda" and not torch.cuda.is_available():

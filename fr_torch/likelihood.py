@@ -63,6 +63,19 @@ DEFAULT_LIKELIHOOD_CONFIG = CONFIG_DIR / "likelihood.json"
 _TINY = 1e-30  # guards 0 / 0 in measure a
 
 
+def likelihood_config_path(name_or_path: str | Path | None) -> Path:
+    """Resolve a likelihood configuration: None -> ``configs/likelihood.json`` (the default);
+    a bare name such as ``paper`` or ``fitted`` -> ``configs/likelihood_<name>.json``; else a path."""
+    if name_or_path is None:
+        return DEFAULT_LIKELIHOOD_CONFIG
+    named = CONFIG_DIR / f"likelihood_{name_or_path}.json"
+    path = named if named.is_file() else Path(name_or_path)
+    if not path.is_file():
+        known = sorted(p.stem.removeprefix("likelihood_") for p in CONFIG_DIR.glob("likelihood_*.json"))
+        raise ValueError(f"likelihood config {str(name_or_path)!r} not found (names: {', '.join(known)}, or a JSON path)")
+    return path
+
+
 @dataclass(frozen=True)
 class LikelihoodParams:
     """Mixture parameters for one deviation measure, in internal units (radians or pixels).
@@ -81,9 +94,9 @@ class LikelihoodParams:
 
     @classmethod
     def from_config(cls, measure: str | None = None, path: str | Path | None = None) -> "LikelihoodParams":
-        """Read ``configs/likelihood.json`` (or ``path``); angles there are in degrees."""
-        path = Path(path) if path is not None else DEFAULT_LIKELIHOOD_CONFIG
-        config = json.loads(path.read_text())
+        """Read ``configs/likelihood.json`` (or ``path``: a file or a name, see
+        :func:`likelihood_config_path`); angles there are in degrees."""
+        config = json.loads(likelihood_config_path(path).read_text())
         measure = measure or config.get("default_measure", "b")
         if measure not in MEASURES:
             raise ValueError(f"unknown deviation measure {measure!r}; choose one of {', '.join(MEASURES)}")

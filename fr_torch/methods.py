@@ -3,7 +3,10 @@
 Registered names: ``fr``, ``fast-fr`` (image in, LSD or another detector), and ``oracle-fr``
 (fR run on the segments given in ``ImageMeta.segments``, e.g. YUD's hand-labelled lines: the
 upper bound of a line-based method).  Options select configurations:
-``fr[measure=a]`` ... ``fr[measure=e]`` (deviation measure), ``fr[detector=mcmlsd]``.
+``fr[measure=a]`` ... ``fr[measure=e]`` (deviation measure), ``fr[detector=mcmlsd]``,
+``fr[likelihood=paper]`` (likelihood config by name or path, see
+:func:`fr_torch.likelihood.likelihood_config_path`), ``fr[hfov_min=40,hfov_max=130]`` (search
+range of the horizontal field of view, degrees; default [50, 130]).
 """
 from __future__ import annotations
 
@@ -13,6 +16,7 @@ import numpy as np
 
 from .estimator import CalibrationResult, FREstimator
 from .interface import CameraEstimate, ImageMeta, register
+from .search import SearchConfig
 
 
 def estimate_from_result(method: str, result: CalibrationResult, runtime_s: float) -> CameraEstimate:
@@ -32,12 +36,23 @@ class FRCalibrator:
     """fR / Fast-fR as a Calibrator.  ``use_meta_segments``: calibrate from ``meta.segments``."""
 
     def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
-                 use_meta_segments: bool = False, name: str | None = None, **estimator_kwargs):
-        self.estimator = FREstimator(mode=mode, measure=measure, detector=detector, device=device, **estimator_kwargs)
+                 likelihood: str | None = None, hfov_min: float | str | None = None,
+                 hfov_max: float | str | None = None, use_meta_segments: bool = False, name: str | None = None,
+                 **estimator_kwargs):
+        if hfov_min is not None or hfov_max is not None:
+            default = SearchConfig.from_config().hfov_range_deg
+            hfov_range = (float(hfov_min if hfov_min is not None else default[0]),
+                          float(hfov_max if hfov_max is not None else default[1]))
+            estimator_kwargs["search_config"] = SearchConfig.from_config(hfov_range_deg=hfov_range)
+        self.estimator = FREstimator(mode=mode, measure=measure, detector=detector, device=device,
+                                     likelihood=likelihood, **estimator_kwargs)
         self.use_meta_segments = use_meta_segments
         base = name or ("fr" if mode == "fr" else "fast-fr")
         options = [f"measure={measure}"] if measure else []
         options += [f"detector={detector}"] if detector != "lsd" else []
+        options += [f"likelihood={likelihood}"] if likelihood else []
+        options += [f"hfov_min={hfov_min}"] if hfov_min is not None else []
+        options += [f"hfov_max={hfov_max}"] if hfov_max is not None else []
         self.name = f"{base}[{','.join(options)}]" if options else base
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:

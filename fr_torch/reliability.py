@@ -52,7 +52,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+from .likelihood import CONFIG_DIR
+
 CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")
 TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
 ERROR_COLUMNS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct")  # training-record column names

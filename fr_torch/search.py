@@ -54,6 +54,17 @@ class SearchConfig:
     refine_iterations_fast: int = 10
     max_chunk_elements: int = 1 << 24
 
+    def __post_init__(self):
+        low, high = self.hfov_range_deg
+        if not 0 < low < high < 180:
+            raise ValueError(f"horizontal FOV search range must satisfy 0 < min < max < 180 deg, got {low}, {high}")
+        for key in ("pan_range_deg", "pitch_range_deg", "roll_range_deg"):
+            low, high = getattr(self, key)
+            if not low <= high:
+                raise ValueError(f"{key} must be (min, max) with min <= max, got {low}, {high}")
+        if self.grid_points_per_dim < 1 or self.top_l < 1:
+            raise ValueError("grid_points_per_dim and top_l must be at least 1")
+
     @classmethod
     def from_config(cls, path: str | Path | None = None, **overrides) -> "SearchConfig":
         path = Path(path) if path is not None else CONFIG_DIR / "search.json"

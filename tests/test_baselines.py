@@ -235,6 +235,27 @@ def test_ctrlc_without_weights_is_not_supplied(monkeypatch):
     assert "not supplied" in missing.estimate(None, ImageMeta(name="x")).reason
 
 
+def test_named_rows_read_their_own_weights_and_predictions(monkeypatch, tmp_path):
+    from fr_torch.interface import get_calibrator as get_method
+
+    monkeypatch.setenv("FR_CTRLC_ONNX", str(tmp_path / "gsv.onnx"))
+    monkeypatch.delenv("FR_CTRLC_RETRAINED_ONNX", raising=False)
+    retrained = get_method("ctrlc-retrained")
+    assert retrained.name == "ctrlc-retrained" and retrained.onnx_path is None  # not the other checkpoint
+    assert get_method("ctrlc").onnx_path == tmp_path / "gsv.onnx"
+    monkeypatch.setenv("FR_CTRLC_RETRAINED_ONNX", str(tmp_path / "retrained.onnx"))
+    assert get_method("ctrlc-retrained").onnx_path == tmp_path / "retrained.onnx"
+
+    monkeypatch.delenv("FR_HOLD_GEOFFROY_CSV", raising=False)
+    est = get_method("hold-geoffroy2018").estimate(None, ImageMeta(name="a.jpg", width=W, height=H))
+    assert not est.ok and est.method == "hold-geoffroy2018" and "not supplied" in est.reason
+    csv_path = tmp_path / "hg.csv"
+    csv_path.write_text("image,hfov_deg,roll_deg,tilt_deg\na.jpg,70,1.5,-2\n")
+    monkeypatch.setenv("FR_HOLD_GEOFFROY_CSV", str(csv_path))
+    est = get_method("hold-geoffroy2018").estimate(None, ImageMeta(name="a.jpg", width=W, height=H))
+    assert est.ok and est.hfov_deg == 70 and est.roll_deg == 1.5 and est.tilt_deg == -2
+
+
 def test_ctrlc_conversion_recovers_known_camera():
     for hfov, pitch, roll, pan in CAMERAS:
         focal, rotation, gt = _camera(hfov, pitch, roll, pan)

@@ -262,13 +262,18 @@ def test_methods_all_expansion(monkeypatch):
     from fr_torch.interface import available_methods
 
     registered = available_methods()
+    monkeypatch.delenv("FR_EXTERNAL_CSV", raising=False)
     methods, skipped = run_eval.resolve_methods(["all"], has_segments=True)
-    assert methods == registered and skipped == []
+    assert skipped == ["external"] and sorted(methods) == sorted(set(registered) - {"external"})
+    # The paper's rows first, in the paper's order.
+    assert methods[:5] == ["fr", "fast-fr", "oracle-fr", "lee2009", "simon2018"]
+    assert methods.index("hold-geoffroy2018") < methods.index("ctrlc") < methods.index("prior")
+    monkeypatch.setenv("FR_EXTERNAL_CSV", "predictions.csv")
     methods, skipped = run_eval.resolve_methods(["fr", "all", "x:Y"], has_segments=False)
     assert skipped == [m for m in registered if m.startswith("oracle")] and "oracle-fr" in skipped
     assert methods[0] == "fr" and methods[-1] == "x:Y" and methods.count("fr") == 1
     assert set(methods) == set(registered) - set(skipped) | {"x:Y"}
-    assert {"ctrlc", "external", "simon2018"} <= set(methods)
+    assert {"ctrlc", "ctrlc-retrained", "hold-geoffroy2018", "external", "simon2018"} <= set(methods)
 
 
 def test_methods_all_run_with_na_row_and_by_fov(monkeypatch, fake_images, tmp_path):

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# Regenerate every published table and figure under results/ (CPU, about 20 min on 2 cores).
+# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset yud zind sota detectors reliability bench
+# (default: all, in this order).  Data root: $FR_DATA (default ../shared/data); generated views go
+# to $FR_CACHE (default data_local/).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+FR=${FR:-.venv/bin/fr}
+export MPLBACKEND=${MPLBACKEND:-Agg}
+steps=("$@")
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset yud zind sota detectors reliability bench)
+
+for step in "${steps[@]}"; do
+  echo "== $step"
+  case $step in
+    fit)  # Likelihood parameters from YUD train (results/likelihood_fit.md); the default config keeps
+          # the paper's priors (chosen on the train splits: results/likelihood_selection/).
+      $FR fit-likelihood --dataset yud --split train --out configs/likelihood_fitted.json --report results/likelihood_fit.md
+      $FR fit-likelihood --dataset yud --split train --priors paper --out configs/likelihood.json --report ''
+      for d in yud zind-fr; do
+        $FR eval --dataset $d --split train --no-plots --out results/likelihood_selection/$d \
+          --methods "fr,fr[likelihood=fitted],fr[likelihood=paper],fast-fr,fast-fr[likelihood=fitted]"
+      done ;;
+    dataset)  # ZInD-fR: 15 views per panorama, split by room (data_local/zind-fr, not committed)
+      .venv/bin/python -m eval.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
+        --yaw-csv "${FR_DATA:-../shared/data}/zind_sample_tour/manhattan_yaw_derived.csv" \
+        --out "${FR_CACHE:-data_local}/zind-fr" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 --test-fraction 0.5 ;;
+    yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e,
+          # and the search-range check (true FOV 50.7 deg sits at the edge of [50, 130]).
+      $FR eval --dataset yud --split test --methods fr,fast-fr,oracle-fr --out results/yud
+      $FR eval --dataset yud --split test --methods fr,fast-fr,oracle-fr --pp calibrated --out results/yud/calibrated_pp --no-plots
+      $FR eval --dataset yud --split test --methods fr --measures a,b,c,d,e --out results/yud/measures --no-plots
+      $FR eval --dataset yud --split test --no-plots --out results/yud/hfov_range \
+        --methods "fr,fr[hfov_min=40],fr[hfov_min=30,hfov_max=120],fast-fr,fast-fr[hfov_min=40]" ;;
+    zind)  # Issue "panorama datasets": ZInD-fR test, per-FOV table, distribution figure
+      $FR eval --dataset zind-fr --split test --methods fr,fast-fr --out results/zind-fr ;;
+    sota)  # Issue "baselines": every registered method (absent weights / predictions -> n/a rows)
+      $FR eval --dataset yud --split test --methods all --out results/sota/yud
+      $FR eval --dataset zind-fr --split test --methods all --out results/sota/zind-fr ;;
+    detectors)  # Issue "detectors": LSD vs MCMLSD (paper's Table 3)
+      for d in yud zind-fr; do
+        $FR eval --dataset $d --split test --no-plots --out results/detectors/$d \
+          --methods "fr,fr[detector=mcmlsd],fast-fr,fast-fr[detector=mcmlsd]"
+      done ;;
+    reliability)  # Issue "reliability": models shipped in configs/, tables in results/reliability/
+      $FR train-reliability --dataset zind-fr,yud --split train --method fast --no-cache \
+        --report-dataset zind-fr --report-split test --compare-synthetic 300
+      $FR train-reliability --dataset zind-fr,yud --split train --method fr --no-cache \
+        --report-dataset zind-fr --report-split test ;;
+    bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
+      $FR bench --threads 0 --stress ;;
+    *) echo "unknown step $step" >&2; exit 2 ;;
+  esac
+done
