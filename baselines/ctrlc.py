@@ -48,7 +48,7 @@ import numpy as np
 import torch
 
 from fr_torch.camera import hfov_from_focal, horizon_angles, rotation_from_angles
-from fr_torch.interface import CameraEstimate, ImageMeta, Timer, register
+from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator, register
 from fr_torch.segments import FRInputError, to_bgr8
 
 from . import vp_geometry as vg
@@ -113,7 +113,7 @@ def camera_from_ctrlc(zvp: np.ndarray, fovy_rad: float, width: int, height: int)
 
 
 @register("ctrlc")
-class CTRLC:
+class CTRLC(TimedCalibrator):
     """CTRL-C through onnxruntime (weights exported by the user; see the module docstring)."""
 
     def __init__(self, onnx_path: str | os.PathLike | None = None, providers=None, seed: int = 0,
@@ -151,12 +151,6 @@ class CTRLC:
             raise RuntimeError(f"{self.onnx_path}: ONNX inputs are {names}, expected image, lines, line_mask")
         outputs = sess.run(["pred_zvp", "pred_fovy", "pred_hl"], {k: feeds[k] for k in names})
         return dict(zip(["pred_zvp", "pred_fovy", "pred_hl"], outputs))
-
-    def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
-        with Timer() as timer:
-            result = self._estimate(image, meta)
-        result.runtime_s = timer.seconds
-        return result
 
     def _estimate(self, image, meta: ImageMeta) -> CameraEstimate:
         if not self.available:

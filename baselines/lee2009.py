@@ -37,14 +37,14 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from fr_torch.interface import CameraEstimate, ImageMeta, Timer, register
+from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator, register
 from fr_torch.segments import FRInputError
 
 from . import vp_geometry as vg
 
 
 @register("lee2009")
-class Lee2009:
+class Lee2009(TimedCalibrator):
     """Orthogonal VP triplet + focal sweep (Lee, Hebert & Kanade, CVPR 2009)."""
 
     name = "lee2009"
@@ -65,13 +65,6 @@ class Lee2009:
         self.theta_step_deg = float(theta_step_deg)
         self.max_hypothesis_segments = int(max_hypothesis_segments)
         self.max_voting_segments = int(max_voting_segments)
-
-    # ------------------------------------------------------------------ public
-    def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
-        with Timer() as timer:
-            result = self._estimate(image, meta)
-        result.runtime_s = timer.seconds
-        return result
 
     # ------------------------------------------------------------------ steps
     def focal_sweep(self, width: int, height: int) -> np.ndarray:

@@ -46,7 +46,7 @@ import math
 import numpy as np
 from scipy.stats import binom
 
-from fr_torch.interface import CameraEstimate, ImageMeta, Timer, register
+from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator, register
 from fr_torch.segments import FRInputError
 
 from . import vp_geometry as vg
@@ -106,7 +106,7 @@ def meaningful_modes(counts: np.ndarray, circular: bool = False, max_width: int 
 
 
 @register("simon2018")
-class Simon2018:
+class Simon2018(TimedCalibrator):
     """A-contrario horizon-first VP detection (Simon, Fond & Berger, ECCV 2018) + focal from hVPs."""
 
     name = "simon2018"
@@ -133,12 +133,6 @@ class Simon2018:
         self.min_support = int(min_support)
         self.n_refine = int(n_refine)
         self.n_fine = int(n_fine)
-
-    def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
-        with Timer() as timer:
-            result = self._estimate(image, meta)
-        result.runtime_s = timer.seconds
-        return result
 
     # ------------------------------------------------------------------ main
     def _estimate(self, image, meta: ImageMeta) -> CameraEstimate:

@@ -162,3 +162,17 @@ class Timer:
     def __exit__(self, *exc):
         self.seconds = time.perf_counter() - self._start
         return False
+
+
+class TimedCalibrator:
+    """Base for methods that implement ``_estimate(image, meta)``: :meth:`estimate` calls it and
+    records its wall time (seconds) in ``runtime_s``."""
+
+    def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
+        with Timer() as timer:
+            result = self._estimate(image, meta)
+        result.runtime_s = timer.seconds
+        return result
+
+    def _estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
+        raise NotImplementedError

@@ -393,3 +393,22 @@ def test_fit_on_yud_train(data_root, tmp_path):
     text = report.read_text()
     assert "| b | deg | 0.57 | 0.57 | 1.46 | 1.46 |" in text
     assert "max |sorted difference|" in text or "onlinefr" not in text
+
+
+def test_common_subset_table_compares_methods_on_shared_images():
+    def row(method, image, err, failed=False):
+        values = {m: (None if failed else err) for m in ("roll_err_deg", "tilt_err_deg", "fov_err_pct",
+                                                         "focal_err_pct", "frame_err_deg")}
+        return {"method": method, "image": image, "failed": failed, "runtime_s": 0.1, **values}
+
+    rows = [row("a", "x", 1.0), row("a", "y", 3.0), row("a", "z", 5.0),
+            row("b", "x", 2.0), row("b", "y", 0.0, failed=True), row("b", "z", 4.0)]
+    summaries = [run_eval.summarize(m, [r for r in rows if r["method"] == m]) for m in ("a", "b")]
+    common, n = run_eval.common_subset_summaries(rows, summaries)
+    assert n == 2
+    assert common[0].mean["roll_err_deg"] == pytest.approx(3.0)  # (1 + 5) / 2, image y left out
+    assert common[1].mean["roll_err_deg"] == pytest.approx(3.0) and common[1].failures == 0
+    assert summaries[0].mean["roll_err_deg"] == pytest.approx(3.0) and summaries[0].n["roll_err_deg"] == 3
+    no_failures = [r for r in rows if not r["failed"] or r["method"] == "a"]
+    no_failures = [r for r in no_failures if r["image"] != "y"]
+    assert run_eval.common_subset_summaries(no_failures, summaries) is None

