@@ -11,6 +11,7 @@ range of the horizontal field of view, degrees; default [50, 130]).
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -40,10 +41,10 @@ class FRCalibrator:
                  hfov_max: float | str | None = None, use_meta_segments: bool = False, name: str | None = None,
                  **estimator_kwargs):
         if hfov_min is not None or hfov_max is not None:
-            default = SearchConfig.from_config().hfov_range_deg
-            hfov_range = (float(hfov_min if hfov_min is not None else default[0]),
-                          float(hfov_max if hfov_max is not None else default[1]))
-            estimator_kwargs["search_config"] = SearchConfig.from_config(hfov_range_deg=hfov_range)
+            base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
+            low, high = base.hfov_range_deg
+            hfov_range = (float(low if hfov_min is None else hfov_min), float(high if hfov_max is None else hfov_max))
+            estimator_kwargs["search_config"] = replace(base, hfov_range_deg=hfov_range)  # validated on creation
         self.estimator = FREstimator(mode=mode, measure=measure, detector=detector, device=device,
                                      likelihood=likelihood, **estimator_kwargs)
         self.use_meta_segments = use_meta_segments
