@@ -18,8 +18,8 @@ CSV format (header row required, any column order, extra columns ignored, empty 
 
 When only roll and tilt are given, pitch follows from ``tan(tilt) = tan(pitch) / cos(roll)``;
 a rotation is built only when pan is given too.  The file comes from the constructor argument
-``csv_path`` or the environment variable ``FR_EXTERNAL_CSV``; the reported method name is the
-``method`` argument (e.g. ``"hold-geoffroy2018"``).  An image without a row (or without a file)
+``csv_path`` or the environment variable named by ``env_var`` (``FR_EXTERNAL_CSV``); the reported
+method name is the ``method`` argument (e.g. ``"hold-geoffroy2018"``).  An image without a row (or without a file)
 is a flagged failure with reason ``"n/a (not supplied)"``.
 """
 from __future__ import annotations
@@ -81,8 +81,9 @@ def read_predictions(path: str | os.PathLike) -> dict[str, dict[str, float | Non
 class ExternalPredictions:
     """Predictions read from a CSV (see the module docstring for the columns)."""
 
-    def __init__(self, csv_path: str | os.PathLike | None = None, method: str = "external"):
-        path = csv_path if csv_path is not None else os.environ.get("FR_EXTERNAL_CSV") or None
+    def __init__(self, csv_path: str | os.PathLike | None = None, method: str = "external",
+                 env_var: str = "FR_EXTERNAL_CSV"):
+        path = csv_path if csv_path is not None else os.environ.get(env_var) or None
         self.csv_path = Path(path) if path else None
         self.name = str(method)
         self._rows = read_predictions(self.csv_path) if self.csv_path is not None else {}
@@ -164,5 +165,4 @@ def make_hold_geoffroy2018(csv_path: str | os.PathLike | None = None) -> Externa
     (the authors serve the model through a web interface), so they are read from the CSV in
     ``csv_path`` or ``$FR_HOLD_GEOFFROY_CSV`` (columns as above); without one every image is
     ``n/a (not supplied)``."""
-    path = csv_path if csv_path is not None else os.environ.get("FR_HOLD_GEOFFROY_CSV") or None
-    return ExternalPredictions(path, method="hold-geoffroy2018")
+    return ExternalPredictions(csv_path, method="hold-geoffroy2018", env_var="FR_HOLD_GEOFFROY_CSV")

@@ -18,9 +18,10 @@ Speed and memory (same math; see also :mod:`fr_torch.likelihood`):
   per image slice, not per chunk.  Large batches are cut into image slices, so memory stays
   bounded for any batch size.
 * Refinement: images are refined in independent slices of at most ``max_chunk_elements``
-  (``CPU_REFINE_ELEMENTS`` on CPU) deviations per step (identical results: every image's loss and Adam update are its own), and
-  the rotation is built in closed form (``R.T = Ry(pan) Rx(pitch) Rz(roll)``, equal to
-  :func:`fr_torch.camera.rotation_from_angles` to rounding) with fewer, smaller autograd nodes.
+  (``CPU_REFINE_ELEMENTS`` on CPU) deviations per step (identical results: every image's loss and
+  Adam update are its own), and the rotation is built in closed form
+  (``R.T = Ry(pan) Rx(pitch) Rz(roll)``, equal to :func:`fr_torch.camera.rotation_from_angles`
+  to rounding) with fewer, smaller autograd nodes.
   The iteration counts and step-size schedule are unchanged.
 """
 from __future__ import annotations
