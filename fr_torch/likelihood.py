@@ -55,10 +55,11 @@ from pathlib import Path
 import torch
 
 from .camera import VERTICAL_AXIS, intrinsics
+from .resources import config_dir
 from .segments import SegmentBatch
 
 MEASURES = ("a", "b", "c", "d", "e")
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+CONFIG_DIR = config_dir()  # the shipped configs/ folder (fr_torch/resources.py)
 DEFAULT_LIKELIHOOD_CONFIG = CONFIG_DIR / "likelihood.json"
 _TINY = 1e-30  # guards 0 / 0 in measure a
 

@@ -52,7 +52,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .likelihood import CONFIG_DIR
+from .resources import config_dir
+
+_config_dir = config_dir  # load_default has an argument of that name
 
 CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")
 TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
@@ -83,7 +85,7 @@ def cues_array(cues: dict | Sequence[dict]) -> np.ndarray:
 
 def load_thresholds(path: Path | None = None) -> dict[str, float]:
     """Thresholds (roll deg, tilt deg, focal %) from ``configs/reliability.json`` (defaults if absent)."""
-    path = Path(path) if path is not None else CONFIG_DIR / "reliability.json"
+    path = Path(path) if path is not None else _config_dir() / "reliability.json"
     out = dict(DEFAULT_THRESHOLDS)
     if path.is_file():
         out.update({k: float(v) for k, v in json.loads(path.read_text()).get("thresholds", {}).items()})
@@ -249,7 +251,7 @@ class ReliabilityModel:
         """Default models from ``configs/``: with ``mode`` the :class:`ReliabilityModel` of that mode,
         without it a :class:`ReliabilitySet` of the modes present; None when no model file exists
         (or a file cannot be read: a warning goes to stderr)."""
-        folder = Path(config_dir) if config_dir is not None else CONFIG_DIR
+        folder = Path(config_dir) if config_dir is not None else _config_dir()
         thresholds = load_thresholds(folder / "reliability.json")
         models = {}
         for m in ([mode] if mode else MODES):

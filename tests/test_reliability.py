@@ -9,7 +9,8 @@ import pytest
 from scipy.stats import spearmanr
 
 from fr_torch.estimator import CalibrationResult
-from fr_torch.reliability import (CONFIG_DIR, CUE_NAMES, TARGETS, ReliabilityModel, ReliabilitySet, cue_features,
+from fr_torch.resources import config_dir
+from fr_torch.reliability import (CUE_NAMES, TARGETS, ReliabilityModel, ReliabilitySet, cue_features,
                                   load_thresholds)
 
 
@@ -135,7 +136,7 @@ def test_annotate_sets_fields_and_thresholds(tmp_path):
 def test_shipped_models_and_thresholds():
     thresholds = load_thresholds()
     assert set(thresholds) == set(TARGETS)
-    shipped = [m for m in ("fr", "fast") if (CONFIG_DIR / f"reliability_{m}.npz").is_file()]
+    shipped = [m for m in ("fr", "fast") if (config_dir() / f"reliability_{m}.npz").is_file()]
     if not shipped:
         pytest.skip("no trained default models in configs/")
     models = ReliabilityModel.load_default()

@@ -1,0 +1,30 @@
+"""The shipped configuration files: likelihood and search settings, reliability models.
+
+The single source is the repository's top-level ``configs/`` folder.  A wheel ships it as the
+package ``fr_torch.configs`` (``package-dir`` in ``pyproject.toml``), so an installed ``fr`` finds
+it from any working directory; a source checkout on ``PYTHONPATH`` (not installed) reads the
+folder beside ``fr_torch/``.  Every reader goes through :func:`config_dir`.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+
+
+@lru_cache(maxsize=1)
+def config_dir() -> Path:
+    """Folder holding ``likelihood*.json``, ``search.json``, ``reliability*.{json,npz}``.
+
+    Wheels install unpacked (never zipped), so this is a real folder on disk.
+    """
+    try:
+        folder = resources.files("fr_torch.configs")
+    except ModuleNotFoundError:  # source checkout that is not installed
+        return Path(__file__).resolve().parents[1] / "configs"
+    return Path(str(folder))
+
+
+def config_path(name: str) -> Path:
+    """Path of one shipped configuration file, e.g. ``config_path("search.json")``."""
+    return config_dir() / name

@@ -1,0 +1,66 @@
+"""A regular (non-editable) install works: build the wheel, install it into a fresh venv and run
+``fr`` from a folder outside the repository.
+
+Dependencies are not downloaded again: the venv sees the running interpreter's site-packages
+through a ``.pth`` file, and the wheel itself is installed with ``--no-deps``.
+"""
+import importlib.util
+import json
+import os
+import shutil
+import site
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+from tests.conftest import REPO
+
+SOURCES = ("pyproject.toml", "README.md", "fr_torch", "configs", "eval", "baselines")
+
+
+def _run(cmd, **kwargs):
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=240, **kwargs)
+    assert out.returncode == 0, f"{cmd}: {out.stdout[-2000:]}\n{out.stderr[-2000:]}"
+    return out
+
+
+def test_wheel_installs_and_runs_from_any_folder(tmp_path):
+    # Build from a copy, so the checkout gets no build/ or egg-info folders.
+    src = tmp_path / "src"
+    src.mkdir()
+    for name in SOURCES:
+        path = REPO / name
+        if path.is_dir():
+            shutil.copytree(path, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        else:
+            shutil.copy2(path, src / name)
+    isolation = [] if importlib.util.find_spec("setuptools") is None else ["--no-build-isolation"]
+    _run([sys.executable, "-m", "pip", "wheel", "--no-deps", *isolation, "-q", "-w", str(tmp_path / "dist"),
+          str(src)])
+    (wheel,) = (tmp_path / "dist").glob("fr_torch-*.whl")
+
+    env_dir = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=False).create(env_dir)
+    python = env_dir / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
+    purelib = Path(_run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"])
+                   .stdout.strip())
+    shared = [p for p in site.getsitepackages() if Path(p).is_dir()]
+    (purelib / "zz_shared_dependencies.pth").write_text("\n".join(shared) + "\n")
+    # pip (seen through the .pth) installs into the interpreter running it: the venv.  --ignore-installed:
+    # never uninstall a copy that the shared site-packages holds (an editable install, in CI).
+    _run([str(python), "-m", "pip", "install", "--no-deps", "--ignore-installed", "--no-warn-script-location",
+          "-q", str(wheel)])
+
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    fr = env_dir / ("Scripts/fr.exe" if os.name == "nt" else "bin/fr")
+    where = _run([str(python), "-c", "import fr_torch; print(fr_torch.__file__)"], cwd=work, env=env).stdout
+    assert str(env_dir) in where, where  # the wheel's copy, not the checkout
+    help_text = _run([str(fr), "--help"], cwd=work, env=env).stdout
+    assert "calibrate" in help_text and "track" in help_text
+    out = _run([str(fr), "calibrate", "--fast", str(REPO / "examples" / "room.png")], cwd=work, env=env)
+    record = json.loads(out.stdout.strip().splitlines()[0])
+    assert record["ok"] and abs(record["focal_px"] - 420) < 15
+    assert record["predicted_error"] is not None  # the shipped reliability model was found
