@@ -56,6 +56,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+import baselines  # noqa: F401  (registers the baselines also in a source checkout that is not pip-installed)
 from eval.datasets.registry import available_datasets, load_dataset
 from eval.metrics import NA_PREFIX, estimate_quantities, image_errors, is_failure, summarize, summarize_groups
 from eval.paths import REPO

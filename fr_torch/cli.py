@@ -2,7 +2,8 @@
 
 ``fr calibrate IMAGE...`` is defined here; the other subcommands live in their own modules, each
 exposing ``add_arguments(parser)`` and ``run(args) -> int``, and are imported only when used (so
-``fr calibrate`` starts fast).  Errors in user input print one line and exit non-zero; set
+``fr calibrate`` starts fast).  The core's commands are :data:`SUBCOMMANDS`; the evaluation harness
+adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.plugins`).  Errors in user input print one line and exit non-zero; set
 ``FR_DEBUG=1`` to see tracebacks.
 """
 from __future__ import annotations
@@ -17,12 +18,7 @@ from pathlib import Path
 # name -> (module, one-line help).  The module provides add_arguments(parser) and run(args).
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("fr_torch.cli", "estimate focal length and rotation of images"),
-    "eval": ("eval.run_eval", "evaluate methods on a dataset and write tables and figures"),
-    "fit-likelihood": ("eval.fit_likelihood", "fit the deviation-measure likelihoods from labelled data"),
-    "make-dataset": ("eval.make_dataset", "cut planar views with known camera from panoramas"),
-    "train-reliability": ("fr_torch.reliability_train", "train the error predictor (reliability model)"),
     "track": ("fr_torch.track", "online recalibration from a video or a folder of frames"),
-    "bench": ("eval.bench", "speed benchmark (latency, throughput, memory)"),
 }
 
 
@@ -117,22 +113,42 @@ def _load_reliability():
     return ReliabilityModel.load_default()
 
 
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+def all_subcommands(extra: dict[str, tuple[str, str]] | None = None) -> dict[str, tuple[str, str]]:
+    """The core's commands, then those registered in the ``fr_torch.commands`` entry-point group."""
+    from .plugins import COMMANDS_GROUP, entry_points
+
+    commands = dict(SUBCOMMANDS)
+    for name, entry in entry_points(COMMANDS_GROUP).items():
+        try:
+            commands.setdefault(name, tuple(entry.load()))
+        except ImportError as exc:  # a plugin whose package is broken or only partly installed
+            commands.setdefault(name, (entry.value, f"(unavailable: {exc})"))
+    commands.update(extra or {})
+    return commands
+
+
+def build_parser(command: str | None = None, commands: dict[str, tuple[str, str]] | None = None
+                 ) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fr", description="fR: focal length and camera rotation from one image "
                                      "(Qian & Elder, ECCV 2022).")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (module, help_text) in SUBCOMMANDS.items():
+    for name, (module, help_text) in (commands or SUBCOMMANDS).items():
         sp = sub.add_parser(name, help=help_text)
         if name == command:
             importlib.import_module(module).add_arguments(sp)
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str]] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    command = argv[0] if argv and argv[0] in SUBCOMMANDS else None
+    commands = all_subcommands(extra_commands)
+    if argv and not argv[0].startswith("-") and argv[0] not in commands:
+        print(f"fr: unknown command {argv[0]!r} (commands: {', '.join(commands)}; the evaluation commands "
+              "come with a pip-installed checkout)", file=sys.stderr)
+        return 2
+    command = argv[0] if argv else None
     try:
-        parser = build_parser(command)
+        parser = build_parser(command, commands)
     except ModuleNotFoundError as exc:
         print(f"fr: the '{command}' command is not available in this installation ({exc})", file=sys.stderr)
         return 2
@@ -142,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from .segments import FRInputError
 
-    module = importlib.import_module(SUBCOMMANDS[args.command][0])
+    module = importlib.import_module(commands[args.command][0])
     try:
         return int(module.run(args) or 0)
     except (FRInputError, FileNotFoundError, ValueError) as exc:

@@ -93,11 +93,13 @@ def register(name: str) -> Callable:
 
 # Modules that register built-in methods when imported (kept lazy: importing them is cheap, but
 # they may pull optional dependencies such as onnxruntime).
-_BUILTIN_MODULES = ("fr_torch.methods", "baselines")
+_BUILTIN_MODULES = ("fr_torch.methods",)
 
 
 def _load_builtins() -> None:
-    for module in _BUILTIN_MODULES:
+    from .plugins import CALIBRATORS_GROUP, entry_points
+
+    for module in (*_BUILTIN_MODULES, *(e.value for e in entry_points(CALIBRATORS_GROUP).values())):
         try:
             importlib.import_module(module)
         except ModuleNotFoundError as exc:  # a package not present in this installation

@@ -59,7 +59,11 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
     where = _run([str(python), "-c", "import fr_torch; print(fr_torch.__file__)"], cwd=work, env=env).stdout
     assert str(env_dir) in where, where  # the wheel's copy, not the checkout
     help_text = _run([str(fr), "--help"], cwd=work, env=env).stdout
-    assert "calibrate" in help_text and "track" in help_text
+    for command in ("calibrate", "track", "eval", "train-reliability", "bench"):  # harness: via entry points
+        assert command in help_text
+    methods = _run([str(python), "-c", "from fr_torch.interface import available_methods as m; print(m())"],
+                   cwd=work, env=env).stdout
+    assert "lee2009" in methods  # baselines registered through the fr_torch.calibrators entry point
     out = _run([str(fr), "calibrate", "--fast", str(REPO / "examples" / "room.png")], cwd=work, env=env)
     record = json.loads(out.stdout.strip().splitlines()[0])
     assert record["ok"] and abs(record["focal_px"] - 420) < 15

@@ -44,8 +44,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .camera import focal_from_hfov, horizon_angles
-from .reliability import CONFIG_DIR, CUE_NAMES, ERROR_COLUMNS, ReliabilityModel
+from fr_torch.camera import focal_from_hfov, horizon_angles
+from fr_torch.reliability import CUE_NAMES, ERROR_COLUMNS, ReliabilityModel
+from fr_torch.resources import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RECORDS = REPO / "results" / "reliability" / "records"
@@ -78,7 +79,7 @@ def dataset_records(dataset: str, split: str, mode: str, data_root=None, batch_s
 
     from eval.datasets.registry import load_dataset
 
-    from .estimator import FREstimator
+    from fr_torch.estimator import FREstimator
 
     samples = load_dataset(dataset, root=data_root, split=split)
     samples = [s for s in samples if s.focal_px and s.roll_deg is not None and s.tilt_deg is not None]
@@ -109,8 +110,8 @@ def synthetic_records(count: int, mode: str, seed: int = 0, batch_size: int = 8,
     import torch
     from tqdm import tqdm
 
-    from .estimator import FREstimator
-    from .synthetic import random_rotation, render_manhattan_room, synthetic_segments
+    from fr_torch.estimator import FREstimator
+    from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
     rng = np.random.default_rng(seed)
     estimator = FREstimator(mode=mode)
@@ -203,7 +204,7 @@ def reliability_table(frame: pd.DataFrame, predicted: np.ndarray, rank_by: str, 
     (sum of the three predicted errors each divided by ``scales`` -- by default the model's
     thresholds -- i.e. the largest share of its threshold).
     """
-    from .reliability import TARGETS
+    from fr_torch.reliability import TARGETS
 
     if rank_by == "combined":
         scales = np.asarray(scales if scales is not None else [1.0, 1.0, 1.0], float)
@@ -225,7 +226,7 @@ def reliability_table(frame: pd.DataFrame, predicted: np.ndarray, rank_by: str, 
 def spearman(predicted: np.ndarray, frame: pd.DataFrame) -> dict[str, float]:
     from scipy.stats import spearmanr
 
-    from .reliability import TARGETS
+    from fr_torch.reliability import TARGETS
 
     actual = frame[list(ERROR_COLUMNS)].to_numpy(float)
     return {t: float(spearmanr(predicted[:, j], actual[:, j]).statistic) for j, t in enumerate(TARGETS)}
@@ -393,7 +394,7 @@ def run(args: argparse.Namespace) -> int:
                                  meta={"mode": args.method, "training_data": sizes, "split": args.split,
                                        "failed_or_dropped": int(len(frame) - len(train)),
                                        "command": "fr " + " ".join(sys.argv[2:]) if len(sys.argv) > 1 else ""})
-    out = args.out or CONFIG_DIR / f"reliability_{args.method}.npz"
+    out = args.out or config_dir() / f"reliability_{args.method}.npz"
     model.save(out)
     print(f"trained on {len(train)} images {sizes}; K = {model.k} (CV loss {model.meta['cv_loss'][str(model.k)]:.4f}); "
           f"saved {out} ({time.time() - start:.0f} s)")
