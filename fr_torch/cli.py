@@ -71,7 +71,6 @@ def run(args: argparse.Namespace) -> int:
         search_config = SearchConfig.from_config(hfov_range_deg=(low, high))
     estimator = FREstimator(mode="fast" if args.fast else "fr", measure=args.measure, detector=args.detector,
                             likelihood=args.likelihood, device=args.device, search_config=search_config)
-    reliability = _load_reliability()
     if args.overlay:
         args.overlay.mkdir(parents=True, exist_ok=True)
     everything, failures = [], 0
@@ -80,8 +79,6 @@ def run(args: argparse.Namespace) -> int:
         chunk = paths[start:start + args.batch_size]
         results = estimator.calibrate_images(chunk, focal_px=args.focal, principal_point=principal_point)
         for path, result in zip(chunk, results):
-            if reliability is not None and result.ok:
-                reliability.annotate(result, mode=estimator.mode)
             record = result.to_json(include_segments=args.segments)
             everything.append(record)
             print(json.dumps(record), flush=True)
@@ -102,15 +99,6 @@ def run(args: argparse.Namespace) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(everything, indent=1))
     return 1 if failures else 0
-
-
-def _load_reliability():
-    """The default reliability model, if one is installed (adds predicted errors)."""
-    try:
-        from .reliability import ReliabilityModel
-    except ImportError:
-        return None
-    return ReliabilityModel.load_default()
 
 
 def all_subcommands(extra: dict[str, tuple[str, str]] | None = None) -> dict[str, tuple[str, str]]:

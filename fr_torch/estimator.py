@@ -94,13 +94,18 @@ class FREstimator:
     family has fewer than ``min_family_segments`` segments, or when less than
     ``min_manhattan_fraction`` of the total segment length is labelled with a Manhattan family
     (random texture, nature scenes: real built scenes measure 0.75-0.95 with LSD).
+    ``reliability``: the error predictor stage (:mod:`fr_torch.reliability`): ``"default"`` (the
+    shipped model of this mode, when installed), a model object, a path to a model ``.npz``, or None
+    (off).  When on, every estimate gets ``predicted_error`` and ``reliable = False`` above the
+    thresholds of ``configs/reliability.json``.
     """
 
     def __init__(self, mode: str = "fr", measure: str | None = None, detector="lsd", device: str = "cpu",
                  dtype: torch.dtype = torch.float32, likelihood_params: LikelihoodParams | None = None,
                  likelihood: str | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
-                 min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6):
+                 min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6,
+                 reliability="default"):
         self.mode = mode
         self.search = search_config or SearchConfig.from_config()
         self.iterations = self.search.iterations(mode)
@@ -114,6 +119,13 @@ class FREstimator:
         self.min_segments = min_segments
         self.min_family_segments = min_family_segments
         self.min_manhattan_fraction = min_manhattan_fraction
+        from .reliability import ReliabilityModel
+
+        if isinstance(reliability, str) and reliability == "default":
+            reliability = ReliabilityModel.load_default(mode)
+        elif isinstance(reliability, (str, Path)):
+            reliability = ReliabilityModel.load(reliability)
+        self.reliability = reliability
 
     # ------------------------------------------------------------------ public API
 
@@ -205,6 +217,10 @@ class FREstimator:
             group = [i for i in todo if (focal_list[i] is not None) == known]
             if group:
                 self._search_group(group, segments, sizes, focal_list, pp_list, results, known)
+        if self.reliability is not None:  # the last stage: predicted errors, reliable above thresholds
+            for result in results:
+                if result.ok:
+                    self.reliability.annotate(result, mode=self.mode)
         return results
 
     def _search_group(self, group, segments, sizes, focal_list, pp_list, results, known_focal: bool):

@@ -35,10 +35,11 @@ string array with the JSON metadata; it is read with ``np.load(allow_pickle=Fals
 human-readable copy of the metadata is written beside it as ``<name>.json``.  Fitting uses
 scikit-learn; prediction is plain numpy.
 
-Run-time use: ``fr calibrate`` calls :meth:`ReliabilityModel.load_default` (models
+Run-time use: the last stage of :class:`fr_torch.estimator.FREstimator` (its ``reliability``
+option, on by default) loads :meth:`ReliabilityModel.load_default` for its mode (models
 ``configs/reliability_fr.npz`` and ``configs/reliability_fast.npz``; thresholds in
-``configs/reliability.json``) and :meth:`ReliabilitySet.annotate` on each estimate, which fills
-``result.predicted_error`` and clears ``result.reliable`` when a predicted error exceeds its
+``configs/reliability.json``) and calls :meth:`ReliabilityModel.annotate` on each estimate, which
+fills ``result.predicted_error`` and clears ``result.reliable`` when a predicted error exceeds its
 threshold.
 """
 from __future__ import annotations

@@ -3,13 +3,11 @@
 Python use::
 
     from fr_torch import FREstimator
-    from fr_torch.reliability import ReliabilityModel
     from fr_torch.track import OnlineCalibrator
 
-    est, rel = FREstimator(mode="fast"), ReliabilityModel.load_default("fast")
+    est = FREstimator(mode="fast")              # its reliability stage fills result.predicted_error
     tracker = OnlineCalibrator()
     for result in est.calibrate_images(frames):
-        rel.annotate(result, "fast")            # predicted errors -> result.predicted_error
         state = tracker.update(result)          # FusedState: focal_px, rotation, roll/tilt, ...
 
 Fusion (one *segment* = the frames since the last restart)
@@ -422,14 +420,14 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from .estimator import FREstimator
-    from .reliability import ReliabilityModel
     from .segments import FRInputError
 
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
     mode = "fast" if args.fast else "fr"
-    estimator = FREstimator(mode=mode, detector=args.detector, device=args.device)
-    model = None if args.no_reliability else ReliabilityModel.load_default(mode)
+    estimator = FREstimator(mode=mode, detector=args.detector, device=args.device,
+                            reliability=None if args.no_reliability else "default")
+    model = estimator.reliability
     if model is None and not args.no_reliability:
         print(f"fr track: no reliability model for {mode}: all reliable frames weigh the same", file=sys.stderr)
     tracker = OnlineCalibrator(memory=args.memory, change_k=args.change_k, patience=args.patience)
@@ -440,8 +438,6 @@ def run(args: argparse.Namespace) -> int:
     def flush():
         results = estimator.calibrate_images([im for _, _, im in batch], names=[n for _, n, _ in batch])
         for (index, name, _), result in zip(batch, results):
-            if model is not None and result.ok:
-                model.annotate(result, mode)
             state = tracker.update(result, index)
             rows.append(frame_row(index, name, result, state))
             if state.restarted:

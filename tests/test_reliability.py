@@ -145,3 +145,22 @@ def test_shipped_models_and_thresholds():
         assert model.meta["mode"] == mode and len(model.train_cues) >= 100
         good, bad = model.predict([[60.0, 1e-6, 0.3], [2.0, 1.0, -1.0]])
         assert good[2] < bad[2]  # a clean scene is predicted better than a near-empty family
+
+
+def test_reliability_is_a_stage_of_the_estimator():
+    from fr_torch.estimator import FREstimator
+    from fr_torch.methods import FRCalibrator
+    from fr_torch.interface import ImageMeta
+    from fr_torch.synthetic import random_rotation, synthetic_segments
+
+    segments, _ = synthetic_segments(420.0, random_rotation(np.random.default_rng(3)), 640, 480, seed=3)
+    if not (config_dir() / "reliability_fast.npz").is_file():
+        pytest.skip("no shipped fast model")
+    [on] = FREstimator(mode="fast").calibrate_segments([segments], [(640, 480)])
+    assert on.ok and set(on.predicted_error) == set(TARGETS)
+    [off] = FREstimator(mode="fast", reliability=None).calibrate_segments([segments], [(640, 480)])
+    assert off.ok and off.predicted_error is None
+    # the Calibrator interface carries the predicted errors too (eval's predictions.csv columns)
+    calibrator = FRCalibrator(mode="fast", use_meta_segments=True)
+    estimate = calibrator.estimate(None, ImageMeta(name="x", width=640, height=480, segments=segments))
+    assert estimate.predicted_error == on.predicted_error
