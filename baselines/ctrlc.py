@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 import torch
 
-from fr_torch.camera import hfov_from_focal, horizon_angles, rotation_from_angles
+from fr_torch.camera import hfov_from_focal, horizon_angles, image_centre, rotation_from_angles
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator, register
 from fr_torch.segments import FRInputError, to_bgr8
 
@@ -83,7 +83,7 @@ def preprocess_lines(segments: np.ndarray, width: int, height: int, num_lines: i
         segments = segments[rng.choice(len(segments), num_lines, replace=True, p=lengths / lengths.sum())]
     count = len(segments)
     if count:
-        centre = (width / 2.0, height / 2.0)
+        centre = image_centre(width, height)
         lines[:count] = vg.homogeneous_lines(segments, centre=centre, scale=2.0 / min(width, height))
         mask[:count] = 1.0
     return lines[None], mask[None]

@@ -17,7 +17,7 @@ import math
 import numpy as np
 import torch
 
-from fr_torch.camera import angles_from_rotation, hfov_from_focal
+from fr_torch.camera import angles_from_rotation, hfov_from_focal, nearest_rotation, principal_point_or_centre  # noqa: F401
 from fr_torch.interface import CameraEstimate, ImageMeta
 from fr_torch.segments import FRInputError, detect_segments, validate_segments
 
@@ -38,9 +38,7 @@ def image_size(image: np.ndarray | None, meta: ImageMeta) -> tuple[int, int]:
 
 def principal_point(meta: ImageMeta, width: int, height: int) -> np.ndarray:
     """Known principal point from the metadata, else the image centre (w / 2, h / 2)."""
-    if meta.principal_point is not None:
-        return np.asarray(meta.principal_point, dtype=np.float64).reshape(2)
-    return np.array([width / 2.0, height / 2.0])
+    return np.array(principal_point_or_centre(meta.principal_point, width, height))
 
 
 def input_segments(image: np.ndarray | None, meta: ImageMeta) -> np.ndarray:
@@ -91,7 +89,7 @@ def homogeneous_lines(segments: np.ndarray, centre=(0.0, 0.0), scale: float = 1.
 
 def conditioning(width: int, height: int, pp: np.ndarray | None = None) -> np.ndarray:
     """Similarity T (3, 3) mapping pixels to centred coordinates of order 1 (for stable SVDs)."""
-    pp = np.array([width / 2.0, height / 2.0]) if pp is None else np.asarray(pp, np.float64)
+    pp = np.array(principal_point_or_centre(pp, width, height))
     s = 2.0 / max(width, height, 1)
     return np.array([[s, 0, -s * pp[0]], [0, s, -s * pp[1]], [0, 0, 1.0]])
 
@@ -179,13 +177,6 @@ def direction_from_vp(vp: np.ndarray, focal_px: float, pp: np.ndarray) -> np.nda
     vp = np.asarray(vp, dtype=np.float64)
     d = np.array([vp[0] - pp[0] * vp[2], vp[1] - pp[1] * vp[2], focal_px * vp[2]])
     return d / max(np.linalg.norm(d), EPS)
-
-
-def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
-    """Closest proper rotation (Frobenius norm) to a 3 x 3 matrix (orthogonal Procrustes)."""
-    u, _, vt = np.linalg.svd(matrix)
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 def rotation_from_directions(vertical: np.ndarray, horizontal: np.ndarray,

@@ -67,7 +67,7 @@ import torch
 
 from eval.panorama import (cubemap_to_equirect, load_cubemap, load_panorama, render_views, save_rgb,
                            yaw_rotation)
-from fr_torch.camera import focal_from_hfov, horizon_angles, intrinsics, rotation_from_angles
+from fr_torch.camera import focal_from_hfov, horizon_angles, image_centre, intrinsics, rotation_from_angles
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
@@ -202,7 +202,7 @@ def yaw_check(pano: np.ndarray, yaw_deg: float, search_deg: float = 45.0, step_d
     for k in range(len(pans)):
         s = detect_segments(views[k])
         segs.append((k, s))
-    K = intrinsics(torch.tensor(float(f), dtype=torch.float64), torch.tensor([w / 2.0, h / 2.0], dtype=torch.float64))
+    K = intrinsics(torch.tensor(float(f), dtype=torch.float64), torch.tensor(image_centre(w, h), dtype=torch.float64))
     cos_thr = math.cos(math.radians(inlier_deg))
     segs = [(k, torch.as_tensor(s, dtype=torch.float64)) for k, s in segs if len(s)]
     # coarse scan over the whole 90-deg period, then a fine scan around the best coarse offset

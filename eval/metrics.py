@@ -22,7 +22,6 @@ valid (non-failed) result.  A method whose every estimate failed with a reason s
 """
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
@@ -30,7 +29,8 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import torch
 
-from fr_torch.camera import focal_from_hfov, hfov_from_focal, horizon_angles
+from fr_torch.camera import (MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal, horizon_angles,
+                             manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg)  # noqa: F401
 
 NOT_SUPPLIED = "n/a (not supplied)"
 NA_PREFIX = "n/a ("
@@ -38,27 +38,8 @@ NA_PREFIX = "n/a ("
 METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
 
 
-def proper_signed_permutations() -> np.ndarray:
-    """The 24 signed permutation matrices with det +1, shape (24, 3, 3)."""
-    mats = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            p = np.zeros((3, 3))
-            for row, col in enumerate(perm):
-                p[row, col] = signs[row]
-            if np.linalg.det(p) > 0:
-                mats.append(p)
-    return np.stack(mats)
-
-
-_G24 = proper_signed_permutations()
-
-
-def rotation_angle_deg(r_a: np.ndarray, r_b: np.ndarray) -> np.ndarray:
-    """Geodesic angle(s) in degrees between rotations (..., 3, 3)."""
-    rel = np.swapaxes(np.asarray(r_a), -1, -2) @ np.asarray(r_b)
-    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+_G24 = MANHATTAN_SYMMETRIES  # the 24 proper signed permutations (fr_torch.camera)
+proper_signed_permutations = manhattan_symmetries
 
 
 def frame_error_deg(r_gt: np.ndarray, r_est: np.ndarray) -> float:
@@ -73,7 +54,7 @@ def frame_error_deg(r_gt: np.ndarray, r_est: np.ndarray) -> float:
             raise ValueError(f"frame error: {name} rotation must be a finite 3x3 matrix")
         if np.linalg.det(r) < 0:
             raise ValueError(f"frame error: {name} rotation is left-handed (det < 0)")
-    return float(rotation_angle_deg(r_gt[None], r_est[None] @ _G24).min())
+    return manhattan_frame_error_deg(r_gt, r_est)
 
 
 def mean_se(values: Iterable[float]) -> tuple[float, float, int]:

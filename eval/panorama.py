@@ -64,7 +64,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fr_torch.camera import intrinsics, rotation_from_angles
+from fr_torch.camera import image_centre, intrinsics, rotation_from_angles
 
 __all__ = [
     "to_chw_float",
@@ -144,7 +144,7 @@ def view_rays(rotations: torch.Tensor, focal_px: torch.Tensor, size: tuple[int, 
     w, h = size
     rotations = torch.as_tensor(rotations, dtype=dtype, device=device).reshape(-1, 3, 3)
     focal = torch.as_tensor(focal_px, dtype=dtype, device=device).reshape(-1).expand(rotations.shape[0])
-    K = intrinsics(focal, torch.tensor([w / 2.0, h / 2.0], dtype=dtype, device=device))
+    K = intrinsics(focal, torch.tensor(image_centre(w, h), dtype=dtype, device=device))
     yaw = torch.as_tensor(manhattan_yaw_deg, dtype=dtype, device=device).reshape(-1).expand(rotations.shape[0])
     cam_to_pano = yaw_rotation(yaw, dtype=dtype, device=device) @ rotations.transpose(-1, -2)
     M = cam_to_pano @ torch.linalg.inv(K)  # (V, 3, 3)

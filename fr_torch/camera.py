@@ -30,8 +30,11 @@ Conventions (used everywhere: estimator, datasets, metrics, baselines)
 """
 from __future__ import annotations
 
+import itertools
 import math
+from dataclasses import dataclass
 
+import numpy as np
 import torch
 from kornia.geometry.conversions import quaternion_to_rotation_matrix
 
@@ -141,16 +144,149 @@ def vanishing_points(focal_px: torch.Tensor, principal_point: torch.Tensor, rota
     return intrinsics(focal_px, principal_point) @ rotation
 
 
-def rotation_angle_deg(r_a: torch.Tensor, r_b: torch.Tensor) -> torch.Tensor:
-    """Geodesic angle (degrees) between rotations r_a and r_b, (..., 3, 3)."""
-    rel = r_a.transpose(-1, -2) @ r_b
-    cos = ((rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.acos(cos))
+def rotation_angle_deg(r_a, r_b):
+    """Geodesic angle (degrees) between rotations r_a and r_b, shape (..., 3, 3) -> (...).
+
+    Tensors in, tensor out (differentiable); arrays in, array out (a float for single matrices).
+    """
+    if torch.is_tensor(r_a) and torch.is_tensor(r_b):
+        rel = r_a.transpose(-1, -2) @ r_b
+        cos = ((rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
+        return torch.rad2deg(torch.acos(cos))
+    rel = np.swapaxes(np.asarray(r_a, np.float64), -1, -2) @ np.asarray(r_b, np.float64)
+    angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)))
+    return float(angle) if np.ndim(angle) == 0 else angle
 
 
 def image_centre(width: float, height: float) -> tuple[float, float]:
     """Default principal point (pixels): the exact image centre (w / 2, h / 2)."""
     return (width / 2.0, height / 2.0)
+
+
+def principal_point_or_centre(principal_point, width: float, height: float) -> tuple[float, float]:
+    """``principal_point`` as an (x, y) float pair, or the image centre when it is None."""
+    if principal_point is None:
+        return image_centre(width, height)
+    x, y = (float(v) for v in np.asarray(principal_point, np.float64).reshape(2))
+    return (x, y)
+
+
+# ---------------------------------------------------------------------------------- Manhattan frames
+
+def manhattan_symmetries() -> np.ndarray:
+    """The 24 proper signed permutation matrices P (det +1), shape (24, 3, 3): the rotation group of
+    the cube.  ``R @ P`` describes the same Manhattan frame as R with its axes relabelled."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            p = np.zeros((3, 3))
+            for row, col in enumerate(perm):
+                p[row, col] = signs[row]
+            if np.linalg.det(p) > 0:
+                out.append(p)
+    return np.stack(out)
+
+
+MANHATTAN_SYMMETRIES = manhattan_symmetries()
+
+
+def align_to(rotation: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """The relabelling ``rotation @ P`` of a Manhattan frame closest (chordal) to ``reference``."""
+    candidates = np.asarray(rotation, np.float64)[None] @ MANHATTAN_SYMMETRIES  # (24, 3, 3)
+    return candidates[int(np.argmax(np.einsum("kij,ij->k", candidates, reference)))]
+
+
+def manhattan_frame_error_deg(r_ref: np.ndarray, r_est: np.ndarray) -> float:
+    """``min_P angle(r_ref, r_est P)`` over the 24 symmetries: rotation error up to relabelling (deg)."""
+    return float(np.min(rotation_angle_deg(np.asarray(r_ref, np.float64)[None],
+                                           np.asarray(r_est, np.float64)[None] @ MANHATTAN_SYMMETRIES)))
+
+
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """Closest proper rotation (Frobenius norm) to a 3 x 3 matrix (orthogonal Procrustes, SVD).
+
+    With ``matrix = sum_i w_i R_i`` this is the weighted chordal L2 mean of the rotations.
+    """
+    u, _, vt = np.linalg.svd(np.asarray(matrix, np.float64))
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def rotation_angles(rotation) -> dict[str, float]:
+    """pan (folded), roll, tilt, pitch in degrees (floats) of one world->camera R (array or tensor)."""
+    angles = angles_from_rotation(torch.as_tensor(np.asarray(rotation, np.float64)))
+    return {k: float(v) for k, v in angles.items()}
+
+
+# ---------------------------------------------------------------------------------- value type
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: image size, focal length, principal point and orientation.
+
+    Args:
+        width, height: image size in pixels.
+        focal_px: focal length in pixels (square pixels, no skew).
+        principal_point: (x, y) in pixels; None -> the image centre ``(w / 2, h / 2)``.
+        rotation: (3, 3) world->camera R (float64 numpy), or None when unknown.
+
+    Convention:
+        Pixels: x right, y down.  Camera frame x right, y down, z forward.  World frame: the
+        Manhattan frame, y = vertical pointing down; ``R[:, 1]`` is the vertical direction in the
+        camera frame.  ``K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]``.  Angles in degrees with the
+        definitions of this module's docstring (roll / tilt from the horizon, pan folded into
+        [-45, 45)).  Vanishing points are rows ``(x, y, w)`` of ``(K R).T`` with ``w >= 0``.
+
+    ``to_torch`` returns the tensors the estimator works with; everything else is numpy / floats.
+    """
+
+    width: int
+    height: int
+    focal_px: float
+    principal_point: tuple[float, float] | None = None
+    rotation: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "principal_point",
+                           principal_point_or_centre(self.principal_point, self.width, self.height))
+        if self.rotation is not None:
+            object.__setattr__(self, "rotation", np.asarray(self.rotation, np.float64).reshape(3, 3))
+
+    @classmethod
+    def from_hfov(cls, hfov_deg: float, width: int, height: int, **kwargs) -> "Camera":
+        return cls(width, height, focal_from_hfov(hfov_deg, width), **kwargs)
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) intrinsic matrix."""
+        return intrinsics(torch.tensor(float(self.focal_px), dtype=torch.float64),
+                          torch.tensor(self.principal_point, dtype=torch.float64)).numpy()
+
+    @property
+    def hfov_deg(self) -> float:
+        return hfov_from_focal(float(self.focal_px), self.width)
+
+    @property
+    def angles(self) -> dict[str, float]:
+        """pan_deg, roll_deg, tilt_deg, pitch_deg (empty when the rotation is unknown)."""
+        return rotation_angles(self.rotation) if self.rotation is not None else {}
+
+    @property
+    def vanishing_points(self) -> np.ndarray | None:
+        """(3, 3): row i = homogeneous VP of Manhattan direction i, ``w >= 0``."""
+        if self.rotation is None:
+            return None
+        vps = (self.K @ self.rotation).T
+        return vps * np.where(vps[:, 2:] < 0, -1.0, 1.0)
+
+    def to_torch(self, dtype: torch.dtype = torch.float64, device=None) -> dict[str, torch.Tensor]:
+        """``focal_px`` (), ``principal_point`` (2,), ``K`` (3, 3) and ``rotation`` (3, 3) as tensors."""
+        out = {"focal_px": torch.tensor(float(self.focal_px), dtype=dtype, device=device),
+               "principal_point": torch.tensor(self.principal_point, dtype=dtype, device=device),
+               "K": torch.as_tensor(self.K, dtype=dtype, device=device)}
+        if self.rotation is not None:
+            out["rotation"] = torch.as_tensor(self.rotation, dtype=dtype, device=device)
+        return out
 
 
 DEG = math.pi / 180.0

@@ -23,7 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .camera import VERTICAL_AXIS, angles_from_rotation, hfov_from_focal, intrinsics
+from .camera import VERTICAL_AXIS, Camera, angles_from_rotation, hfov_from_focal, image_centre, intrinsics
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
 from .search import SearchConfig, grid_hypotheses, hypothesis_rotations, parameter_box, refine, score_grid
 from .segments import (FRInputError, SegmentBatch, SegmentFilter, detect_segments, get_detector, load_image,
@@ -66,6 +66,13 @@ class CalibrationResult:
     cues: dict[str, float] = field(default_factory=dict)
     predicted_error: dict[str, float] | None = None
     runtime_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def camera(self) -> Camera | None:
+        """The estimate as a :class:`fr_torch.camera.Camera` value (None when ``ok`` is False)."""
+        if not self.ok or self.focal_px is None:
+            return None
+        return Camera(self.width, self.height, self.focal_px, self.principal_point, self.rotation)
 
     def to_json(self, include_segments: bool = False) -> dict[str, Any]:
         """JSON-ready dict (the CLI's output schema; arrays become nested lists)."""
@@ -230,7 +237,7 @@ class FREstimator:
         width = torch.tensor([float(sizes[i][0]) for i in group], dtype=torch.float64)
         height = torch.tensor([float(sizes[i][1]) for i in group], dtype=torch.float64)
         pp = torch.stack([torch.tensor(pp_list[i], dtype=torch.float64) if pp_list[i] is not None
-                          else torch.stack([width[j] / 2, height[j] / 2]) for j, i in enumerate(group)])
+                          else torch.tensor(image_centre(*sizes[i]), dtype=torch.float64) for i in group])
         features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
         focal = torch.tensor([float(focal_list[i]) for i in group], dtype=torch.float64) if known_focal else None
 

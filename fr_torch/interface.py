@@ -61,6 +61,14 @@ class CameraEstimate:
     reason: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
 
+    def camera(self, width: int, height: int, principal_point=None):
+        """The estimate as a :class:`fr_torch.camera.Camera` of an image of that size (None if no focal)."""
+        from .camera import Camera, focal_from_hfov
+
+        focal = self.focal_px if self.focal_px is not None else (
+            focal_from_hfov(self.hfov_deg, width) if self.hfov_deg is not None else None)
+        return None if not self.ok or focal is None else Camera(width, height, focal, principal_point, self.rotation)
+
     @classmethod
     def failure(cls, method: str, reason: str, runtime_s: float = float("nan")) -> "CameraEstimate":
         return cls(method=method, ok=False, reason=reason, runtime_s=runtime_s, reliable=False)

@@ -8,13 +8,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .camera import rotation_from_angles
+from .camera import Camera, rotation_from_angles
 
 
 def camera_matrix(focal_px: float, width: int, height: int, principal_point=None) -> np.ndarray:
     """K (3, 3) with the principal point at the image centre unless given (pixels)."""
-    pp = principal_point if principal_point is not None else (width / 2.0, height / 2.0)
-    return np.array([[focal_px, 0, pp[0]], [0, focal_px, pp[1]], [0, 0, 1.0]])
+    return Camera(width, height, float(focal_px), principal_point).K
 
 
 def random_rotation(rng: np.random.Generator, pan=(-45, 45), pitch=(-30, 30), roll=(-10, 10)) -> np.ndarray:

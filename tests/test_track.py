@@ -14,8 +14,9 @@ from fr_torch.camera import focal_from_hfov, rotation_from_angles
 from fr_torch.estimator import FREstimator
 from fr_torch.reliability import ReliabilityModel
 from fr_torch.synthetic import render_manhattan_room, synthetic_segments
-from fr_torch.track import (SYMMETRIES, FrameEstimate, OnlineCalibrator, align_to, camera_angles, project_so3,
-                            rotation_angle_deg)
+from fr_torch.camera import MANHATTAN_SYMMETRIES as SYMMETRIES
+from fr_torch.camera import align_to, nearest_rotation, rotation_angle_deg, rotation_angles
+from fr_torch.fusion import FrameEstimate, OnlineCalibrator
 
 
 def frame_error(r_est, r_gt) -> float:
@@ -37,15 +38,15 @@ def test_symmetries_and_alignment():
     # chordal mean of symmetric scatter around r is r
     rng = np.random.default_rng(0)
     noisy = [r @ Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix() for _ in range(50)]
-    assert rotation_angle_deg(project_so3(sum(noisy)), r) < 0.3
+    assert rotation_angle_deg(nearest_rotation(sum(noisy)), r) < 0.3
 
 
 def _frame(i, r, f, rng, sigma_deg=1.0, focal_pct=5.0, reliable=True, scramble=True):
     """A per-frame estimate: R perturbed by ~sigma_deg and (``scramble``) re-labelled by a random
-    Manhattan symmetry (the first frame of a segment keeps fR's labelling: vertical in column 1)."""
+    Manhattan symmetry (the first frame of an epoch keeps fR's labelling: vertical in column 1)."""
     noise = Rotation.from_rotvec(rng.normal(0, np.radians(sigma_deg) / np.sqrt(3), 3)).as_matrix()
     est = noise @ r @ (SYMMETRIES[rng.integers(24)] if scramble else np.eye(3))
-    a = camera_angles(est)
+    a = rotation_angles(est)
     return FrameEstimate(index=i, ok=True, reliable=reliable, focal_px=f * (1 + rng.normal(0, focal_pct / 100)),
                          rotation=est, roll_deg=a["roll_deg"], tilt_deg=a["tilt_deg"],
                          predicted_error={"roll_deg": sigma_deg * 0.8, "tilt_deg": sigma_deg * 0.8,
@@ -65,7 +66,7 @@ def test_online_calibrator_fuses_rejects_and_detects_moves():
         assert state.status in ("started", "fused"), (i, state.status, state.disagreement)
     assert frame_error(state.rotation, r0) < 0.5 * np.median(per_frame_rot)
     assert abs(state.focal_px - f0) / f0 < 0.5 * np.median(per_frame_f)
-    assert state.n_fused == 15 and state.segment == 0
+    assert state.n_fused == 15 and state.epoch == 0
     # an unreliable frame is rejected and changes nothing
     before = state.rotation.copy()
     bad = _frame(15, rot(40, -20, 9), 300.0, rng, reliable=False)
@@ -74,14 +75,14 @@ def test_online_calibrator_fuses_rejects_and_detects_moves():
     # a single disagreeing reliable frame is held back, not fused, and no restart follows
     assert tracker.update(_frame(16, rot(40, -20, 9), 300.0, rng)).status == "held"
     state = tracker.update(_frame(17, r0, f0, rng))
-    assert state.status == "fused" and state.segment == 0
+    assert state.status == "fused" and state.epoch == 0
     # the camera moves: restart after `patience` (2) consecutive agreeing, disagreeing frames
     r1, f1 = rot(-30, -15, -6), 450.0
     statuses = [tracker.update(_frame(18 + j, r1, f1, rng, scramble=j > 0)).status for j in range(6)]
     assert statuses[:2] == ["held", "restarted"], statuses
     assert all(s == "fused" for s in statuses[2:]), statuses
     state = tracker.history[-1]
-    assert state.segment == 1 and state.n_fused == 6
+    assert state.epoch == 1 and state.n_fused == 6
     assert frame_error(state.rotation, r1) < 1.0 and abs(state.focal_px - f1) / f1 < 0.05
 
 
@@ -114,7 +115,7 @@ def test_synthetic_sequence_drift_then_sudden_change(fast_model):
     restarts = [i for i, s in enumerate(states) if s.restarted]
     assert restarts and 12 <= restarts[0] <= 15, (restarts, [s.status for s in states])
     assert all(i >= 12 for i in restarts), restarts  # no false alarm during the slow drift
-    # fused error (evaluated after a few frames of each segment) vs the median per-frame error
+    # fused error (evaluated after a few frames of each epoch) vs the median per-frame error
     judged = [i for i in list(range(3, 12)) + list(range(restarts[0] + 2, 20))]
     fused_rot = [frame_error(states[i].rotation, cams[i][0]) for i in judged]
     fused_f = [abs(states[i].focal_px - cams[i][1]) / cams[i][1] for i in judged]

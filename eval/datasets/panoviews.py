@@ -26,6 +26,7 @@ from typing import Iterator
 import numpy as np
 import pandas as pd
 
+from fr_torch.camera import image_centre
 from eval.datasets.registry import CalibrationSample, register_dataset
 from eval.paths import cache_root
 
@@ -54,7 +55,7 @@ class PanoView:
 
     @property
     def principal_point(self) -> tuple[float, float]:
-        return (self.width / 2.0, self.height / 2.0)
+        return image_centre(self.width, self.height)
 
 
 class PanoViews:

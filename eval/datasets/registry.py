@@ -37,9 +37,8 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
-import torch
 
-from fr_torch.camera import hfov_from_focal, horizon_angles
+from fr_torch.camera import Camera, hfov_from_focal, rotation_angles
 
 
 @dataclass
@@ -67,12 +66,19 @@ class CalibrationSample:
         if self.rotation is not None:
             self.rotation = np.asarray(self.rotation, dtype=np.float64)
             if any(v is None for v in (self.roll_deg, self.tilt_deg, self.pitch_deg)):
-                angles = horizon_angles(torch.as_tensor(self.rotation))
+                angles = rotation_angles(self.rotation)
                 self.roll_deg = float(angles["roll_deg"]) if self.roll_deg is None else self.roll_deg
                 self.tilt_deg = float(angles["tilt_deg"]) if self.tilt_deg is None else self.tilt_deg
                 self.pitch_deg = float(angles["pitch_deg"]) if self.pitch_deg is None else self.pitch_deg
         if self.hfov_deg is None and self.focal_px is not None:
             self.hfov_deg = hfov_from_focal(float(self.focal_px), self.width)
+
+    @property
+    def camera(self) -> Camera | None:
+        """The ground truth as a :class:`fr_torch.camera.Camera` (None when the focal length is unknown)."""
+        if self.focal_px is None:
+            return None
+        return Camera(self.width, self.height, float(self.focal_px), self.principal_point, self.rotation)
 
 
 DatasetLoader = Callable[..., Sequence[CalibrationSample]]
