@@ -24,20 +24,14 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``fr calibrate``."""
+    from .options import add_estimator_arguments
+
     parser.add_argument("images", nargs="+", help="image files (any format OpenCV reads)")
-    parser.add_argument("--fast", action="store_true", help="Fast-fR: at most 10 refinement iterations")
+    add_estimator_arguments(parser)
     parser.add_argument("--focal", type=float, default=None, metavar="PX",
                         help="known focal length in pixels (then only the rotation is searched)")
     parser.add_argument("--pp", type=str, default=None, metavar="X,Y",
                         help="principal point in pixels (default: image centre)")
-    parser.add_argument("--measure", choices=list("abcde"), default=None, help="deviation measure (default b)")
-    parser.add_argument("--detector", default="lsd", help="line segment detector (default lsd)")
-    parser.add_argument("--likelihood", default=None, metavar="NAME|JSON",
-                        help="likelihood config: 'paper', 'fitted' or a JSON path (default configs/likelihood.json)")
-    parser.add_argument("--hfov-range", default=None, metavar="MIN,MAX",
-                        help="search range of the horizontal field of view in degrees (default 50,130; "
-                             "narrow for zoomed-in PTZ or traffic cameras)")
-    parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--batch-size", type=int, default=16, help="images searched together")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write a JSON list to OUT")
     parser.add_argument("--overlay", type=Path, default=None, metavar="DIR",
@@ -48,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
     from .estimator import FREstimator
-    from .search import SearchConfig
+    from .options import estimator_kwargs
     from .segments import FRInputError, load_image
 
     principal_point = None
@@ -62,15 +56,7 @@ def run(args: argparse.Namespace) -> int:
         raise FRInputError(f"--focal must be a positive number of pixels, got {args.focal}")
     if args.batch_size < 1:
         raise FRInputError("--batch-size must be at least 1")
-    search_config = None
-    if args.hfov_range:
-        try:
-            low, high = (float(v) for v in args.hfov_range.split(","))
-        except ValueError:
-            raise FRInputError(f"--hfov-range must be MIN,MAX in degrees, got {args.hfov_range!r}") from None
-        search_config = SearchConfig.from_config(hfov_range_deg=(low, high))
-    estimator = FREstimator(mode="fast" if args.fast else "fr", measure=args.measure, detector=args.detector,
-                            likelihood=args.likelihood, device=args.device, search_config=search_config)
+    estimator = FREstimator(**estimator_kwargs(args))
     if args.overlay:
         args.overlay.mkdir(parents=True, exist_ok=True)
     everything, failures = [], 0

@@ -11,13 +11,11 @@ range of the horizontal field of view, degrees; default [50, 130]).
 from __future__ import annotations
 
 import time
-from dataclasses import replace
-
 import numpy as np
 
 from .estimator import CalibrationResult, FREstimator
 from .interface import CameraEstimate, ImageMeta, register
-from .search import SearchConfig
+from .options import hfov_search_config
 
 
 def estimate_from_result(method: str, result: CalibrationResult, runtime_s: float) -> CameraEstimate:
@@ -40,11 +38,8 @@ class FRCalibrator:
                  likelihood: str | None = None, hfov_min: float | str | None = None,
                  hfov_max: float | str | None = None, use_meta_segments: bool = False, name: str | None = None,
                  **estimator_kwargs):
-        if hfov_min is not None or hfov_max is not None:
-            base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
-            low, high = base.hfov_range_deg
-            hfov_range = (float(low if hfov_min is None else hfov_min), float(high if hfov_max is None else hfov_max))
-            estimator_kwargs["search_config"] = replace(base, hfov_range_deg=hfov_range)  # validated on creation
+        if hfov_min is not None or hfov_max is not None:  # validated on creation
+            estimator_kwargs["search_config"] = hfov_search_config(hfov_min, hfov_max, estimator_kwargs.get("search_config"))
         self.estimator = FREstimator(mode=mode, measure=measure, detector=detector, device=device,
                                      likelihood=likelihood, **estimator_kwargs)
         self.use_meta_segments = use_meta_segments

@@ -153,14 +153,14 @@ def plot_track(rows: Sequence[dict], path: Path, title: str = "") -> Path:
 # ---------------------------------------------------------------------------------- CLI
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from .options import add_estimator_arguments
+
     parser.add_argument("source", type=Path, help="video file or folder of frames (sorted by name)")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default track_<source name>)")
     parser.add_argument("--every", type=int, default=1, metavar="N", help="process every N-th frame")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many processed frames")
     parser.add_argument("--batch-size", type=int, default=8, help="frames searched together")
-    parser.add_argument("--fast", action="store_true", help="Fast-fR (10 refinement iterations)")
-    parser.add_argument("--detector", default="lsd")
-    parser.add_argument("--device", default="cpu")
+    add_estimator_arguments(parser)  # --fast, --measure, --detector, --likelihood, --hfov-range, --device
     parser.add_argument("--memory", type=float, default=30.0, help="fusion memory in accepted frames (forgetting)")
     parser.add_argument("--change-k", type=float, default=3.0, help="camera-moved threshold in predicted sigmas")
     parser.add_argument("--patience", type=int, default=2,
@@ -173,13 +173,13 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from .estimator import FREstimator
+    from .options import estimator_kwargs
     from .segments import FRInputError
 
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
-    mode = "fast" if args.fast else "fr"
-    estimator = FREstimator(mode=mode, detector=args.detector, device=args.device,
-                            reliability=None if args.no_reliability else "default")
+    estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
+    mode = estimator.mode
     model = estimator.reliability
     if model is None and not args.no_reliability:
         print(f"fr track: no reliability model for {mode}: all reliable frames weigh the same", file=sys.stderr)

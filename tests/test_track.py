@@ -137,13 +137,16 @@ def test_fr_track_end_to_end(tmp_path):
     assert main(["track", str(frames), "--out", str(out), "--fast", "--batch-size", "4"]) == 0
     table = pd.read_csv(out / "frames.csv")
     assert len(table) == 3 and list(table["frame"]) == [0, 1, 2]
-    assert {"status", "fused_focal_px", "fused_roll_deg", "pred_focal_err_pct", "restarted"} <= set(table.columns)
+    assert {"status", "epoch", "fused_focal_px", "fused_roll_deg", "pred_focal_err_pct", "restarted"} <= set(table.columns)
     summary = json.loads((out / "calibration.json").read_text())
     assert summary["frames_processed"] == 3 and summary["calibration"]["focal_px"] > 0
     assert np.asarray(summary["calibration"]["rotation"]).shape == (3, 3)
     png = cv2.imread(str(out / "track.png"))
     assert png is not None and png.shape[0] > 100
     # every-2nd frame and a missing source
-    assert main(["track", str(frames), "--out", str(tmp_path / "o2"), "--fast", "--every", "2"]) == 0
+    # the estimator options are those of fr calibrate (fr_torch/options.py)
+    assert main(["track", str(frames), "--out", str(tmp_path / "o2"), "--fast", "--every", "2",
+                 "--hfov-range", "40,120", "--measure", "b", "--likelihood", "paper"]) == 0
     assert len(pd.read_csv(tmp_path / "o2" / "frames.csv")) == 2
+    assert main(["track", str(frames), "--out", str(tmp_path / "o4"), "--hfov-range", "120,40"]) == 2
     assert main(["track", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o3")]) == 2
