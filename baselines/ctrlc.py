@@ -5,7 +5,7 @@ Line-Classification", ICCV 2021.  The network itself is not re-implemented: the 
 official checkpoint to ONNX with :mod:`baselines.export_ctrlc_onnx` and points this adapter at
 the file (constructor argument ``onnx_path`` or environment variable ``FR_CTRLC_ONNX``).  Without
 weights the method is listed but ``available`` is False and every estimate is a flagged failure
-with reason ``"n/a (weights not supplied)"``.
+with an "n/a (not supplied: ...)" reason (:func:`fr_torch.registry.not_supplied`).
 
 ONNX contract (what the export script produces)
 -----------------------------------------------
@@ -48,7 +48,8 @@ import numpy as np
 import torch
 
 from fr_torch.camera import hfov_from_focal, horizon_angles, rotation_from_angles
-from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator, register
+from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
+from fr_torch.registry import not_supplied
 from fr_torch.segments import FRInputError, to_bgr8
 
 from . import vp_geometry as vg
@@ -58,7 +59,6 @@ NUM_LINES = 512
 MIN_LINE_LENGTH = 10.0
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
-NOT_SUPPLIED = "n/a (weights not supplied)"
 
 
 def preprocess_image(image: np.ndarray) -> np.ndarray:
@@ -112,7 +112,6 @@ def camera_from_ctrlc(zvp: np.ndarray, fovy_rad: float, width: int, height: int)
     return out
 
 
-@register("ctrlc")
 class CTRLC(TimedCalibrator):
     """CTRL-C through onnxruntime (weights exported by the user; see the module docstring)."""
 
@@ -120,6 +119,7 @@ class CTRLC(TimedCalibrator):
                  num_lines: int = NUM_LINES, min_line_length: float = MIN_LINE_LENGTH, name: str = "ctrlc",
                  env_var: str = "FR_CTRLC_ONNX"):
         self.name = name
+        self.env_var = env_var
         path = onnx_path if onnx_path is not None else os.environ.get(env_var) or None
         self.onnx_path = Path(path) if path else None
         self.providers = providers
@@ -154,7 +154,8 @@ class CTRLC(TimedCalibrator):
 
     def _estimate(self, image, meta: ImageMeta) -> CameraEstimate:
         if not self.available:
-            reason = NOT_SUPPLIED if self.onnx_path is None else f"n/a (weights not supplied: {self.onnx_path} not found)"
+            reason = not_supplied(f"weights: set {self.env_var}" if self.onnx_path is None
+                                  else f"weights: {self.onnx_path} not found")
             return CameraEstimate.failure(self.name, reason)
         if image is None:
             return CameraEstimate.failure(self.name, "bad input: CTRL-C needs the image")
@@ -188,7 +189,6 @@ class CTRLC(TimedCalibrator):
 
 
 
-@register("ctrlc-retrained")
 def make_ctrlc_retrained(onnx_path: str | os.PathLike | None = None, **kwargs) -> CTRLC:
     """The paper reports CTRL-C with two trainings: the published checkpoint (``ctrlc``,
     ``$FR_CTRLC_ONNX``) and a second training; this row takes the second checkpoint, exported the

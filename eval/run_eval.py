@@ -62,6 +62,7 @@ from eval.paths import REPO
 from eval.plots import distributions_figure, histogram_figure, safe_name
 from eval.tables import deviation_measure_summaries, with_option, write_tables
 from fr_torch.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
+from fr_torch.registry import split_method_list
 from fr_torch.segments import load_image
 
 LABELLED_SUFFIX = "@labelled"
@@ -72,21 +73,7 @@ GROUP_METRICS = ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct")
 AUTO_GROUP_MAX_VALUES = 10
 
 
-def split_methods(text: str) -> list[str]:
-    """Split a comma-separated method list, keeping commas inside ``[...]`` options."""
-    out, depth, current = [], 0, []
-    for ch in text:
-        if ch == "[":
-            depth += 1
-        elif ch == "]":
-            depth = max(0, depth - 1)
-        if ch == "," and depth == 0:
-            out.append("".join(current).strip())
-            current = []
-        else:
-            current.append(ch)
-    out.append("".join(current).strip())
-    return [m for m in out if m]
+split_methods = split_method_list  # kept name: a comma-separated method list (commas in [...] kept)
 
 
 def expand_methods(methods: Sequence[str], measures: Sequence[str] | None) -> list[str]:
