@@ -70,7 +70,7 @@ class CameraEstimate:
 
 @runtime_checkable
 class Calibrator(Protocol):
-    """What every method implements (fR, Fast-fR, baselines, CTRL-C, external predictions)."""
+    """What every method implements (fR, Fast-fR, other published methods, CTRL-C, external predictions)."""
 
     name: str
 
