@@ -117,11 +117,21 @@ def _load_reliability():
     return ReliabilityModel.load_default()
 
 
+def subcommands() -> dict[str, tuple[str, str]]:
+    """SUBCOMMANDS plus the commands declared as entry points of group ``fr_torch.commands`` (value:
+    a module providing add_arguments(parser) and run(args); e.g. ``export-ctrlc``)."""
+    from .registry import entry_points
+
+    declared = {name: (module, f"(from {module.split('.')[0]})") for name, module in
+                entry_points("fr_torch.commands").items()}
+    return {**declared, **SUBCOMMANDS}
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fr", description="fR: focal length and camera rotation from one image "
                                      "(Qian & Elder, ECCV 2022).")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (module, help_text) in SUBCOMMANDS.items():
+    for name, (module, help_text) in subcommands().items():
         sp = sub.add_parser(name, help=help_text)
         if name == command:
             importlib.import_module(module).add_arguments(sp)
@@ -130,7 +140,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    command = argv[0] if argv and argv[0] in SUBCOMMANDS else None
+    commands = subcommands()
+    command = argv[0] if argv and argv[0] in commands else None
     try:
         parser = build_parser(command)
     except ModuleNotFoundError as exc:
@@ -142,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from .segments import FRInputError
 
-    module = importlib.import_module(SUBCOMMANDS[args.command][0])
+    module = importlib.import_module(commands[args.command][0])
     try:
         return int(module.run(args) or 0)
     except (FRInputError, FileNotFoundError, ValueError) as exc:
