@@ -88,7 +88,7 @@ def test_exported_ctrlc_in_fr_eval(small_onnx, data_root, tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     rows = pd.read_csv(tmp_path / "predictions.csv")
     assert len(rows) == 3 and not rows["failed"].astype(bool).any(), rows.get("reason")
-    for column in ("hfov_deg", "roll_deg", "tilt_deg"):
+    for column in ("est_hfov_deg", "est_roll_deg", "est_tilt_deg", "roll_err_deg", "fov_err_pct"):
         assert np.isfinite(rows[column].to_numpy(float)).all(), column
     caption = (tmp_path / "summary.md").read_text()
     assert "ctrlc = ctrlc_small_random.onnx (sha256 " in caption and "RANDOM WEIGHTS" in caption
