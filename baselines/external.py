@@ -33,12 +33,12 @@ import numpy as np
 import torch
 
 from fr_torch.camera import focal_from_hfov, hfov_from_focal, horizon_angles, pan_from_rotation, rotation_from_angles
-from fr_torch.interface import CameraEstimate, ImageMeta, Timer, register
+from fr_torch.interface import CameraEstimate, ImageMeta, Timer
+from fr_torch.registry import NOT_SUPPLIED
 from fr_torch.segments import FRInputError
 
 from . import vp_geometry as vg
 
-NOT_SUPPLIED = "n/a (not supplied)"
 VALUE_COLUMNS = ("focal_px", "hfov_deg", "roll_deg", "tilt_deg", "pitch_deg", "pan_deg")
 ROTATION_COLUMNS = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
 
@@ -77,7 +77,6 @@ def read_predictions(path: str | os.PathLike) -> dict[str, dict[str, float | Non
     return rows
 
 
-@register("external")
 class ExternalPredictions:
     """Predictions read from a CSV (see the module docstring for the columns)."""
 
@@ -159,7 +158,6 @@ class ExternalPredictions:
         return est
 
 
-@register("hold-geoffroy2018")
 def make_hold_geoffroy2018(csv_path: str | os.PathLike | None = None) -> ExternalPredictions:
     """Hold-Geoffroy et al. 2018 (a row of the paper's tables): its predictions cannot be computed here
     (the authors serve the model through a web interface), so they are read from the CSV in

@@ -37,13 +37,12 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator, register
+from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.segments import FRInputError
 
 from . import vp_geometry as vg
 
 
-@register("lee2009")
 class Lee2009(TimedCalibrator):
     """Orthogonal VP triplet + focal sweep (Lee, Hebert & Kanade, CVPR 2009)."""
 

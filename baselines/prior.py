@@ -10,12 +10,11 @@ from __future__ import annotations
 import numpy as np
 
 from fr_torch.camera import focal_from_hfov
-from fr_torch.interface import CameraEstimate, ImageMeta, Timer, register
+from fr_torch.interface import CameraEstimate, ImageMeta, Timer
 
 from . import vp_geometry as vg
 
 
-@register("prior")
 class Prior:
     """Fixed 60 deg HFOV, upright camera."""
 

@@ -46,7 +46,7 @@ import math
 import numpy as np
 from scipy.stats import binom
 
-from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator, register
+from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.segments import FRInputError
 
 from . import vp_geometry as vg
@@ -105,7 +105,6 @@ def meaningful_modes(counts: np.ndarray, circular: bool = False, max_width: int 
     return modes
 
 
-@register("simon2018")
 class Simon2018(TimedCalibrator):
     """A-contrario horizon-first VP detection (Simon, Fond & Berger, ECCV 2018) + focal from hVPs."""
 

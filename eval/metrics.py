@@ -32,8 +32,7 @@ import torch
 from fr_torch.camera import (MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal, horizon_angles,
                              manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg)  # noqa: F401
 
-NOT_SUPPLIED = "n/a (not supplied)"
-NA_PREFIX = "n/a ("
+from fr_torch.registry import NA_PREFIX, NOT_SUPPLIED  # noqa: E402,F401  (the one marker)
 
 METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
 

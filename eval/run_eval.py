@@ -63,6 +63,7 @@ from eval.paths import REPO
 from eval.plots import distributions_figure, histogram_figure, safe_name
 from eval.tables import deviation_measure_summaries, with_option, write_tables
 from fr_torch.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
+from fr_torch.registry import split_method_list
 from fr_torch.segments import load_image
 
 LABELLED_SUFFIX = "@labelled"
@@ -73,21 +74,7 @@ GROUP_METRICS = ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct")
 AUTO_GROUP_MAX_VALUES = 10
 
 
-def split_methods(text: str) -> list[str]:
-    """Split a comma-separated method list, keeping commas inside ``[...]`` options."""
-    out, depth, current = [], 0, []
-    for ch in text:
-        if ch == "[":
-            depth += 1
-        elif ch == "]":
-            depth = max(0, depth - 1)
-        if ch == "," and depth == 0:
-            out.append("".join(current).strip())
-            current = []
-        else:
-            current.append(ch)
-    out.append("".join(current).strip())
-    return [m for m in out if m]
+split_methods = split_method_list  # kept name: a comma-separated method list (commas in [...] kept)
 
 
 def expand_methods(methods: Sequence[str], measures: Sequence[str] | None) -> list[str]:
@@ -155,6 +142,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--known-focal", action="store_true",
                         help="give the methods the ground-truth focal length (known-focal evaluation)")
     parser.add_argument("--limit", type=int, default=None, help="evaluate only the first N images")
+    parser.add_argument("--ctrlc-onnx", default=None, metavar="ONNX",
+                        help="CTRL-C weights exported by 'fr export-ctrlc' for the ctrlc row (or $FR_CTRLC_ONNX)")
+    parser.add_argument("--ctrlc-retrained-onnx", default=None, metavar="ONNX",
+                        help="the second CTRL-C training, for the ctrlc-retrained row (or $FR_CTRLC_RETRAINED_ONNX)")
     parser.add_argument("--device", default="cpu", help="torch device passed to the methods (default cpu)")
     parser.add_argument("--no-plots", action="store_true",
                         help="skip the figures (hist_<method>.png, distributions.png)")
@@ -387,6 +378,9 @@ def run(args: argparse.Namespace) -> int:
               "(for every image)", file=sys.stderr)
         return 2
     group_key = resolve_group_by(getattr(args, "group_by", "auto"), samples)
+    for option, env in (("ctrlc_onnx", "FR_CTRLC_ONNX"), ("ctrlc_retrained_onnx", "FR_CTRLC_RETRAINED_ONNX")):
+        if getattr(args, option, None):  # the option wins over the environment variable
+            os.environ[env] = str(Path(getattr(args, option)).expanduser().resolve())
     calibrators = {}
     for spec in methods:  # build every method first: a typo fails before hours of work
         try:
@@ -421,7 +415,8 @@ def run(args: argparse.Namespace) -> int:
             "the share of images with a valid result; failures are counted in 'failures' (share of all "
             "images) and excluded from the error means only; run time (wall time of estimate(), all images, "
             "after one warm-up call) includes them. n/a = not estimated; n/a (not supplied) = the method's "
-            f"weights / predictions were not supplied (no numbers). Settings: {settings}.")
+            f"weights / predictions were not supplied (no numbers). Settings: {settings}."
+            + weights_note(calibrators))
     written = write_tables(summaries, out_dir, "summary", title=f"Calibration results: {args.dataset} {args.split}",
                            note=note)
     common = common_subset_summaries(all_rows, [s for s in summaries if not s.not_supplied])
@@ -455,6 +450,20 @@ def run(args: argparse.Namespace) -> int:
     print((out_dir / "summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out_dir}/predictions.csv, " + ", ".join(p.name for p in written))
     return 0
+
+
+def weights_note(calibrators: dict[str, Any]) -> str:
+    """Caption text naming the weights of each learned row (methods with a ``weights`` property:
+    file name + sha256), e.g. " Weights: ctrlc = gsv.onnx (sha256 ...)."; "" when there are none."""
+    parts = []
+    for spec, calibrator in calibrators.items():
+        try:
+            weights = getattr(calibrator, "weights", None)
+        except Exception as exc:  # noqa: BLE001 - an unreadable file still gets a caption
+            weights = f"unreadable ({type(exc).__name__}: {exc})"
+        if weights:
+            parts.append(f"{spec} = {weights}")
+    return f" Weights: {'; '.join(parts)}." if parts else ""
 
 
 def main(argv: Sequence[str] | None = None) -> int:

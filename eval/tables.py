@@ -10,13 +10,14 @@ row.  The CSV keeps the raw numbers (``n_valid``, ``valid_pct``, ``<metric>_mean
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
 from typing import Sequence
 
 import pandas as pd
 
 from eval.metrics import METRICS, NOT_SUPPLIED, Summary
+from fr_torch.registry import parse_method_spec as _parse_method_spec
+from fr_torch.registry import with_option  # noqa: F401  (re-exported for run_eval)
 
 HEADERS = {
     "runtime_s": "run time (s)",
@@ -29,26 +30,9 @@ HEADERS = {
 DECIMALS = {"runtime_s": 3}
 VALID_HEADER = "valid (%)"
 
-_SPEC = re.compile(r"^(?P<base>[^\[\]]+)\[(?P<opts>[^\[\]]*)\]$")
-
-
 def parse_method_spec(spec: str) -> tuple[str, dict[str, str]]:
-    """``"fr[measure=a,x=1]"`` -> ``("fr", {"measure": "a", "x": "1"})``; plain names -> ``(spec, {})``."""
-    match = _SPEC.match(spec.strip())
-    if not match:
-        return spec.strip(), {}
-    opts = {}
-    for item in filter(None, (s.strip() for s in match["opts"].split(","))):
-        key, _, value = item.partition("=")
-        opts[key.strip()] = value.strip()
-    return match["base"].strip(), opts
-
-
-def with_option(spec: str, key: str, value: str) -> str:
-    """Method spec with option ``key=value`` added (or replaced): ``fr`` -> ``fr[measure=a]``."""
-    base, opts = parse_method_spec(spec)
-    opts[key] = value
-    return f"{base}[{','.join(f'{k}={v}' for k, v in opts.items())}]"
+    """:func:`fr_torch.registry.parse_method_spec` for labels read back (never raises)."""
+    return _parse_method_spec(spec, strict=False)
 
 
 def format_mean_se(mean: float, se: float, n: int, decimals: int = 2) -> str:

@@ -3,8 +3,8 @@
 ``fr calibrate IMAGE...`` is defined here; the other subcommands live in their own modules, each
 exposing ``add_arguments(parser)`` and ``run(args) -> int``, and are imported only when used (so
 ``fr calibrate`` starts fast).  The core's commands are :data:`SUBCOMMANDS`; the evaluation harness
-adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.plugins`).  Errors in user input print one line and exit non-zero; set
-``FR_DEBUG=1`` to see tracebacks.
+adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.registry`).  Errors
+in user input print one line and exit non-zero; set ``FR_DEBUG=1`` to see tracebacks.
 """
 from __future__ import annotations
 
@@ -88,15 +88,16 @@ def run(args: argparse.Namespace) -> int:
 
 
 def all_subcommands(extra: dict[str, tuple[str, str]] | None = None) -> dict[str, tuple[str, str]]:
-    """The core's commands, then those registered in the ``fr_torch.commands`` entry-point group."""
-    from .plugins import COMMANDS_GROUP, entry_points
+    """The core's commands, then those declared in the ``fr_torch.commands`` entry-point group
+    (value: an object ``(module, one-line help)``, see :mod:`fr_torch.registry`)."""
+    from .registry import entry_points, load_object
 
     commands = dict(SUBCOMMANDS)
-    for name, entry in entry_points(COMMANDS_GROUP).items():
+    for name, target in entry_points("fr_torch.commands").items():
         try:
-            commands.setdefault(name, tuple(entry.load()))
-        except ImportError as exc:  # a plugin whose package is broken or only partly installed
-            commands.setdefault(name, (entry.value, f"(unavailable: {exc})"))
+            commands.setdefault(name, tuple(load_object(target)))
+        except (ImportError, AttributeError) as exc:  # a plugin whose package is broken or partly installed
+            commands.setdefault(name, (target.partition(":")[0], f"(unavailable: {exc})"))
     commands.update(extra or {})
     return commands
 

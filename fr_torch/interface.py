@@ -1,9 +1,10 @@
 """The common interface every calibration method implements, and the method registry.
 
 A method is any object with a ``name`` and ``estimate(image, meta) -> CameraEstimate``.  Methods
-are looked up by registered name (``fr``, ``fast-fr``, ``lee2009``, ...) or by import path
-(``"my_package.my_module:MyCalibrator"`` or ``"my_package.my_module:make_calibrator"``), so a
-third party plugs one in without editing this project::
+are looked up by name (``fr``, ``fast-fr``, ``lee2009``, ...) in :data:`CALIBRATORS`, which reads
+the entry points of group ``fr_torch.calibrators`` of every installed package, or by import path
+(``"my_package.my_module:MyCalibrator"``), so a third party plugs one in without editing this
+project (see :mod:`fr_torch.registry` and ``examples/fr_plugin_example``)::
 
     fr eval --dataset yud --methods fr,my_package.my_module:MyCalibrator
 
@@ -12,12 +13,13 @@ with x right / y down / z forward, vertical Manhattan direction in column 1).
 """
 from __future__ import annotations
 
-import importlib
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
+
+from .registry import Registry, parse_method_spec  # noqa: F401  (parse_method_spec re-exported)
 
 
 @dataclass
@@ -76,7 +78,7 @@ class CameraEstimate:
 
 @runtime_checkable
 class Calibrator(Protocol):
-    """What every method implements (fR, Fast-fR, baselines, CTRL-C, external predictions)."""
+    """What every method implements (fR, Fast-fR, other published methods, CTRL-C, external predictions)."""
 
     name: str
 
@@ -86,79 +88,29 @@ class Calibrator(Protocol):
         ...
 
 
-_REGISTRY: dict[str, Callable[..., Calibrator]] = {}
+# Calibrators by name: registered in code (``register``), entry points of group
+# ``fr_torch.calibrators`` (this project's own methods too, see pyproject.toml), or "module:attr".
+CALIBRATORS: Registry[Calibrator] = Registry("method", group="fr_torch.calibrators")
 
 
 def register(name: str) -> Callable:
     """Decorator: register a factory (class or function returning a Calibrator) under ``name``."""
-
-    def deco(factory: Callable[..., Calibrator]):
-        _REGISTRY[name] = factory
-        return factory
-
-    return deco
-
-
-# Modules that register built-in methods when imported (kept lazy: importing them is cheap, but
-# they may pull optional dependencies such as onnxruntime).
-_BUILTIN_MODULES = ("fr_torch.methods",)
-
-
-def _load_builtins() -> None:
-    from .plugins import CALIBRATORS_GROUP, entry_points
-
-    for module in (*_BUILTIN_MODULES, *(e.value for e in entry_points(CALIBRATORS_GROUP).values())):
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:  # a package not present in this installation
-            if exc.name != module and not module.startswith(exc.name or "\0"):
-                raise
+    return CALIBRATORS.register(name)
 
 
 def available_methods() -> list[str]:
-    """Names of all registered methods."""
-    _load_builtins()
-    return sorted(_REGISTRY)
-
-
-def parse_method_spec(spec: str) -> tuple[str, dict[str, str]]:
-    """Split ``"fr[measure=a,detector=mcmlsd]"`` into ``("fr", {"measure": "a", "detector": "mcmlsd"})``."""
-    spec = spec.strip()
-    if not spec.endswith("]") or "[" not in spec:
-        return spec, {}
-    name, options = spec[:-1].split("[", 1)
-    kwargs = {}
-    for item in filter(None, (part.strip() for part in options.split(","))):
-        if "=" not in item:
-            raise ValueError(f"bad option {item!r} in method {spec!r}: use key=value")
-        key, value = item.split("=", 1)
-        kwargs[key.strip()] = value.strip()
-    return name, kwargs
+    """Names of all registered methods (entry points included, listed without importing them)."""
+    return CALIBRATORS.names()
 
 
 def get_calibrator(spec: str, **kwargs) -> Calibrator:
-    """Build a method from a registered name or an import path ``module:attribute``.
-
-    Options in brackets are passed to the factory as keyword arguments (strings):
-    ``fr[measure=a]``, ``fast-fr[detector=mcmlsd]``.
-    """
-    _load_builtins()
-    spec, options = parse_method_spec(spec)
-    kwargs = {**options, **kwargs}
-    if spec in _REGISTRY:
-        return _REGISTRY[spec](**kwargs)
-    if ":" in spec:
-        module_name, attr = spec.split(":", 1)
-        try:
-            factory = getattr(importlib.import_module(module_name), attr)
-        except (ImportError, AttributeError) as exc:
-            raise ValueError(f"cannot import calibrator {spec!r}: {exc}") from None
-        method = factory(**kwargs)
-        if not isinstance(method, Calibrator):
-            raise ValueError(f"{spec!r} did not produce a Calibrator (needs .name and .estimate())")
-        return method
-    raise ValueError(f"unknown method {spec!r}; available: {', '.join(available_methods())} "
-                     "(or give an import path module:Class)")
+    """Build a method from a spec: registered name or import path ``module:attribute``, with
+    options in brackets passed to the factory as keyword arguments (strings): ``fr[measure=a]``,
+    ``fast-fr[detector=mcmlsd]`` (see :func:`fr_torch.registry.parse_method_spec`)."""
+    method = CALIBRATORS.create(spec, **kwargs)
+    if not isinstance(method, Calibrator):
+        raise ValueError(f"{spec!r} did not produce a Calibrator (needs .name and .estimate())")
+    return method
 
 
 class Timer:

@@ -17,6 +17,8 @@ import cv2
 import numpy as np
 import torch
 
+from .registry import Registry
+
 
 class FRInputError(ValueError):
     """Bad user input (unreadable file, wrong shape, NaNs...): reported as one clear line."""
@@ -102,42 +104,31 @@ class LSDDetector:
         return lines.reshape(-1, 4).astype(np.float64)  # OpenCV 4: (N,1,4); OpenCV 5: (N,4)
 
 
-_DETECTORS: dict[str, Callable[..., Detector]] = {"lsd": LSDDetector}
+# Detectors by name: ``lsd`` here, the others from entry points of group ``fr_torch.detectors``
+# (this project's ``mcmlsd`` / ``onnx`` too, see pyproject.toml), or an import path "module:attr".
+DETECTORS: Registry[Detector] = Registry("detector", group="fr_torch.detectors", error=FRInputError)
+DETECTORS.register("lsd", LSDDetector)
 
 
 def register_detector(name: str, factory: Callable[..., Detector]) -> None:
     """Make a detector available by name (``--detector NAME``)."""
-    _DETECTORS[name] = factory
+    DETECTORS.register(name, factory)
 
 
 def available_detectors() -> list[str]:
-    _load_detector_plugins()
-    return sorted(_DETECTORS)
-
-
-def _load_detector_plugins() -> None:
-    # Detectors living in their own modules register themselves on import.
-    import importlib
-
-    for module in ("fr_torch.detectors",):
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:
-                raise
+    return DETECTORS.names()
 
 
 def get_detector(detector: str | Detector | None = None, **kwargs) -> Detector:
-    """A detector from its name (default ``lsd``) or the object itself."""
+    """A detector from its name or spec (default ``lsd``; ``mcmlsd[key=value]``) or the object itself."""
     if detector is None:
         detector = "lsd"
     if not isinstance(detector, str):
         return detector
-    if detector not in _DETECTORS:
-        _load_detector_plugins()
-    if detector not in _DETECTORS:
-        raise FRInputError(f"unknown detector {detector!r}; available: {', '.join(available_detectors())}")
-    return _DETECTORS[detector](**kwargs)
+    try:
+        return DETECTORS.create(detector, **kwargs)
+    except ValueError as exc:  # a malformed spec
+        raise FRInputError(str(exc)) from None
 
 
 # --------------------------------------------------------------------------- filters

@@ -229,7 +229,7 @@ def test_ctrlc_without_weights_is_not_supplied(monkeypatch):
     method = CTRLC()
     assert method.available is False
     est = method.estimate(np.zeros((H, W, 3), np.uint8), ImageMeta(name="x"))
-    assert not est.ok and est.reason == "n/a (weights not supplied)"
+    assert not est.ok and est.reason == "n/a (not supplied: weights: set FR_CTRLC_ONNX)"
     missing = CTRLC(onnx_path="/nonexistent/ctrlc.onnx")
     assert not missing.available
     assert "not supplied" in missing.estimate(None, ImageMeta(name="x")).reason

@@ -1,5 +1,5 @@
 """One-way layers: the core (``fr_torch/``) names neither the evaluation harness nor the baselines,
-not even in a string; they plug in through entry points (``fr_torch/plugins.py``)."""
+not even in a string; they plug in through entry points (``fr_torch/registry.py``)."""
 import re
 import subprocess
 import sys

@@ -26,12 +26,12 @@ Register a loader with the decorator::
     def load_panoviews(root=None, split="test", **kwargs):
         return [CalibrationSample(...), ...]
 
-and add its module to ``_BUILTIN_MODULES`` below (modules that are missing are skipped), or name it
-by import path on the command line: ``fr eval --dataset my_pkg.my_mod:load_my_data``.
+and add its module to ``_BUILTIN_MODULES`` below (modules that are missing are skipped), declare it
+as an entry point of group ``fr_torch.datasets`` in another package, or name it by import path on
+the command line: ``fr eval --dataset my_pkg.my_mod:load_my_data``.
 """
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -39,6 +39,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from fr_torch.camera import Camera, hfov_from_focal, rotation_angles
+from fr_torch.registry import Registry
 
 
 @dataclass
@@ -83,49 +84,25 @@ class CalibrationSample:
 
 DatasetLoader = Callable[..., Sequence[CalibrationSample]]
 
-_DATASETS: dict[str, DatasetLoader] = {}
-
-# Modules that register datasets when imported; a module that does not exist (yet) is skipped.
+# Modules that register datasets when imported (a module that does not exist is skipped); other
+# packages add datasets through entry points of group ``fr_torch.datasets``.
 _BUILTIN_MODULES = ("eval.datasets.yud", "eval.datasets.panoviews")
+DATASETS: Registry[Sequence[CalibrationSample]] = Registry("dataset", group="fr_torch.datasets",
+                                                           modules=_BUILTIN_MODULES)
 
 
 def register_dataset(name: str) -> Callable[[DatasetLoader], DatasetLoader]:
     """Decorator registering ``loader(root, split, **kwargs)`` under ``name``."""
-
-    def deco(loader: DatasetLoader) -> DatasetLoader:
-        _DATASETS[name] = loader
-        return loader
-
-    return deco
-
-
-def _load_builtins() -> None:
-    for module in _BUILTIN_MODULES:
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:  # the module exists but one of its imports is missing
-                raise
+    return DATASETS.register(name)
 
 
 def available_datasets() -> list[str]:
-    _load_builtins()
-    return sorted(_DATASETS)
+    return DATASETS.names()
 
 
 def get_dataset_loader(spec: str) -> DatasetLoader:
-    """Loader for a registered dataset name or an import path ``module:attribute``."""
-    _load_builtins()
-    if spec in _DATASETS:
-        return _DATASETS[spec]
-    if ":" in spec:
-        module_name, attr = spec.split(":", 1)
-        try:
-            return getattr(importlib.import_module(module_name), attr)
-        except (ImportError, AttributeError) as exc:
-            raise ValueError(f"cannot import dataset loader {spec!r}: {exc}") from None
-    raise ValueError(f"unknown dataset {spec!r}; available: {', '.join(available_datasets())} "
-                     "(or give an import path module:function)")
+    """Loader for a registered dataset name, an entry point or an import path ``module:attribute``."""
+    return DATASETS.factory(spec)
 
 
 def load_dataset(spec: str, root: str | Path | None = None, split: str = "test", **kwargs) -> list[CalibrationSample]:

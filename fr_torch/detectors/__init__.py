@@ -1,4 +1,5 @@
-"""Extra line-segment detectors, registered with :func:`fr_torch.segments.register_detector`.
+"""Extra line-segment detectors, found by name through the entry points of group
+``fr_torch.detectors`` declared in pyproject.toml (see :data:`fr_torch.segments.DETECTORS`).
 
 * ``mcmlsd``: :class:`~fr_torch.detectors.mcmlsd.MCMLSDDetector` (Almazan et al., CVPR 2017).
 * ``onnx``: :class:`~fr_torch.detectors.onnx_detector.OnnxLineDetector`, a learned detector
@@ -6,11 +7,7 @@
 """
 from __future__ import annotations
 
-from ..segments import register_detector
 from .mcmlsd import MCMLSDConfig, MCMLSDDetector
 from .onnx_detector import OnnxLineDetector
-
-register_detector("mcmlsd", MCMLSDDetector)
-register_detector("onnx", OnnxLineDetector)
 
 __all__ = ["MCMLSDConfig", "MCMLSDDetector", "OnnxLineDetector"]

@@ -1,0 +1,240 @@
+"""One plug-in registry, one method-spec grammar and one "not supplied" marker for the whole project.
+
+**Registries.**  Calibrators (:data:`fr_torch.interface.CALIBRATORS`), line detectors
+(:data:`fr_torch.segments.DETECTORS`) and the harness's datasets are :class:`Registry` objects.  A
+name is found, in this order, among
+
+1. factories registered in code (``REGISTRY.register(name, factory)`` or as a decorator);
+2. Python entry points of the registry's group (``fr_torch.calibrators``, ``fr_torch.detectors``,
+   ...), declared by any installed distribution -- this project's own methods included (see
+   ``[project.entry-points.*]`` in ``pyproject.toml``) -- and loaded only when first used, so a
+   broken or slow optional plug-in costs nothing until it is asked for;
+3. an import path ``"package.module:attribute"`` (no installation needed).
+
+A third-party package therefore adds a method without editing this project::
+
+    # its pyproject.toml
+    [project.entry-points."fr_torch.calibrators"]
+    horizon-lines = "fr_plugin_example:HorizonFromLines"
+
+(see ``examples/fr_plugin_example``).  When this project runs from a source checkout that is not
+installed (``PYTHONPATH=.``), the entry points declared in the checkout's own ``pyproject.toml``
+are read as well, so the built-in methods are found the same way in both cases.
+
+**Method specs.**  ``name[key=value,key=value]`` selects a registered factory and passes the options
+as keyword arguments (strings): ``fr[measure=a]``, ``fast-fr[detector=mcmlsd]``.
+:func:`parse_method_spec` and :func:`format_method_spec` are the only parser / printer of it.
+
+**Not supplied.**  A method whose weights or predictions the user did not supply fails every image
+with a reason starting with :data:`NA_PREFIX`; :data:`NOT_SUPPLIED` is the marker the tables show and
+:func:`not_supplied` builds the per-image reason (``"n/a (not supplied: <what is missing>)"``).
+"""
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import re
+import tomllib
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Callable, Generic, Iterable, TypeVar
+
+T = TypeVar("T")
+
+NA_PREFIX = "n/a ("
+NOT_SUPPLIED = "n/a (not supplied)"
+
+
+def not_supplied(detail: str = "") -> str:
+    """Failure reason of a method whose weights / predictions are missing.
+
+    ``not_supplied()`` -> ``"n/a (not supplied)"``;
+    ``not_supplied("set FR_CTRLC_ONNX")`` -> ``"n/a (not supplied: set FR_CTRLC_ONNX)"``.
+    Every such reason starts with :data:`NA_PREFIX` (what the harness and tables test for)."""
+    return f"{NOT_SUPPLIED[:-1]}: {detail})" if detail else NOT_SUPPLIED
+
+
+def is_not_supplied(reason: str | None) -> bool:
+    """True for an "n/a (...)" reason (see :func:`not_supplied`)."""
+    return str(reason or "").startswith(NA_PREFIX)
+
+
+# --------------------------------------------------------------------------- method specs
+
+_SPEC = re.compile(r"^(?P<name>[^\[\]]+)\[(?P<options>[^\[\]]*)\]$")
+
+
+def parse_method_spec(spec: str, strict: bool = True) -> tuple[str, dict[str, str]]:
+    """``"fr[measure=a,detector=mcmlsd]"`` -> ``("fr", {"measure": "a", "detector": "mcmlsd"})``.
+
+    A spec without brackets is a bare name (``"fr"`` -> ``("fr", {})``), import paths included
+    (``"pkg.mod:Class[x=1]"`` -> ``("pkg.mod:Class", {"x": "1"})``).  Values are strings.  With
+    ``strict`` an option without ``=`` or unbalanced brackets raise ``ValueError``; otherwise (for
+    reading labels back, e.g. ``"fr[measure=a]@labelled"``) such a spec is returned whole as the
+    name and an option without ``=`` gets the value ``""``."""
+    spec = spec.strip()
+    if "[" not in spec and "]" not in spec:
+        return spec, {}
+    match = _SPEC.match(spec)
+    if not match:
+        if strict:
+            raise ValueError(f"bad method spec {spec!r}: use name[key=value,...]")
+        return spec, {}
+    options: dict[str, str] = {}
+    for item in filter(None, (part.strip() for part in match["options"].split(","))):
+        key, eq, value = item.partition("=")
+        if strict and (not eq or not key.strip()):
+            raise ValueError(f"bad option {item!r} in method {spec!r}: use key=value")
+        options[key.strip()] = value.strip()
+    return match["name"].strip(), options
+
+
+def split_method_list(text: str) -> list[str]:
+    """Split a comma-separated list of specs, keeping commas inside ``[...]``:
+    ``"fr[measure=a,detector=lsd],lee2009"`` -> ``["fr[measure=a,detector=lsd]", "lee2009"]``."""
+    out, depth, current = [], 0, []
+    for ch in text:
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            depth = max(0, depth - 1)
+        if ch == "," and depth == 0:
+            out.append("".join(current).strip())
+            current = []
+        else:
+            current.append(ch)
+    out.append("".join(current).strip())
+    return [m for m in out if m]
+
+
+def format_method_spec(name: str, options: dict[str, Any] | None = None) -> str:
+    """Inverse of :func:`parse_method_spec`: ``("fr", {"measure": "a"})`` -> ``"fr[measure=a]"``
+    (options in the given order; ``None`` values are left out)."""
+    items = [f"{k}={v}" for k, v in (options or {}).items() if v is not None]
+    return f"{name}[{','.join(items)}]" if items else name
+
+
+def with_option(spec: str, key: str, value: Any) -> str:
+    """``spec`` with option ``key=value`` added or replaced: ``fr`` -> ``fr[measure=a]``."""
+    name, options = parse_method_spec(spec, strict=False)
+    options[key] = str(value)
+    return format_method_spec(name, options)
+
+
+# --------------------------------------------------------------------------- entry points
+
+@lru_cache(maxsize=None)
+def _checkout_entry_points() -> dict[str, dict[str, str]]:
+    """``{group: {name: "module:attr"}}`` declared in the pyproject.toml of the source checkout this
+    package is imported from, when it is not installed as a distribution (``PYTHONPATH=.``)."""
+    pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+    if not pyproject.is_file():
+        return {}
+    try:
+        project = tomllib.loads(pyproject.read_text()).get("project", {})
+    except (OSError, tomllib.TOMLDecodeError):
+        return {}
+    if project.get("name") != "fr-torch":
+        return {}
+    return {group: dict(items) for group, items in project.get("entry-points", {}).items()}
+
+
+def entry_points(group: str) -> dict[str, str]:
+    """``{name: "module:attr"}`` of every entry point of ``group``: the installed distributions'
+    and, for an uninstalled source checkout, those of its pyproject.toml (which win on a clash, as
+    they describe the code that is running)."""
+    found = {ep.name: ep.value for ep in importlib.metadata.entry_points(group=group)}
+    found.update(_checkout_entry_points().get(group, {}))
+    return found
+
+
+def load_object(path: str) -> Any:
+    """The object named by ``"package.module:attribute"`` (``attribute`` may be dotted)."""
+    module_name, _, attr = path.partition(":")
+    obj = importlib.import_module(module_name.strip())
+    for part in filter(None, attr.strip().split(".")):
+        obj = getattr(obj, part)
+    return obj
+
+
+# --------------------------------------------------------------------------- registry
+
+class Registry(Generic[T]):
+    """Named factories of one kind of plug-in (see the module docstring for the lookup order).
+
+    ``kind``: what is registered, for messages ("method", "detector", "dataset").
+    ``group``: the entry-point group read lazily (None: none).
+    ``modules``: modules imported on first lookup that register factories themselves (kept for
+    code that registers several names at once; a module that is not installed is skipped).
+    """
+
+    def __init__(self, kind: str, group: str | None = None, modules: Iterable[str] = (),
+                 error: type[Exception] = ValueError):
+        self.kind = kind
+        self.group = group
+        self.modules = tuple(modules)
+        self.error = error
+        self._factories: dict[str, Callable[..., T]] = {}
+        self._modules_loaded = False
+
+    def register(self, name: str, factory: Callable[..., T] | None = None):
+        """Register ``factory`` under ``name``; without ``factory``, a decorator doing so."""
+        if factory is not None:
+            self._factories[name] = factory
+            return factory
+
+        def deco(f: Callable[..., T]) -> Callable[..., T]:
+            self._factories[name] = f
+            return f
+
+        return deco
+
+    def _load_modules(self) -> None:
+        if self._modules_loaded:
+            return
+        self._modules_loaded = True
+        for module in self.modules:
+            try:
+                importlib.import_module(module)
+            except ModuleNotFoundError as exc:  # not part of this installation
+                if exc.name != module and not module.startswith(f"{exc.name}."):
+                    raise
+
+    def _entry_points(self) -> dict[str, str]:
+        return entry_points(self.group) if self.group else {}
+
+    def names(self) -> list[str]:
+        """All names: registered ones and entry points (the latter are listed without importing)."""
+        self._load_modules()
+        return sorted(set(self._factories) | set(self._entry_points()))
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.names()
+
+    def factory(self, name: str) -> Callable[..., T]:
+        """The factory for a registered name, an entry point or an import path ``module:attr``."""
+        self._load_modules()
+        if name in self._factories:
+            return self._factories[name]
+        target = self._entry_points().get(name)
+        if target is not None:
+            try:
+                factory = load_object(target)
+            except Exception as exc:  # noqa: BLE001 - a broken plug-in is a one-line error
+                raise self.error(f"cannot load {self.kind} {name!r} from entry point {target!r}: "
+                                 f"{type(exc).__name__}: {exc}") from None
+            self._factories[name] = factory
+            return factory
+        if ":" in name:
+            try:
+                return load_object(name)
+            except (ImportError, AttributeError) as exc:
+                raise self.error(f"cannot import {self.kind} {name!r}: {exc}") from None
+        raise self.error(f"unknown {self.kind} {name!r}; available: {', '.join(self.names())} "
+                         "(or give an import path module:attribute)")
+
+    def create(self, spec: str, **kwargs) -> T:
+        """Build from a method spec ``name[key=value,...]``; ``kwargs`` override the spec's options."""
+        name, options = parse_method_spec(spec)
+        return self.factory(name)(**{**options, **kwargs})
+

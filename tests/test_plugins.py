@@ -1,0 +1,146 @@
+"""Plug-ins: the one registry, its method-spec grammar and marker, and a third-party package
+(``examples/fr_plugin_example``) installed into a temporary folder, found through its entry points."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+
+from fr_torch.interface import available_methods, get_calibrator
+from fr_torch.registry import (NOT_SUPPLIED, Registry, entry_points, format_method_spec, is_not_supplied,
+                               not_supplied, parse_method_spec, split_method_list, with_option)
+from fr_torch.segments import FRInputError, available_detectors, get_detector
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE = REPO / "examples" / "fr_plugin_example"
+
+
+def test_method_spec_grammar():
+    assert parse_method_spec(" fr[measure=a, detector=mcmlsd] ") == ("fr", {"measure": "a", "detector": "mcmlsd"})
+    assert parse_method_spec("pkg.mod:Cls[x=1]") == ("pkg.mod:Cls", {"x": "1"})
+    assert parse_method_spec("lee2009") == ("lee2009", {})
+    for bad in ("fr[measure]", "fr[measure=a", "fr]x["):
+        with pytest.raises(ValueError):
+            parse_method_spec(bad)
+    assert parse_method_spec("fr[measure=a]@labelled", strict=False) == ("fr[measure=a]@labelled", {})
+    assert format_method_spec("fr", {"measure": "a", "x": None}) == "fr[measure=a]"
+    assert with_option("fr[detector=lsd]", "measure", "c") == "fr[detector=lsd,measure=c]"
+    assert split_method_list("fr[measure=a,detector=lsd], lee2009,,") == ["fr[measure=a,detector=lsd]", "lee2009"]
+
+
+def test_not_supplied_marker():
+    assert not_supplied() == NOT_SUPPLIED == "n/a (not supplied)"
+    assert not_supplied("set X") == "n/a (not supplied: set X)"
+    assert is_not_supplied(not_supplied("x")) and not is_not_supplied("no segments")
+
+
+def test_registry_lookup_order_and_errors():
+    reg: Registry = Registry("thing", group="fr_torch.no-such-group")
+    reg.register("a", lambda **kw: ("a", kw))
+    assert reg.names() == ["a"] and "a" in reg
+    assert reg.create("a[k=v]", extra=1) == ("a", {"k": "v", "extra": 1})
+    assert reg.factory("os.path:join") is os.path.join  # import path
+    with pytest.raises(ValueError, match="unknown thing 'b'; available: a"):
+        reg.factory("b")
+    with pytest.raises(ValueError, match="cannot import"):
+        reg.factory("no_such_module_xyz:f")
+
+
+def test_builtins_come_from_entry_points():
+    # the checkout's own pyproject.toml declares the built-in methods (installed or not)
+    declared = entry_points("fr_torch.calibrators")
+    assert declared["lee2009"] == "baselines.lee2009:Lee2009"
+    assert {"fr", "fast-fr", "oracle-fr", "lee2009", "simon2018", "ctrlc", "ctrlc-retrained", "prior",
+            "external", "hold-geoffroy2018"} <= set(available_methods())
+    assert {"lsd", "mcmlsd", "onnx"} <= set(available_detectors())
+    assert get_calibrator("prior").name == "prior"
+    with pytest.raises(FRInputError, match="unknown detector"):
+        get_detector("nope")
+
+
+def test_registries_name_no_harness():
+    """The core's registries never import or name eval/ or baselines/ (they read entry points)."""
+    for name in ("registry.py", "interface.py", "segments.py", "detectors/__init__.py"):
+        text = (REPO / "fr_torch" / name).read_text()
+        assert "baselines" not in text and "eval." not in text, name
+
+
+@pytest.fixture(scope="module")
+def installed_plugin(tmp_path_factory) -> Path:
+    """examples/fr_plugin_example pip-installed (no deps, no isolation) into a fresh target folder."""
+    target = tmp_path_factory.mktemp("site")
+    build = tmp_path_factory.mktemp("build")
+    source = shutil.copytree(EXAMPLE, build / EXAMPLE.name)  # setuptools writes build/ next to the source
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
+                    "--no-index", "--target", str(target), str(source)],
+                   check=True, cwd=build, env={**os.environ, "PIP_NO_CACHE_DIR": "1"})
+    assert list(target.glob("fr_plugin_example-*.dist-info/entry_points.txt"))
+    return target
+
+
+def _run(code_or_args, target: Path, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(target), str(cwd), str(REPO)])}
+    args = ["-c", code_or_args] if isinstance(code_or_args, str) else code_or_args
+    return subprocess.run([sys.executable, *args], env=env, cwd=cwd, capture_output=True, text=True, timeout=300)
+
+
+def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
+    """After installation (and only then) ``horizon-lines`` is a method and ``long-lsd`` a detector:
+    in ``fr eval --methods all``, by name, with options, and estimating a synthetic room's roll."""
+    code = textwrap.dedent("""
+        from eval.run_eval import resolve_methods
+        from fr_torch.camera import rotation_from_angles
+        from fr_torch.interface import ImageMeta, available_methods, get_calibrator
+        from fr_torch.segments import available_detectors, get_detector
+        from fr_torch.synthetic import render_manhattan_room
+        assert "horizon-lines" in available_methods() and "long-lsd" in available_detectors()
+        methods, _ = resolve_methods(["all"], has_segments=False)
+        assert "horizon-lines" in methods and "fr" in methods, methods
+        method = get_calibrator("horizon-lines[hfov_deg=70]")
+        image = render_manhattan_room(500.0, rotation_from_angles(20.0, 0.0, 6.0).numpy())
+        est = method.estimate(image, ImageMeta(name="room", width=640, height=480))
+        assert est.ok and est.hfov_deg == 70.0 and abs(est.roll_deg - 6.0) < 1.0, est
+        assert len(get_detector("long-lsd[min_length=40]")(image)) > 10
+        print("OK")
+    """)
+    result = _run(code, installed_plugin, tmp_path)
+    assert result.returncode == 0 and "OK" in result.stdout, result.stderr[-3000:]
+    # without the installation the name is unknown
+    assert "horizon-lines" not in available_methods()
+
+
+def test_installed_plugin_in_fr_eval(installed_plugin, tmp_path):
+    """``fr eval --methods horizon-lines,prior`` on a two-image synthetic dataset given by import path."""
+    from fr_torch.camera import rotation_from_angles
+    from fr_torch.synthetic import render_manhattan_room
+
+    for i, roll in enumerate((4.0, -7.0)):
+        cv2.imwrite(str(tmp_path / f"room{i}.png"),
+                    render_manhattan_room(500.0, rotation_from_angles(15.0, 0.0, roll).numpy(), seed=i))
+    (tmp_path / "rooms_ds.py").write_text(textwrap.dedent(f"""
+        from pathlib import Path
+        from eval.datasets.registry import CalibrationSample
+        from fr_torch.camera import rotation_from_angles
+
+        def load(root=None, split="test", **kwargs):
+            return [CalibrationSample(name=f"room{{i}}.png", image_path=Path({str(tmp_path)!r}) / f"room{{i}}.png",
+                                      width=640, height=480, focal_px=500.0, principal_point=None,
+                                      rotation=rotation_from_angles(15.0, 0.0, roll).numpy())
+                    for i, roll in enumerate((4.0, -7.0))]
+    """))
+    out = tmp_path / "out"
+    result = _run(["-m", "fr_torch.cli", "eval", "--dataset", "rooms_ds:load", "--methods", "horizon-lines,prior",
+                   "--out", str(out), "--no-plots", "--group-by", "none"], installed_plugin, tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = pd.read_csv(out / "predictions.csv")
+    mine = rows[rows["method"] == "horizon-lines"]
+    assert len(mine) == 2 and not mine["failed"].astype(bool).any()
+    assert np.all(np.abs(mine["roll_err_deg"].to_numpy()) < 1.0)
