@@ -26,6 +26,7 @@ import torch
 from .camera import VERTICAL_AXIS, Camera, angles_from_rotation, hfov_from_focal, image_centre, intrinsics
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
 from .search import SearchConfig, grid_hypotheses, hypothesis_rotations, parameter_box, refine, score_grid
+from . import image_io, validate
 from .segments import (FRInputError, SegmentBatch, SegmentFilter, detect_segments, get_detector, load_image,
                        to_bgr8, validate_segments)
 
@@ -118,9 +119,8 @@ class FREstimator:
         self.iterations = self.search.iterations(mode)
         self.likelihood = MixtureLikelihood(likelihood_params or LikelihoodParams.from_config(measure, likelihood))
         self.detector = get_detector(detector)
-        self.device = torch.device(device)
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise FRInputError("--device cuda requested but no CUDA device is available")
+        self.device = validate.resolve_device(device)
+        self.working_long_side = image_io.WORKING_LONG_SIDE
         self.dtype = dtype
         self.segment_filter = segment_filter or SegmentFilter()
         self.min_segments = min_segments
@@ -147,19 +147,29 @@ class FREstimator:
         names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
                                                        for i, im in enumerate(images)]
         segments, sizes, errors, detect_times = [], [], {}, []
+        # Detection and search run at a bounded working resolution; results come back in input pixels.
+        focal_list = self._per_image(focal_px, len(images), "focal_px")
+        pp_list = self._per_image(principal_point, len(images), "principal_point", width=2)
+        scales, input_sizes = [], []
         for i, image in enumerate(images):
             start = time.perf_counter()
             try:
-                array = load_image(image) if isinstance(image, (str, Path)) else to_bgr8(image, names[i])
-                segments.append(detect_segments(array, self.detector, self.segment_filter))
-                sizes.append((array.shape[1], array.shape[0]))
+                gray, input_size = image_io.read_any(image, names[i], self.working_long_side)
+                gray, scale = image_io.working_image(gray, input_size, self.working_long_side)
+                validate.check_camera(focal_list[i], pp_list[i], input_size, names[i])
+                focal_list[i], pp_list[i] = image_io.focal_and_pp_to_working(focal_list[i], pp_list[i], scale)
+                segments.append(detect_segments(gray, self.detector, self.segment_filter))
+                sizes.append((gray.shape[1], gray.shape[0]))
             except FRInputError as exc:
-                errors[i] = str(exc)
+                errors[i], scale, input_size = str(exc), 1.0, (0, 0)
                 segments.append(np.zeros((0, 4)))
                 sizes.append((0, 0))
+            scales.append(scale)
+            input_sizes.append(input_size)
             detect_times.append(time.perf_counter() - start)
-        results = self._calibrate(segments, sizes, names, focal_px, principal_point, errors, filtered=True)
-        for result, seconds in zip(results, detect_times):
+        results = self._calibrate(segments, sizes, names, focal_list, pp_list, errors, filtered=True)
+        for result, seconds, scale, input_size in zip(results, detect_times, scales, input_sizes):
+            image_io.result_to_input_pixels(result, scale, input_size)
             result.runtime_s["detect"] = seconds
             result.runtime_s["total"] = result.runtime_s.get("total", 0.0) + seconds
         return results

@@ -1,0 +1,365 @@
+"""Bounded, hostile-input-safe image decoding and the working resolution of the detector.
+
+Policy (what a file may cost before it is refused or reduced):
+
+* Only **regular files** are opened (a FIFO, a directory or a device is refused without being
+  opened for reading, so a named pipe can never hang the process).
+* Files larger than :data:`MAX_FILE_BYTES` (default 512 MB, ``FR_MAX_FILE_BYTES``) are refused.
+* The **declared size** is read from the header before decoding (PNG IHDR, JPEG SOF, BMP, GIF,
+  WebP, TIFF IFD0, PNM); an image declaring more than :data:`MAX_IMAGE_PIXELS` pixels (default
+  600 MP, ``FR_MAX_IMAGE_PIXELS``), or a zero size, is refused with that reason.  Formats we
+  cannot probe are still bounded by OpenCV's own ``OPENCV_IO_MAX_IMAGE_PIXELS`` (set to the same
+  limit here unless the user set it).
+* Pixels decoded are bounded: big images are decoded with ``cv2.IMREAD_REDUCED_*`` (native 1/2,
+  1/4, 1/8 DCT scaling for JPEG, so a 12-MP photo is decoded at ~1000 px directly), and images
+  whose colour buffer would exceed :data:`MAX_COLOR_BYTES` are decoded in grey, so the peak
+  decode buffer stays below ~600 MB and the peak RSS per image below ~1 GB.
+* Any decoder failure (``cv2.error``, ``None``, whatever exception) becomes a
+  :class:`~fr_torch.segments.FRInputError` with a one-line reason; OpenCV's own ``[ WARN ]`` /
+  ``[ERROR ]`` log lines are silenced while decoding.
+* **EXIF orientation is applied** (OpenCV's ``IMREAD_COLOR`` / ``IMREAD_GRAYSCALE`` default):
+  the image is calibrated as a viewer displays it, so roll, tilt and the width / height refer to
+  the displayed (upright) picture, not to the sensor's raw pixel rows.
+
+Working resolution: the detector runs on a copy whose long side is at most
+:data:`WORKING_LONG_SIDE` pixels (default 1024; images smaller than that are used as they are).
+The estimate is made in working pixels and scaled back (``scale`` = input pixels per working
+pixel), so results are always reported in the **input image's pixels**, and the time per image
+does not grow with the input resolution.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+import struct
+from pathlib import Path
+
+import numpy as np
+
+
+def _env_number(name: str, default: float) -> float:
+    try:
+        value = float(os.environ.get(name, default))
+        return value if value > 0 else default
+    except ValueError:
+        return default
+
+
+MAX_IMAGE_PIXELS = int(_env_number("FR_MAX_IMAGE_PIXELS", 600e6))
+MAX_FILE_BYTES = int(_env_number("FR_MAX_FILE_BYTES", 512 * 2 ** 20))
+MAX_COLOR_BYTES = 400 * 2 ** 20  # above this a colour decode would be too big: decode in grey
+WORKING_LONG_SIDE = 1024
+# OpenCV reads this once, at its first decode: bound the formats we cannot probe as well.
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
+
+import cv2  # noqa: E402  (after the environment variable above)
+
+
+def _error(message: str):
+    from .segments import FRInputError
+
+    return FRInputError(message)
+
+
+def display_name(path) -> str:
+    """A printable name for a path (undecodable bytes shown as ``\\xNN`` escapes)."""
+    text = os.fsdecode(path) if isinstance(path, (bytes, os.PathLike)) else str(path)
+    return text.encode("utf-8", "backslashreplace").decode("utf-8") if _has_surrogates(text) else text
+
+
+def _has_surrogates(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+        return False
+    except UnicodeEncodeError:
+        return True
+
+
+@contextlib.contextmanager
+def quiet_opencv():
+    """Silence OpenCV's own log lines (``[ WARN ] ... grfmt_png.cpp``) inside the block."""
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is None:
+        yield
+        return
+    previous = logging.getLogLevel()
+    logging.setLogLevel(logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        logging.setLogLevel(previous)
+
+
+# --------------------------------------------------------------------------- header probes
+
+def _jpeg_size(head: bytes, handle) -> tuple[int, int] | None:
+    """(width, height) from the first SOF marker, reading segment by segment."""
+    pos, data = 2, head
+    while True:
+        while len(data) < pos + 4:  # need the marker and its length
+            more = handle.read(65536)
+            if not more:
+                return None
+            data += more
+        if data[pos] != 0xFF:
+            return None
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in (0x01, 0xD8) or 0xD0 <= marker <= 0xD7:
+            pos += 2
+            continue
+        length = struct.unpack(">H", data[pos + 2:pos + 4])[0]
+        if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF):
+            while len(data) < pos + 9:
+                more = handle.read(65536)
+                if not more:
+                    return None
+                data += more
+            height, width = struct.unpack(">HH", data[pos + 5:pos + 9])
+            return width, height
+        if marker in (0xD9, 0xDA):  # end of image / start of scan before any SOF
+            return None
+        pos += 2 + length
+        if pos > 16 * 2 ** 20:  # no SOF in the first 16 MB: give up probing
+            return None
+
+
+def _tiff_size(head: bytes, handle) -> tuple[int, int] | None:
+    order = "<" if head[:2] == b"II" else ">"
+    (offset,) = struct.unpack(order + "I", head[4:8])
+    handle.seek(offset)
+    raw = handle.read(2)
+    if len(raw) < 2:
+        return None
+    (count,) = struct.unpack(order + "H", raw)
+    entries = handle.read(12 * min(count, 4096))
+    size = {}
+    for k in range(len(entries) // 12):
+        tag, kind, _, value = struct.unpack(order + "HHI4s", entries[12 * k:12 * k + 12])
+        if tag in (256, 257):
+            size[tag] = struct.unpack(order + ("H" if kind == 3 else "I"), value[:2 if kind == 3 else 4])[0]
+    return (size[256], size[257]) if len(size) == 2 else None
+
+
+def _pnm_size(head: bytes) -> tuple[int, int] | None:
+    tokens, text = [], head[2:].split(b"\n")
+    for line in text:
+        tokens += line.split(b"#", 1)[0].split()
+        if len(tokens) >= 2:
+            try:
+                return int(tokens[0]), int(tokens[1])
+            except ValueError:
+                return None
+    return None
+
+
+def probe_image_size(path) -> tuple[int, int] | None:
+    """Declared (width, height) from the file header, before any decoding; None when unknown.
+
+    Reads a few bytes (JPEG: marker segments up to the first SOF).  Width / height are the stored
+    ones (before EXIF orientation).  Raises nothing for odd files: a header we cannot parse is None.
+    """
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(64)
+            if head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR":
+                return struct.unpack(">II", head[16:24])
+            if head.startswith(b"\xff\xd8"):
+                return _jpeg_size(head, handle)
+            if head.startswith(b"BM") and len(head) >= 26:
+                width, height = struct.unpack("<ii", head[18:26])
+                return abs(width), abs(height)
+            if head[:6] in (b"GIF87a", b"GIF89a"):
+                return struct.unpack("<HH", head[6:10])
+            if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
+                chunk = head[12:16]
+                if chunk == b"VP8X":
+                    return (int.from_bytes(head[24:27], "little") + 1, int.from_bytes(head[27:30], "little") + 1)
+                if chunk == b"VP8L":
+                    bits = int.from_bytes(head[21:25], "little")
+                    return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+                if chunk == b"VP8 ":
+                    width, height = struct.unpack("<HH", head[26:30])
+                    return width & 0x3FFF, height & 0x3FFF
+                return None
+            if head[:4] in (b"II*\x00", b"MM\x00*"):
+                return _tiff_size(head, handle)
+            if head[:1] == b"P" and head[1:2] in b"123456" and len(head) > 3:
+                return _pnm_size(head + handle.read(960))
+    except (OSError, struct.error, ValueError, KeyError):
+        return None
+    return None
+
+
+# --------------------------------------------------------------------------- decoding
+
+_REDUCED_COLOR = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+                  8: cv2.IMREAD_REDUCED_COLOR_8}
+_REDUCED_GRAY = {1: cv2.IMREAD_GRAYSCALE, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
+                 8: cv2.IMREAD_REDUCED_GRAYSCALE_8}
+
+
+def check_regular_file(path) -> os.stat_result:
+    """stat() the path and refuse anything but a regular, non-empty, not-too-big file."""
+    name = display_name(path)
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        raise _error(f"{name}: no such file") from None
+    except OSError as exc:
+        raise _error(f"{name}: cannot read ({exc.strerror or exc})") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise _error(f"{name}: is a directory, not an image")
+    if not stat.S_ISREG(info.st_mode):
+        kind = ("a named pipe (FIFO)" if stat.S_ISFIFO(info.st_mode) else
+                "a device" if stat.S_ISCHR(info.st_mode) or stat.S_ISBLK(info.st_mode) else
+                "a socket" if stat.S_ISSOCK(info.st_mode) else "not a regular file")
+        raise _error(f"{name}: is {kind}, not an image file")
+    if info.st_size == 0:
+        raise _error(f"{name}: empty file")
+    if info.st_size > MAX_FILE_BYTES:
+        raise _error(f"{name}: file of {info.st_size / 2 ** 20:.0f} MB is above the {MAX_FILE_BYTES / 2 ** 20:.0f} MB "
+                     "limit (FR_MAX_FILE_BYTES)")
+    return info
+
+
+def read_image(path, max_long_side: int | None = None, gray: bool = False) -> tuple[np.ndarray, tuple[int, int]]:
+    """Decode an image file safely (see the module docstring for the limits).
+
+    ``max_long_side``: decode no more than needed for a copy of this long side (pixels; the result
+    may be up to 2x larger: it is the smallest native reduction 1, 1/2, 1/4, 1/8 not below it; None =
+    full size, subject only to the memory bound).  ``gray``: decode to one channel.
+    Returns (image, (width, height)): an 8-bit grey (H, W) or BGR (H, W, 3) array, and the input's
+    size in pixels as displayed (after EXIF orientation), which the array may be a reduction of.
+    Raises FRInputError with a one-line reason on any problem.
+    """
+    name = display_name(path)
+    check_regular_file(path)
+    declared = probe_image_size(path)
+    if declared is not None:
+        width, height = (int(v) for v in declared)
+        if width <= 0 or height <= 0:
+            raise _error(f"{name}: header declares a zero-size image ({width} x {height})")
+        if width * height > MAX_IMAGE_PIXELS:
+            raise _error(f"{name}: header declares {width} x {height} pixels ({width * height / 1e6:.0f} MP), above "
+                         f"the {MAX_IMAGE_PIXELS / 1e6:.0f} MP limit (FR_MAX_IMAGE_PIXELS)")
+        factor = 1
+        long_side = max(width, height)
+        while (factor < 8 and max_long_side is not None and long_side / (2 * factor) >= max_long_side):
+            factor *= 2
+        # Memory bound for full-size decodes (only JPEG reduces natively; others decode at full size).
+        while factor < 8 and width * height * 3 / factor ** 2 > MAX_COLOR_BYTES:
+            factor *= 2
+        if width * height * 3 > MAX_COLOR_BYTES and not _is_jpeg(path):
+            gray = True
+    else:
+        factor = 1
+    flags = (_REDUCED_GRAY if gray else _REDUCED_COLOR)[factor]
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+        with quiet_opencv():
+            image = cv2.imdecode(data, flags)
+    except MemoryError:
+        raise _error(f"{name}: not enough memory to decode this image") from None
+    except Exception as exc:  # cv2.error and anything else: this image's failure only
+        reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+        raise _error(f"{name}: cannot decode image ({reason[:200]})") from None
+    if image is None or image.size == 0:
+        raise _error(f"{name}: not a readable image (unknown format, truncated or corrupt)")
+    h, w = image.shape[:2]
+    if declared is None:
+        size = (w * factor, h * factor)
+    else:
+        size = (width, height)
+        if (w > h) != (width > height) and w != h and width != height:  # EXIF orientation 5-8 swapped the axes
+            size = (height, width)
+    return image, size
+
+
+def _is_jpeg(path) -> bool:
+    try:
+        with open(path, "rb") as handle:
+            return handle.read(2) == b"\xff\xd8"
+    except OSError:
+        return False
+
+
+def working_image(gray: np.ndarray, input_size: tuple[int, int] | None = None,
+                  max_long_side: int | None = WORKING_LONG_SIDE) -> tuple[np.ndarray, float]:
+    """Resize a grey image to the working resolution.
+
+    ``input_size``: (width, height) of the original input when ``gray`` is already a reduction of it
+    (default: ``gray``'s own size).  Returns (working image, scale) with ``scale`` = input pixels per
+    working pixel (>= 1; 1 when the input is already small enough).  INTER_AREA (box filter)
+    downscaling, so an image upscaled by k and brought back is the original up to rounding.
+    """
+    h, w = gray.shape[:2]
+    in_w, in_h = input_size if input_size is not None else (w, h)
+    long_in = max(in_w, in_h)
+    if max_long_side is None or long_in <= max_long_side:
+        target = (in_w, in_h)
+    else:
+        ratio = max_long_side / long_in
+        target = (max(1, round(in_w * ratio)), max(1, round(in_h * ratio)))
+    if (w, h) != target:
+        interpolation = cv2.INTER_AREA if target[0] < w else cv2.INTER_LINEAR
+        gray = cv2.resize(gray, target, interpolation=interpolation)
+    return gray, in_w / target[0]
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of an image (cv2.imencode; the caller writes them with Python's own file I/O, which
+    handles any file name, where cv2.imwrite crashes on names that are not valid UTF-8)."""
+    ok, buffer = cv2.imencode(".png", image)
+    if not ok:
+        raise _error("could not encode the overlay as PNG")
+    return buffer.tobytes()
+
+
+def focal_and_pp_to_working(focal, principal_point, scale: float):
+    """The user's focal length / principal point (input pixels) in working pixels (one image)."""
+    focal = None if focal is None else float(focal) / scale
+    pp = None if principal_point is None else (float(principal_point[0]) / scale, float(principal_point[1]) / scale)
+    return focal, pp
+
+
+def result_to_input_pixels(result, scale: float, input_size: tuple[int, int]) -> None:
+    """Rescale, in place, a result estimated at the working resolution to the input's pixels.
+
+    Lengths (focal, principal point, segments, vanishing points' x and y) are multiplied by
+    ``scale``; angles, rotation, cues and labels are unchanged; width / height become the input's;
+    the HFOV is recomputed from the input width (the same angle up to pixel rounding).
+    """
+    if result.width > 0:
+        result.width, result.height = int(input_size[0]), int(input_size[1])
+    if scale == 1.0 or not result.ok:
+        return
+    if result.focal_px is not None:
+        import math
+
+        result.focal_px = result.focal_px * scale
+        result.hfov_deg = math.degrees(2.0 * math.atan(result.width / (2.0 * result.focal_px)))
+    if result.principal_point is not None:
+        result.principal_point = (result.principal_point[0] * scale, result.principal_point[1] * scale)
+    if result.vanishing_points is not None:
+        vps = np.array(result.vanishing_points, dtype=np.float64)
+        vps[:, :2] *= scale
+        result.vanishing_points = vps
+    if result.segments is not None:
+        result.segments = np.asarray(result.segments, dtype=np.float64) * scale
+
+
+def read_any(image, name: str, max_long_side: int | None = WORKING_LONG_SIDE) -> tuple[np.ndarray, tuple[int, int]]:
+    """Grey uint8 image and the input's (width, height) from a path (bounded decode, see
+    :func:`read_image`) or an array (any format :func:`~fr_torch.segments.to_bgr8` accepts)."""
+    from .segments import to_gray8
+
+    if isinstance(image, (str, bytes, os.PathLike)):
+        gray, size = read_image(image, max_long_side, gray=True)
+        return (gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)), size
+    gray = to_gray8(image) if not (isinstance(image, np.ndarray) and image.ndim == 2 and image.dtype == np.uint8) \
+        else image
+    return gray, (gray.shape[1], gray.shape[0])
