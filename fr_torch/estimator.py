@@ -211,10 +211,12 @@ class FREstimator:
         start_all = time.perf_counter()
         device, dtype = self.device, self.dtype
         batch = SegmentBatch.from_list([segments[i] for i in group], [sizes[i] for i in group], device, dtype)
-        width = torch.tensor([float(sizes[i][0]) for i in group], dtype=torch.float64)
-        height = torch.tensor([float(sizes[i][1]) for i in group], dtype=torch.float64)
-        pp = torch.stack([torch.tensor(pp_list[i], dtype=torch.float64) if pp_list[i] is not None
-                          else torch.stack([width[j] / 2, height[j] / 2]) for j, i in enumerate(group)])
+        size_np = np.array([sizes[i] for i in group], dtype=np.float64).reshape(-1, 2)
+        pp_np = np.array([pp_list[i] if pp_list[i] is not None else (np.nan, np.nan) for i in group],
+                         dtype=np.float64).reshape(-1, 2)
+        pp_np = np.where(np.isnan(pp_np), size_np / 2, pp_np)  # default: image centre
+        width = torch.from_numpy(size_np[:, 0].copy())
+        pp = torch.from_numpy(pp_np)
         features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
         focal = torch.tensor([float(focal_list[i]) for i in group], dtype=torch.float64) if known_focal else None
 
@@ -254,23 +256,29 @@ class FREstimator:
         labels_all = labels.cpu().numpy()
         rotation_all = rotation.cpu().numpy()
         vps_all = vps.cpu().numpy()
+        params_all = best_params.cpu().numpy()
+        scores_all = best_scores.to(torch.float64).cpu().numpy()
+        hfov_all = hfov_from_focal(best_params[:, 3].cpu(), width).numpy()
+        angles_all = {key: angles[key].cpu().numpy() for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg")}
+        cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
+        family = labels_all != BACKGROUND_LABEL
+        manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
         for j, i in enumerate(group):
             n = int(counts_all[j])
             r = results[i]
-            r.focal_px = float(best_params[j, 3])
-            r.hfov_deg = float(hfov_from_focal(best_params[j, 3], width[j]))
-            r.principal_point = (float(pp[j, 0]), float(pp[j, 1]))
+            r.focal_px = float(params_all[j, 3])
+            r.hfov_deg = float(hfov_all[j])
+            r.principal_point = (float(pp_np[j, 0]), float(pp_np[j, 1]))
             r.rotation = rotation_all[j]
-            for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg"):
-                setattr(r, key, float(angles[key][j]))
+            for key, value in angles_all.items():
+                setattr(r, key, float(value[j]))
             r.vanishing_points = vps_all[j]
-            r.log_likelihood = float(best_scores[j])
+            r.log_likelihood = float(scores_all[j])
             r.num_segments = n
             r.segments = segments[i]
             r.labels = labels_all[j, :n]
-            lengths = lengths_all[j, :n]
-            r.manhattan_fraction = float(lengths[r.labels != BACKGROUND_LABEL].sum() / max(lengths.sum(), 1e-12))
-            r.cues = {key: float(value[j]) for key, value in cues.items()}
+            r.manhattan_fraction = float(manhattan[j])
+            r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             r.reliable, r.reason = self._sanity(r)
 
