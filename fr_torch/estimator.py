@@ -127,23 +127,10 @@ class FREstimator:
         """
         names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
                                                        for i, im in enumerate(images)]
-        segments, sizes, errors, detect_times = [], [], {}, []
-        for i, image in enumerate(images):
-            start = time.perf_counter()
-            try:
-                array = load_image(image) if isinstance(image, (str, Path)) else to_bgr8(image, names[i])
-                segments.append(detect_segments(array, self.detector, self.segment_filter))
-                sizes.append((array.shape[1], array.shape[0]))
-            except FRInputError as exc:
-                errors[i] = str(exc)
-                segments.append(np.zeros((0, 4)))
-                sizes.append((0, 0))
-            detect_times.append(time.perf_counter() - start)
-        results = self._calibrate(segments, sizes, names, focal_px, principal_point, errors, filtered=True)
-        for result, seconds in zip(results, detect_times):
-            result.runtime_s["detect"] = seconds
-            result.runtime_s["total"] = result.runtime_s.get("total", 0.0) + seconds
-        return results
+        from .pipeline import calibrate_paths  # decode + detect + search; also with worker processes
+
+        return [r for _, batch in calibrate_paths(self, images, max(1, len(images)), 0, focal_px, principal_point,
+                                                  names) for r in batch]
 
     def calibrate_segments(self, segments: Sequence, image_sizes: Sequence[tuple[int, int]],
                            names: Sequence[str] | None = None, focal_px=None, principal_point=None,
