@@ -209,6 +209,11 @@ def test_bench_quick_smoke(tmp_path):
     assert report["memory"] and report["memory"][0]["ok"]
     assert (tmp_path / "bench.md").read_text().startswith("# fR speed benchmark")
     assert (tmp_path / "scaling.png").stat().st_size > 0
+    lines = [json.loads(x) for x in (tmp_path / "bench.jsonl").read_text().splitlines()]
+    assert {"end_to_end", "throughput", "parallel", "profile"} <= {x["section"] for x in lines}  # written as it goes
+    assert {(r["kind"], r["count"]) for r in report["parallel"]} == {("threads", 1), ("threads", 2),
+                                                                     ("workers", 1), ("workers", 2)}
+    assert report["profiles"] and (tmp_path / report["profiles"][0]["file"]).read_text()
 
 
 def test_refinement_closed_form_gradient_matches_autograd():
