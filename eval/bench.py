@@ -62,6 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stress", action="store_true",
                         help="also run the bounded-memory check: batch 4096 x 1000 segments (k=4; minutes)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--budget-s", type=float, default=None,
+                        help="time budget in seconds: settings not started by then are skipped and listed "
+                             "(default 170 with a CUDA device, else none; 0 = none)")
     parser.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: "B,N,k,mode,device"
 
 
@@ -139,10 +142,41 @@ def _sync(device: str):
     return None
 
 
-def _progress(total: int, disable: bool):
-    from tqdm import tqdm
+class _Progress:
+    """tqdm bar + one JSON line per measurement, flushed at once (``<out>/bench.jsonl``), and a
+    time budget: once ``budget_s`` has passed, the remaining settings are skipped (and listed)."""
 
-    return tqdm(total=total, desc="fr bench", unit="step", disable=disable, file=sys.stderr)
+    def __init__(self, total: int, disable: bool, log_path: Path | None = None, budget_s: float = 0.0):
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=total, desc="fr bench", unit="step", disable=disable, file=sys.stderr)
+        self.log = open(log_path, "w") if log_path else None
+        self.start, self.budget_s, self.skipped = time.perf_counter(), budget_s, []
+
+    def update(self, n: int = 1, section: str | None = None, row: dict | None = None) -> None:
+        self.bar.update(n)
+        if row is not None and self.log:
+            self.log.write(json.dumps({"section": section, **row}) + "\n")
+            self.log.flush()
+        if row is not None:
+            brief = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()
+                              if not isinstance(v, (dict, list)))
+            self.bar.write(f"fr bench [{section}] {brief}", file=sys.stderr)
+
+    def out_of_time(self, what: str) -> bool:
+        if self.budget_s and time.perf_counter() - self.start > self.budget_s:
+            self.skipped.append(what)
+            return True
+        return False
+
+    def close(self) -> None:
+        self.bar.close()
+        if self.log:
+            self.log.close()
+
+
+def _progress(total: int, disable: bool, log_path: Path | None = None, budget_s: float = 0.0) -> _Progress:
+    return _Progress(total, disable, log_path, budget_s)
 
 
 # --------------------------------------------------------------------------- measurements
@@ -170,6 +204,8 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
         decode = statistics.median(_median_times(lambda: load_image(path), repeats))
         lsd = statistics.median(_median_times(lambda: detector(gray), repeats))
         for mode in modes:
+            if progress.out_of_time(f"end_to_end {label} {mode}"):
+                continue
             est = _estimator(mode)
             est.calibrate_images([path])  # warm-up
             runs = []
@@ -186,7 +222,7 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
             row["iterations"] = est.iterations
             row["grid_hypotheses"] = est.search.grid_points_per_dim ** 4
             rows.append(row)
-            progress.update(1)
+            progress.update(1, "end_to_end", row)
     return rows
 
 
@@ -197,6 +233,8 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
     est.calibrate_segments(pool[:1], [(640, 480)])  # warm-up
     rows = []
     for batch in batch_sizes:
+        if progress.out_of_time(f"throughput {device} {mode} {batch}"):
+            continue
         segs = [pool[i % len(pool)] for i in range(batch)]
         sizes = [(640, 480)] * batch
         reps = repeats if batch <= 64 else max(1, min(repeats, 2))
@@ -213,8 +251,83 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
             torch.cuda.synchronize()
             row["peak_memory_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
         rows.append(row)
-        progress.update(1)
+        progress.update(1, "throughput", row)
     return rows
+
+
+def parallel_scaling(counts, batch: int, n_segments: int, repeats: int, progress, modes=("fast", "fr")) -> list[dict]:
+    """CPU images/s given segments with T intra-op threads (one process) and with W single-threaded
+    worker processes (:func:`fr_torch.pipeline.calibrate_segments_sharded`, pool started before timing)."""
+    import torch
+
+    from fr_torch.pipeline import calibrate_segments_sharded, worker_pool
+
+    pool = [_segments(n_segments, seed=i) for i in range(8)]
+    segs = [pool[i % len(pool)] for i in range(batch)]
+    sizes = [(640, 480)] * batch
+    rows, threads_before = [], torch.get_num_threads()
+    for mode in modes:
+        est = _estimator(mode)
+        for count in counts:
+            for kind in ("threads", "workers"):
+                if progress.out_of_time(f"parallel {mode} {kind} {count}"):
+                    continue
+                workers = None
+                if kind == "threads":
+                    torch.set_num_threads(count)
+                    fn = lambda: est.calibrate_segments(segs, sizes)  # noqa: E731
+                else:
+                    torch.set_num_threads(1)
+                    workers = worker_pool(count)
+                    fn = lambda: calibrate_segments_sharded(est, segs, sizes, count, pool=workers)  # noqa: E731
+                try:
+                    t = statistics.median(_median_times(fn, max(1, min(repeats, 3)), warmup=1))
+                finally:
+                    torch.set_num_threads(threads_before)
+                    if workers is not None:
+                        workers.shutdown()
+                row = {"mode": mode, "kind": kind, "count": count, "batch": batch, "segments": n_segments,
+                       "images_per_s": batch / t, "ms_per_image": 1000 * t / batch}
+                rows.append(row)
+                progress.update(1, "parallel", row)
+    return rows
+
+
+def profile_table(device: str, batch: int, n_segments: int, out: Path, progress, mode: str = "fast",
+                  rows: int = 25) -> dict:
+    """torch profiler over one calibrate_segments call: top ops by self time, written to
+    ``<out>/profile_<device>_<mode>.txt``; returns the top ops as dicts (ms)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    if progress.out_of_time(f"profile {device} {mode}"):
+        return {}
+    est = _estimator(mode, device)
+    pool = [_segments(n_segments, seed=i) for i in range(8)]
+    segs, sizes = [pool[i % len(pool)] for i in range(batch)], [(640, 480)] * batch
+    est.calibrate_segments(segs[:2], sizes[:2])
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
+    sync = _sync(device)
+    with profile(activities=activities) as prof:
+        start = time.perf_counter()
+        est.calibrate_segments(segs, sizes)
+        if sync:
+            sync()
+        wall = time.perf_counter() - start
+    sort = "self_cuda_time_total" if device.startswith("cuda") else "self_cpu_time_total"
+    averages = prof.key_averages()
+    table = averages.table(sort_by=sort, row_limit=rows)
+    path = out / f"profile_{device.split(':')[0]}_{mode}.txt"
+    path.write_text(f"fr bench profile: device {device}, mode {mode}, batch {batch} x {n_segments} segments, "
+                    f"wall {wall:.3f} s (with profiler overhead)\n\n{table}\n")
+    key = "self_device_time_total" if device.startswith("cuda") else "self_cpu_time_total"
+    top = sorted(averages, key=lambda e: getattr(e, key, 0.0), reverse=True)[:10]
+    total = sum(getattr(e, key, 0.0) for e in averages) or 1.0
+    result = {"device": device, "mode": mode, "batch": batch, "segments": n_segments, "wall_s": wall,
+              "file": path.name, "top_ops": [{"op": e.key, "self_ms": getattr(e, key, 0.0) / 1000,
+                                              "share": getattr(e, key, 0.0) / total, "calls": e.count} for e in top]}
+    progress.update(1, "profile", {k: v for k, v in result.items() if k != "top_ops"})
+    return result
 
 
 def memory_probe(spec: str) -> dict:
@@ -273,6 +386,8 @@ def _peak_rss() -> float:
 def memory(settings, threads: int | None, progress) -> list[dict]:
     rows = []
     for batch, n_seg, k, mode, device in settings:
+        if progress.out_of_time(f"memory {device} {batch}x{n_seg}"):
+            continue
         cmd = [sys.executable, "-m", "eval.bench", "--memory-probe", f"{batch},{n_seg},{k},{mode},{device}"]
         if threads:
             cmd += ["--threads", str(threads)]
@@ -282,7 +397,7 @@ def memory(settings, threads: int | None, progress) -> list[dict]:
                          "error": (proc.stderr or proc.stdout).strip().splitlines()[-1:]})
         else:
             rows.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-        progress.update(1)
+        progress.update(1, "memory", rows[-1])
     return rows
 
 
@@ -291,6 +406,8 @@ def scaling(segment_counts, grid_sizes, device: str, repeats: int, progress, mod
     out = {"segments": [], "grid": []}
     est = _estimator(mode, device)
     for n in segment_counts:
+        if progress.out_of_time(f"scaling segments {n}"):
+            continue
         seg = _segments(n, seed=1)
         runs = []
         est.calibrate_segments([seg], [(640, 480)])
@@ -299,9 +416,11 @@ def scaling(segment_counts, grid_sizes, device: str, repeats: int, progress, mod
             runs.append(r.runtime_s)
         out["segments"].append({"segments": n, **{f"{k}_ms": 1000 * statistics.median(x[k] for x in runs)
                                                   for k in ("grid", "refine", "cues", "total")}})
-        progress.update(1)
+        progress.update(1, "scaling", out["segments"][-1])
     seg = _segments(500, seed=1)
     for k in grid_sizes:
+        if progress.out_of_time(f"scaling k {k}"):
+            continue
         est_k = _estimator(mode, device, k)
         est_k.calibrate_segments([seg], [(640, 480)])
         runs = []
@@ -311,7 +430,7 @@ def scaling(segment_counts, grid_sizes, device: str, repeats: int, progress, mod
         out["grid"].append({"k": k, "hypotheses": k ** 4, "segments": 500,
                             **{f"{key}_ms": 1000 * statistics.median(x[key] for x in runs)
                                for key in ("grid", "refine", "cues", "total")}})
-        progress.update(1)
+        progress.update(1, "scaling", out["grid"][-1])
     return out
 
 
@@ -360,14 +479,14 @@ def _markdown(report: dict) -> str:
                      f"{r['lsd_ms']:.1f} | {r['grid_floor_ms']:.1f} |")
     lines += ["", "Grid floor = G x N x 3 deviations x (atan2 + exp ns/element measured in cache: "
               f"{report['transcendental_ns']:.2f} ns).", ""]
-    lines += ["## Throughput given segments (fast: grid + refinement + cues)", "",
-              "| device | batch | segments | images/s | ms/image | peak memory (MB) |", "|---|---|---|---|---|---|"]
+    lines += ["## Throughput given segments (grid + refinement + cues)", "",
+              "| device | mode | batch | segments | images/s | ms/image | peak memory (MB) |", "|---|---|---|---|---|---|---|"]
     mem = {(r["batch"], r["device"]): r for r in report["memory"] if r.get("ok")}
     for r in report["throughput"]:
         peak = r.get("peak_memory_mb")
-        if peak is None and (r["batch"], r["device"]) in mem:
+        if peak is None and r.get("mode", "fast") == "fast" and (r["batch"], r["device"]) in mem:
             peak = mem[(r["batch"], r["device"])]["peak_increase_mb"]
-        lines.append(f"| {r['device']} | {r['batch']} | {r['segments']} | {r['images_per_s']:.1f} | "
+        lines.append(f"| {r['device']} | {r.get('mode', 'fast')} | {r['batch']} | {r['segments']} | {r['images_per_s']:.1f} | "
                      f"{r['ms_per_image']:.2f} | {'' if peak is None else f'{peak:.0f}'} |")
     if report["memory"]:
         lines += ["", "## Peak memory (fresh subprocess per setting; CPU: peak RSS increase over the inputs)", "",
@@ -388,6 +507,26 @@ def _markdown(report: dict) -> str:
     for r in report["scaling"]["grid"]:
         lines.append(f"| {r['k']} | {r['hypotheses']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['total_ms']:.1f} |")
     lines += ["", "![scaling](scaling.png)", ""]
+    if report.get("parallel"):
+        lines += ["## CPU parallelism (given segments, images/s)", "",
+                  "T intra-op threads in one process vs W single-threaded worker processes "
+                  "(`fr_torch.pipeline.calibrate_segments_sharded`); batch "
+                  f"{report['parallel'][0]['batch']} x {report['parallel'][0]['segments']} segments.", "",
+                  "| mode | kind | count | images/s | ms/image | speed-up vs 1 |", "|---|---|---|---|---|---|"]
+        base = {(r["mode"], r["kind"]): r["images_per_s"] for r in report["parallel"] if r["count"] == 1}
+        for r in report["parallel"]:
+            ref = base.get((r["mode"], r["kind"]))
+            speedup = f"{r['images_per_s'] / ref:.2f}x" if ref else ""
+            lines.append(f"| {r['mode']} | {r['kind']} | {r['count']} | {r['images_per_s']:.1f} | {r['ms_per_image']:.2f} | "
+                         f"{speedup} |")
+        lines.append("")
+    for p in report.get("profiles", []):
+        lines += [f"## Where the time goes: {p['device']} {p['mode']}, batch {p['batch']} (torch profiler, "
+                  f"full table in `{p['file']}`)", "", "| op | self ms | share | calls |", "|---|---|---|---|"]
+        lines += [f"| `{o['op']}` | {o['self_ms']:.1f} | {100 * o['share']:.0f} % | {o['calls']} |" for o in p["top_ops"]]
+        lines.append("")
+    if report.get("skipped"):
+        lines += [f"Skipped (time budget {report['budget_s']:.0f} s): " + ", ".join(report["skipped"]) + ".", ""]
     return "\n".join(lines)
 
 
@@ -427,6 +566,10 @@ def run(args: argparse.Namespace) -> int:
             pass
 
     batches = [1, 4] if quick else [1, 8, 64, 256, 1024]
+    device_batches = [1, 4] if quick else [1, 64, 256, 1024, 4096]  # CUDA: large batches, capped by the budget
+    cores = os.cpu_count() or 1
+    counts = [1, 2] if quick else sorted({1, 2, min(4, cores), min(8, cores), cores} - {0})
+    par_batch = 4 if quick else 64
     n_seg_tp = 50 if quick else 300
     seg_counts = [100] if quick else [100, 300, 1000, 3000, 5000]
     grid_sizes = [4] if quick else [4, 6, 8, 10, 12]
@@ -437,16 +580,28 @@ def run(args: argparse.Namespace) -> int:
            if device != "cpu" else []))
     if args.no_memory:
         mem_settings = []
-    steps = (1 if quick else 2) * len(images) + len(batches) * len(devices) + len(mem_settings) + len(seg_counts) + len(grid_sizes)
-    progress = _progress(steps, args.no_progress or quick)
+    modes = ("fast",) if quick else ("fast", "fr")
+    steps = (len(modes) * len(images) + len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
+             + len(mem_settings) + len(seg_counts) + len(grid_sizes) + 2 * len(modes) * len(counts) + len(devices))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    budget = args.budget_s if args.budget_s is not None else (170.0 if device.startswith("cuda") else 0.0)
+    progress = _progress(steps, args.no_progress, out / "bench.jsonl", budget)
 
     ns = _transcendental_ns("cpu")
-    e2e = end_to_end(images, repeats, progress, ("fast",) if quick else ("fast", "fr"))
+    tp, profiles = [], []
+    # A GPU figure first (the budget may cut the rest), then CPU latency, throughput, scaling.
+    for dev in devices[1:]:
+        for mode in modes:
+            tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode)
+        profiles.append(profile_table(dev, device_batches[-2], n_seg_tp, out, progress))
+    e2e = end_to_end(images, repeats, progress, modes)
     for row in e2e:
         row["grid_floor_ms"] = row["grid_hypotheses"] * row["segments"] * 3 * ns / 1e6
-    tp = []
-    for dev in devices:
-        tp += throughput(batches, n_seg_tp, dev, repeats, progress)
+    for mode in modes:
+        tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
+    profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
+    parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
     mem = memory(mem_settings, args.threads, progress)
     scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)
     progress.close()
@@ -454,9 +609,9 @@ def run(args: argparse.Namespace) -> int:
 
     report = {"machine": machine_description(device), "command": "fr bench " + " ".join(sys.argv[2:] if
               sys.argv[1:2] == ["bench"] else sys.argv[1:]), "quick": quick, "repeats": repeats,
-              "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+              "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale,
+              "parallel": parallel, "profiles": [p for p in profiles if p], "skipped": progress.skipped,
+              "budget_s": budget}
     (out / "bench.json").write_text(json.dumps(report, indent=1))
     (out / "bench.md").write_text(_markdown(report))
     _figure(scale, out / "scaling.png")

@@ -33,6 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pp", type=str, default=None, metavar="X,Y",
                         help="principal point in pixels (default: image centre)")
     parser.add_argument("--batch-size", type=int, default=16, help="images searched together")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
+                        help="processes that decode + detect ahead of the search (0 = in-process; "
+                             "default min(4, cores - 1), 0 on 1-2 cores)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write a JSON list to OUT")
     parser.add_argument("--overlay", type=Path, default=None, metavar="DIR",
                         help="write <image>_fr.png overlays (segments by family, horizon) to DIR")
@@ -61,9 +64,11 @@ def run(args: argparse.Namespace) -> int:
         args.overlay.mkdir(parents=True, exist_ok=True)
     everything, failures = [], 0
     paths = [str(p) for p in args.images]
-    for start in range(0, len(paths), args.batch_size):
-        chunk = paths[start:start + args.batch_size]
-        results = estimator.calibrate_images(chunk, focal_px=args.focal, principal_point=principal_point)
+    from .pipeline import calibrate_paths, default_workers
+
+    workers = default_workers() if args.workers is None else args.workers
+    workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
+    for chunk, results in calibrate_paths(estimator, paths, args.batch_size, workers, args.focal, principal_point):
         for path, result in zip(chunk, results):
             record = result.to_json(include_segments=args.segments)
             everything.append(record)

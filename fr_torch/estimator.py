@@ -27,8 +27,7 @@ from .camera import VERTICAL_AXIS, Camera, angles_from_rotation, hfov_from_focal
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
 from .search import SearchConfig, grid_hypotheses, hypothesis_rotations, parameter_box, refine, score_grid
 from . import image_io, validate
-from .segments import (FRInputError, SegmentBatch, SegmentFilter, detect_segments, get_detector, load_image,
-                       to_bgr8, validate_segments)
+from .segments import FRInputError, SegmentBatch, SegmentFilter, get_detector, validate_segments
 
 BACKGROUND_LABEL = 3
 
@@ -146,33 +145,10 @@ class FREstimator:
         """
         names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
                                                        for i, im in enumerate(images)]
-        segments, sizes, errors, detect_times = [], [], {}, []
-        # Detection and search run at a bounded working resolution; results come back in input pixels.
-        focal_list = self._per_image(focal_px, len(images), "focal_px")
-        pp_list = self._per_image(principal_point, len(images), "principal_point", width=2)
-        scales, input_sizes = [], []
-        for i, image in enumerate(images):
-            start = time.perf_counter()
-            try:
-                gray, input_size = image_io.read_any(image, names[i], self.working_long_side)
-                gray, scale = image_io.working_image(gray, input_size, self.working_long_side)
-                validate.check_camera(focal_list[i], pp_list[i], input_size, names[i])
-                focal_list[i], pp_list[i] = image_io.focal_and_pp_to_working(focal_list[i], pp_list[i], scale)
-                segments.append(detect_segments(gray, self.detector, self.segment_filter))
-                sizes.append((gray.shape[1], gray.shape[0]))
-            except FRInputError as exc:
-                errors[i], scale, input_size = str(exc), 1.0, (0, 0)
-                segments.append(np.zeros((0, 4)))
-                sizes.append((0, 0))
-            scales.append(scale)
-            input_sizes.append(input_size)
-            detect_times.append(time.perf_counter() - start)
-        results = self._calibrate(segments, sizes, names, focal_list, pp_list, errors, filtered=True)
-        for result, seconds, scale, input_size in zip(results, detect_times, scales, input_sizes):
-            image_io.result_to_input_pixels(result, scale, input_size)
-            result.runtime_s["detect"] = seconds
-            result.runtime_s["total"] = result.runtime_s.get("total", 0.0) + seconds
-        return results
+        from .pipeline import calibrate_paths  # decode + detect + search; also with worker processes
+
+        return [r for _, batch in calibrate_paths(self, images, max(1, len(images)), 0, focal_px, principal_point,
+                                                  names) for r in batch]
 
     def calibrate_segments(self, segments: Sequence, image_sizes: Sequence[tuple[int, int]],
                            names: Sequence[str] | None = None, focal_px=None, principal_point=None,
@@ -244,10 +220,12 @@ class FREstimator:
         start_all = time.perf_counter()
         device, dtype = self.device, self.dtype
         batch = SegmentBatch.from_list([segments[i] for i in group], [sizes[i] for i in group], device, dtype)
-        width = torch.tensor([float(sizes[i][0]) for i in group], dtype=torch.float64)
-        height = torch.tensor([float(sizes[i][1]) for i in group], dtype=torch.float64)
-        pp = torch.stack([torch.tensor(pp_list[i], dtype=torch.float64) if pp_list[i] is not None
-                          else torch.tensor(image_centre(*sizes[i]), dtype=torch.float64) for i in group])
+        size_np = np.array([sizes[i] for i in group], dtype=np.float64).reshape(-1, 2)
+        pp_np = np.array([pp_list[i] if pp_list[i] is not None else (np.nan, np.nan) for i in group],
+                         dtype=np.float64).reshape(-1, 2)
+        pp_np = np.where(np.isnan(pp_np), np.stack(image_centre(size_np[:, 0], size_np[:, 1]), -1), pp_np)
+        width = torch.from_numpy(size_np[:, 0].copy())
+        pp = torch.from_numpy(pp_np)
         features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
         focal = torch.tensor([float(focal_list[i]) for i in group], dtype=torch.float64) if known_focal else None
 
@@ -287,23 +265,29 @@ class FREstimator:
         labels_all = labels.cpu().numpy()
         rotation_all = rotation.cpu().numpy()
         vps_all = vps.cpu().numpy()
+        params_all = best_params.cpu().numpy()
+        scores_all = best_scores.to(torch.float64).cpu().numpy()
+        hfov_all = hfov_from_focal(best_params[:, 3].cpu(), width).numpy()
+        angles_all = {key: angles[key].cpu().numpy() for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg")}
+        cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
+        family = labels_all != BACKGROUND_LABEL
+        manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
         for j, i in enumerate(group):
             n = int(counts_all[j])
             r = results[i]
-            r.focal_px = float(best_params[j, 3])
-            r.hfov_deg = float(hfov_from_focal(best_params[j, 3], width[j]))
-            r.principal_point = (float(pp[j, 0]), float(pp[j, 1]))
+            r.focal_px = float(params_all[j, 3])
+            r.hfov_deg = float(hfov_all[j])
+            r.principal_point = (float(pp_np[j, 0]), float(pp_np[j, 1]))
             r.rotation = rotation_all[j]
-            for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg"):
-                setattr(r, key, float(angles[key][j]))
+            for key, value in angles_all.items():
+                setattr(r, key, float(value[j]))
             r.vanishing_points = vps_all[j]
-            r.log_likelihood = float(best_scores[j])
+            r.log_likelihood = float(scores_all[j])
             r.num_segments = n
             r.segments = segments[i]
             r.labels = labels_all[j, :n]
-            lengths = lengths_all[j, :n]
-            r.manhattan_fraction = float(lengths[r.labels != BACKGROUND_LABEL].sum() / max(lengths.sum(), 1e-12))
-            r.cues = {key: float(value[j]) for key, value in cues.items()}
+            r.manhattan_fraction = float(manhattan[j])
+            r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             r.reliable, r.reason = self._sanity(r)
 

@@ -376,35 +376,45 @@ def objective_b_nograd(line, along, weight, flat, neg_inv_scale, log_coef, backg
     return torch.bmm(weight[:, None, :], p)[:, 0]
 
 
+def measure_b_forward(line, along, weight, flat, neg_inv_scale, log_coef, background, floor):
+    """Measure-b objective (B, H) and what :func:`measure_b_backward` needs (no autograd graph)."""
+    batch, n_seg = line.shape[:2]
+    hyp = flat.shape[2] // 3
+    s = torch.bmm(line, flat)
+    t = torch.bmm(along, flat)
+    a, c = s.abs(), t.abs()
+    theta = torch.atan2(a, c).view(batch, n_seg, 3, hyp)
+    e = torch.addcmul(log_coef, theta, neg_inv_scale).clamp_min_(floor).exp_()  # prior/lambda exp(-x/lambda)
+    p = e.sum(2).add_(background)
+    return torch.bmm(weight[:, None, :], p.log())[:, 0], (line, along, weight, s, t, e, p, neg_inv_scale)
+
+
+def measure_b_backward(saved, grad_out):
+    """d objective / d flat (B, 3, 3H) for the upstream gradient ``grad_out`` (B, H)."""
+    line, along, weight, s, t, e, p, neg_inv_scale = saved
+    batch, n_seg, hyp = p.shape
+    # d obj / d x_ik = w_i / p_i * (-e_ik / lambda_k);  x = atan2(|s|, |t|):
+    # dx/ds = sign(s) |t| / (s^2 + t^2), dx/dt = -sign(t) |s| / (s^2 + t^2)  (0 at s = t = 0).
+    g = (weight[:, :, None] / p) * grad_out[:, None, :]  # (B, N, H)
+    a, c = s.abs(), t.abs()
+    r2 = (a * a).addcmul_(c, c)
+    r2 = torch.where(r2 > 0, r2, torch.ones_like(r2))
+    common = (e * neg_inv_scale).mul_(g[:, :, None, :]).view(batch, n_seg, 3 * hyp).div_(r2)
+    gs = (common * c).mul_(torch.sign(s))
+    gt = common.mul_(a).mul_(torch.sign(t)).neg_()
+    return torch.bmm(line.transpose(1, 2), gs).add_(torch.bmm(along.transpose(1, 2), gt))
+
+
 class _MeasureBObjective(torch.autograd.Function):
     """Measure-b objective with an analytic gradient w.r.t. the VP-major vanishing points."""
 
     @staticmethod
     def forward(ctx, line, along, weight, flat, neg_inv_scale, log_coef, background, floor):
-        batch, n_seg = line.shape[:2]
-        hyp = flat.shape[2] // 3
-        s = torch.bmm(line, flat)
-        t = torch.bmm(along, flat)
-        a, c = s.abs(), t.abs()
-        theta = torch.atan2(a, c).view(batch, n_seg, 3, hyp)
-        e = torch.addcmul(log_coef, theta, neg_inv_scale).clamp_min_(floor).exp_()  # prior/lambda exp(-x/lambda)
-        p = e.sum(2).add_(background)
-        ctx.save_for_backward(line, along, weight, s, t, e, p, neg_inv_scale)
-        return torch.bmm(weight[:, None, :], p.log())[:, 0]
+        objective, saved = measure_b_forward(line, along, weight, flat, neg_inv_scale, log_coef, background, floor)
+        ctx.save_for_backward(*saved)
+        return objective
 
     @staticmethod
     def backward(ctx, grad_out):
-        line, along, weight, s, t, e, p, neg_inv_scale = ctx.saved_tensors
-        batch, n_seg, hyp = p.shape
-        # d obj / d x_ik = w_i / p_i * (-e_ik / lambda_k);  x = atan2(|s|, |t|):
-        # dx/ds = sign(s) |t| / (s^2 + t^2), dx/dt = -sign(t) |s| / (s^2 + t^2)  (0 at s = t = 0).
-        g = (weight[:, :, None] / p) * grad_out[:, None, :]  # (B, N, H)
-        a, c = s.abs(), t.abs()
-        r2 = (a * a).addcmul_(c, c)
-        r2 = torch.where(r2 > 0, r2, torch.ones_like(r2))
-        common = (e * neg_inv_scale).mul_(g[:, :, None, :]).view(batch, n_seg, 3 * hyp).div_(r2)
-        gs = (common * c).mul_(torch.sign(s))
-        gt = common.mul_(a).mul_(torch.sign(t)).neg_()
-        grad_flat = torch.bmm(line.transpose(1, 2), gs).add_(torch.bmm(along.transpose(1, 2), gt))
+        grad_flat = measure_b_backward(ctx.saved_tensors, grad_out)
         return None, None, None, grad_flat, None, None, None, None
-

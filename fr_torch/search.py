@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 
 from .camera import focal_from_hfov, rotation_from_angles
-from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures
+from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures, measure_b_backward, measure_b_forward, vp_major
 
 PARAMS = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
 CPU_CHUNK_ELEMENTS = 1 << 17  # per-chunk deviations on CPU: two float32 buffers of ~0.5 MB stay in cache
@@ -225,11 +225,15 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast):
         rotation = fast_rotations(params)
         return params, likelihood.objective(features, rotation, params[..., 3])
 
+    analytic = likelihood._fast_path(features)
     for _ in range(iterations):
         optimiser.zero_grad(set_to_none=True)
-        _, objective = evaluate(u)
-        loss = -(objective / total_length).sum()
-        loss.backward()
+        if analytic:  # same gradient in closed form, no autograd graph (see objective_and_grad)
+            u.grad = objective_and_grad(likelihood, features, lower, span, u.detach(), -1.0 / total_length)[1]
+        else:
+            _, objective = evaluate(u)
+            loss = -(objective / total_length).sum()
+            loss.backward()
         if not all_free:
             u.grad = torch.where(free, u.grad, torch.zeros_like(u.grad))
         optimiser.step()
@@ -239,3 +243,54 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast):
     with torch.no_grad():
         params, objective = evaluate(u)
     return params.detach(), objective.detach()
+
+
+def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures, lower: torch.Tensor,
+                       span: torch.Tensor, u: torch.Tensor, grad_out: torch.Tensor):
+    """Measure-b objective (B, L) at ``params = lower + u * span`` and the gradient of
+    ``sum(grad_out * objective)`` with respect to u (B, L, 4), without autograd.
+
+    ``lower``, ``span``: (B, 1, 4); ``grad_out``: broadcastable to (B, L).  The chain is written
+    out: d obj / d VPs from :func:`fr_torch.likelihood.measure_b_backward`, then ``V = K R``
+    (``dV/df = [R_0; R_1; 0]``, ``dV/dR = K``) and the closed-form derivatives of
+    :func:`fast_rotations` with respect to pan, pitch and roll (degrees).  Equal to the autograd
+    gradient of the same objective to rounding (tests); used by the refinement, where autograd's
+    per-step overhead dominated at small batches.
+    """
+    params = lower + u * span
+    batch, n_hyp = params.shape[:2]
+    rad = torch.deg2rad(params[..., :3])
+    cos, sin = torch.cos(rad), torch.sin(rad)
+    cp, ct, cr = cos.unbind(-1)
+    sp, st, sr = sin.unbind(-1)
+    spst, cpst = sp * st, cp * st
+    zero = torch.zeros_like(cp)
+    rotation = torch.stack([cp * cr + spst * sr, ct * sr, cpst * sr - sp * cr,
+                            spst * cr - cp * sr, ct * cr, sp * sr + cpst * cr,
+                            sp * ct, -st, cp * ct], -1).view(batch, n_hyp, 3, 3)
+    d_pan = torch.stack([cpst * sr - sp * cr, zero, -spst * sr - cp * cr,
+                         cpst * cr + sp * sr, zero, cp * sr - spst * cr,
+                         cp * ct, zero, -sp * ct], -1)
+    d_pitch = torch.stack([sp * ct * sr, -st * sr, cp * ct * sr,
+                           sp * ct * cr, -st * cr, cp * ct * cr,
+                           -spst, -ct, -cpst], -1)
+    d_roll = torch.stack([spst * cr - cp * sr, ct * cr, cpst * cr + sp * sr,
+                          -spst * sr - cp * cr, -ct * sr, sp * cr - cpst * sr,
+                          zero, zero, zero], -1)
+    focal = params[..., 3]
+    pp = features.principal_point[:, None, :]  # (B, 1, 2)
+    # V = K R: rows 0, 1 = f R_j + c_j R_2, row 2 = R_2.
+    top = focal[..., None, None] * rotation[..., :2, :] + pp[..., None] * rotation[..., 2:, :]
+    vps = torch.cat([top, rotation[..., 2:, :]], -2)  # (B, L, 3, 3)
+    objective, saved = measure_b_forward(features.line, features.along, features.weight, vp_major(vps),
+                                         *likelihood._b_constants(features.weight))
+    grad_flat = measure_b_backward(saved, grad_out.expand(batch, n_hyp).contiguous())
+    grad_v = grad_flat.view(batch, 3, 3, n_hyp).permute(0, 3, 1, 2)  # (B, L, coord, VP)
+    # dObj/dR = K^T G: rows 0, 1 scaled by f; row 2 gets c . G[:2] + G[2].
+    grad_r = torch.cat([focal[..., None, None] * grad_v[..., :2, :],
+                        (pp[..., None] * grad_v[..., :2, :]).sum(-2, keepdim=True) + grad_v[..., 2:, :]], -2)
+    grad_r = grad_r.reshape(batch, n_hyp, 9)
+    grad_f = (grad_v[..., :2, :] * rotation[..., :2, :]).sum((-1, -2))
+    grad_p = torch.stack([(grad_r * d_pan).sum(-1), (grad_r * d_pitch).sum(-1), (grad_r * d_roll).sum(-1)], -1)
+    grad_p = torch.cat([grad_p * (math.pi / 180), grad_f[..., None]], -1)
+    return objective, grad_p * span

@@ -196,15 +196,19 @@ class SegmentBatch:
     @classmethod
     def from_list(cls, segments: Sequence[np.ndarray], image_sizes: Sequence[tuple[int, int]],
                   device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> "SegmentBatch":
-        count = max([len(s) for s in segments] + [1])
-        endpoints = torch.zeros(len(segments), count, 4, dtype=dtype)
-        mask = torch.zeros(len(segments), count, dtype=torch.bool)
+        # Padding is done in NumPy (one host array, no per-image tensors) and moved to the device
+        # with one transfer per tensor.
+        counts = np.array([len(s) for s in segments], dtype=np.int64)
+        count = max(int(counts.max(initial=0)), 1)
+        np_dtype = np.float64 if dtype == torch.float64 else np.float32
+        endpoints = np.zeros((len(segments), count, 4), dtype=np_dtype)
         for b, seg in enumerate(segments):
-            if len(seg):
-                endpoints[b, : len(seg)] = torch.as_tensor(np.asarray(seg), dtype=dtype)
-                mask[b, : len(seg)] = True
-        size = torch.as_tensor(np.asarray(image_sizes, dtype=np.float64), dtype=dtype).reshape(-1, 2)
-        return cls(endpoints.to(device), mask.to(device), size.to(device))
+            if counts[b]:
+                endpoints[b, : counts[b]] = np.asarray(seg).reshape(-1, 4)
+        mask = np.arange(count)[None, :] < counts[:, None]
+        size = np.asarray(image_sizes, dtype=np.float64).reshape(-1, 2)
+        return cls(torch.from_numpy(endpoints).to(device=device, dtype=dtype), torch.from_numpy(mask).to(device),
+                   torch.from_numpy(size).to(device=device, dtype=dtype))
 
     @property
     def lengths(self) -> torch.Tensor:

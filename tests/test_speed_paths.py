@@ -209,3 +209,25 @@ def test_bench_quick_smoke(tmp_path):
     assert report["memory"] and report["memory"][0]["ok"]
     assert (tmp_path / "bench.md").read_text().startswith("# fR speed benchmark")
     assert (tmp_path / "scaling.png").stat().st_size > 0
+    lines = [json.loads(x) for x in (tmp_path / "bench.jsonl").read_text().splitlines()]
+    assert {"end_to_end", "throughput", "parallel", "profile"} <= {x["section"] for x in lines}  # written as it goes
+    assert {(r["kind"], r["count"]) for r in report["parallel"]} == {("threads", 1), ("threads", 2),
+                                                                     ("workers", 1), ("workers", 2)}
+    assert report["profiles"] and (tmp_path / report["profiles"][0]["file"]).read_text()
+
+
+def test_refinement_closed_form_gradient_matches_autograd():
+    from fr_torch.search import objective_and_grad
+    features = _features([_scene(0), _scene(1, hfov=90.0, n_per_family=40)], torch.float64)
+    model = MixtureLikelihood()
+    batch = features.weight.shape[0]
+    lower = torch.tensor([-45.0, -35.0, -15.0, 150.0], dtype=torch.float64).expand(batch, 1, 4)
+    span = torch.tensor([90.0, 70.0, 30.0, 800.0], dtype=torch.float64).expand(batch, 1, 4)
+    u = torch.rand(batch, 4, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0)).requires_grad_(True)
+    weight = torch.rand(batch, 1, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    params = lower + u * span
+    objective = model.objective(features, fast_rotations(params), params[..., 3])
+    (objective * weight).sum().backward()
+    value, grad = objective_and_grad(model, features, lower, span, u.detach(), weight)
+    assert torch.allclose(value, objective.detach(), rtol=1e-12)
+    assert torch.allclose(grad, u.grad, rtol=1e-9, atol=1e-9 * u.grad.abs().max())

@@ -1,0 +1,63 @@
+"""The decode/detect pipeline and the sharded search give the in-process results, in input order."""
+import cv2
+import numpy as np
+import pytest
+
+from fr_torch import FREstimator
+from fr_torch.pipeline import calibrate_paths, calibrate_segments_sharded
+from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
+
+
+def _same(a, b):
+    """Equal up to the batched == one-by-one tolerances (padding changes float reductions)."""
+    assert a.image == b.image and a.ok == b.ok and a.reason == b.reason
+    if a.ok:
+        assert a.focal_px == pytest.approx(b.focal_px, rel=1e-5)
+        assert np.allclose(a.rotation, b.rotation, atol=1e-5)
+        assert np.array_equal(a.labels, b.labels)
+        assert a.cues == pytest.approx(b.cues, rel=1e-5)
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    root = tmp_path_factory.mktemp("images")
+    rng = np.random.default_rng(3)
+    paths = []
+    for i in range(3):
+        image = render_manhattan_room(500.0 + 50 * i, random_rotation(rng, pan=(-20, 20), pitch=(-10, 10), roll=(-5, 5)),
+                                      320, 240, seed=i)
+        paths.append(str(root / f"room{i}.png"))
+        cv2.imwrite(paths[-1], image)
+    corrupt = root / "corrupt.jpg"
+    corrupt.write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    paths.insert(1, str(corrupt))
+    paths.append(str(root / "missing.png"))
+    return paths
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_pipeline_equals_in_process_and_keeps_order(folder, workers):
+    est = FREstimator(mode="fast")
+    reference = est.calibrate_images(folder)
+    got = [(chunk, results) for chunk, results in calibrate_paths(est, folder, batch_size=2, workers=workers)]
+    assert [p for chunk, _ in got for p in chunk] == folder
+    results = [r for _, batch in got for r in batch]
+    assert [r.image for r in results] == folder
+    assert not results[1].ok and "corrupt.jpg" in results[1].reason
+    assert not results[-1].ok and "no such file" in results[-1].reason
+    for a, b in zip(results, reference):
+        _same(a, b)
+    assert all(r.ok for i, r in enumerate(results) if i not in (1, len(folder) - 1))
+
+
+def test_sharded_segments_equal_in_process():
+    est = FREstimator(mode="fast")
+    rng = np.random.default_rng(0)
+    segments = [synthetic_segments(500.0, random_rotation(rng), n_per_family=20, seed=i)[0] for i in range(5)]
+    segments[2] = np.full((3, 4), np.nan)  # a bad set stays that set's failure
+    sizes = [(640, 480)] * 5
+    reference = est.calibrate_segments(segments, sizes)
+    sharded = calibrate_segments_sharded(est, segments, sizes, workers=2)
+    assert not sharded[2].ok
+    for a, b in zip(sharded, reference):
+        _same(a, b)
