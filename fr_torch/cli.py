@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "train-reliability": ("fr_torch.reliability_train", "train the error predictor (reliability model)"),
     "track": ("fr_torch.track", "online recalibration from a video or a folder of frames"),
     "bench": ("eval.bench", "speed benchmark (latency, throughput, memory)"),
+    "batch": ("fr_torch.batch", "calibrate many images into a resumable Parquet dataset (local or Ray)"),
 }
 
 
