@@ -244,7 +244,7 @@ class BatchWorker:
 
     This is the unit of work of both engines (a Ray Data actor is one ``BatchWorker``).
     ``options``: from :func:`estimator_options`; ``extras``: from :func:`extra_columns`;
-    ``threads``: torch intra-op threads (None = leave as is).
+    ``threads``: torch intra-op and OpenCV threads (None = leave as is).
     """
 
     def __init__(self, options: dict[str, Any], extras=(), threads: int | None = None, crash: str | None = None):
@@ -253,8 +253,11 @@ class BatchWorker:
         from .estimator import FREstimator
         from .search import SearchConfig
 
-        if threads:
+        if threads:  # torch and OpenCV: oversubscribed threads stall on a loaded machine
+            import cv2
+
             torch.set_num_threads(int(threads))
+            cv2.setNumThreads(int(threads))
         self.options = dict(options)
         search = SearchConfig.from_config(hfov_range_deg=options["hfov_range"]) if options.get("hfov_range") else None
         self.estimator = FREstimator(mode=options["mode"], measure=options.get("measure"),
@@ -544,6 +547,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``fr batch``: prints a one-line summary; exit 0 even when some images failed (they are rows
     with ok=false), non-zero on a usage error."""
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        raise ValueError("fr batch writes Parquet and needs pyarrow: pip install 'fr-torch[batch]'") from None
     options = estimator_options(args)
     summary = run_batch([str(p) for p in args.inputs], args.out, options, engine=args.engine,
                         workers=args.workers, batch_size=args.batch_size, address=args.address,

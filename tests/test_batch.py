@@ -13,8 +13,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pandas as pd
-import pyarrow.parquet as pq
 import pytest
+
+pq = pytest.importorskip("pyarrow.parquet")  # fr batch needs pyarrow (extra "batch" / "ray")
 
 from fr_torch.batch import BatchWorker, collect_inputs, estimator_options, run_batch
 from fr_torch.camera import rotation_from_angles
