@@ -19,6 +19,7 @@ from pathlib import Path
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("fr_torch.cli", "estimate focal length and rotation of images"),
     "track": ("fr_torch.track", "online recalibration from a video or a folder of frames"),
+    "batch": ("fr_torch.batch", "calibrate many images into a resumable Parquet dataset (local or Ray)"),
 }
 
 
