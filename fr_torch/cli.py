@@ -122,9 +122,9 @@ def subcommands() -> dict[str, tuple[str, str]]:
     a module providing add_arguments(parser) and run(args); e.g. ``export-ctrlc``)."""
     from .registry import entry_points
 
-    declared = {name: (module, f"(from {module.split('.')[0]})") for name, module in
-                entry_points("fr_torch.commands").items()}
-    return {**declared, **SUBCOMMANDS}
+    declared = {name: (module, f"plug-in command ({module})") for name, module in
+                entry_points("fr_torch.commands").items() if name not in SUBCOMMANDS}
+    return {**SUBCOMMANDS, **declared}
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
