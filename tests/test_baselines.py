@@ -318,6 +318,14 @@ def test_ctrlc_end_to_end_with_tiny_onnx(tiny_ctrlc):
     # Without meta.segments it runs LSD on the image; a missing image is a flagged failure.
     assert method.estimate(image, ImageMeta(name="room")).ok
     assert not method.estimate(None, ImageMeta(name="room", segments=segments)).ok
+    # Same settings as every other row: a known focal replaces the predicted FOV; CTRL-C's principal
+    # point is the image centre, so an off-centre one is refused rather than ignored.
+    known = method.estimate(image, ImageMeta(name="room", segments=segments, focal_px=321.0))
+    assert known.ok and known.focal_px == 321.0
+    centred = ImageMeta(name="room", segments=segments, principal_point=((W - 1) / 2, (H - 1) / 2))
+    assert method.estimate(image, centred).ok
+    off = method.estimate(image, ImageMeta(name="room", segments=segments, principal_point=(W / 2 + 20, H / 2)))
+    assert not off.ok and "principal point at the image centre" in off.reason
 
 
 # --------------------------------------------------------------------------- external / prior
