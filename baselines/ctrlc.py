@@ -2,7 +2,7 @@
 
 J. Lee, H. Go, H. Lee, S. Cho, M. Sung, J. Kim, "CTRL-C: Camera calibration TRansformer with
 Line-Classification", ICCV 2021.  The network itself is not re-implemented: the user exports the
-official checkpoint to ONNX with :mod:`baselines.export_ctrlc_onnx` and points this adapter at
+official checkpoint to ONNX with ``fr export-ctrlc`` (:mod:`baselines.export_ctrlc_onnx`) and points this adapter at
 the file (constructor argument ``onnx_path`` or environment variable ``FR_CTRLC_ONNX``).  Without
 weights the method is listed but ``available`` is False and every estimate is a flagged failure
 with an "n/a (not supplied: ...)" reason (:func:`fr_torch.registry.not_supplied`).
@@ -57,6 +57,7 @@ from fr_torch.segments import FRInputError, to_bgr8
 
 from . import vp_geometry as vg
 
+ALLOW_RANDOM_ENV = "FR_CTRLC_ALLOW_RANDOM"  # =1: run a --random-weights export (tests only)
 INPUT_SIZE = 512
 NUM_LINES = 512
 MIN_LINE_LENGTH = 10.0
@@ -208,6 +209,10 @@ class CTRLC(TimedCalibrator):
             reason = not_supplied(f"weights: set {self.env_var}" if self.onnx_path is None
                                   else f"weights: {self.onnx_path} not found")
             return CameraEstimate.failure(self.name, reason)
+        if self.metadata().get("random_weights") == "true" and os.environ.get(ALLOW_RANDOM_ENV) != "1":
+            # an export-path test file: its numbers must never end up in a table by mistake
+            return CameraEstimate.failure(self.name, not_supplied(
+                f"{self.onnx_path.name} has random weights (export test); set {ALLOW_RANDOM_ENV}=1 to run it anyway"))
         if image is None:
             return CameraEstimate.failure(self.name, "bad input: CTRL-C needs the image")
         try:

@@ -95,6 +95,15 @@ class ExternalPredictions:
     def available(self) -> bool:
         return self.csv_path is not None
 
+    @property
+    def weights(self) -> str | None:
+        """What produced this row, for table captions: the CSV's file name + sha256 (None without)."""
+        if self.csv_path is None or not self.csv_path.is_file():
+            return None
+        from .export_ctrlc_onnx import sha256
+
+        return f"predictions {self.csv_path.name} (sha256 {sha256(self.csv_path)})"
+
     def lookup(self, name: str) -> dict[str, float | None] | None:
         """The row for an image name (exact, then file name, then file stem), or None."""
         if not name:

@@ -32,7 +32,7 @@ import torch
 from fr_torch.camera import (MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal, horizon_angles,
                              manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg)  # noqa: F401
 
-from fr_torch.registry import NA_PREFIX, NOT_SUPPLIED  # noqa: E402,F401  (the one marker)
+from fr_torch.registry import NA_PREFIX, NOT_SUPPLIED, is_not_supplied  # noqa: F401  (the one marker)
 
 METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
 
@@ -186,19 +186,20 @@ class Summary:
         return row
 
 
-def not_supplied(rows: Sequence[dict[str, Any]]) -> bool:
-    """True when every row failed with a reason starting ``"n/a ("`` (weights / predictions absent)."""
-    return bool(rows) and all(r.get("failed") and str(r.get("reason") or "").startswith(NA_PREFIX) for r in rows)
+def all_not_supplied(rows: Sequence[dict[str, Any]]) -> bool:
+    """True when every row failed with an "n/a (...)" reason (weights / predictions absent; see
+    :func:`fr_torch.registry.not_supplied`)."""
+    return bool(rows) and all(r.get("failed") and is_not_supplied(r.get("reason")) for r in rows)
 
 
 def summarize(method: str, rows: Sequence[dict[str, Any]], group: str | None = None) -> Summary:
     """Summary of per-image rows (dicts with ``failed`` and the METRICS keys) for one method.
 
-    A method that was not supplied (:func:`not_supplied`) gets NaN means (never a made-up number)
+    A method that was not supplied (:func:`all_not_supplied`) gets NaN means (never a made-up number)
     and ``na_reason = NOT_SUPPLIED``.
     """
     failures = sum(1 for r in rows if r.get("failed"))
-    na = not_supplied(rows)
+    na = all_not_supplied(rows)
     mean, se, n = {}, {}, {}
     for m in METRICS:
         values = [] if na else [r.get(m) for r in rows if not r.get("failed") or m == "runtime_s"]
@@ -217,9 +218,9 @@ def group_sort_key(value: Any) -> tuple:
 
 def summarize_groups(method: str, rows: Sequence[dict[str, Any]], key: str = "group") -> list[Summary]:
     """One :class:`Summary` per distinct value of ``row[key]`` (rows without a value are skipped),
-    in :func:`group_sort_key` order.  A method not supplied (:func:`not_supplied`) gets a single
+    in :func:`group_sort_key` order.  A method not supplied (:func:`all_not_supplied`) gets a single
     summary with group ``"all"`` (one "n/a (not supplied)" row instead of one per group)."""
-    if not_supplied(rows):
+    if all_not_supplied(rows):
         return [summarize(method, rows, group="all")]
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in rows:

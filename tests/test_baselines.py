@@ -318,6 +318,14 @@ def test_ctrlc_end_to_end_with_tiny_onnx(tiny_ctrlc):
     # Without meta.segments it runs LSD on the image; a missing image is a flagged failure.
     assert method.estimate(image, ImageMeta(name="room")).ok
     assert not method.estimate(None, ImageMeta(name="room", segments=segments)).ok
+    # Same settings as every other row: a known focal replaces the predicted FOV; CTRL-C's principal
+    # point is the image centre, so an off-centre one is refused rather than ignored.
+    known = method.estimate(image, ImageMeta(name="room", segments=segments, focal_px=321.0))
+    assert known.ok and known.focal_px == 321.0
+    centred = ImageMeta(name="room", segments=segments, principal_point=((W - 1) / 2, (H - 1) / 2))
+    assert method.estimate(image, centred).ok
+    off = method.estimate(image, ImageMeta(name="room", segments=segments, principal_point=(W / 2 + 20, H / 2)))
+    assert not off.ok and "principal point at the image centre" in off.reason
 
 
 # --------------------------------------------------------------------------- external / prior
@@ -370,3 +378,22 @@ def test_prior():
     from_image = Prior().estimate(np.zeros((100, 200, 3), np.uint8), ImageMeta(name="y"))
     assert from_image.focal_px == pytest.approx(100 / math.tan(math.radians(30)))
     assert not Prior().estimate(None, ImageMeta(name="z")).ok
+
+
+def test_learned_rows_name_their_weights_in_captions(tmp_path, tiny_ctrlc, monkeypatch):
+    """Table captions name each learned row's weights / predictions: file name + sha256."""
+    import hashlib
+
+    from eval.run_eval import weights_note
+
+    _, onnx_path = tiny_ctrlc
+    csv = tmp_path / "hg.csv"
+    csv.write_text("image,hfov_deg\na.jpg,60\n")
+    monkeypatch.delenv("FR_CTRLC_ONNX", raising=False)
+    note = weights_note({"ctrlc": CTRLC(onnx_path=onnx_path), "prior": Prior(),
+                         "hold-geoffroy2018": ExternalPredictions(csv_path=csv, method="hold-geoffroy2018"),
+                         "ctrlc-retrained": CTRLC(name="ctrlc-retrained", env_var="NO_SUCH_VAR")})
+    digest = hashlib.sha256(onnx_path.read_bytes()).hexdigest()
+    assert f"ctrlc = {onnx_path.name} (sha256 {digest})" in note
+    assert f"hold-geoffroy2018 = predictions hg.csv (sha256 {hashlib.sha256(csv.read_bytes()).hexdigest()})" in note
+    assert "prior" not in note and "ctrlc-retrained" not in note

@@ -79,9 +79,17 @@ def test_export_agrees_and_records_provenance(small_onnx):
     assert small_onnx.name in weights and "sha256" in weights and "RANDOM WEIGHTS" in weights
 
 
-def test_exported_ctrlc_in_fr_eval(small_onnx, data_root, tmp_path):
+def test_exported_ctrlc_in_fr_eval(small_onnx, data_root, tmp_path, monkeypatch):
     """The random-weight export through the ctrlc adapter in ``fr eval`` on three YUD images:
-    every image gets finite numbers, and the caption names the weights and says they are random."""
+    refused by default (n/a), and with FR_CTRLC_ALLOW_RANDOM=1 every image gets finite numbers and
+    the caption names the weights and says they are random."""
+    from baselines.ctrlc import CTRLC
+    from fr_torch.interface import ImageMeta
+
+    monkeypatch.delenv("FR_CTRLC_ALLOW_RANDOM", raising=False)
+    refused = CTRLC(onnx_path=small_onnx).estimate(np.zeros((480, 640, 3), np.uint8), ImageMeta(name="x"))
+    assert not refused.ok and refused.reason.startswith("n/a (not supplied: ") and "random weights" in refused.reason
+    monkeypatch.setenv("FR_CTRLC_ALLOW_RANDOM", "1")
     result = _fr("eval", "--dataset", "yud", "--limit", "3", "--methods", "ctrlc", "--ctrlc-onnx", str(small_onnx),
                  "--data-root", str(data_root), "--out", str(tmp_path), "--no-plots", "--group-by", "none",
                  cwd=tmp_path)

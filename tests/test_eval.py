@@ -17,6 +17,7 @@ from eval import fit_likelihood, run_eval
 from eval.datasets.registry import CalibrationSample
 from fr_torch.camera import rotation_from_angles
 from fr_torch.interface import CameraEstimate, ImageMeta
+from fr_torch.registry import not_supplied
 from tests.conftest import require_dataset
 
 # ----------------------------------------------------------------------------- fake data + methods
@@ -229,7 +230,7 @@ class NotSupplied:
     def estimate(self, image, meta):
         if image is not None:
             NotSupplied.images_seen += 1
-        return CameraEstimate.failure(self.name, "n/a (weights not supplied)")
+        return CameraEstimate.failure(self.name, not_supplied("weights"))
 
 
 class CueCalibrator(OracleCalibrator):

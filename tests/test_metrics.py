@@ -28,6 +28,7 @@ from eval.tables import (
 )
 from fr_torch.camera import hfov_from_focal, horizon_angles, rotation_from_angles
 from fr_torch.interface import CameraEstimate
+from fr_torch.registry import not_supplied
 
 
 def rot_z(deg: float) -> np.ndarray:
@@ -173,7 +174,7 @@ def test_valid_share_and_not_supplied_rows():
     rows = [{"failed": False, "runtime_s": 1.0, "roll_err_deg": 1.0, "group": "60"},
             {"failed": True, "reason": "no VP", "runtime_s": 1.0, "group": "90"},
             {"failed": False, "runtime_s": 1.0, "roll_err_deg": 3.0, "group": "60"},
-            {"failed": True, "reason": "n/a (weights not supplied)", "runtime_s": 1.0, "group": "90"}]
+            {"failed": True, "reason": not_supplied("weights"), "runtime_s": 1.0, "group": "90"}]
     s = summarize("m", rows)
     assert s.n_valid == 2 and s.valid_pct == 50.0 and not s.not_supplied  # partial n/a = ordinary failures
     table = display_frame([s])

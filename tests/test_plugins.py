@@ -75,7 +75,8 @@ def test_registries_name_no_harness():
 
 @pytest.fixture(scope="module")
 def installed_plugin(tmp_path_factory) -> Path:
-    """examples/fr_plugin_example pip-installed (no deps, no isolation) into a fresh target folder."""
+    """examples/fr_plugin_example pip-installed (no deps, no isolation) into a fresh target folder.
+    Building it without isolation needs setuptools >= 70.1 (bdist_wheel built in) in this env."""
     target = tmp_path_factory.mktemp("site")
     build = tmp_path_factory.mktemp("build")
     source = shutil.copytree(EXAMPLE, build / EXAMPLE.name)  # setuptools writes build/ next to the source
