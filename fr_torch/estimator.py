@@ -33,6 +33,20 @@ BACKGROUND_LABEL = 3
 
 
 @dataclass
+class _Image:
+    """One image on its way through the estimator: its inputs, then its result."""
+
+    name: str
+    size: tuple[int, int]  # (width, height), pixels; (0, 0) when the image could not be read
+    segments: np.ndarray  # (N, 4) filtered segments
+    error: str | None = None  # why it cannot be calibrated (bad input)
+    detect_s: float | None = None  # seconds spent decoding + detecting (images only)
+    focal_px: float | None = None  # known focal length, pixels
+    principal_point: tuple[float, float] | None = None  # None: image centre
+    result: CalibrationResult | None = None
+
+
+@dataclass
 class CalibrationResult:
     """Everything fR says about one image.  Angles in degrees, lengths in pixels.
 
@@ -146,23 +160,18 @@ class FREstimator:
         """
         names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
                                                        for i, im in enumerate(images)]
-        segments, sizes, errors, detect_times = [], [], {}, []
+        items = []
         for i, image in enumerate(images):
             start = time.perf_counter()
             try:
                 array = load_image(image) if isinstance(image, (str, Path)) else to_bgr8(image, names[i])
-                segments.append(detect_segments(array, self.detector, self.segment_filter))
-                sizes.append((array.shape[1], array.shape[0]))
+                item = _Image(names[i], (array.shape[1], array.shape[0]),
+                              detect_segments(array, self.detector, self.segment_filter))
             except FRInputError as exc:
-                errors[i] = str(exc)
-                segments.append(np.zeros((0, 4)))
-                sizes.append((0, 0))
-            detect_times.append(time.perf_counter() - start)
-        results = self._calibrate(segments, sizes, names, focal_px, principal_point, errors, filtered=True)
-        for result, seconds in zip(results, detect_times):
-            result.runtime_s["detect"] = seconds
-            result.runtime_s["total"] = result.runtime_s.get("total", 0.0) + seconds
-        return results
+                item = _Image(names[i], (0, 0), np.zeros((0, 4)), error=str(exc))
+            item.detect_s = time.perf_counter() - start
+            items.append(item)
+        return self._calibrate(items, focal_px, principal_point)
 
     def calibrate_segments(self, segments: Sequence, image_sizes: Sequence[tuple[int, int]],
                            names: Sequence[str] | None = None, focal_px=None, principal_point=None,
@@ -175,18 +184,18 @@ class FREstimator:
         if len(segments) != len(image_sizes):
             raise FRInputError(f"got {len(segments)} segment sets but {len(image_sizes)} image sizes")
         names = list(names) if names is not None else [f"image{i}" for i in range(len(segments))]
-        checked, errors = [], {}
+        items = []
         for i, seg in enumerate(segments):
+            size = tuple(image_sizes[i])
             try:
-                size = tuple(image_sizes[i])
                 if len(size) != 2 or not all(np.isfinite(size)) or min(size) <= 0:
                     raise FRInputError(f"{names[i]}: image size must be (width, height) > 0, got {size}")
                 array = validate_segments(seg, f"{names[i]} segments")
-                checked.append(self.segment_filter(array, *size) if apply_filter else array)
+                items.append(_Image(names[i], size, self.segment_filter(array, *size) if apply_filter else array))
             except FRInputError as exc:
-                errors[i] = str(exc)
-                checked.append(np.zeros((0, 4)))
-        return self._calibrate(checked, image_sizes, names, focal_px, principal_point, errors, filtered=True)
+                shown = size if len(size) == 2 and all(np.isfinite(size)) else (0, 0)
+                items.append(_Image(names[i], shown, np.zeros((0, 4)), error=str(exc)))
+        return self._calibrate(items, focal_px, principal_point)
 
     # ------------------------------------------------------------------ internals
 
@@ -201,45 +210,46 @@ class FREstimator:
             raise FRInputError(f"{name}: expected one value per image ({count}), got {len(value)}")
         return value
 
-    def _calibrate(self, segments, sizes, names, focal_px, principal_point, errors, filtered) -> list[CalibrationResult]:
-        count = len(segments)
+    def _calibrate(self, items: list[_Image], focal_px, principal_point) -> list[CalibrationResult]:
+        count = len(items)
         focal_list = self._per_image(focal_px, count, "focal_px")
         pp_list = self._per_image(principal_point, count, "principal_point", width=2)
-        results = [CalibrationResult(image=names[i], width=int(sizes[i][0]), height=int(sizes[i][1]))
-                   for i in range(count)]
-        for i, message in errors.items():
-            results[i].ok, results[i].reason = False, message
-        for i in range(count):
-            if i in errors:
-                continue
-            f = focal_list[i]
-            if f is not None and not (np.isfinite(f) and f > 0):
-                results[i].ok, results[i].reason = False, f"{names[i]}: focal length must be a positive number, got {f}"
-            elif len(segments[i]) == 0:
-                results[i].ok, results[i].reason = False, "no line segments found: cannot calibrate"
-                results[i].segments, results[i].labels = np.zeros((0, 4)), np.zeros(0, int)
-        todo = [i for i in range(count) if results[i].ok]
+        for item, f, pp in zip(items, focal_list, pp_list):
+            item.focal_px, item.principal_point = f, pp
+            r = item.result = CalibrationResult(image=item.name, width=int(item.size[0]), height=int(item.size[1]))
+            if item.error is not None:
+                r.ok, r.reason = False, item.error
+            elif f is not None and not (np.isfinite(f) and f > 0):
+                r.ok, r.reason = False, f"{item.name}: focal length must be a positive number, got {f}"
+            elif len(item.segments) == 0:
+                r.ok, r.reason = False, "no line segments found: cannot calibrate"
+                r.segments, r.labels = np.zeros((0, 4)), np.zeros(0, int)
+        todo = [item for item in items if item.result.ok]
         # Images with and without a known focal length are searched separately (4-D vs 3-D grid).
         for known in (False, True):
-            group = [i for i in todo if (focal_list[i] is not None) == known]
+            group = [item for item in todo if (item.focal_px is not None) == known]
             if group:
-                self._search_group(group, segments, sizes, focal_list, pp_list, results, known)
+                self._search_group(group, known)
+        results = [item.result for item in items]
+        for item in items:
+            if item.detect_s is not None:
+                item.result.runtime_s["detect"] = item.detect_s
+                item.result.runtime_s["total"] = item.result.runtime_s.get("total", 0.0) + item.detect_s
         if self.reliability is not None:  # the last stage: predicted errors, reliable above thresholds
             for result in results:
                 if result.ok:
                     self.reliability.annotate(result, mode=self.mode)
         return results
 
-    def _search_group(self, group, segments, sizes, focal_list, pp_list, results, known_focal: bool):
+    def _search_group(self, group: list[_Image], known_focal: bool):
         start_all = time.perf_counter()
         device, dtype = self.device, self.dtype
-        batch = SegmentBatch.from_list([segments[i] for i in group], [sizes[i] for i in group], device, dtype)
-        width = torch.tensor([float(sizes[i][0]) for i in group], dtype=torch.float64)
-        height = torch.tensor([float(sizes[i][1]) for i in group], dtype=torch.float64)
-        pp = torch.stack([torch.tensor(pp_list[i], dtype=torch.float64) if pp_list[i] is not None
-                          else torch.tensor(image_centre(*sizes[i]), dtype=torch.float64) for i in group])
+        batch = SegmentBatch.from_list([g.segments for g in group], [g.size for g in group], device, dtype)
+        width = torch.tensor([float(g.size[0]) for g in group], dtype=torch.float64)
+        pp = torch.stack([torch.tensor(g.principal_point if g.principal_point is not None else image_centre(*g.size),
+                                       dtype=torch.float64) for g in group])
         features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
-        focal = torch.tensor([float(focal_list[i]) for i in group], dtype=torch.float64) if known_focal else None
+        focal = torch.tensor([float(g.focal_px) for g in group], dtype=torch.float64) if known_focal else None
 
         t0 = time.perf_counter()
         hypotheses = grid_hypotheses(self.search, width, focal)
@@ -277,9 +287,9 @@ class FREstimator:
         labels_all = labels.cpu().numpy()
         rotation_all = rotation.cpu().numpy()
         vps_all = vps.cpu().numpy()
-        for j, i in enumerate(group):
+        for j, item in enumerate(group):
             n = int(counts_all[j])
-            r = results[i]
+            r = item.result
             r.focal_px = float(best_params[j, 3])
             r.hfov_deg = float(hfov_from_focal(best_params[j, 3], width[j]))
             r.principal_point = (float(pp[j, 0]), float(pp[j, 1]))
@@ -289,7 +299,7 @@ class FREstimator:
             r.vanishing_points = vps_all[j]
             r.log_likelihood = float(best_scores[j])
             r.num_segments = n
-            r.segments = segments[i]
+            r.segments = item.segments
             r.labels = labels_all[j, :n]
             lengths = lengths_all[j, :n]
             r.manhattan_fraction = float(lengths[r.labels != BACKGROUND_LABEL].sum() / max(lengths.sum(), 1e-12))
