@@ -1,4 +1,4 @@
-"""Evaluation metrics (fR paper, spec §8): per-image errors and mean +- standard error summaries.
+"""Evaluation metrics (as in the fR paper's experiments): per-image errors and mean +- standard error summaries.
 
 Per image (``image_errors``):
 

@@ -315,9 +315,9 @@ class FREstimator:
         * ``grid_entropy``: entropy (nats) of the stage-1 grid likelihoods normalised into a
           distribution, ``p_j = softmax_j(L_j / N)`` with N the number of segments (a softmax at
           temperature N, as in the authors' code; unlike the code we do not divide the entropy by N
-          again — reference spec §12 D7).
+          a second time: the entropy of that distribution is the cue).
         * ``mean_log_likelihood``: mean over segments of log p_i at the final estimate (the
-          paper's definition; the MATLAB release uses the mean log max-posterior, §12 D6).
+          paper's definition; the authors' MATLAB release uses the mean log max-posterior instead).
         """
         n = mask.sum(-1).clamp_min(1)
         counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
