@@ -28,8 +28,9 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from fr_torch.camera import (MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal,
-                             manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg, rotation_angles)  # noqa: F401
+from fr_torch.camera import (MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal,  # noqa: F401
+                             manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg,
+                             rotation_angles)
 
 NOT_SUPPLIED = "n/a (not supplied)"
 NA_PREFIX = "n/a ("

@@ -2,9 +2,9 @@
 
 ``fr calibrate IMAGE...`` is defined here; the other subcommands live in their own modules, each
 exposing ``add_arguments(parser)`` and ``run(args) -> int``, and are imported only when used (so
-``fr calibrate`` starts fast).  The core's commands are :data:`SUBCOMMANDS`; the evaluation harness
-adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.plugins`).  Errors in user input print one line and exit non-zero; set
-``FR_DEBUG=1`` to see tracebacks.
+``fr calibrate`` starts fast).  The core's commands are :data:`SUBCOMMANDS`; the evaluation
+harness adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.plugins`).
+Errors in user input print one line and exit non-zero; set ``FR_DEBUG=1`` to see tracebacks.
 """
 from __future__ import annotations
 
