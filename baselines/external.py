@@ -30,9 +30,8 @@ import os
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from fr_torch.camera import focal_from_hfov, hfov_from_focal, horizon_angles, pan_from_rotation, rotation_from_angles
+from fr_torch.camera import focal_from_hfov, hfov_from_focal, rotation_angles, rotation_from_angles
 from fr_torch.interface import CameraEstimate, ImageMeta, Timer
 from fr_torch.registry import NOT_SUPPLIED
 from fr_torch.segments import FRInputError
@@ -149,11 +148,11 @@ class ExternalPredictions:
             if (np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-3 or np.linalg.det(rotation) < 0):
                 return CameraEstimate.failure(self.name, "invalid rotation (not a proper rotation matrix)")
             rotation = vg.nearest_rotation(rotation)
-            angles = horizon_angles(torch.as_tensor(rotation))
-            roll = float(angles["roll_deg"]) if roll is None else roll
-            tilt = float(angles["tilt_deg"]) if tilt is None else tilt
-            pitch = float(angles["pitch_deg"]) if pitch is None else pitch
-            pan = float(pan_from_rotation(torch.as_tensor(rotation))) if pan is None else pan
+            angles = rotation_angles(rotation)
+            roll = angles["roll_deg"] if roll is None else roll
+            tilt = angles["tilt_deg"] if tilt is None else tilt
+            pitch = angles["pitch_deg"] if pitch is None else pitch
+            pan = angles["pan_deg"] if pan is None else pan
         else:
             if pitch is None and roll is not None and tilt is not None:
                 pitch = math.degrees(math.atan(math.tan(math.radians(tilt)) * math.cos(math.radians(roll))))

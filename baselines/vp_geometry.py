@@ -15,9 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 
-from fr_torch.camera import angles_from_rotation, hfov_from_focal, nearest_rotation, principal_point_or_centre  # noqa: F401
+from fr_torch.camera import hfov_from_focal, nearest_rotation, principal_point_or_centre, rotation_angles  # noqa: F401
 from fr_torch.interface import CameraEstimate, ImageMeta
 from fr_torch.segments import FRInputError, detect_segments, validate_segments
 
@@ -232,7 +231,7 @@ def camera_estimate(method: str, focal_px: float | None, rotation: np.ndarray | 
     if rotation is not None:
         rotation = np.asarray(rotation, dtype=np.float64)
         est.rotation = rotation
-        angles = angles_from_rotation(torch.as_tensor(rotation))
+        angles = rotation_angles(rotation)
         est.roll_deg = float(angles["roll_deg"])
         est.tilt_deg = float(angles["tilt_deg"])
         est.pitch_deg = float(angles["pitch_deg"])

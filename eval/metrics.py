@@ -1,4 +1,4 @@
-"""Evaluation metrics (fR paper, spec §8): per-image errors and mean +- standard error summaries.
+"""Evaluation metrics (as in the fR paper's experiments): per-image errors and mean +- standard error summaries.
 
 Per image (``image_errors``):
 
@@ -27,10 +27,10 @@ from dataclasses import dataclass
 from typing import Any, Iterable, Sequence
 
 import numpy as np
-import torch
 
-from fr_torch.camera import (MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal, horizon_angles,
-                             manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg)  # noqa: F401
+from fr_torch.camera import (MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal,  # noqa: F401
+                             manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg,
+                             rotation_angles)
 
 from fr_torch.registry import NA_PREFIX, NOT_SUPPLIED, is_not_supplied  # noqa: F401  (the one marker)
 
@@ -93,7 +93,7 @@ def estimate_quantities(est: Any, width: int) -> dict[str, Any]:
     rotation = None if rotation is None else np.asarray(rotation, dtype=np.float64).reshape(3, 3)
     out = {k: _finite(_get(est, k)) for k in ("roll_deg", "tilt_deg", "pitch_deg", "focal_px", "hfov_deg")}
     if rotation is not None and np.isfinite(rotation).all():
-        angles = horizon_angles(torch.as_tensor(rotation))
+        angles = rotation_angles(rotation)
         for key in ("roll_deg", "tilt_deg", "pitch_deg"):
             if out[key] is None:
                 out[key] = float(angles[key])

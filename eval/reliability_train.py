@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from fr_torch.camera import focal_from_hfov, horizon_angles
+from fr_torch.camera import focal_from_hfov, rotation_angles
 from fr_torch.reliability import CUE_NAMES, ERROR_COLUMNS, ReliabilityModel
 from fr_torch.resources import config_dir
 
@@ -107,7 +107,6 @@ def dataset_records(dataset: str, split: str, mode: str, data_root=None, batch_s
 def synthetic_records(count: int, mode: str, seed: int = 0, batch_size: int = 8, render_every: int = 5,
                       progress: bool = True) -> pd.DataFrame:
     """``count`` synthetic scenes of random camera and difficulty (see the module docstring)."""
-    import torch
     from tqdm import tqdm
 
     from fr_torch.estimator import FREstimator
@@ -125,7 +124,7 @@ def synthetic_records(count: int, mode: str, seed: int = 0, batch_size: int = 8,
             rendered = render_every > 0 and i % render_every == render_every - 1
             width, height = (320, 240) if rendered else (640, 480)
             focal = float(focal_from_hfov(hfov, width))
-            angles = horizon_angles(torch.as_tensor(rotation))
+            angles = rotation_angles(rotation)
             gt = dict(source="synthetic-render" if rendered else "synthetic", split="train", name=f"syn{seed}_{i:05d}",
                       group=f"synthetic:{seed}_{i}", width=width, height=height, gt_focal_px=focal,
                       gt_roll_deg=float(angles["roll_deg"]), gt_tilt_deg=float(angles["tilt_deg"]), gt_hfov_deg=hfov)

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Regenerate every published table and figure under results/ (CPU, about 20 min on 2 cores).
+# Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
 # Usage: eval/reproduce.sh [STEP...]   steps: fit dataset yud zind sota detectors reliability bench
 # (default: all, in this order).  Data root: $FR_DATA (default ../shared/data); generated views go
 # to $FR_CACHE (default data_local/).

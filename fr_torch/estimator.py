@@ -33,6 +33,20 @@ BACKGROUND_LABEL = 3
 
 
 @dataclass
+class _Image:
+    """One image on its way through the estimator: its inputs, then its result."""
+
+    name: str
+    size: tuple[int, int]  # (width, height), pixels; (0, 0) when the image could not be read
+    segments: np.ndarray  # (N, 4) filtered segments
+    error: str | None = None  # why it cannot be calibrated (bad input)
+    detect_s: float | None = None  # seconds spent decoding + detecting (images only)
+    focal_px: float | None = None  # known focal length, pixels
+    principal_point: tuple[float, float] | None = None  # None: image centre
+    result: CalibrationResult | None = None
+
+
+@dataclass
 class CalibrationResult:
     """Everything fR says about one image.  Angles in degrees, lengths in pixels.
 
@@ -161,18 +175,18 @@ class FREstimator:
         if len(segments) != len(image_sizes):
             raise FRInputError(f"got {len(segments)} segment sets but {len(image_sizes)} image sizes")
         names = list(names) if names is not None else [f"image{i}" for i in range(len(segments))]
-        checked, errors = [], {}
+        items = []
         for i, seg in enumerate(segments):
+            size = tuple(image_sizes[i])
             try:
-                size = tuple(image_sizes[i])
                 if len(size) != 2 or not all(np.isfinite(size)) or min(size) <= 0:
                     raise FRInputError(f"{names[i]}: image size must be (width, height) > 0, got {size}")
                 array = validate_segments(seg, f"{names[i]} segments")
-                checked.append(self.segment_filter(array, *size) if apply_filter else array)
+                items.append(_Image(names[i], size, self.segment_filter(array, *size) if apply_filter else array))
             except FRInputError as exc:
-                errors[i] = str(exc)
-                checked.append(np.zeros((0, 4)))
-        return self._calibrate(checked, image_sizes, names, focal_px, principal_point, errors, filtered=True)
+                shown = size if len(size) == 2 and all(np.isfinite(size)) else (0, 0)
+                items.append(_Image(names[i], shown, np.zeros((0, 4)), error=str(exc)))
+        return self._calibrate(items, focal_px, principal_point)
 
     # ------------------------------------------------------------------ internals
 
@@ -187,47 +201,52 @@ class FREstimator:
             raise FRInputError(f"{name}: expected one value per image ({count}), got {len(value)}")
         return value
 
-    def _calibrate(self, segments, sizes, names, focal_px, principal_point, errors, filtered) -> list[CalibrationResult]:
-        count = len(segments)
+    def _calibrate(self, items: list[_Image], focal_px, principal_point) -> list[CalibrationResult]:
+        count = len(items)
         focal_list = self._per_image(focal_px, count, "focal_px")
         pp_list = self._per_image(principal_point, count, "principal_point", width=2)
-        results = [CalibrationResult(image=names[i], width=int(sizes[i][0]), height=int(sizes[i][1]))
-                   for i in range(count)]
-        for i, message in errors.items():
-            results[i].ok, results[i].reason = False, message
-        for i in range(count):
-            if i in errors:
-                continue
-            f = focal_list[i]
-            if f is not None and not (np.isfinite(f) and f > 0):
-                results[i].ok, results[i].reason = False, f"{names[i]}: focal length must be a positive number, got {f}"
-            elif len(segments[i]) == 0:
-                results[i].ok, results[i].reason = False, "no line segments found: cannot calibrate"
-                results[i].segments, results[i].labels = np.zeros((0, 4)), np.zeros(0, int)
-        todo = [i for i in range(count) if results[i].ok]
+        for item, f, pp in zip(items, focal_list, pp_list):
+            item.focal_px, item.principal_point = f, pp
+            r = item.result = CalibrationResult(image=item.name, width=int(item.size[0]), height=int(item.size[1]))
+            if item.error is None:
+                try:  # the user's focal length / principal point, per image (None = unknown / centre)
+                    validate.check_camera(f, pp, item.size, item.name)
+                except FRInputError as exc:
+                    item.error = str(exc)
+            if item.error is not None:
+                r.ok, r.reason = False, item.error
+            elif len(item.segments) == 0:
+                r.ok, r.reason = False, "no line segments found: cannot calibrate"
+                r.segments, r.labels = np.zeros((0, 4)), np.zeros(0, int)
+        todo = [item for item in items if item.result.ok]
         # Images with and without a known focal length are searched separately (4-D vs 3-D grid).
         for known in (False, True):
-            group = [i for i in todo if (focal_list[i] is not None) == known]
+            group = [item for item in todo if (item.focal_px is not None) == known]
             if group:
-                self._search_group(group, segments, sizes, focal_list, pp_list, results, known)
+                self._search_group(group, known)
+        results = [item.result for item in items]
+        for item in items:
+            if item.detect_s is not None:
+                item.result.runtime_s["detect"] = item.detect_s
+                item.result.runtime_s["total"] = item.result.runtime_s.get("total", 0.0) + item.detect_s
         if self.reliability is not None:  # the last stage: predicted errors, reliable above thresholds
             for result in results:
                 if result.ok:
                     self.reliability.annotate(result, mode=self.mode)
         return results
 
-    def _search_group(self, group, segments, sizes, focal_list, pp_list, results, known_focal: bool):
+    def _search_group(self, group: list[_Image], known_focal: bool):
         start_all = time.perf_counter()
         device, dtype = self.device, self.dtype
-        batch = SegmentBatch.from_list([segments[i] for i in group], [sizes[i] for i in group], device, dtype)
-        size_np = np.array([sizes[i] for i in group], dtype=np.float64).reshape(-1, 2)
-        pp_np = np.array([pp_list[i] if pp_list[i] is not None else (np.nan, np.nan) for i in group],
+        batch = SegmentBatch.from_list([g.segments for g in group], [g.size for g in group], device, dtype)
+        size_np = np.array([g.size for g in group], dtype=np.float64).reshape(-1, 2)
+        pp_np = np.array([g.principal_point if g.principal_point is not None else (np.nan, np.nan) for g in group],
                          dtype=np.float64).reshape(-1, 2)
         pp_np = np.where(np.isnan(pp_np), np.stack(image_centre(size_np[:, 0], size_np[:, 1]), -1), pp_np)
         width = torch.from_numpy(size_np[:, 0].copy())
         pp = torch.from_numpy(pp_np)
         features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
-        focal = torch.tensor([float(focal_list[i]) for i in group], dtype=torch.float64) if known_focal else None
+        focal = torch.tensor([float(g.focal_px) for g in group], dtype=torch.float64) if known_focal else None
 
         t0 = time.perf_counter()
         hypotheses = grid_hypotheses(self.search, width, focal)
@@ -272,9 +291,9 @@ class FREstimator:
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
         family = labels_all != BACKGROUND_LABEL
         manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
-        for j, i in enumerate(group):
+        for j, item in enumerate(group):
             n = int(counts_all[j])
-            r = results[i]
+            r = item.result
             r.focal_px = float(params_all[j, 3])
             r.hfov_deg = float(hfov_all[j])
             r.principal_point = (float(pp_np[j, 0]), float(pp_np[j, 1]))
@@ -284,7 +303,7 @@ class FREstimator:
             r.vanishing_points = vps_all[j]
             r.log_likelihood = float(scores_all[j])
             r.num_segments = n
-            r.segments = segments[i]
+            r.segments = item.segments
             r.labels = labels_all[j, :n]
             r.manhattan_fraction = float(manhattan[j])
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
@@ -299,9 +318,9 @@ class FREstimator:
         * ``grid_entropy``: entropy (nats) of the stage-1 grid likelihoods normalised into a
           distribution, ``p_j = softmax_j(L_j / N)`` with N the number of segments (a softmax at
           temperature N, as in the authors' code; unlike the code we do not divide the entropy by N
-          again — reference spec §12 D7).
+          a second time: the entropy of that distribution is the cue).
         * ``mean_log_likelihood``: mean over segments of log p_i at the final estimate (the
-          paper's definition; the MATLAB release uses the mean log max-posterior, §12 D6).
+          paper's definition; the authors' MATLAB release uses the mean log max-posterior instead).
         """
         n = mask.sum(-1).clamp_min(1)
         counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)

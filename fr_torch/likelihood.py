@@ -29,8 +29,8 @@ measure's range (pi/2 for b and e, ``range`` px for a, the half length for c and
 clamped to their range).  Objective: ``sum_i len_i * log p_i``.
 
 The vertical parameters (lambda and prior) go on the world-up column (column 1), as in the
-paper.  The authors' MATLAB release attaches them to a horizontal column (reference spec §12 D1);
-we follow the paper.
+paper.  The authors' MATLAB release attaches them to a horizontal column instead; we follow the
+paper.
 
 Speed (measure b, the default): :meth:`MixtureLikelihood.objective` evaluates the same mixture
 with a fused path instead of the generic one.  Without gradients (the grid) it works in place

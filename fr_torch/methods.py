@@ -39,7 +39,8 @@ class FRCalibrator:
                  hfov_max: float | str | None = None, use_meta_segments: bool = False, name: str | None = None,
                  **estimator_kwargs):
         if hfov_min is not None or hfov_max is not None:  # validated on creation
-            estimator_kwargs["search_config"] = hfov_search_config(hfov_min, hfov_max, estimator_kwargs.get("search_config"))
+            estimator_kwargs["search_config"] = hfov_search_config(hfov_min, hfov_max,
+                                                                   estimator_kwargs.get("search_config"))
         self.estimator = FREstimator(mode=mode, measure=measure, detector=detector, device=device,
                                      likelihood=likelihood, **estimator_kwargs)
         self.use_meta_segments = use_meta_segments

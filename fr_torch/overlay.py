@@ -10,6 +10,7 @@ from .estimator import BACKGROUND_LABEL, CalibrationResult
 # BGR colours: family of column 0 red, vertical (column 1) green, column 2 blue, background grey.
 FAMILY_COLOURS = {0: (40, 40, 230), 1: (40, 200, 40), 2: (230, 120, 30), BACKGROUND_LABEL: (150, 150, 150)}
 HORIZON_COLOUR = (0, 220, 255)
+CAPTION_BOX, CAPTION_TEXT = (20, 20, 20), (245, 245, 245)
 
 
 def horizon_endpoints(result: CalibrationResult):
@@ -19,9 +20,7 @@ def horizon_endpoints(result: CalibrationResult):
     """
     if result.rotation is None:
         return None
-    cx, cy = result.principal_point
-    K = np.array([[result.focal_px, 0, cx], [0, result.focal_px, cy], [0, 0, 1.0]])
-    line = np.linalg.inv(K).T @ result.rotation[:, VERTICAL_AXIS]
+    line = np.linalg.inv(result.camera.K).T @ result.rotation[:, VERTICAL_AXIS]
     w, h = result.width, result.height
     points = []
     if abs(line[1]) > 1e-12:  # intersections with the left and right borders
@@ -55,6 +54,17 @@ def draw_overlay(image_bgr: np.ndarray, result: CalibrationResult) -> np.ndarray
             caption += "  [UNRELIABLE]"
     else:
         caption = f"no estimate: {result.reason}"
-    cv2.putText(canvas, caption, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(canvas, caption, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    draw_caption(canvas, caption)
     return canvas
+
+
+def draw_caption(canvas: np.ndarray, text: str, margin: int = 6) -> None:
+    """Light text on a dark box in the top-left corner, drawn once; shrunk to fit the image width."""
+    font, thickness = cv2.FONT_HERSHEY_SIMPLEX, 1
+    scale = 0.5
+    (tw, th), base = cv2.getTextSize(text, font, scale, thickness)
+    if tw > canvas.shape[1] - 2 * margin:
+        scale *= (canvas.shape[1] - 2 * margin) / tw
+        (tw, th), base = cv2.getTextSize(text, font, scale, thickness)
+    cv2.rectangle(canvas, (0, 0), (tw + 2 * margin, th + base + 2 * margin), CAPTION_BOX, -1)
+    cv2.putText(canvas, text, (margin, margin + th), font, scale, CAPTION_TEXT, thickness, cv2.LINE_AA)

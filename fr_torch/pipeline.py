@@ -35,7 +35,7 @@ from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from . import image_io, validate
+from . import image_io
 from .segments import FRInputError, SegmentFilter, detect_segments, get_detector
 
 
@@ -180,25 +180,19 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
 
 
 def _search(estimator, detections: list[Detection], names: list[str], focal_px, principal_point) -> list:
-    """Search a batch of detections; the user's focal / principal point (input pixels) are checked
-    and brought to working pixels, and the results are scaled back to the input's pixels."""
-    errors = {i: d.error for i, d in enumerate(detections) if d.error is not None}
-    focal_px, principal_point = list(focal_px), list(principal_point)
-    for i, d in enumerate(detections):
-        if d.error is None:
-            try:
-                validate.check_camera(focal_px[i], principal_point[i], d.input_size, names[i])
-            except FRInputError as exc:
-                errors[i] = str(exc)
-                continue
-            focal_px[i], principal_point[i] = image_io.focal_and_pp_to_working(focal_px[i], principal_point[i],
-                                                                               d.scale)
-    results = estimator._calibrate([d.segments for d in detections], [d.size for d in detections], names,
-                                   focal_px, principal_point, errors, filtered=True)
+    """Search a batch of detections; the user's focal / principal point (input pixels) are brought
+    to working pixels, and the results are scaled back to the input's pixels."""
+    from .estimator import _Image
+
+    items, focal_work, pp_work = [], [], []
+    for d, name, f, pp in zip(detections, names, focal_px, principal_point):
+        items.append(_Image(name, d.size, d.segments, error=d.error, detect_s=d.seconds))
+        f, pp = image_io.focal_and_pp_to_working(f, pp, d.scale)
+        focal_work.append(f)
+        pp_work.append(pp)
+    results = estimator._calibrate(items, focal_work, pp_work)
     for result, d in zip(results, detections):
         image_io.result_to_input_pixels(result, d.scale, d.input_size)
-        result.runtime_s["detect"] = d.seconds
-        result.runtime_s["total"] = result.runtime_s.get("total", 0.0) + d.seconds
     return results
 
 

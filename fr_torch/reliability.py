@@ -1,6 +1,6 @@
 """Reliability prediction: predicted absolute errors of roll, tilt and focal length from fR's cues.
 
-The model follows the authors' online-fR error predictor (reference spec §7): the three cues of
+The model follows the authors' online-fR error predictor (paper §3.4): the three cues of
 :meth:`fr_torch.estimator.FREstimator._cues` are normalised, whitened, and a K-nearest-neighbour
 regressor returns the **mean absolute error of the K most similar training images**, for roll
 (degrees), tilt (degrees) and focal length (percent of the true focal length).

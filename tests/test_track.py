@@ -137,7 +137,8 @@ def test_fr_track_end_to_end(tmp_path):
     assert main(["track", str(frames), "--out", str(out), "--fast", "--batch-size", "4"]) == 0
     table = pd.read_csv(out / "frames.csv")
     assert len(table) == 3 and list(table["frame"]) == [0, 1, 2]
-    assert {"status", "epoch", "fused_focal_px", "fused_roll_deg", "pred_focal_err_pct", "restarted"} <= set(table.columns)
+    assert {"status", "epoch", "fused_focal_px", "fused_roll_deg", "pred_focal_err_pct",
+            "restarted"} <= set(table.columns)
     summary = json.loads((out / "calibration.json").read_text())
     assert summary["frames_processed"] == 3 and summary["calibration"]["focal_px"] > 0
     assert np.asarray(summary["calibration"]["rotation"]).shape == (3, 3)
