@@ -129,6 +129,18 @@ def test_resume_after_interrupted_run(image_set, local_output, tmp_path):
     assert not list(out.glob(".*"))  # no temp files left
 
 
+def test_rows_per_part_gathers_batches_and_cli_summary(image_set, tmp_path, capsys):
+    from fr_torch.cli import main
+
+    (tmp_path / "list.txt").write_text("\n".join(image_set["good"][:3] + image_set["bad"]))
+    out = tmp_path / "out.parquet"
+    assert main(["batch", str(tmp_path / "list.txt"), "--out", str(out), "--fast", "--batch-size", "2",
+                 "--rows-per-part", "100", "--no-progress", "--no-reliability"]) == 0
+    assert len(list(out.glob("part-*.parquet"))) == 1 and len(pd.read_parquet(out)) == 6
+    assert "6 processed (3 failed)" in capsys.readouterr().err
+    assert main(["batch", str(tmp_path / "nothing*.png"), "--out", str(out)]) == 2  # one-line error
+
+
 # ------------------------------------------------------------------------------------------ Ray
 
 
@@ -167,3 +179,4 @@ def test_ray_engine_matches_embedded_despite_worker_crash(image_set, local_outpu
     assert summary["processed"] == N_GOOD + 3 and summary["failed"] == 3
     assert len(frame) == N_GOOD + 3 and frame.image.is_unique
     _assert_same_rows(frame, _read(local_output))
+    assert ray_cluster.data.read_parquet(str(out)).count() == N_GOOD + 3  # readable by Ray in one line
