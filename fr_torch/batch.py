@@ -277,8 +277,8 @@ class BatchWorker:
         self._maybe_crash(rows)
         names = [str(row["image"]) for row in rows]
         default_focal = self.options.get("focal_px")
-        focal = [_finite_or_none(row.get("focal_px", default_focal)) if "focal_px" in row else default_focal
-                 for row in rows]
+        focal = [_finite_or_none(row.get("focal_px")) for row in rows]  # a manifest's known focal wins
+        focal = [default_focal if f is None else f for f in focal]
         inputs, failed = [], {}
         for i, name in enumerate(names):
             if has_scheme(name):
@@ -454,15 +454,25 @@ class PartWriter:
 
 
 def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], engine: str = "local",
-              workers: int = 1, batch_size: int = 16, address: str | None = None, progress: bool = True,
-              threads_per_worker: int | None = None, gpus_per_worker: float | None = None) -> dict[str, Any]:
+              workers: int | None = None, batch_size: int = 16, address: str | None = None,
+              progress: bool = True, threads_per_worker: int | None = None, gpus_per_worker: float | None = None,
+              rows_per_part: int = 0) -> dict[str, Any]:
     """Calibrate every image of ``inputs`` not yet in ``out``; returns a summary dict
-    (``total``, ``skipped``, ``processed``, ``failed``, ``seconds``, ``images_per_s``)."""
+    (``total``, ``skipped``, ``processed``, ``failed``, ``seconds``, ``images_per_s``).
+
+    ``workers``: local engine: torch / OpenCV threads (None = library default); ray engine: actors
+    (None = the cluster's CPUs / ``threads_per_worker``).  ``rows_per_part``: 0 = one part file per
+    batch (an interruption loses only the batches in flight); N = gather finished batches into parts
+    of at least N rows (fewer files for millions of images; a hard kill loses up to N rows, CTRL-C
+    writes what is finished).
+    """
+    import pyarrow as pa
+
     from tqdm import tqdm
 
     if batch_size < 1:
         raise ValueError("--batch-size must be at least 1")
-    if workers < 1:
+    if workers is not None and workers < 1:
         raise ValueError("--workers must be at least 1")
     rows = collect_inputs(inputs)
     writer = PartWriter(out)
@@ -473,6 +483,13 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     summary = {"total": len(rows), "skipped": len(rows) - len(todo), "processed": 0, "failed": 0,
                "engine": engine, "workers": workers, "batch_size": batch_size}
     start = time.perf_counter()
+    pending: list = []
+
+    def flush():
+        if pending:
+            writer.write(pa.concat_tables(pending))
+            pending.clear()
+
     bar = tqdm(total=len(todo), unit="img", desc="fr batch", disable=not progress or not todo, smoothing=0.1,
                file=sys.stderr)
     try:
@@ -489,11 +506,14 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
             for table in tables:
                 if table.num_rows == 0:
                     continue
-                writer.write(table)
+                pending.append(table)
+                if sum(t.num_rows for t in pending) >= rows_per_part:
+                    flush()
                 summary["processed"] += table.num_rows
                 summary["failed"] += table.num_rows - sum(table.column("ok").to_pylist())
                 bar.update(table.num_rows)
     finally:
+        flush()
         bar.close()
     seconds = time.perf_counter() - start
     summary["seconds"] = seconds
@@ -518,16 +538,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output Parquet dataset (a folder of part files)")
     parser.add_argument("--engine", choices=("local", "ray"), default="local",
                         help="local: this process (default); ray: Ray Data actor pool (pip install 'fr-torch[ray]')")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="ray: number of actors (one estimator each); local: torch threads (default 1)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="ray: number of actors, one estimator each (default: the cluster's CPUs); "
+                             "local: torch / OpenCV threads (default: theirs)")
     parser.add_argument("--address", default=None,
                         help="ray: cluster to join (e.g. auto, ray://host:10001); default $RAY_ADDRESS, "
-                             "else a local cluster with --workers CPUs")
+                             "else a local cluster (--workers CPUs, default all)")
     parser.add_argument("--threads-per-worker", type=int, default=None,
                         help="ray: CPUs (torch threads) per actor (default 1)")
     parser.add_argument("--gpus-per-worker", type=float, default=None,
                         help="ray with --device cuda: GPUs per actor (default 1; 0.5 puts two actors on a GPU)")
     parser.add_argument("--batch-size", type=int, default=16, help="images per batch (= per part file)")
+    parser.add_argument("--rows-per-part", type=int, default=0, metavar="N",
+                        help="gather batches into part files of at least N rows (default 0: one part per batch)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-reliability", action="store_true", help="do not add predicted errors")
     # Estimator options (as in `fr calibrate`).
@@ -555,7 +578,7 @@ def run(args: argparse.Namespace) -> int:
     summary = run_batch([str(p) for p in args.inputs], args.out, options, engine=args.engine,
                         workers=args.workers, batch_size=args.batch_size, address=args.address,
                         progress=not args.no_progress, threads_per_worker=args.threads_per_worker,
-                        gpus_per_worker=args.gpus_per_worker)
+                        gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part)
     print(f"fr batch: {summary['total']} images, {summary['skipped']} already done, {summary['processed']} "
           f"processed ({summary['failed']} failed) in {summary['seconds']:.1f} s "
           f"({summary['images_per_s']:.1f} img/s) -> {args.out}", file=sys.stderr)

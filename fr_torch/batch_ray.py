@@ -27,7 +27,7 @@ class RayBatchWorker(BatchWorker):
         return self.calibrate_rows(rows)
 
 
-def init_ray(address: str | None, num_cpus: int):
+def init_ray(address: str | None, num_cpus: int | None):
     """Join ``address`` (or ``$RAY_ADDRESS``), else start a quiet local cluster with ``num_cpus``.
     Returns True when this call started Ray (the caller then shuts it down)."""
     try:
@@ -45,13 +45,16 @@ def init_ray(address: str | None, num_cpus: int):
     return True
 
 
-def run_ray(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, batch_size: int, workers: int,
+def run_ray(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, batch_size: int, workers: int | None,
             address: str | None = None, threads_per_worker: int | None = None,
             gpus_per_worker: float | None = None) -> Iterator:
     """Yield one Arrow table per finished batch (in completion order), computed by Ray Data."""
     threads = threads_per_worker or 1
-    started = init_ray(address, num_cpus=workers * threads)
+    started = init_ray(address, num_cpus=workers * threads if workers else None)
     import ray
+
+    if not workers:
+        workers = max(1, int(ray.cluster_resources().get("CPU", 1)) // threads)
 
     try:
         context = ray.data.DataContext.get_current()

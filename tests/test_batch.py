@@ -63,7 +63,7 @@ def _read(out: Path) -> pd.DataFrame:
 def local_output(image_set, tmp_path_factory):
     """The embedded engine's output on the manifest (the reference for the other tests)."""
     out = tmp_path_factory.mktemp("local") / "out.parquet"
-    summary = run_batch([str(image_set["manifest"])], out, _options(), engine="local", batch_size=8,
+    summary = run_batch([str(image_set["manifest"])], out, _options(), engine="local", workers=1, batch_size=8,
                         progress=False)
     assert summary["processed"] == N_GOOD + 3
     return out
@@ -113,20 +113,32 @@ def test_resume_after_interrupted_run(image_set, local_output, tmp_path):
     out = tmp_path / "out.parquet"
     env = dict(os.environ, PYTHONPATH=str(REPO), FR_BATCH_CRASH=f"room20.png:{tmp_path / 'marker'}")
     command = [sys.executable, "-m", "fr_torch.cli", "batch", str(image_set["manifest"]), "--out", str(out),
-               "--fast", "--batch-size", "8", "--no-progress"]
+               "--fast", "--batch-size", "8", "--workers", "1", "--no-progress"]
     crashed = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
     assert crashed.returncode == 1, crashed.stderr
     partial = _read(out)
     assert 0 < len(partial) < N_GOOD + 3 and partial.image.is_unique
-    resumed = run_batch([str(image_set["manifest"])], out, _options(), batch_size=8, progress=False)
+    resumed = run_batch([str(image_set["manifest"])], out, _options(), workers=1, batch_size=8, progress=False)
     assert resumed["skipped"] == len(partial) and resumed["processed"] == N_GOOD + 3 - len(partial)
     frame = _read(out)
     reference = _read(local_output)
     assert list(frame.image) == list(reference.image)
     assert np.allclose(frame.focal_px, reference.focal_px, equal_nan=True)
-    again = run_batch([str(image_set["manifest"])], out, _options(), batch_size=8, progress=False)
+    again = run_batch([str(image_set["manifest"])], out, _options(), workers=1, batch_size=8, progress=False)
     assert again["processed"] == 0 and again["skipped"] == N_GOOD + 3
     assert not list(out.glob(".*"))  # no temp files left
+
+
+def test_rows_per_part_gathers_batches_and_cli_summary(image_set, tmp_path, capsys):
+    from fr_torch.cli import main
+
+    (tmp_path / "list.txt").write_text("\n".join(image_set["good"][:3] + image_set["bad"]))
+    out = tmp_path / "out.parquet"
+    assert main(["batch", str(tmp_path / "list.txt"), "--out", str(out), "--fast", "--batch-size", "2", "--workers", "1",
+                 "--rows-per-part", "100", "--no-progress", "--no-reliability"]) == 0
+    assert len(list(out.glob("part-*.parquet"))) == 1 and len(pd.read_parquet(out)) == 6
+    assert "6 processed (3 failed)" in capsys.readouterr().err
+    assert main(["batch", str(tmp_path / "nothing*.png"), "--out", str(out)]) == 2  # one-line error
 
 
 # ------------------------------------------------------------------------------------------ Ray
@@ -167,3 +179,4 @@ def test_ray_engine_matches_embedded_despite_worker_crash(image_set, local_outpu
     assert summary["processed"] == N_GOOD + 3 and summary["failed"] == 3
     assert len(frame) == N_GOOD + 3 and frame.image.is_unique
     _assert_same_rows(frame, _read(local_output))
+    assert ray_cluster.data.read_parquet(str(out)).count() == N_GOOD + 3  # readable by Ray in one line
