@@ -137,7 +137,6 @@ class FREstimator:
             try:
                 gray, input_size = image_io.read_any(image, names[i], self.working_long_side)
                 gray, scale = image_io.working_image(gray, input_size, self.working_long_side)
-                validate.check_camera(focal_list[i], pp_list[i], input_size, names[i])
                 focal_list[i], pp_list[i] = image_io.focal_and_pp_to_working(focal_list[i], pp_list[i], scale)
                 segments.append(detect_segments(gray, self.detector, self.segment_filter))
                 sizes.append((gray.shape[1], gray.shape[0]))
@@ -204,9 +203,12 @@ class FREstimator:
             if i in errors:
                 continue
             f = focal_list[i]
-            if f is not None and not (np.isfinite(f) and f > 0):
-                results[i].ok, results[i].reason = False, f"{names[i]}: focal length must be a positive number, got {f}"
-            elif len(segments[i]) == 0:
+            try:
+                validate.check_camera(f, pp_list[i], sizes[i], names[i])
+            except FRInputError as exc:
+                results[i].ok, results[i].reason = False, str(exc)
+                continue
+            if len(segments[i]) == 0:
                 results[i].ok, results[i].reason = False, "no line segments found: cannot calibrate"
                 results[i].segments, results[i].labels = np.zeros((0, 4)), np.zeros(0, int)
         todo = [i for i in range(count) if results[i].ok]
