@@ -423,10 +423,12 @@ def run(args: argparse.Namespace) -> int:
 
     from .estimator import FREstimator
     from .reliability import ReliabilityModel
+    from . import validate
     from .segments import FRInputError
 
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
+    validate.track_options(args)
     mode = "fast" if args.fast else "fr"
     estimator = FREstimator(mode=mode, detector=args.detector, device=args.device)
     model = None if args.no_reliability else ReliabilityModel.load_default(mode)
@@ -458,6 +460,8 @@ def run(args: argparse.Namespace) -> int:
         bar.update(len(batch))
         flush()
     bar.close()
+    if not rows:
+        raise FRInputError(f"{args.source}: no frame could be read (all skipped)")
 
     import pandas as pd
 
