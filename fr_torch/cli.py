@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import os
 import sys
 from pathlib import Path
@@ -47,7 +46,9 @@ def run(args: argparse.Namespace) -> int:
     """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
     from .estimator import FREstimator
     from .options import estimator_kwargs
-    from .segments import FRInputError, load_image
+    from .segments import FRInputError
+
+    from . import validate
 
     principal_point = None
     if args.pp:
@@ -56,40 +57,42 @@ def run(args: argparse.Namespace) -> int:
             assert len(principal_point) == 2
         except (ValueError, AssertionError):
             raise FRInputError(f"--pp expects X,Y in pixels, got {args.pp!r}") from None
-    if args.focal is not None and not args.focal > 0:
-        raise FRInputError(f"--focal must be a positive number of pixels, got {args.focal}")
+        principal_point = tuple(validate.finite_number(v, "--pp") for v in principal_point)
+    if args.focal is not None:
+        validate.positive_number(args.focal, "--focal")  # per image: within a 1-179 deg field of view
     if args.batch_size < 1:
         raise FRInputError("--batch-size must be at least 1")
     estimator = FREstimator(**estimator_kwargs(args))
     if args.overlay:
-        args.overlay.mkdir(parents=True, exist_ok=True)
+        validate.output_folder(args.overlay, "--overlay")
+    if args.json and args.json.is_dir():
+        raise FRInputError(f"--json {args.json}: is a folder, not a file")
     everything, failures = [], 0
     paths = [str(p) for p in args.images]
     from .pipeline import calibrate_paths, default_workers
 
     workers = default_workers() if args.workers is None else args.workers
     workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
-    for chunk, results in calibrate_paths(estimator, paths, args.batch_size, workers, args.focal, principal_point):
-        for path, result in zip(chunk, results):
-            record = result.to_json(include_segments=args.segments)
-            everything.append(record)
-            print(json.dumps(record), flush=True)
-            if not result.ok:
-                failures += 1
-                print(f"fr: {path}: {result.reason}", file=sys.stderr)
-            if args.overlay and result.width > 0:
-                from .overlay import draw_overlay
-                import cv2
+    try:
+        for chunk, results in calibrate_paths(estimator, paths, args.batch_size, workers, args.focal,
+                                              principal_point):
+            for path, result in zip(chunk, results):
+                record = validate.json_safe(result.to_json(include_segments=args.segments))
+                everything.append(record)
+                print(validate.dumps(record), flush=True)
+                if not result.ok:
+                    failures += 1
+                    print(f"fr: {path}: {result.reason}", file=sys.stderr)
+                if args.overlay and result.width > 0:
+                    from .overlay import write_overlay
 
-                try:
-                    image = load_image(path)
-                except FRInputError:
-                    continue
-                target = args.overlay / f"{Path(path).stem}_fr.png"
-                cv2.imwrite(str(target), draw_overlay(image, result))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(everything, indent=1))
+                    try:
+                        write_overlay(path, result, args.overlay)
+                    except FRInputError as exc:
+                        print(f"fr: {exc}", file=sys.stderr)
+    finally:  # the JSON holds every result so far, written atomically (never a truncated file)
+        if args.json:
+            validate.write_text_atomic(args.json, validate.dumps(everything, indent=1))
     return 1 if failures else 0
 
 
@@ -152,6 +155,11 @@ def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str
     except BrokenPipeError:  # output piped into `head` & co.: stop quietly, as Unix tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except (OSError, RuntimeError, TypeError, KeyError, AttributeError, ZeroDivisionError, OverflowError) as exc:
+        if os.environ.get("FR_DEBUG"):  # last guard: one line, never a traceback (FR_DEBUG=1 shows it)
+            raise
+        print(f"fr {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -230,7 +230,7 @@ def read_image(path, max_long_side: int | None = None, gray: bool = False) -> tu
     """Decode an image file safely (see the module docstring for the limits).
 
     ``max_long_side``: decode no more than needed for a copy of this long side (pixels; the result
-    may be up to 2x larger: it is the smallest native reduction 1, 1/2, 1/4, 1/8 not below it; None =
+    may be up to 2x larger, or down to 0.9x: the native reductions are 1, 1/2, 1/4, 1/8; None =
     full size, subject only to the memory bound).  ``gray``: decode to one channel.
     Returns (image, (width, height)): an 8-bit grey (H, W) or BGR (H, W, 3) array, and the input's
     size in pixels as displayed (after EXIF orientation), which the array may be a reduction of.
@@ -248,7 +248,8 @@ def read_image(path, max_long_side: int | None = None, gray: bool = False) -> tu
                          f"the {MAX_IMAGE_PIXELS / 1e6:.0f} MP limit (FR_MAX_IMAGE_PIXELS)")
         factor = 1
         long_side = max(width, height)
-        while (factor < 8 and max_long_side is not None and long_side / (2 * factor) >= max_long_side):
+        # Slack 0.9: a 4000-px photo decodes at 1/4 (1000 px, native DCT scaling) rather than at 1/2.
+        while (factor < 8 and max_long_side is not None and long_side / (2 * factor) >= 0.9 * max_long_side):
             factor *= 2
         # Memory bound for full-size decodes (only JPEG reduces natively; others decode at full size).
         while factor < 8 and width * height * 3 / factor ** 2 > MAX_COLOR_BYTES:
@@ -293,7 +294,8 @@ def working_image(gray: np.ndarray, input_size: tuple[int, int] | None = None,
 
     ``input_size``: (width, height) of the original input when ``gray`` is already a reduction of it
     (default: ``gray``'s own size).  Returns (working image, scale) with ``scale`` = input pixels per
-    working pixel (>= 1; 1 when the input is already small enough).  INTER_AREA (box filter)
+    working pixel (>= 1; 1 when the input is already small enough).  A reduced decode a little
+    below the working size (e.g. 1000 px of a 4000-px JPEG decoded at 1/4) is used as it is.  INTER_AREA (box filter)
     downscaling, so an image upscaled by k and brought back is the original up to rounding.
     """
     h, w = gray.shape[:2]
@@ -304,6 +306,8 @@ def working_image(gray: np.ndarray, input_size: tuple[int, int] | None = None,
     else:
         ratio = max_long_side / long_in
         target = (max(1, round(in_w * ratio)), max(1, round(in_h * ratio)))
+    if target[0] > w and (in_w, in_h) != (w, h):  # a reduced decode slightly below the working size: keep it
+        target = (w, h)
     if (w, h) != target:
         interpolation = cv2.INTER_AREA if target[0] < w else cv2.INTER_LINEAR
         gray = cv2.resize(gray, target, interpolation=interpolation)

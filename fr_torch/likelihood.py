@@ -97,22 +97,88 @@ class LikelihoodParams:
     def from_config(cls, measure: str | None = None, path: str | Path | None = None) -> "LikelihoodParams":
         """Read ``configs/likelihood.json`` (or ``path``: a file or a name, see
         :func:`likelihood_config_path`); angles there are in degrees."""
-        config = json.loads(likelihood_config_path(path).read_text())
+        source = likelihood_config_path(path)
+        try:
+            config = json.loads(source.read_text())
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            raise ValueError(f"likelihood config {source}: not a readable JSON file ({exc})") from None
+        return cls.from_dict(config, measure, str(source))
+
+    @classmethod
+    def from_dict(cls, config, measure: str | None = None, source: str = "likelihood config") -> "LikelihoodParams":
+        """Validate a likelihood config (the JSON's content) and build the parameters.
+
+        Schema: ``{"default_measure": "a".."e" (optional), "measures": {m: {"unit": "deg"|"px",
+        "lambda_vertical": > 0, "lambda_horizontal": > 0, "range_px": > 0 (a), "sigma": > 0 (d)}},
+        "priors": {"vertical": >= 0, "horizontal": >= 0, "background": > 0}}`` (priors are
+        normalised so that vertical + 2 horizontal + background = 1).  Every violation raises a
+        ValueError naming the field.
+        """
+        def fail(message: str):
+            raise ValueError(f"{source}: {message}")
+
+        def number(value, name: str, low: float, high: float, low_inclusive: bool = False) -> float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                fail(f"{name} must be a number, got {value!r}")
+            try:
+                value = float(value)
+            except OverflowError:
+                fail(f"{name} is too large")
+            if not math.isfinite(value) or value < low or (value == low and not low_inclusive) or value > high:
+                fail(f"{name} must be in {'[' if low_inclusive else '('}{low:g}, {high:g}], got {value!r}")
+            return value
+
+        if not isinstance(config, dict):
+            fail(f"expected a JSON object with 'measures' and 'priors', got {type(config).__name__}")
         measure = measure or config.get("default_measure", "b")
         if measure not in MEASURES:
             raise ValueError(f"unknown deviation measure {measure!r}; choose one of {', '.join(MEASURES)}")
-        entry = config["measures"][measure]
-        to_internal = math.radians if entry.get("unit") == "deg" else float
+        measures = config.get("measures")
+        if not isinstance(measures, dict) or not isinstance(measures.get(measure), dict):
+            fail(f"'measures' must be an object with an entry for measure {measure!r}")
+        entry = measures[measure]
+        unit = entry.get("unit", "deg" if measure in ("b", "e") else "px")
+        if unit not in ("deg", "px"):
+            fail(f"measures.{measure}.unit must be 'deg' or 'px', got {unit!r}")
+        top = 90.0 if unit == "deg" else 1e6  # an angle deviation cannot exceed 90 deg
+        to_internal = math.radians if unit == "deg" else float
         if measure == "d":
-            scale_v = scale_h = float(entry.get("sigma", 1.0))
+            scale_v = scale_h = number(entry.get("sigma", 1.0), f"measures.{measure}.sigma", 0.0, top)
         else:
-            scale_v, scale_h = to_internal(entry["lambda_vertical"]), to_internal(entry["lambda_horizontal"])
-        priors = config["priors"]
-        total = priors["vertical"] + 2 * priors["horizontal"] + priors["background"]
+            for key in ("lambda_vertical", "lambda_horizontal"):
+                if key not in entry:
+                    fail(f"measures.{measure}.{key} is missing")
+            scale_v = to_internal(number(entry["lambda_vertical"], f"measures.{measure}.lambda_vertical", 0.0, top))
+            scale_h = to_internal(number(entry["lambda_horizontal"], f"measures.{measure}.lambda_horizontal", 0.0, top))
+        range_px = number(entry.get("range_px", cls.range_px), f"measures.{measure}.range_px", 0.0, 1e9)
+        priors = config.get("priors")
+        if not isinstance(priors, dict):
+            fail("'priors' must be an object with vertical, horizontal and background")
+        for key in ("vertical", "horizontal", "background"):
+            if key not in priors:
+                fail(f"priors.{key} is missing")
+        vertical = number(priors["vertical"], "priors.vertical", 0.0, 1e6, low_inclusive=True)
+        horizontal = number(priors["horizontal"], "priors.horizontal", 0.0, 1e6, low_inclusive=True)
+        background = number(priors["background"], "priors.background", 0.0, 1e6)
+        if vertical + horizontal == 0:
+            fail("priors.vertical and priors.horizontal are both 0: no Manhattan family can be explained")
+        total = vertical + 2 * horizontal + background
         return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h,
-                   prior_vertical=priors["vertical"] / total, prior_horizontal=priors["horizontal"] / total,
-                   prior_background=priors["background"] / total,
-                   range_px=float(entry.get("range_px", cls.range_px)))
+                   prior_vertical=vertical / total, prior_horizontal=horizontal / total,
+                   prior_background=background / total, range_px=range_px)
+
+    def __post_init__(self) -> None:
+        """Explicit parameters are checked too (no NaN, zero or negative scale; priors in [0, 1])."""
+        for name in ("scale_vertical", "scale_horizontal", "range_px"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"LikelihoodParams.{name} must be a finite number > 0, got {value!r}")
+        for name in ("prior_vertical", "prior_horizontal", "prior_background"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value <= 1):
+                raise ValueError(f"LikelihoodParams.{name} must be in [0, 1], got {value!r}")
+        if not self.prior_background > 0:
+            raise ValueError("LikelihoodParams.prior_background must be > 0 (the background keeps p_i > 0)")
 
 
 @dataclass

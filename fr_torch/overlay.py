@@ -1,6 +1,10 @@
 """Draw an fR result over its image: segments coloured by Manhattan family, and the horizon."""
 from __future__ import annotations
 
+import os
+from dataclasses import replace
+from pathlib import Path
+
 import cv2
 import numpy as np
 
@@ -68,3 +72,31 @@ def draw_caption(canvas: np.ndarray, text: str, margin: int = 6) -> None:
         (tw, th), base = cv2.getTextSize(text, font, scale, thickness)
     cv2.rectangle(canvas, (0, 0), (tw + 2 * margin, th + base + 2 * margin), CAPTION_BOX, -1)
     cv2.putText(canvas, text, (margin, margin + th), font, scale, CAPTION_TEXT, thickness, cv2.LINE_AA)
+
+
+def overlay_path(image_path, folder) -> Path:
+    """``folder/<image stem>_fr.png``; works for any file name (bytes that are not UTF-8 included)."""
+    return Path(folder) / f"{Path(os.fsdecode(image_path)).stem}_fr.png"
+
+
+def write_overlay(image_path, result: CalibrationResult, folder) -> Path:
+    """Load the image (bounded decode), draw the result and write ``<stem>_fr.png`` into ``folder``.
+
+    The PNG is encoded in memory and written with Python's file I/O (``cv2.imwrite`` crashes on file
+    names that are not valid UTF-8).  A huge image is drawn at its reduced decode size.  Raises
+    FRInputError with a one-line reason (unreadable image, existing folder in the way, read-only...).
+    """
+    from .image_io import encode_png, read_image
+    from .segments import to_bgr8
+    from .validate import write_bytes
+
+    image, size = read_image(image_path)
+    image = to_bgr8(image)
+    scale = image.shape[1] / max(result.width, 1)
+    if abs(scale - 1.0) > 1e-9 and result.ok:
+        result = replace(result, width=image.shape[1], height=image.shape[0], focal_px=result.focal_px * scale,
+                         principal_point=tuple(v * scale for v in result.principal_point),
+                         segments=None if result.segments is None else result.segments * scale)
+    target = overlay_path(image_path, folder)
+    write_bytes(target, encode_png(draw_overlay(image, result)))
+    return target

@@ -137,11 +137,14 @@ class SegmentFilter:
 
     ``min_length_px``: drop segments whose length is <= this (pixels).  ``border_fraction``: drop
     segments whose *both* endpoints lie in the same border band of this width (fraction of the
-    image width for left/right, of the height for top/bottom).
+    image width for left/right, of the height for top/bottom).  ``max_segments``: keep at most this
+    many, the longest (None = all): bounds the search time whatever the image (a 1024 x 768 street
+    photo gives ~2,000 LSD segments, most of them short texture edges with little weight).
     """
 
     min_length_px: float = 1.0
     border_fraction: float = 0.01
+    max_segments: int | None = 500
 
     def __call__(self, segments: np.ndarray, width: int, height: int) -> np.ndarray:
         segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
@@ -150,7 +153,12 @@ class SegmentFilter:
         bx, by = self.border_fraction * width, self.border_fraction * height
         x, y = segments[:, [0, 2]], segments[:, [1, 3]]
         in_band = ((x < bx).all(1) | (x > width - bx).all(1) | (y < by).all(1) | (y > height - by).all(1))
-        return segments[keep & ~in_band]
+        kept = np.flatnonzero(keep & ~in_band)
+        if self.max_segments is not None and len(kept) > self.max_segments:
+            # Keep the longest (they carry most of the length-weighted evidence); input order kept.
+            longest = np.argsort(-length[kept], kind="stable")[: self.max_segments]
+            kept = np.sort(kept[longest])
+        return segments[kept]
 
 
 def validate_segments(segments, name: str = "segments") -> np.ndarray:

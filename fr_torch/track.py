@@ -174,10 +174,12 @@ def run(args: argparse.Namespace) -> int:
 
     from .estimator import FREstimator
     from .options import estimator_kwargs
+    from . import validate
     from .segments import FRInputError
 
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
+    validate.track_options(args)
     estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
     mode = estimator.mode
     model = estimator.reliability
@@ -207,6 +209,8 @@ def run(args: argparse.Namespace) -> int:
         bar.update(len(batch))
         flush()
     bar.close()
+    if not rows:
+        raise FRInputError(f"{args.source}: no frame could be read (all skipped)")
 
     import pandas as pd
 

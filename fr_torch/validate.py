@@ -173,3 +173,14 @@ class _suppress:
 
     def __exit__(self, *exc):
         return True
+
+
+def track_options(args) -> None:
+    """``fr track`` options: memory >= 1 frame, change_k > 0, patience >= 1 (one-line errors)."""
+    memory = finite_number(args.memory, "--memory")
+    if memory < 1:
+        raise FRInputError(f"--memory must be at least 1 frame, got {args.memory!r}")
+    positive_number(args.change_k, "--change-k")
+    positive_int(args.patience, "--patience")
+    if args.max_frames is not None:
+        positive_int(args.max_frames, "--max-frames")

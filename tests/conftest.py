@@ -48,3 +48,13 @@ def has_cuda() -> bool:
 
 
 gpu = pytest.mark.skipif(not has_cuda(), reason="needs a CUDA device")
+
+
+def pytest_collection_modifyitems(config, items):
+    """``@pytest.mark.slow`` tests run only with ``FR_SLOW=1`` or when ``-m`` selects them."""
+    if os.environ.get("FR_SLOW") == "1" or "slow" in (config.getoption("-m") or ""):
+        return
+    skip = pytest.mark.skip(reason="slow: set FR_SLOW=1 or use -m slow")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)
