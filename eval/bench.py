@@ -16,6 +16,17 @@ and ``<out>/scaling.png`` (default ``results/bench``):
    ``--stress`` it also checks that a batch of 4096 images x 1000 segments stays bounded (with a
    k=4 grid to keep it short: memory does not depend on k, since the grid is chunked).
 4. **Scaling**: time against the number of segments (100 ... 5000) and the grid size k (4 ... 12).
+5. **CPU parallelism**: images/s given segments (batch 64) with T intra-op threads vs W
+   single-threaded worker processes (:func:`fr_torch.pipeline.calibrate_segments_sharded`),
+   for T, W in 1, 2, 4, 8, cores.
+6. **Where the time goes**: a torch profiler table (top ops by self time) of one batch, per device,
+   in ``<out>/profile_<device>_fast.txt`` and summarised in bench.md.
+
+Every measurement is written as it is taken: one JSON line per row in ``<out>/bench.jsonl``
+(flushed) and one progress line on stderr; bench.json / bench.md / scaling.png at the end.
+``--budget-s`` bounds the run: settings not started within the budget are skipped and listed
+(default 170 s when a CUDA device is measured, so ``fr bench --device cuda`` ends in about 3
+minutes; the CUDA figures are taken first, with batches 1 ... 4096 and 3 repeats).
 
 ``--quick`` is a tiny smoke run (seconds).  The machine (CPU model, cores, torch version, threads,
 device, load average) is recorded with the numbers: on a shared machine timings are noisy, so
