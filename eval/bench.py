@@ -73,6 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stress", action="store_true",
                         help="also run the bounded-memory check: batch 4096 x 1000 segments (k=4; minutes)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--batches", default=None, metavar="B,B,...",
+                        help="CPU batch sizes for throughput and memory (default 1,8,64,256,1024)")
     parser.add_argument("--budget-s", type=float, default=None,
                         help="time budget in seconds: settings not started by then are skipped and listed "
                              "(default 170 with a CUDA device, else none; 0 = none)")
@@ -577,6 +579,8 @@ def run(args: argparse.Namespace) -> int:
             pass
 
     batches = [1, 4] if quick else [1, 8, 64, 256, 1024]
+    if args.batches:
+        batches = [int(b) for b in args.batches.split(",")]
     device_batches = [1, 4] if quick else [1, 64, 256, 1024, 4096]  # CUDA: large batches, capped by the budget
     cores = os.cpu_count() or 1
     counts = [1, 2] if quick else sorted({1, 2, min(4, cores), min(8, cores), cores} - {0})
@@ -609,10 +613,10 @@ def run(args: argparse.Namespace) -> int:
     e2e = end_to_end(images, repeats, progress, modes)
     for row in e2e:
         row["grid_floor_ms"] = row["grid_hypotheses"] * row["segments"] * 3 * ns / 1e6
+    parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
+    profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
     for mode in modes:
         tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
-    profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
-    parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
     mem = memory(mem_settings, args.threads, progress)
     scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)
     progress.close()
