@@ -16,6 +16,17 @@ and ``<out>/scaling.png`` (default ``results/bench``):
    ``--stress`` it also checks that a batch of 4096 images x 1000 segments stays bounded (with a
    k=4 grid to keep it short: memory does not depend on k, since the grid is chunked).
 4. **Scaling**: time against the number of segments (100 ... 5000) and the grid size k (4 ... 12).
+5. **CPU parallelism**: images/s given segments (batch 64) with T intra-op threads vs W
+   single-threaded worker processes (:func:`fr_torch.pipeline.calibrate_segments_sharded`),
+   for T, W in 1, 2, 4, 8, cores.
+6. **Where the time goes**: a torch profiler table (top ops by self time) of one batch, per device,
+   in ``<out>/profile_<device>_fast.txt`` and summarised in bench.md.
+
+Every measurement is written as it is taken: one JSON line per row in ``<out>/bench.jsonl``
+(flushed) and one progress line on stderr; bench.json / bench.md / scaling.png at the end.
+``--budget-s`` bounds the run: settings not started within the budget are skipped and listed
+(default 170 s when a CUDA device is measured, so ``fr bench --device cuda`` ends in about 3
+minutes; the CUDA figures are taken first, with batches 1 ... 4096 and 3 repeats).
 
 ``--quick`` is a tiny smoke run (seconds).  The machine (CPU model, cores, torch version, threads,
 device, load average) is recorded with the numbers: on a shared machine timings are noisy, so
@@ -62,6 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stress", action="store_true",
                         help="also run the bounded-memory check: batch 4096 x 1000 segments (k=4; minutes)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--batches", default=None, metavar="B,B,...",
+                        help="CPU batch sizes for throughput and memory (default 1,8,64,256,1024)")
     parser.add_argument("--budget-s", type=float, default=None,
                         help="time budget in seconds: settings not started by then are skipped and listed "
                              "(default 170 with a CUDA device, else none; 0 = none)")
@@ -566,6 +579,8 @@ def run(args: argparse.Namespace) -> int:
             pass
 
     batches = [1, 4] if quick else [1, 8, 64, 256, 1024]
+    if args.batches:
+        batches = [int(b) for b in args.batches.split(",")]
     device_batches = [1, 4] if quick else [1, 64, 256, 1024, 4096]  # CUDA: large batches, capped by the budget
     cores = os.cpu_count() or 1
     counts = [1, 2] if quick else sorted({1, 2, min(4, cores), min(8, cores), cores} - {0})
@@ -598,10 +613,10 @@ def run(args: argparse.Namespace) -> int:
     e2e = end_to_end(images, repeats, progress, modes)
     for row in e2e:
         row["grid_floor_ms"] = row["grid_hypotheses"] * row["segments"] * 3 * ns / 1e6
+    parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
+    profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
     for mode in modes:
         tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
-    profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
-    parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
     mem = memory(mem_settings, args.threads, progress)
     scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)
     progress.close()

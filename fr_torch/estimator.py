@@ -249,13 +249,13 @@ class FREstimator:
         focal = torch.tensor([float(g.focal_px) for g in group], dtype=torch.float64) if known_focal else None
 
         t0 = time.perf_counter()
-        hypotheses = grid_hypotheses(self.search, width, focal)
+        hypotheses = grid_hypotheses(self.search, width, focal).to(device)  # one host->device copy
         grid_scores = score_grid(self.likelihood, features, hypotheses, self.search.max_chunk_elements)
         t1 = time.perf_counter()
 
         top_l = min(self.search.top_l, grid_scores.shape[1])
         top_scores, top_index = grid_scores.topk(top_l, dim=1)
-        starts = torch.gather(hypotheses.to(device), 1, top_index[..., None].expand(-1, -1, 4))
+        starts = torch.gather(hypotheses, 1, top_index[..., None].expand(-1, -1, 4))
         lower, upper = parameter_box(self.search, width, focal)
         refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
                                          fast=self.mode == "fast")

@@ -12,8 +12,8 @@ batch gives the same answer as images one by one.
 
 Speed and memory (same math; see also :mod:`fr_torch.likelihood`):
 
-* Grid: on CPU the hypotheses are scored in cache-sized chunks (``CPU_CHUNK_ELEMENTS`` deviations,
-  about 1 MB per buffer) that reuse the same buffers, instead of ``max_chunk_elements`` (which
+* Grid: on CPU the hypotheses are scored in cache-sized chunks (``CPU_CHUNK_ELEMENTS`` deviations
+  per intra-op thread, about 1 MB per buffer and thread) that reuse the same buffers, instead of ``max_chunk_elements`` (which
   still bounds the chunk on GPU and caps it on CPU); rotations / vanishing points are built once
   per image slice, not per chunk.  Large batches are cut into image slices, so memory stays
   bounded for any batch size.
@@ -138,7 +138,10 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
     batch, count = hypotheses.shape[:2]
     n_seg = max(1, features.weight.shape[1])
     dtype, device = features.weight.dtype, features.weight.device
-    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, CPU_CHUNK_ELEMENTS))
+    # CPU: a cache-sized chunk per intra-op thread.  A fixed 2^17 chunk capped every op at 4 threads
+    # (torch's GRAIN_SIZE 2^15 elements per thread), so more cores did not help.
+    cpu_budget = CPU_CHUNK_ELEMENTS * max(1, torch.get_num_threads())
+    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, cpu_budget))
     per_hypothesis = n_seg * 3
     hyp_chunk = max(1, min(count, budget // per_hypothesis))
     img_chunk = max(1, min(batch, budget // (per_hypothesis * hyp_chunk)))
