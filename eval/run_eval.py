@@ -57,7 +57,8 @@ import pandas as pd
 from tqdm import tqdm
 
 from eval.datasets.registry import available_datasets, load_dataset
-from eval.metrics import NA_PREFIX, estimate_quantities, image_errors, is_failure, summarize, summarize_groups
+from eval.metrics import (NA_PREFIX, estimate_quantities, failure_reason, image_errors, is_failure, summarize,
+                          summarize_groups)
 from eval.paths import REPO
 from eval.plots import distributions_figure, histogram_figure, safe_name
 from eval.tables import deviation_measure_summaries, with_option, write_tables
@@ -290,7 +291,7 @@ def prediction_row(spec: str, sample: Any, est: CameraEstimate | None, wall_s: f
         "image": sample.name,
         "split": getattr(sample, "split", ""),
         "failed": bool(failed),
-        "reason": ("no estimate" if est is None else (est.reason or "failed")) if failed else "",
+        "reason": failure_reason(est) if failed else "",
         "runtime_s": wall_s,
         "method_runtime_s": _num(getattr(est, "runtime_s", None)),
     }

@@ -38,9 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", default="lsd", help="line segment detector (default lsd)")
     parser.add_argument("--likelihood", default=None, metavar="NAME|JSON",
                         help="likelihood config: 'paper', 'fitted' or a JSON path (default configs/likelihood.json)")
-    parser.add_argument("--hfov-range", default=None, metavar="MIN,MAX",
-                        help="search range of the horizontal field of view in degrees (default 50,130; "
-                             "narrow for zoomed-in PTZ or traffic cameras)")
+    parser.add_argument("--hfov-range", default=None, metavar="MIN,MAX|paper",
+                        help="search range of the field of view across the image's long side, degrees "
+                             "(default 30,120; 'paper' = the paper's 50,130; narrow for zoomed-in PTZ or "
+                             "traffic cameras)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--batch-size", type=int, default=16, help="images searched together")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write a JSON list to OUT")
@@ -68,11 +69,7 @@ def run(args: argparse.Namespace) -> int:
         raise FRInputError("--batch-size must be at least 1")
     search_config = None
     if args.hfov_range:
-        try:
-            low, high = (float(v) for v in args.hfov_range.split(","))
-        except ValueError:
-            raise FRInputError(f"--hfov-range must be MIN,MAX in degrees, got {args.hfov_range!r}") from None
-        search_config = SearchConfig.from_config(hfov_range_deg=(low, high))
+        search_config = SearchConfig.from_config().with_fov_range(args.hfov_range)  # FRInputError if invalid
     estimator = FREstimator(mode="fast" if args.fast else "fr", measure=args.measure, detector=args.detector,
                             likelihood=args.likelihood, device=args.device, search_config=search_config)
     reliability = _load_reliability()

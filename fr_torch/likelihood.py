@@ -21,7 +21,8 @@ Deviation measures (internal units: radians for b and e, pixels for a, c, d):
 (c) distance from an endpoint to the line through the midpoint and the VP, ``(len/2) sin(b)``;
 (d) endpoint distance measured orthogonally to the segment, ``(len/2) tan(b)``;
 (e) Gauss-sphere angle between the VP direction ``D = K^-1 v`` and the segment's interpretation
-    plane (normal ``n = K^T l``): ``asin(|n . D| / (|n| |D|))``, where ``n . D = s``.
+    plane (normal ``n = K^T l``): ``asin(|n . D| / (|n| |D|))``, where ``n . D = s`` (evaluated as
+    ``atan2(|s|, sqrt(|n|^2 - s^2))``: finite value and gradient in float32 too).
 
 Likelihoods: exponential ``exp(-x / lambda) / lambda`` for a, b, c, e; half-normal (a central
 Gaussian on the signed deviation, sigma = 1 px by default) for d; background uniform over the
@@ -58,6 +59,7 @@ from .camera import VERTICAL_AXIS, intrinsics
 from .segments import SegmentBatch
 
 MEASURES = ("a", "b", "c", "d", "e")
+MODELS = ("mixture", "nomixture")
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 DEFAULT_LIKELIHOOD_CONFIG = CONFIG_DIR / "likelihood.json"
 _TINY = 1e-30  # guards 0 / 0 in measure a
@@ -82,6 +84,10 @@ class LikelihoodParams:
 
     ``scale_vertical`` / ``scale_horizontal``: exponential mean lambda (or Gaussian sigma for d).
     ``range_px``: background range for measure a (pixels).  Priors sum to 1.
+    ``model``: ``mixture`` (the fR objective) or ``nomixture``, the paper's "no probabilistic model"
+    ablation: each segment scores the log of its smallest deviation from the three VPs,
+    ``objective = -sum_i len_i log(min_k x_ik + eps)`` with ``eps = scale_horizontal / 100`` (keeps
+    the log finite for a segment exactly through a VP); no priors, no background.
     """
 
     measure: str = "b"
@@ -91,6 +97,11 @@ class LikelihoodParams:
     prior_horizontal: float = 0.26
     prior_background: float = 0.03
     range_px: float = 2000.0
+    model: str = "mixture"
+
+    def __post_init__(self):
+        if self.model not in MODELS:
+            raise ValueError(f"unknown likelihood model {self.model!r}; choose one of {', '.join(MODELS)}")
 
     @classmethod
     def from_config(cls, measure: str | None = None, path: str | Path | None = None) -> "LikelihoodParams":
@@ -181,8 +192,11 @@ def deviations_from_incidence(measure: str, s: torch.Tensor, t: torch.Tensor, v3
         # |n| for n = K^T l: (f l_x, f l_y, l . (c, 1)) with (l_x, l_y) a unit vector; |D| = |R[:, k]| = 1.
         pp_h = torch.cat([features.principal_point, torch.ones_like(features.principal_point[:, :1])], -1)
         offset = (features.line * pp_h[:, None, :]).sum(-1)
-        normal_norm = torch.sqrt(focal[:, None, :] ** 2 + offset[:, :, None] ** 2)  # (B, N, H)
-        return torch.asin((abs_s / normal_norm[..., None]).clamp(max=1.0))
+        normal_sq = (focal[:, None, :] ** 2 + offset[:, :, None] ** 2)[..., None]  # (B, N, H, 1)
+        # asin(|s| / |n|) written as atan2(|s|, sqrt(|n|^2 - s^2)): the same angle, but finite with a
+        # finite gradient in float32 where |s| / |n| rounds to 1 (asin' = inf there -> NaN parameters).
+        cos_part = torch.sqrt((normal_sq - abs_s * abs_s).clamp_min(normal_sq * 1e-12))
+        return torch.atan2(abs_s, cos_part)
     abs_t = t.abs()
     # A midpoint exactly on the VP (s = t = 0) gets angle 0 with a finite gradient.
     angle = torch.atan2(abs_s, torch.where((abs_s == 0) & (abs_t == 0), torch.ones_like(abs_t), abs_t))
@@ -291,11 +305,15 @@ class MixtureLikelihood:
             with torch.no_grad():
                 return objective_b_nograd(features.line, features.along, features.weight, flat, *constants,
                                           workspace=workspace)
+        if self.params.model == "nomixture":
+            x = self._deviations(features, rotation, focal).amin(-1)  # (B, N, H)
+            log_x = torch.log(x + self.params.scale_horizontal / 100)
+            return -torch.einsum("bnh,bn->bh", log_x, features.weight)
         log_p = self.segment_log_likelihood(features, rotation, focal)
         return torch.einsum("bnh,bn->bh", log_p, features.weight)
 
     def _fast_path(self, features: SegmentFeatures) -> bool:
-        return (self.params.measure == "b" and features.weight.dtype in _EXP_FLOOR
+        return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in _EXP_FLOOR
                 and not (features.line.requires_grad or features.along.requires_grad
                          or features.weight.requires_grad)
                 and self.params.prior_background > 1e-20)
