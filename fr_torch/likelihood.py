@@ -88,6 +88,12 @@ class LikelihoodParams:
     ablation: each segment scores the log of its smallest deviation from the three VPs,
     ``objective = -sum_i len_i log(min_k x_ik + eps)`` with ``eps = scale_horizontal / 100`` (keeps
     the log finite for a segment exactly through a VP); no priors, no background.
+    ``focal_prior_weight`` (beta >= 0): a scale-free prior on the focal length, ``p(f) ~ f^(-beta W)``
+    with W the image's total segment length (pixels), i.e. ``-beta * W * log f`` is added to the
+    objective.  It counters the likelihood's pull towards narrow fields of view (the f -> infinity
+    bias the paper describes: far VPs make the horizontal families nearly parallel, which fits
+    noisy segments slightly better); being proportional to W it acts per unit of evidence, like the
+    bias it corrects.  beta was chosen on the train splits (results/yud/README.md); 0 = none.
     """
 
     measure: str = "b"
@@ -98,8 +104,11 @@ class LikelihoodParams:
     prior_background: float = 0.03
     range_px: float = 2000.0
     model: str = "mixture"
+    focal_prior_weight: float = 0.0
 
     def __post_init__(self):
+        if not (math.isfinite(self.focal_prior_weight) and self.focal_prior_weight >= 0):
+            raise ValueError(f"focal_prior_weight must be a finite number >= 0, got {self.focal_prior_weight}")
         if self.model not in MODELS:
             raise ValueError(f"unknown likelihood model {self.model!r}; choose one of {', '.join(MODELS)}")
 
@@ -120,6 +129,7 @@ class LikelihoodParams:
         priors = config["priors"]
         total = priors["vertical"] + 2 * priors["horizontal"] + priors["background"]
         return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h,
+                   focal_prior_weight=float(config.get("focal_prior", {}).get("weight", 0.0)),
                    prior_vertical=priors["vertical"] / total, prior_horizontal=priors["horizontal"] / total,
                    prior_background=priors["background"] / total,
                    range_px=float(entry.get("range_px", cls.range_px)))
@@ -291,6 +301,16 @@ class MixtureLikelihood:
 
     def objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                   workspace: dict | None = None) -> torch.Tensor:
+        """Length-weighted log-likelihood sum_i len_i log p_i plus the focal prior
+        ``-beta W log f`` (``focal_prior_weight``), (B, H)."""
+        value = self._data_objective(features, rotation, focal, workspace)
+        beta = self.params.focal_prior_weight
+        if beta:
+            value = value - (beta * features.weight.sum(-1, keepdim=True)) * torch.log(focal.to(value.dtype))
+        return value
+
+    def _data_objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
+                        workspace: dict | None = None) -> torch.Tensor:
         """Length-weighted log-likelihood sum_i len_i log p_i, (B, H).
 
         Measure b in float32/float64 takes the fused path (module docstring); ``workspace`` (a
