@@ -13,7 +13,9 @@ reasoning of the paper is not needed for calibration):
    length of segments within ``inlier_deg`` wins and is refined by least squares
    (:func:`baselines.vp_geometry.vertical_vp`).
 3. Focal sweep: ``n_focal`` focal lengths, log-spaced so that the horizontal field of view of the
-   image's *long side* spans ``hfov_range_deg`` (so the sweep scales with the image size).  For
+   image's *long side* spans ``hfov_range_deg`` (so the sweep scales with the image size; default:
+   fR's library default range, ``configs/search.json``; option ``lee2009[range=paper]`` or
+   ``range=MIN:MAX``, and ``fr eval --hfov-range`` sets it for every method of a table).  For
    each focal the vertical VP fixes the horizon; every other segment's line meets the horizon in
    a candidate first horizontal VP, and orthogonality gives the second one: an orthogonal triplet
    (hypotheses from the ``max_hypothesis_segments`` longest segments, votes from the
@@ -38,6 +40,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
+from fr_torch.search import search_fov_range
 from fr_torch.segments import FRInputError
 
 from . import vp_geometry as vg
@@ -48,13 +51,13 @@ class Lee2009(TimedCalibrator):
 
     name = "lee2009"
 
-    def __init__(self, n_focal: int = 64, hfov_range_deg: tuple[float, float] = (20.0, 140.0),
+    def __init__(self, n_focal: int = 64, hfov_range_deg=None, range=None,
                  inlier_deg: float = 2.0, vertical_max_deg: float = 30.0, min_length_frac: float = 0.02,
                  min_segments: int = 8, min_support: int = 3, refine: bool = True,
                  theta_step_deg: float = 0.25, max_hypothesis_segments: int = 200,
                  max_voting_segments: int = 1000):
         self.n_focal = int(n_focal)
-        self.hfov_range_deg = tuple(hfov_range_deg)
+        self.hfov_range_deg = search_fov_range(range if range is not None else hfov_range_deg)
         self.inlier_deg = float(inlier_deg)
         self.vertical_max_deg = float(vertical_max_deg)
         self.min_length_frac = float(min_length_frac)

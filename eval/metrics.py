@@ -16,7 +16,7 @@ Summaries (``summarize``): mean and standard error ``SE = std(ddof=1) / sqrt(n)`
 where the method succeeded and reported the quantity.  Failed estimates (``None`` or
 ``ok == False``) are **counted** (``failures``, ``failure_pct``), never silently dropped; a quantity
 a method never reports is "n/a" (NaN mean, ``n = 0``).  ``valid_pct`` is the share of images with a
-valid (non-failed) result.  A method whose every estimate failed with a reason starting ``"n/a ("``
+valid (non-failed) result; an estimate reporting NaN / inf counts as a failure.  A method whose every estimate failed with a reason starting ``"n/a ("``
 (weights / predictions not supplied, e.g. CTRL-C without its ONNX file) is marked
 ``na_reason = NOT_SUPPLIED``: the tables then show "n/a (not supplied)" in every cell of its row.
 """
@@ -107,9 +107,45 @@ def estimate_quantities(est: Any, width: int) -> dict[str, Any]:
     return out
 
 
+NON_FINITE_REASON = "non-finite estimate (NaN/inf)"
+_NUMERIC_FIELDS = ("focal_px", "hfov_deg", "roll_deg", "tilt_deg", "pitch_deg", "pan_deg")
+
+
+def has_non_finite(est: Any) -> bool:
+    """True when an estimate reports a NaN / inf number (a scalar field or an entry of its rotation)."""
+    if est is None:
+        return False
+    for key in _NUMERIC_FIELDS:
+        value = _get(est, key)
+        if value is not None:
+            try:
+                if not math.isfinite(float(value)):
+                    return True
+            except (TypeError, ValueError):
+                return True
+    rotation = _get(est, "rotation")
+    if rotation is not None:
+        try:
+            return not bool(np.isfinite(np.asarray(rotation, dtype=np.float64)).all())
+        except (TypeError, ValueError):
+            return True
+    return False
+
+
 def is_failure(est: Any) -> bool:
-    """True for a missing estimate (None) or one flagged ``ok == False``."""
-    return est is None or _get(est, "ok") is False
+    """True for a missing estimate (None), one flagged ``ok == False``, or one with a NaN / inf in a
+    reported quantity (:func:`has_non_finite`): a non-finite estimate is a counted failure, never a
+    valid result whose errors are silently dropped."""
+    return est is None or _get(est, "ok") is False or has_non_finite(est)
+
+
+def failure_reason(est: Any) -> str:
+    """Why :func:`is_failure` holds ("" if it does not)."""
+    if est is None:
+        return "no estimate"
+    if _get(est, "ok") is False:
+        return _get(est, "reason") or "failed"
+    return NON_FINITE_REASON if has_non_finite(est) else ""
 
 
 def image_errors(sample: Any, est: Any) -> dict[str, float | None]:

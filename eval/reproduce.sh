@@ -25,18 +25,21 @@ for step in "${steps[@]}"; do
       .venv/bin/python -m eval.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
         --yaw-csv "${FR_DATA:-../shared/data}/zind_sample_tour/manhattan_yaw_derived.csv" \
         --out "${FR_CACHE:-data_local}/zind-fr" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 --test-fraction 0.5 ;;
-    yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e,
-          # and the search-range check (true FOV 50.7 deg sits at the edge of [50, 130]).
-      $FR eval --dataset yud --split test --methods fr,fast-fr,oracle-fr --out results/yud
+    yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e.
+          # Every table: the library's default FOV range (configs/search.json, [30, 120]) with the
+          # paper's [50, 130] rows ([range=paper]) next to it (issue 13).
+      $FR eval --dataset yud --split test --out results/yud \
+        --methods "fr,fr[range=paper],fast-fr,fast-fr[range=paper],oracle-fr,oracle-fr[range=paper]"
       $FR eval --dataset yud --split test --methods fr,fast-fr,oracle-fr --pp calibrated --out results/yud/calibrated_pp --no-plots
-      $FR eval --dataset yud --split test --methods fr --measures a,b,c,d,e --out results/yud/measures --no-plots
-      $FR eval --dataset yud --split test --no-plots --out results/yud/hfov_range \
-        --methods "fr,fr[hfov_min=40],fr[hfov_min=30,hfov_max=120],fast-fr,fast-fr[hfov_min=40]" ;;
+      $FR eval --dataset yud --split test --methods fr --measures a,b,c,d,e --out results/yud/measures --no-plots ;;
     zind)  # Issue "panorama datasets": ZInD-fR test, per-FOV table, distribution figure
-      $FR eval --dataset zind-fr --split test --methods fr,fast-fr --out results/zind-fr ;;
-    sota)  # Issue "baselines": every registered method (absent weights / predictions -> n/a rows)
-      $FR eval --dataset yud --split test --methods all --out results/sota/yud
-      $FR eval --dataset zind-fr --split test --methods all --out results/sota/zind-fr ;;
+      $FR eval --dataset zind-fr --split test --out results/zind-fr \
+        --methods "fr,fr[range=paper],fast-fr,fast-fr[range=paper]" ;;
+    sota)  # Issue "baselines" + issue 13: every method that searches focal gets the same range
+          # (--hfov-range, default = the library default); the paper-range rows beside them.
+      M="fr,fr[range=paper],fast-fr,fast-fr[range=paper],lee2009,lee2009[range=paper],simon2018,simon2018[range=paper],prior"
+      $FR eval --dataset yud --split test --methods "$M" --out results/sota/yud
+      $FR eval --dataset zind-fr --split test --methods "$M" --out results/sota/zind-fr ;;
     detectors)  # Issue "detectors": LSD vs MCMLSD (paper's Table 3)
       for d in yud zind-fr; do
         $FR eval --dataset $d --split test --no-plots --out results/detectors/$d \

@@ -6,6 +6,7 @@ Example::
     fr eval --dataset yud --methods fr --measures a,b,c,d,e      # the deviation-measure table
     fr eval --dataset yud --methods "fr,fr@labelled,my_pkg.mod:MyCalibrator" --pp calibrated
     fr eval --dataset zind-fr --methods all                        # every registered method, per-FOV table
+    fr eval --dataset yud --methods "fr,fr[range=paper],lee2009,lee2009[range=paper]" --hfov-range 30,120
 
 Methods are anything :func:`fr_torch.interface.get_calibrator` accepts (registered names,
 ``module:attr`` import paths, configuration variants such as ``fr[measure=a]`` passed through
@@ -58,12 +59,14 @@ from tqdm import tqdm
 
 import baselines  # noqa: F401  (registers the baselines also in a source checkout that is not pip-installed)
 from eval.datasets.registry import available_datasets, load_dataset
-from eval.metrics import NA_PREFIX, estimate_quantities, image_errors, is_failure, summarize, summarize_groups
+from eval.metrics import (NA_PREFIX, estimate_quantities, failure_reason, image_errors, is_failure, summarize,
+                          summarize_groups)
 from eval.paths import REPO
 from eval.plots import distributions_figure, histogram_figure, safe_name
-from eval.tables import deviation_measure_summaries, with_option, write_tables
+from eval.tables import deviation_measure_summaries, parse_method_spec, with_option, write_tables
 from fr_torch.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
 from fr_torch.registry import split_method_list
+from fr_torch.search import search_fov_range
 from fr_torch.segments import load_image
 
 LABELLED_SUFFIX = "@labelled"
@@ -71,6 +74,10 @@ ALL_METHODS = "all"
 TABLE_ORDER = ("fr", "fast-fr", "oracle-fr", "lee2009", "simon2018", "hold-geoffroy2018", "ctrlc", "ctrlc-retrained",
                "prior", "external")
 GROUP_METRICS = ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct")
+#: Methods that search the focal length: ``--hfov-range`` is given to each of them (as ``range``),
+#: unless the spec sets its own (``[range=...]``, ``[hfov_min=...]``, ``[hfov_max=...]``).
+FOCAL_SEARCH_METHODS = ("fr", "fast-fr", "oracle-fr", "lee2009", "simon2018")
+RANGE_OPTIONS = ("range", "hfov_min", "hfov_max")
 AUTO_GROUP_MAX_VALUES = 10
 
 
@@ -147,12 +154,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ctrlc-retrained-onnx", default=None, metavar="ONNX",
                         help="the second CTRL-C training, for the ctrlc-retrained row (or $FR_CTRLC_RETRAINED_ONNX)")
     parser.add_argument("--device", default="cpu", help="torch device passed to the methods (default cpu)")
+    parser.add_argument("--hfov-range", default=None, metavar="MIN,MAX|paper",
+                        help="FOV search range (degrees, image long side) given to every method that searches "
+                             f"the focal length ({', '.join(FOCAL_SEARCH_METHODS)}) unless its spec sets "
+                             "[range=...]; default: the library default (configs/search.json); 'paper' = 50,130. "
+                             "Stated in every table caption")
     parser.add_argument("--no-plots", action="store_true",
                         help="skip the figures (hist_<method>.png, distributions.png)")
     parser.add_argument("--group-by", default="auto",
                         help="per-group breakdown table: 'hfov' (per-FOV table by_fov.*), another sample "
                              "attribute / extra key, 'none', or 'auto' (default: hfov when the GT "
                              f"horizontal FOV takes 2..{AUTO_GROUP_MAX_VALUES} distinct rounded values)")
+
+
+def range_caption(methods: Sequence[str], fov_range: tuple[float, float]) -> str:
+    """The caption sentence stating the FOV search range of every method in the table."""
+    searched = [m for m in methods if method_fov_range(m, fov_range) is not None]
+    own = [m for m in methods if m not in searched and parse_method_spec(_strip_labelled(m)[0])[0]
+           in FOCAL_SEARCH_METHODS]
+    text = (f"FOV search range [{fov_range[0]:g}°, {fov_range[1]:g}°] (FOV across the image's long side) for "
+            f"{', '.join(searched) if searched else 'no method'}")
+    if own:
+        text += "; rows with [range=...] use their own (paper = [50°, 130°])"
+    if any(parse_method_spec(m)[0] == "prior" for m in methods):
+        text += "; prior: fixed 60° HFOV, no search"
+    return text
 
 
 def _dataset_names() -> list[str]:
@@ -162,17 +188,31 @@ def _dataset_names() -> list[str]:
         return ["yud"]
 
 
-def make_calibrator(spec: str, device: str):
-    """Build a method; passes ``device`` to factories that accept it."""
+def method_fov_range(spec: str, fov_range: tuple[float, float] | None) -> tuple[float, float] | None:
+    """The FOV range ``fr eval`` gives method ``spec``: ``fov_range`` for a focal-searching method
+    (:data:`FOCAL_SEARCH_METHODS`) whose spec sets no range option, else None (its own)."""
+    base, options = parse_method_spec(_strip_labelled(spec)[0])
+    if fov_range is None or base not in FOCAL_SEARCH_METHODS or any(k in options for k in RANGE_OPTIONS):
+        return None
+    return fov_range
+
+
+def make_calibrator(spec: str, device: str, fov_range: tuple[float, float] | None = None):
+    """Build a method; passes ``device`` to factories that accept it, and the table's FOV search
+    range (``range``) to the focal-searching ones (:func:`method_fov_range`)."""
+    extra = {}
+    method_range = method_fov_range(spec, fov_range)
+    if method_range is not None:
+        extra["range"] = method_range
     try:
-        return get_calibrator(spec, device=device)
+        return get_calibrator(spec, device=device, **extra)
     except TypeError as exc:
         if "device" not in str(exc):
             raise
         if device not in ("cpu", None):
             print(f"warning: method {spec!r} takes no device argument; it runs on its own default",
                   file=sys.stderr)
-        return get_calibrator(spec)
+        return get_calibrator(spec, **extra)
 
 
 def build_meta(sample: Any, pp_mode: str, labelled: bool, known_focal: bool, dataset: str, device: str) -> ImageMeta:
@@ -282,7 +322,7 @@ def prediction_row(spec: str, sample: Any, est: CameraEstimate | None, wall_s: f
         "image": sample.name,
         "split": getattr(sample, "split", ""),
         "failed": bool(failed),
-        "reason": ("no estimate" if est is None else (est.reason or "failed")) if failed else "",
+        "reason": failure_reason(est) if failed else "",
         "runtime_s": wall_s,
         "method_runtime_s": _num(getattr(est, "runtime_s", None)),
     }
@@ -381,10 +421,15 @@ def run(args: argparse.Namespace) -> int:
     for option, env in (("ctrlc_onnx", "FR_CTRLC_ONNX"), ("ctrlc_retrained_onnx", "FR_CTRLC_RETRAINED_ONNX")):
         if getattr(args, option, None):  # the option wins over the environment variable
             os.environ[env] = str(Path(getattr(args, option)).expanduser().resolve())
+    try:
+        fov_range = search_fov_range(getattr(args, "hfov_range", None))
+    except ValueError as exc:
+        print(f"error: --hfov-range: {exc}", file=sys.stderr)
+        return 2
     calibrators = {}
     for spec in methods:  # build every method first: a typo fails before hours of work
         try:
-            calibrators[spec] = make_calibrator(_strip_labelled(spec)[0], args.device)
+            calibrators[spec] = make_calibrator(_strip_labelled(spec)[0], args.device, fov_range)
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
@@ -410,7 +455,8 @@ def run(args: argparse.Namespace) -> int:
             histogram_figure(pd.DataFrame(rows), spec, out_dir / f"hist_{safe_name(spec)}.png",
                              title=f"{spec} on {args.dataset} ({args.split}): estimated vs ground truth")
     settings = (f"dataset {args.dataset}, split {args.split} ({len(samples)} images), principal point "
-                f"{args.pp}, focal {'known' if args.known_focal else 'estimated'}")
+                f"{args.pp}, focal {'known' if args.known_focal else 'estimated'}; "
+                + range_caption(methods, fov_range))
     note = ("Mean ± standard error (std(ddof=1)/√n) over the images a method succeeded on; 'valid (%)' is "
             "the share of images with a valid result; failures are counted in 'failures' (share of all "
             "images) and excluded from the error means only; run time (wall time of estimate(), all images, "
@@ -444,7 +490,7 @@ def run(args: argparse.Namespace) -> int:
     info = {"argv": sys.argv, "methods": methods, "dataset": args.dataset, "split": args.split,
             "requested_methods": requested, "skipped_methods": skipped, "group_by": group_key,
             "n_images": len(samples), "pp": args.pp, "known_focal": args.known_focal, "device": args.device,
-            "limit": args.limit, "python": platform.python_version(),
+            "limit": args.limit, "hfov_range_deg": list(fov_range), "python": platform.python_version(),
             "date": time.strftime("%Y-%m-%d %H:%M:%S")}
     (out_dir / "run_info.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
     print((out_dir / "summary.md").read_text(encoding="utf-8"))

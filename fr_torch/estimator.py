@@ -25,7 +25,8 @@ import torch
 
 from .camera import VERTICAL_AXIS, Camera, angles_from_rotation, hfov_from_focal, image_centre, intrinsics
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
-from .search import SearchConfig, grid_hypotheses, hypothesis_rotations, parameter_box, refine, score_grid
+from .search import (SearchConfig, check_result, grid_hypotheses, hypothesis_rotations, parameter_box, refine,
+                     score_grid)
 from . import image_io, validate
 from .segments import FRInputError, SegmentBatch, SegmentFilter, get_detector, validate_segments
 
@@ -244,21 +245,24 @@ class FREstimator:
                          dtype=np.float64).reshape(-1, 2)
         pp_np = np.where(np.isnan(pp_np), np.stack(image_centre(size_np[:, 0], size_np[:, 1]), -1), pp_np)
         width = torch.from_numpy(size_np[:, 0].copy())
+        height = torch.from_numpy(size_np[:, 1].copy())
         pp = torch.from_numpy(pp_np)
         features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
         focal = torch.tensor([float(g.focal_px) for g in group], dtype=torch.float64) if known_focal else None
 
         t0 = time.perf_counter()
-        hypotheses = grid_hypotheses(self.search, width, focal).to(device)  # one host->device copy
+        long_side = torch.maximum(width, height)  # the FOV range is on the long side (portrait = landscape)
+        hypotheses = grid_hypotheses(self.search, long_side, focal).to(device)  # one host->device copy
         grid_scores = score_grid(self.likelihood, features, hypotheses, self.search.max_chunk_elements)
         t1 = time.perf_counter()
 
         top_l = min(self.search.top_l, grid_scores.shape[1])
         top_scores, top_index = grid_scores.topk(top_l, dim=1)
         starts = torch.gather(hypotheses, 1, top_index[..., None].expand(-1, -1, 4))
-        lower, upper = parameter_box(self.search, width, focal)
+        lower, upper = parameter_box(self.search, long_side, focal)
         refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
-                                         fast=self.mode == "fast")
+                                         fast=self.mode == "fast", tolerance=self.search.refine_tolerance,
+                                         patience=self.search.refine_patience)
         # Keep the best of {best grid point, refined points}.
         candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
         candidate_scores = torch.cat([top_scores[:, :1], refined_scores], 1)
@@ -309,6 +313,7 @@ class FREstimator:
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             r.reliable, r.reason = self._sanity(r)
+            check_result(r, self.search, known_focal)  # non-finite -> ok=False; focal at the range edge
 
     def _cues(self, grid_scores, labels, log_p, mask) -> dict[str, torch.Tensor]:
         """The three reliability cues (paper §3.4), per image.

@@ -21,7 +21,8 @@ Deviation measures (internal units: radians for b and e, pixels for a, c, d):
 (c) distance from an endpoint to the line through the midpoint and the VP, ``(len/2) sin(b)``;
 (d) endpoint distance measured orthogonally to the segment, ``(len/2) tan(b)``;
 (e) Gauss-sphere angle between the VP direction ``D = K^-1 v`` and the segment's interpretation
-    plane (normal ``n = K^T l``): ``asin(|n . D| / (|n| |D|))``, where ``n . D = s``.
+    plane (normal ``n = K^T l``): ``asin(|n . D| / (|n| |D|))``, where ``n . D = s`` (evaluated as
+    ``atan2(|s|, sqrt(|n|^2 - s^2))``: finite value and gradient in float32 too).
 
 Likelihoods: exponential ``exp(-x / lambda) / lambda`` for a, b, c, e; half-normal (a central
 Gaussian on the signed deviation, sigma = 1 px by default) for d; background uniform over the
@@ -59,6 +60,7 @@ from .resources import config_dir
 from .segments import SegmentBatch
 
 MEASURES = ("a", "b", "c", "d", "e")
+MODELS = ("mixture", "nomixture")
 CONFIG_DIR = config_dir()  # the shipped configs/ folder (fr_torch/resources.py)
 DEFAULT_LIKELIHOOD_CONFIG = CONFIG_DIR / "likelihood.json"
 _TINY = 1e-30  # guards 0 / 0 in measure a
@@ -83,6 +85,16 @@ class LikelihoodParams:
 
     ``scale_vertical`` / ``scale_horizontal``: exponential mean lambda (or Gaussian sigma for d).
     ``range_px``: background range for measure a (pixels).  Priors sum to 1.
+    ``model``: ``mixture`` (the fR objective) or ``nomixture``, the paper's "no probabilistic model"
+    ablation: each segment scores the log of its smallest deviation from the three VPs,
+    ``objective = -sum_i len_i log(min_k x_ik + eps)`` with ``eps = scale_horizontal / 100`` (keeps
+    the log finite for a segment exactly through a VP); no priors, no background.
+    ``focal_prior_weight`` (beta >= 0): a scale-free prior on the focal length, ``p(f) ~ f^(-beta W)``
+    with W the image's total segment length (pixels), i.e. ``-beta * W * log f`` is added to the
+    objective.  It counters the likelihood's pull towards narrow fields of view (the f -> infinity
+    bias the paper describes: far VPs make the horizontal families nearly parallel, which fits
+    noisy segments slightly better); being proportional to W it acts per unit of evidence, like the
+    bias it corrects.  beta was chosen on the train splits (results/yud/README.md); 0 = none.
     """
 
     measure: str = "b"
@@ -92,6 +104,25 @@ class LikelihoodParams:
     prior_horizontal: float = 0.26
     prior_background: float = 0.03
     range_px: float = 2000.0
+    model: str = "mixture"
+    focal_prior_weight: float = 0.0
+
+    def __post_init__(self) -> None:
+        """Explicit parameters are checked too (no NaN, zero or negative scale; priors in [0, 1])."""
+        for name in ("scale_vertical", "scale_horizontal", "range_px"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"LikelihoodParams.{name} must be a finite number > 0, got {value!r}")
+        for name in ("prior_vertical", "prior_horizontal", "prior_background"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value <= 1):
+                raise ValueError(f"LikelihoodParams.{name} must be in [0, 1], got {value!r}")
+        if not self.prior_background > 0:
+            raise ValueError("LikelihoodParams.prior_background must be > 0 (the background keeps p_i > 0)")
+        if not (math.isfinite(self.focal_prior_weight) and self.focal_prior_weight >= 0):
+            raise ValueError(f"focal_prior_weight must be a finite number >= 0, got {self.focal_prior_weight}")
+        if self.model not in MODELS:
+            raise ValueError(f"unknown likelihood model {self.model!r}; choose one of {', '.join(MODELS)}")
 
     @classmethod
     def from_config(cls, measure: str | None = None, path: str | Path | None = None) -> "LikelihoodParams":
@@ -162,23 +193,14 @@ class LikelihoodParams:
         background = number(priors["background"], "priors.background", 0.0, 1e6)
         if vertical + horizontal == 0:
             fail("priors.vertical and priors.horizontal are both 0: no Manhattan family can be explained")
+        focal_prior = config.get("focal_prior", {})
+        if not isinstance(focal_prior, dict):
+            fail(f"'focal_prior' must be an object like {{\"weight\": 0.1}}, got {focal_prior!r}")
+        beta = number(focal_prior.get("weight", 0.0), "focal_prior.weight", 0.0, 100.0, low_inclusive=True)
         total = vertical + 2 * horizontal + background
-        return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h,
+        return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h, focal_prior_weight=beta,
                    prior_vertical=vertical / total, prior_horizontal=horizontal / total,
                    prior_background=background / total, range_px=range_px)
-
-    def __post_init__(self) -> None:
-        """Explicit parameters are checked too (no NaN, zero or negative scale; priors in [0, 1])."""
-        for name in ("scale_vertical", "scale_horizontal", "range_px"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"LikelihoodParams.{name} must be a finite number > 0, got {value!r}")
-        for name in ("prior_vertical", "prior_horizontal", "prior_background"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value <= 1):
-                raise ValueError(f"LikelihoodParams.{name} must be in [0, 1], got {value!r}")
-        if not self.prior_background > 0:
-            raise ValueError("LikelihoodParams.prior_background must be > 0 (the background keeps p_i > 0)")
 
 
 @dataclass
@@ -248,8 +270,11 @@ def deviations_from_incidence(measure: str, s: torch.Tensor, t: torch.Tensor, v3
         # |n| for n = K^T l: (f l_x, f l_y, l . (c, 1)) with (l_x, l_y) a unit vector; |D| = |R[:, k]| = 1.
         pp_h = torch.cat([features.principal_point, torch.ones_like(features.principal_point[:, :1])], -1)
         offset = (features.line * pp_h[:, None, :]).sum(-1)
-        normal_norm = torch.sqrt(focal[:, None, :] ** 2 + offset[:, :, None] ** 2)  # (B, N, H)
-        return torch.asin((abs_s / normal_norm[..., None]).clamp(max=1.0))
+        normal_sq = (focal[:, None, :] ** 2 + offset[:, :, None] ** 2)[..., None]  # (B, N, H, 1)
+        # asin(|s| / |n|) written as atan2(|s|, sqrt(|n|^2 - s^2)): the same angle, but finite with a
+        # finite gradient in float32 where |s| / |n| rounds to 1 (asin' = inf there -> NaN parameters).
+        cos_part = torch.sqrt((normal_sq - abs_s * abs_s).clamp_min(normal_sq * 1e-12))
+        return torch.atan2(abs_s, cos_part)
     abs_t = t.abs()
     # A midpoint exactly on the VP (s = t = 0) gets angle 0 with a finite gradient.
     angle = torch.atan2(abs_s, torch.where((abs_s == 0) & (abs_t == 0), torch.ones_like(abs_t), abs_t))
@@ -344,6 +369,16 @@ class MixtureLikelihood:
 
     def objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                   workspace: dict | None = None) -> torch.Tensor:
+        """Length-weighted log-likelihood sum_i len_i log p_i plus the focal prior
+        ``-beta W log f`` (``focal_prior_weight``), (B, H)."""
+        value = self._data_objective(features, rotation, focal, workspace)
+        beta = self.params.focal_prior_weight
+        if beta:
+            value = value - (beta * features.weight.sum(-1, keepdim=True)) * torch.log(focal.to(value.dtype))
+        return value
+
+    def _data_objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
+                        workspace: dict | None = None) -> torch.Tensor:
         """Length-weighted log-likelihood sum_i len_i log p_i, (B, H).
 
         Measure b in float32/float64 takes the fused path (module docstring); ``workspace`` (a
@@ -358,11 +393,15 @@ class MixtureLikelihood:
             with torch.no_grad():
                 return objective_b_nograd(features.line, features.along, features.weight, flat, *constants,
                                           workspace=workspace)
+        if self.params.model == "nomixture":
+            x = self._deviations(features, rotation, focal).amin(-1)  # (B, N, H)
+            log_x = torch.log(x + self.params.scale_horizontal / 100)
+            return -torch.einsum("bnh,bn->bh", log_x, features.weight)
         log_p = self.segment_log_likelihood(features, rotation, focal)
         return torch.einsum("bnh,bn->bh", log_p, features.weight)
 
     def _fast_path(self, features: SegmentFeatures) -> bool:
-        return (self.params.measure == "b" and features.weight.dtype in _EXP_FLOOR
+        return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in _EXP_FLOOR
                 and not (features.line.requires_grad or features.along.requires_grad
                          or features.weight.requires_grad)
                 and self.params.prior_background > 1e-20)

@@ -6,16 +6,23 @@ upper bound of a line-based method).  Options select configurations:
 ``fr[measure=a]`` ... ``fr[measure=e]`` (deviation measure), ``fr[detector=mcmlsd]``,
 ``fr[likelihood=paper]`` (likelihood config by name or path, see
 :func:`fr_torch.likelihood.likelihood_config_path`), ``fr[hfov_min=40,hfov_max=130]`` (search
-range of the horizontal field of view, degrees; default [50, 130]).
+range of the field of view across the long side, degrees; default ``configs/search.json``),
+``fr[range=paper]`` / ``fr[range=30:120]`` (the same by name: ``paper`` = [50, 130], ``default``),
+``fr[model=nomixture]`` (the paper's "no probabilistic model" ablation, see
+:class:`fr_torch.likelihood.LikelihoodParams`).
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import time
 import numpy as np
 
 from .estimator import CalibrationResult, FREstimator
 from .interface import CameraEstimate, ImageMeta, register
+from .likelihood import LikelihoodParams
 from .options import hfov_search_config
+from .search import SearchConfig
 
 
 def estimate_from_result(method: str, result: CalibrationResult, runtime_s: float) -> CameraEstimate:
@@ -37,7 +44,13 @@ class FRCalibrator:
     def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
                  likelihood: str | None = None, hfov_min: float | str | None = None,
                  hfov_max: float | str | None = None, use_meta_segments: bool = False, name: str | None = None,
-                 **estimator_kwargs):
+                 range=None, model: str | None = None, **estimator_kwargs):
+        if range is not None:
+            base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
+            estimator_kwargs["search_config"] = base.with_fov_range(range)
+        if model is not None:
+            params = estimator_kwargs.get("likelihood_params") or LikelihoodParams.from_config(measure, likelihood)
+            estimator_kwargs["likelihood_params"] = replace(params, model=model)
         if hfov_min is not None or hfov_max is not None:  # validated on creation
             estimator_kwargs["search_config"] = hfov_search_config(hfov_min, hfov_max,
                                                                    estimator_kwargs.get("search_config"))
@@ -50,6 +63,8 @@ class FRCalibrator:
         options += [f"likelihood={likelihood}"] if likelihood else []
         options += [f"hfov_min={hfov_min}"] if hfov_min is not None else []
         options += [f"hfov_max={hfov_max}"] if hfov_max is not None else []
+        options += [f"range={range}"] if isinstance(range, str) else []
+        options += [f"model={model}"] if model is not None else []
         self.name = f"{base}[{','.join(options)}]" if options else base
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:

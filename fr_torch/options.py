@@ -22,16 +22,17 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", default="lsd", help="line segment detector (default lsd)")
     parser.add_argument("--likelihood", default=None, metavar="NAME|JSON",
                         help="likelihood config: 'paper', 'fitted' or a JSON path (default configs/likelihood.json)")
-    parser.add_argument("--hfov-range", default=None, metavar="MIN,MAX",
-                        help="search range of the horizontal field of view in degrees (default 50,130; "
-                             "narrow for zoomed-in PTZ or traffic cameras)")
+    parser.add_argument("--hfov-range", default=None, metavar="MIN,MAX|paper",
+                        help="search range of the field of view across the image's long side, degrees "
+                             "(default 30,120; 'paper' = the paper's 50,130; narrow for zoomed-in PTZ or "
+                             "traffic cameras)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
 
 
 def hfov_search_config(hfov_min=None, hfov_max=None, base=None):
     """The search configuration (``base``, default ``configs/search.json``) with the horizontal-FOV
     range replaced where ``hfov_min`` / ``hfov_max`` (degrees; numbers or strings) are given.
-    Raises ValueError for a range outside ``0 < min < max < 180``."""
+    Raises FRInputError (a ValueError) for a range outside ``1 <= min < max <= 179``."""
     from .search import SearchConfig
 
     base = base or SearchConfig.from_config()
@@ -44,14 +45,10 @@ def hfov_search_config(hfov_min=None, hfov_max=None, base=None):
 
 def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """FREstimator keyword arguments from the options of :func:`add_estimator_arguments`."""
-    from .segments import FRInputError
-
     kwargs: dict[str, Any] = dict(mode="fast" if args.fast else "fr", measure=args.measure, detector=args.detector,
                                   likelihood=args.likelihood, device=args.device)
-    if args.hfov_range:
-        try:
-            low, high = (float(v) for v in args.hfov_range.split(","))
-        except ValueError:
-            raise FRInputError(f"--hfov-range must be MIN,MAX in degrees, got {args.hfov_range!r}") from None
-        kwargs["search_config"] = hfov_search_config(low, high)
+    if args.hfov_range:  # a name ('paper') or MIN,MAX; FRInputError if invalid
+        from .search import SearchConfig
+
+        kwargs["search_config"] = SearchConfig.from_config().with_fov_range(args.hfov_range)
     return kwargs

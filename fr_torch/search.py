@@ -31,40 +31,109 @@ import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .camera import focal_from_hfov, rotation_from_angles
 from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures, measure_b_backward, measure_b_forward, vp_major
+from .segments import FRInputError
 
 PARAMS = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
 CPU_CHUNK_ELEMENTS = 1 << 17  # per-chunk deviations on CPU: two float32 buffers of ~0.5 MB stay in cache
 CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
 
 
+#: Named FOV search ranges (degrees, FOV across the image's long side).  ``default`` covers the
+#: cameras users have (phones, action cameras, webcams, DSLR kit zooms); ``paper`` is Qian & Elder's
+#: [50, 130] (the like-for-like row with the paper; YUD's 50.7 deg sits at its lower edge).
+NAMED_FOV_RANGES: dict[str, tuple[float, float]] = {"default": (30.0, 120.0), "paper": (50.0, 130.0)}
+FOV_LIMITS_DEG = (1.0, 179.0)
+EDGE_REASON = "focal at the edge of the search range"
+NON_FINITE_REASON = "non-finite estimate (NaN/inf in the parameters, objective or outputs)"
+FOCAL_GRIDS = ("linear_f", "log_f", "fov")
+
+
+def parse_fov_range(text) -> tuple[float, float]:
+    """A FOV search range from a name (``default``, ``paper``), ``"MIN,MAX"`` or a pair (degrees).
+
+    Raises :class:`~fr_torch.segments.FRInputError` (one line) for anything else; the range itself is
+    validated by :class:`SearchConfig`.
+    """
+    if isinstance(text, str):
+        key = text.strip().lower()
+        if key in NAMED_FOV_RANGES:
+            return NAMED_FOV_RANGES[key]
+        parts = key.replace(":", ",").split(",")
+    else:
+        parts = list(text)
+    try:
+        low, high = (float(v) for v in parts)
+    except (TypeError, ValueError):
+        raise FRInputError(f"FOV range must be MIN,MAX in degrees or one of {', '.join(NAMED_FOV_RANGES)}, "
+                           f"got {text!r}") from None
+    return low, high
+
+
+def check_fov_range(low, high, name: str = "FOV search range") -> tuple[float, float]:
+    """(low, high) as floats if finite and ``1 <= low < high <= 179`` degrees, else FRInputError."""
+    try:
+        low, high = float(low), float(high)
+    except (TypeError, ValueError):
+        raise FRInputError(f"{name} must be two numbers in degrees, got {low!r}, {high!r}") from None
+    lo_lim, hi_lim = FOV_LIMITS_DEG
+    if not (math.isfinite(low) and math.isfinite(high) and lo_lim <= low < high <= hi_lim):
+        raise FRInputError(f"{name} must be finite with {lo_lim:g} <= min < max <= {hi_lim:g} deg, "
+                           f"got {low:g}, {high:g}")
+    return low, high
+
+
+def search_fov_range(value=None) -> tuple[float, float]:
+    """A validated FOV range (degrees, long side): None -> the library default (``configs/search.json``),
+    else a name, ``"MIN,MAX"`` / ``"MIN:MAX"`` or a pair (:func:`parse_fov_range`).  Used by every
+    method that searches the focal length, so one range means the same thing for all of them."""
+    if value is None:
+        return SearchConfig.from_config().hfov_range_deg
+    return check_fov_range(*parse_fov_range(value))
+
+
 @dataclass(frozen=True)
 class SearchConfig:
-    """Search settings (angles in degrees).  Defaults are the paper's; see ``configs/search.json``."""
+    """Search settings (angles in degrees); ``configs/search.json`` holds the defaults.
+
+    ``hfov_range_deg``: search range of the field of view **across the image's long side** (for a
+    landscape image that is the horizontal FOV; a portrait image gets the same focal range in
+    pixels as the same camera held in landscape).  Results still report ``hfov_deg``, the
+    horizontal FOV.  Validated here (the one place): finite, 1 <= min < max <= 179.
+    ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
+    ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
+    ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
+    segment length) changed by more than this over ``refine_patience`` steps, or after
+    ``refine_iterations_fr`` steps; 0 = always the full count.
+    """
 
     grid_points_per_dim: int = 8
     pan_range_deg: tuple[float, float] = (-45.0, 45.0)
     pitch_range_deg: tuple[float, float] = (-35.0, 35.0)
     roll_range_deg: tuple[float, float] = (-15.0, 15.0)
-    hfov_range_deg: tuple[float, float] = (50.0, 130.0)
+    hfov_range_deg: tuple[float, float] = NAMED_FOV_RANGES["default"]
+    focal_grid: str = "linear_f"
     top_l: int = 4
     refine_iterations_fr: int = 100
     refine_iterations_fast: int = 10
+    refine_tolerance: float = 0.0
+    refine_patience: int = 10
     max_chunk_elements: int = 1 << 24
 
     def __post_init__(self):
-        low, high = self.hfov_range_deg
-        if not 0 < low < high < 180:
-            raise ValueError(f"horizontal FOV search range must satisfy 0 < min < max < 180 deg, got {low}, {high}")
+        object.__setattr__(self, "hfov_range_deg", check_fov_range(*self.hfov_range_deg))
         for key in ("pan_range_deg", "pitch_range_deg", "roll_range_deg"):
             low, high = getattr(self, key)
-            if not low <= high:
-                raise ValueError(f"{key} must be (min, max) with min <= max, got {low}, {high}")
+            if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+                raise FRInputError(f"{key} must be finite (min, max) with min <= max, got {low}, {high}")
         if self.grid_points_per_dim < 1 or self.top_l < 1:
-            raise ValueError("grid_points_per_dim and top_l must be at least 1")
+            raise FRInputError("grid_points_per_dim and top_l must be at least 1")
+        if self.focal_grid not in FOCAL_GRIDS:
+            raise FRInputError(f"focal_grid must be one of {', '.join(FOCAL_GRIDS)}, got {self.focal_grid!r}")
 
     @classmethod
     def from_config(cls, path: str | Path | None = None, **overrides) -> "SearchConfig":
@@ -72,6 +141,10 @@ class SearchConfig:
         values = json.loads(path.read_text()) if path.exists() else {}
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
         return replace(cls(**values), **overrides)
+
+    def with_fov_range(self, value) -> "SearchConfig":
+        """A copy with the FOV range from a name, ``"MIN,MAX"`` or a pair (see :func:`parse_fov_range`)."""
+        return replace(self, hfov_range_deg=parse_fov_range(value))
 
     def iterations(self, mode: str) -> int:
         if mode not in ("fr", "fast"):
@@ -83,16 +156,19 @@ def _cell_centres(low: float, high: float, k: int) -> torch.Tensor:
     return low + (torch.arange(k, dtype=torch.float64) + 0.5) * (high - low) / k
 
 
-def focal_bounds(config: SearchConfig, width: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(f_min, f_max) in pixels for each image width (B,): f(hfov_max), f(hfov_min)."""
-    width = width.to(torch.float64)
-    return focal_from_hfov(torch.tensor(config.hfov_range_deg[1], dtype=torch.float64), width), \
-        focal_from_hfov(torch.tensor(config.hfov_range_deg[0], dtype=torch.float64), width)
+def focal_bounds(config: SearchConfig, long_side: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(f_min, f_max) in pixels per image from its long side (B,) in pixels: f(fov_max), f(fov_min)."""
+    long_side = long_side.to(torch.float64)
+    return focal_from_hfov(torch.tensor(config.hfov_range_deg[1], dtype=torch.float64), long_side), \
+        focal_from_hfov(torch.tensor(config.hfov_range_deg[0], dtype=torch.float64), long_side)
 
 
-def parameter_box(config: SearchConfig, width: torch.Tensor, known_focal: torch.Tensor | None):
-    """Lower and upper bounds, (B, 4) float64, of [pan, pitch, roll, focal] per image."""
-    f_lo, f_hi = focal_bounds(config, width)
+def parameter_box(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None):
+    """Lower and upper bounds, (B, 4) float64, of [pan, pitch, roll, focal] per image.
+
+    ``long_side``: (B,) the longer image side in pixels (``max(width, height)``).
+    """
+    f_lo, f_hi = focal_bounds(config, long_side)
     if known_focal is not None:
         f_lo = f_hi = known_focal.to(torch.float64)
     lo = torch.stack([torch.full_like(f_lo, config.pan_range_deg[0]), torch.full_like(f_lo, config.pitch_range_deg[0]),
@@ -102,10 +178,27 @@ def parameter_box(config: SearchConfig, width: torch.Tensor, known_focal: torch.
     return lo, hi
 
 
-def grid_hypotheses(config: SearchConfig, width: torch.Tensor, known_focal: torch.Tensor | None = None):
+def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:
+    """The k stage-1 focal values per image, (B, k) float64 pixels, at cell centres of the range,
+    spaced per ``config.focal_grid`` (linear in f, in log f, or in FOV)."""
+    k = config.grid_points_per_dim
+    frac = (torch.arange(k, dtype=torch.float64) + 0.5) / k
+    long_side = long_side.to(torch.float64)
+    if config.focal_grid == "fov":
+        lo, hi = config.hfov_range_deg
+        fov = torch.tensor(hi, dtype=torch.float64) - frac * (hi - lo)  # wide -> narrow: f ascending
+        return focal_from_hfov(fov[None, :], long_side[:, None])
+    f_lo, f_hi = focal_bounds(config, long_side)
+    if config.focal_grid == "log_f":
+        return torch.exp(f_lo.log()[:, None] + frac * (f_hi / f_lo).log()[:, None])
+    return f_lo[:, None] + frac * (f_hi - f_lo)[:, None]
+
+
+def grid_hypotheses(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None = None):
     """Grid of [pan, pitch, roll, focal] per image: (B, G, 4) float64, G = k^4 (k^3 with known f).
 
-    Order: focal slowest, then pitch, pan, roll fastest.
+    ``long_side``: (B,) the longer image side in pixels.  Order: focal slowest, then pitch, pan,
+    roll fastest.
     """
     k = config.grid_points_per_dim
     pan = _cell_centres(*config.pan_range_deg, k)
@@ -115,8 +208,7 @@ def grid_hypotheses(config: SearchConfig, width: torch.Tensor, known_focal: torc
     if known_focal is not None:
         focal = known_focal.to(torch.float64)[:, None]
     else:
-        f_lo, f_hi = focal_bounds(config, width)
-        focal = f_lo[:, None] + (torch.arange(k, dtype=torch.float64) + 0.5) * (f_hi - f_lo)[:, None] / k
+        focal = focal_grid(config, long_side)
     batch, n_focal = focal.shape
     hyp = torch.cat([angles.expand(batch, n_focal, -1, -1),
                      focal[:, :, None, None].expand(-1, -1, angles.shape[0], 1)], -1)
@@ -159,7 +251,7 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
                 h1 = min(count, h0 + hyp_chunk)
                 scores[b0:b1, h0:h1] = likelihood.objective(sub, rotation[:, h0:h1], focal[:, h0:h1],
                                                             workspace=workspace)
-    return scores
+    return scores.nan_to_num_(nan=-math.inf)  # a NaN score is never the best (topk ranks NaN first)
 
 
 def fast_rotations(params: torch.Tensor) -> torch.Tensor:
@@ -183,7 +275,8 @@ def fast_rotations(params: torch.Tensor) -> torch.Tensor:
 
 def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
            lower: torch.Tensor, upper: torch.Tensor, iterations: int, fast: bool,
-           max_chunk_elements: int = 1 << 24) -> tuple[torch.Tensor, torch.Tensor]:
+           max_chunk_elements: int = 1 << 24, tolerance: float = 0.0,
+           patience: int = 10) -> tuple[torch.Tensor, torch.Tensor]:
     """Refine starts (B, L, 4) inside the box [lower, upper] (B, 4).  Returns (params, objective).
 
     Parameters are optimised as u = (p - lower) / (upper - lower) in [0, 1] (a degenerate box,
@@ -191,21 +284,27 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
     negative log-likelihood divided by the image's total segment length, so step sizes do not
     depend on how many segments an image has.  Images are refined in independent slices of at
     most ``max_chunk_elements`` deviations (bounded memory; same result as one big batch).
+
+    Stopping rule (``tolerance > 0``, not in fast mode): stop when no hypothesis of the slice changed
+    its normalised objective by more than ``tolerance`` over the last ``patience`` steps.  Guards: a
+    step that makes a parameter non-finite is undone for that hypothesis, and a non-finite final
+    objective is returned as -inf (never chosen over a finite one).
     """
     batch, n_start = starts.shape[:2]
     n_seg = max(1, features.weight.shape[1])
     if features.weight.device.type == "cpu":
         max_chunk_elements = min(max_chunk_elements, CPU_REFINE_ELEMENTS)
     step = max(1, max_chunk_elements // (n_seg * n_start * 3))
+    tol = tolerance if not fast else 0.0
     if batch > step:
         parts = [_refine_slice(likelihood, features.images(b, b + step), starts[b:b + step],
-                               lower[b:b + step], upper[b:b + step], iterations, fast)
+                               lower[b:b + step], upper[b:b + step], iterations, fast, tol, patience)
                  for b in range(0, batch, step)]
         return torch.cat([p for p, _ in parts]), torch.cat([o for _, o in parts])
-    return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast)
+    return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tol, patience)
 
 
-def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast):
+def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10):
     dtype, device = features.weight.dtype, features.weight.device
     lower = lower.to(device=device, dtype=dtype)[:, None, :]
     upper = upper.to(device=device, dtype=dtype)[:, None, :]
@@ -222,6 +321,7 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast):
     optimiser = torch.optim.Adam([u], lr=lr0, betas=(0.5, 0.9))
     schedule = torch.optim.lr_scheduler.ExponentialLR(optimiser, gamma)
     all_free = bool(free.all())
+    history: list[torch.Tensor] = []
 
     def evaluate(u_value):
         params = lower + u_value * span
@@ -232,19 +332,33 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast):
     for _ in range(iterations):
         optimiser.zero_grad(set_to_none=True)
         if analytic:  # same gradient in closed form, no autograd graph (see objective_and_grad)
-            u.grad = objective_and_grad(likelihood, features, lower, span, u.detach(), -1.0 / total_length)[1]
+            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), -1.0 / total_length)
         else:
             _, objective = evaluate(u)
-            loss = -(objective / total_length).sum()
+            finite = torch.where(torch.isfinite(objective), objective, torch.zeros_like(objective))
+            loss = -(finite / total_length).sum()
             loss.backward()
+            grad = u.grad
+        normalised = objective.detach() / total_length
         if not all_free:
-            u.grad = torch.where(free, u.grad, torch.zeros_like(u.grad))
+            grad = torch.where(free, grad, torch.zeros_like(grad))
+        u.grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+        previous = u.detach().clone()
         optimiser.step()
         schedule.step()
         with torch.no_grad():
+            u.copy_(torch.where(torch.isfinite(u), u, previous))
             u.clamp_(0.0, 1.0)
+        if tolerance > 0:
+            history.append(normalised.detach())
+            if len(history) > patience:
+                old = history.pop(0)
+                change = (history[-1] - old).abs()
+                if bool(((change <= tolerance) | ~torch.isfinite(change)).all()):
+                    break
     with torch.no_grad():
         params, objective = evaluate(u)
+        objective = torch.where(torch.isfinite(objective), objective, torch.full_like(objective, -math.inf))
     return params.detach(), objective.detach()
 
 
@@ -294,6 +408,46 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
                         (pp[..., None] * grad_v[..., :2, :]).sum(-2, keepdim=True) + grad_v[..., 2:, :]], -2)
     grad_r = grad_r.reshape(batch, n_hyp, 9)
     grad_f = (grad_v[..., :2, :] * rotation[..., :2, :]).sum((-1, -2))
+    beta = likelihood.params.focal_prior_weight
+    if beta:  # the focal prior -beta W log f of MixtureLikelihood.objective, and its derivative
+        prior_weight = beta * features.weight.sum(-1, keepdim=True)  # (B, 1)
+        objective = objective - prior_weight * torch.log(focal)
+        grad_f = grad_f - grad_out * prior_weight / focal
     grad_p = torch.stack([(grad_r * d_pan).sum(-1), (grad_r * d_pitch).sum(-1), (grad_r * d_roll).sum(-1)], -1)
     grad_p = torch.cat([grad_p * (math.pi / 180), grad_f[..., None]], -1)
     return objective, grad_p * span
+
+
+def check_result(result, config: SearchConfig, known_focal: bool = False,
+                 edge_tolerance_deg: float = 0.25) -> None:
+    """Final checks on an estimator result (in place; ``result`` has the fields of
+    :class:`fr_torch.estimator.CalibrationResult`).
+
+    * Anything non-finite in the focal length, angles, rotation, vanishing points or objective ->
+      ``ok = False``, ``reliable = False``, camera fields cleared, ``reason`` says so (a NaN is a
+      failure, never a valid number).
+    * An estimated focal length whose long-side FOV lies within ``edge_tolerance_deg`` of the
+      search range's edge -> ``reliable = False`` with reason :data:`EDGE_REASON` (the truth may lie
+      outside the range).
+    """
+    if not result.ok:
+        return
+    values = [result.focal_px, result.hfov_deg, result.roll_deg, result.tilt_deg, result.pitch_deg,
+              result.log_likelihood]
+    arrays = [result.rotation, result.vanishing_points]
+    finite = all(v is not None and math.isfinite(float(v)) for v in values) and \
+        all(a is not None and bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays)
+    if not finite:
+        for key in ("focal_px", "hfov_deg", "rotation", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg",
+                    "vanishing_points", "log_likelihood"):
+            setattr(result, key, None)
+        result.ok, result.reliable, result.reason = False, False, NON_FINITE_REASON
+        return
+    if known_focal:
+        return
+    long_side = max(result.width, result.height)
+    fov = math.degrees(2 * math.atan(long_side / (2 * result.focal_px)))
+    low, high = config.hfov_range_deg
+    if fov <= low + edge_tolerance_deg or fov >= high - edge_tolerance_deg:
+        result.reliable = False
+        result.reason = "; ".join(r for r in (result.reason, EDGE_REASON) if r)

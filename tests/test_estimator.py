@@ -52,23 +52,27 @@ def test_batch_equals_one_by_one_and_is_deterministic(scenes):
 
 
 def test_hfov_search_range_is_configurable():
-    """A zoomed-in camera (hfov 30 deg) lies outside the default [50, 130] range: the default search
-    stops at its edge; a user-given range recovers it.  The option works through the method spec."""
+    """A zoomed-in camera (hfov 30 deg) lies outside the paper's [50, 130] range: that search stops at
+    its edge (flagged unreliable); a user-given range recovers it.  The option works through the
+    method spec."""
     from fr_torch.interface import get_calibrator
     from fr_torch.search import SearchConfig
 
     segments, focal, R = _scene(7, 30.0, 10.0, 6.0, 3.0)
-    [pinned] = FREstimator(mode="fast").calibrate_segments([segments], [(640, 480)])
+    paper = SearchConfig.from_config().with_fov_range("paper")
+    [pinned] = FREstimator(mode="fr", search_config=paper).calibrate_segments([segments], [(640, 480)])
     assert pinned.hfov_deg >= 50.0 - 1e-6
+    assert not pinned.reliable and "focal at the edge of the search range" in pinned.reason
     # fr mode: at this focal length (1194 px) Fast-fR's 10 steps stop ~7 % short of the optimum.
     narrow = FREstimator(mode="fr", search_config=SearchConfig.from_config(hfov_range_deg=(20.0, 60.0)))
     [result] = narrow.calibrate_segments([segments], [(640, 480)])
-    assert abs(result.focal_px - focal) / focal < 0.02 and abs(result.hfov_deg - 30.0) < 0.6, result.focal_px
+    # (tolerance 4 %: the default focal prior -beta W log f pulls clean synthetic scenes ~2.5 % wide)
+    assert abs(result.focal_px - focal) / focal < 0.04 and abs(result.hfov_deg - 30.0) < 1.0, result.focal_px
     method = get_calibrator("fr[hfov_min=20,hfov_max=60]")
     assert method.name == "fr[hfov_min=20,hfov_max=60]"
     est = method.estimator.calibrate_segments([segments], [(640, 480)])[0]
     assert est.focal_px == pytest.approx(result.focal_px)
-    with pytest.raises(ValueError, match="0 < min < max < 180"):
+    with pytest.raises(ValueError, match="min < max"):
         SearchConfig.from_config(hfov_range_deg=(60.0, 20.0))
     with pytest.raises(ValueError, match="likelihood config"):
         FREstimator(likelihood="no-such-config")

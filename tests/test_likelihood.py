@@ -13,7 +13,7 @@ from fr_torch.segments import SegmentBatch
 def _direct_objective(segments, R, f, pp, params):
     """Loop-based measure-b mixture: sum_i len_i log(sum_k pi_k exp(-x/lambda_k)/lambda_k + pi_bg 2/pi)."""
     K = np.array([[f, 0, pp[0]], [0, f, pp[1]], [0, 0, 1.0]])
-    total = 0.0
+    total = weight = 0.0
     for x1, y1, x2, y2 in segments:
         m = np.array([(x1 + x2) / 2, (y1 + y2) / 2])
         d = np.array([x2 - x1, y2 - y1])
@@ -27,7 +27,8 @@ def _direct_objective(segments, R, f, pp, params):
             prior = params.prior_vertical if k == VERTICAL_AXIS else params.prior_horizontal
             p += prior * math.exp(-angle / lam) / lam
         total += length * math.log(p)
-    return total
+        weight += length
+    return total - params.focal_prior_weight * weight * math.log(f)  # the focal prior -beta W log f
 
 
 def test_objective_matches_direct_computation():

@@ -28,6 +28,13 @@ def _rotation_np(pan, pitch, roll):
     return (ry @ rx @ rz).T
 
 
+def _data_only() -> LikelihoodParams:
+    """Default params without the focal prior: these tests compare the data term's code paths (the
+    prior -beta W log f is one added term, checked in test_likelihood.py)."""
+    from dataclasses import replace
+    return replace(LikelihoodParams.from_config("b"), focal_prior_weight=0.0)
+
+
 def _reference_objective(segments, pan, pitch, roll, focal, params: LikelihoodParams, pp=PP):
     """Measure-b mixture objective, float64 numpy, straight from the definitions (no shared code).
 
@@ -77,7 +84,7 @@ def test_fast_rotations_equal_camera_convention():
 
 def test_float32_objective_matches_independent_float64_reference():
     rng = np.random.default_rng(3)
-    model = MixtureLikelihood(LikelihoodParams.from_config("b"))
+    model = MixtureLikelihood(_data_only())
     segs = [rng.uniform(0, 640, (80, 4)), _scene(1)]
     hyp = np.stack([rng.uniform(-45, 45, 6), rng.uniform(-35, 35, 6), rng.uniform(-15, 15, 6),
                     rng.uniform(150, 700, 6)], 1)
@@ -98,7 +105,7 @@ def test_grid_maximum_float32_matches_float64_and_reference():
     segs = [_scene(0), _scene(2, 95.0, -30.0, -15.0, -7.0)]
     width = torch.tensor([640.0, 640.0], dtype=torch.float64)
     hyp = grid_hypotheses(config, width)
-    model = MixtureLikelihood()
+    model = MixtureLikelihood(_data_only())
     s32 = score_grid(model, _features(segs, torch.float32), hyp, config.max_chunk_elements).double()
     s64 = score_grid(model, _features(segs, torch.float64), hyp, config.max_chunk_elements)
     best32, best64 = s32.max(1), s64.max(1)
@@ -140,7 +147,7 @@ def test_chunking_does_not_change_scores_or_refinement(monkeypatch):
     features = _features(segs, torch.float64)
     width = torch.tensor([640.0, 640.0], dtype=torch.float64)
     hyp = grid_hypotheses(config, width)
-    model = MixtureLikelihood()
+    model = MixtureLikelihood(_data_only())
     whole = score_grid(model, features, hyp, 1 << 30)
     monkeypatch.setattr(search, "CPU_CHUNK_ELEMENTS", 1000)  # many tiny chunks, also split over images
     assert torch.allclose(score_grid(model, features, hyp, 1 << 30), whole, rtol=1e-12)
@@ -155,7 +162,7 @@ def test_chunking_does_not_change_scores_or_refinement(monkeypatch):
 def test_analytic_gradient_matches_autograd_of_generic_path():
     rng = np.random.default_rng(11)
     features = _features([rng.uniform(0, 640, (40, 4)), rng.uniform(0, 640, (25, 4))], torch.float64)
-    model = MixtureLikelihood()
+    model = MixtureLikelihood(_data_only())
     angles = torch.tensor(rng.uniform(-30, 30, (2, 3, 3)), requires_grad=True)
     focal = torch.tensor(rng.uniform(200, 800, (2, 3)), requires_grad=True)
     R = fast_rotations(angles)
@@ -173,7 +180,7 @@ def test_analytic_gradient_matches_autograd_of_generic_path():
 def test_posteriors_chunked_equal_whole():
     segs = [_scene(12), _scene(13, n_per_family=20)]
     features = _features(segs, torch.float64)
-    model = MixtureLikelihood()
+    model = MixtureLikelihood(_data_only())
     R = rotation_from_angles(torch.tensor([[10.0], [-5.0]], dtype=torch.float64), 3.0, 1.0)
     f = torch.tensor([[400.0], [500.0]], dtype=torch.float64)
     q1, l1 = model.posteriors(features, R, f)
@@ -186,7 +193,7 @@ def test_cuda_grid_and_estimate_equal_cpu():
     config = SearchConfig.from_config()
     segs = [_scene(0), _scene(2, 95.0, -30.0, -15.0, -7.0)]
     hyp = grid_hypotheses(config, torch.tensor([640.0, 640.0], dtype=torch.float64))
-    model = MixtureLikelihood()
+    model = MixtureLikelihood(_data_only())
     cpu = score_grid(model, _features(segs, torch.float32), hyp, config.max_chunk_elements)
     cuda = score_grid(model, _features(segs, torch.float32, "cuda"), hyp, config.max_chunk_elements).cpu()
     assert torch.allclose(cpu, cuda, rtol=1e-4, atol=1e-3 * cpu.abs().max())

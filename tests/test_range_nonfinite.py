@@ -1,0 +1,117 @@
+"""Issue 13: non-finite estimates are failures; the FOV search range (validation, names, portrait
+== landscape); the "no probabilistic model" ablation."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fr_torch.estimator import FREstimator
+from fr_torch.interface import CameraEstimate
+from fr_torch.search import (NAMED_FOV_RANGES, SearchConfig, check_result, focal_bounds,
+                             search_fov_range)
+from fr_torch.segments import FRInputError
+from fr_torch.synthetic import random_rotation, synthetic_segments
+
+
+def _scene(seed: int, focal: float, width: int = 640, height: int = 480):
+    rng = np.random.default_rng(seed)
+    rotation = random_rotation(rng, pan=(-30, 30), pitch=(-20, 20), roll=(-8, 8))
+    segments, _ = synthetic_segments(focal, rotation, width=width, height=height, seed=seed)
+    return segments, rotation
+
+
+@pytest.mark.parametrize("mode", ["fast", "fr"])
+def test_measure_e_float32_is_finite(mode):
+    """Measure (e) in float32 used to make NaN parameters (asin' = inf where |s|/|n| rounds to 1)."""
+    est = FREstimator(mode=mode, measure="e", dtype=torch.float32)
+    scenes = [_scene(seed, focal) for seed, focal in ((0, 300.0), (1, 500.0), (2, 900.0))]
+    results = est.calibrate_segments([s for s, _ in scenes], [(640, 480)] * 3)
+    for (segments, rotation), result, focal in zip(scenes, results, (300.0, 500.0, 900.0)):
+        assert result.ok, result.reason
+        assert all(math.isfinite(v) for v in (result.focal_px, result.hfov_deg, result.roll_deg, result.tilt_deg,
+                                               result.log_likelihood))
+        assert np.isfinite(result.rotation).all() and np.isfinite(result.vanishing_points).all()
+        assert abs(result.focal_px - focal) / focal < 0.1
+
+
+def test_check_result_marks_non_finite_as_failure():
+    [result] = FREstimator(mode="fast").calibrate_segments([_scene(3, 500.0)[0]], [(640, 480)])
+    assert result.ok
+    result.roll_deg = float("nan")
+    check_result(result, SearchConfig.from_config())
+    assert not result.ok and not result.reliable and "non-finite" in result.reason
+    assert result.focal_px is None and result.rotation is None
+
+
+def test_metrics_count_non_finite_estimate_as_failure():
+    from eval.metrics import failure_reason, is_failure, summarize
+    from eval.run_eval import prediction_row
+
+    class Sample:
+        name, width, height, split = "img", 640, 480, "test"
+        roll_deg, tilt_deg, pitch_deg, hfov_deg, focal_px = 1.0, 2.0, 2.0, 60.0, 554.26
+        rotation = np.eye(3)
+
+    good = CameraEstimate(method="m", focal_px=554.26, hfov_deg=60.0, roll_deg=1.0, tilt_deg=2.0,
+                          rotation=np.eye(3))
+    nan = CameraEstimate(method="m", focal_px=float("nan"), roll_deg=1.0, tilt_deg=2.0, rotation=np.eye(3))
+    bad_rotation = CameraEstimate(method="m", focal_px=500.0, rotation=np.full((3, 3), np.nan))
+    assert not is_failure(good) and is_failure(nan) and is_failure(bad_rotation)
+    assert "non-finite" in failure_reason(nan)
+    rows = [prediction_row("m", Sample(), est, 0.1) for est in (good, nan, bad_rotation)]
+    assert [r["failed"] for r in rows] == [False, True, True]
+    summary = summarize("m", rows)
+    assert summary.failures == 2 and summary.valid_pct == pytest.approx(100 / 3)
+    assert summary.n["focal_err_pct"] == 1
+
+
+def test_fov_range_validation_and_names():
+    assert search_fov_range("paper") == (50.0, 130.0) == NAMED_FOV_RANGES["paper"]
+    assert search_fov_range("30:120") == (30.0, 120.0) == search_fov_range("30,120")
+    lo, hi = SearchConfig.from_config().hfov_range_deg
+    assert lo <= 30.0 and hi >= 120.0  # the library default covers the cameras users have
+    for bad in ((60.0, 20.0), (0.5, 90.0), (30.0, 180.0), (float("nan"), 90.0), (30.0, math.inf), (40.0, 40.0)):
+        with pytest.raises(FRInputError, match="min < max"):
+            SearchConfig.from_config(hfov_range_deg=bad)
+    with pytest.raises(FRInputError, match="FOV range"):
+        search_fov_range("wide")
+
+
+def test_cli_hfov_range_errors_are_one_line(capsys, tmp_path):
+    from fr_torch.cli import main
+
+    assert main(["calibrate", str(tmp_path / "x.png"), "--hfov-range", "120,30"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "min < max" in err and len(err.splitlines()) == 1
+
+
+def test_portrait_sees_the_same_focal_range_as_landscape():
+    """The range is on the long side: a portrait image (480 x 640) gets the same focal bounds as the
+    same camera held in landscape (640 x 480), and both recover the same focal length."""
+    config = SearchConfig.from_config()
+    landscape = focal_bounds(config, torch.tensor([640.0]))
+    portrait = focal_bounds(config, torch.tensor([max(480.0, 640.0)]))
+    assert torch.equal(landscape[0], portrait[0]) and torch.equal(landscape[1], portrait[1])
+    focal = 520.0
+    seg_l, _ = _scene(5, focal, 640, 480)
+    seg_p, _ = _scene(5, focal, 480, 640)
+    est = FREstimator(mode="fr")
+    [r_l] = est.calibrate_segments([seg_l], [(640, 480)])
+    [r_p] = est.calibrate_segments([seg_p], [(480, 640)])
+    assert abs(r_l.focal_px - focal) / focal < 0.03 and abs(r_p.focal_px - focal) / focal < 0.03
+    # hfov_deg stays the horizontal FOV of each image
+    assert r_p.hfov_deg == pytest.approx(math.degrees(2 * math.atan(240 / r_p.focal_px)), rel=1e-6)
+
+
+def test_nomixture_ablation_runs():
+    from fr_torch.interface import get_calibrator
+
+    method = get_calibrator("fr[model=nomixture,range=paper]")
+    assert method.name == "fr[range=paper,model=nomixture]"
+    assert method.estimator.likelihood.params.model == "nomixture"
+    segments, _ = _scene(8, 400.0)
+    [result] = method.estimator.calibrate_segments([segments], [(640, 480)])
+    assert result.ok and abs(result.focal_px - 400.0) / 400.0 < 0.1
