@@ -18,7 +18,7 @@ import numpy as np
 
 from fr_torch.camera import hfov_from_focal, nearest_rotation, principal_point_or_centre, rotation_angles  # noqa: F401
 from fr_torch.interface import CameraEstimate, ImageMeta
-from fr_torch.segments import FRInputError, detect_segments, validate_segments
+from fr_torch.segments import FRInputError, SegmentFilter, detect_segments, validate_segments
 
 EPS = 1e-12
 
@@ -49,7 +49,9 @@ def input_segments(image: np.ndarray | None, meta: ImageMeta) -> np.ndarray:
         return validate_segments(meta.segments, f"{meta.name or 'image'}: segments")
     if image is None:
         raise FRInputError(f"{meta.name or 'image'}: neither an image nor segments were given")
-    return detect_segments(image)
+    # Every LSD segment, as these methods were published (fR's working-set cap of the longest
+    # segments is fR's own bound on its search time, not part of these methods).
+    return detect_segments(image, segment_filter=SegmentFilter(max_segments=None))
 
 
 # --------------------------------------------------------------------------- lines and VPs

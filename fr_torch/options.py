@@ -45,10 +45,15 @@ def hfov_search_config(hfov_min=None, hfov_max=None, base=None):
 
 def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """FREstimator keyword arguments from the options of :func:`add_estimator_arguments`."""
+    from .segments import FRInputError
+
     kwargs: dict[str, Any] = dict(mode="fast" if args.fast else "fr", measure=args.measure, detector=args.detector,
                                   likelihood=args.likelihood, device=args.device)
     if args.hfov_range:  # a name ('paper') or MIN,MAX; FRInputError if invalid
         from .search import SearchConfig
 
-        kwargs["search_config"] = SearchConfig.from_config().with_fov_range(args.hfov_range)
+        try:
+            kwargs["search_config"] = SearchConfig.from_config().with_fov_range(args.hfov_range)
+        except ValueError as exc:
+            raise FRInputError(f"--hfov-range: {exc}") from None
     return kwargs

@@ -27,7 +27,7 @@ def test_harness_commands_are_declared_as_entry_points():
     for name, constant in (("eval", "EVAL"), ("train-reliability", "TRAIN_RELIABILITY")):
         assert f'{name} = "eval.commands:{constant}"' in text
         assert name in COMMANDS
-    assert 'baselines = "baselines"' in text
+    assert 'lee2009 = "baselines.lee2009:Lee2009"' in text  # baselines plug in like any package's methods
 
 
 def test_unknown_command_prints_one_line():

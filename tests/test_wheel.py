@@ -45,7 +45,9 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
     python = env_dir / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
     purelib = Path(_run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"])
                    .stdout.strip())
-    shared = [p for p in site.getsitepackages() if Path(p).is_dir()]
+    # The running interpreter's dependency folders (its site-packages and any they chain to by .pth).
+    shared = list(dict.fromkeys(p for p in [*site.getsitepackages(), *sys.path]
+                                if p.endswith("site-packages") and Path(p).is_dir()))
     (purelib / "zz_shared_dependencies.pth").write_text("\n".join(shared) + "\n")
     # pip (seen through the .pth) installs into the interpreter running it: the venv.  --ignore-installed:
     # never uninstall a copy that the shared site-packages holds (an editable install, in CI).
