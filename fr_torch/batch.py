@@ -214,29 +214,25 @@ def output_column_name(name: str, reserved: set[str]) -> str:
 
 
 def estimator_options(args: argparse.Namespace) -> dict[str, Any]:
-    """Picklable estimator options from the CLI arguments (shipped to every worker)."""
+    """Picklable options from the CLI arguments (shipped to every worker): ``estimator`` = the
+    FREstimator keyword arguments of the shared estimator options (:mod:`fr_torch.options`), plus
+    the known focal length / principal point for all images and whether reliability is on."""
+    from . import validate
+    from .options import estimator_kwargs
     from .segments import FRInputError
 
-    hfov = None
-    if getattr(args, "hfov_range", None):
-        try:
-            hfov = tuple(float(v) for v in args.hfov_range.split(","))
-            assert len(hfov) == 2
-        except (ValueError, AssertionError):
-            raise FRInputError(f"--hfov-range must be MIN,MAX in degrees, got {args.hfov_range!r}") from None
     pp = None
     if getattr(args, "pp", None):
         try:
-            pp = tuple(float(v) for v in args.pp.split(","))
+            pp = tuple(validate.finite_number(float(v), "--pp") for v in args.pp.split(","))
             assert len(pp) == 2
         except (ValueError, AssertionError):
             raise FRInputError(f"--pp expects X,Y in pixels, got {args.pp!r}") from None
     focal = getattr(args, "focal", None)
-    if focal is not None and not focal > 0:
-        raise FRInputError(f"--focal must be a positive number of pixels, got {focal}")
-    return {"mode": "fast" if args.fast else "fr", "measure": args.measure, "detector": args.detector,
-            "likelihood": args.likelihood, "device": args.device, "hfov_range": hfov, "principal_point": pp,
-            "focal_px": focal, "reliability": not getattr(args, "no_reliability", False)}
+    if focal is not None:
+        validate.positive_number(focal, "--focal")
+    return {"estimator": estimator_kwargs(args), "principal_point": pp, "focal_px": focal,
+            "reliability": not getattr(args, "no_reliability", False)}
 
 
 class BatchWorker:
@@ -251,19 +247,14 @@ class BatchWorker:
         import torch
 
         from .estimator import FREstimator
-        from .search import SearchConfig
-
         if threads:  # torch and OpenCV: oversubscribed threads stall on a loaded machine
             import cv2
 
             torch.set_num_threads(int(threads))
             cv2.setNumThreads(int(threads))
         self.options = dict(options)
-        search = SearchConfig.from_config(hfov_range_deg=options["hfov_range"]) if options.get("hfov_range") else None
-        self.estimator = FREstimator(mode=options["mode"], measure=options.get("measure"),
-                                     detector=options.get("detector", "lsd"), likelihood=options.get("likelihood"),
-                                     device=options.get("device", "cpu"), search_config=search)
-        self.reliability = _load_reliability() if options.get("reliability", True) else None
+        self.estimator = FREstimator(**options["estimator"],
+                                     reliability="default" if options.get("reliability", True) else None)
         self.extras = list(extras)
         self.crash = crash if crash is not None else os.environ.get(CRASH_ENV)
 
@@ -298,11 +289,6 @@ class BatchWorker:
         for i, result in enumerate(results):
             if i in failed:
                 result = _failed(names[i], failed[i])
-            elif self.reliability is not None and result.ok:
-                try:
-                    self.reliability.annotate(result, mode=self.estimator.mode)
-                except (ValueError, KeyError):
-                    pass
             records.append(result.to_json())
         return records_to_table(records, rows, self.extras)
 
@@ -331,15 +317,6 @@ def _finite_or_none(value):
     except (TypeError, ValueError):
         return None
     return value if math.isfinite(value) else None
-
-
-def _load_reliability():
-    """The default reliability model, if one is installed (adds predicted errors)."""
-    try:
-        from .reliability import ReliabilityModel
-    except ImportError:
-        return None
-    return ReliabilityModel.load_default()
 
 
 def read_remote_image(uri: str) -> np.ndarray:
@@ -553,18 +530,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="gather batches into part files of at least N rows (default 0: one part per batch)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-reliability", action="store_true", help="do not add predicted errors")
-    # Estimator options (as in `fr calibrate`).
-    parser.add_argument("--fast", action="store_true", help="Fast-fR: at most 10 refinement iterations")
+    # Estimator options, shared with `fr calibrate` and `fr track`.
+    from .options import add_estimator_arguments
+
+    add_estimator_arguments(parser)
     parser.add_argument("--focal", type=float, default=None, metavar="PX",
                         help="known focal length in pixels for all images (a manifest's focal_px column wins)")
     parser.add_argument("--pp", type=str, default=None, metavar="X,Y", help="principal point (default: centre)")
-    parser.add_argument("--measure", choices=list("abcde"), default=None, help="deviation measure (default b)")
-    parser.add_argument("--detector", default="lsd", help="line segment detector (default lsd)")
-    parser.add_argument("--likelihood", default=None, metavar="NAME|JSON",
-                        help="likelihood config: 'paper', 'fitted' or a JSON path")
-    parser.add_argument("--hfov-range", default=None, metavar="MIN,MAX",
-                        help="search range of the horizontal field of view in degrees (default 50,130)")
-    parser.add_argument("--device", default="cpu", help="cpu or cuda")
 
 
 def run(args: argparse.Namespace) -> int:

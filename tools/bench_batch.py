@@ -30,19 +30,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from eval.bench import _cpu_model  # noqa: E402
 from fr_torch.batch import _run_local, collect_inputs  # noqa: E402
 from fr_torch.camera import rotation_from_angles  # noqa: E402
 from fr_torch.synthetic import render_manhattan_room  # noqa: E402
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def make_images(folder: Path, count: int) -> list[dict]:
@@ -87,8 +78,8 @@ def main() -> int:
     workers = [int(w) for w in args.workers.split(",")]
     engines = args.engines.split(",")
     local_workers = [int(w) for w in (args.local_workers or args.workers).split(",")]
-    options = {"mode": "fast", "measure": None, "detector": "lsd", "likelihood": None, "device": args.device,
-               "hfov_range": None, "principal_point": None, "focal_px": None, "reliability": True}
+    options = {"estimator": {"mode": "fast", "device": args.device}, "principal_point": None, "focal_px": None,
+               "reliability": True}
     if "ray" in engines:
         import ray
 
