@@ -217,20 +217,9 @@ def estimator_options(args: argparse.Namespace) -> dict[str, Any]:
     """Picklable options from the CLI arguments (shipped to every worker): ``estimator`` = the
     FREstimator keyword arguments of the shared estimator options (:mod:`fr_torch.options`), plus
     the known focal length / principal point for all images and whether reliability is on."""
-    from . import validate
-    from .options import estimator_kwargs
-    from .segments import FRInputError
+    from .options import camera_options, estimator_kwargs
 
-    pp = None
-    if getattr(args, "pp", None):
-        try:
-            pp = tuple(validate.finite_number(float(v), "--pp") for v in args.pp.split(","))
-            assert len(pp) == 2
-        except (ValueError, AssertionError):
-            raise FRInputError(f"--pp expects X,Y in pixels, got {args.pp!r}") from None
-    focal = getattr(args, "focal", None)
-    if focal is not None:
-        validate.positive_number(focal, "--focal")
+    focal, pp = camera_options(args)
     return {"estimator": estimator_kwargs(args), "principal_point": pp, "focal_px": focal,
             "reliability": not getattr(args, "no_reliability", False)}
 

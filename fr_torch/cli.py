@@ -45,21 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
     from .estimator import FREstimator
-    from .options import estimator_kwargs
+    from .options import camera_options, estimator_kwargs
     from .segments import FRInputError
 
     from . import validate
 
-    principal_point = None
-    if args.pp:
-        try:
-            principal_point = tuple(float(v) for v in args.pp.split(","))
-            assert len(principal_point) == 2
-        except (ValueError, AssertionError):
-            raise FRInputError(f"--pp expects X,Y in pixels, got {args.pp!r}") from None
-        principal_point = tuple(validate.finite_number(v, "--pp") for v in principal_point)
-    if args.focal is not None:
-        validate.positive_number(args.focal, "--focal")  # per image: within a 1-179 deg field of view
+    focal_px, principal_point = camera_options(args)  # per image: within a 1-179 deg field of view
     if args.batch_size < 1:
         raise FRInputError("--batch-size must be at least 1")
     estimator = FREstimator(**estimator_kwargs(args))
@@ -74,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     workers = default_workers() if args.workers is None else args.workers
     workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
     try:
-        for chunk, results in calibrate_paths(estimator, paths, args.batch_size, workers, args.focal,
+        for chunk, results in calibrate_paths(estimator, paths, args.batch_size, workers, focal_px,
                                               principal_point):
             for path, result in zip(chunk, results):
                 record = validate.json_safe(result.to_json(include_segments=args.segments))

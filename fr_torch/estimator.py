@@ -14,7 +14,6 @@ z forward, vertical Manhattan direction in column 1).
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -346,8 +345,6 @@ class FREstimator:
         if r.manhattan_fraction is not None and r.manhattan_fraction < self.min_manhattan_fraction:
             reasons.append(f"only {100 * r.manhattan_fraction:.0f} % of the segment length follows a Manhattan "
                            "frame (scene may not be Manhattan)")
-        if not all(math.isfinite(v) for v in (r.focal_px, r.roll_deg, r.tilt_deg)):
-            reasons.append("non-finite estimate")
         return (not reasons), "; ".join(reasons)
 
 

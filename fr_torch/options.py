@@ -9,7 +9,6 @@ horizontal-FOV search range is turned into a :class:`~fr_torch.search.SearchConf
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 from typing import Any
 
 MEASURE_CHOICES = tuple("abcde")
@@ -39,8 +38,26 @@ def hfov_search_config(hfov_min=None, hfov_max=None, base=None):
     if hfov_min is None and hfov_max is None:
         return base
     low, high = base.hfov_range_deg
-    return replace(base, hfov_range_deg=(float(low if hfov_min is None else hfov_min),
-                                         float(high if hfov_max is None else hfov_max)))
+    return base.with_fov_range((low if hfov_min is None else hfov_min, high if hfov_max is None else hfov_max))
+
+
+def camera_options(args: argparse.Namespace) -> tuple[float | None, tuple[float, float] | None]:
+    """The known focal length (``--focal``, pixels, > 0) and principal point (``--pp X,Y``, pixels,
+    finite) for all images of a command, or None; FRInputError (one line) when malformed.  Whether
+    they fit each image is checked per image (:func:`fr_torch.validate.check_camera`)."""
+    from . import validate
+    from .segments import FRInputError
+
+    principal_point = None
+    if getattr(args, "pp", None):
+        parts = args.pp.split(",")
+        if len(parts) != 2:
+            raise FRInputError(f"--pp expects X,Y in pixels, got {args.pp!r}")
+        principal_point = tuple(validate.finite_number(v, "--pp") for v in parts)
+    focal = getattr(args, "focal", None)
+    if focal is not None:
+        focal = validate.positive_number(focal, "--focal")
+    return focal, principal_point
 
 
 def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
