@@ -25,7 +25,7 @@ import torch
 from .camera import VERTICAL_AXIS, Camera, angles_from_rotation, hfov_from_focal, image_centre, intrinsics
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
 from .search import (SearchConfig, check_result, grid_hypotheses, hypothesis_rotations, parameter_box, refine,
-                     score_grid)
+                     score_grid, select_starts)
 from . import image_io, validate
 from .segments import FRInputError, SegmentBatch, SegmentFilter, get_detector, validate_segments
 
@@ -255,9 +255,7 @@ class FREstimator:
         grid_scores = score_grid(self.likelihood, features, hypotheses, self.search.max_chunk_elements)
         t1 = time.perf_counter()
 
-        top_l = min(self.search.top_l, grid_scores.shape[1])
-        top_scores, top_index = grid_scores.topk(top_l, dim=1)
-        starts = torch.gather(hypotheses, 1, top_index[..., None].expand(-1, -1, 4))
+        starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
         lower, upper = parameter_box(self.search, long_side, focal)
         refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
                                          fast=self.mode == "fast", tolerance=self.search.refine_tolerance,

@@ -106,6 +106,9 @@ class SearchConfig:
     horizontal FOV.  Validated here (the one place): finite, 1 <= min < max <= 179.
     ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
     ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
+    ``distinct_focal_starts``: stage 2 refines the best grid point of each of the ``top_l`` best focal
+    values (one start per focal value, a profile over f) instead of the ``top_l`` best grid points
+    overall, which often share one focal value and so leave a better focal basin unexplored.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
     ``refine_iterations_fr`` steps; 0 = always the full count.
@@ -118,6 +121,7 @@ class SearchConfig:
     hfov_range_deg: tuple[float, float] = NAMED_FOV_RANGES["default"]
     focal_grid: str = "linear_f"
     top_l: int = 4
+    distinct_focal_starts: bool = False
     refine_iterations_fr: int = 100
     refine_iterations_fast: int = 10
     refine_tolerance: float = 0.0
@@ -213,6 +217,27 @@ def grid_hypotheses(config: SearchConfig, long_side: torch.Tensor, known_focal: 
     hyp = torch.cat([angles.expand(batch, n_focal, -1, -1),
                      focal[:, :, None, None].expand(-1, -1, angles.shape[0], 1)], -1)
     return hyp.reshape(batch, -1, 4)
+
+
+def select_starts(config: SearchConfig, grid_scores: torch.Tensor, hypotheses: torch.Tensor):
+    """Stage-2 starting points from the scored grid.  Returns (starts (B, L, 4), scores (B, L)).
+
+    ``grid_scores`` (B, G) and ``hypotheses`` (B, G, 4) as from :func:`grid_hypotheses` (focal
+    slowest).  Starts are sorted best first.  With ``config.distinct_focal_starts`` each start is the
+    best grid point of a different focal value (the ``top_l`` best focal values).
+    """
+    batch, count = grid_scores.shape
+    n_focal = count // config.grid_points_per_dim ** 3  # 1 with a known focal length
+    if config.distinct_focal_starts and n_focal > 1:
+        per_focal = grid_scores.view(batch, n_focal, -1)
+        best_score, best_index = per_focal.max(-1)  # (B, n_focal)
+        flat_index = best_index + torch.arange(n_focal, device=grid_scores.device) * per_focal.shape[-1]
+        top_l = min(config.top_l, n_focal)
+        scores, order = best_score.topk(top_l, dim=1)
+        index = torch.gather(flat_index, 1, order)
+    else:
+        scores, index = grid_scores.topk(min(config.top_l, count), dim=1)
+    return torch.gather(hypotheses, 1, index[..., None].expand(-1, -1, 4)), scores
 
 
 def hypothesis_rotations(params: torch.Tensor) -> torch.Tensor:
