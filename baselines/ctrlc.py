@@ -2,7 +2,7 @@
 
 J. Lee, H. Go, H. Lee, S. Cho, M. Sung, J. Kim, "CTRL-C: Camera calibration TRansformer with
 Line-Classification", ICCV 2021.  The network itself is not re-implemented: the user exports the
-official checkpoint to ONNX with ``fr export-ctrlc`` (:mod:`baselines.export_ctrlc_onnx`) and points this adapter at
+official checkpoint to ONNX with ``fr export-ctrlc`` (:mod:`fr_baselines.export_ctrlc_onnx`) and points this adapter at
 the file (constructor argument ``onnx_path`` or environment variable ``FR_CTRLC_ONNX``).  Without
 weights the method is listed but ``available`` is False and every estimate is a flagged failure
 with an "n/a (not supplied: ...)" reason (:func:`fr_torch.registry.not_supplied`).

@@ -11,7 +11,7 @@ reasoning of the paper is not needed for calibration):
 2. Vertical VP from the near-vertical segments (within ``vertical_max_deg`` of the image
    vertical): every pair of the longest ones proposes a VP, the hypothesis with the largest summed
    length of segments within ``inlier_deg`` wins and is refined by least squares
-   (:func:`baselines.vp_geometry.vertical_vp`).
+   (:func:`fr_baselines.vp_geometry.vertical_vp`).
 3. Focal sweep: ``n_focal`` focal lengths, log-spaced so that the horizontal field of view of the
    image's *long side* spans ``hfov_range_deg`` (so the sweep scales with the image size; default:
    fR's library default range, ``configs/search.json``; option ``lee2009[range=paper]`` or

@@ -20,12 +20,12 @@ from fr_torch.camera import focal_from_hfov, horizon_angles, rotation_from_angle
 from fr_torch.interface import Calibrator, CameraEstimate, ImageMeta, available_methods, get_calibrator
 from fr_torch.synthetic import camera_matrix, render_manhattan_room, synthetic_segments
 
-from baselines import vp_geometry as vg
-from baselines.ctrlc import CTRLC, camera_from_ctrlc, preprocess_image, preprocess_lines
-from baselines.external import ExternalPredictions
-from baselines.lee2009 import Lee2009
-from baselines.prior import Prior
-from baselines.simon2018 import Simon2018, meaningful_modes
+from fr_baselines import vp_geometry as vg
+from fr_baselines.ctrlc import CTRLC, camera_from_ctrlc, preprocess_image, preprocess_lines
+from fr_baselines.external import ExternalPredictions
+from fr_baselines.lee2009 import Lee2009
+from fr_baselines.prior import Prior
+from fr_baselines.simon2018 import Simon2018, meaningful_modes
 
 W, H = 640, 480
 
@@ -384,7 +384,7 @@ def test_learned_rows_name_their_weights_in_captions(tmp_path, tiny_ctrlc, monke
     """Table captions name each learned row's weights / predictions: file name + sha256."""
     import hashlib
 
-    from eval.run_eval import weights_note
+    from fr_eval.run_eval import weights_note
 
     _, onnx_path = tiny_ctrlc
     csv = tmp_path / "hg.csv"

@@ -13,8 +13,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from eval import fit_likelihood, run_eval
-from eval.datasets.registry import CalibrationSample
+from fr_eval import fit_likelihood, run_eval
+from fr_eval.datasets.registry import CalibrationSample
 from fr_torch.camera import rotation_from_angles
 from fr_torch.interface import CameraEstimate, ImageMeta
 from fr_torch.registry import not_supplied
@@ -174,7 +174,7 @@ class YUDOracle:
     """GT camera of YUD images looked up by name (to check the harness on real files)."""
 
     def __init__(self, device="cpu"):
-        from eval.datasets.yud import load_yud
+        from fr_eval.datasets.yud import load_yud
 
         self.name = "yud-oracle"
         self.gt = {s.name: s for s in load_yud(split="all")}
@@ -342,7 +342,7 @@ def test_oracle_needs_labelled_segments(fake_images, tmp_path):
 
 
 def test_distributions_figure_handles_missing_estimates(tmp_path):
-    from eval.plots import distributions_figure
+    from fr_eval.plots import distributions_figure
 
     frame = pd.DataFrame({"method": ["a", "a", "b", "b"], "image": ["x", "y", "x", "y"], "failed": [0, 0, 1, 1],
                           "gt_roll_deg": [1.0, 2.0, 1.0, 2.0], "est_roll_deg": [1.5, 2.5, np.nan, np.nan],

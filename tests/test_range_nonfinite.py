@@ -47,8 +47,8 @@ def test_check_result_marks_non_finite_as_failure():
 
 
 def test_metrics_count_non_finite_estimate_as_failure():
-    from eval.metrics import failure_reason, is_failure, summarize
-    from eval.run_eval import prediction_row
+    from fr_eval.metrics import failure_reason, is_failure, summarize
+    from fr_eval.run_eval import prediction_row
 
     class Sample:
         name, width, height, split = "img", 640, 480, "test"

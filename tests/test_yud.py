@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from eval.datasets.registry import get_dataset_loader, load_dataset
-from eval.datasets.yud import load_yud, rotation_from_vp_orthogonal
+from fr_eval.datasets.registry import get_dataset_loader, load_dataset
+from fr_eval.datasets.yud import load_yud, rotation_from_vp_orthogonal
 from fr_torch.camera import vanishing_points
 from tests.conftest import require_dataset
 

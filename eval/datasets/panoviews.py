@@ -1,14 +1,14 @@
 """Loader for planar-view datasets generated from panoramas by ``fr make-dataset``.
 
 A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``images/``; see
-:mod:`eval.make_dataset` for the columns.  Registered datasets:
+:mod:`fr_eval.make_dataset` for the columns.  Registered datasets:
 
 * ``zind-fr``: ``<cache_root>/zind-fr`` (``$FR_CACHE``, default ``<repo>/data_local``), built with
-  the command in :mod:`eval.make_dataset`'s docstring;
+  the command in :mod:`fr_eval.make_dataset`'s docstring;
 * ``panoviews``: any generated folder, passed as ``path=`` (or as ``root`` when ``root`` itself holds
   a ``gt.csv``).
 
-Each view becomes a :class:`eval.datasets.registry.CalibrationSample` with the exact ground truth
+Each view becomes a :class:`fr_eval.datasets.registry.CalibrationSample` with the exact ground truth
 (focal, principal point (w/2, h/2), R world->camera, tilt / roll / pitch from
 :func:`fr_torch.camera.horizon_angles`).  When the panorama's Manhattan yaw was unknown
 (``manhattan_known`` False) ``rotation`` is still the exact camera orientation but in the
@@ -27,8 +27,8 @@ import numpy as np
 import pandas as pd
 
 from fr_torch.camera import image_centre
-from eval.datasets.registry import CalibrationSample, register_dataset
-from eval.paths import cache_root
+from fr_eval.datasets.registry import CalibrationSample, register_dataset
+from fr_eval.paths import cache_root
 
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
 SPLITS = ("train", "test", "all")

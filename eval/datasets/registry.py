@@ -5,7 +5,7 @@ Dataset interface (all a new dataset has to provide)
 A dataset loader is a callable ``loader(root, split, **kwargs) -> Sequence[CalibrationSample]``
 (any iterable with ``len`` works; a plain list is fine) where
 
-* ``root`` is the data root (:func:`eval.paths.data_root`, i.e. the folder that holds
+* ``root`` is the data root (:func:`fr_eval.paths.data_root`, i.e. the folder that holds
   ``yorkurbandb/`` ...) or ``None`` for the default, and
 * ``split`` is a split name (``"train"``, ``"test"``, ``"all"``; a dataset may define more).
 
@@ -20,7 +20,7 @@ dataset does not know are ``None`` (the metrics then show "n/a").  ``segments`` 
 
 Register a loader with the decorator::
 
-    from eval.datasets.registry import register_dataset
+    from fr_eval.datasets.registry import register_dataset
 
     @register_dataset("zind-fr")
     def load_panoviews(root=None, split="test", **kwargs):
@@ -86,7 +86,7 @@ DatasetLoader = Callable[..., Sequence[CalibrationSample]]
 
 # Modules that register datasets when imported (a module that does not exist is skipped); other
 # packages add datasets through entry points of group ``fr_torch.datasets``.
-_BUILTIN_MODULES = ("eval.datasets.yud", "eval.datasets.panoviews")
+_BUILTIN_MODULES = ("fr_eval.datasets.yud", "fr_eval.datasets.panoviews")
 DATASETS: Registry[Sequence[CalibrationSample]] = Registry("dataset", group="fr_torch.datasets",
                                                            modules=_BUILTIN_MODULES)
 

@@ -36,8 +36,8 @@ from pathlib import Path
 import numpy as np
 import scipy.io as sio
 
-from eval.datasets.registry import CalibrationSample, register_dataset
-from eval.paths import data_root
+from fr_eval.datasets.registry import CalibrationSample, register_dataset
+from fr_eval.paths import data_root
 
 FOLDER = "yorkurbandb"
 WIDTH, HEIGHT = 640, 480
