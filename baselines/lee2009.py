@@ -39,6 +39,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from fr_torch.camera import Camera
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.search import search_fov_range
 from fr_torch.segments import FRInputError
@@ -107,7 +108,7 @@ class Lee2009(TimedCalibrator):
         horizontal_support = sorted((int(support[0]), int(support[2])), reverse=True)
         if horizontal_support[0] < self.min_support:
             return CameraEstimate.failure(self.name, "no horizontal vanishing point with enough support")
-        return vg.camera_estimate(self.name, focal, rotation, width, score=float(score),
+        return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation), score=float(score),
                                   support=[int(s) for s in support])
 
     def _sweep(self, segments, lengths, zvp, vertical_inliers, pp, width, height):

@@ -50,6 +50,7 @@ import math
 import numpy as np
 from scipy.stats import binom
 
+from fr_torch.camera import Camera
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.search import search_fov_range
 from fr_torch.segments import FRInputError
@@ -211,7 +212,7 @@ class Simon2018(TimedCalibrator):
             return self._failure("no orthogonal pair of finite horizontal VPs", extra)
         focal, vi, vj = pair
         rotation = vg.rotation_from_vps(zvp, vi["vp"], focal, pp, vj["vp"])
-        return vg.camera_estimate(self.name, focal, rotation, width, **extra)
+        return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation), **extra)
 
     def _failure(self, reason: str, extra: dict) -> CameraEstimate:
         est = CameraEstimate.failure(self.name, reason)

@@ -313,8 +313,9 @@ class Camera:
 
     @cached_property
     def hfov_deg(self) -> float | None:
-        """Horizontal field of view in degrees, ``2 atan(w / (2 f))``; None when the focal is unknown."""
-        return None if self.focal_px is None else hfov_from_focal(self.focal_px, self.width)
+        """Horizontal field of view in degrees, ``2 atan(w / (2 f))``; None when the focal length or
+        the width is unknown."""
+        return None if self.focal_px is None or self.width <= 0 else hfov_from_focal(self.focal_px, self.width)
 
     @property
     def known_rotation(self) -> np.ndarray | None:
@@ -366,13 +367,14 @@ class Camera:
 class CameraField:
     """A record attribute derived from the record's ``camera`` (a :class:`Camera` or None).
 
-    ``focal_px = CameraField(lambda c: c.focal_px)`` in a class whose instances have ``.camera``:
-    reading gives ``getter(camera)`` (None without a camera); the attribute is read-only, except
-    that assigning None clears the whole camera (what a failed estimate does).
+    Reading gives ``getter(camera)`` (None without a camera).  The attribute is read-only, except
+    that assigning None makes the part of the camera it comes from unknown (``part``: the Camera
+    field set to None, e.g. ``focal_px`` for ``hfov_deg``, ``rotation`` for ``roll_deg``), which is
+    how a check that finds a NaN clears an estimate.
     """
 
-    def __init__(self, getter):
-        self.getter = getter
+    def __init__(self, getter, part: str | None):
+        self.getter, self.part = getter, part
 
     def __set_name__(self, owner, name: str) -> None:
         self.name = name
@@ -384,15 +386,21 @@ class CameraField:
         return None if camera is None else self.getter(camera)
 
     def __set__(self, obj, value) -> None:
-        if value is not None:
+        if value is not None or self.part is None:
             raise AttributeError(f"{self.name} is derived from .camera (a fr_torch.camera.Camera); set .camera")
-        obj.camera = None
+        if obj.camera is not None:
+            obj.camera = replace(obj.camera, **{self.part: None})
 
 
+# attribute -> (getter, the Camera field that assigning None clears)
 CAMERA_FIELDS = {
-    "focal_px": lambda c: c.focal_px, "hfov_deg": lambda c: c.hfov_deg, "principal_point": lambda c: c.principal_point,
-    "rotation": lambda c: c.known_rotation, "vanishing_points": lambda c: c.vanishing_points,
-    **{key: (lambda c, key=key: c.angles.get(key)) for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg")},
+    "focal_px": (lambda c: c.focal_px, "focal_px"),
+    "hfov_deg": (lambda c: c.hfov_deg, "focal_px"),
+    "principal_point": (lambda c: c.principal_point, None),
+    "rotation": (lambda c: c.known_rotation, "rotation"),
+    "vanishing_points": (lambda c: c.vanishing_points, "rotation"),
+    **{key: ((lambda c, key=key: c.angles.get(key)), "rotation")
+       for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg")},
 }
 
 
@@ -400,9 +408,10 @@ def camera_record(cls):
     """Class decorator: give a record with a ``camera`` attribute the derived, read-only attributes
     ``focal_px``, ``hfov_deg``, ``principal_point``, ``rotation`` (None unless the whole orientation
     is known), ``pan_deg``, ``tilt_deg``, ``roll_deg``, ``pitch_deg`` and ``vanishing_points``
-    (:class:`CameraField`; None where the camera, or that part of it, is unknown)."""
-    for name, getter in CAMERA_FIELDS.items():
-        attribute = CameraField(getter)
+    (:class:`CameraField`; None where the camera, or that part of it, is unknown; assigning None
+    makes that part unknown)."""
+    for name, (getter, part) in CAMERA_FIELDS.items():
+        attribute = CameraField(getter, part)
         attribute.__set_name__(cls, name)
         setattr(cls, name, attribute)
     return cls

@@ -129,12 +129,12 @@ def test_installed_plugin_in_fr_eval(installed_plugin, tmp_path):
     (tmp_path / "rooms_ds.py").write_text(textwrap.dedent(f"""
         from pathlib import Path
         from fr_eval.datasets.registry import CalibrationSample
-        from fr_torch.camera import rotation_from_angles
+        from fr_torch.camera import Camera, rotation_from_angles
 
         def load(root=None, split="test", **kwargs):
             return [CalibrationSample(name=f"room{{i}}.png", image_path=Path({str(tmp_path)!r}) / f"room{{i}}.png",
-                                      width=640, height=480, focal_px=500.0, principal_point=None,
-                                      rotation=rotation_from_angles(15.0, 0.0, roll).numpy())
+                                      width=640, height=480,
+                                      camera=Camera(640, 480, 500.0, rotation=rotation_from_angles(15.0, 0.0, roll).numpy()))
                     for i, roll in enumerate((4.0, -7.0))]
     """))
     out = tmp_path / "out"

@@ -26,7 +26,7 @@ from typing import Iterator
 import numpy as np
 import pandas as pd
 
-from fr_torch.camera import image_centre
+from fr_torch.camera import Camera, image_centre
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import cache_root
 
@@ -97,11 +97,11 @@ class PanoViews:
         """The views as evaluation-harness :class:`CalibrationSample` records."""
         out = []
         for v in self:
-            rot = v.rotation if (v.manhattan_known or keep_unknown_manhattan_rotation) else None
+            # without a known Manhattan frame only gravity is ground truth (roll / tilt / pitch, no rotation)
+            camera = Camera(v.width, v.height, v.focal_px, v.principal_point, v.rotation,
+                            pan_known=v.manhattan_known or keep_unknown_manhattan_rotation)
             out.append(CalibrationSample(
-                name=v.name, image_path=v.image_path, width=v.width, height=v.height,
-                focal_px=v.focal_px, principal_point=v.principal_point, rotation=rot,
-                roll_deg=v.roll_deg, tilt_deg=v.tilt_deg, pitch_deg=v.pitch_deg, hfov_deg=v.hfov_deg,
+                name=v.name, image_path=v.image_path, width=v.width, height=v.height, camera=camera,
                 split=v.split,
                 extra={"pano": v.pano, "pan_deg": v.pan_deg, "manhattan_known": v.manhattan_known},
             ))
