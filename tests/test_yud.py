@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -111,7 +112,7 @@ def test_labelled_segments_near_their_vanishing_points(samples):
     s = samples[5]
     wrong = s.rotation.copy()
     wrong[1, :] *= -1
-    bad = deviation_b_deg(type(s)(**{**s.__dict__, "rotation": wrong}))
+    bad = deviation_b_deg(replace(s, camera=replace(s.camera, rotation=wrong)))
     assert np.median(bad) > 2 * np.median(deviation_b_deg(s))
     # vertical-labelled segments are near-vertical in the image
     for s in samples[:20]:
