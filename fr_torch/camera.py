@@ -341,7 +341,9 @@ class Camera:
         whole rotation are known."""
         if self.K is None or self.known_rotation is None:
             return None
-        vps = (self.K @ self.rotation).T
+        vps = vanishing_points(torch.tensor(self.focal_px, dtype=torch.float64),
+                               torch.tensor(self.principal_point, dtype=torch.float64),
+                               torch.as_tensor(self.rotation)).T.numpy()
         return vps * np.where(vps[:, 2:] < 0, -1.0, 1.0)
 
     def resized(self, width: int, height: int) -> "Camera":
