@@ -346,10 +346,10 @@ class Camera:
                                torch.as_tensor(self.rotation)).T.numpy()
         return vps * np.where(vps[:, 2:] < 0, -1.0, 1.0)
 
-    def resized(self, width: int, height: int) -> "Camera":
+    def resized(self, width: int, height: int, factor: float | None = None) -> "Camera":
         """The same camera for the image resized to ``width`` x ``height`` pixels: focal length and
-        principal point scale by ``width / self.width`` (aspect ratio kept)."""
-        factor = width / max(self.width, 1)
+        principal point scale by ``factor`` (default ``width / self.width``; aspect ratio kept)."""
+        factor = width / max(self.width, 1) if factor is None else float(factor)
         return replace(self, width=width, height=height,
                        focal_px=None if self.focal_px is None else self.focal_px * factor,
                        principal_point=tuple(v * factor for v in self.principal_point))
