@@ -6,9 +6,10 @@ z forward, ``R`` world->camera with the (downward) vertical Manhattan direction 
 dehomogenised (a VP at infinity has a zero third coordinate); lines are homogeneous 3-vectors
 ``l`` with ``l . x = 0`` for the points ``x`` on them.
 
-Everything here is numpy float64; the conversion to the reported angles goes through the project's
-torch helpers (:func:`fr_torch.camera.angles_from_rotation`) so that every method reports roll,
-tilt, pitch and pan with exactly the same definitions.
+Everything here is numpy float64; an estimate is reported as one :class:`fr_torch.camera.Camera`
+(:func:`camera_estimate`), whose angles come from the project's torch helpers
+(:func:`fr_torch.camera.angles_from_rotation`), so that every method reports roll, tilt, pitch and
+pan with exactly the same definitions.
 """
 from __future__ import annotations
 

@@ -277,7 +277,16 @@ class Camera:
 
     @classmethod
     def from_hfov(cls, hfov_deg: float, width: int, height: int, **kwargs) -> "Camera":
-        """A camera from its horizontal field of view in degrees (``f = (w / 2) / tan(hfov / 2)``)."""
+        """A camera from its horizontal field of view.
+
+        Args:
+            hfov_deg: horizontal field of view, degrees, in (0, 180).
+            width, height: image size, pixels.
+            **kwargs: ``principal_point``, ``rotation``, ``pan_known`` as for the constructor.
+
+        Returns:
+            Camera with ``focal_px = (w / 2) / tan(hfov / 2)``.
+        """
         return cls(width, height, focal_from_hfov(hfov_deg, width), **kwargs)
 
     @classmethod
@@ -305,7 +314,8 @@ class Camera:
 
     @cached_property
     def K(self) -> np.ndarray | None:
-        """(3, 3) intrinsic matrix, float64; None when the focal length is unknown."""
+        """Intrinsic matrix ``[[f, 0, cx], [0, f, cy], [0, 0, 1]]``, (3, 3) float64 numpy (built by
+        :func:`intrinsics`); None when the focal length is unknown."""
         if self.focal_px is None:
             return None
         return intrinsics(torch.tensor(self.focal_px, dtype=torch.float64),
@@ -337,8 +347,9 @@ class Camera:
 
     @cached_property
     def vanishing_points(self) -> np.ndarray | None:
-        """(3, 3): row i = homogeneous VP of Manhattan direction i, ``w >= 0``; None unless K and the
-        whole rotation are known."""
+        """Vanishing points, (3, 3) float64: row i = homogeneous VP ``(x, y, w)`` (pixels, ``w >= 0``,
+        never dehomogenised) of Manhattan direction i, i.e. ``K @ R[:, i]`` (:func:`vanishing_points`);
+        None unless K and the whole rotation are known."""
         if self.K is None or self.known_rotation is None:
             return None
         vps = vanishing_points(torch.tensor(self.focal_px, dtype=torch.float64),
@@ -355,8 +366,15 @@ class Camera:
                        principal_point=tuple(v * factor for v in self.principal_point))
 
     def to_torch(self, dtype: torch.dtype = torch.float64, device=None) -> dict[str, torch.Tensor]:
-        """The camera as tensors: ``focal_px`` (), ``principal_point`` (2,), ``K`` (3, 3) and
-        ``rotation`` (3, 3) (the keys whose value is known)."""
+        """The camera as tensors for the torch code (the estimator's layout).
+
+        Args:
+            dtype, device: of the returned tensors.
+
+        Returns:
+            ``{"principal_point": (2,), "focal_px": (), "K": (3, 3), "rotation": (3, 3)}``; the
+            focal / K keys only when the focal length is known, ``rotation`` only when a rotation is.
+        """
         out = {"principal_point": torch.tensor(self.principal_point, dtype=dtype, device=device)}
         if self.focal_px is not None:
             out["focal_px"] = torch.tensor(self.focal_px, dtype=dtype, device=device)
