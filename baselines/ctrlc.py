@@ -2,7 +2,7 @@
 
 J. Lee, H. Go, H. Lee, S. Cho, M. Sung, J. Kim, "CTRL-C: Camera calibration TRansformer with
 Line-Classification", ICCV 2021.  The network itself is not re-implemented: the user exports the
-official checkpoint to ONNX with ``fr export-ctrlc`` (:mod:`baselines.export_ctrlc_onnx`) and points this adapter at
+official checkpoint to ONNX with ``fr export-ctrlc`` (:mod:`fr_baselines.export_ctrlc_onnx`) and points this adapter at
 the file (constructor argument ``onnx_path`` or environment variable ``FR_CTRLC_ONNX``).  Without
 weights the method is listed but ``available`` is False and every estimate is a flagged failure
 with an "n/a (not supplied: ...)" reason (:func:`fr_torch.registry.not_supplied`).
@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 import torch
 
-from fr_torch.camera import hfov_from_focal, horizon_angles, image_centre, rotation_from_angles
+from fr_torch.camera import Camera, hfov_from_focal, horizon_angles, image_centre
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.registry import not_supplied
 from fr_torch.segments import FRInputError, to_bgr8
@@ -242,12 +242,13 @@ class CTRLC(TimedCalibrator):
             cam = camera_from_ctrlc(zvp, fovy, width, height, focal_px=meta.focal_px)
         except ValueError as exc:
             return CameraEstimate.failure(self.name, str(exc))
-        rotation_pan0 = rotation_from_angles(0.0, cam["pitch_deg"], cam["roll_deg"]).numpy()
+        # CTRL-C predicts the horizon (gravity), not the heading: a pan-unknown camera (R with pan 0)
+        camera = Camera.from_angles(width, height, cam["focal_px"], roll_deg=cam["roll_deg"],
+                                    pitch_deg=cam["pitch_deg"])
         return CameraEstimate(
-            method=self.name, focal_px=cam["focal_px"], hfov_deg=cam["hfov_deg"], rotation=None,
-            roll_deg=cam["roll_deg"], tilt_deg=cam["tilt_deg"], pitch_deg=cam["pitch_deg"], pan_deg=None,
+            method=self.name, camera=camera,
             extra={"pred_zvp": zvp.tolist(), "pred_fovy_rad": fovy, "pred_hl": np.asarray(hl).tolist(),
-                   "up": cam["up"].tolist(), "rotation_pan0": rotation_pan0},
+                   "up": cam["up"].tolist(), "rotation_pan0": camera.rotation},
         )
 
 

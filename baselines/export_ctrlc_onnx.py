@@ -21,7 +21,7 @@ the import is retried without those registrations (see :func:`import_torchvision
 of the export path only** -- such a model's numbers are meaningless.  The file records it in its
 metadata (``random_weights=true``) and ``fr eval`` says so in the caption of the row.
 
-The exported graph follows the contract of :mod:`baselines.ctrlc`: inputs ``image`` [1, 3, S, S]
+The exported graph follows the contract of :mod:`fr_baselines.ctrlc`: inputs ``image`` [1, 3, S, S]
 (S = ``DATASETS.INPUT_WIDTH``, 512), ``lines`` [1, L, 3], ``line_mask`` [1, L, 1] (L =
 ``DATASETS.NUM_INPUT_LINES``, 512), all float32; outputs ``pred_zvp`` [1, 3], ``pred_fovy`` [1, 1]
 (radians), ``pred_hl`` [1, 3].  The wrapper feeds the image as CTRL-C's un-padded NestedTensor and
@@ -165,7 +165,7 @@ def make_wrapper(model, nested_tensor_cls):
 
 
 def real_inputs(image: np.ndarray, size: int, num_lines: int, min_line_length: float):
-    """The adapter's own preprocessing of one image (see :mod:`baselines.ctrlc`)."""
+    """The adapter's own preprocessing of one image (see :mod:`fr_baselines.ctrlc`)."""
     from .ctrlc import ctrlc_segments, preprocess_image, preprocess_lines
 
     height, width = image.shape[:2]
@@ -235,7 +235,7 @@ def write_metadata(path: Path, props: dict[str, str]) -> None:
 
 # The ``fr export-ctrlc`` command: (module, one-line help), declared in pyproject.toml's
 # ``fr_torch.commands`` entry-point group.
-COMMAND = ("baselines.export_ctrlc_onnx", "export the real CTRL-C network (your checkout + checkpoint) to ONNX")
+COMMAND = ("fr_baselines.export_ctrlc_onnx", "export the real CTRL-C network (your checkout + checkpoint) to ONNX")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -16,8 +16,11 @@ CSV format (header row required, any column order, extra columns ignored, empty 
     the world->camera rotation (row-major, vertical Manhattan direction in column 1); when all
     nine are given, the angles not given explicitly are derived from it.
 
-When only roll and tilt are given, pitch follows from ``tan(tilt) = tan(pitch) / cos(roll)``;
-a rotation is built only when pan is given too.  The file comes from the constructor argument
+The prediction becomes one :class:`fr_torch.camera.Camera`: from the rotation when all nine
+entries are given (the angle columns are then ignored: every angle is derived from it), else from
+roll and pitch or tilt (``tan(tilt) = tan(pitch) / cos(roll)``), with pan when given (otherwise a
+horizon-only camera, ``pan_known=False``).  Angles without roll and tilt or pitch are an
+incomplete prediction (flagged failure); ``hfov_deg`` needs the image width.  The file comes from the constructor argument
 ``csv_path`` or the environment variable named by ``env_var`` (``FR_EXTERNAL_CSV``); the reported
 method name is the ``method`` argument (e.g. ``"hold-geoffroy2018"``).  An image without a row (or without a file)
 is a flagged failure with reason ``"n/a (not supplied)"``.
@@ -31,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fr_torch.camera import focal_from_hfov, hfov_from_focal, rotation_angles, rotation_from_angles
+from fr_torch.camera import Camera, focal_from_hfov
 from fr_torch.interface import CameraEstimate, ImageMeta, Timer
 from fr_torch.registry import NOT_SUPPLIED
 from fr_torch.segments import FRInputError
@@ -127,43 +130,35 @@ class ExternalPredictions:
         row = self.lookup(meta.name)
         if row is None:
             return CameraEstimate.failure(self.name, NOT_SUPPLIED)
-        width, _ = vg.image_size(image, meta)
-        est = CameraEstimate(method=self.name)
+        width, height = vg.image_size(image, meta)
         focal, hfov = row["focal_px"], row["hfov_deg"]
         if focal is not None and focal <= 0:
             return CameraEstimate.failure(self.name, f"invalid focal_px {focal}")
         if hfov is not None and not 0 < hfov < 180:
             return CameraEstimate.failure(self.name, f"invalid hfov_deg {hfov}")
-        if focal is None and hfov is not None and width > 0:
+        if focal is None and hfov is not None:
+            if width <= 0:
+                return CameraEstimate.failure(self.name, "unknown image width (needed to use hfov_deg)")
             focal = float(focal_from_hfov(hfov, width))
-        if hfov is None and focal is not None and width > 0:
-            hfov = float(hfov_from_focal(focal, width))
-        est.focal_px, est.hfov_deg = focal, hfov
 
         roll, tilt, pitch, pan = row["roll_deg"], row["tilt_deg"], row["pitch_deg"], row["pan_deg"]
         r_values = [row[c] for c in ROTATION_COLUMNS]
-        rotation = None
         if all(v is not None for v in r_values):
             rotation = np.asarray(r_values, dtype=np.float64).reshape(3, 3)
             if (np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-3 or np.linalg.det(rotation) < 0):
                 return CameraEstimate.failure(self.name, "invalid rotation (not a proper rotation matrix)")
-            rotation = vg.nearest_rotation(rotation)
-            angles = rotation_angles(rotation)
-            roll = angles["roll_deg"] if roll is None else roll
-            tilt = angles["tilt_deg"] if tilt is None else tilt
-            pitch = angles["pitch_deg"] if pitch is None else pitch
-            pan = angles["pan_deg"] if pan is None else pan
+            camera = Camera(width, height, focal, meta.principal_point, vg.nearest_rotation(rotation))
+        elif roll is not None and (pitch is not None or tilt is not None):
+            camera = Camera.from_angles(width, height, focal, roll_deg=roll, pitch_deg=pitch, tilt_deg=tilt,
+                                        pan_deg=pan, principal_point=meta.principal_point)
+        elif any(v is not None for v in (roll, tilt, pitch, pan)):
+            return CameraEstimate.failure(self.name, "n/a (incomplete prediction: the angles need roll and "
+                                                     "tilt or pitch, or r00..r22)")
+        elif focal is not None:
+            camera = Camera(width, height, focal, meta.principal_point)
         else:
-            if pitch is None and roll is not None and tilt is not None:
-                pitch = math.degrees(math.atan(math.tan(math.radians(tilt)) * math.cos(math.radians(roll))))
-            if tilt is None and roll is not None and pitch is not None:
-                tilt = math.degrees(math.atan(math.tan(math.radians(pitch)) / math.cos(math.radians(roll))))
-            if pan is not None and pitch is not None and roll is not None:
-                rotation = rotation_from_angles(pan, pitch, roll).numpy()
-        est.rotation, est.roll_deg, est.tilt_deg, est.pitch_deg, est.pan_deg = rotation, roll, tilt, pitch, pan
-        if all(v is None for v in (focal, hfov, roll, tilt, pitch, pan)) and rotation is None:
             return CameraEstimate.failure(self.name, "n/a (empty prediction)")
-        return est
+        return CameraEstimate(method=self.name, camera=camera)
 
 
 def make_hold_geoffroy2018(csv_path: str | os.PathLike | None = None) -> ExternalPredictions:

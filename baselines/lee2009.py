@@ -11,7 +11,7 @@ reasoning of the paper is not needed for calibration):
 2. Vertical VP from the near-vertical segments (within ``vertical_max_deg`` of the image
    vertical): every pair of the longest ones proposes a VP, the hypothesis with the largest summed
    length of segments within ``inlier_deg`` wins and is refined by least squares
-   (:func:`baselines.vp_geometry.vertical_vp`).
+   (:func:`fr_baselines.vp_geometry.vertical_vp`).
 3. Focal sweep: ``n_focal`` focal lengths, log-spaced so that the horizontal field of view of the
    image's *long side* spans ``hfov_range_deg`` (so the sweep scales with the image size; default:
    fR's library default range, ``configs/search.json``; option ``lee2009[range=paper]`` or
@@ -39,6 +39,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from fr_torch.camera import Camera
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.search import search_fov_range
 from fr_torch.segments import FRInputError
@@ -107,7 +108,7 @@ class Lee2009(TimedCalibrator):
         horizontal_support = sorted((int(support[0]), int(support[2])), reverse=True)
         if horizontal_support[0] < self.min_support:
             return CameraEstimate.failure(self.name, "no horizontal vanishing point with enough support")
-        return vg.camera_estimate(self.name, focal, rotation, width, score=float(score),
+        return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation), score=float(score),
                                   support=[int(s) for s in support])
 
     def _sweep(self, segments, lengths, zvp, vertical_inliers, pp, width, height):

@@ -7,7 +7,7 @@ AGPL; nothing is copied from it).  Steps:
 1. Line segments (``meta.segments`` when given, else LSD) longer than ``min_length_frac`` of the
    image diagonal.
 2. **Zenith** from the near-vertical segments (hypothesise-and-test over pairs, least-squares
-   refinement: :func:`baselines.vp_geometry.vertical_vp`).  The *zenith line* joins the principal
+   refinement: :func:`fr_baselines.vp_geometry.vertical_vp`).  The *zenith line* joins the principal
    point to the zenith; the horizon line (HL) is perpendicular to it, so a HL candidate is a
    single offset along the zenith line.
 3. **HL candidates.**  (a) The paper's second-order grouping: a horizontal segment at the height
@@ -29,7 +29,7 @@ AGPL; nothing is copied from it).  Steps:
 5. **Focal and rotation.**  The focal length comes from the most significant *pair of finite*
    hVPs compatible with orthogonality (``f^2 = -(v_i - p).(v_j - p) > 0``) and, when the zenith
    is finite, orthogonal to it within ``zenith_tol_deg`` under that focal; R is the orthogonalised
-   (zenith, v_i, v_j) triplet (:func:`baselines.vp_geometry.rotation_from_vps`).
+   (zenith, v_i, v_j) triplet (:func:`fr_baselines.vp_geometry.rotation_from_vps`).
 
 **Failures.**  When no such pair exists (e.g. one horizontal VP at infinity, or a single
 horizontal family) the method has no focal length and therefore no tilt (tilt needs f), so the
@@ -50,6 +50,7 @@ import math
 import numpy as np
 from scipy.stats import binom
 
+from fr_torch.camera import Camera
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.search import search_fov_range
 from fr_torch.segments import FRInputError
@@ -211,7 +212,7 @@ class Simon2018(TimedCalibrator):
             return self._failure("no orthogonal pair of finite horizontal VPs", extra)
         focal, vi, vj = pair
         rotation = vg.rotation_from_vps(zvp, vi["vp"], focal, pp, vj["vp"])
-        return vg.camera_estimate(self.name, focal, rotation, width, **extra)
+        return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation), **extra)
 
     def _failure(self, reason: str, extra: dict) -> CameraEstimate:
         est = CameraEstimate.failure(self.name, reason)

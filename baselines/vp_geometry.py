@@ -6,9 +6,10 @@ z forward, ``R`` world->camera with the (downward) vertical Manhattan direction 
 dehomogenised (a VP at infinity has a zero third coordinate); lines are homogeneous 3-vectors
 ``l`` with ``l . x = 0`` for the points ``x`` on them.
 
-Everything here is numpy float64; the conversion to the reported angles goes through the project's
-torch helpers (:func:`fr_torch.camera.angles_from_rotation`) so that every method reports roll,
-tilt, pitch and pan with exactly the same definitions.
+Everything here is numpy float64; an estimate is reported as one :class:`fr_torch.camera.Camera`
+(:func:`camera_estimate`), whose angles come from the project's torch helpers
+(:func:`fr_torch.camera.angles_from_rotation`), so that every method reports roll, tilt, pitch and
+pan with exactly the same definitions.
 """
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ import math
 
 import numpy as np
 
-from fr_torch.camera import hfov_from_focal, nearest_rotation, principal_point_or_centre, rotation_angles  # noqa: F401
+from fr_torch.camera import (Camera, hfov_from_focal, nearest_rotation, principal_point_or_centre,  # noqa: F401
+                             rotation_angles)
 from fr_torch.interface import CameraEstimate, ImageMeta
 from fr_torch.segments import FRInputError, SegmentFilter, detect_segments, validate_segments
 
@@ -223,22 +225,9 @@ def rotation_from_vps(vertical_vp: np.ndarray, horizontal_vp: np.ndarray, focal_
     return rotation_from_directions(dv, dh, dh2)
 
 
-def camera_estimate(method: str, focal_px: float | None, rotation: np.ndarray | None, width: int,
-                    runtime_s: float = float("nan"), **extra) -> CameraEstimate:
-    """A successful CameraEstimate with every angle derived from ``rotation`` by the project helpers."""
-    est = CameraEstimate(method=method, runtime_s=runtime_s, extra=dict(extra))
-    if focal_px is not None:
-        est.focal_px = float(focal_px)
-        est.hfov_deg = float(hfov_from_focal(float(focal_px), width))
-    if rotation is not None:
-        rotation = np.asarray(rotation, dtype=np.float64)
-        est.rotation = rotation
-        angles = rotation_angles(rotation)
-        est.roll_deg = float(angles["roll_deg"])
-        est.tilt_deg = float(angles["tilt_deg"])
-        est.pitch_deg = float(angles["pitch_deg"])
-        est.pan_deg = float(angles["pan_deg"])
-    return est
+def camera_estimate(method: str, camera: Camera, runtime_s: float = float("nan"), **extra) -> CameraEstimate:
+    """A successful CameraEstimate of ``camera``: every angle and the hfov derived by the Camera."""
+    return CameraEstimate(method=method, camera=camera, runtime_s=runtime_s, extra=dict(extra))
 
 
 def roll_from_zenith(zenith_vp: np.ndarray, pp: np.ndarray) -> float:

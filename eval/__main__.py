@@ -1,9 +1,8 @@
-"""``python -m eval COMMAND ...``: the ``fr`` command line with the harness commands, for a source
-checkout that is not pip-installed (installed, ``fr`` finds them through entry points)."""
+"""``python -m fr_eval COMMAND ...``: the ``fr`` command line with the harness commands (installed
+copies; ``fr`` itself finds them through entry points, also in a checkout run with ``PYTHONPATH``)."""
 import sys
 
-import baselines  # noqa: F401  (registers the baseline methods; installed: the fr_torch.calibrators entry point)
-from eval.commands import COMMANDS
+from fr_eval.commands import COMMANDS
 from fr_torch.cli import main
 
 sys.exit(main(extra_commands=COMMANDS))

@@ -37,7 +37,7 @@ OpenMP/MKL parallel region waits for its slowest thread, and a thread that has l
 stalls every op (seen here: 10-50x slower with 2 threads under load); ``--threads 0`` keeps
 torch's default, ``--threads 2`` uses both cores of an idle 2-core machine.
 
-Run ``fr bench [--quick] [--device cuda] [--out DIR] [--threads T]`` or ``python -m eval.bench``.
+Run ``fr bench [--quick] [--device cuda] [--out DIR] [--threads T]`` or ``python -m fr_eval.bench``.
 """
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch CPU threads (default 1: on a shared machine multi-threaded torch ops stall "
                              "whenever another process holds a core; 0 = torch's default)")
     parser.add_argument("--repeats", type=int, default=None, help="timed repeats per setting (default 7, quick 2)")
-    parser.add_argument("--data-root", default=None, help="dataset root (default: eval.paths.data_root())")
+    parser.add_argument("--data-root", default=None, help="dataset root (default: fr_eval.paths.data_root())")
     parser.add_argument("--no-memory", action="store_true", help="skip the memory subprocesses")
     parser.add_argument("--stress", action="store_true",
                         help="also run the bounded-memory check: batch 4096 x 1000 segments (k=4; minutes)")
@@ -396,12 +396,16 @@ def _peak_rss() -> float:
     return float(peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
+_PROBE = "import sys; from fr_torch.registry import load_object; sys.exit(load_object('fr_eval.bench:main')())"
+
+
 def memory(settings, threads: int | None, progress) -> list[dict]:
     rows = []
     for batch, n_seg, k, mode, device in settings:
         if progress.out_of_time(f"memory {device} {batch}x{n_seg}"):
             continue
-        cmd = [sys.executable, "-m", "eval.bench", "--memory-probe", f"{batch},{n_seg},{k},{mode},{device}"]
+        # a fresh interpreter; fr_eval through load_object, so a checkout that is not installed works too
+        cmd = [sys.executable, "-c", _PROBE, "--memory-probe", f"{batch},{n_seg},{k},{mode},{device}"]
         if threads:
             cmd += ["--threads", str(threads)]
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
@@ -571,7 +575,7 @@ def run(args: argparse.Namespace) -> int:
     images = [("rendered room", str(rendered))]
     if not quick:
         try:
-            from eval.paths import data_root
+            from fr_eval.paths import data_root
 
             yud = sorted((data_root(args.data_root) / "yorkurbandb").glob("P*/P*.jpg"))[:3]
             images += [(f"YUD {p.stem}", str(p)) for p in yud]

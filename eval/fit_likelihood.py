@@ -43,8 +43,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from eval.datasets.registry import load_dataset
-from eval.paths import REPO
+from fr_eval.datasets.registry import load_dataset
+from fr_eval.paths import REPO
 from fr_torch.camera import VERTICAL_AXIS, vanishing_points
 
 PAPER = {  # Qian & Elder 2022, deviation-measure table (lambda; vertical / horizontal) and priors
@@ -393,7 +393,7 @@ def run(args: argparse.Namespace) -> int:
     out.write_text(json.dumps(config, indent=2) + "\n", encoding="utf-8")
     print(f"wrote {out}")
     try:
-        from eval.paths import data_root
+        from fr_eval.paths import data_root
 
         root = data_root(args.data_root)
     except FileNotFoundError:

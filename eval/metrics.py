@@ -152,7 +152,7 @@ def image_errors(sample: Any, est: Any) -> dict[str, float | None]:
     """Per-image errors of estimate ``est`` against ground-truth ``sample`` (None = not available).
 
     ``sample`` has ``width``, ``rotation``, ``roll_deg``, ``tilt_deg``, ``hfov_deg``, ``focal_px``
-    (a :class:`eval.datasets.registry.CalibrationSample`).  A failed estimate gives all None.
+    (a :class:`fr_eval.datasets.registry.CalibrationSample`).  A failed estimate gives all None.
     """
     keys = ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
     out: dict[str, float | None] = dict.fromkeys(keys)

@@ -74,10 +74,10 @@ def _record(result, gt: dict) -> dict:
 
 def dataset_records(dataset: str, split: str, mode: str, data_root=None, batch_size: int = 8,
                     limit: int | None = None, progress: bool = True) -> pd.DataFrame:
-    """Run FREstimator(mode) over a registered evaluation dataset (``eval.datasets``)."""
+    """Run FREstimator(mode) over a registered evaluation dataset (``fr_eval.datasets``)."""
     from tqdm import tqdm
 
-    from eval.datasets.registry import load_dataset
+    from fr_eval.datasets.registry import load_dataset
 
     from fr_torch.estimator import FREstimator
 

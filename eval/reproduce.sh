@@ -22,7 +22,7 @@ for step in "${steps[@]}"; do
           --methods "fr,fr[likelihood=fitted],fr[likelihood=paper],fast-fr,fast-fr[likelihood=fitted]"
       done ;;
     dataset)  # ZInD-fR: 15 views per panorama, split by room (data_local/zind-fr, not committed)
-      .venv/bin/python -m eval.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
+      .venv/bin/python -m fr_eval.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
         --yaw-csv "${FR_DATA:-../shared/data}/zind_sample_tour/manhattan_yaw_derived.csv" \
         --out "${FR_CACHE:-data_local}/zind-fr" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 --test-fraction 0.5 ;;
     yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e.

@@ -1,6 +1,6 @@
 """Resolution independence of fR: YUD test images upscaled by 1x, 2x, 4x (bicubic) give the same errors.
 
-    PYTHONPATH=. python -m eval.resolution_check --scales 1,2,4 --mode fast --out results/resolution
+    python -m fr_eval.resolution_check --scales 1,2,4 --mode fast --out results/resolution
 
 For every scale k the test images are upscaled by k (``cv2.INTER_CUBIC``), calibrated from the
 arrays (detection runs at the estimator's working resolution), and compared with the ground truth
@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from eval.datasets.registry import load_dataset
-from eval.metrics import image_errors, mean_se
+from fr_eval.datasets.registry import load_dataset
+from fr_eval.metrics import image_errors, mean_se
 from fr_torch import FREstimator
 from fr_torch.segments import load_image
 

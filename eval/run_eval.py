@@ -57,13 +57,12 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-import baselines  # noqa: F401  (registers the baselines also in a source checkout that is not pip-installed)
-from eval.datasets.registry import available_datasets, load_dataset
-from eval.metrics import (NA_PREFIX, estimate_quantities, failure_reason, image_errors, is_failure, summarize,
+from fr_eval.datasets.registry import available_datasets, load_dataset
+from fr_eval.metrics import (NA_PREFIX, estimate_quantities, failure_reason, image_errors, is_failure, summarize,
                           summarize_groups)
-from eval.paths import REPO
-from eval.plots import distributions_figure, histogram_figure, safe_name
-from eval.tables import deviation_measure_summaries, parse_method_spec, with_option, write_tables
+from fr_eval.paths import REPO
+from fr_eval.plots import distributions_figure, histogram_figure, safe_name
+from fr_eval.tables import deviation_measure_summaries, parse_method_spec, with_option, write_tables
 from fr_torch.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
 from fr_torch.registry import split_method_list
 from fr_torch.search import search_fov_range

@@ -14,15 +14,16 @@ z forward, vertical Manhattan direction in column 1).
 """
 from __future__ import annotations
 
+import copy
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import torch
 
-from .camera import VERTICAL_AXIS, Camera, angles_from_rotation, hfov_from_focal, image_centre, intrinsics
+from .camera import VERTICAL_AXIS, Camera, camera_record, image_centre
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
 from .search import (SearchConfig, check_result, grid_hypotheses, hypothesis_rotations, parameter_box, refine,
                      score_grid, select_starts)
@@ -46,11 +47,22 @@ class _Image:
     result: CalibrationResult | None = None
 
 
+# CalibrationResult.to_json: its keys, in order (the CLI's output schema)
+JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px", "hfov_deg", "principal_point",
+             "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
+             "log_likelihood", "num_segments", "manhattan_fraction", "cues", "predicted_error", "runtime_s")
+
+
+@camera_record
 @dataclass
 class CalibrationResult:
     """Everything fR says about one image.  Angles in degrees, lengths in pixels.
 
-    ``ok`` is False when no estimate could be made (then the camera fields are None and
+    ``camera`` is the estimate (:class:`fr_torch.camera.Camera`: focal length, principal point,
+    rotation); ``focal_px``, ``hfov_deg``, ``principal_point``, ``rotation`` (3, 3) world->camera,
+    ``pan_deg`` / ``tilt_deg`` / ``roll_deg`` / ``pitch_deg`` and ``vanishing_points`` (3, 3; row i
+    = homogeneous VP i (x, y, w), w >= 0) are read-only views of it (:func:`fr_torch.camera.camera_record`).
+    ``ok`` is False when no estimate could be made (then ``camera`` and those fields are None and
     ``reason`` says why).  ``reliable`` is False when the estimate exists but should not be
     trusted (too few segments, a Manhattan family nearly empty, or predicted errors above the
     threshold once a reliability model is loaded); ``reason`` lists why.
@@ -62,16 +74,8 @@ class CalibrationResult:
     ok: bool = True
     reliable: bool = False
     reason: str = ""
-    focal_px: float | None = None
-    hfov_deg: float | None = None
-    principal_point: tuple[float, float] | None = None
-    rotation: np.ndarray | None = None  # (3, 3) world->camera
+    camera: Camera | None = None
     vertical_axis: int = VERTICAL_AXIS
-    pan_deg: float | None = None
-    tilt_deg: float | None = None
-    roll_deg: float | None = None
-    pitch_deg: float | None = None
-    vanishing_points: np.ndarray | None = None  # (3, 3): row i = homogeneous VP i (x, y, w), w >= 0
     log_likelihood: float | None = None
     num_segments: int = 0
     manhattan_fraction: float | None = None  # share of total segment length labelled with a family
@@ -81,16 +85,9 @@ class CalibrationResult:
     predicted_error: dict[str, float] | None = None
     runtime_s: dict[str, float] = field(default_factory=dict)
 
-    @property
-    def camera(self) -> Camera | None:
-        """The estimate as a :class:`fr_torch.camera.Camera` value (None when ``ok`` is False)."""
-        if not self.ok or self.focal_px is None:
-            return None
-        return Camera(self.width, self.height, self.focal_px, self.principal_point, self.rotation)
-
     def to_json(self, include_segments: bool = False) -> dict[str, Any]:
-        """JSON-ready dict (the CLI's output schema; arrays become nested lists)."""
-        out = {k: v for k, v in asdict(self).items() if k not in ("segments", "labels")}
+        """JSON-ready dict (the CLI's output schema, keys :data:`JSON_KEYS`; arrays become nested lists)."""
+        out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS}
         for key in ("rotation", "vanishing_points"):
             if out[key] is not None:
                 out[key] = np.asarray(out[key]).tolist()
@@ -275,33 +272,22 @@ class FREstimator:
         cues = self._cues(grid_scores, labels, log_p[:, 0], batch.mask)
         t3 = time.perf_counter()
 
-        angles = angles_from_rotation(rotation)
-        vps = (intrinsics(best_params[:, 3], pp) @ rotation).transpose(-1, -2)  # rows = VPs
-        vps = vps * torch.where(vps[..., 2:] < 0, -1.0, 1.0)
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
         # One device->host transfer per tensor, not one per image (keeps large batches O(B)).
         counts_all = batch.mask.sum(-1).cpu().numpy()
         lengths_all = batch.lengths.cpu().numpy()
         labels_all = labels.cpu().numpy()
         rotation_all = rotation.cpu().numpy()
-        vps_all = vps.cpu().numpy()
         params_all = best_params.cpu().numpy()
         scores_all = best_scores.to(torch.float64).cpu().numpy()
-        hfov_all = hfov_from_focal(best_params[:, 3].cpu(), width).numpy()
-        angles_all = {key: angles[key].cpu().numpy() for key in ("pan_deg", "tilt_deg", "roll_deg", "pitch_deg")}
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
         family = labels_all != BACKGROUND_LABEL
         manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
         for j, item in enumerate(group):
             n = int(counts_all[j])
             r = item.result
-            r.focal_px = float(params_all[j, 3])
-            r.hfov_deg = float(hfov_all[j])
-            r.principal_point = (float(pp_np[j, 0]), float(pp_np[j, 1]))
-            r.rotation = rotation_all[j]
-            for key, value in angles_all.items():
-                setattr(r, key, float(value[j]))
-            r.vanishing_points = vps_all[j]
+            r.camera = Camera(r.width, r.height, float(params_all[j, 3]), (float(pp_np[j, 0]), float(pp_np[j, 1])),
+                              rotation_all[j])
             r.log_likelihood = float(scores_all[j])
             r.num_segments = n
             r.segments = item.segments

@@ -30,47 +30,56 @@ Fusion (one *epoch* = the frames since the last restart)
 """
 from __future__ import annotations
 
+import copy
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
-from .camera import align_to, nearest_rotation, rotation_angle_deg, rotation_angles
+from .camera import Camera, align_to, camera_record, nearest_rotation, rotation_angle_deg, rotation_angles
 
 SIGMA_FROM_MAE = math.sqrt(math.pi / 2.0)  # Gaussian: std = MAE * sqrt(pi / 2)
 
 
+@camera_record
 @dataclass
 class FrameEstimate:
-    """What the calibrator needs from one frame (built from a CalibrationResult)."""
+    """What the calibrator needs from one frame (built from a CalibrationResult).
+
+    ``camera``: the frame's estimate (:class:`fr_torch.camera.Camera`, None when it failed);
+    ``focal_px``, ``rotation``, ``roll_deg``, ``tilt_deg`` ... are read-only views of it.
+    """
 
     index: int
     ok: bool
     reliable: bool
-    focal_px: float | None = None
-    rotation: np.ndarray | None = None
-    roll_deg: float | None = None
-    tilt_deg: float | None = None
+    camera: Camera | None = None
     predicted_error: dict[str, float] | None = None
     reason: str = ""
 
 
+# FusedState.to_json: its keys, in order (``fr track``'s calibration.json)
+STATE_JSON_KEYS = ("frame", "status", "epoch", "n_fused", "focal_px", "rotation", "roll_deg", "tilt_deg", "pitch_deg",
+                   "pan_deg", "sigma", "restarted", "disagreement")
+
+
+@camera_record
 @dataclass
 class FusedState:
     """Fused calibration after a frame.  ``status`` of that frame: ``fused``, ``started``,
-    ``restarted``, ``rejected`` (unreliable), ``held`` (disagrees: possible camera move / outlier)."""
+    ``restarted``, ``rejected`` (unreliable), ``held`` (disagrees: possible camera move / outlier).
+
+    ``camera``: the fused camera (image size and principal point of the fused frames, fused focal
+    length and rotation; None before the first accepted frame); ``focal_px``, ``rotation``,
+    ``roll_deg``, ``tilt_deg``, ``pitch_deg``, ``pan_deg``, ``hfov_deg`` are read-only views of it.
+    """
 
     frame: int
     status: str
     epoch: int  # fusion epoch: increments at every (re)start
     n_fused: int = 0
-    focal_px: float | None = None
-    rotation: np.ndarray | None = None
-    roll_deg: float | None = None
-    tilt_deg: float | None = None
-    pitch_deg: float | None = None
-    pan_deg: float | None = None
+    camera: Camera | None = None
     sigma: dict[str, float] | None = None  # fused standard deviations: roll_deg, tilt_deg, focal_pct
     restarted: bool = False
     disagreement: float | None = None  # largest normalised difference frame vs fused (units of change_k)
@@ -80,7 +89,7 @@ class FusedState:
         return self.focal_px is not None
 
     def to_json(self) -> dict[str, Any]:
-        out = asdict(self)
+        out = {key: copy.deepcopy(getattr(self, key)) for key in STATE_JSON_KEYS}
         if self.rotation is not None:
             out["rotation"] = np.asarray(self.rotation).tolist()
         return out
@@ -117,6 +126,7 @@ class OnlineCalibrator:
         self._pending: list[FrameEstimate] = []
         self.rotation: np.ndarray | None = None
         self.focal_px: float | None = None
+        self._camera: Camera | None = None  # the last fused frame's camera: image size, principal point
         self._frame = -1
 
     def _sigmas(self, e: FrameEstimate) -> dict[str, float]:
@@ -147,6 +157,7 @@ class OnlineCalibrator:
         self._n += 1
         self.rotation = nearest_rotation(self._m)
         self.focal_px = math.exp(self._logf / self._w_f)
+        self._camera = e.camera
 
     def disagreement(self, e: FrameEstimate, rotation: np.ndarray, focal_px: float, sigma: dict | None) -> float:
         """Largest |difference| / sqrt(s_frame^2 + s_ref^2) over roll, tilt, focal and rotation angle."""
@@ -169,9 +180,7 @@ class OnlineCalibrator:
     def frame_from_result(result, index: int) -> FrameEstimate:
         ok = bool(getattr(result, "ok", False)) and getattr(result, "rotation", None) is not None
         return FrameEstimate(index=index, ok=ok, reliable=ok and bool(result.reliable),
-                             focal_px=result.focal_px if ok else None,
-                             rotation=np.asarray(result.rotation, np.float64) if ok else None,
-                             roll_deg=result.roll_deg if ok else None, tilt_deg=result.tilt_deg if ok else None,
+                             camera=result.camera if ok else None,
                              predicted_error=result.predicted_error, reason=result.reason)
 
     def update(self, result, index: int | None = None) -> FusedState:
@@ -212,8 +221,6 @@ class OnlineCalibrator:
     def state(self, status: str = "fused") -> FusedState:
         if self._n == 0:
             return FusedState(frame=self._frame, status=status, epoch=self.epoch)
-        a = rotation_angles(self.rotation)
-        return FusedState(frame=self._frame, status=status, epoch=self.epoch, n_fused=self._n,
-                          focal_px=self.focal_px, rotation=self.rotation.copy(), roll_deg=a["roll_deg"],
-                          tilt_deg=a["tilt_deg"], pitch_deg=a["pitch_deg"], pan_deg=a["pan_deg"],
+        camera = replace(self._camera, focal_px=self.focal_px, rotation=self.rotation.copy(), pan_known=True)
+        return FusedState(frame=self._frame, status=status, epoch=self.epoch, n_fused=self._n, camera=camera,
                           sigma=self.fused_sigma())

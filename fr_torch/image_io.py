@@ -333,25 +333,16 @@ def focal_and_pp_to_working(focal, principal_point, scale: float):
 def result_to_input_pixels(result, scale: float, input_size: tuple[int, int]) -> None:
     """Rescale, in place, a result estimated at the working resolution to the input's pixels.
 
-    Lengths (focal, principal point, segments, vanishing points' x and y) are multiplied by
-    ``scale``; angles, rotation, cues and labels are unchanged; width / height become the input's;
-    the HFOV is recomputed from the input width (the same angle up to pixel rounding).
+    Lengths (the camera's focal length and principal point, segments) are multiplied by ``scale``;
+    angles, rotation, cues and labels are unchanged; width / height become the input's; the HFOV and
+    the vanishing points follow from the rescaled camera (the same angle up to pixel rounding).
     """
     if result.width > 0:
         result.width, result.height = int(input_size[0]), int(input_size[1])
     if scale == 1.0 or not result.ok:
         return
-    if result.focal_px is not None:
-        import math
-
-        result.focal_px = result.focal_px * scale
-        result.hfov_deg = math.degrees(2.0 * math.atan(result.width / (2.0 * result.focal_px)))
-    if result.principal_point is not None:
-        result.principal_point = (result.principal_point[0] * scale, result.principal_point[1] * scale)
-    if result.vanishing_points is not None:
-        vps = np.array(result.vanishing_points, dtype=np.float64)
-        vps[:, :2] *= scale
-        result.vanishing_points = vps
+    if result.camera is not None:
+        result.camera = result.camera.resized(result.width, result.height, factor=scale)
     if result.segments is not None:
         result.segments = np.asarray(result.segments, dtype=np.float64) * scale
 

@@ -19,6 +19,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
+from .camera import Camera, camera_record
 from .registry import Registry, parse_method_spec  # noqa: F401  (parse_method_spec re-exported)
 
 
@@ -40,36 +41,32 @@ class ImageMeta:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+@camera_record
 @dataclass
 class CameraEstimate:
-    """One method's answer for one image.  ``None`` means "this method does not estimate it".
+    """One method's answer for one image.
+
+    ``camera``: what the method estimated, as one :class:`fr_torch.camera.Camera` of the image
+    (``Camera(width, height, focal_px, principal_point, rotation)``): ``focal_px=None`` for a method
+    that estimates only the orientation, ``rotation=None`` for one that estimates only the focal
+    length, ``Camera.from_angles(..., roll_deg=, tilt_deg=)`` (``pan_known=False``) for one that
+    estimates only the horizon (gravity), None for a failure.  ``focal_px``, ``hfov_deg``,
+    ``rotation`` ((3, 3) world->camera, vertical in column 1; None unless the whole orientation is
+    known), ``roll_deg``, ``tilt_deg``, ``pitch_deg``, ``pan_deg`` are read-only views of it; None
+    means "this method does not estimate it".
 
     ``ok`` is False when the method failed (no vanishing point found, bad input...); ``reason``
     then says why.  Failed estimates are counted by the tables, never silently dropped.
     """
 
     method: str
-    focal_px: float | None = None
-    hfov_deg: float | None = None
-    rotation: np.ndarray | None = None  # (3, 3) world->camera, vertical in column 1
-    roll_deg: float | None = None
-    tilt_deg: float | None = None
-    pitch_deg: float | None = None
-    pan_deg: float | None = None
+    camera: Camera | None = None
     predicted_error: dict[str, float] | None = None  # {"roll_deg", "tilt_deg", "focal_pct"}
     reliable: bool | None = None
     runtime_s: float = float("nan")
     ok: bool = True
     reason: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
-
-    def camera(self, width: int, height: int, principal_point=None):
-        """The estimate as a :class:`fr_torch.camera.Camera` of an image of that size (None if no focal)."""
-        from .camera import Camera, focal_from_hfov
-
-        focal = self.focal_px if self.focal_px is not None else (
-            focal_from_hfov(self.hfov_deg, width) if self.hfov_deg is not None else None)
-        return None if not self.ok or focal is None else Camera(width, height, focal, principal_point, self.rotation)
 
     @classmethod
     def failure(cls, method: str, reason: str, runtime_s: float = float("nan")) -> "CameraEstimate":

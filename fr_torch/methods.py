@@ -30,8 +30,7 @@ def estimate_from_result(method: str, result: CalibrationResult, runtime_s: floa
     if not result.ok:
         return CameraEstimate.failure(method, result.reason, runtime_s)
     return CameraEstimate(
-        method=method, focal_px=result.focal_px, hfov_deg=result.hfov_deg, rotation=result.rotation,
-        roll_deg=result.roll_deg, tilt_deg=result.tilt_deg, pitch_deg=result.pitch_deg, pan_deg=result.pan_deg,
+        method=method, camera=result.camera,
         predicted_error=result.predicted_error, reliable=result.reliable, runtime_s=runtime_s, reason=result.reason,
         extra={"cues": result.cues, "num_segments": result.num_segments, "log_likelihood": result.log_likelihood,
                "stage_runtime_s": result.runtime_s},

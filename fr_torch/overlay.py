@@ -94,8 +94,8 @@ def write_overlay(image_path, result: CalibrationResult, folder) -> Path:
     image = to_bgr8(image)
     scale = image.shape[1] / max(result.width, 1)
     if abs(scale - 1.0) > 1e-9 and result.ok:
-        result = replace(result, width=image.shape[1], height=image.shape[0], focal_px=result.focal_px * scale,
-                         principal_point=tuple(v * scale for v in result.principal_point),
+        result = replace(result, width=image.shape[1], height=image.shape[0],
+                         camera=result.camera.resized(image.shape[1], image.shape[0]),
                          segments=None if result.segments is None else result.segments * scale)
     target = overlay_path(image_path, folder)
     write_bytes(target, encode_png(draw_overlay(image, result)))

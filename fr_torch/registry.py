@@ -19,7 +19,9 @@ A third-party package therefore adds a method without editing this project::
 
 (see ``examples/fr_plugin_example``).  When this project runs from a source checkout that is not
 installed (``PYTHONPATH=.``), the entry points declared in the checkout's own ``pyproject.toml``
-are read as well, so the built-in methods are found the same way in both cases.
+are read as well, so the built-in methods are found the same way in both cases; the packages it
+installs under another name (``[tool.setuptools.package-dir]``) are then mapped to their folders by
+:func:`checkout_packages`.
 
 **Method specs.**  ``name[key=value,key=value]`` selects a registered factory and passes the options
 as keyword arguments (strings): ``fr[measure=a]``, ``fast-fr[detector=mcmlsd]``.
@@ -33,7 +35,9 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata
+import importlib.util
 import re
+import sys
 import tomllib
 from functools import lru_cache
 from pathlib import Path
@@ -123,20 +127,60 @@ def with_option(spec: str, key: str, value: Any) -> str:
 
 # --------------------------------------------------------------------------- entry points
 
+CHECKOUT = Path(__file__).resolve().parents[1]  # the source checkout, when fr_torch runs from one
+
+
 @lru_cache(maxsize=None)
-def _checkout_entry_points() -> dict[str, dict[str, str]]:
-    """``{group: {name: "module:attr"}}`` declared in the pyproject.toml of the source checkout this
-    package is imported from, when it is not installed as a distribution (``PYTHONPATH=.``)."""
-    pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+def _checkout_pyproject() -> dict[str, Any]:
+    """The parsed pyproject.toml of the source checkout this package is imported from ({} when
+    there is none, e.g. installed from a wheel, or when it is another project's)."""
+    pyproject = CHECKOUT / "pyproject.toml"
     if not pyproject.is_file():
         return {}
     try:
-        project = tomllib.loads(pyproject.read_text()).get("project", {})
+        data = tomllib.loads(pyproject.read_text())
     except (OSError, tomllib.TOMLDecodeError):
         return {}
-    if project.get("name") != "fr-torch":
-        return {}
+    return data if data.get("project", {}).get("name") == "fr-torch" else {}
+
+
+def _checkout_entry_points() -> dict[str, dict[str, str]]:
+    """``{group: {name: "module:attr"}}`` declared in the pyproject.toml of the source checkout this
+    package is imported from, when it is not installed as a distribution (``PYTHONPATH=.``)."""
+    project = _checkout_pyproject().get("project", {})
     return {group: dict(items) for group, items in project.get("entry-points", {}).items()}
+
+
+@lru_cache(maxsize=None)
+def checkout_packages() -> tuple[str, ...]:
+    """Make the checkout's renamed top-level packages importable when it is not installed.
+
+    ``[tool.setuptools.package-dir]`` of the checkout's pyproject.toml installs some folders under
+    another name (``name = "folder"``); an installation (wheel or ``pip install -e``) makes those
+    names importable, a bare ``PYTHONPATH=checkout`` does not.  For each top-level ``name`` that
+    cannot be found otherwise, this loads ``folder/__init__.py`` as package ``name`` (its
+    submodules then import normally from ``folder``).  Called before every entry-point or
+    import-path lookup (:func:`load_object`); returns the names it mapped.  Nothing happens for an
+    installed copy (no checkout pyproject.toml, or the names already importable).
+    """
+    table = _checkout_pyproject().get("tool", {}).get("setuptools", {}).get("package-dir", {})
+    mapped = []
+    for name, folder in table.items():
+        init = CHECKOUT / folder / "__init__.py"
+        if "." in name or not name.isidentifier() or name in sys.modules or not init.is_file():
+            continue
+        if importlib.util.find_spec(name) is not None:  # installed (editable or not): use that
+            continue
+        spec = importlib.util.spec_from_file_location(name, init, submodule_search_locations=[str(init.parent)])
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        try:
+            spec.loader.exec_module(module)
+        except BaseException:
+            del sys.modules[name]
+            raise
+        mapped.append(name)
+    return tuple(mapped)
 
 
 def entry_points(group: str) -> dict[str, str]:
@@ -151,6 +195,7 @@ def entry_points(group: str) -> dict[str, str]:
 def load_object(path: str) -> Any:
     """The object named by ``"package.module:attribute"`` (``attribute`` may be dotted)."""
     module_name, _, attr = path.partition(":")
+    checkout_packages()
     obj = importlib.import_module(module_name.strip())
     for part in filter(None, attr.strip().split(".")):
         obj = getattr(obj, part)
@@ -193,6 +238,7 @@ class Registry(Generic[T]):
         if self._modules_loaded:
             return
         self._modules_loaded = True
+        checkout_packages()
         for module in self.modules:
             try:
                 importlib.import_module(module)

@@ -225,10 +225,7 @@ def run(args: argparse.Namespace) -> int:
                             "patience": args.patience},
                "calibration": final.to_json() if final is not None and final.valid else None}
     if summary["calibration"] is not None:
-        from .camera import hfov_from_focal
-
-        width = next(r["width"] for r in reversed(rows) if r["ok"])
-        summary["calibration"]["hfov_deg"] = hfov_from_focal(final.focal_px, width)
+        summary["calibration"]["hfov_deg"] = final.hfov_deg  # of the fused camera (the video's frame width)
     (out / "calibration.json").write_text(json.dumps(summary, indent=1) + "\n")
     plot_track(rows, out / "track.png", f"fr track {args.source.name} ({mode})")
     print(json.dumps({k: summary[k] for k in ("frames_processed", "frames_accepted", "restarts_at_frames")}))

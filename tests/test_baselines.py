@@ -20,12 +20,12 @@ from fr_torch.camera import focal_from_hfov, horizon_angles, rotation_from_angle
 from fr_torch.interface import Calibrator, CameraEstimate, ImageMeta, available_methods, get_calibrator
 from fr_torch.synthetic import camera_matrix, render_manhattan_room, synthetic_segments
 
-from baselines import vp_geometry as vg
-from baselines.ctrlc import CTRLC, camera_from_ctrlc, preprocess_image, preprocess_lines
-from baselines.external import ExternalPredictions
-from baselines.lee2009 import Lee2009
-from baselines.prior import Prior
-from baselines.simon2018 import Simon2018, meaningful_modes
+from fr_baselines import vp_geometry as vg
+from fr_baselines.ctrlc import CTRLC, camera_from_ctrlc, preprocess_image, preprocess_lines
+from fr_baselines.external import ExternalPredictions
+from fr_baselines.lee2009 import Lee2009
+from fr_baselines.prior import Prior
+from fr_baselines.simon2018 import Simon2018, meaningful_modes
 
 W, H = 640, 480
 
@@ -98,7 +98,7 @@ def test_vp_geometry_recovers_camera_from_exact_vps():
         assert frame_error_deg(rotation, r_est) < 1e-4  # acos resolution
         assert np.allclose(np.abs(r_est[:, 1]), np.abs(rotation[:, 1]))
         assert vg.roll_from_zenith(vps[:, 1], pp) == pytest.approx(gt["roll_deg"], abs=1e-9)
-        est = vg.camera_estimate("x", focal, r_est, W)
+        est = vg.camera_estimate("x", vg.Camera(W, H, focal, pp, r_est))
         assert est.roll_deg == pytest.approx(gt["roll_deg"], abs=1e-6)
         assert est.tilt_deg == pytest.approx(gt["tilt_deg"], abs=1e-6)
         assert est.hfov_deg == pytest.approx(hfov, abs=1e-6)
@@ -253,7 +253,8 @@ def test_named_rows_read_their_own_weights_and_predictions(monkeypatch, tmp_path
     csv_path.write_text("image,hfov_deg,roll_deg,tilt_deg\na.jpg,70,1.5,-2\n")
     monkeypatch.setenv("FR_HOLD_GEOFFROY_CSV", str(csv_path))
     est = get_method("hold-geoffroy2018").estimate(None, ImageMeta(name="a.jpg", width=W, height=H))
-    assert est.ok and est.hfov_deg == 70 and est.roll_deg == 1.5 and est.tilt_deg == -2
+    assert est.ok and est.hfov_deg == pytest.approx(70.0, abs=1e-9)
+    assert est.roll_deg == pytest.approx(1.5, abs=1e-9) and est.tilt_deg == pytest.approx(-2.0, abs=1e-9)
 
 
 def test_ctrlc_conversion_recovers_known_camera():
@@ -345,13 +346,14 @@ def test_external_csv_round_trip(tmp_path, monkeypatch):
     assert method.name == "hold-geoffroy2018" and method.available
 
     a = method.estimate(None, ImageMeta(name="a", width=W, height=H))  # matched by stem
-    assert a.ok and a.focal_px == 500 and a.roll_deg == 2.5 and a.tilt_deg == -3.0
+    assert a.ok and a.focal_px == 500  # roll, tilt: through the camera (R with pan 0), exact to rounding
+    assert a.roll_deg == pytest.approx(2.5, abs=1e-9) and a.tilt_deg == pytest.approx(-3.0, abs=1e-9)
     assert a.hfov_deg == pytest.approx(math.degrees(2 * math.atan(W / 2 / 500)))
     assert a.pitch_deg == pytest.approx(math.degrees(math.atan(math.tan(math.radians(-3)) * math.cos(math.radians(2.5)))))
-    assert a.rotation is None
+    assert a.rotation is None and a.pan_deg is None and not a.camera.pan_known  # horizon only
 
     b = method.estimate(None, ImageMeta(name="/data/sub/b.png", width=W, height=H))
-    assert b.ok and b.hfov_deg == 70 and b.focal_px == pytest.approx(focal_from_hfov(70.0, W))
+    assert b.ok and b.hfov_deg == pytest.approx(70.0, abs=1e-9) and b.focal_px == pytest.approx(focal_from_hfov(70.0, W))
     assert np.allclose(b.rotation, r, atol=1e-9)
     assert b.roll_deg == pytest.approx(gt["roll_deg"]) and b.tilt_deg == pytest.approx(gt["tilt_deg"])
     assert b.pan_deg == pytest.approx(20.0)
@@ -371,9 +373,9 @@ def test_external_csv_round_trip(tmp_path, monkeypatch):
 
 def test_prior():
     est = get_calibrator("prior").estimate(None, ImageMeta(name="x", width=W, height=H))
-    assert est.ok and est.hfov_deg == 60.0
+    assert est.ok and est.hfov_deg == pytest.approx(60.0, abs=1e-9)
     assert est.focal_px == pytest.approx((W / 2) / math.tan(math.radians(30)))
-    assert est.roll_deg == 0.0 and est.tilt_deg == 0.0 and est.pan_deg is None
+    assert est.roll_deg == 0.0 and est.tilt_deg == 0.0 and est.pan_deg == 0.0  # R = I
     assert np.array_equal(est.rotation, np.eye(3))
     from_image = Prior().estimate(np.zeros((100, 200, 3), np.uint8), ImageMeta(name="y"))
     assert from_image.focal_px == pytest.approx(100 / math.tan(math.radians(30)))
@@ -384,7 +386,7 @@ def test_learned_rows_name_their_weights_in_captions(tmp_path, tiny_ctrlc, monke
     """Table captions name each learned row's weights / predictions: file name + sha256."""
     import hashlib
 
-    from eval.run_eval import weights_note
+    from fr_eval.run_eval import weights_note
 
     _, onnx_path = tiny_ctrlc
     csv = tmp_path / "hg.csv"

@@ -36,7 +36,7 @@ def ctrlc_source() -> Path:
     source = Path(os.environ.get("FR_CTRLC_SOURCE", REPO.parent / "shared" / "ctrlc_source"))
     if not (source / "models" / "ctrlc.py").is_file():
         _missing(f"CTRL-C source not found at {source} (set FR_CTRLC_SOURCE)")
-    from baselines.export_ctrlc_onnx import ExportError, import_torchvision
+    from fr_baselines.export_ctrlc_onnx import ExportError, import_torchvision
 
     try:
         import_torchvision()
@@ -68,7 +68,7 @@ def small_onnx(ctrlc_source, data_root, tmp_path_factory) -> Path:
 def test_export_agrees_and_records_provenance(small_onnx):
     import onnxruntime as ort
 
-    from baselines.ctrlc import CTRLC
+    from fr_baselines.ctrlc import CTRLC
 
     session = ort.InferenceSession(str(small_onnx), providers=["CPUExecutionProvider"])
     meta = session.get_modelmeta().custom_metadata_map
@@ -83,7 +83,7 @@ def test_exported_ctrlc_in_fr_eval(small_onnx, data_root, tmp_path, monkeypatch)
     """The random-weight export through the ctrlc adapter in ``fr eval`` on three YUD images:
     refused by default (n/a), and with FR_CTRLC_ALLOW_RANDOM=1 every image gets finite numbers and
     the caption names the weights and says they are random."""
-    from baselines.ctrlc import CTRLC
+    from fr_baselines.ctrlc import CTRLC
     from fr_torch.interface import ImageMeta
 
     monkeypatch.delenv("FR_CTRLC_ALLOW_RANDOM", raising=False)

@@ -13,9 +13,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from eval import fit_likelihood, run_eval
-from eval.datasets.registry import CalibrationSample
-from fr_torch.camera import rotation_from_angles
+from fr_eval import fit_likelihood, run_eval
+from fr_eval.datasets.registry import CalibrationSample
+from fr_torch.camera import Camera, rotation_from_angles
 from fr_torch.interface import CameraEstimate, ImageMeta
 from fr_torch.registry import not_supplied
 from tests.conftest import require_dataset
@@ -29,9 +29,9 @@ def load_fake(root=None, split="test", **_):
     """Six synthetic samples (no image files) with known cameras."""
     samples = []
     for i in range(6):
-        s = CalibrationSample(name=f"fake_{i}", image_path=None, width=640, height=480, focal_px=400.0 + 40 * i,
-                              principal_point=(320.0, 240.0),
-                              rotation=rotation_from_angles(10.0 * i, -6.0 + 2 * i, 1.5 * i - 3).numpy(),
+        s = CalibrationSample(name=f"fake_{i}", image_path=None, width=640, height=480,
+                              camera=Camera(640, 480, 400.0 + 40 * i, (320.0, 240.0),
+                                            rotation_from_angles(10.0 * i, -6.0 + 2 * i, 1.5 * i - 3).numpy()),
                               segments=np.array([[10.0, 10, 100, 12], [50, 20, 52, 200]]),
                               segment_labels=np.array([0, 1]), split=split)
         FAKE[s.name] = s
@@ -63,8 +63,9 @@ class OracleCalibrator:
         if meta.name in self.fail_on:
             return CameraEstimate.failure(self.name, "no vanishing point")
         gt = FAKE[meta.name]
-        return CameraEstimate(method=self.name, rotation=_rot_z(self.noise_deg) @ gt.rotation @ PERM,
-                              focal_px=gt.focal_px * self.focal_factor, runtime_s=0.01)
+        camera = Camera(meta.width, meta.height, gt.focal_px * self.focal_factor,
+                        rotation=_rot_z(self.noise_deg) @ gt.rotation @ PERM)
+        return CameraEstimate(method=self.name, camera=camera, runtime_s=0.01)
 
 
 class RotationOnly(OracleCalibrator):
@@ -174,7 +175,7 @@ class YUDOracle:
     """GT camera of YUD images looked up by name (to check the harness on real files)."""
 
     def __init__(self, device="cpu"):
-        from eval.datasets.yud import load_yud
+        from fr_eval.datasets.yud import load_yud
 
         self.name = "yud-oracle"
         self.gt = {s.name: s for s in load_yud(split="all")}
@@ -182,7 +183,8 @@ class YUDOracle:
     def estimate(self, image, meta):
         assert image is not None and image.shape == (meta.height, meta.width, 3)
         s = self.gt[meta.name]
-        return CameraEstimate(method=self.name, rotation=s.rotation @ PERM, focal_px=s.focal_px)
+        return CameraEstimate(method=self.name, camera=Camera(meta.width, meta.height, s.focal_px,
+                                                              rotation=s.rotation @ PERM))
 
 
 def test_eval_on_two_yud_images(data_root, tmp_path):
@@ -206,14 +208,13 @@ def load_fake_fov(root=None, split="test", **_):
     named but do not exist (the tests patch ``run_eval.load_image``)."""
     from pathlib import Path
 
-    from fr_torch.camera import focal_from_hfov
-
     samples = []
     for i in range(9):
         hfov = FOVS[i % 3]
         s = CalibrationSample(name=f"fov_{i}", image_path=Path(f"/nonexistent/fov_{i}.png"), width=640, height=480,
-                              focal_px=float(focal_from_hfov(hfov, 640)), principal_point=(320.0, 240.0),
-                              rotation=rotation_from_angles(5.0 * i, -10.0 + 2 * i, i - 4.0).numpy(), split=split)
+                              camera=Camera.from_hfov(hfov, 640, 480, principal_point=(320.0, 240.0),
+                                                      rotation=rotation_from_angles(5.0 * i, -10.0 + 2 * i, i - 4.0).numpy()),
+                              split=split)
         FAKE[s.name] = s
         samples.append(s)
     return samples
@@ -342,7 +343,7 @@ def test_oracle_needs_labelled_segments(fake_images, tmp_path):
 
 
 def test_distributions_figure_handles_missing_estimates(tmp_path):
-    from eval.plots import distributions_figure
+    from fr_eval.plots import distributions_figure
 
     frame = pd.DataFrame({"method": ["a", "a", "b", "b"], "image": ["x", "y", "x", "y"], "failed": [0, 0, 1, 1],
                           "gt_roll_deg": [1.0, 2.0, 1.0, 2.0], "est_roll_deg": [1.5, 2.5, np.nan, np.nan],

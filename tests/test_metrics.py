@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from eval.metrics import (
+from fr_eval.metrics import (
     NOT_SUPPLIED,
     frame_error_deg,
     image_errors,
@@ -16,8 +16,8 @@ from eval.metrics import (
     summarize,
     summarize_groups,
 )
-from eval.datasets.registry import CalibrationSample
-from eval.tables import (
+from fr_eval.datasets.registry import CalibrationSample
+from fr_eval.tables import (
     deviation_measure_summaries,
     display_frame,
     format_mean_se,
@@ -26,7 +26,7 @@ from eval.tables import (
     to_markdown,
     with_option,
 )
-from fr_torch.camera import hfov_from_focal, horizon_angles, rotation_from_angles
+from fr_torch.camera import Camera, hfov_from_focal, horizon_angles, rotation_from_angles
 from fr_torch.interface import CameraEstimate
 from fr_torch.registry import not_supplied
 
@@ -87,8 +87,8 @@ def test_mean_se():
 
 
 def sample(f=500.0, pan=10.0, pitch=5.0, roll=3.0, width=640):
-    return CalibrationSample(name="s", image_path=None, width=width, height=480, focal_px=f,
-                             principal_point=None, rotation=rotation_from_angles(pan, pitch, roll).numpy())
+    return CalibrationSample(name="s", image_path=None, width=width, height=480,
+                             camera=Camera(width, 480, f, rotation=rotation_from_angles(pan, pitch, roll).numpy()))
 
 
 def test_sample_fills_angles_and_fov():
@@ -102,7 +102,7 @@ def test_sample_fills_angles_and_fov():
 def test_image_errors_from_rotation_and_focal():
     gt = sample()
     r_est = rotation_from_angles(10.0 + 90.0, 7.0, 3.0).numpy()  # pan by 90: same Manhattan frame
-    est = CameraEstimate(method="m", focal_px=550.0, rotation=r_est)
+    est = CameraEstimate(method="m", camera=Camera(640, 480, 550.0, rotation=r_est))
     err = image_errors(gt, est)
     angles = horizon_angles(torch.as_tensor(r_est))
     assert err["tilt_err_deg"] == pytest.approx(abs(float(angles["tilt_deg"]) - gt.tilt_deg))
@@ -116,7 +116,8 @@ def test_image_errors_from_rotation_and_focal():
 
 def test_image_errors_explicit_fields_and_missing_quantities():
     gt = sample()
-    est = CameraEstimate(method="m", roll_deg=gt.roll_deg + 1.5, hfov_deg=gt.hfov_deg * 1.1)
+    # a partial answer (roll and hfov only) as a dict: the metrics take any object with these keys
+    est = {"method": "m", "ok": True, "roll_deg": gt.roll_deg + 1.5, "hfov_deg": gt.hfov_deg * 1.1}
     err = image_errors(gt, est)
     assert err["roll_err_deg"] == pytest.approx(1.5)
     assert err["fov_err_pct"] == pytest.approx(10.0)
@@ -126,7 +127,7 @@ def test_image_errors_explicit_fields_and_missing_quantities():
 
 def test_left_handed_estimate_made_proper():
     gt = sample()
-    est = CameraEstimate(method="m", rotation=gt.rotation @ np.diag([1.0, -1.0, 1.0]))
+    est = CameraEstimate(method="m", camera=Camera(640, 480, rotation=gt.rotation @ np.diag([1.0, -1.0, 1.0])))
     assert image_errors(gt, est)["frame_err_deg"] == pytest.approx(0.0, abs=1e-5)
 
 

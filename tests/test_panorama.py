@@ -1,4 +1,4 @@
-"""Panorama -> pinhole view generator (eval.panorama, eval.make_dataset, eval.datasets.panoviews).
+"""Panorama -> pinhole view generator (fr_eval.panorama, fr_eval.make_dataset, fr_eval.datasets.panoviews).
 
 The central check renders views from a synthetic equirectangular panorama whose pixels *encode
 their own viewing direction* (channels = unit ray of the pixel centre in the pano frame).  A view
@@ -17,8 +17,8 @@ import pandas as pd
 import pytest
 import torch
 
-from eval import make_dataset
-from eval.panorama import (cube_face_rotations, cubemap_to_equirect, direction_from_lonlat,
+from fr_eval import make_dataset
+from fr_eval.panorama import (cube_face_rotations, cubemap_to_equirect, direction_from_lonlat,
                            equirect_pixel_from_direction, lonlat_from_direction, render_views, save_rgb, yaw_rotation)
 from fr_torch.camera import focal_from_hfov, horizon_angles, intrinsics, rotation_from_angles
 
@@ -281,7 +281,7 @@ def test_generated_dataset_split_and_reproducibility(tmp_path):
     assert a["manhattan_known"].all()
     assert (tmp_path / "a" / "contact_sheet.png").is_file() and (tmp_path / "a" / "dataset.json").is_file()
     # the loader
-    from eval.datasets.panoviews import PanoViews, load_panoviews
+    from fr_eval.datasets.panoviews import PanoViews, load_panoviews
 
     test = load_panoviews(split="test", path=tmp_path / "a")
     assert len(test) == (a["split"] == "test").sum()

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
+from fr_torch.camera import Camera
 from fr_torch.estimator import FREstimator
 from fr_torch.interface import CameraEstimate
 from fr_torch.search import (NAMED_FOV_RANGES, SearchConfig, check_result, focal_bounds,
@@ -40,25 +42,25 @@ def test_measure_e_float32_is_finite(mode):
 def test_check_result_marks_non_finite_as_failure():
     [result] = FREstimator(mode="fast").calibrate_segments([_scene(3, 500.0)[0]], [(640, 480)])
     assert result.ok
-    result.roll_deg = float("nan")
+    result.camera = replace(result.camera, focal_px=float("nan"))  # a NaN anywhere in the camera
+    assert math.isnan(result.hfov_deg)
     check_result(result, SearchConfig.from_config())
     assert not result.ok and not result.reliable and "non-finite" in result.reason
     assert result.focal_px is None and result.rotation is None
 
 
 def test_metrics_count_non_finite_estimate_as_failure():
-    from eval.metrics import failure_reason, is_failure, summarize
-    from eval.run_eval import prediction_row
+    from fr_eval.metrics import failure_reason, is_failure, summarize
+    from fr_eval.run_eval import prediction_row
 
     class Sample:
         name, width, height, split = "img", 640, 480, "test"
         roll_deg, tilt_deg, pitch_deg, hfov_deg, focal_px = 1.0, 2.0, 2.0, 60.0, 554.26
         rotation = np.eye(3)
 
-    good = CameraEstimate(method="m", focal_px=554.26, hfov_deg=60.0, roll_deg=1.0, tilt_deg=2.0,
-                          rotation=np.eye(3))
-    nan = CameraEstimate(method="m", focal_px=float("nan"), roll_deg=1.0, tilt_deg=2.0, rotation=np.eye(3))
-    bad_rotation = CameraEstimate(method="m", focal_px=500.0, rotation=np.full((3, 3), np.nan))
+    good = CameraEstimate(method="m", camera=Camera(640, 480, 554.26, rotation=np.eye(3)))
+    nan = CameraEstimate(method="m", camera=Camera(640, 480, float("nan"), rotation=np.eye(3)))
+    bad_rotation = CameraEstimate(method="m", camera=Camera(640, 480, 500.0, rotation=np.full((3, 3), np.nan)))
     assert not is_failure(good) and is_failure(nan) and is_failure(bad_rotation)
     assert "non-finite" in failure_reason(nan)
     rows = [prediction_row("m", Sample(), est, 0.1) for est in (good, nan, bad_rotation)]

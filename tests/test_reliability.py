@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
+from fr_torch.camera import Camera
 from fr_torch.estimator import CalibrationResult
 from fr_torch.resources import config_dir
 from fr_torch.reliability import (CUE_NAMES, TARGETS, ReliabilityModel, ReliabilitySet, cue_features,
@@ -96,8 +97,8 @@ def test_predictions_monotone_in_cues():
 
 
 def _result(cues):
-    r = CalibrationResult(image="x", width=640, height=480, ok=True, reliable=True, focal_px=500.0,
-                          roll_deg=0.0, tilt_deg=0.0)
+    r = CalibrationResult(image="x", width=640, height=480, ok=True, reliable=True,
+                          camera=Camera.from_angles(640, 480, 500.0, roll_deg=0.0, tilt_deg=0.0))
     r.cues = dict(zip(CUE_NAMES, cues))
     return r
 

@@ -10,12 +10,12 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fr_torch.camera import focal_from_hfov, rotation_from_angles
+from fr_torch.camera import Camera, focal_from_hfov, rotation_from_angles
 from fr_torch.estimator import FREstimator
 from fr_torch.reliability import ReliabilityModel
 from fr_torch.synthetic import render_manhattan_room, synthetic_segments
 from fr_torch.camera import MANHATTAN_SYMMETRIES as SYMMETRIES
-from fr_torch.camera import align_to, nearest_rotation, rotation_angle_deg, rotation_angles
+from fr_torch.camera import align_to, nearest_rotation, rotation_angle_deg
 from fr_torch.fusion import FrameEstimate, OnlineCalibrator
 
 
@@ -46,9 +46,8 @@ def _frame(i, r, f, rng, sigma_deg=1.0, focal_pct=5.0, reliable=True, scramble=T
     Manhattan symmetry (the first frame of an epoch keeps fR's labelling: vertical in column 1)."""
     noise = Rotation.from_rotvec(rng.normal(0, np.radians(sigma_deg) / np.sqrt(3), 3)).as_matrix()
     est = noise @ r @ (SYMMETRIES[rng.integers(24)] if scramble else np.eye(3))
-    a = rotation_angles(est)
-    return FrameEstimate(index=i, ok=True, reliable=reliable, focal_px=f * (1 + rng.normal(0, focal_pct / 100)),
-                         rotation=est, roll_deg=a["roll_deg"], tilt_deg=a["tilt_deg"],
+    camera = Camera(640, 480, f * (1 + rng.normal(0, focal_pct / 100)), rotation=est)
+    return FrameEstimate(index=i, ok=True, reliable=reliable, camera=camera,
                          predicted_error={"roll_deg": sigma_deg * 0.8, "tilt_deg": sigma_deg * 0.8,
                                           "focal_pct": focal_pct * 0.8})
 

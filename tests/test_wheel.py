@@ -12,6 +12,7 @@ import site
 import subprocess
 import sys
 import venv
+import zipfile
 from pathlib import Path
 
 from tests.conftest import REPO
@@ -39,6 +40,9 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
     _run([sys.executable, "-m", "pip", "wheel", "--no-deps", *isolation, "-q", "-w", str(tmp_path / "dist"),
           str(src)])
     (wheel,) = (tmp_path / "dist").glob("fr_torch-*.whl")
+    # project-specific top-level packages only: eval/ and baselines/ install as fr_eval and fr_baselines
+    top_level = {name.split("/")[0] for name in zipfile.ZipFile(wheel).namelist() if "/" in name}
+    assert {"fr_torch", "fr_eval", "fr_baselines"} <= top_level and not {"eval", "baselines"} & top_level, top_level
 
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(with_pip=False).create(env_dir)
@@ -66,6 +70,10 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
     methods = _run([str(python), "-c", "from fr_torch.interface import available_methods as m; print(m())"],
                    cwd=work, env=env).stdout
     assert "lee2009" in methods  # baselines registered through the fr_torch.calibrators entry point
+    found = _run([str(python), "-c", "import importlib.util as u; print([u.find_spec(n) is not None for n in "
+                  "('fr_eval', 'fr_eval.datasets', 'fr_baselines', 'eval', 'baselines')])"], cwd=work, env=env).stdout
+    assert found.strip() == "[True, True, True, False, False]", found
+    assert "train-reliability" in _run([str(python), "-m", "fr_eval", "--help"], cwd=work, env=env).stdout
     out = _run([str(fr), "calibrate", "--fast", str(REPO / "examples" / "room.png")], cwd=work, env=env)
     record = json.loads(out.stdout.strip().splitlines()[0])
     assert record["ok"] and abs(record["focal_px"] - 420) < 15

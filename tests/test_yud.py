@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
-from eval.datasets.registry import get_dataset_loader, load_dataset
-from eval.datasets.yud import load_yud, rotation_from_vp_orthogonal
+from fr_eval.datasets.registry import get_dataset_loader, load_dataset
+from fr_eval.datasets.yud import load_yud, rotation_from_vp_orthogonal
 from fr_torch.camera import vanishing_points
 from tests.conftest import require_dataset
 
@@ -111,7 +112,7 @@ def test_labelled_segments_near_their_vanishing_points(samples):
     s = samples[5]
     wrong = s.rotation.copy()
     wrong[1, :] *= -1
-    bad = deviation_b_deg(type(s)(**{**s.__dict__, "rotation": wrong}))
+    bad = deviation_b_deg(replace(s, camera=replace(s.camera, rotation=wrong)))
     assert np.median(bad) > 2 * np.median(deviation_b_deg(s))
     # vertical-labelled segments are near-vertical in the image
     for s in samples[:20]:

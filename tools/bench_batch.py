@@ -30,9 +30,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from eval.bench import _cpu_model  # noqa: E402
 from fr_torch.batch import _run_local, collect_inputs  # noqa: E402
 from fr_torch.camera import rotation_from_angles  # noqa: E402
+from fr_torch.registry import load_object  # noqa: E402  (fr_eval also from a checkout that is not installed)
 from fr_torch.synthetic import render_manhattan_room  # noqa: E402
 
 
@@ -109,7 +109,7 @@ def main() -> int:
         ray.shutdown()
     import torch
 
-    machine = {"cpu": _cpu_model(), "cores": os.cpu_count(), "torch": torch.__version__,
+    machine = {"cpu": load_object("fr_eval.bench:_cpu_model")(), "cores": os.cpu_count(), "torch": torch.__version__,
                "python": platform.python_version(), "device": args.device,
                "load_average_before": load_before, "load_average_after": load_after}
     try:

@@ -1,14 +1,14 @@
 """Loader for planar-view datasets generated from panoramas by ``fr make-dataset``.
 
 A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``images/``; see
-:mod:`eval.make_dataset` for the columns.  Registered datasets:
+:mod:`fr_eval.make_dataset` for the columns.  Registered datasets:
 
 * ``zind-fr``: ``<cache_root>/zind-fr`` (``$FR_CACHE``, default ``<repo>/data_local``), built with
-  the command in :mod:`eval.make_dataset`'s docstring;
+  the command in :mod:`fr_eval.make_dataset`'s docstring;
 * ``panoviews``: any generated folder, passed as ``path=`` (or as ``root`` when ``root`` itself holds
   a ``gt.csv``).
 
-Each view becomes a :class:`eval.datasets.registry.CalibrationSample` with the exact ground truth
+Each view becomes a :class:`fr_eval.datasets.registry.CalibrationSample` with the exact ground truth
 (focal, principal point (w/2, h/2), R world->camera, tilt / roll / pitch from
 :func:`fr_torch.camera.horizon_angles`).  When the panorama's Manhattan yaw was unknown
 (``manhattan_known`` False) ``rotation`` is still the exact camera orientation but in the
@@ -26,9 +26,9 @@ from typing import Iterator
 import numpy as np
 import pandas as pd
 
-from fr_torch.camera import image_centre
-from eval.datasets.registry import CalibrationSample, register_dataset
-from eval.paths import cache_root
+from fr_torch.camera import Camera, image_centre
+from fr_eval.datasets.registry import CalibrationSample, register_dataset
+from fr_eval.paths import cache_root
 
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
 SPLITS = ("train", "test", "all")
@@ -97,11 +97,11 @@ class PanoViews:
         """The views as evaluation-harness :class:`CalibrationSample` records."""
         out = []
         for v in self:
-            rot = v.rotation if (v.manhattan_known or keep_unknown_manhattan_rotation) else None
+            # without a known Manhattan frame only gravity is ground truth (roll / tilt / pitch, no rotation)
+            camera = Camera(v.width, v.height, v.focal_px, v.principal_point, v.rotation,
+                            pan_known=v.manhattan_known or keep_unknown_manhattan_rotation)
             out.append(CalibrationSample(
-                name=v.name, image_path=v.image_path, width=v.width, height=v.height,
-                focal_px=v.focal_px, principal_point=v.principal_point, rotation=rot,
-                roll_deg=v.roll_deg, tilt_deg=v.tilt_deg, pitch_deg=v.pitch_deg, hfov_deg=v.hfov_deg,
+                name=v.name, image_path=v.image_path, width=v.width, height=v.height, camera=camera,
                 split=v.split,
                 extra={"pano": v.pano, "pan_deg": v.pan_deg, "manhattan_known": v.manhattan_known},
             ))

@@ -5,26 +5,27 @@ Dataset interface (all a new dataset has to provide)
 A dataset loader is a callable ``loader(root, split, **kwargs) -> Sequence[CalibrationSample]``
 (any iterable with ``len`` works; a plain list is fine) where
 
-* ``root`` is the data root (:func:`eval.paths.data_root`, i.e. the folder that holds
+* ``root`` is the data root (:func:`fr_eval.paths.data_root`, i.e. the folder that holds
   ``yorkurbandb/`` ...) or ``None`` for the default, and
 * ``split`` is a split name (``"train"``, ``"test"``, ``"all"``; a dataset may define more).
 
-Each sample is a :class:`CalibrationSample` (or any object with the same attributes).  All fields
-follow :mod:`fr_torch.camera`: pixels with a 0-based pixel-centre origin, degrees, ``rotation`` the
-3x3 world->camera matrix (camera x right / y down / z forward, world y = gravity/down, vertical
-Manhattan direction in column 1, det +1), ``roll/tilt/pitch`` from
-:func:`fr_torch.camera.horizon_angles` and ``hfov_deg`` the horizontal field of view.  Quantities a
-dataset does not know are ``None`` (the metrics then show "n/a").  ``segments`` (N, 4)
+Each sample is a :class:`CalibrationSample` (or any object with the same attributes) holding its
+ground truth as one :class:`fr_torch.camera.Camera`.  All fields follow :mod:`fr_torch.camera`:
+pixels with a 0-based pixel-centre origin, degrees, ``rotation`` the 3x3 world->camera matrix
+(camera x right / y down / z forward, world y = gravity/down, vertical Manhattan direction in
+column 1, det +1), ``roll/tilt/pitch`` from :func:`fr_torch.camera.horizon_angles` and ``hfov_deg``
+the horizontal field of view, all derived from the camera.  Quantities a dataset does not know are
+``None`` (the metrics then show "n/a").  ``segments`` (N, 4)
 ``[x1, y1, x2, y2]`` and ``segment_labels`` (N,) (column of ``rotation`` each segment belongs to,
 -1 = none/background) are optional hand labels, used by oracle runs and likelihood fitting.
 
 Register a loader with the decorator::
 
-    from eval.datasets.registry import register_dataset
+    from fr_eval.datasets.registry import register_dataset
 
     @register_dataset("zind-fr")
     def load_panoviews(root=None, split="test", **kwargs):
-        return [CalibrationSample(...), ...]
+        return [CalibrationSample(name, path, w, h, Camera(w, h, focal_px, pp, rotation)), ...]
 
 and add its module to ``_BUILTIN_MODULES`` below (modules that are missing are skipped), declare it
 as an entry point of group ``fr_torch.datasets`` in another package, or name it by import path on
@@ -38,55 +39,39 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from fr_torch.camera import Camera, hfov_from_focal, rotation_angles
+from fr_torch.camera import Camera, camera_record
 from fr_torch.registry import Registry
 
 
+@camera_record
 @dataclass
 class CalibrationSample:
-    """One evaluation image with its ground truth (see the module docstring for conventions)."""
+    """One evaluation image with its ground truth (see the module docstring for conventions).
+
+    ``camera``: the ground-truth :class:`fr_torch.camera.Camera` (None when the dataset knows
+    neither focal length nor orientation; its principal point is the calibrated one, default the
+    image centre; ``pan_known=False`` when only gravity is known, e.g. a panorama view whose
+    Manhattan frame is unknown).  ``focal_px``, ``hfov_deg``, ``principal_point``, ``rotation``
+    ((3, 3) world->camera, vertical in column 1, det +1; None unless the Manhattan frame is known),
+    ``roll_deg``, ``tilt_deg``, ``pitch_deg`` are read-only views of it.
+    """
 
     name: str
     image_path: Path
     width: int
     height: int
-    focal_px: float | None
-    principal_point: tuple[float, float] | None  # calibrated pp (0-based pixel centres); None = unknown
-    rotation: np.ndarray | None  # (3, 3) world->camera, vertical in column 1, det +1
-    roll_deg: float | None = None
-    tilt_deg: float | None = None
-    pitch_deg: float | None = None
-    hfov_deg: float | None = None
+    camera: Camera | None
     segments: np.ndarray | None = None  # (N, 4) hand-labelled segments, pixels, 0-based
     segment_labels: np.ndarray | None = None  # (N,) column index of `rotation`, -1 = unlabelled
     split: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        """Fill roll / tilt / pitch / hfov from rotation / focal when they are not given."""
-        if self.rotation is not None:
-            self.rotation = np.asarray(self.rotation, dtype=np.float64)
-            if any(v is None for v in (self.roll_deg, self.tilt_deg, self.pitch_deg)):
-                angles = rotation_angles(self.rotation)
-                self.roll_deg = float(angles["roll_deg"]) if self.roll_deg is None else self.roll_deg
-                self.tilt_deg = float(angles["tilt_deg"]) if self.tilt_deg is None else self.tilt_deg
-                self.pitch_deg = float(angles["pitch_deg"]) if self.pitch_deg is None else self.pitch_deg
-        if self.hfov_deg is None and self.focal_px is not None:
-            self.hfov_deg = hfov_from_focal(float(self.focal_px), self.width)
-
-    @property
-    def camera(self) -> Camera | None:
-        """The ground truth as a :class:`fr_torch.camera.Camera` (None when the focal length is unknown)."""
-        if self.focal_px is None:
-            return None
-        return Camera(self.width, self.height, float(self.focal_px), self.principal_point, self.rotation)
 
 
 DatasetLoader = Callable[..., Sequence[CalibrationSample]]
 
 # Modules that register datasets when imported (a module that does not exist is skipped); other
 # packages add datasets through entry points of group ``fr_torch.datasets``.
-_BUILTIN_MODULES = ("eval.datasets.yud", "eval.datasets.panoviews")
+_BUILTIN_MODULES = ("fr_eval.datasets.yud", "fr_eval.datasets.panoviews")
 DATASETS: Registry[Sequence[CalibrationSample]] = Registry("dataset", group="fr_torch.datasets",
                                                            modules=_BUILTIN_MODULES)
 

@@ -36,8 +36,9 @@ from pathlib import Path
 import numpy as np
 import scipy.io as sio
 
-from eval.datasets.registry import CalibrationSample, register_dataset
-from eval.paths import data_root
+from fr_eval.datasets.registry import CalibrationSample, register_dataset
+from fr_eval.paths import data_root
+from fr_torch.camera import Camera
 
 FOLDER = "yorkurbandb"
 WIDTH, HEIGHT = 640, 480
@@ -128,9 +129,7 @@ def _load_all(root: Path) -> tuple[CalibrationSample, ...]:
             image_path=folder / f"{name}.jpg",
             width=WIDTH,
             height=HEIGHT,
-            focal_px=focal_px,
-            principal_point=pp,
-            rotation=rotation_from_vp_orthogonal(vp),
+            camera=Camera(WIDTH, HEIGHT, focal_px, pp, rotation_from_vp_orthogonal(vp)),
             segments=segments,
             segment_labels=labels,
             split=split_of.get(index, ""),

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fr_torch.camera import Camera, focal_from_hfov
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.segments import LSDDetector, detect_segments
 
@@ -29,7 +30,7 @@ class HorizonFromLines(TimedCalibrator):
         if image is None and meta.segments is None:
             return CameraEstimate.failure(self.name, "bad input: needs the image or segments")
         segments = meta.segments if meta.segments is not None else detect_segments(image, self.detector)
-        width = meta.width or image.shape[1]
+        width, height = meta.width or image.shape[1], meta.height or image.shape[0]
         d = segments[:, 2:4] - segments[:, 0:2]
         d = d * np.where(d[:, :1] < 0, -1.0, 1.0)  # point every segment to the right
         angle = np.degrees(np.arctan2(d[:, 1], d[:, 0]))  # image y is down: positive = clockwise
@@ -40,10 +41,11 @@ class HorizonFromLines(TimedCalibrator):
         order = np.argsort(angle[keep])
         cumulative = np.cumsum(length[keep][order])
         median = float(angle[keep][order][np.searchsorted(cumulative, cumulative[-1] / 2)])
-        focal = (width / 2) / np.tan(np.radians(self.hfov_deg) / 2)
-        # fr_torch.camera's roll is positive when the horizon turns anticlockwise on screen
-        return CameraEstimate(method=self.name, focal_px=float(focal), hfov_deg=self.hfov_deg,
-                              roll_deg=-median, tilt_deg=0.0, extra={"num_horizontal": int(keep.sum())})
+        # fr_torch.camera's roll is positive when the horizon turns anticlockwise on screen; the
+        # heading is not estimated (pan unknown: a horizon-only camera)
+        camera = Camera.from_angles(width, height, focal_from_hfov(self.hfov_deg, width), roll_deg=-median,
+                                    tilt_deg=0.0)
+        return CameraEstimate(method=self.name, camera=camera, extra={"num_horizontal": int(keep.sum())})
 
 
 class LongLSD(LSDDetector):
