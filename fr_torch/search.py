@@ -106,9 +106,6 @@ class SearchConfig:
     horizontal FOV.  Validated here (the one place): finite, 1 <= min < max <= 179.
     ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
     ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
-    ``distinct_focal_starts``: stage 2 refines the best grid point of each of the ``top_l`` best focal
-    values (one start per focal value, a profile over f) instead of the ``top_l`` best grid points
-    overall, which often share one focal value and so leave a better focal basin unexplored.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
     ``refine_iterations_fr`` steps; 0 = always the full count.
@@ -119,9 +116,8 @@ class SearchConfig:
     pitch_range_deg: tuple[float, float] = (-35.0, 35.0)
     roll_range_deg: tuple[float, float] = (-15.0, 15.0)
     hfov_range_deg: tuple[float, float] = NAMED_FOV_RANGES["default"]
-    focal_grid: str = "linear_f"
+    focal_grid: str = "log_f"
     top_l: int = 4
-    distinct_focal_starts: bool = False
     refine_iterations_fr: int = 100
     refine_iterations_fast: int = 10
     refine_tolerance: float = 0.0
@@ -220,23 +216,12 @@ def grid_hypotheses(config: SearchConfig, long_side: torch.Tensor, known_focal: 
 
 
 def select_starts(config: SearchConfig, grid_scores: torch.Tensor, hypotheses: torch.Tensor):
-    """Stage-2 starting points from the scored grid.  Returns (starts (B, L, 4), scores (B, L)).
+    """Stage-2 starting points: the ``top_l`` best grid points, best first.
 
-    ``grid_scores`` (B, G) and ``hypotheses`` (B, G, 4) as from :func:`grid_hypotheses` (focal
-    slowest).  Starts are sorted best first.  With ``config.distinct_focal_starts`` each start is the
-    best grid point of a different focal value (the ``top_l`` best focal values).
+    ``grid_scores`` (B, G) and ``hypotheses`` (B, G, 4) as from :func:`grid_hypotheses`.
+    Returns (starts (B, L, 4), their scores (B, L)), L = min(top_l, G).
     """
-    batch, count = grid_scores.shape
-    n_focal = count // config.grid_points_per_dim ** 3  # 1 with a known focal length
-    if config.distinct_focal_starts and n_focal > 1:
-        per_focal = grid_scores.view(batch, n_focal, -1)
-        best_score, best_index = per_focal.max(-1)  # (B, n_focal)
-        flat_index = best_index + torch.arange(n_focal, device=grid_scores.device) * per_focal.shape[-1]
-        top_l = min(config.top_l, n_focal)
-        scores, order = best_score.topk(top_l, dim=1)
-        index = torch.gather(flat_index, 1, order)
-    else:
-        scores, index = grid_scores.topk(min(config.top_l, count), dim=1)
+    scores, index = grid_scores.topk(min(config.top_l, grid_scores.shape[1]), dim=1)
     return torch.gather(hypotheses, 1, index[..., None].expand(-1, -1, 4)), scores
 
 
@@ -331,12 +316,15 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
 
 def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10):
     dtype, device = features.weight.dtype, features.weight.device
-    lower = lower.to(device=device, dtype=dtype)[:, None, :]
-    upper = upper.to(device=device, dtype=dtype)[:, None, :]
+    # The focal length is refined as log f: a step is the same relative change of f (and about the
+    # same change of FOV) at every zoom, matching the log-spaced stage-1 grid.
+    lower = _log_focal(lower.to(device=device, dtype=dtype)[:, None, :])
+    upper = _log_focal(upper.to(device=device, dtype=dtype)[:, None, :])
+    starts = _log_focal(starts.to(device=device, dtype=dtype))
     span = (upper - lower)
     free = span > 0
     span_safe = torch.where(free, span, torch.ones_like(span))
-    u = ((starts.to(device=device, dtype=dtype) - lower) / span_safe).clamp(0, 1).detach().requires_grad_(True)
+    u = ((starts - lower) / span_safe).clamp(0, 1).detach().requires_grad_(True)
     total_length = features.weight.sum(-1).clamp_min(1e-9)[:, None]
     # Step sizes in box units: about a quarter of a grid cell at first, decaying geometrically.
     cell = 1.0 / 8
@@ -349,7 +337,7 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     history: list[torch.Tensor] = []
 
     def evaluate(u_value):
-        params = lower + u_value * span
+        params = _exp_focal(lower + u_value * span)
         rotation = fast_rotations(params)
         return params, likelihood.objective(features, rotation, params[..., 3])
 
@@ -387,10 +375,22 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     return params.detach(), objective.detach()
 
 
+def _log_focal(params: torch.Tensor) -> torch.Tensor:
+    """[pan, pitch, roll, f] -> [pan, pitch, roll, log f] (..., 4)."""
+    return torch.cat([params[..., :3], torch.log(params[..., 3:])], -1)
+
+
+def _exp_focal(params: torch.Tensor) -> torch.Tensor:
+    """[pan, pitch, roll, log f] -> [pan, pitch, roll, f] (..., 4)."""
+    return torch.cat([params[..., :3], torch.exp(params[..., 3:])], -1)
+
+
 def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures, lower: torch.Tensor,
                        span: torch.Tensor, u: torch.Tensor, grad_out: torch.Tensor):
     """Measure-b objective (B, L) at ``params = lower + u * span`` and the gradient of
     ``sum(grad_out * objective)`` with respect to u (B, L, 4), without autograd.
+
+    ``params`` = [pan, pitch, roll (degrees), log f (f in pixels)], the refinement's coordinates.
 
     ``lower``, ``span``: (B, 1, 4); ``grad_out``: broadcastable to (B, L).  The chain is written
     out: d obj / d VPs from :func:`fr_torch.likelihood.measure_b_backward`, then ``V = K R``
@@ -419,7 +419,7 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     d_roll = torch.stack([spst * cr - cp * sr, ct * cr, cpst * cr + sp * sr,
                           -spst * sr - cp * cr, -ct * sr, sp * cr - cpst * sr,
                           zero, zero, zero], -1)
-    focal = params[..., 3]
+    focal = torch.exp(params[..., 3])
     pp = features.principal_point[:, None, :]  # (B, 1, 2)
     # V = K R: rows 0, 1 = f R_j + c_j R_2, row 2 = R_2.
     top = focal[..., None, None] * rotation[..., :2, :] + pp[..., None] * rotation[..., 2:, :]
@@ -439,7 +439,7 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
         objective = objective - prior_weight * torch.log(focal)
         grad_f = grad_f - grad_out * prior_weight / focal
     grad_p = torch.stack([(grad_r * d_pan).sum(-1), (grad_r * d_pitch).sum(-1), (grad_r * d_roll).sum(-1)], -1)
-    grad_p = torch.cat([grad_p * (math.pi / 180), grad_f[..., None]], -1)
+    grad_p = torch.cat([grad_p * (math.pi / 180), (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
     return objective, grad_p * span
 
 
