@@ -127,7 +127,8 @@ class FREstimator:
         self.mode = mode
         self.search = search_config or SearchConfig.from_config()
         self.iterations = self.search.iterations(mode)
-        self.likelihood = MixtureLikelihood(likelihood_params or LikelihoodParams.from_config(measure, likelihood))
+        params = likelihood_params or LikelihoodParams.from_config(measure, likelihood)
+        self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.hfov_range_deg))
         self.detector = get_detector(detector)
         self.device = validate.resolve_device(device)
         self.working_long_side = image_io.WORKING_LONG_SIDE

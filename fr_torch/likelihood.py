@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -89,12 +89,16 @@ class LikelihoodParams:
     ablation: each segment scores the log of its smallest deviation from the three VPs,
     ``objective = -sum_i len_i log(min_k x_ik + eps)`` with ``eps = scale_horizontal / 100`` (keeps
     the log finite for a segment exactly through a VP); no priors, no background.
-    ``focal_prior_weight`` (beta >= 0): a scale-free prior on the focal length, ``p(f) ~ f^(-beta W)``
-    with W the image's total segment length (pixels), i.e. ``-beta * W * log f`` is added to the
-    objective.  It counters the likelihood's pull towards narrow fields of view (the f -> infinity
-    bias the paper describes: far VPs make the horizontal families nearly parallel, which fits
-    noisy segments slightly better); being proportional to W it acts per unit of evidence, like the
-    bias it corrects.  beta was chosen on the train splits (results/yud/README.md); 0 = none.
+    ``focal_prior_weight`` (gamma >= 0) and ``focal_prior_hfov_deg`` (degrees): a log-normal prior
+    on the focal length relative to the image's long side L,
+    ``log p(f) = -(gamma / 2) * W * (log(f / L) - log(f0 / L))^2``, with f0 the focal length whose
+    FOV across the long side is ``focal_prior_hfov_deg`` and W the image's total segment length
+    (pixels).  Being proportional to W it acts per unit of evidence, like the length-weighted
+    likelihood it is added to.  It counters the likelihood's pull towards narrow fields of view when
+    the image barely constrains f (the f -> infinity bias the paper describes: far VPs make the
+    horizontal families nearly parallel, which fits noisy or non-Manhattan segments slightly
+    better).  The centre is the mean log focal ratio of the train splits and gamma was chosen on
+    them (``configs/likelihood.json``, results/yud/README.md); gamma = 0 = no prior.
     """
 
     measure: str = "b"
@@ -106,6 +110,7 @@ class LikelihoodParams:
     range_px: float = 2000.0
     model: str = "mixture"
     focal_prior_weight: float = 0.0
+    focal_prior_hfov_deg: float = 82.0
 
     def __post_init__(self) -> None:
         """Explicit parameters are checked too (no NaN, zero or negative scale; priors in [0, 1])."""
@@ -121,8 +126,21 @@ class LikelihoodParams:
             raise ValueError("LikelihoodParams.prior_background must be > 0 (the background keeps p_i > 0)")
         if not (math.isfinite(self.focal_prior_weight) and self.focal_prior_weight >= 0):
             raise ValueError(f"focal_prior_weight must be a finite number >= 0, got {self.focal_prior_weight}")
+        if not (math.isfinite(self.focal_prior_hfov_deg) and 1.0 <= self.focal_prior_hfov_deg <= 179.0):
+            raise ValueError(f"focal_prior_hfov_deg must be in [1, 179] degrees, got {self.focal_prior_hfov_deg}")
         if self.model not in MODELS:
             raise ValueError(f"unknown likelihood model {self.model!r}; choose one of {', '.join(MODELS)}")
+
+    def with_prior_in_range(self, hfov_range_deg: tuple[float, float]) -> "LikelihoodParams":
+        """A copy whose focal-prior centre lies in the search range ``(min, max)`` (degrees, FOV
+        across the long side): unchanged when it does, else the range's midpoint in log f (a user
+        who searches a range that excludes the learned centre knows more about the camera than the
+        train splits do)."""
+        low, high = hfov_range_deg
+        if low <= self.focal_prior_hfov_deg <= high:
+            return self
+        ratio = math.sqrt(math.tan(math.radians(low) / 2) * math.tan(math.radians(high) / 2))
+        return replace(self, focal_prior_hfov_deg=math.degrees(2 * math.atan(ratio)))
 
     @classmethod
     def from_config(cls, measure: str | None = None, path: str | Path | None = None) -> "LikelihoodParams":
@@ -195,10 +213,13 @@ class LikelihoodParams:
             fail("priors.vertical and priors.horizontal are both 0: no Manhattan family can be explained")
         focal_prior = config.get("focal_prior", {})
         if not isinstance(focal_prior, dict):
-            fail(f"'focal_prior' must be an object like {{\"weight\": 0.1}}, got {focal_prior!r}")
-        beta = number(focal_prior.get("weight", 0.0), "focal_prior.weight", 0.0, 100.0, low_inclusive=True)
+            fail(f"'focal_prior' must be an object like {{\"weight\": 0.3, \"hfov_deg\": 82}}, got {focal_prior!r}")
+        gamma = number(focal_prior.get("weight", 0.0), "focal_prior.weight", 0.0, 100.0, low_inclusive=True)
+        prior_hfov = number(focal_prior.get("hfov_deg", cls.focal_prior_hfov_deg), "focal_prior.hfov_deg", 1.0, 179.0,
+                            low_inclusive=True)
         total = vertical + 2 * horizontal + background
-        return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h, focal_prior_weight=beta,
+        return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h, focal_prior_weight=gamma,
+                   focal_prior_hfov_deg=prior_hfov,
                    prior_vertical=vertical / total, prior_horizontal=horizontal / total,
                    prior_background=background / total, range_px=range_px)
 
@@ -213,14 +234,18 @@ class SegmentFeatures:
     weight: torch.Tensor  # (B, N) length in pixels, 0 for padding
     mask: torch.Tensor  # (B, N) bool
     principal_point: torch.Tensor  # (B, 2) pixels
+    long_side: torch.Tensor  # (B,) the image's longer side, pixels (the focal prior's scale)
 
     @classmethod
     def from_batch(cls, batch: SegmentBatch, principal_point: torch.Tensor) -> "SegmentFeatures":
-        return cls.from_endpoints(batch.endpoints, batch.mask, principal_point)
+        return cls.from_endpoints(batch.endpoints, batch.mask, principal_point,
+                                  batch.image_size.to(batch.endpoints).amax(-1))
 
     @classmethod
     def from_endpoints(cls, endpoints: torch.Tensor, mask: torch.Tensor | None,
-                       principal_point: torch.Tensor) -> "SegmentFeatures":
+                       principal_point: torch.Tensor, long_side: torch.Tensor | None = None) -> "SegmentFeatures":
+        """``long_side`` (B,) pixels; default twice the principal point's larger coordinate (the
+        image size when the principal point is the image centre)."""
         p1, p2 = endpoints[..., :2], endpoints[..., 2:]
         delta = p2 - p1
         length = torch.linalg.vector_norm(delta, dim=-1)
@@ -232,14 +257,16 @@ class SegmentFeatures:
         line = torch.stack([-d[..., 1], d[..., 0], d[..., 1] * m[..., 0] - d[..., 0] * m[..., 1]], -1)
         along = torch.stack([d[..., 0], d[..., 1], -(d * m).sum(-1)], -1)
         pp = principal_point.to(endpoints).expand(endpoints.shape[0], 2)
-        return cls(line, along, length / 2, length * mask, mask, pp)
+        long_side = 2 * pp.amax(-1) if long_side is None else long_side.to(endpoints).expand(endpoints.shape[0])
+        return cls(line, along, length / 2, length * mask, mask, pp, long_side)
 
     def images(self, start: int, stop: int) -> "SegmentFeatures":
         """Images ``start:stop`` of the batch (views, no copies)."""
         if start == 0 and stop >= self.weight.shape[0]:
             return self
         return SegmentFeatures(self.line[start:stop], self.along[start:stop], self.half_length[start:stop],
-                               self.weight[start:stop], self.mask[start:stop], self.principal_point[start:stop])
+                               self.weight[start:stop], self.mask[start:stop], self.principal_point[start:stop],
+                               self.long_side[start:stop])
 
 
 def _incidence(features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor):
@@ -370,12 +397,23 @@ class MixtureLikelihood:
     def objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                   workspace: dict | None = None) -> torch.Tensor:
         """Length-weighted log-likelihood sum_i len_i log p_i plus the focal prior
-        ``-beta W log f`` (``focal_prior_weight``), (B, H)."""
+        (:meth:`focal_prior`), (B, H)."""
         value = self._data_objective(features, rotation, focal, workspace)
-        beta = self.params.focal_prior_weight
-        if beta:
-            value = value - (beta * features.weight.sum(-1, keepdim=True)) * torch.log(focal.to(value.dtype))
+        if self.params.focal_prior_weight:
+            value = value + self.focal_prior(features, focal)[0]
         return value
+
+    def focal_prior(self, features: SegmentFeatures, focal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The log focal prior (see :class:`LikelihoodParams`) and its derivative d/df (per pixel).
+
+        ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``focal``'s dtype.
+        """
+        params = self.params
+        centre = math.log(0.5 / math.tan(math.radians(params.focal_prior_hfov_deg) / 2))  # log(f0 / L)
+        focal = focal.to(features.weight.dtype)
+        weight = params.focal_prior_weight * features.weight.sum(-1, keepdim=True)  # (B, 1)
+        offset = torch.log(focal / features.long_side[:, None]) - centre
+        return -0.5 * weight * offset ** 2, -weight * offset / focal
 
     def _data_objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                         workspace: dict | None = None) -> torch.Tensor:

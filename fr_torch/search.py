@@ -433,11 +433,10 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
                         (pp[..., None] * grad_v[..., :2, :]).sum(-2, keepdim=True) + grad_v[..., 2:, :]], -2)
     grad_r = grad_r.reshape(batch, n_hyp, 9)
     grad_f = (grad_v[..., :2, :] * rotation[..., :2, :]).sum((-1, -2))
-    beta = likelihood.params.focal_prior_weight
-    if beta:  # the focal prior -beta W log f of MixtureLikelihood.objective, and its derivative
-        prior_weight = beta * features.weight.sum(-1, keepdim=True)  # (B, 1)
-        objective = objective - prior_weight * torch.log(focal)
-        grad_f = grad_f - grad_out * prior_weight / focal
+    if likelihood.params.focal_prior_weight:  # the focal prior of MixtureLikelihood.objective
+        prior, d_prior = likelihood.focal_prior(features, focal)
+        objective = objective + prior
+        grad_f = grad_f + grad_out * d_prior
     grad_p = torch.stack([(grad_r * d_pan).sum(-1), (grad_r * d_pitch).sum(-1), (grad_r * d_roll).sum(-1)], -1)
     grad_p = torch.cat([grad_p * (math.pi / 180), (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
     return objective, grad_p * span

@@ -66,7 +66,7 @@ def test_hfov_search_range_is_configurable():
     # fr mode: at this focal length (1194 px) Fast-fR's 10 steps stop ~7 % short of the optimum.
     narrow = FREstimator(mode="fr", search_config=SearchConfig.from_config(hfov_range_deg=(20.0, 60.0)))
     [result] = narrow.calibrate_segments([segments], [(640, 480)])
-    # (tolerance 4 %: the default focal prior -beta W log f pulls clean synthetic scenes ~2.5 % wide)
+    # (tolerance 4 %: the default focal prior pulls clean synthetic scenes ~2.5 % wide)
     assert abs(result.focal_px - focal) / focal < 0.04 and abs(result.hfov_deg - 30.0) < 1.0, result.focal_px
     method = get_calibrator("fr[hfov_min=20,hfov_max=60]")
     assert method.name == "fr[hfov_min=20,hfov_max=60]"

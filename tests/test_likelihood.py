@@ -28,7 +28,9 @@ def _direct_objective(segments, R, f, pp, params):
             p += prior * math.exp(-angle / lam) / lam
         total += length * math.log(p)
         weight += length
-    return total - params.focal_prior_weight * weight * math.log(f)  # the focal prior -beta W log f
+    # the focal prior: -(gamma / 2) W (log(f / L) - log(f0 / L))^2, L = 2 * max(pp) = the long side here
+    centre = math.log(0.5 / math.tan(math.radians(params.focal_prior_hfov_deg) / 2))
+    return total - 0.5 * params.focal_prior_weight * weight * (math.log(f / (2 * max(pp))) - centre) ** 2
 
 
 def test_objective_matches_direct_computation():
@@ -80,3 +82,27 @@ def test_vertical_parameters_sit_on_the_vertical_column():
     assert float(log_p) == pytest.approx(expected, abs=1e-9)
     swapped = math.log(params.prior_horizontal / params.scale_horizontal + params.prior_background * 2 / math.pi)
     assert abs(float(log_p) - swapped) > 0.5  # it would differ clearly with the MATLAB column choice
+
+
+def test_focal_prior_centre_moves_into_a_search_range_that_excludes_it():
+    params = LikelihoodParams(focal_prior_weight=0.3, focal_prior_hfov_deg=82.0)
+    assert params.with_prior_in_range((30.0, 120.0)) is params
+    narrow = params.with_prior_in_range((20.0, 60.0))
+    # the range's midpoint in log f: tan(c/2) = sqrt(tan(10 deg) tan(30 deg))
+    expected = math.degrees(2 * math.atan(math.sqrt(math.tan(math.radians(10)) * math.tan(math.radians(30)))))
+    assert narrow.focal_prior_hfov_deg == pytest.approx(expected) and 20 < expected < 60
+    with pytest.raises(ValueError, match="focal_prior_hfov_deg"):
+        LikelihoodParams(focal_prior_hfov_deg=float("nan"))
+
+
+def test_focal_prior_peaks_at_its_centre_and_scales_with_segment_length():
+    params = LikelihoodParams(focal_prior_weight=0.3, focal_prior_hfov_deg=90.0)
+    model = MixtureLikelihood(params)
+    segs = np.array([[10.0, 10.0, 110.0, 10.0], [10.0, 20.0, 10.0, 70.0]])
+    batch = SegmentBatch.from_list([segs], [(800, 600)], dtype=torch.float64)
+    features = SegmentFeatures.from_batch(batch, torch.tensor([[400.0, 300.0]], dtype=torch.float64))
+    focal = torch.tensor([[400.0, 300.0, 600.0]], dtype=torch.float64)  # 90 deg across 800 px = f 400
+    value, slope = model.focal_prior(features, focal)
+    assert abs(value[0, 0]) < 1e-12 and abs(slope[0, 0]) < 1e-12 and (value[0, 1:] < 0).all()
+    assert value[0, 2] == pytest.approx(-0.5 * 0.3 * 150.0 * math.log(1.5) ** 2)
+    assert slope[0, 1] > 0 > slope[0, 2]

@@ -31,7 +31,7 @@ def _rotation_np(pan, pitch, roll):
 
 def _data_only() -> LikelihoodParams:
     """Default params without the focal prior: these tests compare the data term's code paths (the
-    prior -beta W log f is one added term, checked in test_likelihood.py)."""
+    focal prior is one added term, checked in test_likelihood.py)."""
     from dataclasses import replace
     return replace(LikelihoodParams.from_config("b"), focal_prior_weight=0.0)
 
@@ -247,7 +247,7 @@ def test_refinement_closed_form_gradient_matches_autograd():
 
 def test_closed_form_refinement_gradient_matches_autograd_with_focal_prior():
     """search.objective_and_grad (the refinement's gradient, no autograd) = autograd of the full
-    objective, focal prior -beta W log f included."""
+    objective, focal prior included."""
     from fr_torch.search import objective_and_grad
 
     rng = np.random.default_rng(5)
