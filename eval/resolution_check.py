@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -34,7 +35,8 @@ def main(argv=None) -> int:
     parser.add_argument("--data-root", default=None)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
-    samples = load_dataset("yud", root=args.data_root, split=args.split)[: args.limit]
+    samples = load_dataset("yud", root=args.data_root, split=args.split)
+    samples = samples[: args.limit] if args.limit else samples
     images = [load_image(s.image_path) for s in samples]
     estimator = FREstimator(mode=args.mode)
     estimator.calibrate_images(images[:1])  # warm-up
@@ -50,8 +52,8 @@ def main(argv=None) -> int:
             [result] = estimator.calibrate_images([big], names=[sample.name])
             times.append(time.perf_counter() - start)
             counts.append(result.num_segments)
-            truth = sample.__class__(**{**sample.__dict__, "width": sample.width * k, "height": sample.height * k,
-                                        "focal_px": sample.focal_px * k, "hfov_deg": None})
+            truth = replace(sample, width=sample.width * k, height=sample.height * k,
+                            camera=sample.camera.resized(sample.width * k, sample.height * k))
             rows.append(image_errors(truth, result if result.ok else None))
         per_scale[k] = rows
         cells = []
