@@ -136,3 +136,13 @@ def test_reproduces_authors_training_samples(data_root, samples):
         assert ours.shape == theirs.shape
         assert np.abs(ours - theirs).max() < 1e-7
     assert math.degrees(np.concatenate(devs["vertical"]).mean()) == pytest.approx(0.5663, abs=1e-3)
+
+
+def test_resolution_check_runs_on_upscaled_images(data_root, tmp_path):
+    """`fr_eval.resolution_check` (results/resolution/): upscaled inputs give errors in input pixels."""
+    from fr_eval.resolution_check import main
+
+    assert main(["--scales", "1,2", "--mode", "fast", "--limit", "2", "--data-root", str(data_root),
+                 "--out", str(tmp_path)]) == 0
+    text = (tmp_path / "resolution_fast.md").read_text()
+    assert "| 2x | 1280x960 |" in text and "nan" not in text
