@@ -91,10 +91,11 @@ class LikelihoodParams:
     the log finite for a segment exactly through a VP); no priors, no background.
     ``focal_prior_weight`` (gamma >= 0) and ``focal_prior_hfov_deg`` (degrees): a log-normal prior
     on the focal length relative to the image's long side L,
-    ``log p(f) = -(gamma / 2) * W * (log(f / L) - log(f0 / L))^2``, with f0 the focal length whose
-    FOV across the long side is ``focal_prior_hfov_deg`` and W the image's total segment length
-    (pixels).  Being proportional to W it acts per unit of evidence, like the length-weighted
-    likelihood it is added to.  It counters the likelihood's pull towards narrow fields of view when
+    ``log p(f) = -(gamma / 2) * (W + W0) * (log(f / L) - log(f0 / L))^2``, with f0 the focal length
+    whose FOV across the long side is ``focal_prior_hfov_deg``, W the image's total segment length
+    and W0 = ``focal_prior_pseudo_length`` * L (pixels).  The W part acts per unit of evidence, like
+    the length-weighted likelihood it is added to; W0 is evidence the prior always has, so an image
+    with few segments (a blank wall) leans on it more than one with many.  It counters the likelihood's pull towards narrow fields of view when
     the image barely constrains f (the f -> infinity bias the paper describes: far VPs make the
     horizontal families nearly parallel, which fits noisy or non-Manhattan segments slightly
     better).  The centre is the mean log focal ratio of the train splits and gamma was chosen on
@@ -111,6 +112,7 @@ class LikelihoodParams:
     model: str = "mixture"
     focal_prior_weight: float = 0.0
     focal_prior_hfov_deg: float = 82.0
+    focal_prior_pseudo_length: float = 0.0
 
     def __post_init__(self) -> None:
         """Explicit parameters are checked too (no NaN, zero or negative scale; priors in [0, 1])."""
@@ -128,6 +130,9 @@ class LikelihoodParams:
             raise ValueError(f"focal_prior_weight must be a finite number >= 0, got {self.focal_prior_weight}")
         if not (math.isfinite(self.focal_prior_hfov_deg) and 1.0 <= self.focal_prior_hfov_deg <= 179.0):
             raise ValueError(f"focal_prior_hfov_deg must be in [1, 179] degrees, got {self.focal_prior_hfov_deg}")
+        if not (math.isfinite(self.focal_prior_pseudo_length) and self.focal_prior_pseudo_length >= 0):
+            raise ValueError("focal_prior_pseudo_length must be a finite number >= 0, got "
+                             f"{self.focal_prior_pseudo_length}")
         if self.model not in MODELS:
             raise ValueError(f"unknown likelihood model {self.model!r}; choose one of {', '.join(MODELS)}")
 
@@ -217,9 +222,11 @@ class LikelihoodParams:
         gamma = number(focal_prior.get("weight", 0.0), "focal_prior.weight", 0.0, 100.0, low_inclusive=True)
         prior_hfov = number(focal_prior.get("hfov_deg", cls.focal_prior_hfov_deg), "focal_prior.hfov_deg", 1.0, 179.0,
                             low_inclusive=True)
+        pseudo = number(focal_prior.get("pseudo_length", 0.0), "focal_prior.pseudo_length", 0.0, 1e6,
+                        low_inclusive=True)
         total = vertical + 2 * horizontal + background
         return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h, focal_prior_weight=gamma,
-                   focal_prior_hfov_deg=prior_hfov,
+                   focal_prior_hfov_deg=prior_hfov, focal_prior_pseudo_length=pseudo,
                    prior_vertical=vertical / total, prior_horizontal=horizontal / total,
                    prior_background=background / total, range_px=range_px)
 
@@ -411,7 +418,8 @@ class MixtureLikelihood:
         params = self.params
         centre = math.log(0.5 / math.tan(math.radians(params.focal_prior_hfov_deg) / 2))  # log(f0 / L)
         focal = focal.to(features.weight.dtype)
-        weight = params.focal_prior_weight * features.weight.sum(-1, keepdim=True)  # (B, 1)
+        evidence = features.weight.sum(-1) + params.focal_prior_pseudo_length * features.long_side  # W + W0
+        weight = params.focal_prior_weight * evidence[:, None]  # (B, 1)
         offset = torch.log(focal / features.long_side[:, None]) - centre
         return -0.5 * weight * offset ** 2, -weight * offset / focal
 

@@ -30,7 +30,8 @@ def _direct_objective(segments, R, f, pp, params):
         weight += length
     # the focal prior: -(gamma / 2) W (log(f / L) - log(f0 / L))^2, L = 2 * max(pp) = the long side here
     centre = math.log(0.5 / math.tan(math.radians(params.focal_prior_hfov_deg) / 2))
-    return total - 0.5 * params.focal_prior_weight * weight * (math.log(f / (2 * max(pp))) - centre) ** 2
+    evidence = weight + params.focal_prior_pseudo_length * 2 * max(pp)
+    return total - 0.5 * params.focal_prior_weight * evidence * (math.log(f / (2 * max(pp))) - centre) ** 2
 
 
 def test_objective_matches_direct_computation():
@@ -96,7 +97,7 @@ def test_focal_prior_centre_moves_into_a_search_range_that_excludes_it():
 
 
 def test_focal_prior_peaks_at_its_centre_and_scales_with_segment_length():
-    params = LikelihoodParams(focal_prior_weight=0.3, focal_prior_hfov_deg=90.0)
+    params = LikelihoodParams(focal_prior_weight=0.3, focal_prior_hfov_deg=90.0, focal_prior_pseudo_length=2.0)
     model = MixtureLikelihood(params)
     segs = np.array([[10.0, 10.0, 110.0, 10.0], [10.0, 20.0, 10.0, 70.0]])
     batch = SegmentBatch.from_list([segs], [(800, 600)], dtype=torch.float64)
@@ -104,5 +105,5 @@ def test_focal_prior_peaks_at_its_centre_and_scales_with_segment_length():
     focal = torch.tensor([[400.0, 300.0, 600.0]], dtype=torch.float64)  # 90 deg across 800 px = f 400
     value, slope = model.focal_prior(features, focal)
     assert abs(value[0, 0]) < 1e-12 and abs(slope[0, 0]) < 1e-12 and (value[0, 1:] < 0).all()
-    assert value[0, 2] == pytest.approx(-0.5 * 0.3 * 150.0 * math.log(1.5) ** 2)
+    assert value[0, 2] == pytest.approx(-0.5 * 0.3 * (150.0 + 2 * 800.0) * math.log(1.5) ** 2)  # W + W0
     assert slope[0, 1] > 0 > slope[0, 2]
