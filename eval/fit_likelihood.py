@@ -46,6 +46,7 @@ import torch
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import REPO
 from fr_torch.camera import VERTICAL_AXIS, vanishing_points
+from fr_torch.resources import config_dir
 
 PAPER = {  # Qian & Elder 2022, deviation-measure table (lambda; vertical / horizontal) and priors
     "a": {"unit": "px", "lambda_horizontal": 94.46, "lambda_vertical": 17.26},
@@ -388,6 +389,11 @@ def run(args: argparse.Namespace) -> int:
               f"focal and principal point): lambda = exponential MLE (sample mean) per family; d keeps the "
               f"paper's sigma = 1 px (fitted sigma stored beside it); {how_priors}. See results/likelihood_fit.md.")
     config = build_config(fitted, priors, source)
+    # The focal prior is not fitted here: every config carries the shipped one, so configs differ
+    # only in what this command fits (like-for-like in results/likelihood_selection/).
+    shipped = json.loads((config_dir() / "likelihood.json").read_text(encoding="utf-8"))
+    if "focal_prior" in shipped:
+        config["focal_prior"] = shipped["focal_prior"]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(config, indent=2) + "\n", encoding="utf-8")

@@ -73,7 +73,9 @@ def run(args: argparse.Namespace) -> int:
                 print(validate.dumps(record), flush=True)
                 if not result.ok:
                     failures += 1
-                    print(f"fr: {path}: {result.reason}", file=sys.stderr)
+                    reason = result.reason  # image_io reasons already start with the path
+                    print(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
+                          file=sys.stderr)
                 if args.overlay and result.width > 0:
                     from .overlay import write_overlay
 

@@ -18,6 +18,7 @@ from fr_eval.datasets.registry import CalibrationSample
 from fr_torch.camera import Camera, rotation_from_angles
 from fr_torch.interface import CameraEstimate, ImageMeta
 from fr_torch.registry import not_supplied
+from fr_torch.resources import config_dir
 from tests.conftest import require_dataset
 
 # ----------------------------------------------------------------------------- fake data + methods
@@ -380,7 +381,9 @@ def test_fit_on_yud_train(data_root, tmp_path):
     args = parser.parse_args(["--data-root", str(data_root), "--out", str(out), "--report", str(report), "--no-em"])
     assert fit_likelihood.run(args) == 0
     config = json.loads(out.read_text())
-    assert set(config) == {"default_measure", "measures", "priors", "source"}
+    assert set(config) == {"default_measure", "measures", "priors", "source", "focal_prior"}
+    shipped = json.loads((config_dir() / "likelihood.json").read_text())
+    assert config["focal_prior"] == shipped["focal_prior"]  # not fitted: carried over from the shipped config
     b = config["measures"]["b"]
     assert b["unit"] == "deg"
     assert b["lambda_vertical"] == pytest.approx(0.5663, abs=1e-3)  # = the authors' pdfData means
