@@ -250,7 +250,9 @@ class FREstimator:
         t0 = time.perf_counter()
         long_side = torch.maximum(width, height)  # the FOV range is on the long side (portrait = landscape)
         hypotheses = grid_hypotheses(self.search, long_side, focal).to(device)  # one host->device copy
-        grid_scores = score_grid(self.likelihood, features, hypotheses, self.search.max_chunk_elements)
+        # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
+        grid_features = features.longest(self.search.grid_segments) if self.search.grid_segments else features
+        grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements)
         t1 = time.perf_counter()
 
         starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
@@ -270,7 +272,7 @@ class FREstimator:
         rotation = hypothesis_rotations(best_params)  # float64 (B, 3, 3)
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, 3].to(dtype))
         labels = posterior[:, 0].argmax(-1)
-        cues = self._cues(grid_scores, labels, log_p[:, 0], batch.mask)
+        cues = self._cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask)
         t3 = time.perf_counter()
 
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
@@ -299,13 +301,14 @@ class FREstimator:
             r.reliable, r.reason = self._sanity(r)
             check_result(r, self.search, known_focal)  # non-finite -> ok=False; focal at the range edge
 
-    def _cues(self, grid_scores, labels, log_p, mask) -> dict[str, torch.Tensor]:
+    def _cues(self, grid_scores, grid_counts, labels, log_p, mask) -> dict[str, torch.Tensor]:
         """The three reliability cues (paper §3.4), per image.
 
         * ``min_family_segments``: smallest number of segments labelled (argmax posterior) with one
           of the three Manhattan families; background excluded; raw counts.
         * ``grid_entropy``: entropy (nats) of the stage-1 grid likelihoods normalised into a
-          distribution, ``p_j = softmax_j(L_j / N)`` with N the number of segments (a softmax at
+          distribution, ``p_j = softmax_j(L_j / N)`` with N the number of segments the grid scored,
+          ``grid_counts`` (B,) (a softmax at
           temperature N, as in the authors' code; unlike the code we do not divide the entropy by N
           a second time: the entropy of that distribution is the cue).
         * ``mean_log_likelihood``: mean over segments of log p_i at the final estimate (the
@@ -313,7 +316,7 @@ class FREstimator:
         """
         n = mask.sum(-1).clamp_min(1)
         counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
-        log_q = torch.log_softmax(grid_scores / n[:, None].to(grid_scores), -1)
+        log_q = torch.log_softmax(grid_scores / grid_counts.clamp_min(1)[:, None].to(grid_scores), -1)
         entropy = -(log_q.exp() * log_q).sum(-1)
         mean_log = (log_p * mask).sum(-1) / n
         return {"min_family_segments": counts.min(-1).values.to(torch.float64),

@@ -267,6 +267,20 @@ class SegmentFeatures:
         long_side = 2 * pp.amax(-1) if long_side is None else long_side.to(endpoints).expand(endpoints.shape[0])
         return cls(line, along, length / 2, length * mask, mask, pp, long_side)
 
+    def longest(self, count: int) -> "SegmentFeatures":
+        """The ``count`` longest segments of each image (B, min(count, N), ...); padding stays last
+        (weight 0)."""
+        if count >= self.weight.shape[1]:
+            return self
+        index = self.weight.topk(count, dim=1).indices  # (B, count)
+
+        def take(x: torch.Tensor) -> torch.Tensor:
+            shaped = index.view(index.shape + (1,) * (x.dim() - 2)).expand(index.shape + x.shape[2:])
+            return torch.gather(x, 1, shaped)
+
+        return SegmentFeatures(take(self.line), take(self.along), take(self.half_length), take(self.weight),
+                               take(self.mask), self.principal_point, self.long_side)
+
     def images(self, start: int, stop: int) -> "SegmentFeatures":
         """Images ``start:stop`` of the batch (views, no copies)."""
         if start == 0 and stop >= self.weight.shape[0]:

@@ -107,3 +107,15 @@ def test_focal_prior_peaks_at_its_centre_and_scales_with_segment_length():
     assert abs(value[0, 0]) < 1e-12 and abs(slope[0, 0]) < 1e-12 and (value[0, 1:] < 0).all()
     assert value[0, 2] == pytest.approx(-0.5 * 0.3 * (150.0 + 2 * 800.0) * math.log(1.5) ** 2)  # W + W0
     assert slope[0, 1] > 0 > slope[0, 2]
+
+
+def test_longest_keeps_each_images_longest_segments():
+    short = np.array([[0.0, 0.0, 5.0, 0.0], [0.0, 10.0, 0.0, 60.0], [1.0, 1.0, 31.0, 1.0]])  # lengths 5, 50, 30
+    other = np.array([[0.0, 0.0, 0.0, 7.0]])  # one segment: the rest is padding
+    batch = SegmentBatch.from_list([short, other], [(100, 80), (100, 80)], dtype=torch.float64)
+    features = SegmentFeatures.from_batch(batch, torch.tensor([[50.0, 40.0]], dtype=torch.float64))
+    top = features.longest(2)
+    assert top.weight.tolist() == [[50.0, 30.0], [7.0, 0.0]]
+    assert top.mask.tolist() == [[True, True], [True, False]]
+    assert torch.equal(top.line[0, 0], features.line[0, 1]) and torch.equal(top.half_length[0], torch.tensor([25.0, 15.0], dtype=torch.float64))
+    assert features.longest(3) is features
