@@ -106,9 +106,10 @@ class SearchConfig:
     horizontal FOV.  Validated here (the one place): finite, 1 <= min < max <= 179.
     ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
     ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
-    ``grid_segments``: stage 1 scores only the longest this many segments of each image (0 = all);
-    refinement and the final labels use all of them.  250 of the (at most) 500 kept segments gave
-    the same train-split accuracy as all 500 at half the grid's cost (results/yud/README.md).
+    ``grid_segments``: stage 1 scores only the longest this many segments of each image (0 = all,
+    the default); refinement and the final labels use all of them.  A speed option: on YUD train,
+    250 of the (at most) 500 kept segments cost nothing with measure b but doubled measure d's
+    focal error (results/yud/README.md), so it is off by default.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
     ``refine_iterations_fr`` steps; 0 = always the full count.
@@ -121,7 +122,7 @@ class SearchConfig:
     hfov_range_deg: tuple[float, float] = NAMED_FOV_RANGES["default"]
     focal_grid: str = "log_f"
     top_l: int = 4
-    grid_segments: int = 250
+    grid_segments: int = 0
     refine_iterations_fr: int = 100
     refine_iterations_fast: int = 10
     refine_tolerance: float = 0.0
