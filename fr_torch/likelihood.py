@@ -55,7 +55,7 @@ from pathlib import Path
 
 import torch
 
-from .camera import VERTICAL_AXIS, intrinsics
+from .camera import VERTICAL_AXIS, focal_from_hfov, hfov_from_focal, intrinsics
 from .resources import config_dir
 from .segments import SegmentBatch
 
@@ -144,8 +144,8 @@ class LikelihoodParams:
         low, high = hfov_range_deg
         if low <= self.focal_prior_hfov_deg <= high:
             return self
-        ratio = math.sqrt(math.tan(math.radians(low) / 2) * math.tan(math.radians(high) / 2))
-        return replace(self, focal_prior_hfov_deg=math.degrees(2 * math.atan(ratio)))
+        middle = math.sqrt(focal_from_hfov(low, 1.0) * focal_from_hfov(high, 1.0))  # f / L, geometric mean
+        return replace(self, focal_prior_hfov_deg=hfov_from_focal(middle, 1.0))
 
     @classmethod
     def from_config(cls, measure: str | None = None, path: str | Path | None = None) -> "LikelihoodParams":
@@ -365,6 +365,8 @@ class MixtureLikelihood:
 
     def __init__(self, params: LikelihoodParams | None = None):
         self.params = params or LikelihoodParams.from_config()
+        # log(f0 / L): the focal prior's centre as a focal length per pixel of the long side
+        self._prior_centre = math.log(focal_from_hfov(self.params.focal_prior_hfov_deg, 1.0))
 
     def _family_constants(self, like: torch.Tensor):
         """Per-family prior and scale, (3,) tensors, vertical parameters on column 1."""
@@ -430,11 +432,10 @@ class MixtureLikelihood:
         ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``focal``'s dtype.
         """
         params = self.params
-        centre = math.log(0.5 / math.tan(math.radians(params.focal_prior_hfov_deg) / 2))  # log(f0 / L)
         focal = focal.to(features.weight.dtype)
         evidence = features.weight.sum(-1) + params.focal_prior_pseudo_length * features.long_side  # W + W0
         weight = params.focal_prior_weight * evidence[:, None]  # (B, 1)
-        offset = torch.log(focal / features.long_side[:, None]) - centre
+        offset = torch.log(focal / features.long_side[:, None]) - self._prior_centre
         return -0.5 * weight * offset ** 2, -weight * offset / focal
 
     def _data_objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .camera import focal_from_hfov, rotation_from_angles
+from .camera import focal_from_hfov, hfov_from_focal, rotation_from_angles
 from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures, measure_b_backward, measure_b_forward, vp_major
 from .segments import FRInputError
 
@@ -408,15 +408,13 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     """
     params = lower + u * span
     batch, n_hyp = params.shape[:2]
+    rotation = fast_rotations(params)  # (B, L, 3, 3); the derivatives below need the same sines and cosines
     rad = torch.deg2rad(params[..., :3])
     cos, sin = torch.cos(rad), torch.sin(rad)
     cp, ct, cr = cos.unbind(-1)
     sp, st, sr = sin.unbind(-1)
     spst, cpst = sp * st, cp * st
     zero = torch.zeros_like(cp)
-    rotation = torch.stack([cp * cr + spst * sr, ct * sr, cpst * sr - sp * cr,
-                            spst * cr - cp * sr, ct * cr, sp * sr + cpst * cr,
-                            sp * ct, -st, cp * ct], -1).view(batch, n_hyp, 3, 3)
     d_pan = torch.stack([cpst * sr - sp * cr, zero, -spst * sr - cp * cr,
                          cpst * cr + sp * sr, zero, cp * sr - spst * cr,
                          cp * ct, zero, -sp * ct], -1)
@@ -477,7 +475,7 @@ def check_result(result, config: SearchConfig, known_focal: bool = False,
     if known_focal:
         return
     long_side = max(result.width, result.height)
-    fov = math.degrees(2 * math.atan(long_side / (2 * result.focal_px)))
+    fov = hfov_from_focal(result.focal_px, long_side)
     low, high = config.hfov_range_deg
     if fov <= low + edge_tolerance_deg or fov >= high - edge_tolerance_deg:
         result.reliable = False

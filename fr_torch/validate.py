@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from .camera import focal_from_hfov
 from .segments import FRInputError
 
 # A pinhole camera whose field of view (on the image's long side) is outside [MIN, MAX] degrees
@@ -55,8 +56,7 @@ def check_focal(focal, width: float, height: float, name: str = "focal length") 
     field of view on the long side within [1, 179] degrees."""
     f = finite_number(focal, name)
     long_side = max(width, height)
-    low = long_side / (2 * math.tan(math.radians(MAX_FOV_DEG) / 2))
-    high = long_side / (2 * math.tan(math.radians(MIN_FOV_DEG) / 2))
+    low, high = focal_from_hfov(MAX_FOV_DEG, long_side), focal_from_hfov(MIN_FOV_DEG, long_side)
     if not f > 0:
         raise FRInputError(f"{name} must be a positive number of pixels, got {focal}")
     if not low <= f <= high:
