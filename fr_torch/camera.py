@@ -43,18 +43,37 @@ VERTICAL_AXIS = 1  # column of R holding the (downward) vertical Manhattan direc
 Y_UP = (1.0, -1.0, 1.0)  # diag flipping the camera y axis (y-down <-> y-up frames)
 
 
+def _scalar(value) -> float:
+    """A number (or one-element array) as a Python float."""
+    return value if isinstance(value, float) else float(np.asarray(value, np.float64).reshape(()))
+
+
 def focal_from_hfov(hfov_deg, width):
-    """Focal length in pixels from the horizontal field of view (degrees) and width (pixels)."""
+    """Focal length in pixels from the horizontal field of view (degrees) and width (pixels):
+    ``(w / 2) / tan(hfov / 2)``.  Tensors in (either argument), tensor out; numbers in, float out."""
+    if not (torch.is_tensor(hfov_deg) or torch.is_tensor(width)):
+        hfov, w = _scalar(hfov_deg), _scalar(width)
+        try:
+            return w / 2.0 / math.tan(math.radians(hfov) / 2.0)
+        except (ValueError, ZeroDivisionError):  # 0 or inf: the tensor path's inf / NaN
+            with np.errstate(all="ignore"):
+                return float(np.float64(w) / 2.0 / np.tan(np.radians(np.float64(hfov)) / 2.0))
     hfov = torch.as_tensor(hfov_deg, dtype=torch.float64) if not torch.is_tensor(hfov_deg) else hfov_deg
-    out = (width / 2.0) / torch.tan(torch.deg2rad(hfov) / 2.0)
-    return out if torch.is_tensor(hfov_deg) else float(out)
+    return (width / 2.0) / torch.tan(torch.deg2rad(hfov) / 2.0)
 
 
 def hfov_from_focal(focal_px, width):
-    """Horizontal field of view in degrees from the focal length (pixels) and width (pixels)."""
+    """Horizontal field of view in degrees from the focal length (pixels) and width (pixels):
+    ``2 atan(w / (2 f))``.  Tensors in (either argument), tensor out; numbers in, float out."""
+    if not (torch.is_tensor(focal_px) or torch.is_tensor(width)):
+        focal, w = _scalar(focal_px), _scalar(width)
+        try:
+            return math.degrees(2.0 * math.atan(w / 2.0 / focal))
+        except ZeroDivisionError:  # f = 0: the tensor path's +-180 (NaN for w = 0)
+            with np.errstate(all="ignore"):
+                return float(np.degrees(2.0 * np.arctan(np.float64(w) / 2.0 / np.float64(focal))))
     f = torch.as_tensor(focal_px, dtype=torch.float64) if not torch.is_tensor(focal_px) else focal_px
-    out = torch.rad2deg(2.0 * torch.atan((width / 2.0) / f))
-    return out if torch.is_tensor(focal_px) else float(out)
+    return torch.rad2deg(2.0 * torch.atan((width / 2.0) / f))
 
 
 def intrinsics(focal_px: torch.Tensor, principal_point: torch.Tensor) -> torch.Tensor:
@@ -143,6 +162,13 @@ def angles_from_rotation(rotation: torch.Tensor, vertical_axis: int = VERTICAL_A
 def vanishing_points(focal_px: torch.Tensor, principal_point: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
     """Homogeneous vanishing points K @ R, shape (..., 3, 3): column i is VP i (never dehomogenised)."""
     return intrinsics(focal_px, principal_point) @ rotation
+
+
+def vanishing_point_rows(focal_px: torch.Tensor, principal_point: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+    """Vanishing points as rows, (..., 3, 3): row i = ``K @ R[:, i]`` (x, y, w) signed so that
+    ``w >= 0`` (the record layout of :attr:`Camera.vanishing_points`)."""
+    rows = vanishing_points(focal_px, principal_point, rotation).transpose(-1, -2)
+    return rows * torch.where(rows[..., 2:] < 0, -1.0, 1.0).to(rows.dtype)
 
 
 def rotation_angle_deg(r_a, r_b):
@@ -352,10 +378,44 @@ class Camera:
         None unless K and the whole rotation are known."""
         if self.K is None or self.known_rotation is None:
             return None
-        vps = vanishing_points(torch.tensor(self.focal_px, dtype=torch.float64),
-                               torch.tensor(self.principal_point, dtype=torch.float64),
-                               torch.as_tensor(self.rotation)).T.numpy()
-        return vps * np.where(vps[:, 2:] < 0, -1.0, 1.0)
+        return vanishing_point_rows(torch.tensor(self.focal_px, dtype=torch.float64),
+                                    torch.tensor(self.principal_point, dtype=torch.float64),
+                                    torch.as_tensor(self.rotation)).numpy()
+
+    @classmethod
+    def many(cls, width: np.ndarray, height: np.ndarray, focal_px: np.ndarray, principal_point: np.ndarray,
+             rotation: np.ndarray) -> list["Camera"]:
+        """B cameras with a known focal length and whole rotation, their derived values (K, hfov,
+        angles, vanishing points) computed for the batch at once by the same functions the single
+        accessors call (values equal to computing them camera by camera; no per-camera torch work).
+
+        Args:
+            width, height: (B,) image sizes, pixels.
+            focal_px: (B,) focal lengths, pixels.
+            principal_point: (B, 2) (x, y), pixels.
+            rotation: (B, 3, 3) world->camera R.
+
+        Returns:
+            list of B :class:`Camera`.
+        """
+        width, height = np.asarray(width).reshape(-1), np.asarray(height).reshape(-1)
+        focal = torch.as_tensor(np.asarray(focal_px, np.float64).reshape(-1))
+        pp = torch.as_tensor(np.asarray(principal_point, np.float64).reshape(-1, 2))
+        rot = torch.as_tensor(np.asarray(rotation, np.float64).reshape(-1, 3, 3))
+        K = intrinsics(focal, pp).numpy()
+        hfov = hfov_from_focal(focal, torch.as_tensor(width, dtype=torch.float64)).numpy()
+        angles = {key: value.numpy() for key, value in angles_from_rotation(rot).items()}
+        vps = vanishing_point_rows(focal, pp, rot).numpy()
+        rot_np, pp_np, focal_np = rot.numpy(), pp.numpy(), focal.numpy()
+        cameras = []
+        for j in range(len(focal_np)):
+            camera = cls(int(width[j]), int(height[j]), focal_np[j], (pp_np[j, 0], pp_np[j, 1]), rot_np[j])
+            # Fill the cached properties with the batch's values (cached_property keeps them here).
+            camera.__dict__.update(K=K[j], hfov_deg=float(hfov[j]) if width[j] > 0 else None,
+                                   angles={key: float(value[j]) for key, value in angles.items()},
+                                   vanishing_points=vps[j])
+            cameras.append(camera)
+        return cameras
 
     def resized(self, width: int, height: int, factor: float | None = None) -> "Camera":
         """The same camera for the image resized to ``width`` x ``height`` pixels: focal length and

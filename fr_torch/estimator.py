@@ -26,7 +26,7 @@ import torch
 from .camera import VERTICAL_AXIS, Camera, camera_record, image_centre
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
 from .search import (SearchConfig, check_result, grid_hypotheses, hypothesis_rotations, parameter_box, refine,
-                     score_grid, select_starts)
+                     score_grid, select_starts, subdivide_starts)
 from . import image_io, validate
 from .segments import FRInputError, SegmentBatch, SegmentFilter, get_detector, validate_segments
 
@@ -228,9 +228,7 @@ class FREstimator:
                 item.result.runtime_s["detect"] = item.detect_s
                 item.result.runtime_s["total"] = item.result.runtime_s.get("total", 0.0) + item.detect_s
         if self.reliability is not None:  # the last stage: predicted errors, reliable above thresholds
-            for result in results:
-                if result.ok:
-                    self.reliability.annotate(result, mode=self.mode)
+            self.reliability.annotate_many(results, mode=self.mode)
         return results
 
     def _search_group(self, group: list[_Image], known_focal: bool):
@@ -253,10 +251,11 @@ class FREstimator:
         # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
         grid_features = features.longest(self.search.grid_segments) if self.search.grid_segments else features
         grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements)
-        t1 = time.perf_counter()
-
         starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
         lower, upper = parameter_box(self.search, long_side, focal)
+        starts, top_scores = subdivide_starts(self.likelihood, features, starts, top_scores, self.search, lower, upper)
+        t1 = time.perf_counter()
+
         refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
                                          fast=self.mode == "fast", tolerance=self.search.refine_tolerance,
                                          patience=self.search.refine_patience)
@@ -286,11 +285,11 @@ class FREstimator:
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
         family = labels_all != BACKGROUND_LABEL
         manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
+        cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, 3], pp_np, rotation_all)
         for j, item in enumerate(group):
             n = int(counts_all[j])
             r = item.result
-            r.camera = Camera(r.width, r.height, float(params_all[j, 3]), (float(pp_np[j, 0]), float(pp_np[j, 1])),
-                              rotation_all[j])
+            r.camera = cameras[j]
             r.log_likelihood = float(scores_all[j])
             r.num_segments = n
             r.segments = item.segments

@@ -66,6 +66,7 @@ FEATURE_VERSION = "ln1p(min_family_segments), ln(grid_entropy + 1e-6), mean_log_
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
 DEFAULT_K_GRID = (1, 2, 3, 5, 8, 12, 17, 25, 35, 50, 70, 90, 120, 160, 220, 300)
 MODES = ("fr", "fast")
+PREDICT_BLOCK = 4096  # query rows ranked at once against the training set (memory ~ rows x n_train)
 
 
 def cue_features(cues: np.ndarray | Sequence) -> np.ndarray:
@@ -186,16 +187,20 @@ class ReliabilityModel:
         return (x @ self.feature_components.T) / np.sqrt(self.feature_variance)
 
     def predict(self, cues: np.ndarray | dict | Sequence[dict]) -> np.ndarray:
-        """Predicted absolute errors (n, 3) [roll deg, tilt deg, focal %]; NaN rows for non-finite cues."""
+        """Predicted absolute errors (n, 3) [roll deg, tilt deg, focal %]; NaN rows for non-finite cues.
+
+        Queries are ranked against the training set in blocks of :data:`PREDICT_BLOCK` rows (bounded
+        memory for any n; the same answer as one by one)."""
         if isinstance(cues, dict) or (isinstance(cues, (list, tuple)) and cues and isinstance(cues[0], dict)):
             cues = cues_array(cues)
         w = self.whiten(np.asarray(cues, np.float64))
         out = np.full((len(w), 3), np.nan)
-        good = np.isfinite(w).all(1)
-        if good.any():
-            d2 = ((w[good, None, :] - self._train_w[None]) ** 2).sum(-1)
+        good = np.flatnonzero(np.isfinite(w).all(1))
+        for b0 in range(0, len(good), PREDICT_BLOCK):
+            rows = good[b0:b0 + PREDICT_BLOCK]
+            d2 = ((w[rows, None, :] - self._train_w[None]) ** 2).sum(-1)
             idx = np.argsort(d2, axis=1, kind="stable")[:, :self.k]
-            out[good] = self.train_errors[idx].mean(1)
+            out[rows] = self.train_errors[idx].mean(1)
         return out
 
     def predict_dict(self, cues: dict) -> dict[str, float]:
@@ -203,22 +208,30 @@ class ReliabilityModel:
 
     def annotate(self, result, mode: str | None = None):
         """Set ``result.predicted_error`` and clear ``result.reliable`` above the thresholds."""
-        if not getattr(result, "ok", False):
-            return result
+        self.annotate_many([result], mode)
+        return result
+
+    def annotate_many(self, results: Sequence, mode: str | None = None) -> None:
+        """:meth:`annotate` for many results with one prediction call (results with ``ok`` False are
+        left alone)."""
         mine = self.meta.get("mode")
         if mode is not None and mine is not None and mode != mine:
             raise ValueError(f"reliability model was trained for mode {mine!r}, result comes from {mode!r}")
-        predicted = self.predict_dict(result.cues)
-        result.predicted_error = predicted
-        over = [f"{name.split('_')[0]} {predicted[name]:.1f}{' %' if name == 'focal_pct' else ' deg'} > "
-                f"{limit:g}{' %' if name == 'focal_pct' else ' deg'}"
-                for name, limit in self.thresholds.items()
-                if not (predicted.get(name, math.nan) <= limit)]
-        if over:
-            message = "predicted error above threshold: " + ", ".join(over)
-            result.reliable = False
-            result.reason = f"{result.reason}; {message}" if result.reason else message
-        return result
+        todo = [r for r in results if getattr(r, "ok", False)]
+        if not todo:
+            return
+        predictions = self.predict(cues_array([r.cues for r in todo]))
+        for result, row in zip(todo, predictions.tolist()):
+            predicted = dict(zip(TARGETS, row))
+            result.predicted_error = predicted
+            over = [f"{name.split('_')[0]} {predicted[name]:.1f}{' %' if name == 'focal_pct' else ' deg'} > "
+                    f"{limit:g}{' %' if name == 'focal_pct' else ' deg'}"
+                    for name, limit in self.thresholds.items()
+                    if not (predicted.get(name, math.nan) <= limit)]
+            if over:
+                message = "predicted error above threshold: " + ", ".join(over)
+                result.reliable = False
+                result.reason = f"{result.reason}; {message}" if result.reason else message
 
     # ------------------------------------------------------------------ storage
 
@@ -276,6 +289,11 @@ class ReliabilitySet:
     def annotate(self, result, mode: str = "fr"):
         model = self.models.get(mode)
         return model.annotate(result, mode) if model is not None else result
+
+    def annotate_many(self, results: Sequence, mode: str = "fr") -> None:
+        model = self.models.get(mode)
+        if model is not None:
+            model.annotate_many(results, mode)
 
     def predict(self, cues, mode: str = "fr") -> np.ndarray:
         return self.models[mode].predict(cues)

@@ -264,3 +264,33 @@ def test_closed_form_refinement_gradient_matches_autograd_with_focal_prior():
     value, grad = objective_and_grad(model, features, lower, span, u.detach(), grad_out)
     assert torch.allclose(value, objective.detach(), rtol=1e-12)
     assert torch.allclose(grad, expected, rtol=1e-8, atol=1e-8 * expected.abs().max())
+
+
+def test_subdivision_passes_improve_starts_stay_in_box_and_batch_equals_single():
+    """Coarse-to-fine passes never lower a start's score, keep points in the box (a known focal
+    fixed), move each start on its own, and with 0 passes return the starts unchanged."""
+    config = SearchConfig.from_config(grid_points_per_dim=4, top_l=2, grid_passes=3)
+    segs = [_scene(11, n_per_family=25), _scene(12, 95.0, -10.0, 20.0, 2.0, 20)]
+    features = _features(segs, torch.float64)
+    long_side = torch.tensor([640.0, 640.0], dtype=torch.float64)
+    model = MixtureLikelihood(_data_only())
+    hyp = grid_hypotheses(config, long_side)
+    starts, scores = search.select_starts(config, score_grid(model, features, hyp, 1 << 30), hyp)
+    lower, upper = search.parameter_box(config, long_side, None)
+    moved, moved_scores = search.subdivide_starts(model, features, starts, scores, config, lower, upper)
+    assert moved.shape == starts.shape and (moved_scores >= scores).all() and (moved_scores > scores).any()
+    assert (moved >= lower[:, None] - 1e-9).all() and (moved <= upper[:, None] + 1e-9).all()
+    rescored = score_grid(model, features, moved, 1 << 30)
+    assert torch.allclose(rescored, moved_scores, rtol=1e-12)  # the scores are those of the returned points
+    one, one_scores = search.subdivide_starts(model, _features(segs[1:], torch.float64), starts[1:], scores[1:],
+                                              config, lower[1:], upper[1:])
+    assert torch.allclose(one, moved[1:], rtol=1e-12) and torch.allclose(one_scores, moved_scores[1:], rtol=1e-12)
+    same, same_scores = search.subdivide_starts(model, features, starts, scores, replace(config, grid_passes=0),
+                                                lower, upper)
+    assert same is starts and same_scores is scores
+    known = torch.tensor([500.0, 300.0], dtype=torch.float64)
+    k_lower, k_upper = search.parameter_box(config, long_side, known)
+    k_hyp = grid_hypotheses(config, long_side, known)
+    k_starts, k_scores = search.select_starts(config, score_grid(model, features, k_hyp, 1 << 30), k_hyp)
+    fixed, _ = search.subdivide_starts(model, features, k_starts, k_scores, config, k_lower, k_upper)
+    assert torch.allclose(fixed[..., 3], known[:, None].expand(-1, 2), rtol=1e-12)
