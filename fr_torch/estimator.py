@@ -47,6 +47,8 @@ class _Image:
     result: CalibrationResult | None = None
 
 
+SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device memory for any batch)
+
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
 JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px", "hfov_deg", "principal_point",
              "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
@@ -179,11 +181,15 @@ class FREstimator:
             try:
                 if len(size) != 2 or not all(np.isfinite(size)) or min(size) <= 0:
                     raise FRInputError(f"{names[i]}: image size must be (width, height) > 0, got {size}")
-                array = validate_segments(seg, f"{names[i]} segments")
-                items.append(_Image(names[i], size, self.segment_filter(array, *size) if apply_filter else array))
+                items.append(_Image(names[i], size, validate_segments(seg, f"{names[i]} segments")))
             except FRInputError as exc:
                 shown = size if len(size) == 2 and all(np.isfinite(size)) else (0, 0)
                 items.append(_Image(names[i], shown, np.zeros((0, 4)), error=str(exc)))
+        if apply_filter:  # the whole batch in one pass
+            valid = [item for item in items if item.error is None]
+            for item, kept in zip(valid, self.segment_filter.many([v.segments for v in valid],
+                                                                  [v.size for v in valid])):
+                item.segments = kept
         return self._calibrate(items, focal_px, principal_point)
 
     # ------------------------------------------------------------------ internals
@@ -218,10 +224,12 @@ class FREstimator:
                 r.segments, r.labels = np.zeros((0, 4)), np.zeros(0, int)
         todo = [item for item in items if item.result.ok]
         # Images with and without a known focal length are searched separately (4-D vs 3-D grid).
+        # A large batch is searched SEARCH_CHUNK_IMAGES images at a time: memory stays bounded (the
+        # grid's hypotheses alone are 128 KB per image) and the answers are those of one big batch.
         for known in (False, True):
             group = [item for item in todo if (item.focal_px is not None) == known]
-            if group:
-                self._search_group(group, known)
+            for start in range(0, len(group), SEARCH_CHUNK_IMAGES):
+                self._search_group(group[start:start + SEARCH_CHUNK_IMAGES], known)
         results = [item.result for item in items]
         for item in items:
             if item.detect_s is not None:
@@ -250,7 +258,8 @@ class FREstimator:
         hypotheses = grid_hypotheses(self.search, long_side, focal).to(device)  # one host->device copy
         # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
         grid_features = features.longest(self.search.grid_segments) if self.search.grid_segments else features
-        grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements)
+        grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements,
+                                 vertical_block=self.search.grid_points_per_dim)
         starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
         lower, upper = parameter_box(self.search, long_side, focal)
         starts, top_scores = subdivide_starts(self.likelihood, features, starts, top_scores, self.search, lower, upper)
@@ -286,6 +295,8 @@ class FREstimator:
         family = labels_all != BACKGROUND_LABEL
         manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
         cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, 3], pp_np, rotation_all)
+        # Finite parameters, objective and rotation give finite hfov, angles and VPs (f > 0 in the box).
+        finite = np.isfinite(params_all).all(-1) & np.isfinite(scores_all) & np.isfinite(rotation_all).all((-1, -2))
         for j, item in enumerate(group):
             n = int(counts_all[j])
             r = item.result
@@ -298,7 +309,8 @@ class FREstimator:
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             r.reliable, r.reason = self._sanity(r)
-            check_result(r, self.search, known_focal)  # non-finite -> ok=False; focal at the range edge
+            # non-finite -> ok=False; focal at the range edge -> unreliable
+            check_result(r, self.search, known_focal, finite=bool(finite[j]))
 
     def _cues(self, grid_scores, grid_counts, labels, log_p, mask) -> dict[str, torch.Tensor]:
         """The three reliability cues (paper §3.4), per image.

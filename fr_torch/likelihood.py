@@ -418,10 +418,15 @@ class MixtureLikelihood:
         return torch.log(density.sum(-1) + background)
 
     def objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
-                  workspace: dict | None = None) -> torch.Tensor:
+                  workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
         """Length-weighted log-likelihood sum_i len_i log p_i plus the focal prior
-        (:meth:`focal_prior`), (B, H)."""
-        value = self._data_objective(features, rotation, focal, workspace)
+        (:meth:`focal_prior`), (B, H).
+
+        ``vertical_block`` = k > 1 promises that runs of k consecutive hypotheses share the
+        vertical VP (same f and ``R[:, 1]``: the grid, where pan varies fastest and leaves the
+        vertical direction unchanged); the fused measure-b path then scores that VP once per run.
+        """
+        value = self._data_objective(features, rotation, focal, workspace, vertical_block)
         if self.params.focal_prior_weight:
             value = value + self.focal_prior(features, focal)[0]
         return value
@@ -439,7 +444,7 @@ class MixtureLikelihood:
         return -0.5 * weight * offset ** 2, -weight * offset / focal
 
     def _data_objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
-                        workspace: dict | None = None) -> torch.Tensor:
+                        workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
         """Length-weighted log-likelihood sum_i len_i log p_i, (B, H).
 
         Measure b in float32/float64 takes the fused path (module docstring); ``workspace`` (a
@@ -453,7 +458,7 @@ class MixtureLikelihood:
                 return _MeasureBObjective.apply(features.line, features.along, features.weight, flat, *constants)
             with torch.no_grad():
                 return objective_b_nograd(features.line, features.along, features.weight, flat, *constants,
-                                          workspace=workspace)
+                                          workspace=workspace, vertical_block=vertical_block)
         if self.params.model == "nomixture":
             x = self._deviations(features, rotation, focal).amin(-1)  # (B, N, H)
             log_x = torch.log(x + self.params.scale_horizontal / 100)
@@ -520,13 +525,20 @@ def _take(workspace: dict | None, name: str, shape, like: torch.Tensor) -> torch
 
 
 def objective_b_nograd(line, along, weight, flat, neg_inv_scale, log_coef, background, floor,
-                       workspace: dict | None = None) -> torch.Tensor:
+                       workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
     """Measure-b objective (B, H) for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd.
 
     Every pass is in place on two (B, N, 3H) buffers: s, t = bmm; |s|, |t|; x = atan2(|s|, |t|);
     log(prior/lambda) - x/lambda, clamped at ``floor``; exp; sum over the 3 VPs + background; log;
     length-weighted sum over segments (bmm).
+
+    ``vertical_block`` = k > 1: runs of k consecutive hypotheses share the vertical VP (column
+    ``VERTICAL_AXIS``), so only every k-th one is scored and added to its run: (2 + 1/k) H VP
+    columns instead of 3 H, the same sums.  H must be a multiple of k.
     """
+    if vertical_block > 1:
+        return _objective_b_shared_vertical(line, along, weight, flat, neg_inv_scale, log_coef, background,
+                                            floor, workspace, vertical_block)
     batch, n_seg = line.shape[:2]
     hyp = flat.shape[2] // 3
     s = torch.bmm(line, flat, out=_take(workspace, "s", (batch, n_seg, 3 * hyp), line))
@@ -539,6 +551,38 @@ def objective_b_nograd(line, along, weight, flat, neg_inv_scale, log_coef, backg
     s.clamp_min_(floor).exp_()
     p = torch.add(s4[:, :, 0], s4[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), line))
     p.add_(s4[:, :, 2]).add_(background).log_()
+    return torch.bmm(weight[:, None, :], p)[:, 0]
+
+
+def _family_density(line, along, columns, neg_inv_scale, log_coef, floor, workspace, name):
+    """prior/lambda exp(-x/lambda) of every segment for VP columns (B, 3, M): (B, N, M), in a buffer."""
+    batch, n_seg = line.shape[:2]
+    width = columns.shape[2]
+    s = torch.bmm(line, columns, out=_take(workspace, name + "s", (batch, n_seg, width), line))
+    t = torch.bmm(along, columns, out=_take(workspace, name + "t", (batch, n_seg, width), line))
+    s.abs_()
+    t.abs_()
+    torch.atan2(s, t, out=s)
+    return s.mul_(neg_inv_scale).add_(log_coef).clamp_min_(floor).exp_()
+
+
+def _objective_b_shared_vertical(line, along, weight, flat, neg_inv_scale, log_coef, background, floor,
+                                 workspace, block):
+    batch, n_seg = line.shape[:2]
+    hyp = flat.shape[2] // 3
+    if hyp % block:
+        raise ValueError(f"vertical_block {block} does not divide the {hyp} hypotheses")
+    horizontal = [k for k in range(3) if k != VERTICAL_AXIS]
+    columns = flat.view(batch, 3, 3, hyp)
+    h_cols = columns[:, :, horizontal].reshape(batch, 3, 2 * hyp)
+    v_cols = columns[:, :, VERTICAL_AXIS, ::block]  # (B, 3, H / k): one per run
+    h = _family_density(line, along, h_cols, neg_inv_scale[horizontal[0]], log_coef[horizontal[0]], floor,
+                        workspace, "h").view(batch, n_seg, 2, hyp)
+    v = _family_density(line, along, v_cols, neg_inv_scale[VERTICAL_AXIS], log_coef[VERTICAL_AXIS], floor,
+                        workspace, "v")
+    p = torch.add(h[:, :, 0], h[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), line))
+    p.view(batch, n_seg, hyp // block, block).add_(v[..., None])
+    p.add_(background).log_()
     return torch.bmm(weight[:, None, :], p)[:, 0]
 
 

@@ -147,18 +147,41 @@ class SegmentFilter:
     max_segments: int | None = 500
 
     def __call__(self, segments: np.ndarray, width: int, height: int) -> np.ndarray:
-        segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
-        length = np.hypot(segments[:, 2] - segments[:, 0], segments[:, 3] - segments[:, 1])
-        keep = length > self.min_length_px
+        """The kept segments (M, 4) float64 of one image, in input order."""
+        return self.many([segments], [(width, height)])[0]
+
+    def many(self, segment_list: Sequence[np.ndarray], sizes: Sequence[tuple[float, float]]) -> list[np.ndarray]:
+        """:meth:`__call__` for many images at once (one set of array operations for the batch).
+
+        ``segment_list``: one (N_i, 4) array [x1, y1, x2, y2] per image; ``sizes``: (width, height)
+        per image, pixels.  Returns the kept (M_i, 4) float64 arrays, input order kept; with more
+        than ``max_segments`` left, the longest (ties: the earlier one).
+        """
+        arrays = [np.asarray(a, dtype=np.float64).reshape(-1, 4) for a in segment_list]
+        if not arrays:
+            return []
+        counts = np.array([len(a) for a in arrays])
+        segments = np.concatenate(arrays)
+        owner = np.repeat(np.arange(len(arrays)), counts)
+        width, height = np.asarray(sizes, dtype=np.float64).reshape(-1, 2).T
         bx, by = self.border_fraction * width, self.border_fraction * height
-        x, y = segments[:, [0, 2]], segments[:, [1, 3]]
-        in_band = ((x < bx).all(1) | (x > width - bx).all(1) | (y < by).all(1) | (y > height - by).all(1))
-        kept = np.flatnonzero(keep & ~in_band)
-        if self.max_segments is not None and len(kept) > self.max_segments:
-            # Keep the longest (they carry most of the length-weighted evidence); input order kept.
-            longest = np.argsort(-length[kept], kind="stable")[: self.max_segments]
-            kept = np.sort(kept[longest])
-        return segments[kept]
+        x1, y1, x2, y2 = segments.T
+        length = np.hypot(x2 - x1, y2 - y1)
+        # Both endpoints in one border band: left, right, top or bottom.
+        in_band = ((np.maximum(x1, x2) < np.repeat(bx, counts)) | (np.minimum(x1, x2) > np.repeat(width - bx, counts))
+                   | (np.maximum(y1, y2) < np.repeat(by, counts)) | (np.minimum(y1, y2) > np.repeat(height - by, counts)))
+        keep = (length > self.min_length_px) & ~in_band
+        if self.max_segments is not None:
+            kept = np.flatnonzero(keep)
+            kept_owner = owner[kept]
+            if np.bincount(kept_owner, minlength=len(arrays)).max(initial=0) > self.max_segments:
+                # Rank each image's kept segments, longest first (stable: ties keep input order).
+                order = kept[np.lexsort((-length[kept], kept_owner))]
+                first = np.searchsorted(owner[order], np.arange(len(arrays)))
+                rank = np.arange(len(order)) - first[owner[order]]
+                keep[order[rank >= self.max_segments]] = False
+        kept_counts = np.bincount(owner[keep], minlength=len(arrays))
+        return np.split(segments[keep], np.cumsum(kept_counts)[:-1])
 
 
 def validate_segments(segments, name: str = "segments") -> np.ndarray:

@@ -49,6 +49,28 @@ def test_check_result_marks_non_finite_as_failure():
     assert result.focal_px is None and result.rotation is None
 
 
+def test_non_finite_refinement_fails_that_image_only(monkeypatch):
+    """A NaN from the search (parameters or objective) makes that image's result ok=False with the
+    reason, in a batch whose other images keep their estimates."""
+    import fr_torch.estimator as estimator_module
+
+    real_refine = estimator_module.refine
+
+    def refine_with_nan(*args, **kwargs):
+        params, objective = real_refine(*args, **kwargs)
+        params, objective = params.clone(), objective.clone()
+        params[1, :, 3] = float("nan")  # image 1: NaN focal at every refined start ...
+        objective[1] = float("inf")  # ... scored above everything, so it is the one chosen
+        return params, objective
+
+    monkeypatch.setattr(estimator_module, "refine", refine_with_nan)
+    scenes = [_scene(seed, 500.0)[0] for seed in (3, 4, 5)]
+    results = FREstimator(mode="fast", reliability=None).calibrate_segments(scenes, [(640, 480)] * 3)
+    assert [r.ok for r in results] == [True, False, True]
+    assert "non-finite" in results[1].reason and results[1].focal_px is None and results[1].rotation is None
+    assert all(abs(r.focal_px - 500.0) / 500.0 < 0.1 for r in (results[0], results[2]))
+
+
 def test_metrics_count_non_finite_estimate_as_failure():
     from fr_eval.metrics import failure_reason, is_failure, summarize
     from fr_eval.run_eval import prediction_row

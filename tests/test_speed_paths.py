@@ -134,16 +134,20 @@ def test_estimator_float32_matches_float64(mode):
         assert abs(getattr(a, key) - getattr(b, key)) < 0.02, key
 
 
-def test_batch_equals_one_by_one():
+def test_batch_equals_one_by_one(monkeypatch):
     segs = [_scene(5), _scene(6, 100.0, -20.0, 5.0, -3.0, n_per_family=30), _scene(7, 60.0, 30.0, -20.0, 8.0, 90)]
     est = FREstimator(mode="fast")
     batch = est.calibrate_segments(segs, [(640, 480)] * 3)
+    monkeypatch.setattr("fr_torch.estimator.SEARCH_CHUNK_IMAGES", 2)  # searched as 2 + 1 images
+    chunked = est.calibrate_segments(segs, [(640, 480)] * 3)
     for i, seg in enumerate(segs):
         [single] = est.calibrate_segments([seg], [(640, 480)])
-        assert batch[i].focal_px == pytest.approx(single.focal_px, rel=1e-5)
-        assert batch[i].log_likelihood == pytest.approx(single.log_likelihood, rel=1e-5)
-        assert np.allclose(batch[i].rotation, single.rotation, atol=1e-5)
-        assert np.array_equal(batch[i].labels, single.labels)
+        for other in (single, chunked[i]):
+            assert batch[i].focal_px == pytest.approx(other.focal_px, rel=1e-5)
+            assert batch[i].log_likelihood == pytest.approx(other.log_likelihood, rel=1e-5)
+            assert np.allclose(batch[i].rotation, other.rotation, atol=1e-5)
+            assert np.array_equal(batch[i].labels, other.labels)
+            assert batch[i].reliable == other.reliable and batch[i].predicted_error == other.predicted_error
 
 
 def test_chunking_does_not_change_scores_or_refinement(monkeypatch):
@@ -294,3 +298,21 @@ def test_subdivision_passes_improve_starts_stay_in_box_and_batch_equals_single()
     k_starts, k_scores = search.select_starts(config, score_grid(model, features, k_hyp, 1 << 30), k_hyp)
     fixed, _ = search.subdivide_starts(model, features, k_starts, k_scores, config, k_lower, k_upper)
     assert torch.allclose(fixed[..., 3], known[:, None].expand(-1, 2), rtol=1e-12)
+
+
+@pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_grid_shared_vertical_vp_equals_full_scoring(dtype, rtol, monkeypatch):
+    """The grid's runs of k pan values share the vertical VP: scoring it once per run gives the
+    scores of scoring every hypothesis in full, whatever the chunking."""
+    config = SearchConfig.from_config(grid_points_per_dim=4)
+    segs = [_scene(13, n_per_family=25), _scene(14, 95.0, -10.0, 20.0, 2.0, 20)]
+    features = _features(segs, dtype)
+    hyp = grid_hypotheses(config, torch.tensor([640.0, 640.0], dtype=torch.float64))
+    assert torch.equal(hyp[:, :4, 1:], hyp[:, :1, 1:].expand(-1, 4, -1))  # pan varies fastest
+    model = MixtureLikelihood(LikelihoodParams.from_config("b"))
+    full = score_grid(model, features, hyp, 1 << 30)
+    assert torch.allclose(score_grid(model, features, hyp, 1 << 30, vertical_block=4), full, rtol=rtol)
+    monkeypatch.setattr(search, "CPU_CHUNK_ELEMENTS", 500)  # chunks of whole runs, images one by one
+    assert torch.allclose(score_grid(model, features, hyp, 1 << 30, vertical_block=4), full, rtol=rtol)
+    odd = hyp[:, :6]  # 6 is not a multiple of 4: scored in full
+    assert torch.allclose(score_grid(model, features, odd, 1 << 30, vertical_block=4), full[:, :6], rtol=rtol)
