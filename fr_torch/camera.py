@@ -164,7 +164,8 @@ def vanishing_points(focal_px: torch.Tensor, principal_point: torch.Tensor, rota
     return intrinsics(focal_px, principal_point) @ rotation
 
 
-def vanishing_point_rows(focal_px: torch.Tensor, principal_point: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+def vanishing_point_rows(focal_px: torch.Tensor, principal_point: torch.Tensor,
+                         rotation: torch.Tensor) -> torch.Tensor:
     """Vanishing points as rows, (..., 3, 3): row i = ``K @ R[:, i]`` (x, y, w) signed so that
     ``w >= 0`` (the record layout of :attr:`Camera.vanishing_points`)."""
     rows = vanishing_points(focal_px, principal_point, rotation).transpose(-1, -2)

@@ -262,7 +262,8 @@ class FREstimator:
                                  vertical_block=self.search.grid_points_per_dim)
         starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
         lower, upper = parameter_box(self.search, long_side, focal)
-        starts, top_scores = subdivide_starts(self.likelihood, features, starts, top_scores, self.search, lower, upper)
+        starts, top_scores = subdivide_starts(self.likelihood, features, starts, top_scores, self.search,
+                                              lower, upper)
         t1 = time.perf_counter()
 
         refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,

@@ -6,8 +6,8 @@ one batched tensor computation, chunked so that at most ``max_chunk_elements`` p
 deviations exist at once.  The best ``top_l`` grid points are then sharpened by ``grid_passes``
 coarse-to-fine passes (:func:`subdivide_starts`: a 3^4 lattice at a third of the previous spacing
 around each, keep the best), so refinement starts within 1/27 of a grid cell of the best lattice
-point instead of half a cell.  Stage 2 refines the top ``top_l`` grid points of every image together with ``torch.optim``
-(Adam on box-normalised parameters, projected back into the box after every step), focal length
+point instead of half a cell.  Stage 2 refines these ``top_l`` points of every image together
+with ``torch.optim`` (Adam on box-normalised parameters, projected back into the box after every step), focal length
 included (the MATLAB release pins f to its grid value; we refine it continuously, as the paper
 does).  ``fr`` mode runs ``refine_iterations_fr`` steps with a decaying step size, ``fast`` mode
 ``refine_iterations_fast`` (10).  Each hypothesis' update depends only on its own gradient, so a
@@ -42,7 +42,9 @@ from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures, measure_
 from .segments import FRInputError
 
 PARAMS = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
-CPU_CHUNK_ELEMENTS = 1 << 18  # per-chunk deviations on CPU per thread: float32 buffers of ~1 MB (2^17: 12 % slower, more per-op overhead)
+# Grid deviations per chunk and intra-op thread on CPU: float32 buffers of ~1 MB (2^17 was 12 % slower:
+# more chunks, more per-op overhead).
+CPU_CHUNK_ELEMENTS = 1 << 18
 CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
 
 
@@ -261,8 +263,9 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
                      scores: torch.Tensor, config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor):
     """Coarse-to-fine passes around the stage-1 starts: ``config.grid_passes`` times, score the
     3^4 lattice around each start (offsets -h, 0, +h per parameter; focal in log f) and move the
-    start to the best point if it beats the start's score; h is a third of a grid cell in the first pass and a
-    third of the previous h after that (the lattice subdivides the cell around the start).
+    start to the best point if it beats the start's score; h is a third of a grid cell in the
+    first pass and a third of the previous h after that (the lattice subdivides the cell around
+    the start).
 
     ``starts`` (B, L, 4) [pan, pitch, roll, f] and their ``scores`` (B, L); ``lower`` / ``upper``
     (B, 4) the parameter box (points are clamped into it; a known focal stays fixed).  Returns

@@ -168,8 +168,10 @@ class SegmentFilter:
         x1, y1, x2, y2 = segments.T
         length = np.hypot(x2 - x1, y2 - y1)
         # Both endpoints in one border band: left, right, top or bottom.
-        in_band = ((np.maximum(x1, x2) < np.repeat(bx, counts)) | (np.minimum(x1, x2) > np.repeat(width - bx, counts))
-                   | (np.maximum(y1, y2) < np.repeat(by, counts)) | (np.minimum(y1, y2) > np.repeat(height - by, counts)))
+        in_band = ((np.maximum(x1, x2) < np.repeat(bx, counts))
+                   | (np.minimum(x1, x2) > np.repeat(width - bx, counts))
+                   | (np.maximum(y1, y2) < np.repeat(by, counts))
+                   | (np.minimum(y1, y2) > np.repeat(height - by, counts)))
         keep = (length > self.min_length_px) & ~in_band
         if self.max_segments is not None:
             kept = np.flatnonzero(keep)
