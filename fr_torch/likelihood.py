@@ -541,21 +541,18 @@ def objective_b_nograd(line, along, weight, flat, neg_inv_scale, log_coef, backg
                                             floor, workspace, vertical_block)
     batch, n_seg = line.shape[:2]
     hyp = flat.shape[2] // 3
-    s = torch.bmm(line, flat, out=_take(workspace, "s", (batch, n_seg, 3 * hyp), line))
-    t = torch.bmm(along, flat, out=_take(workspace, "t", (batch, n_seg, 3 * hyp), line))
-    s.abs_()
-    t.abs_()
-    torch.atan2(s, t, out=s)
-    s4 = s.view(batch, n_seg, 3, hyp)
-    s4.mul_(neg_inv_scale).add_(log_coef)
-    s.clamp_min_(floor).exp_()
-    p = torch.add(s4[:, :, 0], s4[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), line))
-    p.add_(s4[:, :, 2]).add_(background).log_()
+    e = _family_density(line, along, flat, neg_inv_scale, log_coef, floor, workspace, "", groups=3)
+    e = e.view(batch, n_seg, 3, hyp)
+    p = torch.add(e[:, :, 0], e[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), line))
+    p.add_(e[:, :, 2]).add_(background).log_()
     return torch.bmm(weight[:, None, :], p)[:, 0]
 
 
-def _family_density(line, along, columns, neg_inv_scale, log_coef, floor, workspace, name):
-    """prior/lambda exp(-x/lambda) of every segment for VP columns (B, 3, M): (B, N, M), in a buffer."""
+def _family_density(line, along, columns, neg_inv_scale, log_coef, floor, workspace, name, groups=1):
+    """prior/lambda exp(-x/lambda) of every segment for VP columns (B, 3, M): (B, N, M), in place
+    in ``workspace`` buffers named ``name + "s"`` / ``"t"``.  The columns form ``groups`` equal
+    blocks (VPs) with constants ``neg_inv_scale`` = -1/lambda and ``log_coef`` = log(prior/lambda)
+    of shape (groups, 1); exponents are clamped at ``floor``."""
     batch, n_seg = line.shape[:2]
     width = columns.shape[2]
     s = torch.bmm(line, columns, out=_take(workspace, name + "s", (batch, n_seg, width), line))
@@ -563,7 +560,8 @@ def _family_density(line, along, columns, neg_inv_scale, log_coef, floor, worksp
     s.abs_()
     t.abs_()
     torch.atan2(s, t, out=s)
-    return s.mul_(neg_inv_scale).add_(log_coef).clamp_min_(floor).exp_()
+    s.view(batch, n_seg, groups, width // groups).mul_(neg_inv_scale).add_(log_coef)
+    return s.clamp_min_(floor).exp_()
 
 
 def _objective_b_shared_vertical(line, along, weight, flat, neg_inv_scale, log_coef, background, floor,
