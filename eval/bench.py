@@ -19,7 +19,11 @@ and ``<out>/scaling.png`` (default ``results/bench``):
 5. **CPU parallelism**: images/s given segments (batch 64) with T intra-op threads vs W
    single-threaded worker processes (:func:`fr_torch.pipeline.calibrate_segments_sharded`),
    for T, W in 1, 2, 4, 8, cores.
-6. **Where the time goes**: a torch profiler table (top ops by self time) of one batch, per device,
+6. **Work outside the search**: ms per image of ``calibrate_segments`` on a large batch with a
+   minimal search (k = 2 grid, one start, no passes, one refinement step): input checks, the
+   segment filter, batching, result records, checks and reliability predictions.  It bounds the
+   throughput any device can reach (1000 / ms images/s), per device.
+7. **Where the time goes**: a torch profiler table (top ops by self time) of one batch, per device,
    in ``<out>/profile_<device>_fast.txt`` and summarised in bench.md.
 
 Every measurement is written as it is taken: one JSON line per row in ``<out>/bench.jsonl``
@@ -266,6 +270,26 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
         rows.append(row)
         progress.update(1, "throughput", row)
     return rows
+
+
+def outside_search(batch: int, n_segments: int, device: str, repeats: int, progress) -> dict | None:
+    """ms per image of everything but the search: ``calibrate_segments`` on ``batch`` images with a
+    minimal search (k = 2, one start, no passes, one step), default reliability stage included."""
+    from fr_torch import FREstimator
+    from fr_torch.search import SearchConfig
+
+    if progress.out_of_time(f"outside-search {device}"):
+        return None
+    config = SearchConfig.from_config(grid_points_per_dim=2, top_l=1, grid_passes=0, refine_iterations_fast=1)
+    est = FREstimator(mode="fast", device=device, search_config=config)
+    pool = [_segments(n_segments, seed=i) for i in range(8)]
+    segs, sizes = [pool[i % len(pool)] for i in range(batch)], [(640, 480)] * batch
+    times = _median_times(lambda: est.calibrate_segments(segs, sizes), repeats, warmup=1, sync=_sync(device))
+    ms = 1000 * statistics.median(times) / batch
+    row = {"device": device, "batch": batch, "segments": n_segments, "ms_per_image": ms,
+           "ceiling_images_per_s": 1000 / ms}
+    progress.update(1, "outside_search", row)
+    return row
 
 
 def parallel_scaling(counts, batch: int, n_segments: int, repeats: int, progress, modes=("fast", "fr")) -> list[dict]:
@@ -537,6 +561,15 @@ def _markdown(report: dict) -> str:
             lines.append(f"| {r['mode']} | {r['kind']} | {r['count']} | {r['images_per_s']:.1f} | {r['ms_per_image']:.2f} | "
                          f"{speedup} |")
         lines.append("")
+    if report.get("outside_search"):
+        lines += ["## Work outside the search (per image)", "",
+                  "`calibrate_segments` on a large batch with a minimal search (k = 2, one start, no passes, one "
+                  "step): input checks, segment filter, batching, records, checks, reliability predictions. "
+                  "1000 / ms bounds the images/s of any device.", "",
+                  "| device | batch | segments | ms/image | ceiling (images/s) |", "|---|---|---|---|---|"]
+        lines += [f"| {r['device']} | {r['batch']} | {r['segments']} | {r['ms_per_image']:.3f} | "
+                  f"{r['ceiling_images_per_s']:.0f} |" for r in report["outside_search"]]
+        lines.append("")
     for p in report.get("profiles", []):
         lines += [f"## Where the time goes: {p['device']} {p['mode']}, batch {p['batch']} (torch profiler, "
                   f"full table in `{p['file']}`)", "", "| op | self ms | share | calls |", "|---|---|---|---|"]
@@ -601,18 +634,21 @@ def run(args: argparse.Namespace) -> int:
         mem_settings = []
     modes = ("fast",) if quick else ("fast", "fr")
     steps = (len(modes) * len(images) + len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
-             + len(mem_settings) + len(seg_counts) + len(grid_sizes) + 2 * len(modes) * len(counts) + len(devices))
+             + len(mem_settings) + len(seg_counts) + len(grid_sizes) + 2 * len(modes) * len(counts)
+             + 2 * len(devices))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     budget = args.budget_s if args.budget_s is not None else (170.0 if device.startswith("cuda") else 0.0)
     progress = _progress(steps, args.no_progress, out / "bench.jsonl", budget)
 
     ns = _transcendental_ns("cpu")
-    tp, profiles = [], []
+    tp, profiles, outside = [], [], []
+    outside_batch = 16 if quick else 1024
     # A GPU figure first (the budget may cut the rest), then CPU latency, throughput, scaling.
     for dev in devices[1:]:
         for mode in modes:
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode)
+        outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         profiles.append(profile_table(dev, device_batches[-2], n_seg_tp, out, progress))
     e2e = end_to_end(images, repeats, progress, modes)
     for row in e2e:
@@ -621,6 +657,7 @@ def run(args: argparse.Namespace) -> int:
     profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
     for mode in modes:
         tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
+    outside.insert(0, outside_search(outside_batch, n_seg_tp, "cpu", min(repeats, 3), progress))
     mem = memory(mem_settings, args.threads, progress)
     scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)
     progress.close()
@@ -629,7 +666,8 @@ def run(args: argparse.Namespace) -> int:
     report = {"machine": machine_description(device), "command": "fr bench " + " ".join(sys.argv[2:] if
               sys.argv[1:2] == ["bench"] else sys.argv[1:]), "quick": quick, "repeats": repeats,
               "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale,
-              "parallel": parallel, "profiles": [p for p in profiles if p], "skipped": progress.skipped,
+              "parallel": parallel, "outside_search": [r for r in outside if r],
+              "profiles": [p for p in profiles if p], "skipped": progress.skipped,
               "budget_s": budget}
     (out / "bench.json").write_text(json.dumps(report, indent=1))
     (out / "bench.md").write_text(_markdown(report))
