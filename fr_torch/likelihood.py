@@ -95,10 +95,10 @@ class LikelihoodParams:
     whose FOV across the long side is ``focal_prior_hfov_deg``, W the image's total segment length
     and W0 = ``focal_prior_pseudo_length`` * L (pixels).  The W part acts per unit of evidence, like
     the length-weighted likelihood it is added to; W0 is evidence the prior always has, so an image
-    with few segments (a blank wall) leans on it more than one with many.  It counters the likelihood's pull towards narrow fields of view when
-    the image barely constrains f (the f -> infinity bias the paper describes: far VPs make the
-    horizontal families nearly parallel, which fits noisy or non-Manhattan segments slightly
-    better).  The centre is the mean log focal ratio of the train splits and gamma was chosen on
+    with few segments (a blank wall) leans on it more than one with many.  It counters the
+    likelihood's pull towards narrow fields of view when the image barely constrains f (the
+    f -> infinity bias the paper describes: far VPs make the horizontal families nearly parallel,
+    which fits noisy or non-Manhattan segments slightly better).  The centre is the mean log focal ratio of the train splits and gamma was chosen on
     them (``configs/likelihood.json``, results/yud/README.md); gamma = 0 = no prior.
     """
 
@@ -574,8 +574,8 @@ def _objective_b_shared_vertical(line, along, weight, flat, neg_inv_scale, log_c
     columns = flat.view(batch, 3, 3, hyp)
     h_cols = columns[:, :, horizontal].reshape(batch, 3, 2 * hyp)
     v_cols = columns[:, :, VERTICAL_AXIS, ::block]  # (B, 3, H / k): one per run
-    h = _family_density(line, along, h_cols, neg_inv_scale[horizontal[0]], log_coef[horizontal[0]], floor,
-                        workspace, "h").view(batch, n_seg, 2, hyp)
+    h = _family_density(line, along, h_cols, neg_inv_scale[horizontal], log_coef[horizontal], floor,
+                        workspace, "h", groups=2).view(batch, n_seg, 2, hyp)
     v = _family_density(line, along, v_cols, neg_inv_scale[VERTICAL_AXIS], log_coef[VERTICAL_AXIS], floor,
                         workspace, "v")
     p = torch.add(h[:, :, 0], h[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), line))

@@ -7,9 +7,9 @@ deviations exist at once.  The best ``top_l`` grid points are then sharpened by 
 coarse-to-fine passes (:func:`subdivide_starts`: a 3^4 lattice at a third of the previous spacing
 around each, keep the best), so refinement starts within 1/27 of a grid cell of the best lattice
 point instead of half a cell.  Stage 2 refines these ``top_l`` points of every image together
-with ``torch.optim`` (Adam on box-normalised parameters, projected back into the box after every step), focal length
-included (the MATLAB release pins f to its grid value; we refine it continuously, as the paper
-does).  ``fr`` mode runs ``refine_iterations_fr`` steps with a decaying step size, ``fast`` mode
+with ``torch.optim`` (Adam on box-normalised parameters, projected back into the box after every
+step), focal length included (the MATLAB release pins f to its grid value; we refine it
+continuously, as the paper does).  ``fr`` mode runs ``refine_iterations_fr`` steps with a decaying step size, ``fast`` mode
 ``refine_iterations_fast`` (10).  Each hypothesis' update depends only on its own gradient, so a
 batch gives the same answer as images one by one.
 
