@@ -39,7 +39,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from fr_torch.camera import Camera
+from fr_torch.camera import Camera, focal_from_hfov
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.search import search_fov_range
 from fr_torch.segments import FRInputError
@@ -73,10 +73,8 @@ class Lee2009(TimedCalibrator):
     def focal_sweep(self, width: int, height: int) -> np.ndarray:
         """Focal lengths (pixels) of the sweep: long-side hfov over ``hfov_range_deg``, log-spaced."""
         long_side = max(width, height)
-        lo, hi = (math.radians(a) for a in self.hfov_range_deg)
-        f_max = (long_side / 2.0) / math.tan(lo / 2.0)
-        f_min = (long_side / 2.0) / math.tan(hi / 2.0)
-        return np.geomspace(f_min, f_max, self.n_focal)
+        low, high = self.hfov_range_deg
+        return np.geomspace(focal_from_hfov(high, long_side), focal_from_hfov(low, long_side), self.n_focal)
 
     def _estimate(self, image, meta: ImageMeta) -> CameraEstimate:
         try:

@@ -50,7 +50,7 @@ import math
 import numpy as np
 from scipy.stats import binom
 
-from fr_torch.camera import Camera
+from fr_torch.camera import Camera, focal_from_hfov
 from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.search import search_fov_range
 from fr_torch.segments import FRInputError
@@ -222,8 +222,8 @@ class Simon2018(TimedCalibrator):
     # ------------------------------------------------------------------ horizon candidates
     def _focal_range(self, width, height):
         long_side = max(width, height)
-        lo, hi = (math.radians(a) for a in self.hfov_range_deg)
-        return (long_side / 2.0) / math.tan(hi / 2.0), (long_side / 2.0) / math.tan(lo / 2.0)
+        low, high = self.hfov_range_deg
+        return focal_from_hfov(high, long_side), focal_from_hfov(low, long_side)
 
     def _hl_candidates(self, seg_h, pp, n, zenith_dist, width, height) -> list[float]:
         mids = vg.segment_midpoints(seg_h) - pp
