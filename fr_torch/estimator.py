@@ -26,7 +26,7 @@ import torch
 from .camera import VERTICAL_AXIS, Camera, camera_record, image_centre
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
 from .search import (SearchConfig, check_result, grid_hypotheses, hypothesis_rotations, parameter_box, refine,
-                     score_grid, select_starts, subdivide_starts)
+                     score_grid, select_starts, subdivide_starts, sweep_focal)
 from . import image_io, validate
 from .segments import FRInputError, SegmentBatch, SegmentFilter, get_detector, validate_segments
 
@@ -262,6 +262,7 @@ class FREstimator:
                                  vertical_block=self.search.grid_points_per_dim)
         starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
         lower, upper = parameter_box(self.search, long_side, focal)
+        starts, top_scores = sweep_focal(self.likelihood, features, starts, top_scores, self.search, lower, upper)
         starts, top_scores = subdivide_starts(self.likelihood, features, starts, top_scores, self.search,
                                               lower, upper)
         t1 = time.perf_counter()

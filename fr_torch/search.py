@@ -3,8 +3,9 @@
 Stage 1 scores every grid hypothesis (pan x pitch x roll x focal, k values each, cell centres
 of the ranges; focal spaced uniformly in log f between f(hfov_max) and f(hfov_min) by default) as
 one batched tensor computation, chunked so that at most ``max_chunk_elements`` per-segment
-deviations exist at once.  The best ``top_l`` grid points are then sharpened by ``grid_passes``
-coarse-to-fine passes (:func:`subdivide_starts`: a 3^4 lattice at a third of the previous spacing
+deviations exist at once.  Each of the best ``top_l`` grid points is first moved along its focal
+ridge (:func:`sweep_focal`: the vertical VP, the best-determined, held fixed while f runs over
+the whole range), then sharpened by ``grid_passes`` coarse-to-fine passes (:func:`subdivide_starts`: a 3^4 lattice at a third of the previous spacing
 around each, keep the best), so refinement starts within 1/27 of a grid cell of the best lattice
 point instead of half a cell.  Stage 2 refines these ``top_l`` points of every image together
 with ``torch.optim`` (Adam on box-normalised parameters, projected back into the box after every
@@ -37,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .camera import focal_from_hfov, hfov_from_focal, rotation_from_angles
+from .camera import VERTICAL_AXIS, focal_from_hfov, hfov_from_focal, pan_from_rotation, rotation_from_angles
 from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures, measure_b_backward, measure_b_forward, vp_major
 from .segments import FRInputError
 
@@ -115,6 +116,8 @@ class SearchConfig:
     the default); refinement and the final labels use all of them.  A speed option: on YUD train,
     250 of the (at most) 500 kept segments cost nothing with measure b but doubled measure d's
     focal error (results/yud/README.md), so it is off by default.
+    ``focal_sweep_points``: focal values of :func:`sweep_focal` (each ``top_l`` start tried at this
+    many focal lengths over the whole range with its vertical VP fixed; 0 = off).
     ``grid_passes``: coarse-to-fine passes around each of the ``top_l`` grid points before
     refinement (:func:`subdivide_starts`); each scores 3^4 = 81 points per start (about 8 % of
     the 8^4 grid for l = 4).  0 = the paper's two stages.
@@ -131,6 +134,7 @@ class SearchConfig:
     focal_grid: str = "log_f"
     top_l: int = 4
     grid_segments: int = 0
+    focal_sweep_points: int = 16
     grid_passes: int = 3
     refine_iterations_fr: int = 100
     refine_iterations_fast: int = 10
@@ -148,6 +152,8 @@ class SearchConfig:
             raise FRInputError("grid_points_per_dim and top_l must be at least 1")
         if self.grid_passes < 0:
             raise FRInputError(f"grid_passes must be >= 0, got {self.grid_passes}")
+        if self.focal_sweep_points < 0:
+            raise FRInputError(f"focal_sweep_points must be >= 0 (0 = off), got {self.focal_sweep_points}")
         if self.grid_segments < 0:
             raise FRInputError(f"grid_segments must be >= 0 (0 = all), got {self.grid_segments}")
         if self.focal_grid not in FOCAL_GRIDS:
@@ -252,6 +258,89 @@ def grid_cell(config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor) ->
     angles = (upper[:, :3] - lower[:, :3]) / k
     log_focal = (upper[:, 3:].log() - lower[:, 3:].log()) / k
     return torch.cat([angles, log_focal], -1)
+
+
+def angles_from_search_rotation(rotation: torch.Tensor) -> torch.Tensor:
+    """[pan, pitch, roll] in degrees, (..., 3), from world->camera R (..., 3, 3): the inverse of
+    :func:`fast_rotations` (``R.T = Ry(pan) Rx(pitch) Rz(roll)``) for |pitch| < 90 deg, pan folded
+    into [-45, 45) (:func:`fr_torch.camera.pan_from_rotation`; the Manhattan frame is symmetric
+    under quarter turns about the vertical)."""
+    pitch = torch.rad2deg(torch.asin((-rotation[..., 2, 1]).clamp(-1.0, 1.0)))
+    roll = torch.rad2deg(torch.atan2(rotation[..., 0, 1], rotation[..., 1, 1]))
+    return torch.stack([pan_from_rotation(rotation), pitch, roll], -1)
+
+
+def _focal_ridge_rotations(rotation: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
+    """Rotations that keep the vertical VP's image position when f is multiplied by ``ratio``.
+
+    ``rotation`` (..., 3, 3) world->camera (column i = world axis i in camera coordinates),
+    ``ratio`` (..., m) = f_new / f.  A VP at pp + f (d_x, d_y) / d_z stays put when d_z scales
+    with the ratio (a VP at infinity, d_z = 0, stays put by itself).  The vertical column is
+    rescaled that way; the horizontal column whose VP lies nearer the image centre (larger |d_z|)
+    is rescaled too and made orthogonal to the vertical (it moves as little as the orthogonality
+    of the VPs allows); the third column completes a right-handed frame.  Returns (..., m, 3, 3).
+    """
+    def rescaled(direction):  # (..., 3) -> (..., m, 3), unit length
+        d = direction[..., None, :].expand(ratio.shape + (3,))
+        d = torch.cat([d[..., :2], d[..., 2:] * ratio[..., None]], -1)
+        return d / d.norm(dim=-1, keepdim=True)
+
+    first_nearer = rotation[..., 2, 0].abs() >= rotation[..., 2, 2].abs()  # (...)
+    horizontal = torch.where(first_nearer[..., None], rotation[..., :, 0], rotation[..., :, 2])
+    vertical = rescaled(rotation[..., :, VERTICAL_AXIS])
+    horizontal = rescaled(horizontal)
+    horizontal = horizontal - (horizontal * vertical).sum(-1, keepdim=True) * vertical
+    horizontal = horizontal / horizontal.norm(dim=-1, keepdim=True)
+    first_nearer = first_nearer[..., None, None]
+    column0 = torch.where(first_nearer, horizontal, torch.cross(vertical, horizontal, dim=-1))
+    column2 = torch.where(first_nearer, torch.cross(horizontal, vertical, dim=-1), horizontal)
+    return torch.stack([column0, vertical, column2], -1)
+
+
+def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
+                scores: torch.Tensor, config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor):
+    """Move each start along its focal ridge: the best of ``config.focal_sweep_points`` focal values.
+
+    Focal length and pitch trade off along a ridge of the objective: the vertical VP (the family
+    with the most segments and the smallest deviations) is pinned down well, its distance from
+    the principal point, f / tan(pitch), much less its f and pitch apart.  A k^4 grid samples that
+    ridge coarsely, so all ``top_l`` starts can sit on the wrong part of it (a 120 deg view found
+    at 90 deg with 12 deg more pitch).  For every start this scores m focal values spaced
+    uniformly in log f over the whole range, each with the start's vertical VP held fixed and
+    its nearer horizontal VP moved as little as orthogonality allows
+    (:func:`_focal_ridge_rotations`), at pan offsets 0 and +-1/3 of a grid cell; a start moves to
+    the best of them if that beats its score.
+
+    ``starts`` (B, L, 4) [pan, pitch, roll, f], ``scores`` (B, L), ``lower`` / ``upper`` (B, 4)
+    the parameter box (points are clamped into it).  Returns (starts, scores) of the same shapes;
+    every score is >= its input score; each start moves on its own (a batch gives the same answer
+    as images one by one).  A known focal (``lower`` f == ``upper`` f) or m = 0 changes nothing.
+    """
+    count = config.focal_sweep_points
+    if count == 0 or bool((upper[:, 3] <= lower[:, 3]).all()):
+        return starts, scores
+    device = features.weight.device
+    batch, n_start = starts.shape[:2]
+    start64 = starts.to(device=device, dtype=torch.float64)
+    lower64 = lower.to(device=device, dtype=torch.float64)
+    upper64 = upper.to(device=device, dtype=torch.float64)
+    fraction = (torch.arange(count, dtype=torch.float64, device=device) + 0.5) / count
+    focal = torch.exp(lower64[:, 3:].log() + fraction * (upper64[:, 3:] / lower64[:, 3:]).log())  # (B, m)
+    focal = focal[:, None, :].expand(batch, n_start, count)
+    rotation = _focal_ridge_rotations(fast_rotations(start64), focal / start64[..., 3:])  # (B, L, m, 3, 3)
+    angles = angles_from_search_rotation(rotation)  # (B, L, m, 3)
+    pan_step = (upper64[:, 0] - lower64[:, 0]) / (3 * config.grid_points_per_dim)  # 1/3 of a grid cell
+    pan_offsets = torch.stack([torch.zeros_like(pan_step), -pan_step, pan_step], -1)  # (B, 3)
+    points = torch.cat([angles, focal[..., None]], -1)[:, :, :, None, :].repeat(1, 1, 1, 3, 1)
+    points[..., 0] += pan_offsets[:, None, None, :]  # pan fastest: runs of 3 share the vertical VP
+    points = torch.minimum(torch.maximum(points, lower64[:, None, None, None]), upper64[:, None, None, None])
+    points = points.view(batch, n_start, -1, 4)
+    point_scores = score_grid(likelihood, features, points.view(batch, -1, 4), config.max_chunk_elements,
+                              vertical_block=3)
+    best_scores, best = point_scores.view(batch, n_start, -1).max(-1)
+    better = best_scores > scores
+    chosen = torch.gather(points, 2, best[..., None, None].expand(-1, -1, 1, 4))[:, :, 0].to(starts)
+    return torch.where(better[..., None], chosen, starts), torch.where(better, best_scores, scores)
 
 
 #: The 3^4 lattice offsets of a subdivision pass, [pan, pitch, roll, log f], pan varying fastest

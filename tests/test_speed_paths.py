@@ -303,6 +303,65 @@ def test_subdivision_passes_improve_starts_stay_in_box_and_batch_equals_single()
     assert torch.allclose(fixed[..., 3], known[:, None].expand(-1, 2), rtol=1e-12)
 
 
+def test_search_angles_invert_fast_rotations():
+    """angles_from_search_rotation is the inverse of fast_rotations (pan folded to [-45, 45))."""
+    rng = np.random.default_rng(3)
+    angles = torch.tensor(np.c_[rng.uniform(-44, 44, 30), rng.uniform(-60, 60, 30), rng.uniform(-80, 80, 30)])
+    assert torch.allclose(search.angles_from_search_rotation(fast_rotations(angles)), angles, atol=1e-10)
+
+
+def test_focal_ridge_rotations_keep_the_vertical_vp_and_stay_rotations():
+    """Along the ridge the vertical VP keeps its image position at every focal length, the result
+    is a proper rotation, and a ratio of 1 returns the input rotation."""
+    angles = torch.tensor([[20.0, 12.0, 4.0], [-30.0, -25.0, -8.0], [5.0, 0.0, 0.0]], dtype=torch.float64)
+    rotation = fast_rotations(angles)
+    ratio = torch.tensor([[0.5, 1.0, 2.0]] * 3, dtype=torch.float64)
+    ridge = search._focal_ridge_rotations(rotation, ratio)  # (3, 3 ratios, 3, 3)
+    eye = torch.eye(3, dtype=torch.float64)
+    assert torch.allclose(ridge @ ridge.transpose(-1, -2), eye.expand_as(ridge), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(ridge), torch.ones(3, 3, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(ridge[:, 1], rotation, atol=1e-12)
+    focal = 400.0
+    for j in range(3):
+        for i in range(2):  # images 0, 1: finite vertical VP at f * (x, y) / z
+            before = focal * rotation[i, :2, 1] / rotation[i, 2, 1]
+            after = focal * ratio[i, j] * ridge[i, j, :2, 1] / ridge[i, j, 2, 1]
+            assert torch.allclose(after, before, rtol=1e-10)
+        assert torch.allclose(ridge[2, j, :, 1], rotation[2, :, 1], atol=1e-12)  # VP at infinity stays
+
+
+def test_focal_sweep_finds_the_focal_the_grid_traded_for_pitch():
+    """A start on the wrong part of the focal-pitch ridge (same vertical VP, wrong f and pitch)
+    moves back near the true focal; scores never fall; a batch equals images one by one; a known
+    focal and focal_sweep_points = 0 change nothing."""
+    config = SearchConfig.from_config(top_l=1)
+    true_focal = focal_from_hfov(110.0, 640)
+    segs = [_scene(21, 110.0, 10.0, -15.0, 3.0), _scene(22, 60.0, -20.0, 8.0, -2.0)]
+    features = _features(segs, torch.float64)
+    long_side = torch.tensor([640.0, 640.0], dtype=torch.float64)
+    lower, upper = search.parameter_box(config, long_side, None)
+    # Image 0's start: f 1.6x too long, pitch moved so that the vertical VP stays where it is.
+    wrong = search._focal_ridge_rotations(fast_rotations(torch.tensor([[10.0, -15.0, 3.0]], dtype=torch.float64)),
+                                          torch.tensor([[1.6]], dtype=torch.float64))[0, 0]
+    start0 = torch.cat([search.angles_from_search_rotation(wrong), torch.tensor([1.6 * true_focal])])
+    start1 = torch.tensor([-20.0, 8.0, -2.0, focal_from_hfov(60.0, 640)], dtype=torch.float64)
+    starts = torch.stack([start0, start1])[:, None]
+    model = MixtureLikelihood(_data_only())
+    scores = score_grid(model, features, starts, 1 << 30)
+    moved, moved_scores = search.sweep_focal(model, features, starts, scores, config, lower, upper)
+    assert (moved_scores >= scores).all() and moved_scores[0, 0] > scores[0, 0]
+    assert abs(moved[0, 0, 3].item() / true_focal - 1) < 0.1  # within the sweep's spacing (12 % in f)
+    assert torch.allclose(score_grid(model, features, moved, 1 << 30), moved_scores, rtol=1e-12)
+    assert (moved >= lower[:, None] - 1e-9).all() and (moved <= upper[:, None] + 1e-9).all()
+    one, one_scores = search.sweep_focal(model, _features(segs[1:], torch.float64), starts[1:], scores[1:],
+                                         config, lower[1:], upper[1:])
+    assert torch.allclose(one, moved[1:], rtol=1e-12) and torch.allclose(one_scores, moved_scores[1:], rtol=1e-12)
+    k_lower, k_upper = search.parameter_box(config, long_side, starts[:, 0, 3])
+    assert search.sweep_focal(model, features, starts, scores, config, k_lower, k_upper)[0] is starts
+    off = replace(config, focal_sweep_points=0)
+    assert search.sweep_focal(model, features, starts, scores, off, lower, upper)[0] is starts
+
+
 @pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
 def test_grid_shared_vertical_vp_equals_full_scoring(dtype, rtol, monkeypatch):
     """The grid's runs of k pan values share the vertical VP: scoring it once per run gives the
