@@ -257,7 +257,8 @@ class FREstimator:
         long_side = torch.maximum(width, height)  # the FOV range is on the long side (portrait = landscape)
         hypotheses = grid_hypotheses(self.search, long_side, focal).to(device)  # one host->device copy
         # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
-        grid_features = features.longest(self.search.grid_segments) if self.search.grid_segments else features
+        grid_count = self.search.grid_segment_count(self.mode)
+        grid_features = features.longest(grid_count) if grid_count else features
         grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements,
                                  vertical_block=self.search.grid_points_per_dim)
         starts, top_scores = select_starts(self.search, grid_scores, hypotheses)

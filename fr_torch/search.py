@@ -112,10 +112,12 @@ class SearchConfig:
     horizontal FOV.  Validated here (the one place): finite, 1 <= min < max <= 179.
     ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
     ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
-    ``grid_segments``: stage 1 scores only the longest this many segments of each image (0 = all,
-    the default); refinement and the final labels use all of them.  A speed option: on YUD train,
-    250 of the (at most) 500 kept segments cost nothing with measure b but doubled measure d's
-    focal error (results/yud/README.md), so it is off by default.
+    ``grid_segments`` (``fr`` mode) / ``grid_segments_fast`` (``fast`` mode): stage 1 scores only
+    the longest this many segments of each image (0 = all); the focal sweep, the passes,
+    refinement and the final labels use all of them.  fR scores all (250 of the at most 500 kept
+    segments doubled measure d's focal error on YUD train); Fast-fR, the speed mode, scores the
+    longest 250, which was as accurate on the train splits with measure b at about half the grid's
+    cost (results/yud/README.md).
     ``focal_sweep_points``: focal values of :func:`sweep_focal` (each ``top_l`` start tried at this
     many focal lengths over the whole range with its vertical VP fixed; 0 = off).
     ``grid_passes``: coarse-to-fine passes around each of the ``top_l`` grid points before
@@ -134,6 +136,7 @@ class SearchConfig:
     focal_grid: str = "log_f"
     top_l: int = 4
     grid_segments: int = 0
+    grid_segments_fast: int = 250
     focal_sweep_points: int = 16
     grid_passes: int = 3
     refine_iterations_fr: int = 100
@@ -154,8 +157,9 @@ class SearchConfig:
             raise FRInputError(f"grid_passes must be >= 0, got {self.grid_passes}")
         if self.focal_sweep_points < 0:
             raise FRInputError(f"focal_sweep_points must be >= 0 (0 = off), got {self.focal_sweep_points}")
-        if self.grid_segments < 0:
-            raise FRInputError(f"grid_segments must be >= 0 (0 = all), got {self.grid_segments}")
+        for key in ("grid_segments", "grid_segments_fast"):
+            if getattr(self, key) < 0:
+                raise FRInputError(f"{key} must be >= 0 (0 = all), got {getattr(self, key)}")
         if self.focal_grid not in FOCAL_GRIDS:
             raise FRInputError(f"focal_grid must be one of {', '.join(FOCAL_GRIDS)}, got {self.focal_grid!r}")
 
@@ -174,6 +178,12 @@ class SearchConfig:
         if mode not in ("fr", "fast"):
             raise ValueError(f"mode must be 'fr' or 'fast', got {mode!r}")
         return self.refine_iterations_fr if mode == "fr" else self.refine_iterations_fast
+
+    def grid_segment_count(self, mode: str) -> int:
+        """How many of each image's longest segments stage 1 scores in ``mode`` (0 = all)."""
+        if mode not in ("fr", "fast"):
+            raise ValueError(f"mode must be 'fr' or 'fast', got {mode!r}")
+        return self.grid_segments if mode == "fr" else self.grid_segments_fast
 
 
 def _cell_centres(low: float, high: float, k: int) -> torch.Tensor:

@@ -78,6 +78,27 @@ def test_hfov_search_range_is_configurable():
         FREstimator(likelihood="no-such-config")
 
 
+def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
+    """Fast-fR's stage 1 scores each image's longest ``grid_segments_fast`` segments, fR's all of
+    them (``grid_segments`` = 0); the other stages always get every segment; negative counts are
+    refused."""
+    import fr_torch.estimator as estimator_module
+    from fr_torch.search import SearchConfig
+
+    seen = []
+    original = estimator_module.score_grid
+    monkeypatch.setattr(estimator_module, "score_grid",
+                        lambda model, features, *a, **k: seen.append(features.weight.shape[1]) or original(
+                            model, features, *a, **k))
+    segments, _, _ = _scene(3, 70.0, 10.0, 5.0, 2.0)  # 3 x 60 + 30 % clutter
+    config = SearchConfig.from_config(grid_segments_fast=250)
+    assert config.grid_segment_count("fast") == 250 and config.grid_segment_count("fr") == 0
+    FREstimator(mode="fast", search_config=config).calibrate_segments([segments], [(640, 480)])
+    FREstimator(mode="fr", search_config=config).calibrate_segments([segments], [(640, 480)])
+    assert seen[0] == 250 and seen[1] > 250  # fast: the longest 250; fr: all that the filter kept
+    with pytest.raises(ValueError, match="grid_segments_fast must be >= 0"):
+        SearchConfig.from_config(grid_segments_fast=-1)
+
 def test_known_focal_searches_rotation_only(scenes):
     segments, focal, R = scenes[1]
     [result] = FREstimator(mode="fast").calibrate_segments([segments], [(640, 480)], focal_px=focal)
