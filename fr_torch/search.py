@@ -3,11 +3,12 @@
 Stage 1 scores every grid hypothesis (pan x pitch x roll x focal, k values each, cell centres
 of the ranges; focal spaced uniformly in log f between f(hfov_max) and f(hfov_min) by default) as
 one batched tensor computation, chunked so that at most ``max_chunk_elements`` per-segment
-deviations exist at once.  Each of the best ``top_l`` grid points is first moved along its focal
-ridge (:func:`sweep_focal`: the vertical VP, the best-determined, held fixed while f runs over
-the whole range), then sharpened by ``grid_passes`` coarse-to-fine passes (:func:`subdivide_starts`: a 3^4 lattice at a third of the previous spacing
+deviations exist at once.  Each of the best ``top_l`` grid points gains a second start, its best
+point along its focal ridge (:func:`sweep_focal`: the vertical VP, the best-determined, held
+fixed while f runs over the whole range); all 2l starts are then sharpened by ``grid_passes``
+coarse-to-fine passes (:func:`subdivide_starts`: a 3^4 lattice at a third of the previous spacing
 around each, keep the best), so refinement starts within 1/27 of a grid cell of the best lattice
-point instead of half a cell.  Stage 2 refines these ``top_l`` points of every image together
+point instead of half a cell.  Stage 2 refines these starts of every image together
 with ``torch.optim`` (Adam on box-normalised parameters, projected back into the box after every
 step), focal length included (the MATLAB release pins f to its grid value; we refine it
 continuously, as the paper does).  ``fr`` mode runs ``refine_iterations_fr`` steps with a decaying step size, ``fast`` mode
@@ -119,7 +120,8 @@ class SearchConfig:
     longest 250, which was as accurate on the train splits with measure b at about half the grid's
     cost (results/yud/README.md).
     ``focal_sweep_points``: focal values of :func:`sweep_focal` (each ``top_l`` start tried at this
-    many focal lengths over the whole range with its vertical VP fixed; 0 = off).
+    many focal lengths over the whole range with its vertical VP fixed, the best added as a
+    second start, so 2 ``top_l`` starts are sharpened and refined; 0 = off).
     ``grid_passes``: coarse-to-fine passes around each of the ``top_l`` grid points before
     refinement (:func:`subdivide_starts`); each scores 3^4 = 81 points per start (about 8 % of
     the 8^4 grid for l = 4).  0 = the paper's two stages.
@@ -309,7 +311,8 @@ def _focal_ridge_rotations(rotation: torch.Tensor, ratio: torch.Tensor) -> torch
 
 def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
                 scores: torch.Tensor, config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor):
-    """Move each start along its focal ridge: the best of ``config.focal_sweep_points`` focal values.
+    """Add to each start its best point along its focal ridge: the best of
+    ``config.focal_sweep_points`` focal values with the vertical VP held fixed.
 
     Focal length and pitch trade off along a ridge of the objective: the vertical VP (the family
     with the most segments and the smallest deviations) is pinned down well, its distance from
@@ -318,13 +321,17 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     at 90 deg with 12 deg more pitch).  For every start this scores m focal values spaced
     uniformly in log f over the whole range, each with the start's vertical VP held fixed and
     its nearer horizontal VP moved as little as orthogonality allows
-    (:func:`_focal_ridge_rotations`), at pan offsets 0 and +-1/3 of a grid cell; a start moves to
-    the best of them if that beats its score.
+    (:func:`_focal_ridge_rotations`), at pan offsets 0 and +-1/3 of a grid cell.
+
+    The swept points are added, not swapped in: a point that scores higher than its start can
+    still lie in a lower basin, and replacing the start lost the better answer on 42 of 204
+    ZInD-fR train views (fR); with both refined, 3 (results/yud/README.md).
 
     ``starts`` (B, L, 4) [pan, pitch, roll, f], ``scores`` (B, L), ``lower`` / ``upper`` (B, 4)
-    the parameter box (points are clamped into it).  Returns (starts, scores) of the same shapes;
-    every score is >= its input score; each start moves on its own (a batch gives the same answer
-    as images one by one).  A known focal (``lower`` f == ``upper`` f) or m = 0 changes nothing.
+    the parameter box (points are clamped into it).  Returns (starts, scores) of shape (B, 2L, 4)
+    and (B, 2L): the L inputs, then for each the best swept point if it beats the start's score,
+    else a copy of the start.  Each start is swept on its own (a batch gives the same answer as
+    images one by one).  A known focal (``lower`` f == ``upper`` f) or m = 0 returns the inputs.
     """
     count = config.focal_sweep_points
     if count == 0 or bool((upper[:, 3] <= lower[:, 3]).all()):
@@ -350,7 +357,8 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     best_scores, best = point_scores.view(batch, n_start, -1).max(-1)
     better = best_scores > scores
     chosen = torch.gather(points, 2, best[..., None, None].expand(-1, -1, 1, 4))[:, :, 0].to(starts)
-    return torch.where(better[..., None], chosen, starts), torch.where(better, best_scores, scores)
+    swept = torch.where(better[..., None], chosen, starts)
+    return torch.cat([starts, swept], 1), torch.cat([scores, torch.where(better, best_scores, scores)], 1)
 
 
 #: The 3^4 lattice offsets of a subdivision pass, [pan, pitch, roll, log f], pan varying fastest

@@ -332,8 +332,9 @@ def test_focal_ridge_rotations_keep_the_vertical_vp_and_stay_rotations():
 
 def test_focal_sweep_finds_the_focal_the_grid_traded_for_pitch():
     """A start on the wrong part of the focal-pitch ridge (same vertical VP, wrong f and pitch)
-    moves back near the true focal; scores never fall; a batch equals images one by one; a known
-    focal and focal_sweep_points = 0 change nothing."""
+    gains a second start near the true focal; the inputs come back first, unchanged; a start the
+    sweep cannot improve is copied; a batch equals images one by one; a known focal and
+    focal_sweep_points = 0 return the inputs."""
     config = SearchConfig.from_config(top_l=1)
     true_focal = focal_from_hfov(110.0, 640)
     segs = [_scene(21, 110.0, 10.0, -15.0, 3.0), _scene(22, 60.0, -20.0, 8.0, -2.0)]
@@ -348,14 +349,18 @@ def test_focal_sweep_finds_the_focal_the_grid_traded_for_pitch():
     starts = torch.stack([start0, start1])[:, None]
     model = MixtureLikelihood(_data_only())
     scores = score_grid(model, features, starts, 1 << 30)
-    moved, moved_scores = search.sweep_focal(model, features, starts, scores, config, lower, upper)
-    assert (moved_scores >= scores).all() and moved_scores[0, 0] > scores[0, 0]
-    assert abs(moved[0, 0, 3].item() / true_focal - 1) < 0.1  # within the sweep's spacing (12 % in f)
-    assert torch.allclose(score_grid(model, features, moved, 1 << 30), moved_scores, rtol=1e-12)
-    assert (moved >= lower[:, None] - 1e-9).all() and (moved <= upper[:, None] + 1e-9).all()
+    out, out_scores = search.sweep_focal(model, features, starts, scores, config, lower, upper)
+    assert out.shape == (2, 2, 4) and out_scores.shape == (2, 2)
+    assert torch.equal(out[:, :1], starts) and torch.equal(out_scores[:, :1], scores)
+    assert (out_scores[:, 1] >= scores[:, 0]).all() and out_scores[0, 1] > scores[0, 0]
+    assert abs(out[0, 1, 3].item() / true_focal - 1) < 0.1  # within the sweep's spacing (12 % in f)
+    assert torch.allclose(score_grid(model, features, out, 1 << 30), out_scores, rtol=1e-12)
+    assert (out >= lower[:, None] - 1e-9).all() and (out <= upper[:, None] + 1e-9).all()
+    if not out_scores[1, 1] > scores[1, 0]:  # the true camera: nothing better on the ridge, a copy
+        assert torch.equal(out[1, 1], starts[1, 0])
     one, one_scores = search.sweep_focal(model, _features(segs[1:], torch.float64), starts[1:], scores[1:],
                                          config, lower[1:], upper[1:])
-    assert torch.allclose(one, moved[1:], rtol=1e-12) and torch.allclose(one_scores, moved_scores[1:], rtol=1e-12)
+    assert torch.allclose(one, out[1:], rtol=1e-12) and torch.allclose(one_scores, out_scores[1:], rtol=1e-12)
     k_lower, k_upper = search.parameter_box(config, long_side, starts[:, 0, 3])
     assert search.sweep_focal(model, features, starts, scores, config, k_lower, k_upper)[0] is starts
     off = replace(config, focal_sweep_points=0)
