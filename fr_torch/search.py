@@ -114,17 +114,17 @@ class SearchConfig:
     ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
     ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
     ``grid_segments`` (``fr`` mode) / ``grid_segments_fast`` (``fast`` mode): stage 1 scores only
-    the longest this many segments of each image (0 = all); the focal sweep, the passes,
-    refinement and the final labels use all of them.  fR scores all (250 of the at most 500 kept
-    segments doubled measure d's focal error on YUD train); Fast-fR, the speed mode, scores the
-    longest 250, which was as accurate on the train splits with measure b at about half the grid's
-    cost (results/yud/README.md).
+    the longest this many segments of each image (0 = all, the default for both); the focal
+    sweep, the passes, refinement and the final labels use all of them.  A speed option that
+    costs search quality: with 250 of the at most 500 kept segments, Fast-fR's final objective
+    was lower than with all of them on 9 of the 51 YUD train images (and measure d's focal error
+    doubled), so it is off by default (results/yud/README.md).
     ``focal_sweep_points``: focal values of :func:`sweep_focal` (each ``top_l`` start tried at this
     many focal lengths over the whole range with its vertical VP fixed, the best added as a
     second start, so 2 ``top_l`` starts are sharpened and refined; 0 = off).
-    ``grid_passes``: coarse-to-fine passes around each of the ``top_l`` grid points before
-    refinement (:func:`subdivide_starts`); each scores 3^4 = 81 points per start (about 8 % of
-    the 8^4 grid for l = 4).  0 = the paper's two stages.
+    ``grid_passes``: coarse-to-fine passes around each start before refinement
+    (:func:`subdivide_starts`); each scores 3^4 = 81 points per start (about 16 % of the 8^4 grid
+    for the 2 x 4 starts of l = 4 with the sweep).  0 = the paper's two stages.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
     ``refine_iterations_fr`` steps; 0 = always the full count.
@@ -138,7 +138,7 @@ class SearchConfig:
     focal_grid: str = "log_f"
     top_l: int = 4
     grid_segments: int = 0
-    grid_segments_fast: int = 250
+    grid_segments_fast: int = 0
     focal_sweep_points: int = 16
     grid_passes: int = 3
     refine_iterations_fr: int = 100

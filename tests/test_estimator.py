@@ -79,9 +79,9 @@ def test_hfov_search_range_is_configurable():
 
 
 def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
-    """Fast-fR's stage 1 scores each image's longest ``grid_segments_fast`` segments, fR's all of
-    them (``grid_segments`` = 0); the other stages always get every segment; negative counts are
-    refused."""
+    """With ``grid_segments_fast`` set, Fast-fR's stage 1 scores each image's longest that many
+    segments and fR's all of them (``grid_segments`` = 0, both 0 by default); the other stages
+    always get every segment; negative counts are refused."""
     import fr_torch.estimator as estimator_module
     from fr_torch.search import SearchConfig
 
@@ -91,6 +91,7 @@ def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
                         lambda model, features, *a, **k: seen.append(features.weight.shape[1]) or original(
                             model, features, *a, **k))
     segments, _, _ = _scene(3, 70.0, 10.0, 5.0, 2.0)  # 3 x 60 + 30 % clutter
+    assert SearchConfig.from_config().grid_segment_count("fast") == 0  # default: all
     config = SearchConfig.from_config(grid_segments_fast=250)
     assert config.grid_segment_count("fast") == 250 and config.grid_segment_count("fr") == 0
     FREstimator(mode="fast", search_config=config).calibrate_segments([segments], [(640, 480)])
