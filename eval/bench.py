@@ -20,7 +20,7 @@ and ``<out>/scaling.png`` (default ``results/bench``):
    single-threaded worker processes (:func:`fr_torch.pipeline.calibrate_segments_sharded`),
    for T, W in 1, 2, 4, 8, cores.
 6. **Work outside the search**: ms per image of ``calibrate_segments`` on a large batch with a
-   minimal search (k = 2 grid, one start, no passes, one refinement step): input checks, the
+   minimal search (k = 2 grid, one start, no sweep or passes, one refinement step): input checks, the
    segment filter, batching, result records, checks and reliability predictions.  It bounds the
    throughput any device can reach (1000 / ms images/s), per device.
 7. **Where the time goes**: a torch profiler table (top ops by self time) of one batch, per device,
@@ -274,13 +274,15 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
 
 def outside_search(batch: int, n_segments: int, device: str, repeats: int, progress) -> dict | None:
     """ms per image of everything but the search: ``calibrate_segments`` on ``batch`` images with a
-    minimal search (k = 2, one start, no passes, one step), default reliability stage included."""
+    minimal search (k = 2, one start, no focal sweep, no passes, one step), default reliability
+    stage included."""
     from fr_torch import FREstimator
     from fr_torch.search import SearchConfig
 
     if progress.out_of_time(f"outside-search {device}"):
         return None
-    config = SearchConfig.from_config(grid_points_per_dim=2, top_l=1, grid_passes=0, refine_iterations_fast=1)
+    config = SearchConfig.from_config(grid_points_per_dim=2, top_l=1, focal_sweep_points=0, grid_passes=0,
+                                      refine_iterations_fast=1)
     est = FREstimator(mode="fast", device=device, search_config=config)
     pool = [_segments(n_segments, seed=i) for i in range(8)]
     segs, sizes = [pool[i % len(pool)] for i in range(batch)], [(640, 480)] * batch
@@ -563,7 +565,7 @@ def _markdown(report: dict) -> str:
         lines.append("")
     if report.get("outside_search"):
         lines += ["## Work outside the search (per image)", "",
-                  "`calibrate_segments` on a large batch with a minimal search (k = 2, one start, no passes, one "
+                  "`calibrate_segments` on a large batch with a minimal search (k = 2, one start, no sweep or passes, one "
                   "step): input checks, segment filter, batching, records, checks, reliability predictions. "
                   "1000 / ms bounds the images/s of any device.", "",
                   "| device | batch | segments | ms/image | ceiling (images/s) |", "|---|---|---|---|---|"]
