@@ -521,7 +521,8 @@ def _markdown(report: dict) -> str:
                      f"{r['refine_ms']:.1f} | {r['cues_ms']:.1f} | **{r['wall_ms']:.1f}** | {r['decode_ms']:.1f} | "
                      f"{r['lsd_ms']:.1f} | {r['grid_floor_ms']:.1f} |")
     lines += ["", "Grid floor = G x N x 3 deviations x (atan2 + exp ns/element measured in cache: "
-              f"{report['transcendental_ns']:.2f} ns).", ""]
+              f"{report['transcendental_ns']:.2f} ns), G = the k^4 grid only; the grid column also holds the "
+              "focal sweep and the lattice passes.", ""]
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
               "| device | mode | batch | segments | images/s | ms/image | peak memory (MB) |", "|---|---|---|---|---|---|---|"]
     mem = {(r["batch"], r["device"]): r for r in report["memory"] if r.get("ok")}

@@ -85,6 +85,7 @@ class CalibrationResult:
     labels: np.ndarray | None = None  # (N,) 0, 1, 2 = Manhattan column (1 = vertical), 3 = background
     cues: dict[str, float] = field(default_factory=dict)
     predicted_error: dict[str, float] | None = None
+    # seconds per image: detect, grid (the k^4 grid, the focal sweep and the lattice passes), refine, cues, total
     runtime_s: dict[str, float] = field(default_factory=dict)
 
     def to_json(self, include_segments: bool = False) -> dict[str, Any]:

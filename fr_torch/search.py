@@ -214,6 +214,13 @@ def parameter_box(config: SearchConfig, long_side: torch.Tensor, known_focal: to
     return lo, hi
 
 
+def _log_spaced_focals(f_lo: torch.Tensor, f_hi: torch.Tensor, count: int) -> torch.Tensor:
+    """``count`` focal lengths per image, (B, count) float64 pixels, at the centres of ``count``
+    equal cells in log f between ``f_lo`` and ``f_hi`` ((B,) float64 pixels)."""
+    fraction = (torch.arange(count, dtype=torch.float64, device=f_lo.device) + 0.5) / count
+    return torch.exp(f_lo.log()[:, None] + fraction * (f_hi / f_lo).log()[:, None])
+
+
 def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:
     """The k stage-1 focal values per image, (B, k) float64 pixels, at cell centres of the range,
     spaced per ``config.focal_grid`` (linear in f, in log f, or in FOV)."""
@@ -226,7 +233,7 @@ def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:
         return focal_from_hfov(fov[None, :], long_side[:, None])
     f_lo, f_hi = focal_bounds(config, long_side)
     if config.focal_grid == "log_f":
-        return torch.exp(f_lo.log()[:, None] + frac * (f_hi / f_lo).log()[:, None])
+        return _log_spaced_focals(f_lo, f_hi, k)
     return f_lo[:, None] + frac * (f_hi - f_lo)[:, None]
 
 
@@ -341,9 +348,7 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     start64 = starts.to(device=device, dtype=torch.float64)
     lower64 = lower.to(device=device, dtype=torch.float64)
     upper64 = upper.to(device=device, dtype=torch.float64)
-    fraction = (torch.arange(count, dtype=torch.float64, device=device) + 0.5) / count
-    focal = torch.exp(lower64[:, 3:].log() + fraction * (upper64[:, 3:] / lower64[:, 3:]).log())  # (B, m)
-    focal = focal[:, None, :].expand(batch, n_start, count)
+    focal = _log_spaced_focals(lower64[:, 3], upper64[:, 3], count)[:, None, :].expand(batch, n_start, count)
     rotation = _focal_ridge_rotations(fast_rotations(start64), focal / start64[..., 3:])  # (B, L, m, 3, 3)
     angles = angles_from_search_rotation(rotation)  # (B, L, m, 3)
     pan_step = (upper64[:, 0] - lower64[:, 0]) / (3 * config.grid_points_per_dim)  # 1/3 of a grid cell
@@ -354,11 +359,21 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     points = points.view(batch, n_start, -1, 4)
     point_scores = score_grid(likelihood, features, points.view(batch, -1, 4), config.max_chunk_elements,
                               vertical_block=3)
-    best_scores, best = point_scores.view(batch, n_start, -1).max(-1)
+    swept, swept_scores = _keep_best(starts, scores, points, point_scores)
+    return torch.cat([starts, swept], 1), torch.cat([scores, swept_scores], 1)
+
+
+def _keep_best(starts: torch.Tensor, scores: torch.Tensor, points: torch.Tensor, point_scores: torch.Tensor):
+    """Each start's best candidate where it scores higher than the start, else the start.
+
+    ``starts`` (B, L, 4) with ``scores`` (B, L); ``points`` (B, L, P, 4) candidates per start with
+    their ``point_scores`` (B, L * P) from :func:`score_grid`.  Returns (starts, scores), same shapes
+    and dtypes as the inputs.
+    """
+    best_scores, best = point_scores.view(scores.shape + (-1,)).max(-1)
     better = best_scores > scores
-    chosen = torch.gather(points, 2, best[..., None, None].expand(-1, -1, 1, 4))[:, :, 0].to(starts)
-    swept = torch.where(better[..., None], chosen, starts)
-    return torch.cat([starts, swept], 1), torch.cat([scores, torch.where(better, best_scores, scores)], 1)
+    chosen = torch.gather(points, 2, best[..., None, None].expand(-1, -1, 1, points.shape[-1]))[:, :, 0]
+    return torch.where(better[..., None], chosen.to(starts), starts), torch.where(better, best_scores, scores)
 
 
 #: The 3^4 lattice offsets of a subdivision pass, [pan, pitch, roll, log f], pan varying fastest
@@ -389,7 +404,6 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
     lattice = _LATTICE.to(device)
     batch, n_start = starts.shape[:2]
     current = _log_focal(starts.to(device=device, dtype=torch.float64))
-    scores = scores.clone()
     fraction = 1.0
     for _ in range(config.grid_passes):
         fraction /= 3.0
@@ -397,11 +411,7 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
         points = torch.minimum(torch.maximum(points, log_lower), log_upper)
         hypotheses = _exp_focal(points).view(batch, n_start * len(lattice), 4)
         point_scores = score_grid(likelihood, features, hypotheses, config.max_chunk_elements, vertical_block=3)
-        best_scores, best = point_scores.view(batch, n_start, -1).max(-1)
-        better = best_scores > scores
-        chosen = torch.gather(points, 2, best[..., None, None].expand(-1, -1, 1, 4))[:, :, 0]
-        current = torch.where(better[..., None], chosen, current)
-        scores = torch.where(better, best_scores, scores)
+        current, scores = _keep_best(current, scores, points, point_scores)
     return _exp_focal(current).to(starts), scores
 
 
