@@ -590,8 +590,7 @@ def measure_b_forward(line, along, weight, flat, neg_inv_scale, log_coef, backgr
     hyp = flat.shape[2] // 3
     s = torch.bmm(line, flat)
     t = torch.bmm(along, flat)
-    a, c = s.abs(), t.abs()
-    theta = torch.atan2(a, c).view(batch, n_seg, 3, hyp)
+    theta = torch.atan2(s.abs(), t.abs()).view(batch, n_seg, 3, hyp)
     e = torch.addcmul(log_coef, theta, neg_inv_scale).clamp_min_(floor).exp_()  # prior/lambda exp(-x/lambda)
     p = e.sum(2).add_(background)
     return torch.bmm(weight[:, None, :], p.log())[:, 0], (line, along, weight, s, t, e, p, neg_inv_scale)
@@ -602,15 +601,13 @@ def measure_b_backward(saved, grad_out):
     line, along, weight, s, t, e, p, neg_inv_scale = saved
     batch, n_seg, hyp = p.shape
     # d obj / d x_ik = w_i / p_i * (-e_ik / lambda_k);  x = atan2(|s|, |t|):
-    # dx/ds = sign(s) |t| / (s^2 + t^2), dx/dt = -sign(t) |s| / (s^2 + t^2)  (0 at s = t = 0).
-    g = (weight[:, :, None] / p) * grad_out[:, None, :]  # (B, N, H)
-    a, c = s.abs(), t.abs()
-    r2 = (a * a).addcmul_(c, c)
-    r2 = torch.where(r2 > 0, r2, torch.ones_like(r2))
-    common = (e * neg_inv_scale).mul_(g[:, :, None, :]).view(batch, n_seg, 3 * hyp).div_(r2)
-    gs = (common * c).mul_(torch.sign(s))
-    gt = common.mul_(a).mul_(torch.sign(t)).neg_()
-    return torch.bmm(line.transpose(1, 2), gs).add_(torch.bmm(along.transpose(1, 2), gt))
+    # dx/ds = sign(s) |t| / r2 = q t / r2, dx/dt = -sign(t) |s| / r2 = -q s / r2, with
+    # r2 = s^2 + t^2 and q = sign(s) sign(t) (both 0 at s = 0 or t = 0; r2 > 0 guards 0 / 0).
+    g = (weight[:, :, None] / p).mul_(grad_out[:, None, :])  # (B, N, H)
+    r2 = (s * s).addcmul_(t, t).clamp_min_(torch.finfo(s.dtype).tiny)
+    q = torch.sign(s * t)
+    common = (e * neg_inv_scale).mul_(g[:, :, None, :]).view(batch, n_seg, 3 * hyp).mul_(q).div_(r2)
+    return torch.bmm(line.transpose(1, 2), common * t).sub_(torch.bmm(along.transpose(1, 2), common.mul_(s)))
 
 
 class _MeasureBObjective(torch.autograd.Function):

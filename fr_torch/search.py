@@ -462,11 +462,16 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
 def fast_rotations(params: torch.Tensor) -> torch.Tensor:
     """World->camera R (..., 3, 3) from [pan, pitch, roll, ...] (degrees), closed form.
 
-    ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` -- the same rotation as :func:`hypothesis_rotations`
-    (kornia quaternion route) up to rounding, in fewer operations; differentiable.
+    ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (each a right-handed rotation about the camera axis) --
+    the same rotation as :func:`hypothesis_rotations` (kornia quaternion route) up to rounding, in
+    fewer operations; differentiable.
     """
     rad = torch.deg2rad(params[..., :3])
-    cos, sin = torch.cos(rad), torch.sin(rad)
+    return _rotations_from_cos_sin(torch.cos(rad), torch.sin(rad))
+
+
+def _rotations_from_cos_sin(cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """:func:`fast_rotations` from the cosines and sines of [pan, pitch, roll] (..., 3)."""
     cp, ct, cr = cos.unbind(-1)
     sp, st, sr = sin.unbind(-1)
     spst, cpst = sp * st, cp * st
@@ -474,8 +479,7 @@ def fast_rotations(params: torch.Tensor) -> torch.Tensor:
     rows = torch.stack([cp * cr + spst * sr, ct * sr, cpst * sr - sp * cr,
                         spst * cr - cp * sr, ct * cr, sp * sr + cpst * cr,
                         sp * ct, -st, cp * ct], -1)
-    return rows.view(params.shape[:-1] + (3, 3))
-
+    return rows.view(cos.shape[:-1] + (3, 3))
 
 
 def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
@@ -491,9 +495,10 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
     most ``max_chunk_elements`` deviations (bounded memory; same result as one big batch).
 
     Stopping rule (``tolerance > 0``, not in fast mode): stop when no hypothesis of the slice changed
-    its normalised objective by more than ``tolerance`` over the last ``patience`` steps.  Guards: a
-    step that makes a parameter non-finite is undone for that hypothesis, and a non-finite final
-    objective is returned as -inf (never chosen over a finite one).
+    its normalised objective by more than ``tolerance`` over the last ``patience`` steps.  Guards: the
+    gradient is made finite (NaN, inf -> 0) and bounded by ``_GRAD_BOUND``, so no step makes a
+    parameter non-finite, and a non-finite final objective is returned as -inf (never chosen over a
+    finite one).
     """
     batch, n_start = starts.shape[:2]
     n_seg = max(1, features.weight.shape[1])
@@ -507,6 +512,10 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
                  for b in range(0, batch, step)]
         return torch.cat([p for p, _ in parts]), torch.cat([o for _, o in parts])
     return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tol, patience)
+
+
+#: Bound on each gradient component of the normalised loss in box units (real ones stay below ~1e4).
+_GRAD_BOUND = 1e6
 
 
 def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10):
@@ -537,28 +546,27 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
         return params, likelihood.objective(features, rotation, params[..., 3])
 
     analytic = likelihood._fast_path(features)
+    grad_out = -1.0 / total_length
     for _ in range(iterations):
         optimiser.zero_grad(set_to_none=True)
         if analytic:  # same gradient in closed form, no autograd graph (see objective_and_grad)
-            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), -1.0 / total_length)
+            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out)
         else:
             _, objective = evaluate(u)
             finite = torch.where(torch.isfinite(objective), objective, torch.zeros_like(objective))
             loss = -(finite / total_length).sum()
             loss.backward()
             grad = u.grad
-        normalised = objective.detach() / total_length
         if not all_free:
             grad = torch.where(free, grad, torch.zeros_like(grad))
-        u.grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
-        previous = u.detach().clone()
+        # A finite, bounded gradient keeps Adam's moments and so every parameter finite.
+        u.grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-_GRAD_BOUND, _GRAD_BOUND)
         optimiser.step()
         schedule.step()
         with torch.no_grad():
-            u.copy_(torch.where(torch.isfinite(u), u, previous))
             u.clamp_(0.0, 1.0)
         if tolerance > 0:
-            history.append(normalised.detach())
+            history.append(objective.detach() / total_length)
             if len(history) > patience:
                 old = history.pop(0)
                 change = (history[-1] - old).abs()
@@ -588,30 +596,19 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     ``params`` = [pan, pitch, roll (degrees), log f (f in pixels)], the refinement's coordinates.
 
     ``lower``, ``span``: (B, 1, 4); ``grad_out``: broadcastable to (B, L).  The chain is written
-    out: d obj / d VPs from :func:`fr_torch.likelihood.measure_b_backward`, then ``V = K R``
-    (``dV/df = [R_0; R_1; 0]``, ``dV/dR = K``) and the closed-form derivatives of
-    :func:`fast_rotations` with respect to pan, pitch and roll (degrees).  Equal to the autograd
-    gradient of the same objective to rounding (tests); used by the refinement, where autograd's
-    per-step overhead dominated at small batches.
+    out: G = d obj / d V for the VPs V = K R from :func:`fr_torch.likelihood.measure_b_backward`;
+    ``dV/df = [R_0; R_1; 0]``; and for the angles, with ``R.T = Ry(pan) Rx(pitch) Rz(roll)``
+    (:func:`fast_rotations`), ``dR/d angle = -R [w]_x`` for the axis ``w`` = e_y (pan),
+    ``Ry(pan) e_x`` (pitch) and ``R.T e_z`` (roll), so ``d obj / d angle = -w . axial(V.T G)``
+    (``<G, K dR> = <K.T G, -R [w]_x> = -<R.T K.T G, [w]_x>``; axial(M) = (M21 - M12, M02 - M20,
+    M10 - M01)).  Equal to the autograd gradient of the same objective to rounding (tests); used
+    by the refinement, where autograd's per-step overhead dominated at small batches.
     """
     params = lower + u * span
     batch, n_hyp = params.shape[:2]
-    rotation = fast_rotations(params)  # (B, L, 3, 3); the derivatives below need the same sines and cosines
     rad = torch.deg2rad(params[..., :3])
     cos, sin = torch.cos(rad), torch.sin(rad)
-    cp, ct, cr = cos.unbind(-1)
-    sp, st, sr = sin.unbind(-1)
-    spst, cpst = sp * st, cp * st
-    zero = torch.zeros_like(cp)
-    d_pan = torch.stack([cpst * sr - sp * cr, zero, -spst * sr - cp * cr,
-                         cpst * cr + sp * sr, zero, cp * sr - spst * cr,
-                         cp * ct, zero, -sp * ct], -1)
-    d_pitch = torch.stack([sp * ct * sr, -st * sr, cp * ct * sr,
-                           sp * ct * cr, -st * cr, cp * ct * cr,
-                           -spst, -ct, -cpst], -1)
-    d_roll = torch.stack([spst * cr - cp * sr, ct * cr, cpst * cr + sp * sr,
-                          -spst * sr - cp * cr, -ct * sr, sp * cr - cpst * sr,
-                          zero, zero, zero], -1)
+    rotation = _rotations_from_cos_sin(cos, sin)  # (B, L, 3, 3)
     focal = torch.exp(params[..., 3])
     pp = features.principal_point[:, None, :]  # (B, 1, 2)
     # V = K R: rows 0, 1 = f R_j + c_j R_2, row 2 = R_2.
@@ -621,17 +618,18 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
                                          *likelihood._b_constants(features.weight))
     grad_flat = measure_b_backward(saved, grad_out.expand(batch, n_hyp).contiguous())
     grad_v = grad_flat.view(batch, 3, 3, n_hyp).permute(0, 3, 1, 2)  # (B, L, coord, VP)
-    # dObj/dR = K^T G: rows 0, 1 scaled by f; row 2 gets c . G[:2] + G[2].
-    grad_r = torch.cat([focal[..., None, None] * grad_v[..., :2, :],
-                        (pp[..., None] * grad_v[..., :2, :]).sum(-2, keepdim=True) + grad_v[..., 2:, :]], -2)
-    grad_r = grad_r.reshape(batch, n_hyp, 9)
     grad_f = (grad_v[..., :2, :] * rotation[..., :2, :]).sum((-1, -2))
     if likelihood.params.focal_prior_weight:  # the focal prior of MixtureLikelihood.objective
         prior, d_prior = likelihood.focal_prior(features, focal)
         objective = objective + prior
         grad_f = grad_f + grad_out * d_prior
-    grad_p = torch.stack([(grad_r * d_pan).sum(-1), (grad_r * d_pitch).sum(-1), (grad_r * d_roll).sum(-1)], -1)
-    grad_p = torch.cat([grad_p * (math.pi / 180), (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
+    m = vps.transpose(-1, -2) @ grad_v  # R.T K.T G (B, L, 3, 3)
+    anti = m - m.transpose(-1, -2)
+    axial = torch.stack([anti[..., 2, 1], anti[..., 0, 2], anti[..., 1, 0]], -1)  # (B, L, 3)
+    grad_pitch = cos[..., 0] * axial[..., 0] - sin[..., 0] * axial[..., 2]  # w = Ry e_x = (cos pan, 0, -sin pan)
+    grad_roll = (rotation[..., 2, :] * axial).sum(-1)  # w = R.T e_z = row 2 of R
+    grad_angles = torch.stack([axial[..., 1], grad_pitch, grad_roll], -1) * (-math.pi / 180)  # per degree
+    grad_p = torch.cat([grad_angles, (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
     return objective, grad_p * span
 
 
