@@ -383,3 +383,28 @@ def test_grid_shared_vertical_vp_equals_full_scoring(dtype, rtol, monkeypatch):
     assert torch.allclose(score_grid(model, features, hyp, 1 << 30, vertical_block=4), full, rtol=rtol)
     odd = hyp[:, :6]  # 6 is not a multiple of 4: scored in full
     assert torch.allclose(score_grid(model, features, odd, 1 << 30, vertical_block=4), full[:, :6], rtol=rtol)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), 1e30])
+def test_refinement_stays_finite_and_in_the_box_under_a_bad_gradient(monkeypatch, bad):
+    """A NaN, infinite or absurdly large gradient (e.g. measure e's asin' where |s|/|n| rounds to 1)
+    never makes a refined parameter non-finite or moves it out of the box: the refinement makes the
+    gradient finite and bounded before Adam sees it."""
+    config = SearchConfig.from_config(grid_points_per_dim=3)
+    features = _features([_scene(21, n_per_family=20)], torch.float32)
+    width = torch.tensor([640.0], dtype=torch.float64)
+    hyp = grid_hypotheses(config, width)
+    lower, upper = search.parameter_box(config, width, None)
+    real = search.objective_and_grad
+
+    def spoiled(*args, **kwargs):
+        objective, grad = real(*args, **kwargs)
+        grad = grad.clone()
+        grad[..., 0] = bad  # pan: always the bad value
+        grad[..., 3] *= 1e30 if bad == 1e30 else 1.0  # focal: huge too, but of the right sign
+        return objective, grad
+
+    monkeypatch.setattr(search, "objective_and_grad", spoiled)
+    params, objective = refine(MixtureLikelihood(), features, hyp[:, :3], lower, upper, 20, fast=False)
+    assert torch.isfinite(params).all() and torch.isfinite(objective).all()
+    assert (params >= lower[:, None].to(params) - 1e-4).all() and (params <= upper[:, None].to(params) + 1e-3).all()
