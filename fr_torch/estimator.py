@@ -193,23 +193,48 @@ class FREstimator:
                 item.segments = kept
         return self._calibrate(items, focal_px, principal_point)
 
-    # ------------------------------------------------------------------ internals
+    def calibrate_detections(self, detections: Sequence, names: Sequence[str], focal_px=None,
+                             principal_point=None) -> list[CalibrationResult]:
+        """Calibrate images that were already decoded and detected, one
+        :class:`fr_torch.pipeline.Detection` each (from :func:`fr_torch.pipeline.iter_detections`,
+        possibly in worker processes).
 
-    @staticmethod
-    def _per_image(value, count: int, name: str, width: int = 1) -> list:
-        if value is None:
-            return [None] * count
-        if np.isscalar(value) or (width == 2 and len(value) == 2 and np.isscalar(value[0])):
-            return [value] * count
-        value = list(value)
-        if len(value) != count:
-            raise FRInputError(f"{name}: expected one value per image ({count}), got {len(value)}")
-        return value
+        A detection holds its segments in *working* pixels (the image brought to a long side of at
+        most :attr:`working_long_side`) and ``scale``, input pixels per working pixel.
+        ``focal_px`` / ``principal_point`` are in the **input** image's pixels (None, one value for
+        all, or one per image), and so is every result: they are brought to working pixels for the
+        search and the results back to the input's pixels.  A detection with ``error`` set, or an
+        image whose focal length / principal point is invalid, gives ``ok=False`` with the reason.
+        """
+        count = len(detections)
+        names = list(names)
+        if len(names) != count:
+            raise FRInputError(f"got {count} detections but {len(names)} names")
+        focal_list = validate.per_image(focal_px, count, "focal_px")
+        pp_list = validate.per_image(principal_point, count, "principal_point", width=2)
+        items, focal_work, pp_work = [], [], []
+        for d, name, f, pp in zip(detections, names, focal_list, pp_list):
+            item = _Image(name, d.size, d.segments, error=d.error, detect_s=d.seconds)
+            if item.error is None:
+                try:  # checked in the input's pixels, so the message quotes the user's numbers
+                    validate.check_camera(f, pp, d.input_size, name)
+                    f, pp = image_io.focal_and_pp_to_working(f, pp, d.scale)
+                except FRInputError as exc:
+                    item.error, f, pp = str(exc), None, None
+            items.append(item)
+            focal_work.append(f)
+            pp_work.append(pp)
+        results = self._calibrate(items, focal_work, pp_work)
+        for result, d in zip(results, detections):
+            image_io.result_to_input_pixels(result, d.scale, d.input_size)
+        return results
+
+    # ------------------------------------------------------------------ internals
 
     def _calibrate(self, items: list[_Image], focal_px, principal_point) -> list[CalibrationResult]:
         count = len(items)
-        focal_list = self._per_image(focal_px, count, "focal_px")
-        pp_list = self._per_image(principal_point, count, "principal_point", width=2)
+        focal_list = validate.per_image(focal_px, count, "focal_px")
+        pp_list = validate.per_image(principal_point, count, "principal_point", width=2)
         for item, f, pp in zip(items, focal_list, pp_list):
             item.focal_px, item.principal_point = f, pp
             r = item.result = CalibrationResult(image=item.name, width=int(item.size[0]), height=int(item.size[1]))

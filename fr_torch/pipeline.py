@@ -6,7 +6,7 @@ the search in the main process, and a batch of segment sets sharded over worker 
   with the folder), results come back **in input order**, and a bad file is that file's failure
   (an ``FRInputError`` message, or the exception's one line; a crashed worker fails only the
   image it was on, and the pool is restarted for the rest).
-* :func:`calibrate_paths` feeds those detections to :meth:`FREstimator._calibrate` in batches of
+* :func:`calibrate_paths` feeds those detections to :meth:`FREstimator.calibrate_detections` in batches of
   ``batch_size``: while the main process searches batch k, the workers decode and detect the next
   images.  It yields ``(paths, results)`` per batch; ``fr calibrate --workers N`` uses it.
 * :func:`calibrate_segments_sharded` splits a large batch of segment sets into ``workers``
@@ -35,7 +35,7 @@ from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from . import image_io
+from . import image_io, validate
 from .segments import FRInputError, SegmentFilter, detect_segments, get_detector
 
 
@@ -168,32 +168,16 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
     images = list(images)
     names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
                                                    for i, im in enumerate(images)]
-    focal_list = estimator._per_image(focal_px, len(images), "focal_px")
-    pp_list = estimator._per_image(principal_point, len(images), "principal_point", width=2)
+    focal_list = validate.per_image(focal_px, len(images), "focal_px")
+    pp_list = validate.per_image(principal_point, len(images), "principal_point", width=2)
     detections = iter_detections(images, names, estimator.detector, estimator.segment_filter, workers,
                                  working_long_side=estimator.working_long_side)
     for start in range(0, len(images), batch_size):
         stop = start + batch_size
         chunk = images[start:stop]
         batch = [next(detections) for _ in chunk]
-        yield chunk, _search(estimator, batch, names[start:stop], focal_list[start:stop], pp_list[start:stop])
-
-
-def _search(estimator, detections: list[Detection], names: list[str], focal_px, principal_point) -> list:
-    """Search a batch of detections; the user's focal / principal point (input pixels) are brought
-    to working pixels, and the results are scaled back to the input's pixels."""
-    from .estimator import _Image
-
-    items, focal_work, pp_work = [], [], []
-    for d, name, f, pp in zip(detections, names, focal_px, principal_point):
-        items.append(_Image(name, d.size, d.segments, error=d.error, detect_s=d.seconds))
-        f, pp = image_io.focal_and_pp_to_working(f, pp, d.scale)
-        focal_work.append(f)
-        pp_work.append(pp)
-    results = estimator._calibrate(items, focal_work, pp_work)
-    for result, d in zip(results, detections):
-        image_io.result_to_input_pixels(result, d.scale, d.input_size)
-    return results
+        yield chunk, estimator.calibrate_detections(batch, names[start:stop], focal_list[start:stop],
+                                                    pp_list[start:stop])
 
 
 # --------------------------------------------------------------------------- sharded search
@@ -221,8 +205,8 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
         return estimator.calibrate_segments(segments, image_sizes, names=names, focal_px=focal_px,
                                             principal_point=principal_point, apply_filter=apply_filter)
     names = list(names) if names is not None else [f"image{i}" for i in range(count)]
-    focal_list = estimator._per_image(focal_px, count, "focal_px")
-    pp_list = estimator._per_image(principal_point, count, "principal_point", width=2)
+    focal_list = validate.per_image(focal_px, count, "focal_px")
+    pp_list = validate.per_image(principal_point, count, "principal_point", width=2)
     bounds = np.linspace(0, count, min(workers, count) + 1).round().astype(int)
     own_pool = pool is None
     pool = pool or worker_pool(workers)

@@ -87,6 +87,24 @@ def check_camera(focal, pp, size: tuple[int, int], name: str) -> None:
         check_principal_point(pp, width, height, f"{name}: principal point")
 
 
+def per_image(value, count: int, name: str, width: int = 1) -> list:
+    """A per-image argument as a list of ``count`` values.
+
+    ``value``: None (-> ``count`` Nones), one value for every image (a number for ``width`` 1, an
+    (x, y) pair of numbers for ``width`` 2), or a sequence of one value (or None) per image.
+    A sequence of the wrong length is an FRInputError naming ``name``; the values themselves are
+    checked per image later (:func:`check_camera`), so one bad value fails only its image.
+    """
+    if value is None:
+        return [None] * count
+    if np.isscalar(value) or (width == 2 and len(value) == 2 and np.isscalar(value[0])):
+        return [value] * count
+    value = list(value)
+    if len(value) != count:
+        raise FRInputError(f"{name}: expected one value per image ({count}), got {len(value)}")
+    return value
+
+
 def positive_int(value, name: str, minimum: int = 1) -> int:
     if value is None or int(value) != value or value < minimum:
         raise FRInputError(f"{name} must be an integer >= {minimum}, got {value!r}")

@@ -61,3 +61,32 @@ def test_sharded_segments_equal_in_process():
     assert not sharded[2].ok
     for a, b in zip(sharded, reference):
         _same(a, b)
+
+
+def test_calibrate_detections_works_in_input_pixels():
+    """Detections carry working-pixel segments; the caller's focal / principal point and every
+    result are in the input's pixels; a bad detection or camera fails only its own image."""
+    from fr_torch.pipeline import iter_detections
+    from fr_torch.segments import FRInputError
+
+    est = FREstimator(mode="fast")
+    rng = np.random.default_rng(5)
+    big = render_manhattan_room(1000.0, random_rotation(rng, pan=(-25, 25), pitch=(-8, 8), roll=(-4, 4)),
+                                1280, 960, seed=7)  # worked on at 640 x 480: scale 2
+    images = [big, big, np.zeros((0, 0), np.uint8), big]
+    names = ["known", "pp", "empty", "absurd"]
+    detections = list(iter_detections(images, names, est.detector, est.segment_filter))
+    assert detections[0].scale == pytest.approx(2.0) and detections[0].input_size == (1280, 960)
+    results = est.calibrate_detections(detections, names, focal_px=[1000.0, None, None, 1e9],
+                                       principal_point=[None, (650.0, 470.0), None, None])
+    known, pp, empty, absurd = results
+    assert (known.width, known.height) == (1280, 960) and known.focal_px == pytest.approx(1000.0)
+    assert known.principal_point == pytest.approx((640.0, 480.0))
+    assert pp.ok and pp.principal_point == pytest.approx((650.0, 470.0))
+    assert pp.focal_px == pytest.approx(1000.0, rel=0.1)
+    assert not empty.ok and empty.reason
+    assert not absurd.ok and "1e+09 px" in absurd.reason and "1280 x 960" in absurd.reason
+    # The same as the one-call path, which goes through it.
+    _same(pp, est.calibrate_images([big], names=["pp"], principal_point=(650.0, 470.0))[0])
+    with pytest.raises(FRInputError):
+        est.calibrate_detections(detections, names[:2])
