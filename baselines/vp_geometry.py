@@ -279,8 +279,13 @@ def vertical_vp(segments: np.ndarray, max_angle_deg: float = 30.0, inlier_deg: f
     err = vp_angle_error(segments[cand], hyp)  # (H, Nv)
     thr = math.radians(inlier_deg)
     score = ((err < thr) * lengths[cand]).sum(1)
-    best = hyp[int(np.argmax(score))]
-    vp = best / np.linalg.norm(best)
+    # Two collinear candidate segments meet in no point (the zero vector): never a hypothesis.
+    norms = np.linalg.norm(hyp, axis=1)
+    usable = np.isfinite(norms) & (norms > 0)
+    if not usable.any():
+        return None
+    best_index = int(np.argmax(np.where(usable, score, -np.inf)))
+    vp = hyp[best_index] / norms[best_index]
     for _ in range(2):
         inl = cand[vp_angle_error(segments[cand], vp) < thr]
         if len(inl) < 2:

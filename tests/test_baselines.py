@@ -117,6 +117,23 @@ def test_vp_least_squares_and_angle_error():
     assert np.median(vg.vp_angle_error(segments[labels == 0], true_vps[:, 2])) > math.radians(5)
 
 
+def test_vertical_vp_ignores_collinear_pairs():
+    """Two segments on the same line (a duplicate, as detectors sometimes return) meet in no point:
+    their zero 'intersection' has zero angle error to every segment, so it scored every segment
+    as an inlier and won; it must never be a hypothesis."""
+    focal, R, _ = _camera(70.0, 10.0, 3.0, 20.0)
+    segments, labels = synthetic_segments(focal, R, W, H, n_per_family=30, seed=4)
+    vertical = segments[labels == 1]
+    longest = vertical[np.argmax(np.hypot(*(vertical[:, 2:] - vertical[:, :2]).T))]
+    pieces = np.array([longest, longest[[2, 3, 0, 1]]])  # the same line twice (one reversed)
+    with np.errstate(all="raise"):
+        vp, inliers = vg.vertical_vp(np.vstack([pieces, segments]))
+    true_vp = camera_matrix(focal, W, H) @ R[:, 1]
+    true_vp = true_vp / np.linalg.norm(true_vp)
+    assert np.isfinite(vp).all() and abs(vp @ true_vp) > 0.999
+    assert inliers[2:][labels == 1].mean() > 0.8 and inliers[2:][labels == 3].mean() < 0.2
+
+
 def test_meaningful_modes_finds_peak_not_noise():
     rng = np.random.default_rng(0)
     flat = np.bincount(rng.integers(0, 90, 300), minlength=90)
