@@ -158,8 +158,6 @@ class FREstimator:
         ``principal_point``: None (image centre), an (x, y) pair for all, or one per image.
         A bad image yields a result with ``ok=False`` and the reason; the others are unaffected.
         """
-        names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
-                                                       for i, im in enumerate(images)]
         from .pipeline import calibrate_paths  # decode + detect + search; also with worker processes
 
         return [r for _, batch in calibrate_paths(self, images, max(1, len(images)), 0, focal_px, principal_point,
@@ -176,13 +174,17 @@ class FREstimator:
         if len(segments) != len(image_sizes):
             raise FRInputError(f"got {len(segments)} segment sets but {len(image_sizes)} image sizes")
         names = list(names) if names is not None else [f"image{i}" for i in range(len(segments))]
+        focal_list = validate.per_image(focal_px, len(segments), "focal_px")
+        pp_list = validate.per_image(principal_point, len(segments), "principal_point", width=2)
         items = []
         for i, seg in enumerate(segments):
             size = tuple(image_sizes[i])
             try:
                 if len(size) != 2 or not all(np.isfinite(size)) or min(size) <= 0:
                     raise FRInputError(f"{names[i]}: image size must be (width, height) > 0, got {size}")
-                items.append(_Image(names[i], size, validate_segments(seg, f"{names[i]} segments")))
+                checked = validate_segments(seg, f"{names[i]} segments")
+                validate.check_camera(focal_list[i], pp_list[i], size, names[i])
+                items.append(_Image(names[i], size, checked))
             except FRInputError as exc:
                 shown = size if len(size) == 2 and all(np.isfinite(size)) else (0, 0)
                 items.append(_Image(names[i], shown, np.zeros((0, 4)), error=str(exc)))
@@ -191,7 +193,7 @@ class FREstimator:
             for item, kept in zip(valid, self.segment_filter.many([v.segments for v in valid],
                                                                   [v.size for v in valid])):
                 item.segments = kept
-        return self._calibrate(items, focal_px, principal_point)
+        return self._calibrate(items, focal_list, pp_list)
 
     def calibrate_detections(self, detections: Sequence, names: Sequence[str], focal_px=None,
                              principal_point=None) -> list[CalibrationResult]:
@@ -231,18 +233,13 @@ class FREstimator:
 
     # ------------------------------------------------------------------ internals
 
-    def _calibrate(self, items: list[_Image], focal_px, principal_point) -> list[CalibrationResult]:
-        count = len(items)
-        focal_list = validate.per_image(focal_px, count, "focal_px")
-        pp_list = validate.per_image(principal_point, count, "principal_point", width=2)
+    def _calibrate(self, items: list[_Image], focal_list: list, pp_list: list) -> list[CalibrationResult]:
+        """Search ``items`` (their sizes and segments in working pixels); ``focal_list`` /
+        ``pp_list``: one focal length / principal point (or None) per item, in working pixels,
+        already checked by the public entry that built the items (in the user's pixels)."""
         for item, f, pp in zip(items, focal_list, pp_list):
             item.focal_px, item.principal_point = f, pp
             r = item.result = CalibrationResult(image=item.name, width=int(item.size[0]), height=int(item.size[1]))
-            if item.error is None:
-                try:  # the user's focal length / principal point, per image (None = unknown / centre)
-                    validate.check_camera(f, pp, item.size, item.name)
-                except FRInputError as exc:
-                    item.error = str(exc)
             if item.error is not None:
                 r.ok, r.reason = False, item.error
             elif len(item.segments) == 0:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from fr_torch import FREstimator
-from fr_torch.pipeline import calibrate_paths, calibrate_segments_sharded
+from fr_torch.pipeline import calibrate_paths, calibrate_segments_sharded, iter_detections
+from fr_torch.segments import FRInputError
 from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
 
@@ -66,9 +67,6 @@ def test_sharded_segments_equal_in_process():
 def test_calibrate_detections_works_in_input_pixels():
     """Detections carry working-pixel segments; the caller's focal / principal point and every
     result are in the input's pixels; a bad detection or camera fails only its own image."""
-    from fr_torch.pipeline import iter_detections
-    from fr_torch.segments import FRInputError
-
     est = FREstimator(mode="fast")
     rng = np.random.default_rng(5)
     big = render_manhattan_room(1000.0, random_rotation(rng, pan=(-25, 25), pitch=(-8, 8), roll=(-4, 4)),
