@@ -2,14 +2,32 @@
 
 Pipeline (one module each): segments -> likelihood -> search -> reliability, wrapped by the
 estimator; conventions in :mod:`fr_torch.camera`.
-"""
-from .camera import VERTICAL_AXIS, Camera, angles_from_rotation, focal_from_hfov, hfov_from_focal, rotation_from_angles
-from .estimator import CalibrationResult, FREstimator, calibrate
-from .segments import FRInputError, SegmentFilter, detect_segments
 
-__all__ = [
-    "VERTICAL_AXIS", "Camera", "CalibrationResult", "FREstimator", "FRInputError", "SegmentFilter",
-    "angles_from_rotation",
-    "calibrate", "detect_segments", "focal_from_hfov", "hfov_from_focal", "rotation_from_angles",
-]
+The names below are loaded on first use (PEP 562), so ``import fr_torch`` and the command line's
+start-up do not import torch until something needs it.
+"""
+from __future__ import annotations
+
+import importlib
+
+# public name -> module that defines it
+_EXPORTS = {
+    "VERTICAL_AXIS": "camera", "Camera": "camera", "angles_from_rotation": "camera",
+    "focal_from_hfov": "camera", "hfov_from_focal": "camera", "rotation_from_angles": "camera",
+    "CalibrationResult": "estimator", "FREstimator": "estimator", "calibrate": "estimator",
+    "FRInputError": "segments", "SegmentFilter": "segments", "detect_segments": "segments",
+}
+__all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+        globals()[name] = value  # later lookups skip this function
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))

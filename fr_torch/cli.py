@@ -34,8 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="principal point in pixels (default: image centre)")
     parser.add_argument("--batch-size", type=int, default=16, help="images searched together")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
-                        help="processes that decode + detect ahead of the search (0 = in-process; "
-                             "default min(4, cores - 1), 0 on 1-2 cores)")
+                        help="worker processes (0 = in-process). CPU: each decodes, detects and searches its "
+                             "share of the images (default: one per core, up to 8, for 64+ images); GPU: they "
+                             "decode + detect ahead of the search (default min(4, cores - 1), 0 on 1-2 cores)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write a JSON list to OUT")
     parser.add_argument("--overlay", type=Path, default=None, metavar="DIR",
                         help="write <image>_fr.png overlays (segments by family, horizon) to DIR")
@@ -44,12 +45,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
+    paths = [str(p) for p in args.images]
+    from .workers import default_workers, start_worker_server
+
+    workers = default_workers(len(paths), args.device) if args.workers is None else args.workers
+    workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
+    if workers > 0:  # the workers' server loads the library while this process does the same
+        start_worker_server()
     from .estimator import FREstimator
     from .options import camera_options, estimator_kwargs
     from .segments import FRInputError
 
     from . import validate
 
+    if args.workers is not None and args.workers < 0:
+        raise FRInputError("--workers must be 0 (in-process) or more")
     focal_px, principal_point = camera_options(args)  # per image: within a 1-179 deg field of view
     if args.batch_size < 1:
         raise FRInputError("--batch-size must be at least 1")
@@ -59,11 +69,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json and args.json.is_dir():
         raise FRInputError(f"--json {args.json}: is a folder, not a file")
     everything, failures = [], 0
-    paths = [str(p) for p in args.images]
-    from .pipeline import calibrate_paths, default_workers
-
-    workers = default_workers() if args.workers is None else args.workers
-    workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
+    from .pipeline import calibrate_paths
     try:
         for chunk, results in calibrate_paths(estimator, paths, args.batch_size, workers, focal_px,
                                               principal_point):

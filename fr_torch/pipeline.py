@@ -1,29 +1,34 @@
-"""Parallel pipelines around the estimator: decode + detection in worker processes, overlapping
-the search in the main process, and a batch of segment sets sharded over worker processes.
+"""Parallel pipelines around the estimator: images calibrated in worker processes, decode +
+detection ahead of a GPU search, and a batch of segment sets sharded over worker processes.
 
+* :func:`calibrate_paths` calibrates images (paths or arrays) batch by batch, yielding
+  ``(images, results)`` per batch in input order; ``fr calibrate --workers N`` uses it.  With
+  ``workers > 0`` on a **CPU** estimator every worker process decodes, detects *and* searches its
+  own chunks of images with one thread (images are independent, so throughput grows with the
+  number of cores: intra-op threads of one process stop paying past a few cores, and OpenCV's LSD
+  runs on one core).  On a **GPU** estimator the workers decode and detect while this process
+  searches the previous batch on the device.
 * :func:`iter_detections` decodes and detects images in ``workers`` processes (0 = in this
-  process).  At most ``queue_size`` images are in flight (a bounded queue: memory does not grow
-  with the folder), results come back **in input order**, and a bad file is that file's failure
-  (an ``FRInputError`` message, or the exception's one line; a crashed worker fails only the
-  image it was on, and the pool is restarted for the rest).
-* :func:`calibrate_paths` feeds those detections to :meth:`FREstimator.calibrate_detections` in batches of
-  ``batch_size``: while the main process searches batch k, the workers decode and detect the next
-  images.  It yields ``(paths, results)`` per batch; ``fr calibrate --workers N`` uses it.
+  process), yielding one :class:`Detection` per image in input order.
 * :func:`calibrate_segments_sharded` splits a large batch of segment sets into ``workers``
   contiguous shards, each calibrated by a single-threaded worker process (every image's result is
   its own, so the output equals the in-process call).  On a shared machine this scales where
   intra-op threads do not: an OpenMP parallel region waits for its slowest thread, and a thread
   that lost its core stalls every op.
 
-Workers are started with ``forkserver`` where available (else ``spawn``), so no OpenMP state or
-lock of the parent is inherited; each worker runs with one torch thread and one OpenCV thread.
-Starting a pool costs about a second (importing torch once in the fork server), so it pays for
-folders and large batches, not for one image.
+Every pool keeps a bounded number of tasks in flight (memory does not grow with the folder) and
+returns results in input order; a bad file is that file's failure (an ``FRInputError`` message,
+or the exception's one line).  A worker that dies (a native crash in a decoder or detector) fails
+only the image it was on: its chunk is retried one image at a time in a fresh pool
+(:func:`_ordered_pool_map`).
+
+Workers are forked from a fork server that has loaded the library (:mod:`fr_torch.workers`;
+``spawn`` where there is no fork server); each runs with one torch thread and one OpenCV thread.
+A pool pays for folders and large batches, not for a few images (:func:`fr_torch.workers.default_workers`).
 """
 from __future__ import annotations
 
 import copy
-import multiprocessing
 import os
 import pickle
 import time
@@ -36,13 +41,9 @@ from typing import Iterator, NamedTuple, Sequence
 import numpy as np
 
 from . import image_io, validate
+from .workers import context as workers_context
+from .workers import default_workers, usable_cores  # noqa: F401  (public here too)
 from .segments import FRInputError, SegmentFilter, detect_segments, get_detector
-
-
-def default_workers() -> int:
-    """A sensible default for ``--workers``: min(4, cores - 1), 0 (in-process) on 1-2 cores."""
-    cores = os.cpu_count() or 1
-    return 0 if cores <= 2 else min(4, cores - 1)
 
 
 class Detection(NamedTuple):
@@ -102,11 +103,6 @@ def _detect_task(image, name):
     return detect_image(image, name, _WORKER["detector"], _WORKER["filter"], _WORKER["working_long_side"])
 
 
-def _context():
-    methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-
-
 def _portable_detector(detector):
     """The detector itself when it pickles, else its registered name (workers rebuild it)."""
     try:
@@ -114,62 +110,151 @@ def _portable_detector(detector):
         return detector
     except Exception:
         name = getattr(detector, "name", None)
-        if not isinstance(name, str):
-            raise FRInputError("this detector cannot be sent to worker processes; use workers=0") from None
-        return name
+        try:  # checked here: a worker that cannot build it would fail every image
+            if isinstance(name, str) and type(get_detector(name)) is type(detector):
+                return name
+        except FRInputError:
+            pass
+        raise FRInputError(f"detector {name or type(detector).__name__!r} cannot be sent to worker processes "
+                           "(it does not pickle and its name is not a registered detector or module:attribute); "
+                           "use workers=0") from None
+
+
+#: Pools in a row that may die before finishing a task (crashing images) before we give up (workers
+#: that cannot start would otherwise fail every image, one fresh pool each).
+MAX_BROKEN_POOLS = 5
+
+
+def _ordered_pool_map(function, items: list, chunk_size: int, workers: int, initializer, initargs,
+                      on_crash, queue_size: int | None = None) -> Iterator:
+    """Yield ``function(chunk)``'s results item by item, in input order, computing chunks of at
+    most ``chunk_size`` consecutive ``items`` in ``workers`` processes (``initializer(*initargs)``
+    runs once in each).  ``function`` returns one result per item of its chunk.
+
+    At most ``queue_size`` chunks (default 2 per worker) are in flight.  When a worker dies, every
+    task in flight is lost; the one being waited for may be innocent (a neighbour's crash), so its
+    items are retried one at a time *alone* in a fresh pool, the other lost chunks as they were.
+    Only an item whose worker dies while it is the only task in flight gives ``on_crash(item)``.
+    """
+    queue_size = queue_size or 2 * workers
+    # (chunk, alone): an "alone" chunk runs with nothing else in flight
+    todo = deque((items[start:start + chunk_size], False) for start in range(0, len(items), chunk_size))
+    pending: deque = deque()
+    broken_in_a_row = 0  # pools that died before finishing any task (workers that cannot start)
+
+    def start_pool():
+        return ProcessPoolExecutor(workers, mp_context=workers_context(), initializer=initializer, initargs=initargs)
+
+    pool = start_pool()
+    try:
+        while todo or pending:
+            while todo and len(pending) < queue_size and not (pending and (todo[0][1] or pending[-1][1])):
+                chunk, alone = todo.popleft()
+                pending.append((chunk, alone, pool.submit(function, chunk)))
+            chunk, alone, future = pending.popleft()
+            try:
+                results = future.result()
+            except BrokenProcessPool:
+                broken_in_a_row += 1
+                if broken_in_a_row > MAX_BROKEN_POOLS:
+                    raise RuntimeError(f"worker processes died {broken_in_a_row} times in a row without "
+                                       "finishing a task; run in-process (workers=0) to see why") from None
+                if alone and len(chunk) == 1:
+                    yield on_crash(chunk[0])  # it died with nothing else running: this item did it
+                    retry = []
+                else:
+                    retry = [([item], True) for item in chunk]
+                todo.extendleft(reversed(retry + [(c, a) for c, a, _ in pending]))
+                pending.clear()
+                pool.shutdown(wait=False, cancel_futures=True)
+                pool = start_pool()
+                continue
+            broken_in_a_row = 0
+            yield from results
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _detect_chunk(chunk):
+    return [_detect_task(image, name) for image, name in chunk]
+
+
+def _detection_crash(item) -> Detection:
+    return Detection(np.zeros((0, 4)), (0, 0), f"{item[1]}: a worker process crashed on this image", 0.0)
 
 
 def iter_detections(images: Sequence, names: Sequence[str], detector, segment_filter: SegmentFilter | None = None,
                     workers: int = 0, queue_size: int | None = None,
                     working_long_side: int | None = image_io.WORKING_LONG_SIDE) -> Iterator[Detection]:
-    """Yield a :class:`Detection` per image of ``images``, in input order (see module docstring)."""
+    """Yield a :class:`Detection` per image of ``images``, in input order (see module docstring).
+
+    ``workers`` processes (0 = this process) decode and detect, at most ``queue_size`` images
+    (default 4 per worker) in flight.
+    """
     segment_filter = segment_filter or SegmentFilter()
     if workers <= 0:
         for image, name in zip(images, names):
             yield detect_image(image, name, detector, segment_filter, working_long_side)
         return
-    spec = _portable_detector(detector)
-    queue_size = queue_size or 4 * workers
-    todo = deque(enumerate(zip(images, names)))
-    pending: deque = deque()
+    yield from _ordered_pool_map(_detect_chunk, list(zip(images, names)), 1, workers, _init_worker,
+                                 (_portable_detector(detector), segment_filter, working_long_side),
+                                 _detection_crash, queue_size or 4 * workers)
 
-    def start_pool():
-        return ProcessPoolExecutor(workers, mp_context=_context(), initializer=_init_worker,
-                                   initargs=(spec, segment_filter, working_long_side))
 
-    pool = start_pool()
-    try:
-        while todo or pending:
-            while todo and len(pending) < queue_size:
-                index, (image, name) = todo.popleft()
-                pending.append((index, image, name, pool.submit(_detect_task, image, name)))
-            index, image, name, future = pending.popleft()
-            try:
-                yield future.result()
-            except BrokenProcessPool:
-                # The worker died on this image (or a neighbour): fail this one, retry the rest.
-                yield Detection(np.zeros((0, 4)), (0, 0), f"{name}: the detector crashed on this image", 0.0)
-                todo.extendleft(reversed([(i, (im, n)) for i, im, n, _ in pending]))
-                pending.clear()
-                pool.shutdown(wait=False, cancel_futures=True)
-                pool = start_pool()
-    finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+def _init_calibrate_worker(estimator) -> None:
+    _init_worker(None, None)
+    if isinstance(estimator.detector, str):  # sent by name: rebuilt here (see _portable_detector)
+        estimator.detector = get_detector(estimator.detector)
+    _WORKER["estimator"] = estimator
+
+
+def _calibrate_chunk(chunk):
+    """Decode, detect and search a chunk of (image, name, focal_px, principal_point) in a worker."""
+    estimator = _WORKER["estimator"]
+    detections = [detect_image(image, name, estimator.detector, estimator.segment_filter,
+                               estimator.working_long_side) for image, name, _, _ in chunk]
+    return estimator.calibrate_detections(detections, [c[1] for c in chunk], [c[2] for c in chunk],
+                                          [c[3] for c in chunk])
+
+
+def _calibration_crash(item):
+    from .estimator import CalibrationResult
+
+    return CalibrationResult(image=item[1], width=0, height=0, ok=False,
+                             reason=f"{item[1]}: a worker process crashed on this image")
 
 
 def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: int = 0, focal_px=None,
                     principal_point=None, names: Sequence[str] | None = None) -> Iterator[tuple[list, list]]:
-    """Calibrate images (paths or arrays) batch by batch; yields ``(images, results)`` per batch.
+    """Calibrate images (paths or arrays) batch by batch; yields ``(images, results)`` per batch of
+    at most ``batch_size`` images, in input order.
 
-    Same results, in the same order, as ``estimator.calibrate_images`` on each batch; with
-    ``workers > 0`` decoding and detection run in worker processes ahead of the search.
-    ``focal_px`` / ``principal_point``: as for ``calibrate_images`` (one value or one per image).
+    Same results as ``estimator.calibrate_images`` on each batch (to the batched == one-by-one
+    tolerances).  ``workers > 0``: a CPU estimator calibrates chunks of at most ``batch_size``
+    images in that many single-threaded processes (a copy of the estimator in each); a GPU
+    estimator searches here while the workers decode and detect the next images (module
+    docstring).  ``focal_px`` / ``principal_point``: as for ``calibrate_images`` (one value or
+    one per image).
     """
     images = list(images)
     names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
                                                    for i, im in enumerate(images)]
     focal_list = validate.per_image(focal_px, len(images), "focal_px")
     pp_list = validate.per_image(principal_point, len(images), "principal_point", width=2)
+    if workers > 0 and estimator.device.type == "cpu":
+        # Chunks small enough that every worker gets several (the last ones finish together).
+        chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
+        portable = copy.copy(estimator)
+        portable.detector = _portable_detector(estimator.detector)
+        results = _ordered_pool_map(_calibrate_chunk, list(zip(images, names, focal_list, pp_list)), chunk_size,
+                                    workers, _init_calibrate_worker, (portable,), _calibration_crash)
+        try:
+            for start in range(0, len(images), batch_size):
+                chunk = images[start:start + batch_size]
+                yield chunk, [next(results) for _ in chunk]
+        finally:  # a caller that stops early shuts the pool down now, not at garbage collection
+            results.close()
+        return
     detections = iter_detections(images, names, estimator.detector, estimator.segment_filter, workers,
                                  working_long_side=estimator.working_long_side)
     for start in range(0, len(images), batch_size):
@@ -224,4 +309,4 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
 
 def worker_pool(workers: int) -> ProcessPoolExecutor:
     """A process pool of ``workers`` single-threaded workers (forkserver / spawn)."""
-    return ProcessPoolExecutor(workers, mp_context=_context(), initializer=_init_worker, initargs=(None, None))
+    return ProcessPoolExecutor(workers, mp_context=workers_context(), initializer=_init_worker, initargs=(None, None))

@@ -1,10 +1,16 @@
 """The decode/detect pipeline and the sharded search give the in-process results, in input order."""
+import os
+import subprocess
+import sys
+
 import cv2
 import numpy as np
 import pytest
 
 from fr_torch import FREstimator
+from fr_torch import workers as workers_module
 from fr_torch.pipeline import calibrate_paths, calibrate_segments_sharded, iter_detections
+from fr_torch.segments import LSDDetector
 from fr_torch.segments import FRInputError
 from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
@@ -88,3 +94,64 @@ def test_calibrate_detections_works_in_input_pixels():
     _same(pp, est.calibrate_images([big], names=["pp"], principal_point=(650.0, 470.0))[0])
     with pytest.raises(FRInputError):
         est.calibrate_detections(detections, names[:2])
+
+
+class CrashingDetector(LSDDetector):
+    """LSD, except that the process dies (as a native crash would) on a 123-pixel-wide image."""
+
+    name = "tests.test_pipeline:CrashingDetector"  # workers rebuild it from this (the LSD object does not pickle)
+
+    def __call__(self, gray):
+        if gray.shape[1] == 123:
+            os._exit(3)
+        return super().__call__(gray)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_worker_crash_fails_only_its_image(workers):
+    """A worker dying on one image fails that image only; its chunk's other images and the rest of
+    the folder are calibrated, in input order (CPU: whole-image workers, chunks of 2 here)."""
+    est = FREstimator(mode="fast", detector=CrashingDetector())
+    rng = np.random.default_rng(9)
+    images = [render_manhattan_room(400.0, random_rotation(rng, pan=(-20, 20), pitch=(-8, 8), roll=(-4, 4)),
+                                    320, 240, seed=i) for i in range(6)]
+    images[3] = np.zeros((100, 123), np.uint8)
+    names = [f"im{i}" for i in range(6)]
+    results = [r for _, batch in calibrate_paths(est, images, batch_size=4, workers=workers, names=names)
+               for r in batch]
+    assert [r.image for r in results] == names
+    assert not results[3].ok and "crashed" in results[3].reason and "im3" in results[3].reason
+    assert all(r.ok for i, r in enumerate(results) if i != 3)
+    detections = list(iter_detections(images, names, est.detector, est.segment_filter, workers=workers))
+    assert detections[3].error and "crashed" in detections[3].error
+    assert all(d.error is None and len(d.segments) for i, d in enumerate(detections) if i != 3)
+
+
+def test_default_workers(monkeypatch):
+    monkeypatch.setattr(workers_module, "usable_cores", lambda: 16)
+    assert workers_module.default_workers(1000, "cpu") == workers_module.MAX_DEFAULT_WORKERS
+    assert workers_module.default_workers(100, "cpu") == 3  # one per 32 images
+    assert workers_module.default_workers(40, "cpu") == 0  # a pool does not pay
+    assert workers_module.default_workers(100, "cuda") == 4  # detection ahead of the device
+    monkeypatch.setattr(workers_module, "usable_cores", lambda: 1)
+    assert workers_module.default_workers(1000, "cpu") == 0
+    assert workers_module.default_workers(1000, "cuda:0") == 0
+
+
+def test_importing_the_library_and_its_command_line_loads_no_torch():
+    """``import fr_torch`` and ``fr_torch.cli`` are light, so ``fr`` can start its workers' server
+    while it loads torch; the public names still load on use."""
+    code = ("import sys, fr_torch, fr_torch.cli, fr_torch.workers; assert 'torch' not in sys.modules; "
+            "from fr_torch import FREstimator, Camera; assert 'torch' in sys.modules; print(sorted(fr_torch.__all__))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "FREstimator" in out.stdout
+
+
+def test_a_detector_workers_cannot_build_is_a_one_line_error():
+    class Local(LSDDetector):
+        name = "no-such-detector"
+
+    est = FREstimator(mode="fast", detector=Local())
+    with pytest.raises(FRInputError, match="cannot be sent to worker processes"):
+        list(calibrate_paths(est, [np.zeros((50, 50), np.uint8)] * 3, workers=2))

@@ -1,0 +1,94 @@
+"""Folder end to end: wall time of whole ``fr calibrate`` processes on the YorkUrbanDB photos.
+
+    python -m fr_eval.folder_bench --copies 1,3 --workers 0,1,2,default --rounds 2 \\
+        --out results/bench/pipeline.md
+
+For every number of copies of the 102 photos (a folder of 102 x c paths), mode and ``--workers``
+setting, runs ``fr calibrate [--fast] --workers W PATHS...`` as a new process (start-up, model
+loading, decode, LSD, search and JSON output included), ``--rounds`` times one after the other,
+and reports seconds per round and images/s from their mean.  ``default`` leaves ``--workers``
+unset (:func:`fr_torch.workers.default_workers`).  Also checks that every setting gives the same
+focal lengths as in-process (``--workers 0``).  Run it on an idle machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from fr_eval.paths import data_root
+from fr_torch.workers import default_workers, usable_cores
+
+MODES = {"fast": ["--fast"], "fr": []}
+
+
+def _run(paths: list[str], mode: str, workers: str) -> tuple[float, list[float | None]]:
+    command = [sys.executable, "-m", "fr_torch.cli", "calibrate", *MODES[mode], *paths]
+    if workers != "default":
+        command += ["--workers", workers]
+    start = time.perf_counter()
+    out = subprocess.run(command, capture_output=True, text=True)
+    seconds = time.perf_counter() - start
+    if out.returncode not in (0, 1):  # 1 = some image failed (reported in its record)
+        raise RuntimeError(f"{' '.join(command[:6])} ...: exit {out.returncode}: {out.stderr.strip()[-300:]}")
+    focal = [json.loads(line).get("focal_px") for line in out.stdout.splitlines() if line.startswith("{")]
+    return seconds, focal
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--copies", default="1,3", help="folder sizes, in copies of the 102 photos")
+    parser.add_argument("--workers", default="0,1,2,default", help="--workers settings (default = unset)")
+    parser.add_argument("--modes", default="fast,fr")
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--data-root", default=None)
+    parser.add_argument("--out", type=Path, default=None, help="write the Markdown table here")
+    args = parser.parse_args(argv)
+    photos = sorted(str(p) for p in (data_root(args.data_root) / "yorkurbandb").glob("*/*.jpg"))
+    if not photos:
+        raise SystemExit("no YorkUrbanDB photos found under the data root")
+    rows = []
+    for copies in (int(c) for c in args.copies.split(",")):
+        paths = photos * copies
+        for mode in args.modes.split(","):
+            reference = None
+            for workers in args.workers.split(","):
+                runs = []
+                for _ in range(args.rounds):
+                    seconds, focal = _run(paths, mode, workers)
+                    runs.append(seconds)
+                    reference = reference if reference is not None else focal
+                    same = focal == reference
+                shown = workers if workers != "default" else f"default ({default_workers(len(paths))})"
+                row = {"images": len(paths), "mode": mode, "workers": shown, "seconds": runs,
+                       "images_per_s": len(paths) / (sum(runs) / len(runs)), "same_as_in_process": same}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    load = os.getloadavg() if hasattr(os, "getloadavg") else None
+    lines = [
+        f"# Folder end to end (`fr calibrate` on YorkUrbanDB photos, {usable_cores()} cores)", "",
+        "Command: `python -m fr_eval.folder_bench " + " ".join(argv if argv is not None else sys.argv[1:]) + "`.",
+        "Wall time of each whole `fr calibrate [--fast] [--workers W] PATHS...` process (start-up, model loading,",
+        "decode, LSD, search, JSON output), 640×480 JPEGs, the 102 photos repeated to make larger folders;",
+        f"rounds one after the other, seconds per round, images/s from their mean. Machine: {platform.processor() or platform.machine()},",
+        f"{usable_cores()} usable cores, load average after the run {tuple(round(v, 2) for v in load) if load else 'n/a'}.",
+        "W = 0: in-process (intra-op threads); W > 0 on a CPU: whole-image worker processes, one thread each.",
+        "", "| images | mode | workers W | seconds | images/s | focal lengths = in-process |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['images']} | {r['mode']} | {r['workers']} | {' / '.join(f'{s:.2f}' for s in r['seconds'])} "
+                     f"| {r['images_per_s']:.1f} | {'yes' if r['same_as_in_process'] else 'NO'} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,63 @@
+"""How worker processes start (imports no torch, so a command can start them before it loads it).
+
+Workers are started with ``forkserver`` where available (else ``spawn``): no OpenMP state or lock
+of the parent is inherited.  The fork server imports the library once (:data:`PRELOAD`) and every
+worker is forked from it, already loaded, so a pool starts in milliseconds instead of each worker
+importing torch (about a second and a half of CPU each).  :func:`start_worker_server` starts that
+server ahead of time, e.g. while the command-line process is still importing torch itself.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import multiprocessing.forkserver
+import os
+
+#: Modules the fork server imports once for all workers (``__main__`` as multiprocessing does;
+#: ``torch._dynamo`` is what the first ``torch.optim`` step imports, about a second per process).
+PRELOAD = ["__main__", "fr_torch.pipeline", "fr_torch.estimator", "torch._dynamo"]
+
+
+def context() -> multiprocessing.context.BaseContext:
+    """The multiprocessing context of every worker pool (forkserver, preloading :data:`PRELOAD`)."""
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(PRELOAD)  # no effect once the server runs
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
+def start_worker_server() -> None:
+    """Start the fork server now (it loads the library in its own process, in parallel with the
+    caller); a no-op where workers are spawned or the server already runs."""
+    if context().get_start_method() == "forkserver":
+        multiprocessing.forkserver.ensure_running()
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one, else all)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+#: Images per worker below which a worker pool does not pay for its start-up (about a second).
+MIN_IMAGES_PER_WORKER = 32
+#: Default cap on worker processes (each holds its own torch, about 300 MB).
+MAX_DEFAULT_WORKERS = 8
+
+
+def default_workers(images: int, device: str = "cpu") -> int:
+    """A sensible ``workers`` for ``images`` images on ``device`` (``fr calibrate``'s default).
+
+    CPU: one whole-image worker per usable core, at most :data:`MAX_DEFAULT_WORKERS` and at most
+    one per :data:`MIN_IMAGES_PER_WORKER` images; 0 (in-process, with intra-op threads) on one
+    core or for fewer images than that.  GPU: min(4, cores - 1) detection workers (0 on 1-2
+    cores, where they compete with the process feeding the device) when there are at least two
+    images.
+    """
+    cores = usable_cores()
+    if str(device).startswith("cpu"):
+        count = min(cores, MAX_DEFAULT_WORKERS, images // MIN_IMAGES_PER_WORKER)
+        return count if count >= 2 else 0
+    return 0 if cores <= 2 or images < 2 else min(4, cores - 1)
