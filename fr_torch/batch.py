@@ -27,8 +27,9 @@ and renamed, so a part is either complete or absent); a re-run with the same ``-
 ``image`` column of the existing parts and skips those images, so an interrupted job loses at most
 the batches in flight.
 
-Engines: ``local`` runs :meth:`FREstimator.calibrate_images` on batches in this process (Ray is
-never imported); ``ray`` (:mod:`fr_torch.batch_ray`) runs the same per-batch function
+Engines: ``local`` runs :meth:`FREstimator.calibrate_images` on batches on this machine (Ray is
+never imported): on a CPU in single-threaded worker processes, one per core (:func:`_run_local`),
+on a GPU in this process; ``ray`` (:mod:`fr_torch.batch_ray`) runs the same per-batch function
 (:func:`calibrate_rows`) in a Ray Data actor pool, one estimator per actor, and this process
 writes the parts.  Both produce the same columns.
 
@@ -426,8 +427,9 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     """Calibrate every image of ``inputs`` not yet in ``out``; returns a summary dict
     (``total``, ``skipped``, ``processed``, ``failed``, ``seconds``, ``images_per_s``).
 
-    ``workers``: local engine: torch / OpenCV threads (None = library default); ray engine: actors
-    (None = the cluster's CPUs / ``threads_per_worker``).  ``rows_per_part``: 0 = one part file per
+    ``workers``: local engine on a CPU: worker processes (None = one per core, up to 8, for 32+
+    images each; 1 = this process, one thread; see :func:`_run_local`), on a GPU: this process's
+    torch / OpenCV threads; ray engine: actors (None = the cluster's CPUs / ``threads_per_worker``).  ``rows_per_part``: 0 = one part file per
     batch (an interruption loses only the batches in flight); N = gather finished batches into parts
     of at least N rows (fewer files for millions of images; a hard kill loses up to N rows, CTRL-C
     writes what is finished).
@@ -461,7 +463,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     try:
         if todo:
             if engine == "local":
-                tables = _run_local(todo, options, extras, batch_size, threads=workers)
+                tables = _run_local(todo, options, extras, batch_size, workers)
             elif engine == "ray":
                 from .batch_ray import run_ray
 
@@ -487,10 +489,64 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     return summary
 
 
-def _run_local(rows: Sequence[dict], options, extras, batch_size: int, threads: int) -> Iterable:
-    worker = BatchWorker(options, extras, threads=threads)
-    for begin in range(0, len(rows), batch_size):
-        yield worker.calibrate_rows(rows[begin:begin + batch_size])
+def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: int | None) -> Iterable:
+    """Arrow tables of at most ``batch_size`` rows, in input order, for the local engine.
+
+    CPU: ``workers`` >= 2 single-threaded worker processes, one :class:`BatchWorker` each (None =
+    :func:`fr_torch.workers.default_workers`: one per core, up to 8, for 32+ images each); 1 = this
+    process with one thread (a default of no workers: torch's threads).  GPU: this process, ``workers`` =
+    its torch / OpenCV threads (as before).  A worker that dies fails only the image it was on.
+    """
+    from .workers import default_workers
+
+    device = str(options["estimator"].get("device", "cpu"))
+    on_cpu = device.startswith("cpu")
+    if workers is None:
+        workers = default_workers(len(rows), device) if on_cpu else 0
+    if workers < 2 or not on_cpu:
+        worker = BatchWorker(options, extras, threads=workers or None)
+        for begin in range(0, len(rows), batch_size):
+            yield worker.calibrate_rows(rows[begin:begin + batch_size])
+        return
+    import pyarrow as pa
+
+    from .pipeline import ordered_pool_map
+
+    rows = list(rows)
+    crash = os.environ.get(CRASH_ENV)  # tests: read here, the workers' fork server may predate it
+    one_row_tables = ordered_pool_map(_calibrate_rows_task, rows, batch_size, workers, _init_batch_worker,
+                                      (options, extras, crash), _CrashedRow(extras))
+    try:
+        for begin in range(0, len(rows), batch_size):
+            count = min(batch_size, len(rows) - begin)
+            yield pa.concat_tables([next(one_row_tables) for _ in range(count)])
+    finally:  # stop the pool now when the caller stops early (CTRL-C, an error writing a part)
+        one_row_tables.close()
+
+
+_BATCH_WORKER: dict = {}
+
+
+def _init_batch_worker(options, extras, crash) -> None:
+    _BATCH_WORKER["worker"] = BatchWorker(options, extras, threads=1, crash=crash or "")
+
+
+def _calibrate_rows_task(rows):
+    """In a worker process: one one-row table per row (so a crash retry can regroup them)."""
+    table = _BATCH_WORKER["worker"].calibrate_rows(rows)
+    return [table.slice(i, 1) for i in range(table.num_rows)]
+
+
+class _CrashedRow:
+    """The output row of an input row whose worker process died on it."""
+
+    def __init__(self, extras):
+        self.extras = extras
+
+    def __call__(self, row):
+        name = str(row["image"])
+        record = _failed(name, f"{name}: a worker process crashed on this image").to_json()
+        return records_to_table([record], [row], self.extras)
 
 
 # ---------------------------------------------------------------------------------------- CLI
@@ -506,7 +562,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="local: this process (default); ray: Ray Data actor pool (pip install 'fr-torch[ray]')")
     parser.add_argument("--workers", type=int, default=None,
                         help="ray: number of actors, one estimator each (default: the cluster's CPUs); "
-                             "local: torch / OpenCV threads (default: theirs)")
+                             "local on a CPU: single-threaded worker processes (default: one per core, up to 8, "
+                             "for 32+ images each; 1 = this process), on a GPU: this process's threads")
     parser.add_argument("--address", default=None,
                         help="ray: cluster to join (e.g. auto, ray://host:10001); default $RAY_ADDRESS, "
                              "else a local cluster (--workers CPUs, default all)")
@@ -531,6 +588,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``fr batch``: prints a one-line summary; exit 0 even when some images failed (they are rows
     with ok=false), non-zero on a usage error."""
+    if args.engine == "local" and str(args.device).startswith("cpu") and args.workers != 1:
+        from .workers import start_worker_server
+
+        start_worker_server()  # in case there are workers: they load the library while this process does
     try:
         import pyarrow  # noqa: F401
     except ImportError:

@@ -20,7 +20,7 @@ Every pool keeps a bounded number of tasks in flight (memory does not grow with 
 returns results in input order; a bad file is that file's failure (an ``FRInputError`` message,
 or the exception's one line).  A worker that dies (a native crash in a decoder or detector) fails
 only the image it was on: its chunk is retried one image at a time in a fresh pool
-(:func:`_ordered_pool_map`).
+(:func:`ordered_pool_map`).
 
 Workers are forked from a fork server that has loaded the library (:mod:`fr_torch.workers`;
 ``spawn`` where there is no fork server); each runs with one torch thread and one OpenCV thread.
@@ -125,7 +125,7 @@ def _portable_detector(detector):
 MAX_BROKEN_POOLS = 5
 
 
-def _ordered_pool_map(function, items: list, chunk_size: int, workers: int, initializer, initargs,
+def ordered_pool_map(function, items: list, chunk_size: int, workers: int, initializer, initargs,
                       on_crash, queue_size: int | None = None) -> Iterator:
     """Yield ``function(chunk)``'s results item by item, in input order, computing chunks of at
     most ``chunk_size`` consecutive ``items`` in ``workers`` processes (``initializer(*initargs)``
@@ -196,7 +196,7 @@ def iter_detections(images: Sequence, names: Sequence[str], detector, segment_fi
         for image, name in zip(images, names):
             yield detect_image(image, name, detector, segment_filter, working_long_side)
         return
-    yield from _ordered_pool_map(_detect_chunk, list(zip(images, names)), 1, workers, _init_worker,
+    yield from ordered_pool_map(_detect_chunk, list(zip(images, names)), 1, workers, _init_worker,
                                  (_portable_detector(detector), segment_filter, working_long_side),
                                  _detection_crash, queue_size or 4 * workers)
 
@@ -246,7 +246,7 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
         portable = copy.copy(estimator)
         portable.detector = _portable_detector(estimator.detector)
-        results = _ordered_pool_map(_calibrate_chunk, list(zip(images, names, focal_list, pp_list)), chunk_size,
+        results = ordered_pool_map(_calibrate_chunk, list(zip(images, names, focal_list, pp_list)), chunk_size,
                                     workers, _init_calibrate_worker, (portable,), _calibration_crash)
         try:
             for start in range(0, len(images), batch_size):

@@ -129,6 +129,22 @@ def test_resume_after_interrupted_run(image_set, local_output, tmp_path):
     assert not list(out.glob(".*"))  # no temp files left
 
 
+def test_local_worker_processes_match_in_process_and_survive_a_crash(image_set, local_output, tmp_path, monkeypatch):
+    """The local engine's worker processes give the in-process rows, even when a worker dies on an
+    image once (the injected crash): its batch is retried image by image and the run goes on
+    (an image that kills its worker every time fails alone: tests/test_pipeline.py)."""
+    monkeypatch.setenv("FR_BATCH_CRASH", f"room20.png:{tmp_path / 'marker'}")
+    out = tmp_path / "out.parquet"
+    summary = run_batch([str(image_set["manifest"])], out, _options(), workers=2, batch_size=8, progress=False)
+    assert (tmp_path / "marker").exists()  # the crash happened
+    assert summary["processed"] == N_GOOD + 3 and summary["failed"] == 3  # the 3 bad files
+    assert len(list(out.glob("part-*.parquet"))) == 5  # 33 rows in batches of 8, regrouped after the retry
+    frame, reference = _read(out), _read(local_output)
+    assert list(frame.image) == list(reference.image) and list(frame.camera) == list(reference.camera)
+    assert list(frame.ok) == list(reference.ok)
+    assert np.allclose(frame.focal_px, reference.focal_px, rtol=1e-5, equal_nan=True)
+
+
 def test_rows_per_part_gathers_batches_and_cli_summary(image_set, tmp_path, capsys):
     from fr_torch.cli import main
 
