@@ -246,6 +246,11 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
         portable = copy.copy(estimator)
         portable.detector = _portable_detector(estimator.detector)
+        try:  # checked here, not when the pool starts its workers (a traceback deep in multiprocessing)
+            pickle.dumps(portable)
+        except Exception as exc:
+            raise FRInputError(f"this estimator cannot be sent to worker processes ({type(exc).__name__}: {exc}); "
+                               "use workers=0") from None
         results = ordered_pool_map(_calibrate_chunk, list(zip(images, names, focal_list, pp_list)), chunk_size,
                                     workers, _init_calibrate_worker, (portable,), _calibration_crash)
         try:

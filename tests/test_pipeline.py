@@ -148,10 +148,14 @@ def test_importing_the_library_and_its_command_line_loads_no_torch():
     assert "FREstimator" in out.stdout
 
 
-def test_a_detector_workers_cannot_build_is_a_one_line_error():
+def test_what_workers_cannot_receive_is_a_one_line_error():
     class Local(LSDDetector):
         name = "no-such-detector"
 
     est = FREstimator(mode="fast", detector=Local())
     with pytest.raises(FRInputError, match="cannot be sent to worker processes"):
+        list(calibrate_paths(est, [np.zeros((50, 50), np.uint8)] * 3, workers=2))
+    est = FREstimator(mode="fast", reliability=None)
+    est.reliability = lambda results, mode: None  # a user's object that does not pickle
+    with pytest.raises(FRInputError, match="estimator cannot be sent to worker processes"):
         list(calibrate_paths(est, [np.zeros((50, 50), np.uint8)] * 3, workers=2))
