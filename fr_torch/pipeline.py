@@ -19,8 +19,8 @@ detection ahead of a GPU search, and a batch of segment sets sharded over worker
 Every pool keeps a bounded number of tasks in flight (memory does not grow with the folder) and
 returns results in input order; a bad file is that file's failure (an ``FRInputError`` message,
 or the exception's one line).  A worker that dies (a native crash in a decoder or detector) fails
-only the image it was on: its chunk is retried one image at a time in a fresh pool
-(:func:`ordered_pool_map`).
+only the image it was on: the chunk it lost is retried one image at a time, each alone in a fresh
+pool, and only an image that kills its worker when alone fails (:func:`ordered_pool_map`).
 
 Workers are forked from a fork server that has loaded the library (:mod:`fr_torch.workers`;
 ``spawn`` where there is no fork server); each runs with one torch thread and one OpenCV thread.
@@ -29,7 +29,6 @@ A pool pays for folders and large batches, not for a few images (:func:`fr_torch
 from __future__ import annotations
 
 import copy
-import os
 import pickle
 import time
 from collections import deque
@@ -42,7 +41,6 @@ import numpy as np
 
 from . import image_io, validate
 from .workers import context as workers_context
-from .workers import default_workers, usable_cores  # noqa: F401  (public here too)
 from .segments import FRInputError, SegmentFilter, detect_segments, get_detector
 
 

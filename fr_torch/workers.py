@@ -13,7 +13,7 @@ import multiprocessing.forkserver
 import os
 
 #: Modules the fork server imports once for all workers (``__main__`` as multiprocessing does;
-#: ``torch._dynamo`` is what the first ``torch.optim`` step imports, about a second per process).
+#: ``torch._dynamo`` is what building the first ``torch.optim`` optimizer imports, ~1 s per process).
 PRELOAD = ["__main__", "fr_torch.pipeline", "fr_torch.estimator", "torch._dynamo"]
 
 
