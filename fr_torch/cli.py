@@ -32,11 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="known focal length in pixels (then only the rotation is searched)")
     parser.add_argument("--pp", type=str, default=None, metavar="X,Y",
                         help="principal point in pixels (default: image centre)")
-    parser.add_argument("--batch-size", type=int, default=16, help="images searched together")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="images searched together (default 16 on a CPU, 256 on a GPU)")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="worker processes (0 = in-process). CPU: each decodes, detects and searches its "
                              "share of the images (default: one per core, up to 8, for 64+ images); GPU: they "
-                             "decode + detect ahead of the search (default min(4, cores - 1), 0 on 1-2 cores)")
+                             "decode + detect ahead of the search (default: cores - 1, up to 16; 0 on 1-2 cores)")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write a JSON list to OUT")
     parser.add_argument("--overlay", type=Path, default=None, metavar="DIR",
                         help="write <image>_fr.png overlays (segments by family, horizon) to DIR")
@@ -46,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
     paths = [str(p) for p in args.images]
-    from .workers import default_workers, start_worker_server
+    from .workers import default_batch_size, default_workers, start_worker_server
 
     workers = default_workers(len(paths), args.device) if args.workers is None else args.workers
     workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
@@ -61,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 0:
         raise FRInputError("--workers must be 0 (in-process) or more")
     focal_px, principal_point = camera_options(args)  # per image: within a 1-179 deg field of view
-    if args.batch_size < 1:
+    batch_size = default_batch_size(args.device) if args.batch_size is None else args.batch_size
+    if batch_size < 1:
         raise FRInputError("--batch-size must be at least 1")
     estimator = FREstimator(**estimator_kwargs(args))
     if args.overlay:
@@ -71,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     everything, failures = [], 0
     from .pipeline import calibrate_paths
     try:
-        for chunk, results in calibrate_paths(estimator, paths, args.batch_size, workers, focal_px,
+        for chunk, results in calibrate_paths(estimator, paths, batch_size, workers, focal_px,
                                               principal_point):
             for path, result in zip(chunk, results):
                 record = validate.json_safe(result.to_json(include_segments=args.segments))

@@ -132,10 +132,14 @@ def test_default_workers(monkeypatch):
     assert workers_module.default_workers(1000, "cpu") == workers_module.MAX_DEFAULT_WORKERS
     assert workers_module.default_workers(100, "cpu") == 3  # one per 32 images
     assert workers_module.default_workers(40, "cpu") == 0  # a pool does not pay
-    assert workers_module.default_workers(100, "cuda") == 4  # detection ahead of the device
+    assert workers_module.default_workers(100, "cuda") == 15  # detection on every other core, for the device
+    assert workers_module.default_workers(1, "cuda") == 0
+    monkeypatch.setattr(workers_module, "usable_cores", lambda: 64)
+    assert workers_module.default_workers(10_000, "cuda:0") == workers_module.MAX_DEFAULT_DETECTION_WORKERS
     monkeypatch.setattr(workers_module, "usable_cores", lambda: 1)
     assert workers_module.default_workers(1000, "cpu") == 0
     assert workers_module.default_workers(1000, "cuda:0") == 0
+    assert workers_module.default_batch_size("cpu") == 16 and workers_module.default_batch_size("cuda:1") == 256
 
 
 def test_importing_the_library_and_its_command_line_loads_no_torch():
