@@ -223,23 +223,25 @@ def _calibration_crash(item):
 
 
 def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: int = 0, focal_px=None,
-                    principal_point=None, names: Sequence[str] | None = None) -> Iterator[tuple[list, list]]:
+                    principal_point=None, names: Sequence[str] | None = None,
+                    whole_images: bool | None = None) -> Iterator[tuple[list, list]]:
     """Calibrate images (paths or arrays) batch by batch; yields ``(images, results)`` per batch of
     at most ``batch_size`` images, in input order.
 
     Same results as ``estimator.calibrate_images`` on each batch (to the batched == one-by-one
-    tolerances).  ``workers > 0``: a CPU estimator calibrates chunks of at most ``batch_size``
-    images in that many single-threaded processes (a copy of the estimator in each); a GPU
-    estimator searches here while the workers decode and detect the next images (module
-    docstring).  ``focal_px`` / ``principal_point``: as for ``calibrate_images`` (one value or
-    one per image).
+    tolerances).  ``workers > 0`` with ``whole_images`` (the default for a CPU estimator): chunks
+    of at most ``batch_size`` images are calibrated in that many single-threaded processes (a copy
+    of the estimator in each).  Without (always for a GPU estimator): this process searches while
+    the workers decode and detect the next images, up to two batches ahead (module docstring).
+    ``focal_px`` / ``principal_point``: as for ``calibrate_images`` (one value or one per image).
     """
     images = list(images)
     names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
                                                    for i, im in enumerate(images)]
     focal_list = validate.per_image(focal_px, len(images), "focal_px")
     pp_list = validate.per_image(principal_point, len(images), "principal_point", width=2)
-    if workers > 0 and estimator.device.type == "cpu":
+    on_cpu = estimator.device.type == "cpu"
+    if workers > 0 and on_cpu and (whole_images is None or whole_images):
         # Chunks small enough that every worker gets several (the last ones finish together).
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
         portable = copy.copy(estimator)
@@ -258,7 +260,10 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
         finally:  # a caller that stops early shuts the pool down now, not at garbage collection
             results.close()
         return
+    # Up to two batches in flight: the workers detect the whole next batch while this one is searched
+    # (a queue shorter than a batch would stall them halfway through every search).
     detections = iter_detections(images, names, estimator.detector, estimator.segment_filter, workers,
+                                 queue_size=max(4 * workers, 2 * batch_size),
                                  working_long_side=estimator.working_long_side)
     for start in range(0, len(images), batch_size):
         stop = start + batch_size

@@ -42,11 +42,13 @@ def folder(tmp_path_factory):
     return paths
 
 
-@pytest.mark.parametrize("workers", [0, 2])
-def test_pipeline_equals_in_process_and_keeps_order(folder, workers):
+@pytest.mark.parametrize("workers, whole_images", [(0, None), (2, True), (2, False)])
+def test_pipeline_equals_in_process_and_keeps_order(folder, workers, whole_images):
+    """In-process, whole images in workers (a CPU's default) and detection-only workers (a GPU's)."""
     est = FREstimator(mode="fast")
     reference = est.calibrate_images(folder)
-    got = [(chunk, results) for chunk, results in calibrate_paths(est, folder, batch_size=2, workers=workers)]
+    got = [(chunk, results) for chunk, results in calibrate_paths(est, folder, batch_size=2, workers=workers,
+                                                                  whole_images=whole_images)]
     assert [p for chunk, _ in got for p in chunk] == folder
     results = [r for _, batch in got for r in batch]
     assert [r.image for r in results] == folder
