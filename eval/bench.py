@@ -59,6 +59,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fr_torch.workers import usable_cores
+
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "results" / "bench"
 STAGES = ("detect", "grid", "refine", "cues", "total")
@@ -115,7 +117,7 @@ def _cpu_model() -> str:
 def machine_description(device: str) -> dict:
     import torch
 
-    info = {"cpu": _cpu_model(), "cores": os.cpu_count(), "torch": torch.__version__,
+    info = {"cpu": _cpu_model(), "cores": os.cpu_count(), "usable_cores": usable_cores(), "torch": torch.__version__,
             "threads": torch.get_num_threads(), "device": device, "python": platform.python_version(),
             "platform": platform.platform()}
     try:
@@ -622,7 +624,7 @@ def run(args: argparse.Namespace) -> int:
     if args.batches:
         batches = [int(b) for b in args.batches.split(",")]
     device_batches = [1, 4] if quick else [1, 64, 256, 1024, 4096]  # CUDA: large batches, capped by the budget
-    cores = os.cpu_count() or 1
+    cores = usable_cores()  # affinity and container quota, as the worker defaults count them
     counts = [1, 2] if quick else sorted({1, 2, min(4, cores), min(8, cores), cores} - {0})
     par_batch = 4 if quick else 64
     n_seg_tp = 50 if quick else 300

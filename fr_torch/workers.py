@@ -8,9 +8,11 @@ server ahead of time, e.g. while the command-line process is still importing tor
 """
 from __future__ import annotations
 
+import math
 import multiprocessing
 import multiprocessing.forkserver
 import os
+from pathlib import Path
 
 #: Modules the fork server imports once for all workers (``__main__`` as multiprocessing does;
 #: ``torch._dynamo`` is what building the first ``torch.optim`` optimizer imports, ~1 s per process).
@@ -33,12 +35,32 @@ def start_worker_server() -> None:
         multiprocessing.forkserver.ensure_running()
 
 
-def usable_cores() -> int:
-    """CPU cores this process may run on (its affinity mask where the OS has one, else all)."""
+def cgroup_cpu_limit(root: str | Path = "/sys/fs/cgroup") -> float | None:
+    """CPUs granted by the cgroup CPU quota (a container's ``--cpus``), or None where there is no
+    quota or no cgroup file (cgroup v2 ``cpu.max``, else v1 ``cpu/cpu.cfs_quota_us`` / ``_period_us``)."""
+    root = Path(root)
     try:
-        return len(os.sched_getaffinity(0))
+        quota, period = (root / "cpu.max").read_text().split()[:2]
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        pass
+    try:
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+    except (OSError, ValueError):
+        return None
+    return quota / period if quota > 0 and period > 0 else None
+
+
+def usable_cores() -> int:
+    """CPU cores this process may use: its affinity mask (else all cores), capped by the cgroup CPU
+    quota (in a container with ``--cpus 2`` on a 64-core host that is 2, not 64)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
-        return os.cpu_count() or 1
+        cores = os.cpu_count() or 1
+    limit = cgroup_cpu_limit()
+    return max(1, min(cores, math.ceil(limit))) if limit else cores
 
 
 #: Images per worker below which a worker pool does not pay for its start-up (about a second).

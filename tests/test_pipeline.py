@@ -144,6 +144,23 @@ def test_default_workers(monkeypatch):
     assert workers_module.default_batch_size("cpu") == 16 and workers_module.default_batch_size("cuda:1") == 256
 
 
+def test_cgroup_cpu_quota(tmp_path):
+    """A container's CPU quota caps the cores the defaults count (cgroup v2 and v1 files)."""
+    assert workers_module.cgroup_cpu_limit(tmp_path) is None  # no cgroup files
+    (tmp_path / "cpu.max").write_text("max 100000\n")
+    assert workers_module.cgroup_cpu_limit(tmp_path) is None
+    (tmp_path / "cpu.max").write_text("250000 100000\n")
+    assert workers_module.cgroup_cpu_limit(tmp_path) == pytest.approx(2.5)
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1\n")
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000\n")
+    assert workers_module.cgroup_cpu_limit(v1) is None
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("400000\n")
+    assert workers_module.cgroup_cpu_limit(v1) == pytest.approx(4.0)
+    assert 1 <= workers_module.usable_cores() <= (os.cpu_count() or 1)
+
+
 def test_importing_the_library_and_its_command_line_loads_no_torch():
     """``import fr_torch`` and ``fr_torch.cli`` are light, so ``fr`` can start its workers' server
     while it loads torch; the public names still load on use."""
