@@ -597,6 +597,9 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         raise ValueError("fr batch writes Parquet and needs pyarrow: pip install 'fr-torch[batch]'") from None
     options = estimator_options(args)
+    from .workers import fit_threads_to_cores
+
+    fit_threads_to_cores()  # this process's threads (an explicit local --workers 1 still sets its own)
     summary = run_batch([str(p) for p in args.inputs], args.out, options, engine=args.engine,
                         workers=args.workers, batch_size=args.batch_size, address=args.address,
                         progress=not args.no_progress, threads_per_worker=args.threads_per_worker,

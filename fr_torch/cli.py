@@ -47,7 +47,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
     paths = [str(p) for p in args.images]
-    from .workers import default_batch_size, default_workers, start_worker_server
+    from .workers import default_batch_size, default_workers, fit_threads_to_cores, start_worker_server
 
     workers = default_workers(len(paths), args.device) if args.workers is None else args.workers
     workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
@@ -59,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
 
     from . import validate
 
+    fit_threads_to_cores()
     if args.workers is not None and args.workers < 0:
         raise FRInputError("--workers must be 0 (in-process) or more")
     focal_px, principal_point = camera_options(args)  # per image: within a 1-179 deg field of view

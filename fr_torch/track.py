@@ -179,6 +179,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
+    from .workers import fit_threads_to_cores
+
+    fit_threads_to_cores()
     validate.track_options(args)
     estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
     mode = estimator.mode

@@ -98,3 +98,17 @@ DEFAULT_BATCH_SIZE = {"cpu": 16, "cuda": 256}
 def default_batch_size(device: str = "cpu") -> int:
     """:data:`DEFAULT_BATCH_SIZE` of ``device``'s type (``cuda:1`` -> ``cuda``; unknown -> CPU's)."""
     return DEFAULT_BATCH_SIZE.get(str(device).split(":")[0], DEFAULT_BATCH_SIZE["cpu"])
+
+
+def fit_threads_to_cores() -> None:
+    """Cap torch's intra-op threads and OpenCV's threads at :func:`usable_cores` (the commands call
+    this).  In a container both count the host's cores, not the CPUs the quota grants, and an
+    OpenMP region with more threads than CPUs stalls on every op."""
+    import cv2
+    import torch
+
+    cores = usable_cores()
+    if torch.get_num_threads() > cores:
+        torch.set_num_threads(cores)
+    if cv2.getNumThreads() > cores:
+        cv2.setNumThreads(cores)

@@ -161,6 +161,19 @@ def test_cgroup_cpu_quota(tmp_path):
     assert 1 <= workers_module.usable_cores() <= (os.cpu_count() or 1)
 
 
+def test_threads_fit_the_usable_cores(monkeypatch):
+    import torch
+
+    before, before_cv = torch.get_num_threads(), cv2.getNumThreads()
+    monkeypatch.setattr(workers_module, "usable_cores", lambda: 1)
+    try:
+        workers_module.fit_threads_to_cores()
+        assert torch.get_num_threads() == 1 and cv2.getNumThreads() <= 1
+    finally:
+        torch.set_num_threads(before)
+        cv2.setNumThreads(before_cv)
+
+
 def test_importing_the_library_and_its_command_line_loads_no_torch():
     """``import fr_torch`` and ``fr_torch.cli`` are light, so ``fr`` can start its workers' server
     while it loads torch; the public names still load on use."""
