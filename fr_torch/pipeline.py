@@ -124,7 +124,7 @@ MAX_BROKEN_POOLS = 5
 
 
 def ordered_pool_map(function, items: list, chunk_size: int, workers: int, initializer, initargs,
-                      on_crash, queue_size: int | None = None) -> Iterator:
+                     on_crash, queue_size: int | None = None) -> Iterator:
     """Yield ``function(chunk)``'s results item by item, in input order, computing chunks of at
     most ``chunk_size`` consecutive ``items`` in ``workers`` processes (``initializer(*initargs)``
     runs once in each).  ``function`` returns one result per item of its chunk.
@@ -195,8 +195,8 @@ def iter_detections(images: Sequence, names: Sequence[str], detector, segment_fi
             yield detect_image(image, name, detector, segment_filter, working_long_side)
         return
     yield from ordered_pool_map(_detect_chunk, list(zip(images, names)), 1, workers, _init_worker,
-                                 (_portable_detector(detector), segment_filter, working_long_side),
-                                 _detection_crash, queue_size or 4 * workers)
+                                (_portable_detector(detector), segment_filter, working_long_side),
+                                _detection_crash, queue_size or 4 * workers)
 
 
 def _init_calibrate_worker(estimator) -> None:
@@ -240,8 +240,7 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
                                                    for i, im in enumerate(images)]
     focal_list = validate.per_image(focal_px, len(images), "focal_px")
     pp_list = validate.per_image(principal_point, len(images), "principal_point", width=2)
-    on_cpu = estimator.device.type == "cpu"
-    if workers > 0 and on_cpu and (whole_images is None or whole_images):
+    if workers > 0 and estimator.device.type == "cpu" and whole_images is not False:
         # Chunks small enough that every worker gets several (the last ones finish together).
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
         portable = copy.copy(estimator)
@@ -252,7 +251,7 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
             raise FRInputError(f"this estimator cannot be sent to worker processes ({type(exc).__name__}: {exc}); "
                                "use workers=0") from None
         results = ordered_pool_map(_calibrate_chunk, list(zip(images, names, focal_list, pp_list)), chunk_size,
-                                    workers, _init_calibrate_worker, (portable,), _calibration_crash)
+                                   workers, _init_calibrate_worker, (portable,), _calibration_crash)
         try:
             for start in range(0, len(images), batch_size):
                 chunk = images[start:start + batch_size]
@@ -265,12 +264,15 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
     detections = iter_detections(images, names, estimator.detector, estimator.segment_filter, workers,
                                  queue_size=max(4 * workers, 2 * batch_size),
                                  working_long_side=estimator.working_long_side)
-    for start in range(0, len(images), batch_size):
-        stop = start + batch_size
-        chunk = images[start:stop]
-        batch = [next(detections) for _ in chunk]
-        yield chunk, estimator.calibrate_detections(batch, names[start:stop], focal_list[start:stop],
-                                                    pp_list[start:stop])
+    try:
+        for start in range(0, len(images), batch_size):
+            stop = start + batch_size
+            chunk = images[start:stop]
+            batch = [next(detections) for _ in chunk]
+            yield chunk, estimator.calibrate_detections(batch, names[start:stop], focal_list[start:stop],
+                                                        pp_list[start:stop])
+    finally:
+        detections.close()
 
 
 # --------------------------------------------------------------------------- sharded search
