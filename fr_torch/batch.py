@@ -429,10 +429,10 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
 
     ``workers``: local engine on a CPU: worker processes (None = one per core, up to 8, for 32+
     images each; 1 = this process, one thread; see :func:`_run_local`), on a GPU: this process's
-    torch / OpenCV threads; ray engine: actors (None = the cluster's CPUs / ``threads_per_worker``).  ``rows_per_part``: 0 = one part file per
-    batch (an interruption loses only the batches in flight); N = gather finished batches into parts
-    of at least N rows (fewer files for millions of images; a hard kill loses up to N rows, CTRL-C
-    writes what is finished).
+    torch / OpenCV threads; ray engine: actors (None = the cluster's CPUs / ``threads_per_worker``).
+    ``rows_per_part``: 0 = one part file per batch (an interruption loses only the batches in
+    flight); N = gather finished batches into parts of at least N rows (fewer files for millions
+    of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
     """
     import pyarrow as pa
 
@@ -493,9 +493,9 @@ def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: 
     """Arrow tables of at most ``batch_size`` rows, in input order, for the local engine.
 
     CPU: ``workers`` >= 2 single-threaded worker processes, one :class:`BatchWorker` each (None =
-    :func:`fr_torch.workers.default_workers`: one per core, up to 8, for 32+ images each); 1 = this
-    process with one thread (a default of no workers: torch's threads).  GPU: this process, ``workers`` =
-    its torch / OpenCV threads (as before).  A worker that dies fails only the image it was on.
+    :func:`fr_torch.workers.default_workers`: one per core, up to 8, for 32+ images each); 1 =
+    this process with one thread (a default of no workers: torch's threads).  GPU: this process,
+    ``workers`` = its torch / OpenCV threads.  A worker that dies fails only the image it was on.
     """
     from .workers import default_workers
 
@@ -559,7 +559,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "fsspec URIs (s3://...) when the filesystem package is installed")
     parser.add_argument("--out", required=True, type=Path, help="output Parquet dataset (a folder of part files)")
     parser.add_argument("--engine", choices=("local", "ray"), default="local",
-                        help="local: this process (default); ray: Ray Data actor pool (pip install 'fr-torch[ray]')")
+                        help="local: this machine (default); ray: Ray Data actor pool (pip install 'fr-torch[ray]')")
     parser.add_argument("--workers", type=int, default=None,
                         help="ray: number of actors, one estimator each (default: the cluster's CPUs); "
                              "local on a CPU: single-threaded worker processes (default: one per core, up to 8, "
