@@ -42,6 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overlay", type=Path, default=None, metavar="DIR",
                         help="write <image>_fr.png overlays (segments by family, horizon) to DIR")
     parser.add_argument("--segments", action="store_true", help="include segments and labels in the JSON")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (shown on a terminal's stderr when stdout goes to a file or pipe)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,7 +74,13 @@ def run(args: argparse.Namespace) -> int:
     if args.json and args.json.is_dir():
         raise FRInputError(f"--json {args.json}: is a folder, not a file")
     everything, failures = [], 0
+    from tqdm import tqdm
+
     from .pipeline import calibrate_paths
+
+    # A bar when the JSON lines go to a file or pipe and stderr is a terminal (else they show progress).
+    show_bar = not args.no_progress and len(paths) > 1 and sys.stderr.isatty() and not sys.stdout.isatty()
+    bar = tqdm(total=len(paths), unit="img", desc="fr calibrate", disable=not show_bar, file=sys.stderr)
     try:
         for chunk, results in calibrate_paths(estimator, paths, batch_size, workers, focal_px,
                                               principal_point):
@@ -83,16 +91,18 @@ def run(args: argparse.Namespace) -> int:
                 if not result.ok:
                     failures += 1
                     reason = result.reason  # image_io reasons already start with the path
-                    print(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
-                          file=sys.stderr)
+                    bar.write(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
+                              file=sys.stderr)
                 if args.overlay and result.width > 0:
                     from .overlay import write_overlay
 
                     try:
                         write_overlay(path, result, args.overlay)
                     except FRInputError as exc:
-                        print(f"fr: {exc}", file=sys.stderr)
+                        bar.write(f"fr: {exc}", file=sys.stderr)
+            bar.update(len(chunk))
     finally:  # the JSON holds every result so far, written atomically (never a truncated file)
+        bar.close()
         if args.json:
             validate.write_text_atomic(args.json, validate.dumps(everything, indent=1))
     return 1 if failures else 0
