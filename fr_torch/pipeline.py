@@ -8,6 +8,8 @@ detection ahead of a GPU search, and a batch of segment sets sharded over worker
   number of cores: intra-op threads of one process stop paying past a few cores, and OpenCV's LSD
   runs on one core).  On a **GPU** estimator the workers decode and detect while this process
   searches the previous batch on the device.
+* :func:`calibrate_stream` does the same for a stream of frames of unknown length (``fr track``),
+  reading it only as far as the work in flight.
 * :func:`iter_detections` decodes and detects images in ``workers`` processes (0 = in this
   process), yielding one :class:`Detection` per image in input order.
 * :func:`calibrate_segments_sharded` splits a large batch of segment sets into ``workers``
@@ -29,13 +31,14 @@ A pool pays for folders and large batches, not for a few images (:func:`fr_torch
 from __future__ import annotations
 
 import copy
+import itertools
 import pickle
 import time
 from collections import deque
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
-from typing import Iterator, NamedTuple, Sequence
+from typing import Iterable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
@@ -123,11 +126,12 @@ def _portable_detector(detector):
 MAX_BROKEN_POOLS = 5
 
 
-def ordered_pool_map(function, items: list, chunk_size: int, workers: int, initializer, initargs,
+def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, initializer, initargs,
                      on_crash, queue_size: int | None = None) -> Iterator:
     """Yield ``function(chunk)``'s results item by item, in input order, computing chunks of at
     most ``chunk_size`` consecutive ``items`` in ``workers`` processes (``initializer(*initargs)``
-    runs once in each).  ``function`` returns one result per item of its chunk.
+    runs once in each).  ``function`` returns one result per item of its chunk.  ``items`` may be
+    any iterable (a video's frames): it is read only as chunks are submitted.
 
     At most ``queue_size`` chunks (default 2 per worker) are in flight.  When a worker dies, every
     task in flight is lost; the one being waited for may be innocent (a neighbour's crash), so its
@@ -135,18 +139,25 @@ def ordered_pool_map(function, items: list, chunk_size: int, workers: int, initi
     Only an item whose worker dies while it is the only task in flight gives ``on_crash(item)``.
     """
     queue_size = queue_size or 2 * workers
-    # (chunk, alone): an "alone" chunk runs with nothing else in flight
-    todo = deque((items[start:start + chunk_size], False) for start in range(0, len(items), chunk_size))
+    source = iter(items)
+    todo: deque = deque()  # (chunk, alone) to submit before reading more items; "alone" = nothing else in flight
     pending: deque = deque()
     broken_in_a_row = 0  # pools that died before finishing any task (workers that cannot start)
+
+    def next_todo() -> bool:
+        if not todo:
+            chunk = list(itertools.islice(source, chunk_size))
+            if chunk:
+                todo.append((chunk, False))
+        return bool(todo)
 
     def start_pool():
         return ProcessPoolExecutor(workers, mp_context=workers_context(), initializer=initializer, initargs=initargs)
 
     pool = start_pool()
     try:
-        while todo or pending:
-            while todo and len(pending) < queue_size and not (pending and (todo[0][1] or pending[-1][1])):
+        while next_todo() or pending:
+            while len(pending) < queue_size and next_todo() and not (pending and (todo[0][1] or pending[-1][1])):
                 chunk, alone = todo.popleft()
                 pending.append((chunk, alone, pool.submit(function, chunk)))
             chunk, alone, future = pending.popleft()
@@ -222,6 +233,36 @@ def _calibration_crash(item):
                              reason=f"{item[1]}: a worker process crashed on this image")
 
 
+def _portable_estimator(estimator):
+    """A copy of ``estimator`` that pickles (its detector by name where needed), or FRInputError --
+    checked here, not when a pool starts its workers (a traceback deep in multiprocessing)."""
+    portable = copy.copy(estimator)
+    portable.detector = _portable_detector(estimator.detector)
+    try:
+        pickle.dumps(portable)
+    except Exception as exc:
+        raise FRInputError(f"this estimator cannot be sent to worker processes ({type(exc).__name__}: {exc}); "
+                           "use workers=0") from None
+    return portable
+
+
+def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: int = 0) -> Iterator:
+    """Calibrate a stream of ``(image, name)`` pairs (a video's frames: arrays or paths), yielding one
+    :class:`~fr_torch.estimator.CalibrationResult` per frame, in order, without reading the stream
+    ahead by more than what is in flight (one batch in-process; two chunks of ``batch_size`` per
+    worker with ``workers > 0``, which on a CPU estimator calibrate whole frames in worker
+    processes as :func:`calibrate_paths` does; a GPU estimator stays in this process).
+    """
+    if workers > 0 and estimator.device.type == "cpu":
+        items = ((image, name, None, None) for image, name in frames)
+        yield from ordered_pool_map(_calibrate_chunk, items, batch_size, workers, _init_calibrate_worker,
+                                    (_portable_estimator(estimator),), _calibration_crash)
+        return
+    source = iter(frames)
+    while batch := list(itertools.islice(source, batch_size)):
+        yield from estimator.calibrate_images([image for image, _ in batch], names=[name for _, name in batch])
+
+
 def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: int = 0, focal_px=None,
                     principal_point=None, names: Sequence[str] | None = None,
                     whole_images: bool | None = None) -> Iterator[tuple[list, list]]:
@@ -243,15 +284,9 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
     if workers > 0 and estimator.device.type == "cpu" and whole_images is not False:
         # Chunks small enough that every worker gets several (the last ones finish together).
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
-        portable = copy.copy(estimator)
-        portable.detector = _portable_detector(estimator.detector)
-        try:  # checked here, not when the pool starts its workers (a traceback deep in multiprocessing)
-            pickle.dumps(portable)
-        except Exception as exc:
-            raise FRInputError(f"this estimator cannot be sent to worker processes ({type(exc).__name__}: {exc}); "
-                               "use workers=0") from None
         results = ordered_pool_map(_calibrate_chunk, list(zip(images, names, focal_list, pp_list)), chunk_size,
-                                   workers, _init_calibrate_worker, (portable,), _calibration_crash)
+                                   workers, _init_calibrate_worker, (_portable_estimator(estimator),),
+                                   _calibration_crash)
         try:
             for start in range(0, len(images), batch_size):
                 chunk = images[start:start + batch_size]

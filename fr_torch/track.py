@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections import deque
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
@@ -160,6 +161,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--every", type=int, default=1, metavar="N", help="process every N-th frame")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many processed frames")
     parser.add_argument("--batch-size", type=int, default=8, help="frames searched together")
+    parser.add_argument("--workers", type=int, default=0, metavar="N",
+                        help="CPU: calibrate frames in N single-threaded worker processes, in order "
+                             "(default 0: this process; worth it for long videos on many cores)")
     add_estimator_arguments(parser)  # --fast, --measure, --detector, --likelihood, --hfov-range, --device
     parser.add_argument("--memory", type=float, default=30.0, help="fusion memory in accepted frames (forgetting)")
     parser.add_argument("--change-k", type=float, default=3.0, help="camera-moved threshold in predicted sigmas")
@@ -179,8 +183,12 @@ def run(args: argparse.Namespace) -> int:
 
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
-    from .workers import fit_threads_to_cores
+    if args.workers < 0:
+        raise FRInputError("--workers must be 0 (this process) or more")
+    from .workers import fit_threads_to_cores, start_worker_server
 
+    if args.workers:
+        start_worker_server()
     fit_threads_to_cores()
     validate.track_options(args)
     estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
@@ -191,27 +199,26 @@ def run(args: argparse.Namespace) -> int:
     tracker = OnlineCalibrator(memory=args.memory, change_k=args.change_k, patience=args.patience)
     out = args.out or Path(f"track_{args.source.stem or args.source.name}")
     out.mkdir(parents=True, exist_ok=True)
-    rows, batch = [], []
+    from .pipeline import calibrate_stream
 
-    def flush():
-        results = estimator.calibrate_images([im for _, _, im in batch], names=[n for _, n, _ in batch])
-        for (index, name, _), result in zip(batch, results):
-            state = tracker.update(result, index)
-            rows.append(frame_row(index, name, result, state))
-            if state.restarted:
-                print(f"fr track: camera moved at frame {index}: fusion restarted", file=sys.stderr)
-        batch.clear()
+    rows, indices = [], deque()
+
+    def frames():  # (image, name) for the estimator; the frame indices wait here, in order
+        for index, name, image in iter_frames(args.source, args.every, args.max_frames):
+            indices.append(index)
+            yield image, name
 
     bar = tqdm(desc="fr track", unit="frame", file=sys.stderr)
-    for item in iter_frames(args.source, args.every, args.max_frames):
-        batch.append(item)
-        if len(batch) >= args.batch_size:
-            flush()
-            bar.update(args.batch_size)
-    if batch:
-        bar.update(len(batch))
-        flush()
-    bar.close()
+    try:
+        for result in calibrate_stream(estimator, frames(), args.batch_size, args.workers):
+            index = indices.popleft()
+            state = tracker.update(result, index)
+            rows.append(frame_row(index, result.image, result, state))
+            if state.restarted:
+                bar.write(f"fr track: camera moved at frame {index}: fusion restarted", file=sys.stderr)
+            bar.update(1)
+    finally:
+        bar.close()
     if not rows:
         raise FRInputError(f"{args.source}: no frame could be read (all skipped)")
 

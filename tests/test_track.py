@@ -149,4 +149,10 @@ def test_fr_track_end_to_end(tmp_path):
                  "--hfov-range", "40,120", "--measure", "b", "--likelihood", "paper"]) == 0
     assert len(pd.read_csv(tmp_path / "o2" / "frames.csv")) == 2
     assert main(["track", str(frames), "--out", str(tmp_path / "o4"), "--hfov-range", "120,40"]) == 2
+    # worker processes: the same frames, in order, with the same estimates
+    assert main(["track", str(frames), "--out", str(tmp_path / "o5"), "--fast", "--batch-size", "4",
+                 "--workers", "2"]) == 0
+    workers = pd.read_csv(tmp_path / "o5" / "frames.csv")
+    assert list(workers["frame"]) == [0, 1, 2] and list(workers["name"]) == list(table["name"])
+    assert np.allclose(workers["focal_px"], table["focal_px"], rtol=1e-5)
     assert main(["track", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o3")]) == 2
