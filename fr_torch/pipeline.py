@@ -154,20 +154,35 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
     def start_pool():
         return ProcessPoolExecutor(workers, mp_context=workers_context(), initializer=initializer, initargs=initargs)
 
+    def restart(pool):
+        nonlocal broken_in_a_row
+        broken_in_a_row += 1
+        if broken_in_a_row > MAX_BROKEN_POOLS:
+            raise RuntimeError(f"worker processes died {broken_in_a_row} times in a row without "
+                               "finishing a task; run in-process (workers=0) to see why")
+        pool.shutdown(wait=False, cancel_futures=True)
+        return start_pool()
+
     pool = start_pool()
     try:
         while next_todo() or pending:
+            broken = False
             while len(pending) < queue_size and next_todo() and not (pending and (todo[0][1] or pending[-1][1])):
-                chunk, alone = todo.popleft()
-                pending.append((chunk, alone, pool.submit(function, chunk)))
+                chunk, alone = todo[0]
+                try:
+                    future = pool.submit(function, chunk)
+                except BrokenProcessPool:  # a worker died since the last result: blamed below
+                    broken = True
+                    break
+                todo.popleft()
+                pending.append((chunk, alone, future))
+            if not pending:  # broken with nothing in flight to blame (e.g. a worker killed from outside)
+                pool = restart(pool)
+                continue
             chunk, alone, future = pending.popleft()
             try:
                 results = future.result()
             except BrokenProcessPool:
-                broken_in_a_row += 1
-                if broken_in_a_row > MAX_BROKEN_POOLS:
-                    raise RuntimeError(f"worker processes died {broken_in_a_row} times in a row without "
-                                       "finishing a task; run in-process (workers=0) to see why") from None
                 if alone and len(chunk) == 1:
                     yield on_crash(chunk[0])  # it died with nothing else running: this item did it
                     retry = []
@@ -175,10 +190,10 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
                     retry = [([item], True) for item in chunk]
                 todo.extendleft(reversed(retry + [(c, a) for c, a, _ in pending]))
                 pending.clear()
-                pool.shutdown(wait=False, cancel_futures=True)
-                pool = start_pool()
+                pool = restart(pool)
                 continue
-            broken_in_a_row = 0
+            if not broken:
+                broken_in_a_row = 0
             yield from results
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
