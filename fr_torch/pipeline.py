@@ -160,7 +160,7 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
         if broken_in_a_row > MAX_BROKEN_POOLS:
             raise RuntimeError(f"worker processes died {broken_in_a_row} times in a row without "
                                "finishing a task; run in-process (workers=0) to see why")
-        pool.shutdown(wait=False, cancel_futures=True)
+        _shutdown(pool, broken=True)
         return start_pool()
 
     pool = start_pool()
@@ -196,7 +196,14 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
                 broken_in_a_row = 0
             yield from results
     finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+        _shutdown(pool, broken=bool(getattr(pool, "_broken", False)))
+
+
+def _shutdown(pool: ProcessPoolExecutor, broken: bool) -> None:
+    """Stop ``pool`` without waiting for its queued work; a broken pool (a worker died) is joined:
+    with ``shutdown(wait=False)`` its manager thread can hang the interpreter's exit on Python <
+    3.14 (CPython gh-132969), and joining it is quick (it only terminates the other workers)."""
+    pool.shutdown(wait=broken, cancel_futures=True)
 
 
 def _detect_chunk(chunk):
