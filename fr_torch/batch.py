@@ -544,9 +544,10 @@ class _CrashedRow:
         self.extras = extras
 
     def __call__(self, row):
+        from .pipeline import crash_reason
+
         name = str(row["image"])
-        record = _failed(name, f"{name}: a worker process crashed on this image").to_json()
-        return records_to_table([record], [row], self.extras)
+        return records_to_table([_failed(name, crash_reason(name)).to_json()], [row], self.extras)
 
 
 # ---------------------------------------------------------------------------------------- CLI

@@ -210,8 +210,13 @@ def _detect_chunk(chunk):
     return [_detect_task(image, name) for image, name in chunk]
 
 
+def crash_reason(name: str) -> str:
+    """The failure reason of an image whose worker process died on it (every kind of worker)."""
+    return f"{name}: a worker process crashed on this image"
+
+
 def _detection_crash(item) -> Detection:
-    return Detection(np.zeros((0, 4)), (0, 0), f"{item[1]}: a worker process crashed on this image", 0.0)
+    return Detection(np.zeros((0, 4)), (0, 0), crash_reason(item[1]), 0.0)
 
 
 def iter_detections(images: Sequence, names: Sequence[str], detector, segment_filter: SegmentFilter | None = None,
@@ -251,8 +256,14 @@ def _calibrate_chunk(chunk):
 def _calibration_crash(item):
     from .estimator import CalibrationResult
 
-    return CalibrationResult(image=item[1], width=0, height=0, ok=False,
-                             reason=f"{item[1]}: a worker process crashed on this image")
+    return CalibrationResult(image=item[1], width=0, height=0, ok=False, reason=crash_reason(item[1]))
+
+
+def _calibrate_in_workers(estimator, items: Iterable, chunk_size: int, workers: int) -> Iterator:
+    """Results of (image, name, focal_px, principal_point) ``items``, in order, each chunk decoded,
+    detected and searched by one of ``workers`` single-threaded processes (a copy of ``estimator``)."""
+    return ordered_pool_map(_calibrate_chunk, items, chunk_size, workers, _init_calibrate_worker,
+                            (_portable_estimator(estimator),), _calibration_crash)
 
 
 def _portable_estimator(estimator):
@@ -276,9 +287,8 @@ def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: 
     processes as :func:`calibrate_paths` does; a GPU estimator stays in this process).
     """
     if workers > 0 and estimator.device.type == "cpu":
-        items = ((image, name, None, None) for image, name in frames)
-        yield from ordered_pool_map(_calibrate_chunk, items, batch_size, workers, _init_calibrate_worker,
-                                    (_portable_estimator(estimator),), _calibration_crash)
+        yield from _calibrate_in_workers(estimator, ((image, name, None, None) for image, name in frames),
+                                         batch_size, workers)
         return
     source = iter(frames)
     while batch := list(itertools.islice(source, batch_size)):
@@ -306,9 +316,7 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
     if workers > 0 and estimator.device.type == "cpu" and whole_images is not False:
         # Chunks small enough that every worker gets several (the last ones finish together).
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
-        results = ordered_pool_map(_calibrate_chunk, list(zip(images, names, focal_list, pp_list)), chunk_size,
-                                   workers, _init_calibrate_worker, (_portable_estimator(estimator),),
-                                   _calibration_crash)
+        results = _calibrate_in_workers(estimator, zip(images, names, focal_list, pp_list), chunk_size, workers)
         try:
             for start in range(0, len(images), batch_size):
                 chunk = images[start:start + batch_size]
