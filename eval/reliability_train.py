@@ -11,7 +11,7 @@ Examples::
 
 What is recorded per image (one CSV row, cached under ``--records``, default
 ``results/reliability/records/<dataset>_<split>_<mode>.csv``; delete it or pass ``--no-cache`` to
-recompute): the three cues of :meth:`fr_torch.estimator.FREstimator._cues`, the estimate, the ground
+recompute): the cues of :meth:`fr_torch.estimator.FREstimator._cues`, the estimate, the ground
 truth and the absolute errors
 
 * ``roll_err_deg`` = ``|roll_est - roll_gt|`` and ``tilt_err_deg`` = ``|tilt_est - tilt_gt|``, both
@@ -45,7 +45,7 @@ import numpy as np
 import pandas as pd
 
 from fr_torch.camera import focal_from_hfov, rotation_angles
-from fr_torch.reliability import CUE_NAMES, ERROR_COLUMNS, ReliabilityModel
+from fr_torch.reliability import CUE_NAMES, ERROR_COLUMNS, PAPER_CUE_NAMES, ReliabilityModel
 from fr_torch.resources import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -184,9 +184,13 @@ def gather(datasets: list[str], split: str, mode: str, extra_synthetic: int, rec
     return pd.concat(frames, ignore_index=True)
 
 
-def usable(frame: pd.DataFrame) -> pd.DataFrame:
-    """Rows with an estimate, finite cues and finite errors."""
-    cols = list(CUE_NAMES) + list(ERROR_COLUMNS)
+def usable(frame: pd.DataFrame, cue_names=CUE_NAMES) -> pd.DataFrame:
+    """Rows with an estimate, finite cues (of ``cue_names``) and finite errors."""
+    missing = [name for name in cue_names if name not in frame.columns]
+    if missing:
+        raise ValueError(f"records lack the cue columns {missing} (written by an older version): "
+                         "recompute them with --no-cache")
+    cols = list(cue_names) + list(ERROR_COLUMNS)
     ok = frame["ok"].astype(bool) & np.isfinite(frame[cols].to_numpy(float)).all(1)
     return frame[ok].reset_index(drop=True)
 
@@ -240,7 +244,7 @@ def write_report(model: ReliabilityModel, test: pd.DataFrame, out_dir: Path, tit
     import matplotlib.pyplot as plt
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    predicted = model.predict(test[list(CUE_NAMES)].to_numpy(float))
+    predicted = model.predict(test[list(model.cue_names)].to_numpy(float))
     scales = [model.thresholds[t] for t in model.thresholds] if model.thresholds else None
     tables = {rank: reliability_table(test, predicted, rank, scales) for rank in ("focal", "combined")}
     rho = spearman(predicted, test)
@@ -302,33 +306,46 @@ def write_report(model: ReliabilityModel, test: pd.DataFrame, out_dir: Path, tit
     return {"table": table, "spearman": rho, "markdown": md, "png": png, "csv": csv_path}
 
 
+def _focal_score(frame: pd.DataFrame, predicted: np.ndarray) -> tuple[float, float]:
+    """(focal MAE of the 25 % predicted most reliable / focal MAE of all, Spearman rho of predicted vs
+    actual focal error)."""
+    from scipy.stats import spearmanr
+
+    err = frame[list(ERROR_COLUMNS)].to_numpy(float)
+    order = np.argsort(predicted[:, 2], kind="stable")[:max(1, len(frame) // 4)]
+    return err[order, 2].mean() / err[:, 2].mean(), spearmanr(predicted[:, 2], err[:, 2]).statistic
+
+
+def _fit(frame: pd.DataFrame, cue_names=CUE_NAMES) -> ReliabilityModel:
+    return ReliabilityModel.fit(frame[list(cue_names)].to_numpy(float), frame[list(ERROR_COLUMNS)].to_numpy(float),
+                                groups=frame["group"].to_numpy(str), cue_names=cue_names)
+
+
+def out_of_fold(target: pd.DataFrame, rest: pd.DataFrame | None = None, cue_names=CUE_NAMES,
+                folds: int = 5) -> np.ndarray:
+    """Predicted errors (n, 3) for every row of ``target``, each from a model that did not see its
+    group: ``folds`` folds grouped by ``group``; ``rest`` (other training data) is always in training."""
+    from sklearn.model_selection import GroupKFold
+
+    pred = np.zeros((len(target), 3))
+    for tr, te in GroupKFold(folds).split(target, groups=target["group"]):
+        fit_on = target.iloc[tr] if rest is None else pd.concat([target.iloc[tr], rest])
+        pred[te] = _fit(fit_on, cue_names).predict(target.iloc[te][list(cue_names)].to_numpy(float))
+    return pred
+
+
 def compare_training_sets(variants: dict[str, pd.DataFrame], target: pd.DataFrame, test: pd.DataFrame,
                           out: Path, mode: str, folds: int = 5) -> pd.DataFrame:
     """Which training data helps: for each named training set, (a) out-of-fold on ``target`` (the
     target-domain training split; folds grouped, the rest of the variant always in training) and
     (b) on the held-out ``test``: focal MAE of the top 25 % (ranked by predicted focal error) over
     all, and Spearman rho of predicted vs actual focal error.  Select on (a); (b) is for information."""
-    from scipy.stats import spearmanr
-    from sklearn.model_selection import GroupKFold
-
-    def score(frame, pred):
-        err = frame[list(ERROR_COLUMNS)].to_numpy(float)
-        order = np.argsort(pred[:, 2], kind="stable")[:max(1, len(frame) // 4)]
-        return err[order, 2].mean() / err[:, 2].mean(), spearmanr(pred[:, 2], err[:, 2]).statistic
-
-    def fit(frame):
-        return ReliabilityModel.fit(frame[list(CUE_NAMES)].to_numpy(float), frame[list(ERROR_COLUMNS)].to_numpy(float),
-                                    groups=frame["group"].to_numpy(str))
-
     rows = []
     for name, data in variants.items():
         rest = data[~data["name"].isin(target["name"]) | (data["source"] != target["source"].iloc[0])]
-        pred = np.zeros((len(target), 3))
-        for tr, te in GroupKFold(folds).split(target, groups=target["group"]):
-            pred[te] = fit(pd.concat([target.iloc[tr], rest])).predict(target.iloc[te][list(CUE_NAMES)].to_numpy(float))
-        oof_ratio, oof_rho = score(target, pred)
-        model = fit(data)
-        test_ratio, test_rho = score(test, model.predict(test[list(CUE_NAMES)].to_numpy(float)))
+        oof_ratio, oof_rho = _focal_score(target, out_of_fold(target, rest, folds=folds))
+        model = _fit(data)
+        test_ratio, test_rho = _focal_score(test, model.predict(test[list(CUE_NAMES)].to_numpy(float)))
         rows.append({"training_set": name, "n": len(data), "k": model.k, "oof_top25_focal_ratio": oof_ratio,
                      "oof_spearman_focal": oof_rho, "test_top25_focal_ratio": test_ratio,
                      "test_spearman_focal": test_rho})
@@ -345,6 +362,48 @@ def compare_training_sets(variants: dict[str, pd.DataFrame], target: pd.DataFram
         lines.append(f"| {r['training_set']} | {r['n']} | {r['k']} | {r['oof_top25_focal_ratio']:.2f} | "
                      f"{r['oof_spearman_focal']:.2f} | {r['test_top25_focal_ratio']:.2f} | {r['test_spearman_focal']:.2f} |")
     (out / f"training_sets_{mode}.md").write_text("\n".join(lines) + "\n")
+    return table
+
+
+CUE_SETS = {"paper": PAPER_CUE_NAMES, "paper+focal_conditioning": CUE_NAMES}
+
+
+def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: str, folds: int = 5) -> pd.DataFrame:
+    """Which cues help: for each cue set of :data:`CUE_SETS`, (a) out of fold on the training data
+    (folds grouped by panorama / image), scored per training source, and (b) a model fitted on all
+    training data scored on the held-out ``test``: Spearman rho of predicted vs actual focal error
+    and the focal MAE of the top 25 % over all.  Select on (a); (b) is for information."""
+    rows = []
+    for name, names in CUE_SETS.items():
+        oof = out_of_fold(train, cue_names=names, folds=folds)
+        row = {"cues": name, "k": _fit(train, names).k}
+        for source in sorted(train["source"].unique()):
+            mask = (train["source"] == source).to_numpy()
+            row[f"oof_{source}_top25_focal_ratio"], row[f"oof_{source}_spearman_focal"] = _focal_score(
+                train[mask], oof[mask])
+        model = _fit(train, names)
+        row["test_top25_focal_ratio"], row["test_spearman_focal"] = _focal_score(
+            test, model.predict(test[list(names)].to_numpy(float)))
+        rho = spearman(model.predict(test[list(names)].to_numpy(float)), test)
+        row["test_spearman_roll"], row["test_spearman_tilt"] = rho["roll_deg"], rho["tilt_deg"]
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    table.to_csv(out / f"cues_{mode}.csv", index=False, float_format="%.3f")
+    sources = sorted(train["source"].unique())
+    lines = [f"# Which cues ({mode})", "",
+             "Spearman rho of predicted vs actual focal error (higher is better) and the focal MAE of the 25 % "
+             "predicted most reliable divided by the MAE of all (lower is better).  `oof`: out of fold on the "
+             f"*train* splits ({folds} folds grouped by panorama / image; the selection criterion), scored per "
+             "dataset; `test`: model fitted on all training data, scored on the held-out test split "
+             "(information only; roll and tilt rho show the added cue does not cost the angles).", "",
+             "| cues | K | " + " | ".join(f"oof {s} rho | oof {s} top25/all" for s in sources)
+             + " | test rho | test top25/all | test rho roll / tilt |",
+             "|---|---:|" + "---:|---:|" * len(sources) + "---:|---:|---:|"]
+    for r in rows:
+        cells = " | ".join(f"{r[f'oof_{s}_spearman_focal']:.2f} | {r[f'oof_{s}_top25_focal_ratio']:.2f}" for s in sources)
+        lines.append(f"| {r['cues']} | {r['k']} | {cells} | {r['test_spearman_focal']:.2f} | "
+                     f"{r['test_top25_focal_ratio']:.2f} | {r['test_spearman_roll']:.2f} / {r['test_spearman_tilt']:.2f} |")
+    (out / f"cues_{mode}.md").write_text("\n".join(lines) + "\n")
     return table
 
 
@@ -370,6 +429,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated held-out datasets for the reliability table (e.g. zind-fr)")
     parser.add_argument("--report-split", default="test")
     parser.add_argument("--report-dir", type=Path, default=REPO / "results" / "reliability")
+    parser.add_argument("--cues", choices=("all", "paper"), default="all",
+                        help="cues the model uses: all (the paper's three and focal_conditioning; default) or "
+                             "paper (min_family_segments, grid_entropy, mean_log_likelihood)")
     parser.add_argument("--compare-synthetic", type=int, default=0, metavar="N",
                         help="with a report: also compare training sets with/without N synthetic scenes "
                              "(training_sets_<method>.md)")
@@ -383,13 +445,15 @@ def run(args: argparse.Namespace) -> int:
     start = time.time()
     frame = gather(datasets, args.split, args.method, args.extra_synthetic, args.records, args.data_root,
                    args.batch_size, not args.no_cache, args.seed, args.limit)
-    train = usable(frame)
+    cue_names = CUE_NAMES if args.cues == "all" else PAPER_CUE_NAMES
+    train = usable(frame, cue_names)
     if len(train) < 10:
         raise ValueError(f"only {len(train)} usable training images")
     k_grid = [int(k) for k in args.k_grid.split(",")] if args.k_grid else None
     sizes = train.groupby("source").size().to_dict()
-    model = ReliabilityModel.fit(train[list(CUE_NAMES)].to_numpy(float), train[list(ERROR_COLUMNS)].to_numpy(float),
+    model = ReliabilityModel.fit(train[list(cue_names)].to_numpy(float), train[list(ERROR_COLUMNS)].to_numpy(float),
                                  groups=train["group"].to_numpy(str), k_grid=k_grid, seed=args.seed,
+                                 cue_names=cue_names,
                                  meta={"mode": args.method, "training_data": sizes, "split": args.split,
                                        "failed_or_dropped": int(len(frame) - len(train)),
                                        "command": "fr " + " ".join(sys.argv[2:]) if len(sys.argv) > 1 else ""})
@@ -399,12 +463,14 @@ def run(args: argparse.Namespace) -> int:
           f"saved {out} ({time.time() - start:.0f} s)")
     if report:
         test = usable(gather(report, args.report_split, args.method, 0, args.records, args.data_root,
-                             args.batch_size, not args.no_cache, args.seed, args.limit))
+                             args.batch_size, not args.no_cache, args.seed, args.limit), cue_names)
         title = "+".join(report) + f" {args.report_split}"
         command = "fr train-reliability " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else "fr train-reliability"
         info = write_report(model, test, args.report_dir, title, command, f"{len(train)} images {sizes}")
         print(info["table"].to_string(index=False))
         print("spearman", json.dumps({k: round(v, 3) for k, v in info["spearman"].items()}))
+        if args.cues == "all":
+            print(compare_cue_sets(train, test, args.report_dir, args.method).to_string(index=False))
         if args.compare_synthetic and datasets:
             syn = usable(gather([], args.split, args.method, args.compare_synthetic, args.records, args.data_root,
                                 args.batch_size, not args.no_cache, args.seed))

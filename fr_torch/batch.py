@@ -51,14 +51,14 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from .reliability import CUE_NAMES, TARGETS
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".jp2")
 MANIFEST_SUFFIXES = (".csv", ".parquet", ".pq", ".txt")
 PATH_COLUMNS = ("image", "path", "file", "filename")
 CRASH_ENV = "FR_BATCH_CRASH"
 
 # Keys of the dict-valued result fields (struct columns); unknown keys are dropped.
-CUE_KEYS = ("min_family_segments", "grid_entropy", "mean_log_likelihood")
-PREDICTED_KEYS = ("roll_deg", "tilt_deg", "focal_pct")
 RUNTIME_KEYS = ("detect", "grid", "refine", "cues", "total")
 FLOAT_FIELDS = ("focal_px", "hfov_deg", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "log_likelihood",
                 "manhattan_fraction")
@@ -81,8 +81,8 @@ def result_schema():
         ("pan_deg", f64), ("tilt_deg", f64), ("roll_deg", f64), ("pitch_deg", f64),
         ("vanishing_points", mat3), ("log_likelihood", f64), ("num_segments", pa.int32()),
         ("manhattan_fraction", f64), ("segments_per_family", pa.list_(pa.int32(), 4)),
-        ("cues", pa.struct([(k, f64) for k in CUE_KEYS])),
-        ("predicted_error", pa.struct([(k, f64) for k in PREDICTED_KEYS])),
+        ("cues", pa.struct([(k, f64) for k in CUE_NAMES])),
+        ("predicted_error", pa.struct([(k, f64) for k in TARGETS])),
         ("runtime_s", pa.struct([(k, f64) for k in RUNTIME_KEYS])),
     ])
 
@@ -355,7 +355,7 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
             out[key] = _clean_float(out[key])
         for key in ("rotation", "vanishing_points", "principal_point"):
             out[key] = _clean_nested(out[key])
-        for key, keys in (("cues", CUE_KEYS), ("predicted_error", PREDICTED_KEYS), ("runtime_s", RUNTIME_KEYS)):
+        for key, keys in (("cues", CUE_NAMES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
             value = out[key]
             out[key] = None if not value else {k: _clean_float(value.get(k)) for k in keys}
         clean.append(out)

@@ -102,6 +102,27 @@ class CalibrationResult:
         return out
 
 
+def focal_conditioning(rotation: torch.Tensor) -> torch.Tensor:
+    """How well a Manhattan frame's vanishing points constrain the focal length (a reliability cue).
+
+    Args:
+        rotation: (..., 3, 3) world->camera rotations; column i is the direction of VP i in camera
+            coordinates (x right, y down, z along the optical axis), as in ``VP_i = K R[:, i]``.
+
+    Returns:
+        (...,) ``sqrt(sum_i (sin(theta_i) cos(theta_i))^2)`` in [0, sqrt(3)/2], theta_i the angle
+        between VP direction i and the optical axis.  A VP sits at ``f tan(theta)`` from the
+        principal point; on the principal point (theta = 0) or at infinity (theta = 90 deg) its
+        position carries no information on f, and ``sin cos`` peaks at theta = 45 deg.  A camera
+        panned square to a wall with level tilt (all three VPs at the centre or at infinity) gives
+        0: its focal length is left to the prior.  No f enters (the directions alone decide).
+    """
+    columns = rotation / rotation.norm(dim=-2, keepdim=True).clamp_min(1e-12)
+    off_axis = columns[..., :2, :].norm(dim=-2)  # sin(theta_i), (..., 3)
+    along_axis = columns[..., 2, :].abs()  # cos(theta_i)
+    return (off_axis * along_axis).square().sum(-1).sqrt()
+
+
 class FREstimator:
     """fR / Fast-fR (Qian & Elder, ECCV 2022) on CPU or CUDA, batched over images.
 
@@ -306,7 +327,7 @@ class FREstimator:
         rotation = hypothesis_rotations(best_params)  # float64 (B, 3, 3)
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, 3].to(dtype))
         labels = posterior[:, 0].argmax(-1)
-        cues = self._cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask)
+        cues = self._cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
         t3 = time.perf_counter()
 
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
@@ -338,8 +359,8 @@ class FREstimator:
             # non-finite -> ok=False; focal at the range edge -> unreliable
             check_result(r, self.search, known_focal, finite=bool(finite[j]))
 
-    def _cues(self, grid_scores, grid_counts, labels, log_p, mask) -> dict[str, torch.Tensor]:
-        """The three reliability cues (paper §3.4), per image.
+    def _cues(self, grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[str, torch.Tensor]:
+        """The reliability cues, per image: the paper's three (§3.4) and ``focal_conditioning``.
 
         * ``min_family_segments``: smallest number of segments labelled (argmax posterior) with one
           of the three Manhattan families; background excluded; raw counts.
@@ -350,6 +371,7 @@ class FREstimator:
           a second time: the entropy of that distribution is the cue).
         * ``mean_log_likelihood``: mean over segments of log p_i at the final estimate (the
           paper's definition; the authors' MATLAB release uses the mean log max-posterior instead).
+        * ``focal_conditioning``: :func:`focal_conditioning` of the final ``rotation`` (B, 3, 3).
         """
         n = mask.sum(-1).clamp_min(1)
         counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
@@ -358,7 +380,8 @@ class FREstimator:
         mean_log = (log_p * mask).sum(-1) / n
         return {"min_family_segments": counts.min(-1).values.to(torch.float64),
                 "grid_entropy": entropy.to(torch.float64),
-                "mean_log_likelihood": mean_log.to(torch.float64)}
+                "mean_log_likelihood": mean_log.to(torch.float64),
+                "focal_conditioning": focal_conditioning(rotation).to(torch.float64)}
 
     def _sanity(self, r: CalibrationResult) -> tuple[bool, str]:
         reasons = []

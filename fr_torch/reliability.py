@@ -1,20 +1,41 @@
 """Reliability prediction: predicted absolute errors of roll, tilt and focal length from fR's cues.
 
-The model follows the authors' online-fR error predictor (paper §3.4): the three cues of
-:meth:`fr_torch.estimator.FREstimator._cues` are normalised, whitened, and a K-nearest-neighbour
+The model follows the authors' online-fR error predictor (paper §3.4): the cues of
+:meth:`fr_torch.estimator.FREstimator._cues` (the paper's three and one geometric cue of ours) are
+normalised, whitened, and a K-nearest-neighbour
 regressor returns the **mean absolute error of the K most similar training images**, for roll
 (degrees), tilt (degrees) and focal length (percent of the true focal length).
 
+Cues (:data:`CUE_NAMES`; the first three are the paper's, :data:`PAPER_CUE_NAMES`)
+------------------------------------------------------------------------------------
+* ``min_family_segments``, ``grid_entropy``, ``mean_log_likelihood``: the paper's cues (defined in
+  :meth:`fr_torch.estimator.FREstimator._cues`);
+* ``focal_conditioning`` (not in the paper): how well the estimated Manhattan frame's geometry
+  constrains f, from the estimated rotation alone (:func:`fr_torch.estimator.focal_conditioning`):
+  a VP whose direction makes an angle theta with the optical axis sits at ``f tan(theta)`` from the
+  principal point; at theta = 0 (VP on the principal point) and theta = 90 deg (VP at infinity) its
+  position says nothing about f.  The cue is ``sqrt(sum_i (sin(theta_i) cos(theta_i))^2)`` over the
+  three VPs, in [0, sqrt(3)/2].  A camera panned square to a wall (one horizontal VP near the
+  centre, the other and the vertical one near infinity) scores near 0: its focal length is set by
+  the prior, and the predicted focal error should say so.  Chosen on the train splits
+  (``results/reliability/cues_<mode>.md``): out of fold, the Spearman rho of predicted vs actual
+  focal error rises from about 0 to 0.4-0.5 on YUD train and from 0.34-0.37 to 0.45 on ZInD-fR train.
+
 Cue normalisation (exactly; :func:`cue_features`)
 -------------------------------------------------
-Each image's cue vector ``c = (min_family_segments, grid_entropy, mean_log_likelihood)`` becomes
-the feature vector ``x``:
+Each image's cue vector becomes the feature vector ``x``, one feature per cue:
 
-* ``x0 = ln(1 + min_family_segments)`` -- the raw count of the smallest Manhattan family (the
+* ``ln(1 + min_family_segments)`` -- the raw count of the smallest Manhattan family (the
   authors use the raw count; the log makes 3 vs 6 segments as far apart as 30 vs 60);
-* ``x1 = ln(grid_entropy + 1e-6)`` -- the entropy (nats) of the stage-1 grid softmax spans
+* ``ln(grid_entropy + 1e-6)`` -- the entropy (nats) of the stage-1 grid softmax spans
   1e-9..8 nats, so it is compared on a log scale, floored at 1e-6 nats;
-* ``x2 = mean_log_likelihood`` -- unchanged (already a log quantity).
+* ``mean_log_likelihood`` -- unchanged (already a log quantity);
+* ``ln(focal_conditioning + 1e-3)`` -- near-degenerate frames (0.001-0.05) are as far apart as
+  ordinary ones (0.1-0.5).
+
+A model keeps the names of the cues it was trained on (``meta["cue_names"]``): a model trained on
+the paper's three cues (``fr train-reliability --cues paper``, or a file written before the fourth
+cue existed) predicts from those three.
 
 Then ``x`` is **PCA-whitened** with the training mean ``mu``, the eigenvectors ``E`` (rows,
 descending eigenvalue) and eigenvalues ``lam`` of the training-feature covariance (ddof = 1):
@@ -28,9 +49,9 @@ sit in both halves) minimising the mean squared error of ``ln(error + eps)`` wit
 
 Storage (never pickle)
 ----------------------
-``<name>.npz`` holds plain numeric arrays -- ``train_cues`` (n, 3) raw cues, ``train_errors``
-(n, 3) absolute errors [roll deg, tilt deg, focal %], ``feature_mean`` (3,),
-``feature_components`` (3, 3), ``feature_variance`` (3,), ``k`` -- plus ``meta_json``, a unicode
+``<name>.npz`` holds plain numeric arrays -- ``train_cues`` (n, c) raw cues (c cues, in the order
+of ``meta["cue_names"]``), ``train_errors`` (n, 3) absolute errors [roll deg, tilt deg, focal %],
+``feature_mean`` (c,), ``feature_components`` (c, c), ``feature_variance`` (c,), ``k`` -- plus ``meta_json``, a unicode
 string array with the JSON metadata; it is read with ``np.load(allow_pickle=False)``.  A
 human-readable copy of the metadata is written beside it as ``<name>.json``.  Fitting uses
 scikit-learn; prediction is plain numpy.
@@ -57,32 +78,56 @@ from .resources import config_dir
 
 _config_dir = config_dir  # load_default has an argument of that name
 
-CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")
+PAPER_CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")  # paper §3.4
+CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning",)  # what the estimator reports; default model input
 TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
 ERROR_COLUMNS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct")  # training-record column names
 LOG_EPS = np.array([0.1, 0.1, 1.0])  # CV loss: ln(error + eps)
 ENTROPY_FLOOR = 1e-6
-FEATURE_VERSION = "ln1p(min_family_segments), ln(grid_entropy + 1e-6), mean_log_likelihood; PCA-whitened"
+CONDITIONING_FLOOR = 1e-3
+# Raw cue -> feature, per cue name (module docstring, "Cue normalisation").
+_CUE_TRANSFORMS = {
+    "min_family_segments": (lambda c: np.log1p(np.clip(c, 0.0, None)), "ln1p(min_family_segments)"),
+    "grid_entropy": (lambda c: np.log(np.clip(c, 0.0, None) + ENTROPY_FLOOR), "ln(grid_entropy + 1e-6)"),
+    "mean_log_likelihood": (lambda c: c, "mean_log_likelihood"),
+    "focal_conditioning": (lambda c: np.log(np.clip(c, 0.0, None) + CONDITIONING_FLOOR),
+                           "ln(focal_conditioning + 1e-3)"),
+}
+
+
+def feature_version(names: Sequence[str] = CUE_NAMES) -> str:
+    """Human-readable description of the features of ``names`` (stored in a model's metadata)."""
+    return ", ".join(_CUE_TRANSFORMS[name][1] for name in names) + "; PCA-whitened"
+
+
+def check_cue_names(names: Sequence[str]) -> tuple[str, ...]:
+    """``names`` as a tuple; ValueError for an unknown or repeated cue name."""
+    names = tuple(names)
+    unknown = [n for n in names if n not in _CUE_TRANSFORMS]
+    if unknown or len(set(names)) != len(names) or not names:
+        raise ValueError(f"cue names must be distinct names from {list(_CUE_TRANSFORMS)}, got {list(names)}")
+    return names
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
 DEFAULT_K_GRID = (1, 2, 3, 5, 8, 12, 17, 25, 35, 50, 70, 90, 120, 160, 220, 300)
 MODES = ("fr", "fast")
 PREDICT_BLOCK = 4096  # query rows ranked at once against the training set (memory ~ rows x n_train)
 
 
-def cue_features(cues: np.ndarray | Sequence) -> np.ndarray:
-    """Raw cues (n, 3) in :data:`CUE_NAMES` order -> normalised features (n, 3) (module docstring)."""
+def cue_features(cues: np.ndarray | Sequence, names: Sequence[str] = CUE_NAMES) -> np.ndarray:
+    """Raw cues (n, c) in the order of ``names`` -> normalised features (n, c) (module docstring)."""
+    names = check_cue_names(names)
     c = np.atleast_2d(np.asarray(cues, dtype=np.float64))
-    if c.shape[-1] != 3:
-        raise ValueError(f"expected cues with 3 columns {CUE_NAMES}, got shape {c.shape}")
-    return np.stack([np.log1p(np.clip(c[:, 0], 0.0, None)),
-                     np.log(np.clip(c[:, 1], 0.0, None) + ENTROPY_FLOOR),
-                     c[:, 2]], 1)
+    if c.shape[-1] != len(names):
+        raise ValueError(f"expected cues with {len(names)} columns {list(names)}, got shape {c.shape}")
+    return np.stack([_CUE_TRANSFORMS[name][0](c[:, j]) for j, name in enumerate(names)], 1)
 
 
-def cues_array(cues: dict | Sequence[dict]) -> np.ndarray:
-    """A result's ``cues`` dict (or a list of them) -> (n, 3) array in :data:`CUE_NAMES` order."""
+def cues_array(cues: dict | Sequence[dict], names: Sequence[str] = CUE_NAMES) -> np.ndarray:
+    """A result's ``cues`` dict (or a list of them) -> (n, c) array in the order of ``names`` (NaN
+    for a cue the dict lacks, so that its prediction is NaN rather than wrong)."""
     items = [cues] if isinstance(cues, dict) else list(cues)
-    return np.array([[float(d.get(name, math.nan)) for name in CUE_NAMES] for d in items], dtype=np.float64)
+    return np.array([[float(d.get(name, math.nan)) for name in names] for d in items],
+                    dtype=np.float64).reshape(len(items), len(names))
 
 
 def load_thresholds(path: Path | None = None) -> dict[str, float]:
@@ -101,13 +146,16 @@ def _cv_loss(y_true: np.ndarray, y_pred: np.ndarray) -> float:
 
 @dataclass
 class ReliabilityModel:
-    """Whitening of the 3 cues + KNN regressor of |roll error| (deg), |tilt error| (deg), |focal error| (%)."""
+    """Whitening of c cues + KNN regressor of |roll error| (deg), |tilt error| (deg), |focal error| (%).
 
-    train_cues: np.ndarray  # (n, 3) raw cues
+    The cues, in order, are ``meta["cue_names"]`` (:attr:`cue_names`; a file without the key holds
+    the paper's three)."""
+
+    train_cues: np.ndarray  # (n, c) raw cues, columns in the order of cue_names
     train_errors: np.ndarray  # (n, 3) absolute errors: roll deg, tilt deg, focal %
-    feature_mean: np.ndarray  # (3,)
-    feature_components: np.ndarray  # (3, 3) rows = eigenvectors, descending eigenvalue
-    feature_variance: np.ndarray  # (3,) eigenvalues
+    feature_mean: np.ndarray  # (c,)
+    feature_components: np.ndarray  # (c, c) rows = eigenvectors, descending eigenvalue
+    feature_variance: np.ndarray  # (c,) eigenvalues
     k: int
     meta: dict[str, Any] = field(default_factory=dict)
     thresholds: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_THRESHOLDS))
@@ -119,6 +167,10 @@ class ReliabilityModel:
         self.feature_components = np.asarray(self.feature_components, np.float64)
         self.feature_variance = np.asarray(self.feature_variance, np.float64)
         self.k = int(min(self.k, len(self.train_cues)))
+        self.cue_names = check_cue_names(self.meta.get("cue_names", PAPER_CUE_NAMES))
+        if self.train_cues.ndim != 2 or self.train_cues.shape[1] != len(self.cue_names):
+            raise ValueError(f"train_cues of shape {self.train_cues.shape} do not match the cue names "
+                             f"{list(self.cue_names)}")
         self._train_w = self.whiten(self.train_cues)
 
     # ------------------------------------------------------------------ fitting
@@ -126,8 +178,10 @@ class ReliabilityModel:
     @classmethod
     def fit(cls, cues: np.ndarray, errors: np.ndarray, groups: Sequence | None = None,
             k_grid: Sequence[int] | None = None, folds: int = 5, seed: int = 0,
-            meta: dict | None = None, thresholds: dict | None = None) -> "ReliabilityModel":
-        """Fit on raw cues (n, 3) and absolute errors (n, 3); K by ``folds``-fold CV (scikit-learn).
+            meta: dict | None = None, thresholds: dict | None = None,
+            cue_names: Sequence[str] = CUE_NAMES) -> "ReliabilityModel":
+        """Fit on raw cues (n, c) -- columns in the order of ``cue_names`` -- and absolute errors
+        (n, 3); K by ``folds``-fold CV (scikit-learn).
 
         ``groups`` (n,): images of one group (panorama, scene) stay in one fold.
         """
@@ -142,7 +196,8 @@ class ReliabilityModel:
         n = len(cues)
         if n < 2 * folds:
             raise ValueError(f"need at least {2 * folds} training images, got {n}")
-        features = cue_features(cues)
+        cue_names = check_cue_names(cue_names)
+        features = cue_features(cues, cue_names)
         if groups is not None and len(np.unique(groups)) >= folds:
             # GroupKFold is deterministic; shuffle group order through a seeded relabelling.
             _, inverse = np.unique(groups, return_inverse=True)
@@ -158,7 +213,7 @@ class ReliabilityModel:
         # first K ranked training errors (what KNeighborsRegressor(K, algorithm="brute") returns).
         sq_err = np.zeros(len(grid))
         for train, test in splits:
-            pca = PCA(n_components=3, whiten=True).fit(features[train])
+            pca = PCA(n_components=len(cue_names), whiten=True).fit(features[train])
             wt, wv = pca.transform(features[train]), pca.transform(features[test])
             order = np.argsort(((wv[:, None] - wt[None]) ** 2).sum(-1), axis=1, kind="stable")[:, :grid[-1]]
             running = np.cumsum(errors[train][order], axis=1)  # (n_test, K_max, 3)
@@ -166,14 +221,14 @@ class ReliabilityModel:
                 sq_err[j] += _cv_loss(errors[test], running[:, k - 1] / k) * len(test)
         losses = sq_err / n
         k = int(grid[int(np.argmin(losses))])
-        pca = PCA(n_components=3).fit(features)
+        pca = PCA(n_components=len(cue_names)).fit(features)
         info = dict(meta or {})
         info.update(n_train=int(n), k=k, k_grid=grid, folds=folds,
                     cv=cv_name,
                     cv_loss={str(g): float(v) for g, v in zip(grid, losses)},
                     cv_loss_definition="mean over images and targets of (ln(pred + eps) - ln(actual + eps))^2, "
                                        f"eps = {LOG_EPS.tolist()}",
-                    features=FEATURE_VERSION, cue_names=list(CUE_NAMES), targets=list(TARGETS),
+                    features=feature_version(cue_names), cue_names=list(cue_names), targets=list(TARGETS),
                     train_error_median=dict(zip(TARGETS, np.median(errors, 0).tolist())),
                     train_error_mean=dict(zip(TARGETS, errors.mean(0).tolist())))
         return cls(cues, errors, pca.mean_, pca.components_, pca.explained_variance_, k, info,
@@ -182,17 +237,18 @@ class ReliabilityModel:
     # ------------------------------------------------------------------ prediction (plain numpy)
 
     def whiten(self, cues: np.ndarray) -> np.ndarray:
-        """Raw cues (n, 3) -> whitened features (n, 3)."""
-        x = cue_features(cues) - self.feature_mean
+        """Raw cues (n, c) in the order of :attr:`cue_names` -> whitened features (n, c)."""
+        x = cue_features(cues, self.cue_names) - self.feature_mean
         return (x @ self.feature_components.T) / np.sqrt(self.feature_variance)
 
     def predict(self, cues: np.ndarray | dict | Sequence[dict]) -> np.ndarray:
-        """Predicted absolute errors (n, 3) [roll deg, tilt deg, focal %]; NaN rows for non-finite cues.
+        """Predicted absolute errors (n, 3) [roll deg, tilt deg, focal %] from raw cues (n, c) in the
+        order of :attr:`cue_names` or from ``cues`` dicts; NaN rows for missing or non-finite cues.
 
         Queries are ranked against the training set in blocks of :data:`PREDICT_BLOCK` rows (bounded
         memory for any n; the same answer as one by one)."""
         if isinstance(cues, dict) or (isinstance(cues, (list, tuple)) and cues and isinstance(cues[0], dict)):
-            cues = cues_array(cues)
+            cues = cues_array(cues, self.cue_names)
         w = self.whiten(np.asarray(cues, np.float64))
         out = np.full((len(w), 3), np.nan)
         good = np.flatnonzero(np.isfinite(w).all(1))
@@ -220,7 +276,7 @@ class ReliabilityModel:
         todo = [r for r in results if getattr(r, "ok", False)]
         if not todo:
             return
-        predictions = self.predict(cues_array([r.cues for r in todo]))
+        predictions = self.predict(cues_array([r.cues for r in todo], self.cue_names))
         for result, row in zip(todo, predictions.tolist()):
             predicted = dict(zip(TARGETS, row))
             result.predicted_error = predicted

@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from fr_torch import FREstimator
+from fr_torch.estimator import focal_conditioning
 from fr_torch.camera import focal_from_hfov, horizon_angles, rotation_from_angles
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
@@ -35,7 +36,10 @@ def test_recovers_synthetic_cameras(scenes, mode):
         assert abs(result.tilt_deg - float(truth["tilt_deg"])) < 0.3
         assert np.allclose(result.rotation @ result.rotation.T, np.eye(3), atol=1e-6)
         assert result.labels.shape == (result.num_segments,)
-        assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood"}
+        assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood",
+                                    "focal_conditioning"}
+        expected = float(focal_conditioning(torch.as_tensor(result.rotation)))
+        assert result.cues["focal_conditioning"] == pytest.approx(expected, abs=1e-9)
         assert result.cues["min_family_segments"] >= 30
 
 
@@ -126,3 +130,23 @@ def test_cuda_equals_cpu(scenes):
     for a, b in zip(cpu, cuda):
         assert a.focal_px == pytest.approx(b.focal_px, rel=1e-4)
         assert a.log_likelihood == pytest.approx(b.log_likelihood, rel=1e-4)
+
+
+def test_focal_conditioning_geometry():
+    """0 when every VP is on the principal point or at infinity, sqrt(1/2) for two horizontal VPs at
+    45 deg, independent of column order and sign; batched over leading dimensions."""
+    def rot(pan_deg=0.0, pitch_deg=0.0):
+        return rotation_from_angles(pan_deg, pitch_deg, 0.0)
+
+    assert float(focal_conditioning(torch.eye(3, dtype=torch.float64))) == pytest.approx(0.0, abs=1e-12)
+    assert float(focal_conditioning(rot(pan_deg=45.0))) == pytest.approx(0.5 ** 0.5, abs=1e-9)
+    # a camera panned square to a wall and pitched 1 deg: nearly degenerate
+    assert float(focal_conditioning(rot(pitch_deg=1.0))) < 0.03
+    R = rot(pan_deg=30.0, pitch_deg=-12.0)
+    value = float(focal_conditioning(R))
+    assert 0.3 < value <= 3 ** 0.5 / 2
+    shuffled = R[:, [2, 0, 1]] * torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64)
+    assert float(focal_conditioning(shuffled)) == pytest.approx(value, abs=1e-12)
+    batch = torch.stack([torch.stack([R, torch.eye(3, dtype=torch.float64)])] * 2)  # (2, 2, 3, 3)
+    out = focal_conditioning(batch)
+    assert out.shape == (2, 2) and float(out[1, 0]) == pytest.approx(value) and float(out[1, 1]) == 0.0

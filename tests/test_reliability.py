@@ -11,26 +11,38 @@ from scipy.stats import spearmanr
 from fr_torch.camera import Camera
 from fr_torch.estimator import CalibrationResult
 from fr_torch.resources import config_dir
-from fr_torch.reliability import (CUE_NAMES, TARGETS, ReliabilityModel, ReliabilitySet, cue_features,
-                                  load_thresholds)
+from fr_torch.reliability import (CUE_NAMES, PAPER_CUE_NAMES, TARGETS, ReliabilityModel, ReliabilitySet,
+                                  cue_features, cues_array, load_thresholds)
 
 
 def make_training(n=400, noise=0.3, seed=0, informative=True):
-    """Cues like fR's: fewer family segments / larger entropy / lower likelihood -> larger errors."""
+    """Cues (n, 4) in CUE_NAMES order like fR's: fewer family segments / larger entropy / lower
+    likelihood / poorer focal conditioning -> larger errors (n, 3)."""
     rng = np.random.default_rng(seed)
     m = np.round(np.exp(rng.uniform(np.log(2), np.log(80), n)))
     h = np.exp(rng.uniform(np.log(1e-7), np.log(3.0), n))
     ll = rng.normal(0.0, 0.5, n)
-    difficulty = -np.log1p(m) + 0.3 * np.log(h + 1e-6) - 0.5 * ll if informative else rng.normal(size=n)
+    cond = np.exp(rng.uniform(np.log(1e-3), np.log(0.8), n))
+    difficulty = (-np.log1p(m) + 0.3 * np.log(h + 1e-6) - 0.5 * ll - 0.3 * np.log(cond + 1e-3) if informative
+                  else rng.normal(size=n))
     scale = np.exp(difficulty - difficulty.mean())
     errors = np.stack([0.5 * scale, 1.0 * scale, 5.0 * scale], 1) * np.exp(noise * rng.normal(size=(n, 3)))
-    return np.stack([m, h, ll], 1), errors
+    return np.stack([m, h, ll, cond], 1), errors
 
 
 def test_cue_features_documented_transform():
-    x = cue_features([[9.0, 0.0, -0.25], [0.0, 1.0, 2.0]])
-    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25])
-    np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0])
+    x = cue_features([[9.0, 0.0, -0.25, 0.0], [0.0, 1.0, 2.0, 0.5]])
+    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25, np.log(1e-3)])
+    np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0, np.log(0.5 + 1e-3)])
+    # the paper's three cues alone, and a cue set in another order: one transform per name
+    np.testing.assert_allclose(cue_features([[9.0, 0.0, -0.25]], PAPER_CUE_NAMES), x[:1, :3])
+    np.testing.assert_allclose(cue_features([[0.5, 2.0]], ("focal_conditioning", "mean_log_likelihood")),
+                               [[np.log(0.5 + 1e-3), 2.0]])
+    for bad in (("min_family_segments", "nonsense"), ("grid_entropy", "grid_entropy"), ()):
+        with pytest.raises(ValueError):
+            cue_features(np.zeros((1, len(bad))), bad)
+    with pytest.raises(ValueError):  # column count must match the names
+        cue_features([[1.0, 2.0, 3.0]])
 
 
 def test_save_load_round_trip_without_pickle(tmp_path):
@@ -51,7 +63,8 @@ def test_save_load_round_trip_without_pickle(tmp_path):
     np.testing.assert_array_equal(loaded.predict(probe), model.predict(probe))
     assert loaded.k == model.k and loaded.meta["mode"] == "fr"
     # whitened training cues have identity covariance
-    np.testing.assert_allclose(np.cov(loaded.whiten(loaded.train_cues).T), np.eye(3), atol=1e-8)
+    np.testing.assert_allclose(np.cov(loaded.whiten(loaded.train_cues).T), np.eye(4), atol=1e-8)
+    assert loaded.cue_names == CUE_NAMES and sidecar["cue_names"] == list(CUE_NAMES)
 
 
 def test_numpy_prediction_matches_sklearn():
@@ -89,7 +102,7 @@ def test_predictions_monotone_in_cues():
     cues, errors = make_training(600, noise=0.3)
     model = ReliabilityModel.fit(cues, errors)
     counts = np.array([2, 3, 5, 8, 13, 20, 30, 45, 70], float)
-    probe = np.stack([counts, np.full_like(counts, 1e-3), np.zeros_like(counts)], 1)
+    probe = np.stack([counts, np.full_like(counts, 1e-3), np.zeros_like(counts), np.full_like(counts, 0.3)], 1)
     predicted = model.predict(probe)
     for j in range(3):  # more segments in the weakest family -> smaller predicted error
         assert spearmanr(counts, predicted[:, j]).statistic < -0.8
@@ -107,7 +120,7 @@ def test_annotate_sets_fields_and_thresholds(tmp_path):
     cues, errors = make_training(400, noise=0.2)
     model = ReliabilityModel.fit(cues, errors, meta={"mode": "fast"},
                                  thresholds={"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0})
-    easy, hard = _result([70.0, 1e-6, 0.5]), _result([2.0, 2.0, -1.0])
+    easy, hard = _result([70.0, 1e-6, 0.5, 0.5]), _result([2.0, 2.0, -1.0, 0.002])
     model.annotate(easy, mode="fast")
     model.annotate(hard, mode="fast")
     assert set(easy.predicted_error) == set(TARGETS) and set(hard.predicted_error) == set(TARGETS)
@@ -115,22 +128,22 @@ def test_annotate_sets_fields_and_thresholds(tmp_path):
     assert hard.predicted_error["focal_pct"] > 15.0
     assert not hard.reliable and "predicted error above threshold" in hard.reason and "focal" in hard.reason
     # an existing reason is kept, a failed result is left alone
-    prior = _result([2.0, 2.0, -1.0])
+    prior = _result([2.0, 2.0, -1.0, 0.002])
     prior.reliable, prior.reason = False, "only 5 segments (< 10)"
     model.annotate(prior, mode="fast")
     assert prior.reason.startswith("only 5 segments (< 10); predicted error")
     failed = CalibrationResult(image="y", width=1, height=1, ok=False, reason="boom")
     assert model.annotate(failed).predicted_error is None
     with pytest.raises(ValueError):
-        model.annotate(_result([10.0, 1e-3, 0.0]), mode="fr")
+        model.annotate(_result([10.0, 1e-3, 0.0, 0.3]), mode="fr")
     # load_default from a folder: a set keyed by mode, thresholds from reliability.json
     model.save(tmp_path / "reliability_fast.npz")
     (tmp_path / "reliability.json").write_text(json.dumps({"thresholds": {"focal_pct": 1000.0}}))
     models = ReliabilityModel.load_default(config_dir=tmp_path)
     assert isinstance(models, ReliabilitySet) and set(models.models) == {"fast"}
-    r = models.annotate(_result([2.0, 2.0, -1.0]), mode="fast")
+    r = models.annotate(_result([2.0, 2.0, -1.0, 0.002]), mode="fast")
     assert r.predicted_error is not None and "focal" not in r.reason
-    assert models.annotate(_result([2.0, 2.0, -1.0]), mode="fr").predicted_error is None
+    assert models.annotate(_result([2.0, 2.0, -1.0, 0.002]), mode="fr").predicted_error is None
     assert ReliabilityModel.load_default(config_dir=tmp_path / "nothing") is None
 
 
@@ -143,9 +156,11 @@ def test_shipped_models_and_thresholds():
     models = ReliabilityModel.load_default()
     for mode in shipped:
         model = models.models[mode]
-        assert model.meta["mode"] == mode and len(model.train_cues) >= 100
-        good, bad = model.predict([[60.0, 1e-6, 0.3], [2.0, 1.0, -1.0]])
+        assert model.meta["mode"] == mode and len(model.train_cues) >= 100 and model.cue_names == CUE_NAMES
+        good, bad = model.predict([[60.0, 1e-6, 0.3, 0.4], [2.0, 1.0, -1.0, 0.4]])
         assert good[2] < bad[2]  # a clean scene is predicted better than a near-empty family
+        conditioned, degenerate = model.predict([[60.0, 1e-6, 0.3, 0.4], [60.0, 1e-6, 0.3, 0.003]])
+        assert conditioned[2] < degenerate[2]  # VPs that pin f down beat VPs at the centre / infinity
 
 
 def test_reliability_is_a_stage_of_the_estimator():
@@ -165,3 +180,31 @@ def test_reliability_is_a_stage_of_the_estimator():
     calibrator = FRCalibrator(mode="fast", use_meta_segments=True)
     estimate = calibrator.estimate(None, ImageMeta(name="x", width=640, height=480, segments=segments))
     assert estimate.predicted_error == on.predicted_error
+
+
+def test_paper_cue_model_and_older_files(tmp_path):
+    """A model trained on the paper's three cues keeps predicting from them (also a file written
+    before the fourth cue existed, whose metadata has no cue names); dicts may carry more cues."""
+    cues, errors = make_training(300)
+    paper = ReliabilityModel.fit(cues[:, :3], errors, meta={"mode": "fr"}, cue_names=PAPER_CUE_NAMES, k_grid=[9])
+    assert paper.cue_names == PAPER_CUE_NAMES and paper.meta["cue_names"] == list(PAPER_CUE_NAMES)
+    probe = make_training(20, seed=5)[0]
+    dicts = [dict(zip(CUE_NAMES, row)) for row in probe]
+    np.testing.assert_array_equal(paper.predict(dicts), paper.predict(probe[:, :3]))
+    path = paper.save(tmp_path / "old.npz")
+    with np.load(path, allow_pickle=False) as data:  # rewrite it as an older version did: no cue names
+        arrays = {key: data[key] for key in data.files}
+    meta = json.loads(str(arrays["meta_json"]))
+    meta.pop("cue_names")
+    arrays["meta_json"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "older.npz", **arrays)
+    older = ReliabilityModel.load(tmp_path / "older.npz")
+    assert older.cue_names == PAPER_CUE_NAMES
+    np.testing.assert_array_equal(older.predict(dicts), paper.predict(dicts))
+    # a four-cue model asked about a result without the fourth cue: NaN, not a guess
+    full = ReliabilityModel.fit(cues, errors, k_grid=[9])
+    assert np.isnan(full.predict([dict(zip(PAPER_CUE_NAMES, probe[0, :3]))])).all()
+    assert cues_array({"grid_entropy": 1.0}).shape == (1, len(CUE_NAMES))
+    with pytest.raises(ValueError):  # cue names that do not match the stored columns
+        ReliabilityModel(cues, errors, paper.feature_mean, paper.feature_components, paper.feature_variance, 5,
+                         {"cue_names": list(PAPER_CUE_NAMES)})
