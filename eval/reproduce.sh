@@ -49,7 +49,9 @@ for step in "${steps[@]}"; do
       $FR train-reliability --dataset zind-fr,yud --split train --method fast --no-cache \
         --report-dataset zind-fr --report-split test --compare-synthetic 300
       $FR train-reliability --dataset zind-fr,yud --split train --method fr --no-cache \
-        --report-dataset zind-fr --report-split test ;;
+        --report-dataset zind-fr --report-split test
+      # focal fusion over YUD test (one camera): paper cues vs the shipped model (needs the yud step)
+      .venv/bin/python -m fr_eval.focal_fusion results/yud/predictions.csv --out results/reliability/focal_fusion.md ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress  # both cores of an idle 2-core machine (the target setting)
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)

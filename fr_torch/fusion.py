@@ -129,10 +129,14 @@ class OnlineCalibrator:
         self._camera: Camera | None = None  # the last fused frame's camera: image size, principal point
         self._frame = -1
 
-    def _sigmas(self, e: FrameEstimate) -> dict[str, float]:
+    def frame_sigmas(self, predicted_error: dict[str, float] | None) -> dict[str, float]:
+        """A frame's standard deviations {roll_deg, tilt_deg (degrees), focal_pct (%)} from its
+        predicted mean absolute errors (same keys and units): ``s = e * sqrt(pi / 2)`` floored at
+        ``min_sigma``; a missing or non-finite prediction counts as ``default_error`` (the
+        thresholds).  The frame's fusion weights are ``1 / s^2`` (module docstring)."""
         pred = dict(self.default_error)
-        if e.predicted_error:
-            pred.update({k: v for k, v in e.predicted_error.items() if v is not None and math.isfinite(v)})
+        if predicted_error:
+            pred.update({k: v for k, v in predicted_error.items() if v is not None and math.isfinite(v)})
         return {k: max(self.min_sigma[k], SIGMA_FROM_MAE * pred[k]) for k in ("roll_deg", "tilt_deg", "focal_pct")}
 
     def fused_sigma(self) -> dict[str, float] | None:
@@ -143,7 +147,7 @@ class OnlineCalibrator:
                 "focal_pct": max(self.min_sigma["focal_pct"], 100 / math.sqrt(self._w_f))}
 
     def _add(self, e: FrameEstimate) -> None:
-        s = self._sigmas(e)
+        s = self.frame_sigmas(e.predicted_error)
         decay = 1.0 - 1.0 / self.memory if self._n else 0.0
         rotation = e.rotation if self.rotation is None else align_to(e.rotation, self.rotation)
         w_rot = 1.0 / (s["roll_deg"] ** 2 + s["tilt_deg"] ** 2)
@@ -161,7 +165,7 @@ class OnlineCalibrator:
 
     def disagreement(self, e: FrameEstimate, rotation: np.ndarray, focal_px: float, sigma: dict | None) -> float:
         """Largest |difference| / sqrt(s_frame^2 + s_ref^2) over roll, tilt, focal and rotation angle."""
-        s = self._sigmas(e)
+        s = self.frame_sigmas(e.predicted_error)
         ref = sigma or s
         aligned = align_to(e.rotation, rotation)
         angles = rotation_angles(rotation)
@@ -202,8 +206,9 @@ class OnlineCalibrator:
                 status = "fused"
             else:
                 # keep only the held-back frames that agree with this one (consecutive run)
+                sigma = self.frame_sigmas(e.predicted_error)
                 self._pending = [p for p in self._pending
-                                 if self.disagreement(p, e.rotation, e.focal_px, self._sigmas(e)) <= self.change_k]
+                                 if self.disagreement(p, e.rotation, e.focal_px, sigma) <= self.change_k]
                 self._pending.append(e)
                 status = "held"
                 if len(self._pending) >= self.patience:

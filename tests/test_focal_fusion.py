@@ -1,0 +1,47 @@
+"""fr_eval.focal_fusion: fusing one camera's focal estimates with and without predicted-error weights."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from fr_eval import focal_fusion
+from fr_torch.reliability import CUE_NAMES, ERROR_COLUMNS
+
+
+def test_fused_focal_error_weights_follow_predicted_errors():
+    focal = np.array([500.0, 500.0, 800.0])
+    assert focal_fusion.fused_focal_error_pct(np.full(4, 510.0), None, 500.0) == pytest.approx(2.0)
+    unweighted = focal_fusion.fused_focal_error_pct(focal, None, 500.0)
+    trusted = focal_fusion.fused_focal_error_pct(focal, np.array([2.0, 2.0, 60.0]), 500.0)
+    assert unweighted > 10.0 and trusted < 0.5 < unweighted  # the frame predicted bad barely counts
+    # fr track's floor on sigma (1 %): predictions below it weigh the same
+    assert focal_fusion.fused_focal_error_pct(focal, np.array([0.01, 0.1, 60.0]), 500.0) == pytest.approx(
+        focal_fusion.fused_focal_error_pct(focal, np.array([0.1, 0.01, 60.0]), 500.0))
+
+
+def _records(n, seed):
+    rng = np.random.default_rng(seed)
+    frame = pd.DataFrame({"min_family_segments": rng.integers(3, 80, n).astype(float),
+                          "grid_entropy": rng.uniform(1e-4, 2.0, n), "mean_log_likelihood": rng.normal(0, 0.5, n),
+                          "focal_conditioning": rng.uniform(0.001, 0.7, n)})
+    frame[list(ERROR_COLUMNS)] = np.abs(rng.normal(size=(n, 3))) * [0.3, 0.8, 5.0]
+    frame["ok"], frame["group"] = True, [f"g{i % 20}" for i in range(n)]
+    return frame
+
+
+def test_fuse_reads_records_and_checks_one_camera(tmp_path):
+    for source in focal_fusion.TRAIN_SOURCES:
+        _records(60, seed=len(source)).to_csv(tmp_path / f"{source}_train_fr.csv", index=False)
+    rng = np.random.default_rng(1)
+    n = 12
+    predictions = pd.DataFrame({"method": "fr", "failed": False, "reliable": [True] * (n - 1) + [False],
+                                "gt_focal_px": 675.0, "est_focal_px": 675.0 * (1 + 0.03 * rng.normal(size=n))})
+    for name in CUE_NAMES:
+        predictions[f"cue_{name}"] = _records(n, seed=2)[name]
+    table = focal_fusion.fuse(predictions, tmp_path)
+    assert list(table["method"]) == ["fr"] and int(table["frames"].iloc[0]) == n - 1  # unreliable frame left out
+    assert np.isfinite(table[["unweighted", "paper cues", "shipped model"]].to_numpy(float)).all()
+    predictions.loc[0, "gt_focal_px"] = 700.0
+    with pytest.raises(ValueError, match="one true focal length"):
+        focal_fusion.fuse(predictions, tmp_path)
