@@ -403,8 +403,33 @@ def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: s
         cells = " | ".join(f"{r[f'oof_{s}_spearman_focal']:.2f} | {r[f'oof_{s}_top25_focal_ratio']:.2f}" for s in sources)
         lines.append(f"| {r['cues']} | {r['k']} | {cells} | {r['test_spearman_focal']:.2f} | "
                      f"{r['test_top25_focal_ratio']:.2f} | {r['test_spearman_roll']:.2f} / {r['test_spearman_tilt']:.2f} |")
+    lines += ["", f"Figure `cues_{mode}.png`: each training image's focal error against its `focal_conditioning`."]
     (out / f"cues_{mode}.md").write_text("\n".join(lines) + "\n")
+    _plot_focal_conditioning(train, out / f"cues_{mode}.png", mode)
     return table
+
+
+def _plot_focal_conditioning(train: pd.DataFrame, png: Path, mode: str) -> None:
+    """Scatter of |focal error| (%, log scale) against ``focal_conditioning`` per training source."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for source, part in train.groupby("source"):
+        ax.scatter(part["focal_conditioning"], part["focal_err_pct"].clip(lower=0.01), s=10,
+                   alpha=0.6, label=f"{source} train (n = {len(part)})")
+    ax.set_yscale("log")
+    ax.set_xlim(0.0, 0.9)
+    ax.set_xlabel("focal_conditioning (0 = VPs on the principal point or at infinity)")
+    ax.set_ylabel("|focal error| (%, floored at 0.01)")
+    ax.set_title(f"{mode}: focal error vs focal conditioning")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
 
 
 # ---------------------------------------------------------------------------------- CLI
@@ -456,7 +481,7 @@ def run(args: argparse.Namespace) -> int:
                                  cue_names=cue_names,
                                  meta={"mode": args.method, "training_data": sizes, "split": args.split,
                                        "failed_or_dropped": int(len(frame) - len(train)),
-                                       "command": "fr " + " ".join(sys.argv[2:]) if len(sys.argv) > 1 else ""})
+                                       "command": "fr train-reliability " + " ".join(sys.argv[2:]) if len(sys.argv) > 1 else ""})
     out = args.out or config_dir() / f"reliability_{args.method}.npz"
     model.save(out)
     print(f"trained on {len(train)} images {sizes}; K = {model.k} (CV loss {model.meta['cv_loss'][str(model.k)]:.4f}); "

@@ -1,4 +1,5 @@
-"""fr_eval.focal_fusion: fusing one camera's focal estimates with and without predicted-error weights."""
+"""fr_eval.focal_fusion (one camera's focal estimates fused with and without predicted-error weights) and
+the cue-set comparison of fr train-reliability."""
 from __future__ import annotations
 
 import numpy as np
@@ -45,3 +46,19 @@ def test_fuse_reads_records_and_checks_one_camera(tmp_path):
     predictions.loc[0, "gt_focal_px"] = 700.0
     with pytest.raises(ValueError, match="one true focal length"):
         focal_fusion.fuse(predictions, tmp_path)
+
+
+def test_compare_cue_sets_writes_table_and_figure(tmp_path):
+    from fr_eval.reliability_train import CUE_SETS, compare_cue_sets
+
+    train = pd.concat([_records(60, seed=1).assign(source="yud", name=[f"y{i}" for i in range(60)]),
+                       _records(80, seed=2).assign(source="zind-fr", name=[f"z{i}" for i in range(80)])],
+                      ignore_index=True)
+    train["group"] = [f"{s}:{i % 25}" for i, s in enumerate(train["source"])]
+    test = _records(40, seed=3)
+    table = compare_cue_sets(train, test, tmp_path, "fr")
+    assert list(table["cues"]) == list(CUE_SETS)
+    assert np.isfinite(table.drop(columns="cues").to_numpy(float)).all()
+    text = (tmp_path / "cues_fr.md").read_text()
+    assert "oof yud rho" in text and "oof zind-fr rho" in text and "cues_fr.png" in text
+    assert (tmp_path / "cues_fr.png").stat().st_size > 0 and (tmp_path / "cues_fr.csv").is_file()
