@@ -280,7 +280,8 @@ class FREstimator:
                 item.result.runtime_s["detect"] = item.detect_s
                 item.result.runtime_s["total"] = item.result.runtime_s.get("total", 0.0) + item.detect_s
         if self.reliability is not None:  # the last stage: predicted errors, reliable above thresholds
-            self.reliability.annotate_many(results, mode=self.mode)
+            self.reliability.annotate_many(results, mode=self.mode,
+                                           focal_known=[item.focal_px is not None for item in items])
         return results
 
     def _search_group(self, group: list[_Image], known_focal: bool):

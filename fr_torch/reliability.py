@@ -59,9 +59,11 @@ scikit-learn; prediction is plain numpy.
 Run-time use: the last stage of :class:`fr_torch.estimator.FREstimator` (its ``reliability``
 option, on by default) loads :meth:`ReliabilityModel.load_default` for its mode (models
 ``configs/reliability_fr.npz`` and ``configs/reliability_fast.npz``; thresholds in
-``configs/reliability.json``) and calls :meth:`ReliabilityModel.annotate` on each estimate, which
-fills ``result.predicted_error`` and clears ``result.reliable`` when a predicted error exceeds its
-threshold.
+``configs/reliability.json``) and calls :meth:`ReliabilityModel.annotate_many` on the estimates,
+which fills ``result.predicted_error`` and clears ``result.reliable`` when a predicted error exceeds
+its threshold.  An image whose focal length was given (``focal_px``) gets a predicted focal error
+of 0: the models were trained on estimated focal lengths, and a given one is not the estimator's
+error.
 """
 from __future__ import annotations
 
@@ -267,18 +269,26 @@ class ReliabilityModel:
         self.annotate_many([result], mode)
         return result
 
-    def annotate_many(self, results: Sequence, mode: str | None = None) -> None:
+    def annotate_many(self, results: Sequence, mode: str | None = None,
+                      focal_known: Sequence[bool] | None = None) -> None:
         """:meth:`annotate` for many results with one prediction call (results with ``ok`` False are
-        left alone)."""
+        left alone).  ``focal_known`` (one bool per result): the focal length was given, not
+        estimated; its predicted error is then 0 (the estimate's focal length *is* the given one,
+        whatever its own error) and never exceeds the focal threshold."""
         mine = self.meta.get("mode")
         if mode is not None and mine is not None and mode != mine:
             raise ValueError(f"reliability model was trained for mode {mine!r}, result comes from {mode!r}")
-        todo = [r for r in results if getattr(r, "ok", False)]
+        known = [False] * len(results) if focal_known is None else [bool(k) for k in focal_known]
+        if len(known) != len(results):
+            raise ValueError(f"focal_known has {len(known)} entries for {len(results)} results")
+        todo = [(r, k) for r, k in zip(results, known) if getattr(r, "ok", False)]
         if not todo:
             return
-        predictions = self.predict(cues_array([r.cues for r in todo], self.cue_names))
-        for result, row in zip(todo, predictions.tolist()):
+        predictions = self.predict(cues_array([r.cues for r, _ in todo], self.cue_names))
+        for (result, given), row in zip(todo, predictions.tolist()):
             predicted = dict(zip(TARGETS, row))
+            if given:
+                predicted["focal_pct"] = 0.0
             result.predicted_error = predicted
             over = [f"{name.split('_')[0]} {predicted[name]:.1f}{' %' if name == 'focal_pct' else ' deg'} > "
                     f"{limit:g}{' %' if name == 'focal_pct' else ' deg'}"
@@ -346,10 +356,10 @@ class ReliabilitySet:
         model = self.models.get(mode)
         return model.annotate(result, mode) if model is not None else result
 
-    def annotate_many(self, results: Sequence, mode: str = "fr") -> None:
+    def annotate_many(self, results: Sequence, mode: str = "fr", focal_known: Sequence[bool] | None = None) -> None:
         model = self.models.get(mode)
         if model is not None:
-            model.annotate_many(results, mode)
+            model.annotate_many(results, mode, focal_known)
 
     def predict(self, cues, mode: str = "fr") -> np.ndarray:
         return self.models[mode].predict(cues)

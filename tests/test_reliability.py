@@ -208,3 +208,24 @@ def test_paper_cue_model_and_older_files(tmp_path):
     with pytest.raises(ValueError):  # cue names that do not match the stored columns
         ReliabilityModel(cues, errors, paper.feature_mean, paper.feature_components, paper.feature_variance, 5,
                          {"cue_names": list(PAPER_CUE_NAMES)})
+
+
+def test_given_focal_length_has_no_predicted_focal_error():
+    """With focal_px given, the predicted focal error is 0 and the focal threshold never fires
+    (the models predict the error of an *estimated* focal length)."""
+    from fr_torch.estimator import FREstimator
+    from fr_torch.synthetic import random_rotation, synthetic_segments
+
+    path = config_dir() / "reliability_fast.npz"
+    if not path.is_file():
+        pytest.skip("no shipped fast model")
+    strict = ReliabilityModel.load(path, thresholds={"roll_deg": 100.0, "tilt_deg": 100.0, "focal_pct": 1e-6})
+    segments, _ = synthetic_segments(420.0, random_rotation(np.random.default_rng(5)), 640, 480, seed=5)
+    est = FREstimator(mode="fast", reliability=strict)
+    [estimated] = est.calibrate_segments([segments], [(640, 480)])
+    [given] = est.calibrate_segments([segments], [(640, 480)], focal_px=420.0)
+    assert estimated.predicted_error["focal_pct"] > 0 and not estimated.reliable and "focal" in estimated.reason
+    assert given.ok and given.predicted_error["focal_pct"] == 0.0 and given.reliable, given.reason
+    assert given.predicted_error["roll_deg"] > 0  # the angles are still predicted
+    with pytest.raises(ValueError):
+        strict.annotate_many([estimated], focal_known=[True, False])
