@@ -614,7 +614,7 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     # V = K R: rows 0, 1 = f R_j + c_j R_2, row 2 = R_2.
     top = focal[..., None, None] * rotation[..., :2, :] + pp[..., None] * rotation[..., 2:, :]
     vps = torch.cat([top, rotation[..., 2:, :]], -2)  # (B, L, 3, 3)
-    objective, saved = measure_b_forward(features.line, features.along, features.weight, vp_major(vps),
+    objective, saved = measure_b_forward(features.line_along, features.weight, vp_major(vps),
                                          *likelihood._b_constants(features.weight))
     grad_flat = measure_b_backward(saved, grad_out.expand(batch, n_hyp).contiguous())
     grad_v = grad_flat.view(batch, 3, 3, n_hyp).permute(0, 3, 1, 2)  # (B, L, coord, VP)
