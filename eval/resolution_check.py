@@ -4,9 +4,10 @@
 
 For every scale k the test images are upscaled by k (``cv2.INTER_CUBIC``), calibrated from the
 arrays (detection runs at the estimator's working resolution), and compared with the ground truth
-(focal length scaled by k).  Prints mean +- SE per metric, the paired mean |difference| to 1x, and
-the median time per image (decode excluded; detection + search); writes a Markdown table to
-``--out/resolution.md`` when ``--out`` is given.
+(focal length scaled by k).  Prints, per scale, how many estimates are valid (a failed or non-finite
+estimate counts against it and is left out of the means), mean +- SE per metric over the valid ones,
+the paired mean |difference| to 1x, and the median time per image (decode excluded; detection +
+search); writes a Markdown table to ``--out/resolution_<mode>.md`` when ``--out`` is given.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import cv2
 import numpy as np
 
 from fr_eval.datasets.registry import load_dataset
-from fr_eval.metrics import image_errors, mean_se
+from fr_eval.metrics import failure_reason, image_errors, is_failure, mean_se
 from fr_torch import FREstimator
 from fr_torch.segments import load_image
 
@@ -41,11 +42,11 @@ def main(argv=None) -> int:
     estimator = FREstimator(mode=args.mode)
     estimator.calibrate_images(images[:1])  # warm-up
     lines = [f"# Resolution independence, YUD {args.split} ({len(samples)} images), {args.mode}", "",
-             "| scale | input | " + " | ".join(METRICS) + " | segments (median) | ms/image (median) |",
-             "|---" * (len(METRICS) + 4) + "|"]
-    per_scale = {}
+             "| scale | input | valid | " + " | ".join(METRICS) + " | segments (median) | ms/image (median) |",
+             "|---" * (len(METRICS) + 5) + "|"]
+    per_scale, failed_at = {}, {}
     for k in (int(v) for v in args.scales.split(",")):
-        rows, times, counts = [], [], []
+        rows, times, counts, failures = [], [], [], []
         for sample, image in zip(samples, images):
             big = image if k == 1 else cv2.resize(image, None, fx=k, fy=k, interpolation=cv2.INTER_CUBIC)
             start = time.perf_counter()
@@ -54,15 +55,20 @@ def main(argv=None) -> int:
             counts.append(result.num_segments)
             truth = replace(sample, width=sample.width * k, height=sample.height * k,
                             camera=sample.camera.resized(sample.width * k, sample.height * k))
-            rows.append(image_errors(truth, result if result.ok else None))
+            rows.append(image_errors(truth, result))
+            if is_failure(result):
+                failures.append(f"{sample.name} ({failure_reason(result)})")
         per_scale[k] = rows
+        failed_at[k] = failures
         cells = []
         for m in METRICS:
-            mean, se, _ = mean_se(r[m] for r in rows if r[m] is not None)
-            cells.append(f"{mean:.3f} ± {se:.3f}")
-        lines.append(f"| {k}x | {samples[0].width * k}x{samples[0].height * k} | " + " | ".join(cells)
+            mean, se, n = mean_se(r[m] for r in rows if r[m] is not None)
+            cells.append(f"{mean:.3f} ± {se:.3f}" if n > 1 else f"{mean:.3f}" if n == 1 else "n/a")
+        valid = len(rows) - len(failures)
+        lines.append(f"| {k}x | {samples[0].width * k}x{samples[0].height * k} | {valid}/{len(rows)} | "
+                     + " | ".join(cells)
                      + f" | {int(np.median(counts))} | {1000 * np.median(times):.0f} |")
-    if 1 in per_scale:
+    if 1 in per_scale and len(per_scale) > 1:
         lines += ["", "Paired mean |difference| of the per-image error to 1x:", ""]
         for k, rows in per_scale.items():
             if k == 1:
@@ -70,6 +76,9 @@ def main(argv=None) -> int:
             diffs = {m: [abs(a[m] - b[m]) for a, b in zip(rows, per_scale[1]) if a[m] is not None and b[m] is not None]
                      for m in METRICS}
             lines.append(f"- {k}x: " + ", ".join(f"{m} {np.mean(v):.3f}" for m, v in diffs.items()))
+    failed = [f"- {k}x: " + "; ".join(names) for k, names in failed_at.items() if names]
+    if failed:
+        lines += ["", "Failed estimates (counted in `valid`, left out of the means):", ""] + failed
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

@@ -145,4 +145,26 @@ def test_resolution_check_runs_on_upscaled_images(data_root, tmp_path):
     assert main(["--scales", "1,2", "--mode", "fast", "--limit", "2", "--data-root", str(data_root),
                  "--out", str(tmp_path)]) == 0
     text = (tmp_path / "resolution_fast.md").read_text()
-    assert "| 2x | 1280x960 |" in text and "nan" not in text
+    assert "| 2x | 1280x960 | 2/2 |" in text and "nan" not in text and "Failed" not in text
+
+
+def test_resolution_check_counts_failed_estimates(data_root, tmp_path, monkeypatch):
+    """A failed estimate is counted in the `valid` column and named, not silently left out."""
+    import fr_eval.resolution_check as check
+    from fr_torch import FREstimator
+
+    class FailsSecond(FREstimator):
+        def calibrate_images(self, images, names=None, **kwargs):
+            results = super().calibrate_images(images, names=names, **kwargs)
+            if names and names[0] == self.fail_name:
+                results[0].ok, results[0].reason = False, "too few segments"
+            return results
+
+    first_two = check.load_dataset("yud", root=str(data_root), split="test")[:2]
+    FailsSecond.fail_name = first_two[1].name
+    monkeypatch.setattr(check, "FREstimator", FailsSecond)
+    assert check.main(["--scales", "1", "--mode", "fast", "--limit", "2", "--data-root", str(data_root),
+                       "--out", str(tmp_path)]) == 0
+    text = (tmp_path / "resolution_fast.md").read_text()
+    assert "| 1x | 640x480 | 1/2 |" in text
+    assert f"- 1x: {first_two[1].name} (too few segments)" in text and "nan" not in text
