@@ -12,6 +12,7 @@ search); writes a Markdown table to ``--out/resolution_<mode>.md`` when ``--out`
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -19,9 +20,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fr_eval.bench import machine_description
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.metrics import failure_reason, image_errors, is_failure, mean_se
 from fr_torch import FREstimator
+from fr_torch.image_io import WORKING_LONG_SIDE
 from fr_torch.segments import load_image
 
 METRICS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct", "frame_err_deg")
@@ -79,6 +82,15 @@ def main(argv=None) -> int:
     failed = [f"- {k}x: " + "; ".join(names) for k, names in failed_at.items() if names]
     if failed:
         lines += ["", "Failed estimates (counted in `valid`, left out of the means):", ""] + failed
+    low, high = estimator.search.hfov_range_deg
+    machine = machine_description("cpu")
+    lines += ["", f"Command: `python -m fr_eval.resolution_check {' '.join(argv if argv is not None else sys.argv[1:])}` "
+              f"(YUD {args.split}, bicubic upscaling; every row with the FOV search range [{low:g}°, {high:g}°] "
+              f"across the long side and the principal point at the image centre; means ± standard error over "
+              f"the valid estimates). {machine['cpu']}, {machine['usable_cores']} usable cores, torch "
+              f"{machine['torch']}, {machine['threads']} threads; ms = detection at the working resolution (long side <= "
+              f"{WORKING_LONG_SIDE} px, `fr_torch/image_io.WORKING_LONG_SIDE`; the {estimator.segment_filter.max_segments} longest "
+              f"segments) + search, decode excluded."]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:
