@@ -30,9 +30,20 @@ from fr_torch.segments import load_image
 METRICS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct", "frame_err_deg")
 
 
+def _scales(text: str) -> list[int]:
+    """``"1,2,4"`` -> [1, 2, 4]; anything but whole factors >= 1 is a one-line usage error."""
+    try:
+        scales = [int(v) for v in text.split(",")]
+    except ValueError:
+        scales = []
+    if not scales or min(scales) < 1:
+        raise argparse.ArgumentTypeError(f"expected whole factors >= 1 such as 1,2,4, got {text!r}")
+    return scales
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scales", default="1,2,4")
+    parser.add_argument("--scales", default="1,2,4", type=_scales, help="comma-separated whole upscaling factors >= 1")
     parser.add_argument("--mode", default="fast", choices=("fast", "fr"))
     parser.add_argument("--split", default="test")
     parser.add_argument("--limit", type=int, default=None)
@@ -48,7 +59,7 @@ def main(argv=None) -> int:
              "| scale | input | valid | " + " | ".join(METRICS) + " | segments (median) | ms/image (median) |",
              "|---" * (len(METRICS) + 5) + "|"]
     per_scale, failed_at = {}, {}
-    for k in (int(v) for v in args.scales.split(",")):
+    for k in args.scales:
         rows, times, counts, failures = [], [], [], []
         for sample, image in zip(samples, images):
             big = image if k == 1 else cv2.resize(image, None, fx=k, fy=k, interpolation=cv2.INTER_CUBIC)
@@ -84,13 +95,14 @@ def main(argv=None) -> int:
         lines += ["", "Failed estimates (counted in `valid`, left out of the means):", ""] + failed
     low, high = estimator.search.hfov_range_deg
     machine = machine_description("cpu")
-    lines += ["", f"Command: `python -m fr_eval.resolution_check {' '.join(argv if argv is not None else sys.argv[1:])}` "
-              f"(YUD {args.split}, bicubic upscaling; every row with the FOV search range [{low:g}°, {high:g}°] "
-              f"across the long side and the principal point at the image centre; means ± standard error over "
-              f"the valid estimates). {machine['cpu']}, {machine['usable_cores']} usable cores, torch "
-              f"{machine['torch']}, {machine['threads']} threads; ms = detection at the working resolution (long side <= "
-              f"{WORKING_LONG_SIDE} px, `fr_torch/image_io.WORKING_LONG_SIDE`; the {estimator.segment_filter.max_segments} longest "
-              f"segments) + search, decode excluded."]
+    command = " ".join(argv if argv is not None else sys.argv[1:])
+    lines += ["", f"Command: `python -m fr_eval.resolution_check {command}` (YUD {args.split}, bicubic upscaling; "
+              f"every row with the FOV search range [{low:g}°, {high:g}°] across the long side and the principal "
+              f"point at the image centre; means ± standard error over the valid estimates). {machine['cpu']}, "
+              f"{machine['usable_cores']} usable cores, torch {machine['torch']}, {machine['threads']} threads; "
+              f"ms = detection at the working resolution (long side <= {WORKING_LONG_SIDE} px, "
+              f"`fr_torch/image_io.WORKING_LONG_SIDE`; the {estimator.segment_filter.max_segments} longest segments) "
+              f"+ search, decode excluded."]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

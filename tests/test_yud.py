@@ -148,6 +148,15 @@ def test_resolution_check_runs_on_upscaled_images(data_root, tmp_path):
     assert "| 2x | 1280x960 | 2/2 |" in text and "nan" not in text and "Failed" not in text
 
 
+@pytest.mark.parametrize("scales", ["0,2", "1,x", ""])
+def test_resolution_check_rejects_bad_scales(scales, capsys):
+    from fr_eval.resolution_check import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--scales", scales])
+    assert stop.value.code == 2 and "whole factors >= 1" in capsys.readouterr().err
+
+
 def test_resolution_check_counts_failed_estimates(data_root, tmp_path, monkeypatch):
     """A failed estimate is counted in the `valid` column and named, not silently left out."""
     import fr_eval.resolution_check as check
