@@ -125,7 +125,10 @@ def machine_description(device: str) -> dict:
     except OSError:
         pass
     if device.startswith("cuda"):
-        info["gpu"] = torch.cuda.get_device_name(0)
+        try:
+            info["gpu"] = torch.cuda.get_device_name(0)
+        except (AssertionError, RuntimeError):  # no CUDA here: the record says so instead of failing
+            info["gpu"] = "none available"
     return info
 
 
@@ -338,7 +341,6 @@ def profile_table(device: str, batch: int, n_segments: int, out: Path, progress,
                   rows: int = 25) -> dict:
     """torch profiler over one calibrate_segments call: top ops by self time, written to
     ``<out>/profile_<device>_<mode>.txt``; returns the top ops as dicts (ms)."""
-    import torch
     from torch.profiler import ProfilerActivity, profile
 
     if progress.out_of_time(f"profile {device} {mode}"):

@@ -39,7 +39,7 @@ Outputs (``--out``, default ``results/<dataset>``):
 * ``deviation_measures.{md,csv,tex}``: the same table restricted to ``[measure=x]`` variants, one
   row per deviation measure (written when such variants ran);
 * ``hist_<method>.png``: estimated vs GT roll, tilt and FOV histograms;
-* ``run_info.json``: the command line and settings.
+* ``run_info.json``: the command line, settings and machine (CPU, cores, torch, threads).
 """
 from __future__ import annotations
 
@@ -57,6 +57,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from fr_eval.bench import machine_description
 from fr_eval.datasets.registry import available_datasets, load_dataset
 from fr_eval.metrics import (NA_PREFIX, estimate_quantities, failure_reason, image_errors, is_failure, summarize,
                           summarize_groups)
@@ -490,7 +491,9 @@ def run(args: argparse.Namespace) -> int:
             "requested_methods": requested, "skipped_methods": skipped, "group_by": group_key,
             "n_images": len(samples), "pp": args.pp, "known_focal": args.known_focal, "device": args.device,
             "limit": args.limit, "hfov_range_deg": list(fov_range), "python": platform.python_version(),
-            "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+            # fR's figures move by ~0.1 point between CPUs (last-bit differences of vector maths carried through
+            # 100 refinement steps; results/yud/README.md), so a table records the machine it came from.
+            "machine": machine_description(args.device), "date": time.strftime("%Y-%m-%d %H:%M:%S")}
     (out_dir / "run_info.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
     print((out_dir / "summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out_dir}/predictions.csv, " + ", ".join(p.name for p in written))

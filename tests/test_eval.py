@@ -142,6 +142,7 @@ def test_eval_end_to_end_on_fake_dataset(tmp_path):
     assert not (tmp_path / "deviation_measures.md").exists()
     info = json.loads((tmp_path / "run_info.json").read_text())
     assert info["n_images"] == 6 and len(info["methods"]) == 3
+    assert info["machine"]["cpu"] and info["machine"]["threads"] >= 1  # fR's figures depend on the CPU a little
 
 
 def test_labelled_segments_reach_oracle_methods():
