@@ -19,6 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from fr_eval.bench import machine_description
 from fr_eval.datasets.registry import load_dataset
@@ -61,7 +62,8 @@ def main(argv=None) -> int:
     per_scale, failed_at = {}, {}
     for k in args.scales:
         rows, times, counts, failures = [], [], [], []
-        for sample, image in zip(samples, images):
+        for sample, image in tqdm(list(zip(samples, images)), desc=f"{args.mode} {k}x", unit="img", leave=False,
+                                  file=sys.stderr):
             big = image if k == 1 else cv2.resize(image, None, fx=k, fy=k, interpolation=cv2.INTER_CUBIC)
             start = time.perf_counter()
             [result] = estimator.calibrate_images([big], names=[sample.name])
