@@ -202,8 +202,28 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
 def _shutdown(pool: ProcessPoolExecutor, broken: bool) -> None:
     """Stop ``pool`` without waiting for its queued work; a broken pool (a worker died) is joined:
     with ``shutdown(wait=False)`` its manager thread can hang the interpreter's exit on Python <
-    3.14 (CPython gh-132969), and joining it is quick (it only terminates the other workers)."""
+    3.14 (CPython gh-132969).  Its workers are killed first (:func:`_kill_workers`), so the join
+    never waits for one of them."""
+    if broken:
+        _kill_workers(pool)
     pool.shutdown(wait=broken, cancel_futures=True)
+
+
+def _kill_workers(pool: ProcessPoolExecutor) -> None:
+    """Kill every worker process of a broken ``pool``.
+
+    The pool's manager thread terminates the workers of a broken pool itself, but on Python < 3.14
+    a worker that ``submit`` was still starting at that moment escapes: it is neither terminated
+    nor sent a stop sentinel, waits for work forever, and joining the pool then hangs (seen once in
+    CI, in ``test_worker_crash_fails_only_its_image``; CPython gh-152978 closes this gap in 3.14).
+    Only this (the submitting) thread starts workers, so by the time it shuts the pool down every
+    worker is in ``pool._processes`` (a private attribute; if it is gone, nothing is killed)."""
+    processes = getattr(pool, "_processes", None) or {}
+    for process in list(processes.values()):
+        try:
+            process.kill()
+        except (OSError, ValueError):  # already reaped / closed
+            pass
 
 
 def _detect_chunk(chunk):
@@ -379,6 +399,8 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
         return [result for future in futures for result in future.result()]
     finally:
         if own_pool:
+            if getattr(pool, "_broken", False):  # a worker died: do not wait for the others (_kill_workers)
+                _kill_workers(pool)
             pool.shutdown()
 
 

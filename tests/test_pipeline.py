@@ -129,6 +129,32 @@ def test_worker_crash_fails_only_its_image(workers):
     assert all(d.error is None and len(d.segments) for i, d in enumerate(detections) if i != 3)
 
 
+def test_shutting_down_a_broken_pool_never_waits_for_a_worker():
+    """A broken pool is joined after its workers are killed: a worker that is still alive (here one
+    busy for minutes, as a worker that escaped the pool's own termination would wait forever) does
+    not hang the shutdown."""
+    import threading
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+
+    from fr_torch.pipeline import _shutdown
+    from fr_torch.workers import context
+
+    pool = ProcessPoolExecutor(1, mp_context=context())
+    pool.submit(time.sleep, 0).result()  # the worker is up
+    pool.submit(time.sleep, 300)
+    time.sleep(0.5)  # ... and busy
+    worker = next(iter(pool._processes.values()))
+    stopped = threading.Event()
+    threading.Thread(target=lambda: (_shutdown(pool, broken=True), stopped.set()), daemon=True).start()
+    finished = stopped.wait(60)
+    if not finished:
+        worker.kill()  # lets the pool's threads end, so that this failure does not hang the interpreter's exit
+    assert finished, "shutting down a broken pool waited for its worker"
+    worker.join(10)
+    assert not worker.is_alive()
+
+
 def test_default_workers(monkeypatch):
     monkeypatch.setattr(workers_module, "usable_cores", lambda: 16)
     assert workers_module.default_workers(1000, "cpu") == workers_module.MAX_DEFAULT_WORKERS
