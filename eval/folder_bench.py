@@ -15,12 +15,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from fr_eval.bench import machine_description
 from fr_eval.paths import data_root
 from fr_torch.workers import default_workers, usable_cores
 
@@ -75,7 +75,7 @@ def main(argv=None) -> int:
         "Command: `python -m fr_eval.folder_bench " + " ".join(argv if argv is not None else sys.argv[1:]) + "`.",
         "Wall time of each whole `fr calibrate [--fast] [--workers W] PATHS...` process (start-up, model loading,",
         "decode, LSD, search, JSON output), 640×480 JPEGs, the 102 photos repeated to make larger folders;",
-        f"rounds one after the other, seconds per round, images/s from their mean. Machine: {platform.processor() or platform.machine()},",
+        f"rounds one after the other, seconds per round, images/s from their mean. Machine: {machine_description('cpu')['cpu']},",
         f"{usable_cores()} usable cores, load average after the run {tuple(round(v, 2) for v in load) if load else 'n/a'}.",
         "W = 0: in-process (intra-op threads); W > 0 on a CPU: whole-image worker processes, one thread each.",
         "", "| images | mode | workers W | seconds | images/s | focal lengths = in-process |", "|---|---|---|---|---|---|"]
