@@ -171,7 +171,9 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
                 chunk, alone = todo[0]
                 try:
                     future = pool.submit(function, chunk)
-                except BrokenProcessPool:  # a worker died since the last result: blamed below
+                except (BrokenProcessPool, OSError):  # a worker died since the last result: blamed below
+                    # (OSError: submit was starting a worker while the pool broke, and the pool had already
+                    # closed the queue that worker would read; CPython < 3.14.  No process was started.)
                     broken = True
                     break
                 todo.popleft()

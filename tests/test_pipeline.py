@@ -155,6 +155,49 @@ def test_shutting_down_a_broken_pool_never_waits_for_a_worker():
     assert not worker.is_alive()
 
 
+def _crash_on_minus_one(chunk):
+    """A pool task: item -1 kills its worker (as a native crash would); other items come back doubled."""
+    if -1 in chunk:
+        os._exit(3)
+    return [2 * item for item in chunk]
+
+
+def test_a_worker_started_while_the_pool_breaks_is_not_left_running(monkeypatch):
+    """On Python < 3.14 a worker that ``submit`` is still starting while the pool's manager thread
+    terminates the broken pool escapes that termination: it waits for work forever (a fresh-clone CI
+    run hung joining one).  Here every worker start is slowed down, so the second worker starts after
+    the first one's crash has been handled; the map must still finish, fail only the crashing item
+    and leave no worker running."""
+    import threading
+    import time
+    from concurrent.futures import process as futures_process
+
+    from fr_torch.pipeline import ordered_pool_map
+
+    started = {}
+    spawn = futures_process.ProcessPoolExecutor._spawn_process
+
+    def slow_spawn(pool):
+        time.sleep(0.5)
+        spawn(pool)
+        started.update(pool._processes)
+
+    monkeypatch.setattr(futures_process.ProcessPoolExecutor, "_spawn_process", slow_spawn)
+    out = {}
+    worker = threading.Thread(target=lambda: out.update(results=list(ordered_pool_map(
+        _crash_on_minus_one, [-1, 1, 2], chunk_size=1, workers=2, initializer=None, initargs=(),
+        on_crash=lambda item: f"crashed on {item}"))), daemon=True)
+    worker.start()
+    worker.join(120)
+    for process in started.values():  # the last pool's workers stop on their own, right after the map
+        process.join(10)
+    running = [p for p in started.values() if p.is_alive()]
+    for process in running:  # so that a failure here does not hang the interpreter's exit
+        process.kill()
+    assert out.get("results") == ["crashed on -1", 2, 4]
+    assert not running, f"{len(running)} worker(s) left running"
+
+
 def test_default_workers(monkeypatch):
     monkeypatch.setattr(workers_module, "usable_cores", lambda: 16)
     assert workers_module.default_workers(1000, "cpu") == workers_module.MAX_DEFAULT_WORKERS
