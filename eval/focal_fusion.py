@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from fr_eval.reliability_train import DEFAULT_RECORDS, usable
+from fr_eval.reliability_train import DEFAULT_RECORDS, fit_model, usable
 from fr_torch.fusion import OnlineCalibrator
-from fr_torch.reliability import ERROR_COLUMNS, PAPER_CUE_NAMES, ReliabilityModel
+from fr_torch.reliability import PAPER_CUE_NAMES, ReliabilityModel
 
 MODES = {"fr": "fr", "fast-fr": "fast"}
 TRAIN_SOURCES = ("zind-fr", "yud")  # the shipped models' training data (eval/reproduce.sh reliability)
@@ -41,9 +41,7 @@ def paper_cue_model(mode: str, records: Path) -> ReliabilityModel:
     """A model of the paper's three cues, fitted on the shipped model's cached train records."""
     frames = [pd.read_csv(records / f"{source}_train_{mode}.csv") for source in TRAIN_SOURCES]
     train = usable(pd.concat(frames, ignore_index=True), PAPER_CUE_NAMES)
-    return ReliabilityModel.fit(train[list(PAPER_CUE_NAMES)].to_numpy(float),
-                                train[list(ERROR_COLUMNS)].to_numpy(float), groups=train["group"].to_numpy(str),
-                                meta={"mode": mode}, cue_names=PAPER_CUE_NAMES)
+    return fit_model(train, PAPER_CUE_NAMES, meta={"mode": mode})
 
 
 def fused_focal_error_pct(focal_px: np.ndarray, predicted_focal_pct: np.ndarray | None, true_focal_px: float) -> float:

@@ -316,9 +316,11 @@ def _focal_score(frame: pd.DataFrame, predicted: np.ndarray) -> tuple[float, flo
     return err[order, 2].mean() / err[:, 2].mean(), spearmanr(predicted[:, 2], err[:, 2]).statistic
 
 
-def _fit(frame: pd.DataFrame, cue_names=CUE_NAMES) -> ReliabilityModel:
+def fit_model(frame: pd.DataFrame, cue_names=CUE_NAMES, **kwargs) -> ReliabilityModel:
+    """:meth:`ReliabilityModel.fit` on training records (cues of ``cue_names``, errors, groups);
+    ``kwargs`` (``k_grid``, ``seed``, ``meta``) go to it."""
     return ReliabilityModel.fit(frame[list(cue_names)].to_numpy(float), frame[list(ERROR_COLUMNS)].to_numpy(float),
-                                groups=frame["group"].to_numpy(str), cue_names=cue_names)
+                                groups=frame["group"].to_numpy(str), cue_names=cue_names, **kwargs)
 
 
 def out_of_fold(target: pd.DataFrame, rest: pd.DataFrame | None = None, cue_names=CUE_NAMES,
@@ -330,7 +332,7 @@ def out_of_fold(target: pd.DataFrame, rest: pd.DataFrame | None = None, cue_name
     pred = np.zeros((len(target), 3))
     for tr, te in GroupKFold(folds).split(target, groups=target["group"]):
         fit_on = target.iloc[tr] if rest is None else pd.concat([target.iloc[tr], rest])
-        pred[te] = _fit(fit_on, cue_names).predict(target.iloc[te][list(cue_names)].to_numpy(float))
+        pred[te] = fit_model(fit_on, cue_names).predict(target.iloc[te][list(cue_names)].to_numpy(float))
     return pred
 
 
@@ -344,7 +346,7 @@ def compare_training_sets(variants: dict[str, pd.DataFrame], target: pd.DataFram
     for name, data in variants.items():
         rest = data[~data["name"].isin(target["name"]) | (data["source"] != target["source"].iloc[0])]
         oof_ratio, oof_rho = _focal_score(target, out_of_fold(target, rest, folds=folds))
-        model = _fit(data)
+        model = fit_model(data)
         test_ratio, test_rho = _focal_score(test, model.predict(test[list(CUE_NAMES)].to_numpy(float)))
         rows.append({"training_set": name, "n": len(data), "k": model.k, "oof_top25_focal_ratio": oof_ratio,
                      "oof_spearman_focal": oof_rho, "test_top25_focal_ratio": test_ratio,
@@ -376,15 +378,15 @@ def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: s
     rows = []
     for name, names in CUE_SETS.items():
         oof = out_of_fold(train, cue_names=names, folds=folds)
-        row = {"cues": name, "k": _fit(train, names).k}
+        model = fit_model(train, names)
+        row = {"cues": name, "k": model.k}
         for source in sorted(train["source"].unique()):
             mask = (train["source"] == source).to_numpy()
             row[f"oof_{source}_top25_focal_ratio"], row[f"oof_{source}_spearman_focal"] = _focal_score(
                 train[mask], oof[mask])
-        model = _fit(train, names)
-        row["test_top25_focal_ratio"], row["test_spearman_focal"] = _focal_score(
-            test, model.predict(test[list(names)].to_numpy(float)))
-        rho = spearman(model.predict(test[list(names)].to_numpy(float)), test)
+        predicted = model.predict(test[list(names)].to_numpy(float))
+        row["test_top25_focal_ratio"], row["test_spearman_focal"] = _focal_score(test, predicted)
+        rho = spearman(predicted, test)
         row["test_spearman_roll"], row["test_spearman_tilt"] = rho["roll_deg"], rho["tilt_deg"]
         rows.append(row)
     table = pd.DataFrame(rows)
@@ -476,12 +478,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"only {len(train)} usable training images")
     k_grid = [int(k) for k in args.k_grid.split(",")] if args.k_grid else None
     sizes = train.groupby("source").size().to_dict()
-    model = ReliabilityModel.fit(train[list(cue_names)].to_numpy(float), train[list(ERROR_COLUMNS)].to_numpy(float),
-                                 groups=train["group"].to_numpy(str), k_grid=k_grid, seed=args.seed,
-                                 cue_names=cue_names,
-                                 meta={"mode": args.method, "training_data": sizes, "split": args.split,
-                                       "failed_or_dropped": int(len(frame) - len(train)),
-                                       "command": "fr train-reliability " + " ".join(sys.argv[2:]) if len(sys.argv) > 1 else ""})
+    command = " ".join(["fr train-reliability"] + sys.argv[2:])
+    model = fit_model(train, cue_names, k_grid=k_grid, seed=args.seed,
+                      meta={"mode": args.method, "training_data": sizes, "split": args.split,
+                            "failed_or_dropped": int(len(frame) - len(train)), "command": command})
     out = args.out or config_dir() / f"reliability_{args.method}.npz"
     model.save(out)
     print(f"trained on {len(train)} images {sizes}; K = {model.k} (CV loss {model.meta['cv_loss'][str(model.k)]:.4f}); "
@@ -490,7 +490,6 @@ def run(args: argparse.Namespace) -> int:
         test = usable(gather(report, args.report_split, args.method, 0, args.records, args.data_root,
                              args.batch_size, not args.no_cache, args.seed, args.limit), cue_names)
         title = "+".join(report) + f" {args.report_split}"
-        command = "fr train-reliability " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else "fr train-reliability"
         info = write_report(model, test, args.report_dir, title, command, f"{len(train)} images {sizes}")
         print(info["table"].to_string(index=False))
         print("spearman", json.dumps({k: round(v, 3) for k, v in info["spearman"].items()}))

@@ -19,7 +19,8 @@ Cues (:data:`CUE_NAMES`; the first three are the paper's, :data:`PAPER_CUE_NAMES
   centre, the other and the vertical one near infinity) scores near 0: its focal length is set by
   the prior, and the predicted focal error should say so.  Chosen on the train splits
   (``results/reliability/cues_<mode>.md``): out of fold, the Spearman rho of predicted vs actual
-  focal error rises from about 0 to 0.4-0.5 on YUD train and from 0.34-0.37 to 0.45 on ZInD-fR train.
+  focal error rises from -0.15 / -0.25 (fR / Fast-fR; the paper's cues alone rank it the wrong way)
+  to 0.20 / 0.26 on YUD train and from 0.37 / 0.32 to 0.40 / 0.40 on ZInD-fR train.
 
 Cue normalisation (exactly; :func:`cue_features`)
 -------------------------------------------------
@@ -96,6 +97,11 @@ _CUE_TRANSFORMS = {
                            "ln(focal_conditioning + 1e-3)"),
 }
 
+DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
+DEFAULT_K_GRID = (1, 2, 3, 5, 8, 12, 17, 25, 35, 50, 70, 90, 120, 160, 220, 300)
+MODES = ("fr", "fast")
+PREDICT_BLOCK = 4096  # query rows ranked at once against the training set (memory ~ rows x n_train)
+
 
 def feature_version(names: Sequence[str] = CUE_NAMES) -> str:
     """Human-readable description of the features of ``names`` (stored in a model's metadata)."""
@@ -109,10 +115,6 @@ def check_cue_names(names: Sequence[str]) -> tuple[str, ...]:
     if unknown or len(set(names)) != len(names) or not names:
         raise ValueError(f"cue names must be distinct names from {list(_CUE_TRANSFORMS)}, got {list(names)}")
     return names
-DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
-DEFAULT_K_GRID = (1, 2, 3, 5, 8, 12, 17, 25, 35, 50, 70, 90, 120, 160, 220, 300)
-MODES = ("fr", "fast")
-PREDICT_BLOCK = 4096  # query rows ranked at once against the training set (memory ~ rows x n_train)
 
 
 def cue_features(cues: np.ndarray | Sequence, names: Sequence[str] = CUE_NAMES) -> np.ndarray:
