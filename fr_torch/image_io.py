@@ -257,6 +257,10 @@ def read_image(path, max_long_side: int | None = None, gray: bool = False) -> tu
         # Memory bound for full-size decodes (only JPEG reduces natively; others decode at full size).
         while factor < 8 and width * height * 3 / factor ** 2 > MAX_COLOR_BYTES:
             factor *= 2
+        # OpenCV reduces other formats by resizing the full decode, which fails when a side would
+        # shrink below one pixel (a 5000 x 1 strip): reduce such an image less.
+        while factor > 1 and min(width, height) < factor:
+            factor //= 2
         if width * height * 3 > MAX_COLOR_BYTES and not _is_jpeg(path):
             gray = True
     else:

@@ -32,6 +32,18 @@ def test_unreadable_files(tmp_path, estimator):
         assert not result.ok and message in result.reason and result.focal_px is None
 
 
+def test_thin_strips_are_a_clear_result(tmp_path, estimator):
+    # A 5000 x 1 PNG: a reduced decode (1/8, done by resizing for non-JPEG formats) would have a
+    # 0-pixel side, and OpenCV's resize assertion was the reason the user got.
+    paths = []
+    for name, shape in (("strip.png", (1, 5000, 3)), ("strip.jpg", (2, 5000, 3)), ("column.tif", (6000, 3))):
+        paths.append(tmp_path / name)
+        cv2.imwrite(str(paths[-1]), np.zeros(shape, np.uint8))
+    for path, result in zip(paths, estimator.calibrate_images(paths)):
+        assert not result.ok and result.reason == "no line segments found: cannot calibrate", (path.name, result.reason)
+        assert max(result.width, result.height) >= 5000
+
+
 def test_zero_size_and_wrong_shapes():
     for bad in (np.zeros((0, 0, 3), np.uint8), np.zeros((10, 0), np.uint8), np.zeros((4, 4, 5), np.uint8),
                 np.zeros((2, 2, 2, 2), np.uint8)):
