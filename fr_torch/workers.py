@@ -14,9 +14,10 @@ import multiprocessing.forkserver
 import os
 from pathlib import Path
 
-#: Modules the fork server imports once for all workers (``__main__`` as multiprocessing does;
-#: ``torch._dynamo`` is what building the first ``torch.optim`` optimizer imports, ~1 s per process).
-PRELOAD = ["__main__", "fr_torch.pipeline", "fr_torch.estimator", "torch._dynamo"]
+#: Modules the fork server imports once for all workers (``__main__`` as multiprocessing does).
+#: Not ``torch._dynamo`` (1-2 s): the refinement no longer builds a ``torch.optim`` optimiser,
+#: whose first use imported it (fr_torch.search._FusedAdam).
+PRELOAD = ["__main__", "fr_torch.pipeline", "fr_torch.estimator"]
 
 
 def context() -> multiprocessing.context.BaseContext:

@@ -408,3 +408,35 @@ def test_refinement_stays_finite_and_in_the_box_under_a_bad_gradient(monkeypatch
     params, objective = refine(MixtureLikelihood(), features, hyp[:, :3], lower, upper, 20, fast=False)
     assert torch.isfinite(params).all() and torch.isfinite(objective).all()
     assert (params >= lower[:, None].to(params) - 1e-4).all() and (params <= upper[:, None].to(params) + 1e-3).all()
+
+
+def test_refinement_adam_is_torch_adam_bit_for_bit():
+    """search._FusedAdam = torch.optim.Adam(fused=True) stepped by ExponentialLR, to the last bit."""
+    torch.manual_seed(0)
+    grads = [torch.randn(3, 8, 4) * 10 ** torch.randint(-3, 3, ()).item() for _ in range(30)]
+    ours = torch.rand(3, 8, 4)
+    theirs = ours.clone().requires_grad_(True)
+    adam = search._FusedAdam(ours, 0.03, 0.8, betas=(0.5, 0.9))
+    reference = torch.optim.Adam([theirs], lr=0.03, betas=(0.5, 0.9), fused=True)
+    schedule = torch.optim.lr_scheduler.ExponentialLR(reference, 0.8)
+    for grad in grads:
+        adam.step(grad)
+        theirs.grad = grad.clone()
+        reference.step()
+        schedule.step()
+        assert torch.equal(ours, theirs.detach())
+
+
+def test_calibrating_does_not_import_the_compiler():
+    """torch.optim's first optimiser imports torch._dynamo (1-2 s); the refinement must not pay it."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from fr_torch import FREstimator; from fr_torch.synthetic import synthetic_segments; "
+            "from fr_torch.camera import rotation_from_angles; "
+            "s, _ = synthetic_segments(500.0, rotation_from_angles(10.0, 5.0, 2.0).numpy(), 640, 480, n_per_family=30, seed=0); "
+            "[r] = FREstimator(mode='fr').calibrate_segments([s], [(640, 480)]); assert r.ok, r.reason; "
+            "print('torch._dynamo' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "False"
