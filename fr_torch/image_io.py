@@ -36,7 +36,6 @@ import contextlib
 import os
 import stat
 import struct
-from pathlib import Path
 
 import numpy as np
 
