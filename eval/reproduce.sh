@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset yud zind sota detectors reliability bench
+# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset yud zind sota crops detectors reliability bench
 # (default: all, in this order).  Data root: $FR_DATA (default ../shared/data); generated views go
 # to $FR_CACHE (default data_local/).
 set -euo pipefail
@@ -8,7 +8,7 @@ cd "$(dirname "$0")/.."
 FR=${FR:-.venv/bin/fr}
 export MPLBACKEND=${MPLBACKEND:-Agg}
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset yud zind sota detectors reliability bench)
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset yud zind sota crops detectors reliability bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
@@ -40,6 +40,12 @@ for step in "${steps[@]}"; do
       M="fr,fr[range=paper],fast-fr,fast-fr[range=paper],lee2009,lee2009[range=paper],simon2018,simon2018[range=paper],prior"
       $FR eval --dataset yud --split test --methods "$M" --out results/sota/yud
       $FR eval --dataset zind-fr --split test --methods "$M" --out results/sota/zind-fr ;;
+    crops)  # Narrow cameras: YUD crops around the calibrated principal point (33.0 and 39.2 deg HFOV)
+      for s in 400x300 480x360; do
+        .venv/bin/python -m fr_eval.crop_views --dataset yud --size $s --out "${FR_CACHE:-data_local}/yud-crop-$s"
+        $FR eval --dataset panoviews --data-root "${FR_CACHE:-data_local}/yud-crop-$s" --split test \
+          --methods "fr,fr[range=paper],fast-fr,lee2009,simon2018,prior" --out results/yud-crop/$s
+      done ;;
     detectors)  # Issue "detectors": LSD vs MCMLSD (paper's Table 3)
       for d in yud zind-fr; do
         $FR eval --dataset $d --split test --no-plots --out results/detectors/$d \
