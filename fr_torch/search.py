@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.optim.adam import adam as adam_update  # torch.optim's functional Adam (see _FusedAdam)
 
 from .camera import VERTICAL_AXIS, focal_from_hfov, hfov_from_focal, pan_from_rotation, rotation_from_angles
 from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures, measure_b_backward, measure_b_forward, vp_major
@@ -521,29 +522,30 @@ _GRAD_BOUND = 1e6
 
 
 class _FusedAdam:
-    """Adam on one tensor with an exponentially decaying step size: the update of
-    ``torch.optim.Adam(fused=True)`` stepped with ``ExponentialLR(gamma)``, bit for bit (the same
-    ``torch._fused_adam_`` kernel, state and step-size sequence ``lr0 * gamma * gamma ...``).
+    """torch.optim's Adam (``fused=True``) on one tensor, stepped with an exponentially decaying
+    step size: what ``torch.optim.Adam(fused=True)`` with ``ExponentialLR(gamma)`` does, bit for bit,
+    through torch.optim's functional form ``torch.optim.adam.adam`` (the function ``Adam.step``
+    calls) with the same state (zero moments, a float32 step count) and step sizes
+    ``lr0, lr0 * gamma, ...``.
 
-    Why not torch.optim: its first optimiser in a process imports ``torch._dynamo`` (the
-    optimiser's constructor is wrapped to disable the compiler), 1.2-2.2 s on a 2-core machine --
-    a third of a one-photo ``fr calibrate``, paid by every process that refines.
+    Why not the ``torch.optim.Adam`` object: building the first optimiser object in a process
+    imports ``torch._dynamo`` (its constructor is wrapped to disable the compiler), 1.2-2.2 s on a
+    2-core machine -- a third of a one-photo ``fr calibrate``, paid by every process that refines.
     """
 
     def __init__(self, param: torch.Tensor, lr: float, gamma: float, betas: tuple[float, float], eps: float = 1e-8):
         self.param, self.lr, self.gamma, self.betas, self.eps = param, lr, gamma, betas, eps
         self.exp_avg = torch.zeros_like(param, memory_format=torch.preserve_format)
         self.exp_avg_sq = torch.zeros_like(param, memory_format=torch.preserve_format)
-        self.step_count = torch.zeros((), dtype=torch.float32, device=param.device)  # as torch.optim's fused Adam
+        self.step_count = torch.zeros((), dtype=torch.float32, device=param.device)  # as Adam(fused=True) keeps it
 
     def step(self, grad: torch.Tensor) -> None:
         """One Adam update of the parameter (in place) with gradient ``grad`` (same shape), then
         the step size decays by ``gamma``."""
         with torch.no_grad():
-            self.step_count.add_(1)
-            torch._fused_adam_([self.param], [grad], [self.exp_avg], [self.exp_avg_sq], [], [self.step_count],
-                               amsgrad=False, lr=self.lr, beta1=self.betas[0], beta2=self.betas[1], weight_decay=0.0,
-                               eps=self.eps, maximize=False, grad_scale=None, found_inf=None)
+            adam_update([self.param], [grad], [self.exp_avg], [self.exp_avg_sq], [], [self.step_count], fused=True,
+                        amsgrad=False, beta1=self.betas[0], beta2=self.betas[1], lr=self.lr, weight_decay=0.0,
+                        eps=self.eps, maximize=False)
         self.lr = self.lr * self.gamma
 
 

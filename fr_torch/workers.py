@@ -15,8 +15,8 @@ import os
 from pathlib import Path
 
 #: Modules the fork server imports once for all workers (``__main__`` as multiprocessing does).
-#: Not ``torch._dynamo`` (1-2 s): the refinement no longer builds a ``torch.optim`` optimiser,
-#: whose first use imported it (fr_torch.search._FusedAdam).
+#: Not ``torch._dynamo`` (1-2 s): the refinement no longer builds a ``torch.optim.Adam`` object,
+#: whose constructor imported it (it calls torch.optim's functional Adam: fr_torch.search._FusedAdam).
 PRELOAD = ["__main__", "fr_torch.pipeline", "fr_torch.estimator"]
 
 
