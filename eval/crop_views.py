@@ -29,14 +29,10 @@ import numpy as np
 import pandas as pd
 import torch
 
-from fr_eval.datasets.panoviews import R_COLUMNS
+from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.datasets.registry import load_dataset
 from fr_torch.camera import hfov_from_focal, pan_from_rotation
 from fr_torch.segments import load_image
-
-COLUMNS = ["file", "pano", "group", "split", "width", "height", "focal_px", "hfov_deg", "pan_deg",
-           "tilt_deg", "roll_deg", "pitch_deg", *R_COLUMNS, "manhattan_known", "manhattan_yaw_deg"]
-
 
 def _size(text: str) -> tuple[int, int]:
     try:
@@ -83,7 +79,7 @@ def crop_dataset(samples, size: tuple[int, int], out: Path) -> dict:
                "pitch_deg": float(sample.pitch_deg), "manhattan_known": True, "manhattan_yaw_deg": 0.0}
         row.update({c: float(v) for c, v in zip(R_COLUMNS, rotation.reshape(-1).tolist())})
         rows.append(row)
-    pd.DataFrame(rows, columns=COLUMNS).to_csv(out / "gt.csv", index=False, float_format="%.10g")
+    pd.DataFrame(rows, columns=GT_COLUMNS).to_csv(out / "gt.csv", index=False, float_format="%.10g")
     offsets = np.abs(np.asarray(offsets)) if offsets else np.zeros((0, 2))
     return {"generator": "fr_eval.crop_views", "size": [width, height], "images": len(rows),
             "skipped": skipped,

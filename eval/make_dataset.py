@@ -65,12 +65,12 @@ import numpy as np
 import pandas as pd
 import torch
 
+from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.panorama import (cubemap_to_equirect, load_cubemap, load_panorama, render_views, save_rgb,
                            yaw_rotation)
 from fr_torch.camera import focal_from_hfov, horizon_angles, image_centre, intrinsics, rotation_from_angles
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
-R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
 ZIND_WIDTH = 2048  # the width at which ZInD's u_px_of_one_manhattan_axis is given
 
 
@@ -391,9 +391,7 @@ def run(args: argparse.Namespace) -> int:
             yaw_rows.append({"pano": name, "manhattan_yaw_deg": yaw, **res})
 
     gt = pd.DataFrame(rows)
-    cols = ["file", "pano", "group", "split", "width", "height", "focal_px", "hfov_deg", "pan_deg",
-            "tilt_deg", "roll_deg", "pitch_deg", *R_COLUMNS, "manhattan_known", "manhattan_yaw_deg"]
-    gt[cols].to_csv(out / "gt.csv", index=False, float_format="%.10g")
+    gt[GT_COLUMNS].to_csv(out / "gt.csv", index=False, float_format="%.10g")
     contact_sheet(sheet_imgs, sheet_caps, out / "contact_sheet.png")
     if yaw_rows:
         pd.DataFrame(yaw_rows).to_csv(out / "yaw_check.csv", index=False, float_format="%.4f")

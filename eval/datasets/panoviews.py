@@ -31,6 +31,9 @@ from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import cache_root
 
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
+#: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.crop_views``.
+GT_COLUMNS = ["file", "pano", "group", "split", "width", "height", "focal_px", "hfov_deg", "pan_deg", "tilt_deg",
+              "roll_deg", "pitch_deg", *R_COLUMNS, "manhattan_known", "manhattan_yaw_deg"]
 SPLITS = ("train", "test", "all")
 
 
