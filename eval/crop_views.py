@@ -34,6 +34,7 @@ from fr_eval.datasets.registry import load_dataset
 from fr_torch.camera import hfov_from_focal, pan_from_rotation
 from fr_torch.segments import load_image
 
+
 def _size(text: str) -> tuple[int, int]:
     try:
         width, height = (int(v) for v in text.lower().split("x"))
