@@ -10,10 +10,11 @@ predictions, which carry the cues) are fused three ways, each a weighted mean of
 * ``unweighted``: every estimate counts the same;
 * ``paper cues``: weights ``1 / s^2`` from :meth:`fr_torch.fusion.OnlineCalibrator.frame_sigmas`
   (``fr track``'s rule), s from the focal error predicted by a model of the paper's three cues,
-  trained here exactly as the shipped one (``fr train-reliability``: same cached train records,
-  ``--records``, same K search) but with ``cue_names = PAPER_CUE_NAMES``;
-* ``shipped model``: the same with the shipped model (``configs/reliability_<mode>.npz``, which
-  adds ``focal_conditioning``).
+  trained here exactly as the shipped one (``fr train-reliability``: the same cached train records
+  of the shipped model's training datasets, ``--records``, same K search) but with
+  ``cue_names = PAPER_CUE_NAMES``;
+* ``shipped model``: the same with the shipped model (``configs/reliability_<mode>.npz``: the
+  paper's cues and ``focal_prior_share``).
 
 Only frames ``fr track`` would accept count (``ok`` and ``reliable``; the ``reliable`` column of the
 CSV comes from the shipped model).  Reported: the fused focal length's error (%) against the
@@ -34,12 +35,12 @@ from fr_torch.fusion import OnlineCalibrator
 from fr_torch.reliability import PAPER_CUE_NAMES, ReliabilityModel
 
 MODES = {"fr": "fr", "fast-fr": "fast"}
-TRAIN_SOURCES = ("zind-fr", "yud")  # the shipped models' training data (eval/reproduce.sh reliability)
 
 
-def paper_cue_model(mode: str, records: Path) -> ReliabilityModel:
-    """A model of the paper's three cues, fitted on the shipped model's cached train records."""
-    frames = [pd.read_csv(records / f"{source}_train_{mode}.csv") for source in TRAIN_SOURCES]
+def paper_cue_model(mode: str, records: Path, sources) -> ReliabilityModel:
+    """A model of the paper's three cues, fitted on the cached train records of ``sources`` (the
+    shipped model's training datasets, ``meta["training_data"]``)."""
+    frames = [pd.read_csv(records / f"{source}_train_{mode}.csv") for source in sources]
     train = usable(pd.concat(frames, ignore_index=True), PAPER_CUE_NAMES)
     return fit_model(train, PAPER_CUE_NAMES, meta={"mode": mode})
 
@@ -67,7 +68,7 @@ def fuse(predictions: pd.DataFrame, records: Path) -> pd.DataFrame:
         if not np.allclose(truth, truth[0], rtol=1e-9):
             raise ValueError(f"{method}: the images do not share one true focal length")
         shipped = ReliabilityModel.load_default(mode)
-        paper = paper_cue_model(mode, records)
+        paper = paper_cue_model(mode, records, shipped.meta["training_data"])
         focal = d["est_focal_px"].to_numpy(float)
         cue = {name: d[f"cue_{name}"].to_numpy(float) for name in shipped.cue_names}
         predicted = {"paper cues": paper.predict(np.stack([cue[n] for n in PAPER_CUE_NAMES], 1))[:, 2],
@@ -95,7 +96,7 @@ def main(argv=None) -> int:
                  "accept) against the camera's true focal length; weights 1/s^2 from the predicted focal error "
                  "(`OnlineCalibrator.frame_sigmas`).", "",
                  "| method | frames | unweighted | weighted, paper cues "
-                 "| weighted, shipped model (+ focal_conditioning) |",
+                 "| weighted, shipped model (paper cues + focal_prior_share) |",
                  "|---|---:|---:|---:|---:|"]
         for _, r in table.iterrows():
             lines.append(f"| {r['method']} | {r['frames']} | {r['unweighted']:.2f} | {r['paper cues']:.2f} | "

@@ -45,7 +45,7 @@ import numpy as np
 import pandas as pd
 
 from fr_torch.camera import focal_from_hfov, rotation_angles
-from fr_torch.reliability import CUE_NAMES, ERROR_COLUMNS, PAPER_CUE_NAMES, ReliabilityModel
+from fr_torch.reliability import CUE_NAMES, ERROR_COLUMNS, MODEL_CUE_NAMES, PAPER_CUE_NAMES, ReliabilityModel
 from fr_torch.resources import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -94,8 +94,10 @@ def dataset_records(dataset: str, split: str, mode: str, data_root=None, batch_s
         chunk = samples[start:start + batch_size]
         results = estimator.calibrate_images([str(s.image_path) for s in chunk], names=[s.name for s in chunk])
         for s, r in zip(chunk, results):
-            group = s.extra.get("pano", s.name) if isinstance(s.extra, dict) else s.name
-            gt = dict(source=dataset, split=split, name=s.name, group=f"{dataset}:{group}", width=s.width,
+            extra = s.extra if isinstance(s.extra, dict) else {}
+            # group = scene: views of one panorama, or a crop and the photo it was cut from
+            group = f"{extra.get('scene_source') or dataset}:{extra.get('pano', s.name)}"
+            gt = dict(source=dataset, split=split, name=s.name, group=group, width=s.width,
                       height=s.height, gt_focal_px=float(s.focal_px), gt_roll_deg=float(s.roll_deg),
                       gt_tilt_deg=float(s.tilt_deg), gt_hfov_deg=s.hfov_deg)
             rows.append(_record(r, gt))
@@ -184,7 +186,7 @@ def gather(datasets: list[str], split: str, mode: str, extra_synthetic: int, rec
     return pd.concat(frames, ignore_index=True)
 
 
-def usable(frame: pd.DataFrame, cue_names=CUE_NAMES) -> pd.DataFrame:
+def usable(frame: pd.DataFrame, cue_names=MODEL_CUE_NAMES) -> pd.DataFrame:
     """Rows with an estimate, finite cues (of ``cue_names``) and finite errors."""
     missing = [name for name in cue_names if name not in frame.columns]
     if missing:
@@ -316,14 +318,14 @@ def _focal_score(frame: pd.DataFrame, predicted: np.ndarray) -> tuple[float, flo
     return err[order, 2].mean() / err[:, 2].mean(), spearmanr(predicted[:, 2], err[:, 2]).statistic
 
 
-def fit_model(frame: pd.DataFrame, cue_names=CUE_NAMES, **kwargs) -> ReliabilityModel:
+def fit_model(frame: pd.DataFrame, cue_names=MODEL_CUE_NAMES, **kwargs) -> ReliabilityModel:
     """:meth:`ReliabilityModel.fit` on training records (cues of ``cue_names``, errors, groups);
     ``kwargs`` (``k_grid``, ``seed``, ``meta``) go to it."""
     return ReliabilityModel.fit(frame[list(cue_names)].to_numpy(float), frame[list(ERROR_COLUMNS)].to_numpy(float),
                                 groups=frame["group"].to_numpy(str), cue_names=cue_names, **kwargs)
 
 
-def out_of_fold(target: pd.DataFrame, rest: pd.DataFrame | None = None, cue_names=CUE_NAMES,
+def out_of_fold(target: pd.DataFrame, rest: pd.DataFrame | None = None, cue_names=MODEL_CUE_NAMES,
                 folds: int = 5) -> np.ndarray:
     """Predicted errors (n, 3) for every row of ``target``, each from a model that did not see its
     group: ``folds`` folds grouped by ``group``; ``rest`` (other training data) is always in training."""
@@ -347,7 +349,7 @@ def compare_training_sets(variants: dict[str, pd.DataFrame], target: pd.DataFram
         rest = data[~data["name"].isin(target["name"]) | (data["source"] != target["source"].iloc[0])]
         oof_ratio, oof_rho = _focal_score(target, out_of_fold(target, rest, folds=folds))
         model = fit_model(data)
-        test_ratio, test_rho = _focal_score(test, model.predict(test[list(CUE_NAMES)].to_numpy(float)))
+        test_ratio, test_rho = _focal_score(test, model.predict(test[list(model.cue_names)].to_numpy(float)))
         rows.append({"training_set": name, "n": len(data), "k": model.k, "oof_top25_focal_ratio": oof_ratio,
                      "oof_spearman_focal": oof_rho, "test_top25_focal_ratio": test_ratio,
                      "test_spearman_focal": test_rho})
@@ -367,7 +369,10 @@ def compare_training_sets(variants: dict[str, pd.DataFrame], target: pd.DataFram
     return table
 
 
-CUE_SETS = {"paper": PAPER_CUE_NAMES, "paper+focal_conditioning": CUE_NAMES}
+#: Candidate model inputs compared by :func:`compare_cue_sets`; the shipped models use MODEL_CUE_NAMES.
+CUE_SETS = {"paper": PAPER_CUE_NAMES, "paper+focal_conditioning": PAPER_CUE_NAMES + ("focal_conditioning",),
+            "paper+focal_prior_share": MODEL_CUE_NAMES, "paper+focal_conditioning+focal_prior_share": CUE_NAMES}
+CUE_CHOICES = {"default": MODEL_CUE_NAMES, "paper": PAPER_CUE_NAMES, "all": CUE_NAMES}
 
 
 def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: str, folds: int = 5) -> pd.DataFrame:
@@ -405,30 +410,41 @@ def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: s
         cells = " | ".join(f"{r[f'oof_{s}_spearman_focal']:.2f} | {r[f'oof_{s}_top25_focal_ratio']:.2f}" for s in sources)
         lines.append(f"| {r['cues']} | {r['k']} | {cells} | {r['test_spearman_focal']:.2f} | "
                      f"{r['test_top25_focal_ratio']:.2f} | {r['test_spearman_roll']:.2f} / {r['test_spearman_tilt']:.2f} |")
-    lines += ["", f"Figure `cues_{mode}.png`: each training image's focal error against its `focal_conditioning`."]
+    lines += ["", f"Figure `cues_{mode}.png`: each training image's focal error against its `focal_conditioning` "
+              "and its `focal_prior_share`."]
     (out / f"cues_{mode}.md").write_text("\n".join(lines) + "\n")
-    _plot_focal_conditioning(train, out / f"cues_{mode}.png", mode)
+    _plot_focal_cues(train, out / f"cues_{mode}.png", mode)
     return table
 
 
-def _plot_focal_conditioning(train: pd.DataFrame, png: Path, mode: str) -> None:
-    """Scatter of |focal error| (%, log scale) against ``focal_conditioning`` per training source."""
+#: (cue, axis label, x scale, x limits) of the panels of :func:`_plot_focal_cues`.
+_FOCAL_CUE_PANELS = (
+    ("focal_conditioning", "focal_conditioning (0 = VPs on the principal point or at infinity)", "linear", (0.0, 0.9)),
+    ("focal_prior_share", "focal_prior_share (1 = the focal prior alone sets f)", "log", (1e-3, 1.2)),
+)
+
+
+def _plot_focal_cues(train: pd.DataFrame, png: Path, mode: str) -> None:
+    """|focal error| (%, log scale) against ``focal_conditioning`` and ``focal_prior_share``, one
+    panel each, points coloured by training source."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5.5, 4))
-    for source, part in train.groupby("source"):
-        ax.scatter(part["focal_conditioning"], part["focal_err_pct"].clip(lower=0.01), s=10,
-                   alpha=0.6, label=f"{source} train (n = {len(part)})")
-    ax.set_yscale("log")
-    ax.set_xlim(0.0, 0.9)
-    ax.set_xlabel("focal_conditioning (0 = VPs on the principal point or at infinity)")
-    ax.set_ylabel("|focal error| (%, floored at 0.01)")
-    ax.set_title(f"{mode}: focal error vs focal conditioning")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    fig, axes = plt.subplots(1, len(_FOCAL_CUE_PANELS), figsize=(11, 4), sharey=True)
+    for ax, (cue, label, scale, limits) in zip(axes, _FOCAL_CUE_PANELS):
+        for source, part in train.groupby("source"):
+            ax.scatter(part[cue].clip(lower=limits[0]), part["focal_err_pct"].clip(lower=0.01), s=10,
+                       alpha=0.6, label=f"{source} train (n = {len(part)})")
+        ax.set_xscale(scale)
+        ax.set_yscale("log")
+        ax.set_xlim(*limits)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3, which="both")
+    axes[0].set_ylabel("|focal error| (%, floored at 0.01)")
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"{mode}: focal error vs the focal cues")
     fig.tight_layout()
     fig.savefig(png, dpi=110)
     plt.close(fig)
@@ -456,9 +472,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated held-out datasets for the reliability table (e.g. zind-fr)")
     parser.add_argument("--report-split", default="test")
     parser.add_argument("--report-dir", type=Path, default=REPO / "results" / "reliability")
-    parser.add_argument("--cues", choices=("all", "paper"), default="all",
-                        help="cues the model uses: all (the paper's three and focal_conditioning; default) or "
-                             "paper (min_family_segments, grid_entropy, mean_log_likelihood)")
+    parser.add_argument("--cues", choices=tuple(CUE_CHOICES), default="default",
+                        help="cues the model uses: default (the paper's three and focal_prior_share), paper "
+                             "(min_family_segments, grid_entropy, mean_log_likelihood) or all (the default's and "
+                             "focal_conditioning)")
     parser.add_argument("--compare-synthetic", type=int, default=0, metavar="N",
                         help="with a report: also compare training sets with/without N synthetic scenes "
                              "(training_sets_<method>.md)")
@@ -472,7 +489,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.time()
     frame = gather(datasets, args.split, args.method, args.extra_synthetic, args.records, args.data_root,
                    args.batch_size, not args.no_cache, args.seed, args.limit)
-    cue_names = CUE_NAMES if args.cues == "all" else PAPER_CUE_NAMES
+    cue_names = CUE_CHOICES[args.cues]
     train = usable(frame, cue_names)
     if len(train) < 10:
         raise ValueError(f"only {len(train)} usable training images")
@@ -493,7 +510,7 @@ def run(args: argparse.Namespace) -> int:
         info = write_report(model, test, args.report_dir, title, command, f"{len(train)} images {sizes}")
         print(info["table"].to_string(index=False))
         print("spearman", json.dumps({k: round(v, 3) for k, v in info["spearman"].items()}))
-        if args.cues == "all":
+        if args.cues == "default":
             print(compare_cue_sets(train, test, args.report_dir, args.method).to_string(index=False))
         if args.compare_synthetic and datasets:
             syn = usable(gather([], args.split, args.method, args.compare_synthetic, args.records, args.data_root,

@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset yud zind sota crops detectors reliability bench
-# (default: all, in this order).  Data root: $FR_DATA (default ../shared/data); generated views go
+# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability yud zind sota crops detectors bench
+# (default: all, in this order: the reliability models are trained before the tables that use them).  Data root: $FR_DATA (default ../shared/data); generated views go
 # to $FR_CACHE (default data_local/).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 FR=${FR:-.venv/bin/fr}
 export MPLBACKEND=${MPLBACKEND:-Agg}
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset yud zind sota crops detectors reliability bench)
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability yud zind sota crops detectors bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
@@ -21,17 +21,23 @@ for step in "${steps[@]}"; do
         $FR eval --dataset $d --split train --no-plots --out results/likelihood_selection/$d \
           --methods "fr,fr[likelihood=fitted],fr[likelihood=paper],fast-fr,fast-fr[likelihood=fitted]"
       done ;;
-    dataset)  # ZInD-fR: 15 views per panorama, split by room (data_local/zind-fr, not committed)
+    dataset)  # ZInD-fR: 15 views per panorama, split by room; narrow cameras: YUD crops around the
+              # calibrated principal point (33.0 and 39.2 deg HFOV); data_local/, not committed
       .venv/bin/python -m fr_eval.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
         --yaw-csv "${FR_DATA:-../shared/data}/zind_sample_tour/manhattan_yaw_derived.csv" \
-        --out "${FR_CACHE:-data_local}/zind-fr" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 --test-fraction 0.5 ;;
+        --out "${FR_CACHE:-data_local}/zind-fr" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 --test-fraction 0.5
+      for s in 400x300 480x360; do
+        .venv/bin/python -m fr_eval.crop_views --dataset yud --size $s --out "${FR_CACHE:-data_local}/yud-crop-$s"
+      done ;;
     yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e.
           # Every table: the library's default FOV range (configs/search.json, [30, 120]) with the
           # paper's [50, 130] rows ([range=paper]) next to it (issue 13).
       $FR eval --dataset yud --split test --out results/yud \
         --methods "fr,fr[range=paper],fast-fr,fast-fr[range=paper],oracle-fr,oracle-fr[range=paper]"
       $FR eval --dataset yud --split test --methods fr,fast-fr,oracle-fr --pp calibrated --out results/yud/calibrated_pp --no-plots
-      $FR eval --dataset yud --split test --methods fr --measures a,b,c,d,e --out results/yud/measures --no-plots ;;
+      $FR eval --dataset yud --split test --methods fr --measures a,b,c,d,e --out results/yud/measures --no-plots
+      # focal fusion over YUD test (one camera): paper cues vs the shipped reliability model
+      .venv/bin/python -m fr_eval.focal_fusion results/yud/predictions.csv --out results/reliability/focal_fusion.md ;;
     zind)  # Issue "panorama datasets": ZInD-fR test, per-FOV table, distribution figure
       $FR eval --dataset zind-fr --split test --out results/zind-fr \
         --methods "fr,fr[range=paper],fast-fr,fast-fr[range=paper]" ;;
@@ -41,9 +47,8 @@ for step in "${steps[@]}"; do
       $FR eval --dataset yud --split test --methods "$M" --out results/sota/yud
       $FR eval --dataset zind-fr --split test --methods "$M" --out results/sota/zind-fr ;;
     crops)  # Narrow cameras: YUD crops around the calibrated principal point (33.0 and 39.2 deg HFOV)
-      for s in 400x300 480x360; do
-        .venv/bin/python -m fr_eval.crop_views --dataset yud --size $s --out "${FR_CACHE:-data_local}/yud-crop-$s"
-        $FR eval --dataset panoviews --data-root "${FR_CACHE:-data_local}/yud-crop-$s" --split test \
+      for s in 400x300 480x360; do  # built by the dataset step
+        $FR eval --dataset yud-crop-$s --split test \
           --methods "fr,fr[range=paper],fast-fr,lee2009,simon2018,prior" --out results/yud-crop/$s
       done ;;
     detectors)  # Issue "detectors": LSD vs MCMLSD (paper's Table 3)
@@ -51,13 +56,13 @@ for step in "${steps[@]}"; do
         $FR eval --dataset $d --split test --no-plots --out results/detectors/$d \
           --methods "fr,fr[detector=mcmlsd],fast-fr,fast-fr[detector=mcmlsd]"
       done ;;
-    reliability)  # Issue "reliability": models shipped in configs/, tables in results/reliability/
-      $FR train-reliability --dataset zind-fr,yud --split train --method fast --no-cache \
+    reliability)  # Issue "reliability": models shipped in configs/, tables in results/reliability/;
+                  # train splits of ZInD-fR, YUD and the YUD crops (the dataset step builds them)
+      T=zind-fr,yud,yud-crop-400x300,yud-crop-480x360
+      $FR train-reliability --dataset $T --split train --method fast --no-cache \
         --report-dataset zind-fr --report-split test --compare-synthetic 300
-      $FR train-reliability --dataset zind-fr,yud --split train --method fr --no-cache \
-        --report-dataset zind-fr --report-split test
-      # focal fusion over YUD test (one camera): paper cues vs the shipped model (needs the yud step)
-      .venv/bin/python -m fr_eval.focal_fusion results/yud/predictions.csv --out results/reliability/focal_fusion.md ;;
+      $FR train-reliability --dataset $T --split train --method fr --no-cache \
+        --report-dataset zind-fr --report-split test ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress  # both cores of an idle 2-core machine (the target setting)
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)

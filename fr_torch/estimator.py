@@ -25,8 +25,8 @@ import torch
 
 from .camera import VERTICAL_AXIS, Camera, camera_record, image_centre
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
-from .search import (SearchConfig, check_result, grid_hypotheses, hypothesis_rotations, parameter_box, refine,
-                     score_grid, select_starts, subdivide_starts, sweep_focal)
+from .search import (SearchConfig, check_result, focal_prior_share, grid_hypotheses, hypothesis_rotations,
+                     parameter_box, refine, score_grid, select_starts, subdivide_starts, sweep_focal)
 from . import image_io, validate
 from .segments import FRInputError, SegmentBatch, SegmentFilter, get_detector, validate_segments
 
@@ -329,6 +329,7 @@ class FREstimator:
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, 3].to(dtype))
         labels = posterior[:, 0].argmax(-1)
         cues = self._cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
+        cues["focal_prior_share"] = self._focal_prior_share(features, best_params, known_focal)
         t3 = time.perf_counter()
 
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
@@ -373,6 +374,8 @@ class FREstimator:
         * ``mean_log_likelihood``: mean over segments of log p_i at the final estimate (the
           paper's definition; the authors' MATLAB release uses the mean log max-posterior instead).
         * ``focal_conditioning``: :func:`focal_conditioning` of the final ``rotation`` (B, 3, 3).
+
+        The fifth cue, ``focal_prior_share``, is :meth:`_focal_prior_share`.
         """
         n = mask.sum(-1).clamp_min(1)
         counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
@@ -383,6 +386,13 @@ class FREstimator:
                 "grid_entropy": entropy.to(torch.float64),
                 "mean_log_likelihood": mean_log.to(torch.float64),
                 "focal_conditioning": focal_conditioning(rotation).to(torch.float64)}
+
+    def _focal_prior_share(self, features: SegmentFeatures, params: torch.Tensor, known_focal: bool) -> torch.Tensor:
+        """The ``focal_prior_share`` cue (:func:`fr_torch.search.focal_prior_share`) of the estimates
+        ``params`` (B, 4), float64 (B,); 0 for a given focal length (the prior plays no part)."""
+        if known_focal:
+            return torch.zeros(params.shape[0], dtype=torch.float64, device=params.device)
+        return focal_prior_share(self.likelihood, features, params, self.search.max_chunk_elements)
 
     def _sanity(self, r: CalibrationResult) -> tuple[bool, str]:
         reasons = []

@@ -442,12 +442,18 @@ class MixtureLikelihood:
 
         ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``focal``'s dtype.
         """
-        params = self.params
         focal = focal.to(features.weight.dtype)
-        evidence = features.weight.sum(-1) + params.focal_prior_pseudo_length * features.long_side  # W + W0
-        weight = params.focal_prior_weight * evidence[:, None]  # (B, 1)
+        weight = self.focal_prior_curvature(features)[:, None]  # (B, 1)
         offset = torch.log(focal / features.long_side[:, None]) - self._prior_centre
         return -0.5 * weight * offset ** 2, -weight * offset / focal
+
+    def focal_prior_curvature(self, features: SegmentFeatures) -> torch.Tensor:
+        """``gamma * (W + W0)`` per image, (B,): minus the second derivative of the log focal prior
+        with respect to log f (the same at every f; 0 without a prior), in objective units per
+        (log f)^2, directly comparable with the curvature of the length-weighted likelihood."""
+        params = self.params
+        evidence = features.weight.sum(-1) + params.focal_prior_pseudo_length * features.long_side  # W + W0
+        return params.focal_prior_weight * evidence
 
     def _data_objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                         workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:

@@ -1,13 +1,16 @@
 """Reliability prediction: predicted absolute errors of roll, tilt and focal length from fR's cues.
 
 The model follows the authors' online-fR error predictor (paper §3.4): the cues of
-:meth:`fr_torch.estimator.FREstimator._cues` (the paper's three and one geometric cue of ours) are
+:meth:`fr_torch.estimator.FREstimator._cues` (the paper's three and geometric cues of ours) are
 normalised, whitened, and a K-nearest-neighbour
 regressor returns the **mean absolute error of the K most similar training images**, for roll
 (degrees), tilt (degrees) and focal length (percent of the true focal length).
 
 Cues (:data:`CUE_NAMES`; the first three are the paper's, :data:`PAPER_CUE_NAMES`)
 ------------------------------------------------------------------------------------
+Every result reports all five; the shipped models use :data:`MODEL_CUE_NAMES` (the paper's three
+and ``focal_prior_share``).
+
 * ``min_family_segments``, ``grid_entropy``, ``mean_log_likelihood``: the paper's cues (defined in
   :meth:`fr_torch.estimator.FREstimator._cues`);
 * ``focal_conditioning`` (not in the paper): how well the estimated Manhattan frame's geometry
@@ -16,11 +19,23 @@ Cues (:data:`CUE_NAMES`; the first three are the paper's, :data:`PAPER_CUE_NAMES
   principal point; at theta = 0 (VP on the principal point) and theta = 90 deg (VP at infinity) its
   position says nothing about f.  The cue is ``sqrt(sum_i (sin(theta_i) cos(theta_i))^2)`` over the
   three VPs, in [0, sqrt(3)/2].  A camera panned square to a wall (one horizontal VP near the
-  centre, the other and the vertical one near infinity) scores near 0: its focal length is set by
-  the prior, and the predicted focal error should say so.  Chosen on the train splits
-  (``results/reliability/cues_<mode>.md``): out of fold, the Spearman rho of predicted vs actual
-  focal error rises from -0.15 / -0.25 (fR / Fast-fR; the paper's cues alone rank it the wrong way)
-  to 0.20 / 0.26 on YUD train and from 0.37 / 0.32 to 0.40 / 0.40 on ZInD-fR train.
+  centre, the other and the vertical one near infinity) scores near 0.
+* ``focal_prior_share`` (not in the paper; :func:`fr_torch.search.focal_prior_share`): the share of
+  the focal length's determination that comes from the focal prior, from a quadratic fit of the
+  objective around the estimate: ``c_p / (c_p + c_l)`` with ``c_p`` the prior's curvature in log f
+  and ``c_l`` the likelihood's (angles re-optimised), in [0, 1].  It sees what
+  ``focal_conditioning`` sees (VPs that carry no information on f leave ``c_l`` small) and more: few
+  segments, noisy ones, and narrow views whose VPs lie far outside the image, which the prior
+  (centred at 82 deg) pulls wide.  0 for a given focal length.
+
+Which cues the models use was chosen out of fold on the train splits of ZInD-fR, YUD and the YUD
+crops (``results/reliability/cues_<mode>.md``; 5 folds grouped by scene, so a crop never sits in
+another fold than its photo): with ``focal_prior_share`` instead of ``focal_conditioning`` the
+Spearman rho of predicted vs actual focal error rises, fR / Fast-fR, on YUD train from 0.43 / 0.32
+to 0.45 / 0.57, on the 33 deg crops from 0.34 / 0.23 to 0.39 / 0.38, on the 39 deg crops from
+0.17 / 0.15 to 0.30 / 0.25 and on ZInD-fR train from 0.44 / 0.43 to 0.48 / 0.51; all five cues
+together do no better (rho summed over the four sets 1.56 / 1.61 against 1.62 / 1.71: a KNN in more
+dimensions has sparser neighbours).
 
 Cue normalisation (exactly; :func:`cue_features`)
 -------------------------------------------------
@@ -32,7 +47,9 @@ Each image's cue vector becomes the feature vector ``x``, one feature per cue:
   1e-9..8 nats, so it is compared on a log scale, floored at 1e-6 nats;
 * ``mean_log_likelihood`` -- unchanged (already a log quantity);
 * ``ln(focal_conditioning + 1e-3)`` -- near-degenerate frames (0.001-0.05) are as far apart as
-  ordinary ones (0.1-0.5).
+  ordinary ones (0.1-0.5);
+* ``ln(focal_prior_share + 1e-2)`` -- clipped to [0, 1]; well-constrained frames (0.003-0.05) are
+  told apart as well as prior-dominated ones (0.2-1).
 
 A model keeps the names of the cues it was trained on (``meta["cue_names"]``): a model trained on
 the paper's three cues (``fr train-reliability --cues paper``, or a file written before the fourth
@@ -82,12 +99,14 @@ from .resources import config_dir
 _config_dir = config_dir  # load_default has an argument of that name
 
 PAPER_CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")  # paper §3.4
-CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning",)  # what the estimator reports; default model input
+CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share")  # what the estimator reports
+MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_prior_share",)  # the shipped models' input (module docstring)
 TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
 ERROR_COLUMNS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct")  # training-record column names
 LOG_EPS = np.array([0.1, 0.1, 1.0])  # CV loss: ln(error + eps)
 ENTROPY_FLOOR = 1e-6
 CONDITIONING_FLOOR = 1e-3
+PRIOR_SHARE_FLOOR = 1e-2
 # Raw cue -> feature, per cue name (module docstring, "Cue normalisation").
 _CUE_TRANSFORMS = {
     "min_family_segments": (lambda c: np.log1p(np.clip(c, 0.0, None)), "ln1p(min_family_segments)"),
@@ -95,6 +114,7 @@ _CUE_TRANSFORMS = {
     "mean_log_likelihood": (lambda c: c, "mean_log_likelihood"),
     "focal_conditioning": (lambda c: np.log(np.clip(c, 0.0, None) + CONDITIONING_FLOOR),
                            "ln(focal_conditioning + 1e-3)"),
+    "focal_prior_share": (lambda c: np.log(np.clip(c, 0.0, 1.0) + PRIOR_SHARE_FLOOR), "ln(focal_prior_share + 1e-2)"),
 }
 
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
@@ -183,7 +203,7 @@ class ReliabilityModel:
     def fit(cls, cues: np.ndarray, errors: np.ndarray, groups: Sequence | None = None,
             k_grid: Sequence[int] | None = None, folds: int = 5, seed: int = 0,
             meta: dict | None = None, thresholds: dict | None = None,
-            cue_names: Sequence[str] = CUE_NAMES) -> "ReliabilityModel":
+            cue_names: Sequence[str] = MODEL_CUE_NAMES) -> "ReliabilityModel":
         """Fit on raw cues (n, c) -- columns in the order of ``cue_names`` -- and absolute errors
         (n, 3); K by ``folds``-fold CV (scikit-learn).
 

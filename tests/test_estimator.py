@@ -37,7 +37,8 @@ def test_recovers_synthetic_cameras(scenes, mode):
         assert np.allclose(result.rotation @ result.rotation.T, np.eye(3), atol=1e-6)
         assert result.labels.shape == (result.num_segments,)
         assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood",
-                                    "focal_conditioning"}
+                                    "focal_conditioning", "focal_prior_share"}
+        assert 0.0 <= result.cues["focal_prior_share"] < 0.2  # well-constrained views: the segments set f
         expected = float(focal_conditioning(torch.as_tensor(result.rotation)))
         assert result.cues["focal_conditioning"] == pytest.approx(expected, abs=1e-9)
         assert result.cues["min_family_segments"] >= 30
@@ -150,3 +151,39 @@ def test_focal_conditioning_geometry():
     batch = torch.stack([torch.stack([R, torch.eye(3, dtype=torch.float64)])] * 2)  # (2, 2, 3, 3)
     out = focal_conditioning(batch)
     assert out.shape == (2, 2) and float(out[1, 0]) == pytest.approx(value) and float(out[1, 1]) == 0.0
+
+
+def test_focal_prior_share_says_when_the_prior_sets_f():
+    """A view with finite, well-spread VPs has its f set by the segments (share near 0); a camera
+    square to a wall (one horizontal VP on the principal point, the others at infinity) leaves f to
+    the prior (share near 1); without a prior, or with the focal length given, the share is 0.
+    The cue matches a direct evaluation of :func:`fr_torch.search.focal_prior_share`."""
+    from dataclasses import replace
+
+    from fr_torch.likelihood import MixtureLikelihood
+    from fr_torch.search import focal_prior_share
+
+    focal = focal_from_hfov(70.0, 640)
+    views = {"oblique": rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0, 3.0).numpy(),
+             "square to a wall": rotation_from_angles(torch.tensor(0.0, dtype=torch.float64), 0.0, 0.0).numpy()}
+    segments = [synthetic_segments(focal, R, 640, 480, n_per_family=60, noise_px=0.5, clutter_fraction=0.2,
+                                   seed=3)[0] for R in views.values()]
+    est = FREstimator(mode="fast", reliability=None)
+    oblique, square = est.calibrate_segments(segments, [(640, 480)] * 2)
+    assert oblique.cues["focal_prior_share"] < 0.1
+    assert square.cues["focal_prior_share"] > 0.5
+    [given] = est.calibrate_segments(segments[:1], [(640, 480)], focal_px=focal)
+    assert given.cues["focal_prior_share"] == 0.0
+
+    from fr_torch.likelihood import SegmentFeatures
+    from fr_torch.search import angles_from_search_rotation
+    from fr_torch.segments import SegmentBatch
+
+    batch = SegmentBatch.from_list([oblique.segments], [(640, 480)])
+    features = SegmentFeatures.from_batch(batch, torch.tensor([[320.0, 240.0]]))
+    angles = angles_from_search_rotation(torch.as_tensor(oblique.rotation)[None])
+    params = torch.cat([angles, torch.tensor([[oblique.focal_px]], dtype=torch.float64)], -1)
+    direct = focal_prior_share(est.likelihood, features, params)
+    assert float(direct[0]) == pytest.approx(oblique.cues["focal_prior_share"], rel=1e-6, abs=1e-9)
+    no_prior = MixtureLikelihood(replace(est.likelihood.params, focal_prior_weight=0.0))
+    assert float(focal_prior_share(no_prior, features, params)[0]) == 0.0

@@ -25,14 +25,17 @@ def _records(n, seed):
     rng = np.random.default_rng(seed)
     frame = pd.DataFrame({"min_family_segments": rng.integers(3, 80, n).astype(float),
                           "grid_entropy": rng.uniform(1e-4, 2.0, n), "mean_log_likelihood": rng.normal(0, 0.5, n),
-                          "focal_conditioning": rng.uniform(0.001, 0.7, n)})
+                          "focal_conditioning": rng.uniform(0.001, 0.7, n),
+                          "focal_prior_share": np.exp(rng.uniform(np.log(3e-3), 0.0, n))})
     frame[list(ERROR_COLUMNS)] = np.abs(rng.normal(size=(n, 3))) * [0.3, 0.8, 5.0]
     frame["ok"], frame["group"] = True, [f"g{i % 20}" for i in range(n)]
     return frame
 
 
 def test_fuse_reads_records_and_checks_one_camera(tmp_path):
-    for source in focal_fusion.TRAIN_SOURCES:
+    from fr_torch.reliability import ReliabilityModel
+
+    for source in ReliabilityModel.load_default("fr").meta["training_data"]:  # the shipped model's sources
         _records(60, seed=len(source)).to_csv(tmp_path / f"{source}_train_fr.csv", index=False)
     rng = np.random.default_rng(1)
     n = 12

@@ -11,29 +11,30 @@ from scipy.stats import spearmanr
 from fr_torch.camera import Camera
 from fr_torch.estimator import CalibrationResult
 from fr_torch.resources import config_dir
-from fr_torch.reliability import (CUE_NAMES, PAPER_CUE_NAMES, TARGETS, ReliabilityModel, ReliabilitySet,
-                                  cue_features, cues_array, load_thresholds)
+from fr_torch.reliability import (CUE_NAMES, MODEL_CUE_NAMES, PAPER_CUE_NAMES, TARGETS, ReliabilityModel,
+                                  ReliabilitySet, cue_features, cues_array, load_thresholds)
 
 
 def make_training(n=400, noise=0.3, seed=0, informative=True):
-    """Cues (n, 4) in CUE_NAMES order like fR's: fewer family segments / larger entropy / lower
-    likelihood / poorer focal conditioning -> larger errors (n, 3)."""
+    """Cues (n, 4) in MODEL_CUE_NAMES order like fR's: fewer family segments / larger entropy / lower
+    likelihood / a larger focal prior share -> larger errors (n, 3)."""
     rng = np.random.default_rng(seed)
     m = np.round(np.exp(rng.uniform(np.log(2), np.log(80), n)))
     h = np.exp(rng.uniform(np.log(1e-7), np.log(3.0), n))
     ll = rng.normal(0.0, 0.5, n)
-    cond = np.exp(rng.uniform(np.log(1e-3), np.log(0.8), n))
-    difficulty = (-np.log1p(m) + 0.3 * np.log(h + 1e-6) - 0.5 * ll - 0.3 * np.log(cond + 1e-3) if informative
+    share = np.exp(rng.uniform(np.log(3e-3), 0.0, n))
+    difficulty = (-np.log1p(m) + 0.3 * np.log(h + 1e-6) - 0.5 * ll + 0.3 * np.log(share + 1e-2) if informative
                   else rng.normal(size=n))
     scale = np.exp(difficulty - difficulty.mean())
     errors = np.stack([0.5 * scale, 1.0 * scale, 5.0 * scale], 1) * np.exp(noise * rng.normal(size=(n, 3)))
-    return np.stack([m, h, ll, cond], 1), errors
+    return np.stack([m, h, ll, share], 1), errors
 
 
 def test_cue_features_documented_transform():
-    x = cue_features([[9.0, 0.0, -0.25, 0.0], [0.0, 1.0, 2.0, 0.5]])
-    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25, np.log(1e-3)])
-    np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0, np.log(0.5 + 1e-3)])
+    x = cue_features([[9.0, 0.0, -0.25, 0.0, 0.0], [0.0, 1.0, 2.0, 0.5, 0.5]])  # CUE_NAMES order
+    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25, np.log(1e-3), np.log(1e-2)])
+    np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0, np.log(0.5 + 1e-3), np.log(0.5 + 1e-2)])
+    np.testing.assert_allclose(cue_features([[9.0, 0.0, -0.25, 0.0]], MODEL_CUE_NAMES), x[:1, [0, 1, 2, 4]])
     # the paper's three cues alone, and a cue set in another order: one transform per name
     np.testing.assert_allclose(cue_features([[9.0, 0.0, -0.25]], PAPER_CUE_NAMES), x[:1, :3])
     np.testing.assert_allclose(cue_features([[0.5, 2.0]], ("focal_conditioning", "mean_log_likelihood")),
@@ -64,7 +65,7 @@ def test_save_load_round_trip_without_pickle(tmp_path):
     assert loaded.k == model.k and loaded.meta["mode"] == "fr"
     # whitened training cues have identity covariance
     np.testing.assert_allclose(np.cov(loaded.whiten(loaded.train_cues).T), np.eye(4), atol=1e-8)
-    assert loaded.cue_names == CUE_NAMES and sidecar["cue_names"] == list(CUE_NAMES)
+    assert loaded.cue_names == MODEL_CUE_NAMES and sidecar["cue_names"] == list(MODEL_CUE_NAMES)
 
 
 def test_numpy_prediction_matches_sklearn():
@@ -102,7 +103,7 @@ def test_predictions_monotone_in_cues():
     cues, errors = make_training(600, noise=0.3)
     model = ReliabilityModel.fit(cues, errors)
     counts = np.array([2, 3, 5, 8, 13, 20, 30, 45, 70], float)
-    probe = np.stack([counts, np.full_like(counts, 1e-3), np.zeros_like(counts), np.full_like(counts, 0.3)], 1)
+    probe = np.stack([counts, np.full_like(counts, 1e-3), np.zeros_like(counts), np.full_like(counts, 0.05)], 1)
     predicted = model.predict(probe)
     for j in range(3):  # more segments in the weakest family -> smaller predicted error
         assert spearmanr(counts, predicted[:, j]).statistic < -0.8
@@ -112,7 +113,7 @@ def test_predictions_monotone_in_cues():
 def _result(cues):
     r = CalibrationResult(image="x", width=640, height=480, ok=True, reliable=True,
                           camera=Camera.from_angles(640, 480, 500.0, roll_deg=0.0, tilt_deg=0.0))
-    r.cues = dict(zip(CUE_NAMES, cues))
+    r.cues = dict(zip(MODEL_CUE_NAMES, cues))
     return r
 
 
@@ -120,7 +121,7 @@ def test_annotate_sets_fields_and_thresholds(tmp_path):
     cues, errors = make_training(400, noise=0.2)
     model = ReliabilityModel.fit(cues, errors, meta={"mode": "fast"},
                                  thresholds={"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0})
-    easy, hard = _result([70.0, 1e-6, 0.5, 0.5]), _result([2.0, 2.0, -1.0, 0.002])
+    easy, hard = _result([70.0, 1e-6, 0.5, 0.01]), _result([2.0, 2.0, -1.0, 1.0])
     model.annotate(easy, mode="fast")
     model.annotate(hard, mode="fast")
     assert set(easy.predicted_error) == set(TARGETS) and set(hard.predicted_error) == set(TARGETS)
@@ -141,9 +142,9 @@ def test_annotate_sets_fields_and_thresholds(tmp_path):
     (tmp_path / "reliability.json").write_text(json.dumps({"thresholds": {"focal_pct": 1000.0}}))
     models = ReliabilityModel.load_default(config_dir=tmp_path)
     assert isinstance(models, ReliabilitySet) and set(models.models) == {"fast"}
-    r = models.annotate(_result([2.0, 2.0, -1.0, 0.002]), mode="fast")
+    r = models.annotate(_result([2.0, 2.0, -1.0, 1.0]), mode="fast")
     assert r.predicted_error is not None and "focal" not in r.reason
-    assert models.annotate(_result([2.0, 2.0, -1.0, 0.002]), mode="fr").predicted_error is None
+    assert models.annotate(_result([2.0, 2.0, -1.0, 1.0]), mode="fr").predicted_error is None
     assert ReliabilityModel.load_default(config_dir=tmp_path / "nothing") is None
 
 
@@ -156,11 +157,11 @@ def test_shipped_models_and_thresholds():
     models = ReliabilityModel.load_default()
     for mode in shipped:
         model = models.models[mode]
-        assert model.meta["mode"] == mode and len(model.train_cues) >= 100 and model.cue_names == CUE_NAMES
-        good, bad = model.predict([[60.0, 1e-6, 0.3, 0.4], [2.0, 1.0, -1.0, 0.4]])
+        assert model.meta["mode"] == mode and len(model.train_cues) >= 100 and model.cue_names == MODEL_CUE_NAMES
+        good, bad = model.predict([[60.0, 1e-6, 0.3, 0.02], [2.0, 1.0, -1.0, 0.02]])
         assert good[2] < bad[2]  # a clean scene is predicted better than a near-empty family
-        conditioned, degenerate = model.predict([[60.0, 1e-6, 0.3, 0.4], [60.0, 1e-6, 0.3, 0.003]])
-        assert conditioned[2] < degenerate[2]  # VPs that pin f down beat VPs at the centre / infinity
+        pinned, prior_set = model.predict([[60.0, 1e-6, 0.3, 0.02], [60.0, 1e-6, 0.3, 1.0]])
+        assert pinned[2] < prior_set[2]  # segments that pin f down beat a focal length the prior sets
 
 
 def test_reliability_is_a_stage_of_the_estimator():
@@ -189,7 +190,7 @@ def test_paper_cue_model_and_older_files(tmp_path):
     paper = ReliabilityModel.fit(cues[:, :3], errors, meta={"mode": "fr"}, cue_names=PAPER_CUE_NAMES, k_grid=[9])
     assert paper.cue_names == PAPER_CUE_NAMES and paper.meta["cue_names"] == list(PAPER_CUE_NAMES)
     probe = make_training(20, seed=5)[0]
-    dicts = [dict(zip(CUE_NAMES, row)) for row in probe]
+    dicts = [dict(zip(MODEL_CUE_NAMES, row)) for row in probe]
     np.testing.assert_array_equal(paper.predict(dicts), paper.predict(probe[:, :3]))
     path = paper.save(tmp_path / "old.npz")
     with np.load(path, allow_pickle=False) as data:  # rewrite it as an older version did: no cue names

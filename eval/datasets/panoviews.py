@@ -5,6 +5,9 @@ A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``i
 
 * ``zind-fr``: ``<cache_root>/zind-fr`` (``$FR_CACHE``, default ``<repo>/data_local``), built with
   the command in :mod:`fr_eval.make_dataset`'s docstring;
+* ``yud-crop-400x300``, ``yud-crop-480x360``: ``<cache_root>/<name>``, YorkUrbanDB crops around the
+  calibrated principal point (narrow cameras, 33.0 and 39.2 deg), built by :mod:`fr_eval.crop_views`
+  (``eval/reproduce.sh crops``);
 * ``panoviews``: any generated folder, passed as ``path=`` (or as ``root`` when ``root`` itself holds
   a ``gt.csv``).
 
@@ -19,6 +22,7 @@ always ground truth).
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -77,6 +81,10 @@ class PanoViews:
             table = table[table["split"] == split]
         self.table = table.reset_index(drop=True)
         self.split = split
+        info = self.folder / "dataset.json"
+        # A folder cut from another dataset's images (fr_eval.crop_views) names it: its views show
+        # the same scenes, so grouped cross-validation keeps a crop with its source photo.
+        self.scene_source = json.loads(info.read_text()).get("source") if info.is_file() else None
 
     def __len__(self) -> int:
         return len(self.table)
@@ -106,7 +114,8 @@ class PanoViews:
             out.append(CalibrationSample(
                 name=v.name, image_path=v.image_path, width=v.width, height=v.height, camera=camera,
                 split=v.split,
-                extra={"pano": v.pano, "pan_deg": v.pan_deg, "manhattan_known": v.manhattan_known},
+                extra={"pano": v.pano, "pan_deg": v.pan_deg, "manhattan_known": v.manhattan_known,
+                       "scene_source": self.scene_source},
             ))
         return out
 
@@ -127,8 +136,17 @@ def load_panoviews(root=None, split: str = "test", path=None, **kwargs) -> list[
     return PanoViews(_resolve(root, path, None), split).samples(**kwargs)
 
 
-@register_dataset("zind-fr")
-def load_zind_fr(root=None, split: str = "test", path=None, **kwargs) -> list[CalibrationSample]:
-    """ZInD-fR views in ``<cache_root>/zind-fr`` (``root`` is the *data* root and is ignored
-    unless it holds a gt.csv itself)."""
-    return PanoViews(_resolve(root, path, "zind-fr"), split).samples(**kwargs)
+def _cache_folder_loader(name: str):
+    """A loader for the generated folder ``<cache_root>/<name>``; ``root`` is the *data* root and is
+    ignored unless it holds a gt.csv itself, ``path=`` names another folder."""
+    def load(root=None, split: str = "test", path=None, **kwargs) -> list[CalibrationSample]:
+        return PanoViews(_resolve(root, path, name), split).samples(**kwargs)
+    load.__doc__ = f"Views in ``<cache_root>/{name}`` (``root`` / ``path`` as for any cache folder)."
+    return load
+
+
+#: Generated datasets read from the cache root (module docstring): ZInD-fR and the YUD crops.
+YUD_CROP_SIZES = ("400x300", "480x360")
+CACHE_DATASETS = ("zind-fr",) + tuple(f"yud-crop-{size}" for size in YUD_CROP_SIZES)
+for _name in CACHE_DATASETS:
+    register_dataset(_name)(_cache_folder_loader(_name))
