@@ -434,7 +434,9 @@ def _quadratic_fit_matrix() -> torch.Tensor:
 
 
 _QUADRATIC_FIT = _quadratic_fit_matrix()
-_UPPER = [(i, j) for i in range(4) for j in range(i, 4)]
+#: Column of the fit's coefficients holding H[i, j], for the 16 entries of the symmetric 4 x 4 H.
+_HESSIAN_COLUMNS = torch.tensor([5 + [(a, b) for a in range(4) for b in range(a, 4)].index((min(i, j), max(i, j)))
+                                 for i in range(4) for j in range(4)])
 
 
 def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
@@ -471,9 +473,7 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     points = centre[:, None, :] + LATTICE.to(device) * step  # (B, 81, 4)
     scores = score_grid(likelihood, features, _exp_focal(points), max_chunk_elements, vertical_block=3)
     coef = scores.to(torch.float64) @ _QUADRATIC_FIT.to(device).T  # (B, 15)
-    hessian = torch.zeros(batch, 4, 4, dtype=torch.float64, device=device)
-    for k, (i, j) in enumerate(_UPPER):
-        hessian[:, i, j] = hessian[:, j, i] = coef[:, 5 + k]
+    hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(batch, 4, 4)
     hessian[:, 3, 3] += prior * step[3] ** 2  # the likelihood's Hessian alone (lattice units)
     angles, focal_row = hessian[:, :3, :3], hessian[:, :3, 3:]
     solved, info = torch.linalg.solve_ex(angles, focal_row)
