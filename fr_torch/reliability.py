@@ -118,6 +118,11 @@ _CUE_TRANSFORMS = {
 }
 
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
+#: ``focal_prior_share`` from which an unreliable focal length is explained as the prior's
+#: (the prior carries at least half of the curvature along log f) and the reason says what helps.
+PRIOR_SET_FOCAL_SHARE = 0.5
+PRIOR_SET_FOCAL_HINT = ("the focal prior set most of the focal length (the lines barely constrain it): "
+                        "give the focal length, or a FOV range, if the camera is known")
 DEFAULT_K_GRID = (1, 2, 3, 5, 8, 12, 17, 25, 35, 50, 70, 90, 120, 160, 220, 300)
 MODES = ("fr", "fast")
 PREDICT_BLOCK = 4096  # query rows ranked at once against the training set (memory ~ rows x n_train)
@@ -318,6 +323,9 @@ class ReliabilityModel:
                     if not (predicted.get(name, math.nan) <= limit)]
             if over:
                 message = "predicted error above threshold: " + ", ".join(over)
+                if (not given and not predicted["focal_pct"] <= self.thresholds.get("focal_pct", math.inf)
+                        and result.cues.get("focal_prior_share", 0.0) >= PRIOR_SET_FOCAL_SHARE):
+                    message += f"; {PRIOR_SET_FOCAL_HINT}"
                 result.reliable = False
                 result.reason = f"{result.reason}; {message}" if result.reason else message
 

@@ -128,6 +128,11 @@ def test_annotate_sets_fields_and_thresholds(tmp_path):
     assert easy.reliable and easy.reason == ""
     assert hard.predicted_error["focal_pct"] > 15.0
     assert not hard.reliable and "predicted error above threshold" in hard.reason and "focal" in hard.reason
+    # its focal length is the prior's (focal_prior_share 1): the reason says so and what helps
+    assert "focal prior set most of the focal length" in hard.reason
+    lines_set = _result([2.0, 2.0, -1.0, 0.2])  # as hard but the lines carry most of f: no hint
+    model.annotate(lines_set, mode="fast")
+    assert not lines_set.reliable and "focal prior" not in lines_set.reason
     # an existing reason is kept, a failed result is left alone
     prior = _result([2.0, 2.0, -1.0, 0.002])
     prior.reliable, prior.reason = False, "only 5 segments (< 10)"
