@@ -132,6 +132,8 @@ class FREstimator:
     ``likelihood``: likelihood config, a name (``paper``, ``fitted``) or a JSON path (default
     ``configs/likelihood.json``); ``likelihood_params`` overrides it with explicit parameters.
     ``dtype``: float32 (default) or float64 (reference).
+    ``segment_filter``: default ``SegmentFilter`` keeping each image's longest
+    ``search_config.max_segments(mode)`` segments (fR 1000, Fast-fR 500; ``configs/search.json``).
     ``min_segments``: fewer segments than this -> ``reliable = False``; likewise when a Manhattan
     family has fewer than ``min_family_segments`` segments, or when less than
     ``min_manhattan_fraction`` of the total segment length is labelled with a Manhattan family
@@ -157,7 +159,7 @@ class FREstimator:
         self.device = validate.resolve_device(device)
         self.working_long_side = image_io.WORKING_LONG_SIDE
         self.dtype = dtype
-        self.segment_filter = segment_filter or SegmentFilter()
+        self.segment_filter = segment_filter or SegmentFilter(max_segments=self.search.max_segments(mode))
         self.min_segments = min_segments
         self.min_family_segments = min_family_segments
         self.min_manhattan_fraction = min_manhattan_fraction
