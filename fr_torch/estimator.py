@@ -133,7 +133,7 @@ class FREstimator:
     ``configs/likelihood.json``); ``likelihood_params`` overrides it with explicit parameters.
     ``dtype``: float32 (default) or float64 (reference).
     ``segment_filter``: default ``SegmentFilter`` keeping each image's longest
-    ``search_config.max_segments(mode)`` segments (fR 1000, Fast-fR 500; ``configs/search.json``).
+    ``search_config.max_segments(mode)`` segments (fR 750, Fast-fR 500; ``configs/search.json``).
     ``min_segments``: fewer segments than this -> ``reliable = False``; likewise when a Manhattan
     family has fewer than ``min_family_segments`` segments, or when less than
     ``min_manhattan_fraction`` of the total segment length is labelled with a Manhattan family

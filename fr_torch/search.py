@@ -130,11 +130,12 @@ class SearchConfig:
     for the 2 x 4 starts of l = 4 with the sweep).  0 = the paper's two stages.
     ``max_segments_fr`` / ``max_segments_fast``: each image keeps at most this many of its longest
     segments (the estimator's :class:`~fr_torch.segments.SegmentFilter`), which bounds the time per
-    image whatever the photo.  fR keeps 1000: on YUD train (51 busy photos, 460 to 1800 LSD segments
-    at 640 x 480) fR's focal MAE / median fall from 4.87 / 2.74 % with 500 to 4.30 / 2.21 % (750:
-    4.32 / 2.21, 1500: 4.28 / 2.09, all: 4.29 / 2.09), ZInD-fR train and the YUD train crops are
-    unchanged (6.85 / 6.85 %, 12.09 / 12.03 %), for about 15 ms more per 640 x 480 photo.  Fast-fR
-    keeps 500: with 1000 its MAE is the same (5.23 / 5.29 %) and its time would pass 50 ms.
+    image whatever the photo.  fR keeps 750: on YUD train (51 busy photos, 460 to 1800 LSD segments
+    at 640 x 480) fR's focal MAE / median fall from 4.87 / 2.74 % with 500 to 4.32 / 2.21 % (1000:
+    4.30 / 2.21, 1500: 4.28 / 2.09, all: 4.29 / 2.09), ZInD-fR train and the YUD train crops are
+    unchanged (6.85 / 6.85 %, 12.09 / 12.03 % at 1000); of the counts that tie, 750 costs least (a
+    batch pads every image to the cap: with 1000, 306 photos took fR 21.6 s instead of 11.9 s).
+    Fast-fR keeps 500: with 1000 its MAE is the same (5.23 / 5.29 %) and its time would pass 50 ms.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
     ``refine_iterations_fr`` steps; 0 = always the full count.
