@@ -31,10 +31,10 @@ and ``focal_prior_share``).
 Which cues the models use was chosen out of fold on the train splits of ZInD-fR, YUD and the YUD
 crops (``results/reliability/cues_<mode>.md``; 5 folds grouped by scene, so a crop never sits in
 another fold than its photo): with ``focal_prior_share`` instead of ``focal_conditioning`` the
-Spearman rho of predicted vs actual focal error rises, fR / Fast-fR, on YUD train from 0.37 / 0.32
-to 0.57 / 0.57, on the 33 deg crops from 0.33 / 0.23 to 0.45 / 0.38, on the 39 deg crops from
-0.29 / 0.15 to 0.45 / 0.25 and on ZInD-fR train from 0.45 / 0.43 to 0.49 / 0.51; all five cues
-together do no better (rho summed over the four sets 1.74 / 1.61 against 1.96 / 1.71: a KNN in more
+Spearman rho of predicted vs actual focal error rises, fR / Fast-fR, on YUD train from 0.31 / 0.32
+to 0.51 / 0.57, on the 33 deg crops from 0.30 / 0.23 to 0.42 / 0.38, on the 39 deg crops from
+0.28 / 0.15 to 0.40 / 0.25 and on ZInD-fR train from 0.45 / 0.43 to 0.48 / 0.51; all five cues
+together do no better (rho summed over the four sets 1.73 / 1.61 against 1.81 / 1.71: a KNN in more
 dimensions has sparser neighbours).
 
 Cue normalisation (exactly; :func:`cue_features`)
