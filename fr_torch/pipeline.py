@@ -372,6 +372,14 @@ def _shard_task(estimator, segments, sizes, names, focal_px, principal_point, ap
                                         principal_point=principal_point, apply_filter=apply_filter)
 
 
+def _segments_chunk(chunk):
+    """Search a chunk of (segments, name, size, focal_px, principal_point, apply_filter) in a worker
+    (the estimator of :func:`_init_calibrate_worker`)."""
+    return _WORKER["estimator"].calibrate_segments([c[0] for c in chunk], [c[2] for c in chunk],
+                                                   names=[c[1] for c in chunk], focal_px=[c[3] for c in chunk],
+                                                   principal_point=[c[4] for c in chunk], apply_filter=chunk[0][5])
+
+
 def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Sequence, workers: int,
                                names: Sequence[str] | None = None, focal_px=None, principal_point=None,
                                apply_filter: bool = True, pool: ProcessPoolExecutor | None = None) -> list:
@@ -381,6 +389,9 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
     equal the in-process call's.  ``focal_px`` / ``principal_point``: None, one value for all,
     or one per image (sliced with the shards).  Pass a long-lived ``pool`` (a
     ``ProcessPoolExecutor``, e.g. from :func:`worker_pool`) to avoid the start-up per call.
+    A worker that dies (out of memory, a native crash) fails only the image it was on, as in
+    :func:`ordered_pool_map`: without a ``pool`` the shards run through it; a given ``pool`` that
+    breaks is left to the caller and the batch is redone through it.
     """
     count = len(segments)
     if workers <= 1 or count < 2 or estimator.device.type != "cpu":
@@ -389,21 +400,21 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
     names = list(names) if names is not None else [f"image{i}" for i in range(count)]
     focal_list = validate.per_image(focal_px, count, "focal_px")
     pp_list = validate.per_image(principal_point, count, "principal_point", width=2)
-    bounds = np.linspace(0, count, min(workers, count) + 1).round().astype(int)
-    own_pool = pool is None
-    pool = pool or worker_pool(workers)
     portable = copy.copy(estimator)
     portable.detector = None  # detectors need not pickle; the search does not use them
-    try:
-        futures = [pool.submit(_shard_task, portable, list(segments[a:b]), list(image_sizes[a:b]), names[a:b],
-                               focal_list[a:b], pp_list[a:b], apply_filter)
-                   for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
-        return [result for future in futures for result in future.result()]
-    finally:
-        if own_pool:
-            if getattr(pool, "_broken", False):  # a worker died: do not wait for the others (_kill_workers)
-                _kill_workers(pool)
-            pool.shutdown()
+    if pool is not None:
+        bounds = np.linspace(0, count, min(workers, count) + 1).round().astype(int)
+        try:
+            futures = [pool.submit(_shard_task, portable, list(segments[a:b]), list(image_sizes[a:b]), names[a:b],
+                                   focal_list[a:b], pp_list[a:b], apply_filter)
+                       for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+            return [result for future in futures for result in future.result()]
+        except (BrokenProcessPool, OSError):
+            pass  # the caller's pool died under some image: redo the batch with crash isolation
+    items = [(segments[i], names[i], tuple(image_sizes[i]), focal_list[i], pp_list[i], apply_filter)
+             for i in range(count)]
+    return list(ordered_pool_map(_segments_chunk, items, -(-count // workers), workers, _init_calibrate_worker,
+                                 (portable,), _calibration_crash))
 
 
 def worker_pool(workers: int) -> ProcessPoolExecutor:

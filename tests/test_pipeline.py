@@ -1,4 +1,5 @@
 """The decode/detect pipeline and the sharded search give the in-process results, in input order."""
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -10,7 +11,7 @@ import pytest
 from fr_torch import FREstimator
 from fr_torch import workers as workers_module
 from fr_torch.pipeline import calibrate_paths, calibrate_segments_sharded, iter_detections
-from fr_torch.segments import LSDDetector
+from fr_torch.segments import LSDDetector, SegmentFilter
 from fr_torch.segments import FRInputError
 from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
@@ -127,6 +128,32 @@ def test_worker_crash_fails_only_its_image(workers):
     detections = list(iter_detections(images, names, est.detector, est.segment_filter, workers=workers))
     assert detections[3].error and "crashed" in detections[3].error
     assert all(d.error is None and len(d.segments) for i, d in enumerate(detections) if i != 3)
+
+
+class CrashingFilter(SegmentFilter):
+    """The default segment filter, except that a worker process dies (as when the kernel kills it
+    for memory) on a set of exactly 7 segments; in the test's own process it never crashes."""
+
+    def many(self, segment_list, sizes):
+        if multiprocessing.parent_process() is not None and any(len(s) == 7 for s in segment_list):
+            os._exit(3)
+        return super().many(segment_list, sizes)
+
+
+def test_sharded_segments_survive_a_worker_crash():
+    """A worker dying on one segment set fails that image only; the others come back as in process."""
+    est = FREstimator(mode="fast", segment_filter=CrashingFilter())
+    rng = np.random.default_rng(4)
+    segments = [synthetic_segments(500.0, random_rotation(rng), n_per_family=20, seed=i)[0] for i in range(5)]
+    segments[3] = segments[3][:7]
+    sizes = [(640, 480)] * 5
+    sharded = calibrate_segments_sharded(est, segments, sizes, workers=2, names=[f"s{i}" for i in range(5)])
+    assert [r.image for r in sharded] == [f"s{i}" for i in range(5)]
+    assert not sharded[3].ok and "crashed" in sharded[3].reason and "s3" in sharded[3].reason
+    reference = est.calibrate_segments([s for i, s in enumerate(segments) if i != 3], sizes[:4],
+                                       names=[f"s{i}" for i in range(5) if i != 3])
+    for a, b in zip([r for i, r in enumerate(sharded) if i != 3], reference):
+        _same(a, b)
 
 
 def test_shutting_down_a_broken_pool_never_waits_for_a_worker():
