@@ -364,20 +364,25 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
 
 # --------------------------------------------------------------------------- sharded search
 
-def _shard_task(estimator, segments, sizes, names, focal_px, principal_point, apply_filter):
+def _calibrate_segment_items(estimator, chunk) -> list:
+    """``estimator.calibrate_segments`` of a chunk of (segments, name, size, focal_px,
+    principal_point, apply_filter) items (one ``apply_filter`` for the whole call)."""
+    return estimator.calibrate_segments([c[0] for c in chunk], [c[2] for c in chunk], names=[c[1] for c in chunk],
+                                        focal_px=[c[3] for c in chunk], principal_point=[c[4] for c in chunk],
+                                        apply_filter=chunk[0][5])
+
+
+def _shard_task(estimator, chunk):
+    """A shard in a caller's pool (its workers have no estimator of their own)."""
     import torch
 
     torch.set_num_threads(1)
-    return estimator.calibrate_segments(segments, sizes, names=names, focal_px=focal_px,
-                                        principal_point=principal_point, apply_filter=apply_filter)
+    return _calibrate_segment_items(estimator, chunk)
 
 
 def _segments_chunk(chunk):
-    """Search a chunk of (segments, name, size, focal_px, principal_point, apply_filter) in a worker
-    (the estimator of :func:`_init_calibrate_worker`)."""
-    return _WORKER["estimator"].calibrate_segments([c[0] for c in chunk], [c[2] for c in chunk],
-                                                   names=[c[1] for c in chunk], focal_px=[c[3] for c in chunk],
-                                                   principal_point=[c[4] for c in chunk], apply_filter=chunk[0][5])
+    """A chunk in a worker of :func:`ordered_pool_map` (estimator from :func:`_init_calibrate_worker`)."""
+    return _calibrate_segment_items(_WORKER["estimator"], chunk)
 
 
 def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Sequence, workers: int,
@@ -402,17 +407,15 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
     pp_list = validate.per_image(principal_point, count, "principal_point", width=2)
     portable = copy.copy(estimator)
     portable.detector = None  # detectors need not pickle; the search does not use them
+    items = [(segments[i], names[i], tuple(image_sizes[i]), focal_list[i], pp_list[i], apply_filter)
+             for i in range(count)]
     if pool is not None:
         bounds = np.linspace(0, count, min(workers, count) + 1).round().astype(int)
         try:
-            futures = [pool.submit(_shard_task, portable, list(segments[a:b]), list(image_sizes[a:b]), names[a:b],
-                                   focal_list[a:b], pp_list[a:b], apply_filter)
-                       for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+            futures = [pool.submit(_shard_task, portable, items[a:b]) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
             return [result for future in futures for result in future.result()]
         except (BrokenProcessPool, OSError):
             pass  # the caller's pool died under some image: redo the batch with crash isolation
-    items = [(segments[i], names[i], tuple(image_sizes[i]), focal_list[i], pp_list[i], apply_filter)
-             for i in range(count)]
     return list(ordered_pool_map(_segments_chunk, items, -(-count // workers), workers, _init_calibrate_worker,
                                  (portable,), _calibration_crash))
 

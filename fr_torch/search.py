@@ -150,7 +150,7 @@ class SearchConfig:
     top_l: int = 4
     grid_segments: int = 0
     grid_segments_fast: int = 0
-    max_segments_fr: int = 1000
+    max_segments_fr: int = 750
     max_segments_fast: int = 500
     focal_sweep_points: int = 16
     grid_passes: int = 3
@@ -484,9 +484,9 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     """
     batch = params.shape[0]
     device = features.weight.device
-    prior = likelihood.focal_prior_curvature(features).to(device=device, dtype=torch.float64)  # (B,)
     if not likelihood.params.focal_prior_weight:
         return torch.zeros(batch, dtype=torch.float64, device=device)
+    prior = likelihood.focal_prior_curvature(features).to(device=device, dtype=torch.float64)  # (B,)
     step = torch.tensor(PRIOR_SHARE_STEP, dtype=torch.float64, device=device)
     centre = _log_focal(params.to(device=device, dtype=torch.float64))
     points = centre[:, None, :] + LATTICE.to(device) * step  # (B, 81, 4)
