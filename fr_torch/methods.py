@@ -38,7 +38,12 @@ def estimate_from_result(method: str, result: CalibrationResult, runtime_s: floa
 
 
 class FRCalibrator:
-    """fR / Fast-fR as a Calibrator.  ``use_meta_segments``: calibrate from ``meta.segments``."""
+    """fR / Fast-fR as a Calibrator.
+
+    Segments given in ``meta.segments`` are used instead of detecting them on the image (as the
+    baselines do; ``fr eval``'s ``@labelled`` suffix relies on it).  ``use_meta_segments``: they are
+    required (the oracle); without them the estimate fails with "n/a (no segments supplied)".
+    """
 
     def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
                  likelihood: str | None = None, hfov_min: float | str | None = None,
@@ -68,9 +73,9 @@ class FRCalibrator:
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
         start = time.perf_counter()
-        if self.use_meta_segments:
-            if meta.segments is None:
-                return CameraEstimate.failure(self.name, "n/a (no segments supplied)")
+        if self.use_meta_segments and meta.segments is None:
+            return CameraEstimate.failure(self.name, "n/a (no segments supplied)")
+        if meta.segments is not None:
             [result] = self.estimator.calibrate_segments([meta.segments], [(meta.width, meta.height)],
                                                          names=[meta.name], focal_px=meta.focal_px,
                                                          principal_point=meta.principal_point)

@@ -418,3 +418,19 @@ def test_common_subset_table_compares_methods_on_shared_images():
     no_failures = [r for r in rows if not r["failed"] or r["method"] == "a"]
     no_failures = [r for r in no_failures if r["image"] != "y"]
     assert run_eval.common_subset_summaries(no_failures, summaries) is None
+
+
+def test_fr_uses_segments_given_in_meta():
+    """fR / Fast-fR calibrate from ``meta.segments`` when given (what ``fr@labelled`` means), not
+    from the image; the oracle requires them."""
+    from fr_torch.interface import ImageMeta, get_calibrator
+    from fr_torch.synthetic import random_rotation, synthetic_segments
+
+    segments, _ = synthetic_segments(420.0, random_rotation(np.random.default_rng(4)), 640, 480, seed=4)
+    blank = np.zeros((480, 640, 3), np.uint8)  # no segments at all on the image itself
+    meta = ImageMeta(name="x", width=640, height=480, segments=segments)
+    given = get_calibrator("fast-fr").estimate(blank, meta)
+    assert given.ok and given.extra["num_segments"] > 0.9 * len(segments)  # (the filter drops a few tiny ones)
+    assert not get_calibrator("fast-fr").estimate(blank, ImageMeta(name="x", width=640, height=480)).ok
+    oracle = get_calibrator("oracle-fr").estimate(None, ImageMeta(name="x", width=640, height=480))
+    assert not oracle.ok and oracle.reason.startswith("n/a")
