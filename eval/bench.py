@@ -86,6 +86,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budget-s", type=float, default=None,
                         help="time budget in seconds: settings not started by then are skipped and listed "
                              "(default 170 with a CUDA device, else none; 0 = none)")
+    parser.add_argument("--compile", action="store_true",
+                        help="also measure throughput given segments with the grid compiled by torch.compile "
+                             "(SearchConfig.compile_grid; its compilation time is reported beside)")
     parser.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: "B,N,k,mode,device"
 
 
@@ -150,11 +153,11 @@ def _segments(n: int, seed: int = 0) -> np.ndarray:
     return seg[:n]
 
 
-def _estimator(mode: str, device: str = "cpu", k: int | None = None):
+def _estimator(mode: str, device: str = "cpu", k: int | None = None, compile_grid: bool = False):
     from fr_torch import FREstimator
     from fr_torch.search import SearchConfig
 
-    config = SearchConfig.from_config(**({"grid_points_per_dim": k} if k else {}))
+    config = SearchConfig.from_config(compile_grid=compile_grid, **({"grid_points_per_dim": k} if k else {}))
     return FREstimator(mode=mode, device=device, search_config=config)
 
 
@@ -250,11 +253,17 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
     return rows
 
 
-def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress, mode: str = "fast") -> list[dict]:
-    """Images/s of calibrate_segments (grid + refinement + cues) for each batch size."""
-    est = _estimator(mode, device)
+def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress, mode: str = "fast",
+               compile_grid: bool = False) -> list[dict]:
+    """Images/s of calibrate_segments (grid + refinement + cues) for each batch size.
+    ``compile_grid``: with the compiled grid kernel; the warm-up call, which compiles it (once
+    per process), is reported as ``compile_s``."""
+    est = _estimator(mode, device, compile_grid=compile_grid)
     pool = [_segments(n_segments, seed=i) for i in range(8)]
+    start = time.perf_counter()
     est.calibrate_segments(pool[:1], [(640, 480)])  # warm-up
+    warmup_s = time.perf_counter() - start
+    grid = "compiled" if est.likelihood.compile_grid else "buffered"  # buffered also after a failed compile
     rows = []
     for batch in batch_sizes:
         if progress.out_of_time(f"throughput {device} {mode} {batch}"):
@@ -265,8 +274,10 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
         times = _median_times(lambda: est.calibrate_segments(segs, sizes), reps, warmup=1 if batch <= 64 else 0,
                               sync=_sync(device))
         t = statistics.median(times)
-        row = {"device": device, "mode": mode, "batch": batch, "segments": n_segments, "seconds": t,
+        row = {"device": device, "mode": mode, "grid": grid, "batch": batch, "segments": n_segments, "seconds": t,
                "images_per_s": batch / t, "ms_per_image": 1000 * t / batch, "repeats": reps}
+        if compile_grid:
+            row["compile_s"] = warmup_s
         if device.startswith("cuda"):
             import torch
 
@@ -530,14 +541,22 @@ def _markdown(report: dict) -> str:
               f"{report['transcendental_ns']:.2f} ns), G = the k^4 grid only; the grid column also holds the "
               "focal sweep and the lattice passes.", ""]
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
-              "| device | mode | batch | segments | images/s | ms/image | peak memory (MB) |", "|---|---|---|---|---|---|---|"]
+              "| device | mode | grid | batch | segments | images/s | ms/image | peak memory (MB) |",
+              "|---|---|---|---|---|---|---|---|"]
     mem = {(r["batch"], r["device"]): r for r in report["memory"] if r.get("ok")}
     for r in report["throughput"]:
         peak = r.get("peak_memory_mb")
-        if peak is None and r.get("mode", "fast") == "fast" and (r["batch"], r["device"]) in mem:
+        grid = r.get("grid", "buffered")
+        if peak is None and r.get("mode", "fast") == "fast" and grid == "buffered" and (r["batch"], r["device"]) in mem:
             peak = mem[(r["batch"], r["device"])]["peak_increase_mb"]
-        lines.append(f"| {r['device']} | {r.get('mode', 'fast')} | {r['batch']} | {r['segments']} | {r['images_per_s']:.1f} | "
-                     f"{r['ms_per_image']:.2f} | {'' if peak is None else f'{peak:.0f}'} |")
+        lines.append(f"| {r['device']} | {r.get('mode', 'fast')} | {grid} | {r['batch']} | {r['segments']} | "
+                     f"{r['images_per_s']:.1f} | {r['ms_per_image']:.2f} | {'' if peak is None else f'{peak:.0f}'} |")
+    compiled = [r for r in report["throughput"] if "compile_s" in r]
+    if compiled:
+        lines += ["", "grid: `buffered` = the default eager path; `compiled` = `--compile` (one kernel fused by "
+                  "torch.compile, `SearchConfig.compile_grid`); its one-time compilation took "
+                  + ", ".join(sorted({f"{r['compile_s']:.1f} s ({r['device']} {r['mode']})" for r in compiled}))
+                  + " (the first mode of a process compiles; later ones reuse it)."]
     if report["memory"]:
         lines += ["", "## Peak memory (fresh subprocess per setting; CPU: peak RSS increase over the inputs)", "",
                   "| device | mode | batch | segments | k | peak increase (MB) | peak RSS (MB) | seconds | ok |",
@@ -643,7 +662,8 @@ def run(args: argparse.Namespace) -> int:
     if args.no_memory:
         mem_settings = []
     modes = ("fast",) if quick else ("fast", "fr")
-    steps = (len(modes) * len(images) + len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
+    tp_runs = 2 if args.compile else 1  # buffered, and compiled with --compile
+    steps = (len(modes) * len(images) + tp_runs * len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
              + len(mem_settings) + len(seg_counts) + len(grid_sizes) + 2 * len(modes) * len(counts)
              + 2 * len(devices))
     out = Path(args.out)
@@ -658,6 +678,8 @@ def run(args: argparse.Namespace) -> int:
     for dev in devices[1:]:
         for mode in modes:
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode)
+        for mode in modes if args.compile else ():
+            tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode, compile_grid=True)
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         profiles.append(profile_table(dev, device_batches[-2], n_seg_tp, out, progress))
     e2e = end_to_end(images, repeats, progress, modes)
@@ -667,6 +689,8 @@ def run(args: argparse.Namespace) -> int:
     profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
     for mode in modes:
         tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
+    for mode in modes if args.compile else ():
+        tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode, compile_grid=True)
     outside.insert(0, outside_search(outside_batch, n_seg_tp, "cpu", min(repeats, 3), progress))
     mem = memory(mem_settings, args.threads, progress)
     scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)

@@ -154,7 +154,8 @@ class FREstimator:
         self.search = search_config or SearchConfig.from_config()
         self.iterations = self.search.iterations(mode)
         params = likelihood_params or LikelihoodParams.from_config(measure, likelihood)
-        self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.hfov_range_deg))
+        self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.hfov_range_deg),
+                                            compile_grid=self.search.compile_grid)
         self.detector = get_detector(detector)
         self.device = validate.resolve_device(device)
         self.working_long_side = image_io.WORKING_LONG_SIDE

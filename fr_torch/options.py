@@ -15,7 +15,8 @@ MEASURE_CHOICES = tuple("abcde")
 
 
 def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--hfov-range``, ``--device``."""
+    """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--hfov-range``, ``--device``,
+    ``--compile``."""
     parser.add_argument("--fast", action="store_true", help="Fast-fR: at most 10 refinement iterations")
     parser.add_argument("--measure", choices=MEASURE_CHOICES, default=None, help="deviation measure (default b)")
     parser.add_argument("--detector", default="lsd", help="line segment detector (default lsd)")
@@ -26,6 +27,10 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default 30,120; 'paper' = the paper's 50,130; narrow for zoomed-in PTZ or "
                              "traffic cameras)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--compile", action="store_true",
+                        help="score the search grid with a kernel fused by torch.compile (needs a C++ compiler "
+                             "on CPU, Triton on CUDA; about 10 s of compilation per process, then faster: for "
+                             "long batch jobs; falls back with a warning where it cannot compile)")
 
 
 def hfov_search_config(hfov_min=None, hfov_max=None, base=None):
@@ -66,11 +71,14 @@ def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
     kwargs: dict[str, Any] = dict(mode="fast" if args.fast else "fr", measure=args.measure, detector=args.detector,
                                   likelihood=args.likelihood, device=args.device)
-    if args.hfov_range:  # a name ('paper') or MIN,MAX; FRInputError if invalid
+    if args.hfov_range or getattr(args, "compile", False):
         from .search import SearchConfig
 
-        try:
-            kwargs["search_config"] = SearchConfig.from_config().with_fov_range(args.hfov_range)
-        except ValueError as exc:
-            raise FRInputError(f"--hfov-range: {exc}") from None
+        config = SearchConfig.from_config(**({"compile_grid": True} if getattr(args, "compile", False) else {}))
+        if args.hfov_range:  # a name ('paper') or MIN,MAX; FRInputError if invalid
+            try:
+                config = config.with_fov_range(args.hfov_range)
+            except ValueError as exc:
+                raise FRInputError(f"--hfov-range: {exc}") from None
+        kwargs["search_config"] = config
     return kwargs

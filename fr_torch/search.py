@@ -136,6 +136,10 @@ class SearchConfig:
     unchanged (6.85 / 6.85 %, 12.09 / 12.03 % at 1000); of the counts that tie, 750 costs least (a
     batch pads every image to the cap: with 1000, 306 photos took fR 21.6 s instead of 11.9 s).
     Fast-fR keeps 500: with 1000 its MAE is the same (5.23 / 5.29 %) and its time would pass 50 ms.
+    ``compile_grid``: score the no-gradient hypotheses (grid, focal sweep, passes, cue lattice)
+    with one kernel fused by ``torch.compile`` (:func:`fr_torch.likelihood.compiled_objective_b`;
+    ``--compile``).  The same sums to float rounding; a compilation per process (about 10 s on
+    CPU), then faster: for long batch jobs, not for one photo.  Off by default.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
     ``refine_iterations_fr`` steps; 0 = always the full count.
@@ -159,6 +163,7 @@ class SearchConfig:
     refine_tolerance: float = 0.0
     refine_patience: int = 10
     max_chunk_elements: int = 1 << 24
+    compile_grid: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "hfov_range_deg", check_fov_range(*self.hfov_range_deg))

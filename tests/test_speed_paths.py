@@ -440,3 +440,63 @@ def test_calibrating_does_not_import_the_compiler():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_elementwise_objective_equals_buffered(dtype, rtol):
+    """objective_b_elementwise (the form torch.compile fuses) gives objective_b_nograd's sums."""
+    from fr_torch.likelihood import objective_b_elementwise, objective_b_nograd, vp_major
+    from fr_torch.camera import intrinsics
+
+    config = SearchConfig.from_config(grid_points_per_dim=3)
+    features = _features([_scene(31, n_per_family=25), _scene(32, 95.0, -10.0, 20.0, 2.0, 20)], dtype)
+    hyp = grid_hypotheses(config, torch.tensor([640.0, 640.0], dtype=torch.float64)).to(dtype)
+    vps = intrinsics(hyp[..., 3], features.principal_point[:, None, :]) @ fast_rotations(hyp)
+    flat = vp_major(vps).contiguous()
+    constants = MixtureLikelihood(LikelihoodParams.from_config("b"))._b_constants(features.weight)
+    buffered = objective_b_nograd(features.line_along, features.weight, flat, *constants, workspace={})
+    elementwise = objective_b_elementwise(features.line_along, features.weight, flat, *constants)
+    assert torch.allclose(elementwise, buffered, rtol=rtol)
+
+
+def test_compiled_grid_gives_the_eager_estimates():
+    """SearchConfig.compile_grid (``--compile``): the same estimates as the buffered path (or, where
+    this machine cannot compile, the buffered path itself after one warning)."""
+    segs = [_scene(41), _scene(42, 95.0, -30.0, -15.0, -7.0)]
+    eager = FREstimator(mode="fast").calibrate_segments(segs, [(640, 480)] * 2)
+    compiled_config = SearchConfig.from_config(compile_grid=True)
+    estimator = FREstimator(mode="fast", search_config=compiled_config)
+    compiled = estimator.calibrate_segments(segs, [(640, 480)] * 2)
+    for a, b in zip(eager, compiled):
+        assert b.ok and b.focal_px == pytest.approx(a.focal_px, rel=1e-4)
+        assert b.log_likelihood == pytest.approx(a.log_likelihood, rel=1e-5)
+        assert np.allclose(a.rotation, b.rotation, atol=1e-4)
+
+
+def test_compiled_grid_falls_back_with_one_warning(monkeypatch):
+    """Where compilation fails (no C++ compiler, no Triton) the estimator warns once and scores
+    with the buffered path: the same results as without --compile."""
+    import fr_torch.likelihood as likelihood_module
+
+    def cannot_compile(*args, **kwargs):
+        raise RuntimeError("InvalidCxxCompiler: No working C compiler detected\nmore detail")
+
+    monkeypatch.setitem(likelihood_module._COMPILED, "b", cannot_compile)
+    segs = [_scene(43)]
+    estimator = FREstimator(mode="fast", search_config=SearchConfig.from_config(compile_grid=True))
+    with pytest.warns(RuntimeWarning, match="compiled grid unavailable .*No working C compiler") as caught:
+        [fallback] = estimator.calibrate_segments(segs, [(640, 480)])
+    assert len([w for w in caught if "compiled grid" in str(w.message)]) == 1
+    assert estimator.likelihood.compile_grid is False
+    [eager] = FREstimator(mode="fast").calibrate_segments(segs, [(640, 480)])
+    assert fallback.focal_px == eager.focal_px and fallback.log_likelihood == eager.log_likelihood
+
+
+@gpu
+def test_cuda_compiled_grid_equals_cpu():
+    segs = [_scene(0), _scene(2, 95.0, -30.0, -15.0, -7.0)]
+    config = SearchConfig.from_config(compile_grid=True)
+    a = FREstimator(mode="fast").calibrate_segments(segs, [(640, 480)] * 2)
+    b = FREstimator(mode="fast", device="cuda", search_config=config).calibrate_segments(segs, [(640, 480)] * 2)
+    for x, y in zip(a, b):
+        assert x.focal_px == pytest.approx(y.focal_px, rel=1e-4)
