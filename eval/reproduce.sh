@@ -64,7 +64,7 @@ for step in "${steps[@]}"; do
       $FR train-reliability --dataset $T --split train --method fr --no-cache \
         --report-dataset zind-fr --report-split test ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
-      $FR bench --threads 2 --stress  # both cores of an idle 2-core machine (the target setting)
+      $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)
       .venv/bin/python -m fr_eval.folder_bench --copies 1,3 --workers 0,1,2,default --rounds 2 \
         --out results/bench/pipeline.md ;;
