@@ -87,8 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="time budget in seconds: settings not started by then are skipped and listed "
                              "(default 170 with a CUDA device, else none; 0 = none)")
     parser.add_argument("--compile", action="store_true",
-                        help="also measure throughput given segments with the grid compiled by torch.compile "
-                             "(SearchConfig.compile_grid; its compilation time is reported beside)")
+                        help="also measure throughput given segments with the search compiled by torch.compile "
+                             "(SearchConfig.compile_search; its compilation time is reported beside)")
     parser.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: "B,N,k,mode,device"
 
 
@@ -153,11 +153,11 @@ def _segments(n: int, seed: int = 0) -> np.ndarray:
     return seg[:n]
 
 
-def _estimator(mode: str, device: str = "cpu", k: int | None = None, compile_grid: bool = False):
+def _estimator(mode: str, device: str = "cpu", k: int | None = None, compile_search: bool = False):
     from fr_torch import FREstimator
     from fr_torch.search import SearchConfig
 
-    config = SearchConfig.from_config(compile_grid=compile_grid, **({"grid_points_per_dim": k} if k else {}))
+    config = SearchConfig.from_config(compile_search=compile_search, **({"grid_points_per_dim": k} if k else {}))
     return FREstimator(mode=mode, device=device, search_config=config)
 
 
@@ -254,16 +254,16 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
 
 
 def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress, mode: str = "fast",
-               compile_grid: bool = False) -> list[dict]:
+               compile_search: bool = False) -> list[dict]:
     """Images/s of calibrate_segments (grid + refinement + cues) for each batch size.
-    ``compile_grid``: with the compiled grid kernel; the warm-up call, which compiles it (once
-    per process), is reported as ``compile_s``."""
-    est = _estimator(mode, device, compile_grid=compile_grid)
+    ``compile_search``: with the compiled search kernels; the warm-up call, which compiles them
+    (once per process), is reported as ``compile_s``."""
+    est = _estimator(mode, device, compile_search=compile_search)
     pool = [_segments(n_segments, seed=i) for i in range(8)]
     start = time.perf_counter()
     est.calibrate_segments(pool[:1], [(640, 480)])  # warm-up
     warmup_s = time.perf_counter() - start
-    grid = "compiled" if est.likelihood.compile_grid else "buffered"  # buffered also after a failed compile
+    search = "compiled" if est.likelihood.compiled else "eager"  # eager also after a failed compile
     rows = []
     for batch in batch_sizes:
         if progress.out_of_time(f"throughput {device} {mode} {batch}"):
@@ -274,9 +274,9 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
         times = _median_times(lambda: est.calibrate_segments(segs, sizes), reps, warmup=1 if batch <= 64 else 0,
                               sync=_sync(device))
         t = statistics.median(times)
-        row = {"device": device, "mode": mode, "grid": grid, "batch": batch, "segments": n_segments, "seconds": t,
+        row = {"device": device, "mode": mode, "search": search, "batch": batch, "segments": n_segments, "seconds": t,
                "images_per_s": batch / t, "ms_per_image": 1000 * t / batch, "repeats": reps}
-        if compile_grid:
+        if compile_search:
             row["compile_s"] = warmup_s
         if device.startswith("cuda"):
             import torch
@@ -541,20 +541,21 @@ def _markdown(report: dict) -> str:
               f"{report['transcendental_ns']:.2f} ns), G = the k^4 grid only; the grid column also holds the "
               "focal sweep and the lattice passes.", ""]
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
-              "| device | mode | grid | batch | segments | images/s | ms/image | peak memory (MB) |",
+              "| device | mode | search | batch | segments | images/s | ms/image | peak memory (MB) |",
               "|---|---|---|---|---|---|---|---|"]
     mem = {(r["batch"], r["device"]): r for r in report["memory"] if r.get("ok")}
     for r in report["throughput"]:
         peak = r.get("peak_memory_mb")
-        grid = r.get("grid", "buffered")
-        if peak is None and r.get("mode", "fast") == "fast" and grid == "buffered" and (r["batch"], r["device"]) in mem:
+        search = {"buffered": "eager"}.get(r.get("search", r.get("grid")), r.get("search", "eager"))
+        if peak is None and r.get("mode", "fast") == "fast" and search == "eager" and (r["batch"], r["device"]) in mem:
             peak = mem[(r["batch"], r["device"])]["peak_increase_mb"]
-        lines.append(f"| {r['device']} | {r.get('mode', 'fast')} | {grid} | {r['batch']} | {r['segments']} | "
+        lines.append(f"| {r['device']} | {r.get('mode', 'fast')} | {search} | {r['batch']} | {r['segments']} | "
                      f"{r['images_per_s']:.1f} | {r['ms_per_image']:.2f} | {'' if peak is None else f'{peak:.0f}'} |")
     compiled = [r for r in report["throughput"] if "compile_s" in r]
     if compiled:
-        lines += ["", "grid: `buffered` = the default eager path; `compiled` = `--compile` (one kernel fused by "
-                  "torch.compile, `SearchConfig.compile_grid`); its compilation, once per process and device "
+        lines += ["", "search: `eager` = the default; `compiled` = `--compile` (`SearchConfig.compile_search`: "
+                  "the grid's scores from one kernel fused by torch.compile, the refinement step compiled "
+                  "too); its compilation, once per process and device "
                   "(the first warm-up call), took "
                   + ", ".join(f"{max(r['compile_s'] for r in compiled if r['device'] == d):.1f} s ({d})"
                               for d in dict.fromkeys(r["device"] for r in compiled))
@@ -681,7 +682,7 @@ def run(args: argparse.Namespace) -> int:
         for mode in modes:
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode)
         for mode in modes if args.compile else ():
-            tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode, compile_grid=True)
+            tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode, compile_search=True)
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         profiles.append(profile_table(dev, device_batches[-2], n_seg_tp, out, progress))
     e2e = end_to_end(images, repeats, progress, modes)
@@ -692,7 +693,7 @@ def run(args: argparse.Namespace) -> int:
     for mode in modes:
         tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
     for mode in modes if args.compile else ():
-        tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode, compile_grid=True)
+        tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode, compile_search=True)
     outside.insert(0, outside_search(outside_batch, n_seg_tp, "cpu", min(repeats, 3), progress))
     mem = memory(mem_settings, args.threads, progress)
     scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)

@@ -155,7 +155,7 @@ class FREstimator:
         self.iterations = self.search.iterations(mode)
         params = likelihood_params or LikelihoodParams.from_config(measure, likelihood)
         self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.hfov_range_deg),
-                                            compile_grid=self.search.compile_grid)
+                                            compiled=self.search.compile_search)
         self.detector = get_detector(detector)
         self.device = validate.resolve_device(device)
         self.working_long_side = image_io.WORKING_LONG_SIDE

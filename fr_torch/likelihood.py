@@ -46,12 +46,14 @@ density (>= 0.019 for measure b), which it cannot change in float32 or float64, 
 is unchanged bit for bit whenever the background prior exceeds ~1e-28.  ``atan2(0, 0) = 0`` as in
 the generic path (and the gradient there is 0, as the generic path's guard gives).
 
-Compiled grid (opt-in, ``MixtureLikelihood(compile_grid=True)``, ``SearchConfig.compile_grid``,
-``--compile``): the same no-gradient measure-b sums written as broadcast elementwise ops and one
+Compiled search (opt-in, ``MixtureLikelihood(compiled=True)``, ``SearchConfig.compile_search``,
+``--compile``): the no-gradient measure-b sums are written as broadcast elementwise ops and one
 reduction over segments (:func:`objective_b_elementwise`), which ``torch.compile`` turns into one
-fused kernel (C++ on CPU, Triton on CUDA) that never stores the (B, 2N, 3H) deviations.  It costs
-a compilation per process (about 10 s on CPU) and then scores faster; where compilation fails (no
-C++ compiler, no Triton) the estimator warns once and keeps the buffered path above.
+fused kernel (C++ on CPU, Triton on CUDA) that never stores the (B, 2N, 3H) deviations; the
+refinement's closed-form objective and gradient (:func:`fr_torch.search.objective_and_grad`) are
+compiled too, which removes most of its per-step operator overhead.  Compilation happens once per
+process (:func:`compiled_call`; about 10 s on CPU); where it fails (no C++ compiler, no Triton)
+the estimator warns once and keeps the eager paths.
 """
 from __future__ import annotations
 
@@ -377,11 +379,12 @@ class MixtureLikelihood:
     Hypotheses come as rotations (B, H, 3, 3) and focal lengths (B, H) in pixels.
     """
 
-    def __init__(self, params: LikelihoodParams | None = None, compile_grid: bool = False):
-        """``compile_grid``: score no-gradient measure-b hypotheses (grid, sweep, passes, cue
-        lattice) with the compiled kernel of :func:`compiled_objective_b` (module docstring)."""
+    def __init__(self, params: LikelihoodParams | None = None, compiled: bool = False):
+        """``compiled``: score no-gradient measure-b hypotheses (grid, sweep, passes, cue lattice)
+        with :func:`objective_b_elementwise` under ``torch.compile``, and let the refinement
+        compile its step (module docstring); turned off, with one warning, where that fails."""
         self.params = params or LikelihoodParams.from_config()
-        self.compile_grid = bool(compile_grid)
+        self.compiled = bool(compiled)
         # log(f0 / L): the focal prior's centre as a focal length per pixel of the long side
         self._prior_centre = math.log(focal_from_hfov(self.params.focal_prior_hfov_deg, 1.0))
 
@@ -480,8 +483,9 @@ class MixtureLikelihood:
             if torch.is_grad_enabled() and vps.requires_grad:
                 return _MeasureBObjective.apply(features.line_along, features.weight, flat, *constants)
             with torch.no_grad():
-                if self.compile_grid:
-                    value = self._compiled_objective_b(features, flat, constants)
+                if self.compiled:
+                    value = compiled_call(objective_b_elementwise, self, features.line_along, features.weight,
+                                          flat.contiguous(), *constants)
                     if value is not None:
                         return value
                 return objective_b_nograd(features.line_along, features.weight, flat, *constants,
@@ -492,18 +496,6 @@ class MixtureLikelihood:
             return -torch.einsum("bnh,bn->bh", log_x, features.weight)
         log_p = self.segment_log_likelihood(features, rotation, focal)
         return torch.einsum("bnh,bn->bh", log_p, features.weight)
-
-    def _compiled_objective_b(self, features: SegmentFeatures, flat: torch.Tensor, constants) -> torch.Tensor | None:
-        """The compiled measure-b objective (B, H), or None (and ``compile_grid`` off, with one
-        warning) where compilation or the kernel fails."""
-        try:
-            return compiled_objective_b()(features.line_along, features.weight, flat.contiguous(), *constants)
-        except Exception as exc:  # no C++ compiler / Triton, unsupported backend: keep the eager path
-            self.compile_grid = False
-            first_line = (str(exc).strip().splitlines() or [""])[0][:200]
-            warnings.warn(f"fR: compiled grid unavailable ({type(exc).__name__}: {first_line}); "
-                          "scoring without it", RuntimeWarning, stacklevel=2)
-            return None
 
     def _fast_path(self, features: SegmentFeatures) -> bool:
         return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in _EXP_FLOOR
@@ -592,7 +584,7 @@ def objective_b_elementwise(line_along, weight, flat, neg_inv_scale, log_coef, b
     arguments and sums), written for a compiler: s and t of each VP as broadcast products
     (B, N, 1) x (B, 1, H) instead of a matrix product, the mixture elementwise, one weighted
     reduction over the N segments.  Eager, this materialises more than the buffered path; under
-    ``torch.compile`` (:func:`compiled_objective_b`) it is one kernel reading only the segments and
+    ``torch.compile`` (:func:`compiled_call`) it is one kernel reading only the segments and
     the VPs.  ``flat`` (B, 3, 3H) VP-major and contiguous (:func:`vp_major`).
     """
     batch, n_seg = weight.shape
@@ -609,15 +601,28 @@ def objective_b_elementwise(line_along, weight, flat, neg_inv_scale, log_coef, b
     return (weight[:, :, None] * torch.log(mixture + background)).sum(1)
 
 
-_COMPILED: dict[str, object] = {}
+_COMPILED: dict = {}  # function -> its torch.compile wrapper, one per process
 
 
-def compiled_objective_b():
-    """:func:`objective_b_elementwise` under ``torch.compile`` (dynamic shapes: one compilation
-    per process serves every batch, segment and hypothesis count); compiled on its first call."""
-    if "b" not in _COMPILED:
-        _COMPILED["b"] = torch.compile(objective_b_elementwise, dynamic=True)
-    return _COMPILED["b"]
+def compiled_call(fn, owner, *args):
+    """``fn(*args)`` through ``torch.compile(fn, dynamic=True)`` (compiled on the first call, one
+    compilation per process and device serves every batch, segment and hypothesis count).
+
+    ``owner`` (a :class:`MixtureLikelihood`) has ``compiled`` set to False, with one warning, when
+    compiling or running the kernel fails (no C++ compiler, no Triton, an unsupported backend);
+    the call then returns None and the caller takes its eager path.
+    """
+    compiled = _COMPILED.get(fn)
+    if compiled is None:
+        compiled = _COMPILED[fn] = torch.compile(fn, dynamic=True)
+    try:
+        return compiled(*args)
+    except Exception as exc:
+        owner.compiled = False
+        first_line = (str(exc).strip().splitlines() or [""])[0][:200]
+        warnings.warn(f"fR: compiled search unavailable ({type(exc).__name__}: {first_line}); running without it",
+                      RuntimeWarning, stacklevel=3)
+        return None
 
 
 def _family_density(line_along, columns, neg_inv_scale, log_coef, floor, workspace, name, groups=1):

@@ -28,10 +28,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
                              "traffic cameras)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--compile", action="store_true",
-                        help="score the search grid with a kernel fused by torch.compile (needs a C++ compiler "
-                             "on CPU, Triton on CUDA; about 10 s of compilation per process, then faster: for "
-                             "long batch jobs; falls back with a warning where it cannot compile)")
-
+                        help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
+                             "Triton on CUDA; about 10 s of compilation per process, then faster: for long batch "
+                             "jobs and video; falls back with a warning where it cannot compile)")
 
 def hfov_search_config(hfov_min=None, hfov_max=None, base=None):
     """The search configuration (``base``, default ``configs/search.json``) with the horizontal-FOV
@@ -74,7 +73,7 @@ def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     if args.hfov_range or getattr(args, "compile", False):
         from .search import SearchConfig
 
-        config = SearchConfig.from_config(**({"compile_grid": True} if getattr(args, "compile", False) else {}))
+        config = SearchConfig.from_config(**({"compile_search": True} if getattr(args, "compile", False) else {}))
         if args.hfov_range:  # a name ('paper') or MIN,MAX; FRInputError if invalid
             try:
                 config = config.with_fov_range(args.hfov_range)

@@ -41,7 +41,8 @@ import torch
 from torch.optim.adam import adam as adam_update  # torch.optim's functional Adam (see _FusedAdam)
 
 from .camera import VERTICAL_AXIS, focal_from_hfov, hfov_from_focal, pan_from_rotation, rotation_from_angles
-from .likelihood import CONFIG_DIR, MixtureLikelihood, SegmentFeatures, measure_b_backward, measure_b_forward, vp_major
+from .likelihood import (CONFIG_DIR, MixtureLikelihood, SegmentFeatures, compiled_call, measure_b_backward,
+                         measure_b_forward, vp_major)
 from .segments import FRInputError
 
 PARAMS = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
@@ -136,10 +137,11 @@ class SearchConfig:
     unchanged (6.85 / 6.85 %, 12.09 / 12.03 % at 1000); of the counts that tie, 750 costs least (a
     batch pads every image to the cap: with 1000, 306 photos took fR 21.6 s instead of 11.9 s).
     Fast-fR keeps 500: with 1000 its MAE is the same (5.23 / 5.29 %) and its time would pass 50 ms.
-    ``compile_grid``: score the no-gradient hypotheses (grid, focal sweep, passes, cue lattice)
-    with one kernel fused by ``torch.compile`` (:func:`fr_torch.likelihood.compiled_objective_b`;
-    ``--compile``).  The same sums to float rounding; a compilation per process (about 10 s on
-    CPU), then faster: for long batch jobs, not for one photo.  Off by default.
+    ``compile_search``: score the no-gradient hypotheses (grid, focal sweep, passes, cue lattice)
+    with one kernel fused by ``torch.compile`` and compile the refinement step too
+    (:mod:`fr_torch.likelihood`, "Compiled search"; ``--compile``).  The same estimates to float
+    rounding; a compilation per process (about 10 s on CPU), then faster: for long batch jobs and
+    video, not for one photo.  Off by default.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
     ``refine_iterations_fr`` steps; 0 = always the full count.
@@ -163,7 +165,7 @@ class SearchConfig:
     refine_tolerance: float = 0.0
     refine_patience: int = 10
     max_chunk_elements: int = 1 << 24
-    compile_grid: bool = False
+    compile_search: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "hfov_range_deg", check_fov_range(*self.hfov_range_deg))
@@ -669,7 +671,9 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     for _ in range(iterations):
         u.grad = None
         if analytic:  # same gradient in closed form, no autograd graph (see objective_and_grad)
-            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out)
+            result = (compiled_call(objective_and_grad, likelihood, likelihood, features, lower, span, u.detach(),
+                                    grad_out) if likelihood.compiled else None)
+            objective, grad = result or objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out)
         else:
             _, objective = evaluate(u)
             finite = torch.where(torch.isfinite(objective), objective, torch.zeros_like(objective))

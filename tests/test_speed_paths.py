@@ -459,43 +459,49 @@ def test_elementwise_objective_equals_buffered(dtype, rtol):
     assert torch.allclose(elementwise, buffered, rtol=rtol)
 
 
-def test_compiled_grid_gives_the_eager_estimates():
-    """SearchConfig.compile_grid (``--compile``): the same estimates as the buffered path (or, where
-    this machine cannot compile, the buffered path itself after one warning)."""
+@pytest.mark.parametrize("mode", ["fast", "fr"])
+def test_compiled_search_gives_the_eager_estimates(mode):
+    """SearchConfig.compile_search (``--compile``): the same estimates as the eager paths (or, where
+    this machine cannot compile, the eager paths themselves after one warning).  One compilation
+    per process serves both modes."""
     segs = [_scene(41), _scene(42, 95.0, -30.0, -15.0, -7.0)]
-    eager = FREstimator(mode="fast").calibrate_segments(segs, [(640, 480)] * 2)
-    compiled_config = SearchConfig.from_config(compile_grid=True)
-    estimator = FREstimator(mode="fast", search_config=compiled_config)
+    eager = FREstimator(mode=mode).calibrate_segments(segs, [(640, 480)] * 2)
+    estimator = FREstimator(mode=mode, search_config=SearchConfig.from_config(compile_search=True))
     compiled = estimator.calibrate_segments(segs, [(640, 480)] * 2)
+    # Float rounding differs (fused sums); fR's 100 Adam steps on a flat optimum can carry that to
+    # the tolerances of test_estimator_float32_matches_float64 (measured: focal 2.7e-4 apart).
+    focal_rel, objective_rel, angle_deg = (1e-4, 1e-5, 1e-3) if mode == "fast" else (1e-3, 5e-4, 0.02)
     for a, b in zip(eager, compiled):
-        assert b.ok and b.focal_px == pytest.approx(a.focal_px, rel=1e-4)
-        assert b.log_likelihood == pytest.approx(a.log_likelihood, rel=1e-5)
-        assert np.allclose(a.rotation, b.rotation, atol=1e-4)
+        assert b.ok and b.focal_px == pytest.approx(a.focal_px, rel=focal_rel)
+        assert b.log_likelihood == pytest.approx(a.log_likelihood, rel=objective_rel)
+        for key in ("pan_deg", "pitch_deg", "roll_deg"):
+            assert abs(getattr(a, key) - getattr(b, key)) < angle_deg, key
 
 
-def test_compiled_grid_falls_back_with_one_warning(monkeypatch):
-    """Where compilation fails (no C++ compiler, no Triton) the estimator warns once and scores
-    with the buffered path: the same results as without --compile."""
+def test_compiled_search_falls_back_with_one_warning(monkeypatch):
+    """Where compilation fails (no C++ compiler, no Triton) the estimator warns once and runs the
+    eager paths: the same results as without --compile."""
     import fr_torch.likelihood as likelihood_module
 
     def cannot_compile(*args, **kwargs):
         raise RuntimeError("InvalidCxxCompiler: No working C compiler detected\nmore detail")
 
-    monkeypatch.setitem(likelihood_module._COMPILED, "b", cannot_compile)
+    for fn in (likelihood_module.objective_b_elementwise, search.objective_and_grad):
+        monkeypatch.setitem(likelihood_module._COMPILED, fn, cannot_compile)
     segs = [_scene(43)]
-    estimator = FREstimator(mode="fast", search_config=SearchConfig.from_config(compile_grid=True))
-    with pytest.warns(RuntimeWarning, match="compiled grid unavailable .*No working C compiler") as caught:
+    estimator = FREstimator(mode="fr", search_config=SearchConfig.from_config(compile_search=True))
+    with pytest.warns(RuntimeWarning, match="compiled search unavailable .*No working C compiler") as caught:
         [fallback] = estimator.calibrate_segments(segs, [(640, 480)])
-    assert len([w for w in caught if "compiled grid" in str(w.message)]) == 1
-    assert estimator.likelihood.compile_grid is False
-    [eager] = FREstimator(mode="fast").calibrate_segments(segs, [(640, 480)])
+    assert len([w for w in caught if "compiled search" in str(w.message)]) == 1
+    assert estimator.likelihood.compiled is False
+    [eager] = FREstimator(mode="fr").calibrate_segments(segs, [(640, 480)])
     assert fallback.focal_px == eager.focal_px and fallback.log_likelihood == eager.log_likelihood
 
 
 @gpu
-def test_cuda_compiled_grid_equals_cpu():
+def test_cuda_compiled_search_equals_cpu():
     segs = [_scene(0), _scene(2, 95.0, -30.0, -15.0, -7.0)]
-    config = SearchConfig.from_config(compile_grid=True)
+    config = SearchConfig.from_config(compile_search=True)
     a = FREstimator(mode="fast").calibrate_segments(segs, [(640, 480)] * 2)
     b = FREstimator(mode="fast", device="cuda", search_config=config).calibrate_segments(segs, [(640, 480)] * 2)
     for x, y in zip(a, b):
