@@ -220,8 +220,10 @@ def _transcendental_ns(device: str = "cpu") -> float:
     return (ta + te) / n * 1e9
 
 
-def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fast", "fr")) -> list[dict]:
-    """Latency of calibrate_images on single images (batch 1), per stage, medians (ms)."""
+def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fast", "fr"),
+               compile_search: bool = False) -> list[dict]:
+    """Latency of calibrate_images on single images (batch 1), per stage, medians (ms);
+    ``compile_search``: also each mode with the compiled search (after its compiling warm-up)."""
     from fr_torch.segments import get_detector, load_image, to_gray8
 
     rows = []
@@ -230,23 +232,28 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
         gray = to_gray8(load_image(path))
         decode = statistics.median(_median_times(lambda: load_image(path), repeats))
         lsd = statistics.median(_median_times(lambda: detector(gray), repeats))
-        for mode in modes:
-            if progress.out_of_time(f"end_to_end {label} {mode}"):
+        for mode, compiled in [(m, c) for m in modes for c in ((False, True) if compile_search else (False,))]:
+            if progress.out_of_time(f"end_to_end {label} {mode}{' compiled' if compiled else ''}"):
                 continue
-            est = _estimator(mode)
-            est.calibrate_images([path])  # warm-up
+            est = _estimator(mode, compile_search=compiled)
+            start = time.perf_counter()
+            est.calibrate_images([path])  # warm-up (compiles, the first time in this process)
+            warmup_s = time.perf_counter() - start
             runs = []
             for _ in range(repeats):
                 start = time.perf_counter()
                 [result] = est.calibrate_images([path])
                 wall = time.perf_counter() - start
                 runs.append(dict(result.runtime_s, wall=wall))
-            row = {"image": label, "mode": mode, "segments": result.num_segments,
+            row = {"image": label, "mode": mode, "search": "compiled" if est.likelihood.compiled else "eager",
+                   "segments": result.num_segments,
                    "width": result.width, "height": result.height}
             for key in STAGES + ("wall",):
                 row[f"{key}_ms"] = 1000 * statistics.median(r.get(key, 0.0) for r in runs)
             row["decode_ms"], row["lsd_ms"] = 1000 * decode, 1000 * lsd
             row["iterations"] = est.iterations
+            if compiled:
+                row["compile_s"] = warmup_s
             row["grid_hypotheses"] = est.search.grid_points_per_dim ** 4
             rows.append(row)
             progress.update(1, "end_to_end", row)
@@ -531,10 +538,10 @@ def _markdown(report: dict) -> str:
              + (f", load average {m.get('load_average')}" if m.get("load_average") else "") + ".",
              f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up.", ""]
     lines += ["## End-to-end latency per image (CPU, batch 1, ms)", "",
-              "| image | mode | segments | decode+LSD | grid | refine | cues | total | floor: decode | floor: LSD | grid floor |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| image | mode | search | segments | decode+LSD | grid | refine | cues | total | floor: decode | floor: LSD | grid floor |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["end_to_end"]:
-        lines.append(f"| {r['image']} | {r['mode']} | {r['segments']} | {r['detect_ms']:.1f} | {r['grid_ms']:.1f} | "
+        lines.append(f"| {r['image']} | {r['mode']} | {r.get('search', 'eager')} | {r['segments']} | {r['detect_ms']:.1f} | {r['grid_ms']:.1f} | "
                      f"{r['refine_ms']:.1f} | {r['cues_ms']:.1f} | **{r['wall_ms']:.1f}** | {r['decode_ms']:.1f} | "
                      f"{r['lsd_ms']:.1f} | {r['grid_floor_ms']:.1f} |")
     lines += ["", "Grid floor = G x N x 3 deviations x (atan2 + exp ns/element measured in cache: "
@@ -551,7 +558,8 @@ def _markdown(report: dict) -> str:
             peak = mem[(r["batch"], r["device"])]["peak_increase_mb"]
         lines.append(f"| {r['device']} | {r.get('mode', 'fast')} | {search} | {r['batch']} | {r['segments']} | "
                      f"{r['images_per_s']:.1f} | {r['ms_per_image']:.2f} | {'' if peak is None else f'{peak:.0f}'} |")
-    compiled = [r for r in report["throughput"] if "compile_s" in r]
+    compiled = [dict(r, device=r.get("device", "cpu")) for r in report["end_to_end"] + report["throughput"]
+                if "compile_s" in r]
     if compiled:
         lines += ["", "search: `eager` = the default; `compiled` = `--compile` (`SearchConfig.compile_search`: "
                   "the grid's scores from one kernel fused by torch.compile, the refinement step compiled "
@@ -666,7 +674,7 @@ def run(args: argparse.Namespace) -> int:
         mem_settings = []
     modes = ("fast",) if quick else ("fast", "fr")
     tp_runs = 2 if args.compile else 1  # buffered, and compiled with --compile
-    steps = (len(modes) * len(images) + tp_runs * len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
+    steps = (tp_runs * len(modes) * len(images) + tp_runs * len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
              + len(mem_settings) + len(seg_counts) + len(grid_sizes) + 2 * len(modes) * len(counts)
              + 2 * len(devices))
     out = Path(args.out)
@@ -685,7 +693,7 @@ def run(args: argparse.Namespace) -> int:
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode, compile_search=True)
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         profiles.append(profile_table(dev, device_batches[-2], n_seg_tp, out, progress))
-    e2e = end_to_end(images, repeats, progress, modes)
+    e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
     for row in e2e:
         row["grid_floor_ms"] = row["grid_hypotheses"] * row["segments"] * 3 * ns / 1e6
     parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
