@@ -52,7 +52,7 @@ reduction over segments (:func:`objective_b_elementwise`), which ``torch.compile
 fused kernel (C++ on CPU, Triton on CUDA) that never stores the (B, 2N, 3H) deviations; the
 refinement's closed-form objective and gradient (:func:`fr_torch.search.objective_and_grad`) are
 compiled too, which removes most of its per-step operator overhead.  Compilation happens once per
-process (:func:`compiled_call`; about 10 s on CPU); where it fails (no C++ compiler, no Triton)
+process (:func:`compiled_call`; 10-25 s on a 2-core CPU); where it fails (no C++ compiler, no Triton)
 the estimator warns once and keeps the eager paths.
 """
 from __future__ import annotations

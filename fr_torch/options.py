@@ -29,7 +29,7 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--compile", action="store_true",
                         help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
-                             "Triton on CUDA; about 10 s of compilation per process, then faster: for long batch "
+                             "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "
                              "jobs and video; falls back with a warning where it cannot compile)")
 
 def hfov_search_config(hfov_min=None, hfov_max=None, base=None):

@@ -140,7 +140,7 @@ class SearchConfig:
     ``compile_search``: score the no-gradient hypotheses (grid, focal sweep, passes, cue lattice)
     with one kernel fused by ``torch.compile`` and compile the refinement step too
     (:mod:`fr_torch.likelihood`, "Compiled search"; ``--compile``).  The same estimates to float
-    rounding; a compilation per process (about 10 s on CPU), then faster: for long batch jobs and
+    rounding; a compilation per process (10-25 s on a 2-core CPU), then faster: for long batch jobs and
     video, not for one photo.  Off by default.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
