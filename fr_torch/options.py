@@ -32,6 +32,7 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
                              "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "
                              "jobs and video; falls back with a warning where it cannot compile)")
 
+
 def hfov_search_config(hfov_min=None, hfov_max=None, base=None):
     """The search configuration (``base``, default ``configs/search.json``) with the horizontal-FOV
     range replaced where ``hfov_min`` / ``hfov_max`` (degrees; numbers or strings) are given.
