@@ -553,7 +553,7 @@ def _markdown(report: dict) -> str:
     mem = {(r["batch"], r["device"]): r for r in report["memory"] if r.get("ok")}
     for r in report["throughput"]:
         peak = r.get("peak_memory_mb")
-        search = {"buffered": "eager"}.get(r.get("search", r.get("grid")), r.get("search", "eager"))
+        search = r.get("search", "eager")  # reports written before --compile have no such column
         if peak is None and r.get("mode", "fast") == "fast" and search == "eager" and (r["batch"], r["device"]) in mem:
             peak = mem[(r["batch"], r["device"])]["peak_increase_mb"]
         lines.append(f"| {r['device']} | {r.get('mode', 'fast')} | {search} | {r['batch']} | {r['segments']} | "
@@ -673,7 +673,7 @@ def run(args: argparse.Namespace) -> int:
     if args.no_memory:
         mem_settings = []
     modes = ("fast",) if quick else ("fast", "fr")
-    tp_runs = 2 if args.compile else 1  # buffered, and compiled with --compile
+    tp_runs = 2 if args.compile else 1  # eager, and compiled with --compile
     steps = (tp_runs * len(modes) * len(images) + tp_runs * len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
              + len(mem_settings) + len(seg_counts) + len(grid_sizes) + 2 * len(modes) * len(counts)
              + 2 * len(devices))

@@ -71,10 +71,11 @@ def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
     kwargs: dict[str, Any] = dict(mode="fast" if args.fast else "fr", measure=args.measure, detector=args.detector,
                                   likelihood=args.likelihood, device=args.device)
-    if args.hfov_range or getattr(args, "compile", False):
+    compile_search = bool(getattr(args, "compile", False))  # front ends without --compile: off
+    if args.hfov_range or compile_search:
         from .search import SearchConfig
 
-        config = SearchConfig.from_config(**({"compile_search": True} if getattr(args, "compile", False) else {}))
+        config = SearchConfig.from_config(**({"compile_search": True} if compile_search else {}))
         if args.hfov_range:  # a name ('paper') or MIN,MAX; FRInputError if invalid
             try:
                 config = config.with_fov_range(args.hfov_range)

@@ -199,22 +199,24 @@ class SearchConfig:
         """A copy with the FOV range from a name, ``"MIN,MAX"`` or a pair (see :func:`parse_fov_range`)."""
         return replace(self, hfov_range_deg=parse_fov_range(value))
 
-    def iterations(self, mode: str) -> int:
+    @staticmethod
+    def _for_mode(mode: str, fr_value: int, fast_value: int) -> int:
+        """``fr_value`` for mode ``fr``, ``fast_value`` for ``fast``; ValueError for any other mode."""
         if mode not in ("fr", "fast"):
             raise ValueError(f"mode must be 'fr' or 'fast', got {mode!r}")
-        return self.refine_iterations_fr if mode == "fr" else self.refine_iterations_fast
+        return fr_value if mode == "fr" else fast_value
+
+    def iterations(self, mode: str) -> int:
+        """Refinement steps of ``mode``."""
+        return self._for_mode(mode, self.refine_iterations_fr, self.refine_iterations_fast)
 
     def max_segments(self, mode: str) -> int:
         """How many of each image's longest segments ``mode`` keeps (its segment filter's cap)."""
-        if mode not in ("fr", "fast"):
-            raise ValueError(f"mode must be 'fr' or 'fast', got {mode!r}")
-        return self.max_segments_fr if mode == "fr" else self.max_segments_fast
+        return self._for_mode(mode, self.max_segments_fr, self.max_segments_fast)
 
     def grid_segment_count(self, mode: str) -> int:
         """How many of each image's longest segments stage 1 scores in ``mode`` (0 = all)."""
-        if mode not in ("fr", "fast"):
-            raise ValueError(f"mode must be 'fr' or 'fast', got {mode!r}")
-        return self.grid_segments if mode == "fr" else self.grid_segments_fast
+        return self._for_mode(mode, self.grid_segments, self.grid_segments_fast)
 
 
 def _cell_centres(low: float, high: float, k: int) -> torch.Tensor:
