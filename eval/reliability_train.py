@@ -45,7 +45,8 @@ import numpy as np
 import pandas as pd
 
 from fr_torch.camera import focal_from_hfov, rotation_angles
-from fr_torch.reliability import CUE_NAMES, ERROR_COLUMNS, MODEL_CUE_NAMES, PAPER_CUE_NAMES, ReliabilityModel
+from fr_torch.reliability import (CUE_NAMES, ERROR_COLUMNS, MODEL_CUE_NAMES, PAPER_CUE_NAMES, ReliabilityModel,
+                                  model_cue_names)
 from fr_torch.resources import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -192,6 +193,10 @@ def usable(frame: pd.DataFrame, cue_names=MODEL_CUE_NAMES) -> pd.DataFrame:
     if missing:
         raise ValueError(f"records lack the cue columns {missing} (written by an older version): "
                          "recompute them with --no-cache")
+    absent = [name for name in cue_names if len(frame) and not np.isfinite(frame[name].to_numpy(float)).any()]
+    if absent:
+        raise ValueError(f"no record has the cues {absent} (Fast-fR does not compute focal_profile_gap; an older "
+                         "version wrote none: recompute with --no-cache)")
     cols = list(cue_names) + list(ERROR_COLUMNS)
     ok = frame["ok"].astype(bool) & np.isfinite(frame[cols].to_numpy(float)).all(1)
     return frame[ok].reset_index(drop=True)
@@ -339,16 +344,17 @@ def out_of_fold(target: pd.DataFrame, rest: pd.DataFrame | None = None, cue_name
 
 
 def compare_training_sets(variants: dict[str, pd.DataFrame], target: pd.DataFrame, test: pd.DataFrame,
-                          out: Path, mode: str, folds: int = 5) -> pd.DataFrame:
+                          out: Path, mode: str, cue_names=MODEL_CUE_NAMES, folds: int = 5) -> pd.DataFrame:
     """Which training data helps: for each named training set, (a) out-of-fold on ``target`` (the
     target-domain training split; folds grouped, the rest of the variant always in training) and
     (b) on the held-out ``test``: focal MAE of the top 25 % (ranked by predicted focal error) over
-    all, and Spearman rho of predicted vs actual focal error.  Select on (a); (b) is for information."""
+    all, and Spearman rho of predicted vs actual focal error.  Select on (a); (b) is for information.
+    Every model uses the cues ``cue_names``."""
     rows = []
     for name, data in variants.items():
         rest = data[~data["name"].isin(target["name"]) | (data["source"] != target["source"].iloc[0])]
-        oof_ratio, oof_rho = _focal_score(target, out_of_fold(target, rest, folds=folds))
-        model = fit_model(data)
+        oof_ratio, oof_rho = _focal_score(target, out_of_fold(target, rest, cue_names, folds=folds))
+        model = fit_model(data, cue_names)
         test_ratio, test_rho = _focal_score(test, model.predict(test[list(model.cue_names)].to_numpy(float)))
         rows.append({"training_set": name, "n": len(data), "k": model.k, "oof_top25_focal_ratio": oof_ratio,
                      "oof_spearman_focal": oof_rho, "test_top25_focal_ratio": test_ratio,
@@ -369,10 +375,14 @@ def compare_training_sets(variants: dict[str, pd.DataFrame], target: pd.DataFram
     return table
 
 
-#: Candidate model inputs compared by :func:`compare_cue_sets`; the shipped models use MODEL_CUE_NAMES.
+#: Candidate model inputs compared by :func:`compare_cue_sets` (a set with a cue the records lack,
+#: focal_profile_gap for Fast-fR, is left out); the shipped models use ``model_cue_names(mode)``.
 CUE_SETS = {"paper": PAPER_CUE_NAMES, "paper+focal_conditioning": PAPER_CUE_NAMES + ("focal_conditioning",),
-            "paper+focal_prior_share": MODEL_CUE_NAMES, "paper+focal_conditioning+focal_prior_share": CUE_NAMES}
-CUE_CHOICES = {"default": MODEL_CUE_NAMES, "paper": PAPER_CUE_NAMES, "all": CUE_NAMES}
+            "paper+focal_prior_share": MODEL_CUE_NAMES,
+            "paper+focal_conditioning+focal_prior_share": PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share"),
+            "paper+focal_prior_share+focal_profile_gap": MODEL_CUE_NAMES + ("focal_profile_gap",), "all": CUE_NAMES}
+#: ``--cues`` choices; None: the shipped model's cues of the mode (:func:`model_cue_names`).
+CUE_CHOICES = {"default": None, "paper": PAPER_CUE_NAMES, "all": CUE_NAMES}
 
 
 def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: str, folds: int = 5) -> pd.DataFrame:
@@ -382,6 +392,8 @@ def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: s
     and the focal MAE of the top 25 % over all.  Select on (a); (b) is for information."""
     rows = []
     for name, names in CUE_SETS.items():
+        if any(n not in train.columns or not np.isfinite(train[n].to_numpy(float)).any() for n in names):
+            continue  # a cue this mode does not compute
         oof = out_of_fold(train, cue_names=names, folds=folds)
         model = fit_model(train, names)
         row = {"cues": name, "k": model.k}
@@ -473,9 +485,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--report-split", default="test")
     parser.add_argument("--report-dir", type=Path, default=REPO / "results" / "reliability")
     parser.add_argument("--cues", choices=tuple(CUE_CHOICES), default="default",
-                        help="cues the model uses: default (the paper's three and focal_prior_share), paper "
-                             "(min_family_segments, grid_entropy, mean_log_likelihood) or all (the default's and "
-                             "focal_conditioning)")
+                        help="cues the model uses: default (the paper's three and focal_prior_share; for fr "
+                             "focal_profile_gap too), paper (min_family_segments, grid_entropy, "
+                             "mean_log_likelihood) or all (every cue; fr only)")
     parser.add_argument("--compare-synthetic", type=int, default=0, metavar="N",
                         help="with a report: also compare training sets with/without N synthetic scenes "
                              "(training_sets_<method>.md)")
@@ -489,7 +501,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.time()
     frame = gather(datasets, args.split, args.method, args.extra_synthetic, args.records, args.data_root,
                    args.batch_size, not args.no_cache, args.seed, args.limit)
-    cue_names = CUE_CHOICES[args.cues]
+    cue_names = CUE_CHOICES[args.cues] or model_cue_names(args.method)
     train = usable(frame, cue_names)
     if len(train) < 10:
         raise ValueError(f"only {len(train)} usable training images")
@@ -514,10 +526,11 @@ def run(args: argparse.Namespace) -> int:
             print(compare_cue_sets(train, test, args.report_dir, args.method).to_string(index=False))
         if args.compare_synthetic and datasets:
             syn = usable(gather([], args.split, args.method, args.compare_synthetic, args.records, args.data_root,
-                                args.batch_size, not args.no_cache, args.seed))
+                                args.batch_size, not args.no_cache, args.seed), cue_names)
             parts = {d: train[train["source"] == d] for d in datasets}
             variants = {datasets[0]: parts[datasets[0]], "+".join(datasets): train}
             variants["+".join(datasets) + f"+synthetic{args.compare_synthetic}"] = pd.concat([train, syn])
             variants[f"{datasets[0]}+synthetic{args.compare_synthetic}"] = pd.concat([parts[datasets[0]], syn])
-            print(compare_training_sets(variants, parts[datasets[0]], test, args.report_dir, args.method).to_string(index=False))
+            print(compare_training_sets(variants, parts[datasets[0]], test, args.report_dir, args.method,
+                                        cue_names).to_string(index=False))
     return 0

@@ -8,8 +8,10 @@ regressor returns the **mean absolute error of the K most similar training image
 
 Cues (:data:`CUE_NAMES`; the first three are the paper's, :data:`PAPER_CUE_NAMES`)
 ------------------------------------------------------------------------------------
-Every result reports all five; the shipped models use :data:`MODEL_CUE_NAMES` (the paper's three
-and ``focal_prior_share``).
+Every fR result reports all six (Fast-fR results all but ``focal_profile_gap``, which would cost
+Fast-fR a third of its time); the shipped models use :func:`model_cue_names`: the paper's three and
+``focal_prior_share`` (:data:`MODEL_CUE_NAMES`, Fast-fR), and all six (:data:`FR_MODEL_CUE_NAMES`,
+fR).
 
 * ``min_family_segments``, ``grid_entropy``, ``mean_log_likelihood``: the paper's cues (defined in
   :meth:`fr_torch.estimator.FREstimator._cues`);
@@ -27,6 +29,12 @@ and ``focal_prior_share``).
   ``focal_conditioning`` sees (VPs that carry no information on f leave ``c_l`` small) and more: few
   segments, noisy ones, and narrow views whose VPs lie far outside the image, which the prior
   (centred at 82 deg) pulls wide.  0 for a given focal length.
+* ``focal_profile_gap`` (not in the paper; :func:`fr_torch.search.focal_profile_gap`; fR only): the
+  objective at the estimate minus the best objective of a known-focal search at 0.6 - 1.67 times the
+  estimated focal length (nats, length-weighted): how much better the estimated focal length
+  explains the segments than a clearly different one.  Small or negative: a second basin nearly as
+  good (or better: a search miss), the case of most large focal errors; ``focal_prior_share`` sees
+  a flat profile, this cue a second peak.  0 for a given focal length.
 
 Which cues the models use was chosen out of fold on the train splits of ZInD-fR, YUD and the YUD
 crops (``results/reliability/cues_<mode>.md``; 5 folds grouped by scene, so a crop never sits in
@@ -35,7 +43,11 @@ Spearman rho of predicted vs actual focal error rises, fR / Fast-fR, on YUD trai
 to 0.51 / 0.57, on the 33 deg crops from 0.30 / 0.23 to 0.42 / 0.38, on the 39 deg crops from
 0.28 / 0.15 to 0.40 / 0.25 and on ZInD-fR train from 0.45 / 0.43 to 0.48 / 0.51; all five cues
 together do no better (rho summed over the four sets 1.73 / 1.61 against 1.81 / 1.71: a KNN in more
-dimensions has sparser neighbours).
+dimensions has sparser neighbours).  With ``focal_profile_gap`` (fR only), chosen the same way
+(``results/reliability/cues_fr.md``), fR's model uses all six cues: summed out-of-fold rho 1.81
+(paper + ``focal_prior_share``), 1.82 (+ ``focal_profile_gap``), 1.87 (all six), and the focal MAE
+of the quarter predicted most reliable over that of all, averaged over the four sets, 0.45, 0.38,
+0.27.
 
 Cue normalisation (exactly; :func:`cue_features`)
 -------------------------------------------------
@@ -50,6 +62,9 @@ Each image's cue vector becomes the feature vector ``x``, one feature per cue:
   ordinary ones (0.1-0.5);
 * ``ln(focal_prior_share + 1e-2)`` -- clipped to [0, 1]; well-constrained frames (0.003-0.05) are
   told apart as well as prior-dominated ones (0.2-1).
+* ``asinh(focal_profile_gap / 100)`` -- gaps run from about -600 to 10,000 nats: roughly linear
+  within +-100 nats (near-ties, either sign), logarithmic beyond (2,000 vs 4,000 as far apart as
+  200 vs 400).
 
 A model keeps the names of the cues it was trained on (``meta["cue_names"]``): a model trained on
 the paper's three cues (``fr train-reliability --cues paper``, or a file written before the fourth
@@ -99,14 +114,17 @@ from .resources import config_dir
 _config_dir = config_dir  # load_default has an argument of that name
 
 PAPER_CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")  # paper §3.4
-CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share")  # what the estimator reports
-MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_prior_share",)  # the shipped models' input (module docstring)
+# what the estimator reports (focal_profile_gap in fr mode only)
+CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share", "focal_profile_gap")
+MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_prior_share",)  # Fast-fR's shipped model (module docstring)
+FR_MODEL_CUE_NAMES = CUE_NAMES  # fR's shipped model: all six
 TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
 ERROR_COLUMNS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct")  # training-record column names
 LOG_EPS = np.array([0.1, 0.1, 1.0])  # CV loss: ln(error + eps)
 ENTROPY_FLOOR = 1e-6
 CONDITIONING_FLOOR = 1e-3
 PRIOR_SHARE_FLOOR = 1e-2
+PROFILE_GAP_SCALE = 100.0  # nats: asinh(gap / scale) is linear within +-scale, logarithmic beyond
 # Raw cue -> feature, per cue name (module docstring, "Cue normalisation").
 _CUE_TRANSFORMS = {
     "min_family_segments": (lambda c: np.log1p(np.clip(c, 0.0, None)), "ln1p(min_family_segments)"),
@@ -115,6 +133,8 @@ _CUE_TRANSFORMS = {
     "focal_conditioning": (lambda c: np.log(np.clip(c, 0.0, None) + CONDITIONING_FLOOR),
                            "ln(focal_conditioning + 1e-3)"),
     "focal_prior_share": (lambda c: np.log(np.clip(c, 0.0, 1.0) + PRIOR_SHARE_FLOOR), "ln(focal_prior_share + 1e-2)"),
+    "focal_profile_gap": (lambda c: np.arcsinh(np.asarray(c, np.float64) / PROFILE_GAP_SCALE),
+                          "asinh(focal_profile_gap / 100)"),
 }
 
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
@@ -126,6 +146,12 @@ PRIOR_SET_FOCAL_HINT = ("the focal prior set most of the focal length (the lines
 DEFAULT_K_GRID = (1, 2, 3, 5, 8, 12, 17, 25, 35, 50, 70, 90, 120, 160, 220, 300)
 MODES = ("fr", "fast")
 PREDICT_BLOCK = 4096  # query rows ranked at once against the training set (memory ~ rows x n_train)
+
+
+def model_cue_names(mode: str) -> tuple[str, ...]:
+    """The cues the shipped model of ``mode`` (``fr`` / ``fast``) uses: fR's all six (Fast-fR does
+    not compute ``focal_profile_gap``)."""
+    return FR_MODEL_CUE_NAMES if mode == "fr" else MODEL_CUE_NAMES
 
 
 def feature_version(names: Sequence[str] = CUE_NAMES) -> str:

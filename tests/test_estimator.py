@@ -37,7 +37,10 @@ def test_recovers_synthetic_cameras(scenes, mode):
         assert np.allclose(result.rotation @ result.rotation.T, np.eye(3), atol=1e-6)
         assert result.labels.shape == (result.num_segments,)
         assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood",
-                                    "focal_conditioning", "focal_prior_share"}
+                                    "focal_conditioning", "focal_prior_share"} | ({"focal_profile_gap"} if mode == "fr"
+                                                                                 else set())
+        if mode == "fr":  # the segments single out the estimate's focal length: by hundreds of nats
+            assert result.cues["focal_profile_gap"] > 100.0
         assert 0.0 <= result.cues["focal_prior_share"] < 0.2  # well-constrained views: the segments set f
         expected = float(focal_conditioning(torch.as_tensor(result.rotation)))
         assert result.cues["focal_conditioning"] == pytest.approx(expected, abs=1e-9)
@@ -187,3 +190,38 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     assert float(direct[0]) == pytest.approx(oblique.cues["focal_prior_share"], rel=1e-6, abs=1e-9)
     no_prior = MixtureLikelihood(replace(est.likelihood.params, focal_prior_weight=0.0))
     assert float(focal_prior_share(no_prior, features, params)[0]) == 0.0
+
+
+def test_focal_profile_gap_sign_and_scale():
+    """``focal_profile_gap``: large at a well-determined estimate, small where the lines say little
+    about f (camera square to a wall), negative at an estimate a clearly different focal length
+    beats, 0 for a given focal length (fR only; Fast-fR does not compute it)."""
+    from fr_torch.likelihood import SegmentFeatures
+    from fr_torch.search import angles_from_search_rotation, focal_profile_gap, hypothesis_rotations
+    from fr_torch.segments import SegmentBatch
+
+    focal = focal_from_hfov(70.0, 640)
+    views = [rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0, 3.0).numpy(),
+             rotation_from_angles(torch.tensor(0.0, dtype=torch.float64), 0.0, 0.0).numpy()]
+    segments = [synthetic_segments(focal, R, 640, 480, n_per_family=60, noise_px=0.5, clutter_fraction=0.2,
+                                   seed=3)[0] for R in views]
+    est = FREstimator(mode="fr", reliability=None)
+    oblique, square = est.calibrate_segments(segments, [(640, 480)] * 2)
+    assert oblique.cues["focal_profile_gap"] > 300.0 > abs(square.cues["focal_profile_gap"])
+    [given] = est.calibrate_segments(segments[:1], [(640, 480)], focal_px=focal)
+    assert given.cues["focal_profile_gap"] == 0.0
+    [fast] = FREstimator(mode="fast", reliability=None).calibrate_segments(segments[:1], [(640, 480)])
+    assert "focal_profile_gap" not in fast.cues
+
+    # An estimate 40 % too long, scored where it is: the profile at 0.7 x finds the true basin.
+    features = SegmentFeatures.from_batch(SegmentBatch.from_list([oblique.segments], [(640, 480)]),
+                                          torch.tensor([[320.0, 240.0]]))
+    angles = angles_from_search_rotation(torch.as_tensor(oblique.rotation)[None])
+    wrong = torch.cat([angles, torch.tensor([[1.4 * oblique.focal_px]], dtype=torch.float64)], -1)
+    wrong_score = est.likelihood.objective(features, hypothesis_rotations(wrong)[:, None].float(),
+                                           wrong[:, None, 3].float())[:, 0]
+    gap = focal_profile_gap(est.likelihood, features, wrong, wrong_score, est.search, 10)
+    assert gap.shape == (1,) and float(gap[0]) < -300.0
+    right = focal_profile_gap(est.likelihood, features, torch.cat([angles, torch.tensor([[oblique.focal_px]],
+                              dtype=torch.float64)], -1), torch.tensor([oblique.log_likelihood]), est.search, 10)
+    assert float(right[0]) == pytest.approx(oblique.cues["focal_profile_gap"], rel=1e-4)

@@ -12,7 +12,7 @@ from fr_torch.camera import Camera
 from fr_torch.estimator import CalibrationResult
 from fr_torch.resources import config_dir
 from fr_torch.reliability import (CUE_NAMES, MODEL_CUE_NAMES, PAPER_CUE_NAMES, TARGETS, ReliabilityModel,
-                                  ReliabilitySet, cue_features, cues_array, load_thresholds)
+                                  ReliabilitySet, cue_features, cues_array, load_thresholds, model_cue_names)
 
 
 def make_training(n=400, noise=0.3, seed=0, informative=True):
@@ -31,9 +31,10 @@ def make_training(n=400, noise=0.3, seed=0, informative=True):
 
 
 def test_cue_features_documented_transform():
-    x = cue_features([[9.0, 0.0, -0.25, 0.0, 0.0], [0.0, 1.0, 2.0, 0.5, 0.5]])  # CUE_NAMES order
-    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25, np.log(1e-3), np.log(1e-2)])
-    np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0, np.log(0.5 + 1e-3), np.log(0.5 + 1e-2)])
+    x = cue_features([[9.0, 0.0, -0.25, 0.0, 0.0, 0.0], [0.0, 1.0, 2.0, 0.5, 0.5, -250.0]])  # CUE_NAMES order
+    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25, np.log(1e-3), np.log(1e-2), 0.0])
+    np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0, np.log(0.5 + 1e-3), np.log(0.5 + 1e-2),
+                                      np.arcsinh(-2.5)])
     np.testing.assert_allclose(cue_features([[9.0, 0.0, -0.25, 0.0]], MODEL_CUE_NAMES), x[:1, [0, 1, 2, 4]])
     # the paper's three cues alone, and a cue set in another order: one transform per name
     np.testing.assert_allclose(cue_features([[9.0, 0.0, -0.25]], PAPER_CUE_NAMES), x[:1, :3])
@@ -162,11 +163,20 @@ def test_shipped_models_and_thresholds():
     models = ReliabilityModel.load_default()
     for mode in shipped:
         model = models.models[mode]
-        assert model.meta["mode"] == mode and len(model.train_cues) >= 100 and model.cue_names == MODEL_CUE_NAMES
-        good, bad = model.predict([[60.0, 1e-6, 0.3, 0.02], [2.0, 1.0, -1.0, 0.02]])
+        assert model.meta["mode"] == mode and len(model.train_cues) >= 100
+        assert model.cue_names == model_cue_names(mode)
+        assert model.cue_names == (CUE_NAMES if mode == "fr" else MODEL_CUE_NAMES)
+        # a clean scene; fR's cues: the estimate's focal length wins by 2,000 nats
+        clean = dict(min_family_segments=60.0, grid_entropy=1e-6, mean_log_likelihood=0.3, focal_conditioning=0.3,
+                     focal_prior_share=0.02, focal_profile_gap=2000.0)
+        good, bad = model.predict([clean, dict(clean, min_family_segments=2.0, grid_entropy=1.0,
+                                                mean_log_likelihood=-1.0)])
         assert good[2] < bad[2]  # a clean scene is predicted better than a near-empty family
-        pinned, prior_set = model.predict([[60.0, 1e-6, 0.3, 0.02], [60.0, 1e-6, 0.3, 1.0]])
+        pinned, prior_set = model.predict([clean, dict(clean, focal_prior_share=1.0)])
         assert pinned[2] < prior_set[2]  # segments that pin f down beat a focal length the prior sets
+        if mode == "fr":
+            clear, tied = model.predict([dict(clean, focal_profile_gap=3000.0), dict(clean, focal_profile_gap=10.0)])
+            assert clear[2] < tied[2]  # a second basin nearly as good: a larger predicted focal error
 
 
 def test_reliability_is_a_stage_of_the_estimator():
