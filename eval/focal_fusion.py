@@ -13,8 +13,8 @@ predictions, which carry the cues) are fused three ways, each a weighted mean of
   trained here exactly as the shipped one (``fr train-reliability``: the same cached train records
   of the shipped model's training datasets, ``--records``, same K search) but with
   ``cue_names = PAPER_CUE_NAMES``;
-* ``shipped model``: the same with the shipped model (``configs/reliability_<mode>.npz``: the
-  paper's cues and ``focal_prior_share``).
+* ``shipped model``: the same with the shipped model (``configs/reliability_<mode>.npz``: fR's
+  uses all six cues, Fast-fR's the paper's and ``focal_prior_share``).
 
 Only frames ``fr track`` would accept count (``ok`` and ``reliable``; the ``reliable`` column of the
 CSV comes from the shipped model).  Reported: the fused focal length's error (%) against the
@@ -96,7 +96,7 @@ def main(argv=None) -> int:
                  "accept) against the camera's true focal length; weights 1/s^2 from the predicted focal error "
                  "(`OnlineCalibrator.frame_sigmas`).", "",
                  "| method | frames | unweighted | weighted, paper cues "
-                 "| weighted, shipped model (paper cues + focal_prior_share) |",
+                 "| weighted, shipped model (fR: all six cues; Fast-fR: paper cues + focal_prior_share) |",
                  "|---|---:|---:|---:|---:|"]
         for _, r in table.iterrows():
             lines.append(f"| {r['method']} | {r['frames']} | {r['unweighted']:.2f} | {r['paper cues']:.2f} | "

@@ -9,7 +9,7 @@ regressor returns the **mean absolute error of the K most similar training image
 Cues (:data:`CUE_NAMES`; the first three are the paper's, :data:`PAPER_CUE_NAMES`)
 ------------------------------------------------------------------------------------
 Every fR result reports all six (Fast-fR results all but ``focal_profile_gap``, which would cost
-Fast-fR a third of its time); the shipped models use :func:`model_cue_names`: the paper's three and
+Fast-fR more than half of its time); the shipped models use :func:`model_cue_names`: the paper's three and
 ``focal_prior_share`` (:data:`MODEL_CUE_NAMES`, Fast-fR), and all six (:data:`FR_MODEL_CUE_NAMES`,
 fR).
 

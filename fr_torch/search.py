@@ -515,6 +515,9 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
 #: 67 % away on either side, evenly spaced in log f (narrower than the search range's 6.5x, wider
 #: than the basin of a well-determined estimate, ~5 %).
 PROFILE_FOCAL_RATIOS = (0.6, 0.7, 0.8, 0.87, 1.15, 1.25, 1.43, 1.67)
+#: Images profiled together by :func:`focal_profile_gap` (their segments are copied once per ratio:
+#: 256 x 8 copies of 750 segments are about 90 MB); the gaps do not depend on it.
+PROFILE_CHUNK_IMAGES = 256
 
 
 def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
@@ -544,6 +547,11 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     """
     batch, count = params.shape[0], len(PROFILE_FOCAL_RATIOS)
     device = features.weight.device
+    if batch > PROFILE_CHUNK_IMAGES:  # each image's segments are copied once per ratio: bound the copies
+        return torch.cat([focal_profile_gap(likelihood, features.images(b, b + PROFILE_CHUNK_IMAGES),
+                                            params[b:b + PROFILE_CHUNK_IMAGES], scores[b:b + PROFILE_CHUNK_IMAGES],
+                                            config, iterations)
+                          for b in range(0, batch, PROFILE_CHUNK_IMAGES)])
     if batch == 0:
         return torch.zeros(0, dtype=torch.float64, device=device)
     ratios = torch.tensor(PROFILE_FOCAL_RATIOS, dtype=torch.float64)

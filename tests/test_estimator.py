@@ -192,7 +192,7 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     assert float(focal_prior_share(no_prior, features, params)[0]) == 0.0
 
 
-def test_focal_profile_gap_sign_and_scale():
+def test_focal_profile_gap_sign_and_scale(monkeypatch):
     """``focal_profile_gap``: large at a well-determined estimate, small where the lines say little
     about f (camera square to a wall), negative at an estimate a clearly different focal length
     beats, 0 for a given focal length (fR only; Fast-fR does not compute it)."""
@@ -225,3 +225,11 @@ def test_focal_profile_gap_sign_and_scale():
     right = focal_profile_gap(est.likelihood, features, torch.cat([angles, torch.tensor([[oblique.focal_px]],
                               dtype=torch.float64)], -1), torch.tensor([oblique.log_likelihood]), est.search, 10)
     assert float(right[0]) == pytest.approx(oblique.cues["focal_profile_gap"], rel=1e-4)
+    # profiled in slices of images (bounded copies): the same gaps as one slice
+    both = SegmentFeatures.from_batch(SegmentBatch.from_list([oblique.segments] * 2, [(640, 480)] * 2),
+                                      torch.tensor([[320.0, 240.0]] * 2))
+    args = (est.likelihood, both, wrong.expand(2, 4), wrong_score.expand(2), est.search, 10)
+    together = focal_profile_gap(*args)
+    monkeypatch.setattr("fr_torch.search.PROFILE_CHUNK_IMAGES", 1)
+    torch.testing.assert_close(focal_profile_gap(*args), together)
+    assert float(together[0]) == pytest.approx(float(gap[0]), rel=1e-4)

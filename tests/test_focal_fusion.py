@@ -66,3 +66,22 @@ def test_compare_cue_sets_writes_table_and_figure(tmp_path):
     text = (tmp_path / "cues_fr.md").read_text()
     assert "oof yud rho" in text and "oof zind-fr rho" in text and "cues_fr.png" in text
     assert (tmp_path / "cues_fr.png").stat().st_size > 0 and (tmp_path / "cues_fr.csv").is_file()
+
+
+def test_fast_records_without_the_profile_gap(tmp_path):
+    """Fast-fR does not compute focal_profile_gap: its records leave the column empty; cue sets with
+    it are left out of the comparison, and asking for it is a one-line error, not an empty fit."""
+    from fr_eval.reliability_train import CUE_SETS, compare_cue_sets, usable
+    from fr_torch.reliability import MODEL_CUE_NAMES, model_cue_names
+
+    train = pd.concat([_records(60, seed=1).assign(source="yud", name=[f"y{i}" for i in range(60)]),
+                       _records(80, seed=2).assign(source="zind-fr", name=[f"z{i}" for i in range(80)])],
+                      ignore_index=True)
+    train["group"] = [f"{s}:{i % 25}" for i, s in enumerate(train["source"])]
+    train["focal_profile_gap"] = np.nan
+    test = _records(40, seed=3).assign(focal_profile_gap=np.nan)
+    assert len(usable(train, model_cue_names("fast"))) == len(train) and model_cue_names("fast") == MODEL_CUE_NAMES
+    with pytest.raises(ValueError, match="focal_profile_gap"):
+        usable(train, model_cue_names("fr"))
+    table = compare_cue_sets(train, test, tmp_path, "fast")
+    assert list(table["cues"]) == [name for name, cues in CUE_SETS.items() if "focal_profile_gap" not in cues]
