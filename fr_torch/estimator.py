@@ -25,8 +25,9 @@ import torch
 
 from .camera import VERTICAL_AXIS, Camera, camera_record, image_centre
 from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
-from .search import (SearchConfig, check_result, focal_prior_share, focal_profile_gap, grid_hypotheses, hypothesis_rotations,
-                     parameter_box, refine, score_grid, select_starts, subdivide_starts, sweep_focal)
+from .search import (SearchConfig, check_result, focal_prior_share, focal_profile_gap, grid_hypotheses,
+                     hypothesis_rotations, parameter_box, refine, score_grid, select_starts, subdivide_starts,
+                     sweep_focal)
 from . import image_io, validate
 from .segments import FRInputError, SegmentBatch, SegmentFilter, get_detector, validate_segments
 
@@ -403,8 +404,8 @@ class FREstimator:
     def _focal_profile_gap(self, features: SegmentFeatures, params: torch.Tensor, scores: torch.Tensor,
                            known_focal: bool) -> torch.Tensor:
         """The ``focal_profile_gap`` cue (:func:`fr_torch.search.focal_profile_gap`, each known-focal
-        search refined for Fast-fR's number of steps) of the estimates ``params`` (B, 4) with objectives ``scores`` (B,),
-        float64 (B,); 0 for a given focal length."""
+        search refined for Fast-fR's number of steps) of the estimates ``params`` (B, 4) with
+        objectives ``scores`` (B,), float64 (B,); 0 for a given focal length."""
         if known_focal:
             return torch.zeros(params.shape[0], dtype=torch.float64, device=params.device)
         return focal_profile_gap(self.likelihood, features, params, scores, self.search,
