@@ -187,13 +187,20 @@ def gather(datasets: list[str], split: str, mode: str, extra_synthetic: int, rec
     return pd.concat(frames, ignore_index=True)
 
 
+def unrecorded_cues(frame: pd.DataFrame, cue_names) -> list[str]:
+    """The cues of ``cue_names`` that no record of ``frame`` has: no column, or no finite value
+    (focal_profile_gap in Fast-fR's records)."""
+    return [name for name in cue_names
+            if name not in frame.columns or not np.isfinite(frame[name].to_numpy(float)).any()]
+
+
 def usable(frame: pd.DataFrame, cue_names=MODEL_CUE_NAMES) -> pd.DataFrame:
     """Rows with an estimate, finite cues (of ``cue_names``) and finite errors."""
     missing = [name for name in cue_names if name not in frame.columns]
     if missing:
         raise ValueError(f"records lack the cue columns {missing} (written by an older version): "
                          "recompute them with --no-cache")
-    absent = [name for name in cue_names if len(frame) and not np.isfinite(frame[name].to_numpy(float)).any()]
+    absent = unrecorded_cues(frame, cue_names) if len(frame) else []
     if absent:
         raise ValueError(f"no record has the cues {absent} (Fast-fR does not compute focal_profile_gap; an older "
                          "version wrote none: recompute with --no-cache)")
@@ -392,7 +399,7 @@ def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: s
     and the focal MAE of the top 25 % over all.  Select on (a); (b) is for information."""
     rows = []
     for name, names in CUE_SETS.items():
-        if any(n not in train.columns or not np.isfinite(train[n].to_numpy(float)).any() for n in names):
+        if unrecorded_cues(train, names):
             continue  # a cue this mode does not compute
         oof = out_of_fold(train, cue_names=names, folds=folds)
         model = fit_model(train, names)

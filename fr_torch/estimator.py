@@ -333,9 +333,7 @@ class FREstimator:
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, 3].to(dtype))
         labels = posterior[:, 0].argmax(-1)
         cues = self._cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
-        cues["focal_prior_share"] = self._focal_prior_share(features, best_params, known_focal)
-        if self.mode == "fr":  # ~25 ms, over half of Fast-fR's time: Fast-fR and its model go without it
-            cues["focal_profile_gap"] = self._focal_profile_gap(features, best_params, best_scores, known_focal)
+        cues.update(self._focal_cues(features, best_params, best_scores, known_focal))
         t3 = time.perf_counter()
 
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
@@ -381,8 +379,8 @@ class FREstimator:
           paper's definition; the authors' MATLAB release uses the mean log max-posterior instead).
         * ``focal_conditioning``: :func:`focal_conditioning` of the final ``rotation`` (B, 3, 3).
 
-        The fifth cue, ``focal_prior_share``, is :meth:`_focal_prior_share`; the sixth, fR's only,
-        ``focal_profile_gap``, :meth:`_focal_profile_gap`.
+        The fifth and sixth cues, ``focal_prior_share`` and (fR only) ``focal_profile_gap``, come
+        from :meth:`_focal_cues`.
         """
         n = mask.sum(-1).clamp_min(1)
         counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
@@ -394,22 +392,23 @@ class FREstimator:
                 "mean_log_likelihood": mean_log.to(torch.float64),
                 "focal_conditioning": focal_conditioning(rotation).to(torch.float64)}
 
-    def _focal_prior_share(self, features: SegmentFeatures, params: torch.Tensor, known_focal: bool) -> torch.Tensor:
-        """The ``focal_prior_share`` cue (:func:`fr_torch.search.focal_prior_share`) of the estimates
-        ``params`` (B, 4), float64 (B,); 0 for a given focal length (the prior plays no part)."""
+    def _focal_cues(self, features: SegmentFeatures, params: torch.Tensor, scores: torch.Tensor,
+                    known_focal: bool) -> dict[str, torch.Tensor]:
+        """The focal cues of the estimates ``params`` (B, 4) with objectives ``scores`` (B,), each
+        float64 (B,): ``focal_prior_share`` (:func:`fr_torch.search.focal_prior_share`) and, in fR
+        mode, ``focal_profile_gap`` (:func:`fr_torch.search.focal_profile_gap`, each known-focal
+        search refined for Fast-fR's number of steps; ~25 ms per photo, over half of Fast-fR's time,
+        so Fast-fR and its model go without it).  0 for a given focal length: the prior plays no
+        part and there is no focal length to single out."""
+        names = ("focal_prior_share", "focal_profile_gap") if self.mode == "fr" else ("focal_prior_share",)
         if known_focal:
-            return torch.zeros(params.shape[0], dtype=torch.float64, device=params.device)
-        return focal_prior_share(self.likelihood, features, params, self.search.max_chunk_elements)
-
-    def _focal_profile_gap(self, features: SegmentFeatures, params: torch.Tensor, scores: torch.Tensor,
-                           known_focal: bool) -> torch.Tensor:
-        """The ``focal_profile_gap`` cue (:func:`fr_torch.search.focal_profile_gap`, each known-focal
-        search refined for Fast-fR's number of steps) of the estimates ``params`` (B, 4) with
-        objectives ``scores`` (B,), float64 (B,); 0 for a given focal length."""
-        if known_focal:
-            return torch.zeros(params.shape[0], dtype=torch.float64, device=params.device)
-        return focal_profile_gap(self.likelihood, features, params, scores, self.search,
-                                 self.search.iterations("fast"))
+            return {name: torch.zeros(params.shape[0], dtype=torch.float64, device=params.device) for name in names}
+        cues = {"focal_prior_share": focal_prior_share(self.likelihood, features, params,
+                                                       self.search.max_chunk_elements)}
+        if "focal_profile_gap" in names:
+            cues["focal_profile_gap"] = focal_profile_gap(self.likelihood, features, params, scores, self.search,
+                                                          self.search.iterations("fast"))
+        return cues
 
     def _sanity(self, r: CalibrationResult) -> tuple[bool, str]:
         reasons = []
