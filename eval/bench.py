@@ -153,12 +153,15 @@ def _segments(n: int, seed: int = 0) -> np.ndarray:
     return seg[:n]
 
 
-def _estimator(mode: str, device: str = "cpu", k: int | None = None, compile_search: bool = False):
+def _estimator(mode: str, device: str = "cpu", k: int | None = None, compile_search: bool = False,
+               reliability: bool = True):
+    """The estimator of a bench row; ``reliability=False``: no reliability stage (and so, in fR, no
+    ``focal_profile_gap`` cue: ``fr batch --no-reliability``)."""
     from fr_torch import FREstimator
     from fr_torch.search import SearchConfig
 
     config = SearchConfig.from_config(compile_search=compile_search, **({"grid_points_per_dim": k} if k else {}))
-    return FREstimator(mode=mode, device=device, search_config=config)
+    return FREstimator(mode=mode, device=device, search_config=config, **({} if reliability else {"reliability": None}))
 
 
 def _sync(device: str):
@@ -261,11 +264,12 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
 
 
 def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress, mode: str = "fast",
-               compile_search: bool = False) -> list[dict]:
+               compile_search: bool = False, reliability: bool = True) -> list[dict]:
     """Images/s of calibrate_segments (grid + refinement + cues) for each batch size.
     ``compile_search``: with the compiled search kernels; the warm-up call, which compiles them
-    (once per process), is reported as ``compile_s``."""
-    est = _estimator(mode, device, compile_search=compile_search)
+    (once per process), is reported as ``compile_s``.  ``reliability=False``: without the
+    reliability stage (rows marked ``reliability: false``)."""
+    est = _estimator(mode, device, compile_search=compile_search, reliability=reliability)
     pool = [_segments(n_segments, seed=i) for i in range(8)]
     start = time.perf_counter()
     est.calibrate_segments(pool[:1], [(640, 480)])  # warm-up
@@ -273,7 +277,7 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
     search = "compiled" if est.likelihood.compiled else "eager"  # eager also after a failed compile
     rows = []
     for batch in batch_sizes:
-        if progress.out_of_time(f"throughput {device} {mode} {batch}"):
+        if progress.out_of_time(f"throughput {device} {mode}{'' if reliability else ' no-reliability'} {batch}"):
             continue
         segs = [pool[i % len(pool)] for i in range(batch)]
         sizes = [(640, 480)] * batch
@@ -282,7 +286,7 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
                               sync=_sync(device))
         t = statistics.median(times)
         row = {"device": device, "mode": mode, "search": search, "batch": batch, "segments": n_segments, "seconds": t,
-               "images_per_s": batch / t, "ms_per_image": 1000 * t / batch, "repeats": reps}
+               "images_per_s": batch / t, "ms_per_image": 1000 * t / batch, "repeats": reps, "reliability": reliability}
         if compile_search:
             row["compile_s"] = warmup_s
         if device.startswith("cuda"):
@@ -556,7 +560,8 @@ def _markdown(report: dict) -> str:
         search = r.get("search", "eager")  # reports written before --compile have no such column
         if peak is None and r.get("mode", "fast") == "fast" and search == "eager" and (r["batch"], r["device"]) in mem:
             peak = mem[(r["batch"], r["device"])]["peak_increase_mb"]
-        lines.append(f"| {r['device']} | {r.get('mode', 'fast')} | {search} | {r['batch']} | {r['segments']} | "
+        mode = r.get("mode", "fast") + ("" if r.get("reliability", True) else ", reliability off")
+        lines.append(f"| {r['device']} | {mode} | {search} | {r['batch']} | {r['segments']} | "
                      f"{r['images_per_s']:.1f} | {r['ms_per_image']:.2f} | {'' if peak is None else f'{peak:.0f}'} |")
     compiled = [dict(r, device=r.get("device", "cpu")) for r in report["end_to_end"] + report["throughput"]
                 if "compile_s" in r]
@@ -675,6 +680,7 @@ def run(args: argparse.Namespace) -> int:
     modes = ("fast",) if quick else ("fast", "fr")
     tp_runs = 2 if args.compile else 1  # eager, and compiled with --compile
     steps = (tp_runs * len(modes) * len(images) + tp_runs * len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
+             + ("fr" in modes) * len(batches)
              + len(mem_settings) + len(seg_counts) + len(grid_sizes) + 2 * len(modes) * len(counts)
              + 2 * len(devices))
     out = Path(args.out)
@@ -700,6 +706,8 @@ def run(args: argparse.Namespace) -> int:
     profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
     for mode in modes:
         tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
+    if "fr" in modes:  # fR without the reliability stage, hence without its focal_profile_gap cue
+        tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, "fr", reliability=False)
     for mode in modes if args.compile else ():
         tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode, compile_search=True)
     outside.insert(0, outside_search(outside_batch, n_seg_tp, "cpu", min(repeats, 3), progress))

@@ -88,7 +88,7 @@ def dataset_records(dataset: str, split: str, mode: str, data_root=None, batch_s
         samples = samples[:limit]
     if not samples:
         raise ValueError(f"{dataset} {split}: no samples with ground-truth focal, roll and tilt")
-    estimator = FREstimator(mode=mode, reliability=None)  # records the raw sanity flag and cues
+    estimator = FREstimator(mode=mode, reliability=None, profile_gap=mode == "fr")  # the raw sanity flag and cues
     rows = []
     bar = tqdm(total=len(samples), desc=f"{mode} on {dataset}/{split}", disable=not progress, file=sys.stderr)
     for start in range(0, len(samples), batch_size):
@@ -116,7 +116,7 @@ def synthetic_records(count: int, mode: str, seed: int = 0, batch_size: int = 8,
     from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
     rng = np.random.default_rng(seed)
-    estimator = FREstimator(mode=mode, reliability=None)  # records the raw sanity flag and cues
+    estimator = FREstimator(mode=mode, reliability=None, profile_gap=mode == "fr")  # the raw sanity flag and cues
     rows = []
     bar = tqdm(total=count, desc=f"{mode} on synthetic", disable=not progress, file=sys.stderr)
     for start in range(0, count, batch_size):

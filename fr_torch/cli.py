@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overlay", type=Path, default=None, metavar="DIR",
                         help="write <image>_fr.png overlays (segments by family, horizon) to DIR")
     parser.add_argument("--segments", action="store_true", help="include segments and labels in the JSON")
+    parser.add_argument("--no-reliability", action="store_true",
+                        help="no predicted errors and reliable = the sanity checks only (fR then skips the "
+                             "focal_profile_gap cue, a quarter of its time per photo)")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bar (shown on a terminal's stderr when stdout goes to a file or pipe)")
 
@@ -68,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     batch_size = default_batch_size(args.device) if args.batch_size is None else args.batch_size
     if batch_size < 1:
         raise FRInputError("--batch-size must be at least 1")
-    estimator = FREstimator(**estimator_kwargs(args))
+    estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
     if args.overlay:
         validate.output_folder(args.overlay, "--overlay")
     if args.json and args.json.is_dir():

@@ -143,6 +143,10 @@ class FREstimator:
     shipped model of this mode, when installed), a model object, a path to a model ``.npz``, or None
     (off).  When on, every estimate gets ``predicted_error`` and ``reliable = False`` above the
     thresholds of ``configs/reliability.json``.
+    ``profile_gap``: compute the ``focal_profile_gap`` cue (:meth:`_focal_cues`; a quarter of fR's
+    time per photo, half of its batch throughput): None (default) when the reliability model uses
+    it (fR's shipped model does; with ``reliability=None`` it is skipped), True always (records
+    for training a model), False never (a model that uses it is then an error).
     """
 
     def __init__(self, mode: str = "fr", measure: str | None = None, detector="lsd", device: str = "cpu",
@@ -150,7 +154,7 @@ class FREstimator:
                  likelihood: str | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
                  min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6,
-                 reliability="default"):
+                 reliability="default", profile_gap: bool | None = None):
         self.mode = mode
         self.search = search_config or SearchConfig.from_config()
         self.iterations = self.search.iterations(mode)
@@ -172,6 +176,11 @@ class FREstimator:
         elif isinstance(reliability, (str, Path)):
             reliability = ReliabilityModel.load(reliability)
         self.reliability = reliability
+        model_cues = getattr(reliability, "cue_names", ()) if reliability is not None else ()
+        if profile_gap is False and "focal_profile_gap" in model_cues:
+            raise FRInputError("the reliability model uses the focal_profile_gap cue: profile_gap=False "
+                               "needs reliability=None or a model without it")
+        self.profile_gap = "focal_profile_gap" in model_cues if profile_gap is None else bool(profile_gap)
 
     # ------------------------------------------------------------------ public API
 
@@ -395,12 +404,13 @@ class FREstimator:
     def _focal_cues(self, features: SegmentFeatures, params: torch.Tensor, scores: torch.Tensor,
                     known_focal: bool) -> dict[str, torch.Tensor]:
         """The focal cues of the estimates ``params`` (B, 4) with objectives ``scores`` (B,), each
-        float64 (B,): ``focal_prior_share`` (:func:`fr_torch.search.focal_prior_share`) and, in fR
-        mode, ``focal_profile_gap`` (:func:`fr_torch.search.focal_profile_gap`, each known-focal
-        search refined for Fast-fR's number of steps; ~25 ms per photo, over half of Fast-fR's time,
-        so Fast-fR and its model go without it).  0 for a given focal length: the prior plays no
+        float64 (B,): ``focal_prior_share`` (:func:`fr_torch.search.focal_prior_share`) and, when
+        ``profile_gap`` is on (fR's shipped model uses it), ``focal_profile_gap``
+        (:func:`fr_torch.search.focal_profile_gap`, each known-focal search refined for Fast-fR's
+        number of steps; ~25 ms per photo, over half of Fast-fR's time, so Fast-fR and its model go
+        without it).  0 for a given focal length: the prior plays no
         part and there is no focal length to single out."""
-        names = ("focal_prior_share", "focal_profile_gap") if self.mode == "fr" else ("focal_prior_share",)
+        names = ("focal_prior_share", "focal_profile_gap") if self.profile_gap else ("focal_prior_share",)
         if known_focal:
             return {name: torch.zeros(params.shape[0], dtype=torch.float64, device=params.device) for name in names}
         cues = {"focal_prior_share": focal_prior_share(self.likelihood, features, params,

@@ -297,14 +297,14 @@ class SegmentFeatures:
         return SegmentFeatures(take(self.line), take(self.along), take(self.half_length), take(self.weight),
                                take(self.mask), self.principal_point, self.long_side)
 
-    def repeat_images(self, count: int) -> "SegmentFeatures":
-        """Each image ``count`` times in a row, (B * count, N, ...): image b becomes rows
-        ``b * count`` to ``b * count + count - 1`` (copies)."""
-        def rep(x: torch.Tensor) -> torch.Tensor:
-            return x.repeat_interleave(count, dim=0)
+    def take_images(self, index: torch.Tensor) -> "SegmentFeatures":
+        """Images ``index`` (M,) int64 of the batch, in that order, repeats allowed: (M, N, ...)
+        (copies)."""
+        def take(x: torch.Tensor) -> torch.Tensor:
+            return x.index_select(0, index)
 
-        return SegmentFeatures(rep(self.line), rep(self.along), rep(self.half_length), rep(self.weight),
-                               rep(self.mask), rep(self.principal_point), rep(self.long_side))
+        return SegmentFeatures(take(self.line), take(self.along), take(self.half_length), take(self.weight),
+                               take(self.mask), take(self.principal_point), take(self.long_side))
 
     def images(self, start: int, stop: int) -> "SegmentFeatures":
         """Images ``start:stop`` of the batch (views, no copies)."""

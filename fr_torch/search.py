@@ -547,7 +547,7 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     """
     batch, count = params.shape[0], len(PROFILE_FOCAL_RATIOS)
     device = features.weight.device
-    if batch > PROFILE_CHUNK_IMAGES:  # each image's segments are copied once per ratio: bound the copies
+    if batch > PROFILE_CHUNK_IMAGES:  # each image's segments are copied once per ratio searched: bound the copies
         return torch.cat([focal_profile_gap(likelihood, features.images(b, b + PROFILE_CHUNK_IMAGES),
                                             params[b:b + PROFILE_CHUNK_IMAGES], scores[b:b + PROFILE_CHUNK_IMAGES],
                                             config, iterations)
@@ -559,17 +559,19 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     f_lo, f_hi = focal_bounds(config, long_side)
     focal = params[:, 3].to("cpu", torch.float64)[:, None] * ratios  # (B, R)
     inside = (focal >= f_lo[:, None]) & (focal <= f_hi[:, None])
-    focal = torch.minimum(torch.maximum(focal, f_lo[:, None]), f_hi[:, None]).reshape(-1)
-    long_rep = long_side.repeat_interleave(count)
-    repeated = features.repeat_images(count)
-    hypotheses = grid_hypotheses(config, long_rep, focal).to(device)
-    grid_scores = score_grid(likelihood, repeated, hypotheses, config.max_chunk_elements,
-                             vertical_block=config.grid_points_per_dim)
-    starts, _ = select_starts(config, grid_scores, hypotheses)
-    lower, upper = parameter_box(config, long_rep, focal)
-    _, refined = refine(likelihood, repeated, starts, lower.to(device), upper.to(device), iterations, fast=True)
-    best = refined.to(torch.float64).amax(1).view(batch, count)
-    best = torch.where(inside.to(device), best, torch.full_like(best, -math.inf))
+    pairs = inside.nonzero()  # (M, 2) [image, ratio]: only focal lengths inside the range are searched
+    best = torch.full((batch, count), -math.inf, dtype=torch.float64, device=device)
+    if len(pairs):
+        image = pairs[:, 0]
+        searched = features.take_images(image.to(device))
+        long_rep, focal_rep = long_side[image], focal[pairs[:, 0], pairs[:, 1]]
+        hypotheses = grid_hypotheses(config, long_rep, focal_rep).to(device)
+        grid_scores = score_grid(likelihood, searched, hypotheses, config.max_chunk_elements,
+                                 vertical_block=config.grid_points_per_dim)
+        starts, _ = select_starts(config, grid_scores, hypotheses)
+        lower, upper = parameter_box(config, long_rep, focal_rep)
+        _, refined = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations, fast=True)
+        best[pairs[:, 0].to(device), pairs[:, 1].to(device)] = refined.to(torch.float64).amax(1)
     gap = scores.to(torch.float64) - best.amax(1)
     return torch.where(torch.isfinite(gap), gap, torch.zeros_like(gap))
 

@@ -42,3 +42,13 @@ def test_bad_inputs_give_one_line_errors(tmp_path):
     assert [r["ok"] for r in records] == [False, False, True]
     bad_option = fr("calibrate", EXAMPLE, "--focal", "-5")
     assert bad_option.returncode == 2 and "Traceback" not in bad_option.stderr and "--focal" in bad_option.stderr
+
+
+def test_calibrate_without_reliability_skips_the_profile_gap():
+    """``--no-reliability``: no predicted errors, and fR skips the cue only the model needs."""
+    out = fr("calibrate", EXAMPLE, "--no-reliability")
+    assert out.returncode == 0, out.stderr
+    record = json.loads(out.stdout.strip().splitlines()[0])
+    assert record["predicted_error"] is None and "focal_profile_gap" not in record["cues"]
+    assert "focal_prior_share" in record["cues"] and record["reliable"] is True
+    assert abs(record["focal_px"] - TRUE_FOCAL) / TRUE_FOCAL < 0.03

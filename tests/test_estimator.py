@@ -205,7 +205,7 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
              rotation_from_angles(torch.tensor(0.0, dtype=torch.float64), 0.0, 0.0).numpy()]
     segments = [synthetic_segments(focal, R, 640, 480, n_per_family=60, noise_px=0.5, clutter_fraction=0.2,
                                    seed=3)[0] for R in views]
-    est = FREstimator(mode="fr", reliability=None)
+    est = FREstimator(mode="fr", reliability=None, profile_gap=True)
     oblique, square = est.calibrate_segments(segments, [(640, 480)] * 2)
     assert oblique.cues["focal_profile_gap"] > 300.0 > abs(square.cues["focal_profile_gap"])
     [given] = est.calibrate_segments(segments[:1], [(640, 480)], focal_px=focal)
@@ -233,3 +233,33 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
     monkeypatch.setattr("fr_torch.search.PROFILE_CHUNK_IMAGES", 1)
     torch.testing.assert_close(focal_profile_gap(*args), together)
     assert float(together[0]) == pytest.approx(float(gap[0]), rel=1e-4)
+    # only focal lengths inside the range are searched: an estimate at the wide edge (ratios < 1 out)
+    # batched with one in the middle gives each the gap it gets alone; none inside -> 0
+    edge = wrong.clone()
+    edge[0, 3] = focal_from_hfov(est.search.hfov_range_deg[1], 640)
+    edge_score = est.likelihood.objective(features, hypothesis_rotations(edge)[:, None].float(),
+                                          edge[:, None, 3].float())[:, 0]
+    alone = focal_profile_gap(est.likelihood, features, edge, edge_score, est.search, 10)
+    mixed = focal_profile_gap(est.likelihood, both, torch.cat([edge, wrong]), torch.cat([edge_score, wrong_score]),
+                              est.search, 10)
+    torch.testing.assert_close(mixed, torch.cat([alone, gap]))
+    narrow = est.search.with_fov_range((66.0, 68.0))  # f x 0.7 and x 0.8 give 71.1 and 64.0 deg
+    assert float(focal_profile_gap(est.likelihood, features, wrong, wrong_score, narrow, 10)[0]) == 0.0
+
+
+def test_profile_gap_follows_the_reliability_model():
+    """The gap costs a quarter of fR's time: computed when the reliability model uses it (fR's
+    shipped model) or when asked, skipped with reliability off; turning it off under a model that
+    needs it is a one-line error."""
+    from fr_torch.segments import FRInputError
+
+    segments = [synthetic_segments(500.0, rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0,
+                                                               3.0).numpy(), 640, 480, seed=4)[0]]
+    [plain] = FREstimator(mode="fr", reliability=None).calibrate_segments(segments, [(640, 480)])
+    assert "focal_profile_gap" not in plain.cues and plain.predicted_error is None
+    [shipped] = FREstimator(mode="fr").calibrate_segments(segments, [(640, 480)])
+    assert shipped.cues["focal_profile_gap"] > 100.0 and shipped.predicted_error is not None
+    assert plain.focal_px == pytest.approx(shipped.focal_px, rel=1e-9)
+    with pytest.raises(FRInputError, match="focal_profile_gap"):
+        FREstimator(mode="fr", profile_gap=False)
+    assert FREstimator(mode="fast", profile_gap=False).profile_gap is False
