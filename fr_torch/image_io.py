@@ -359,8 +359,11 @@ def read_any(image, name: str, max_long_side: int | None = WORKING_LONG_SIDE) ->
     from .segments import to_gray8
 
     if isinstance(image, (str, bytes, os.PathLike)):
-        gray, size = read_image(image, max_long_side, gray=True)
-        return (gray if gray.ndim == 2 else cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)), size
+        # Decoded in colour and converted like an array (not decoded to grey: a JPEG's grey decode
+        # differs from BGR -> grey by a level here and there, enough to move some LSD segments), so
+        # a path and the array cv2.imread gives for it are calibrated alike (+0.3 ms at 640 x 480).
+        image, size = read_image(image, max_long_side)
+        return (image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)), size
     gray = to_gray8(image) if not (isinstance(image, np.ndarray) and image.ndim == 2 and image.dtype == np.uint8) \
         else image
     return gray, (gray.shape[1], gray.shape[0])

@@ -60,6 +60,25 @@ def test_pipeline_equals_in_process_and_keeps_order(folder, workers, whole_image
     assert all(r.ok for i, r in enumerate(results) if i not in (1, len(folder) - 1))
 
 
+def test_a_path_and_its_decoded_array_give_the_same_estimate(tmp_path):
+    """A colour JPEG calibrated from its path and from ``cv2.imread(path)`` (what ``fr eval`` and
+    most users pass): the same grey image, so the same segments and estimate (a grey decode of the
+    JPEG differs from BGR -> grey by a level here and there, and LSD follows)."""
+    rng = np.random.default_rng(5)
+    grey = render_manhattan_room(450.0, random_rotation(rng, pan=(-20, 20), pitch=(-10, 10), roll=(-5, 5)), 640, 480,
+                                 seed=5)
+    tint = np.clip(grey[..., None].astype(np.float64) * np.array([0.8, 1.0, 1.15]) + rng.normal(0, 6, grey.shape + (3,)),
+                   0, 255).astype(np.uint8)
+    path = tmp_path / "tinted.jpg"
+    cv2.imwrite(str(path), tint, [cv2.IMWRITE_JPEG_QUALITY, 80])
+    assert (cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) != cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2GRAY)).any()
+    est = FREstimator(mode="fast", reliability=None)
+    by_path, by_array = est.calibrate_images([str(path), cv2.imread(str(path))], names=["a", "a"])
+    assert by_path.ok and by_path.num_segments == by_array.num_segments
+    assert np.array_equal(by_path.segments, by_array.segments)
+    assert by_path.focal_px == by_array.focal_px
+
+
 def test_sharded_segments_equal_in_process():
     est = FREstimator(mode="fast")
     rng = np.random.default_rng(0)
