@@ -158,7 +158,7 @@ class FREstimator:
         self.mode = mode
         self.search = search_config or SearchConfig.from_config()
         self.iterations = self.search.iterations(mode)
-        params = likelihood_params or LikelihoodParams.from_config(measure, likelihood)
+        params = likelihood_params or LikelihoodParams.from_config(measure, likelihood, mode=mode)
         self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.hfov_range_deg),
                                             compiled=self.search.compile_search)
         self.detector = get_detector(detector)

@@ -66,7 +66,7 @@ from pathlib import Path
 import torch
 
 from .camera import VERTICAL_AXIS, focal_from_hfov, hfov_from_focal, intrinsics
-from .resources import config_dir
+from .resources import MODES, config_dir
 from .segments import SegmentBatch
 
 MEASURES = ("a", "b", "c", "d", "e")
@@ -110,6 +110,11 @@ class LikelihoodParams:
     f -> infinity bias the paper describes: far VPs make the horizontal families nearly parallel,
     which fits noisy or non-Manhattan segments slightly better).  The centre is the mean log focal ratio of the train splits and gamma was chosen on
     them (``configs/likelihood.json``, results/yud/README.md); gamma = 0 = no prior.
+    ``focal_prior_flat_halfwidth`` (h >= 0, in log f): a flat top, no pull while f is within a
+    factor e^h of f0; outside, the same quadratic in the distance to that band,
+    ``log p(f) = -(gamma / 2) * (W + W0) * max(0, |log(f / f0)| - h)^2`` (h = 0: the log-normal).
+    The config's ``focal_prior`` block may hold per-mode overrides (``"fr": {...}``, ``"fast":
+    {...}``; :meth:`from_dict`): fR's prior is the flat-topped one, chosen on the train splits.
     """
 
     measure: str = "b"
@@ -123,6 +128,7 @@ class LikelihoodParams:
     focal_prior_weight: float = 0.0
     focal_prior_hfov_deg: float = 82.0
     focal_prior_pseudo_length: float = 0.0
+    focal_prior_flat_halfwidth: float = 0.0
 
     def __post_init__(self) -> None:
         """Explicit parameters are checked too (no NaN, zero or negative scale; priors in [0, 1])."""
@@ -143,6 +149,9 @@ class LikelihoodParams:
         if not (math.isfinite(self.focal_prior_pseudo_length) and self.focal_prior_pseudo_length >= 0):
             raise ValueError("focal_prior_pseudo_length must be a finite number >= 0, got "
                              f"{self.focal_prior_pseudo_length}")
+        if not (math.isfinite(self.focal_prior_flat_halfwidth) and 0 <= self.focal_prior_flat_halfwidth <= 3):
+            raise ValueError("focal_prior_flat_halfwidth must be in [0, 3] (log f), got "
+                             f"{self.focal_prior_flat_halfwidth}")
         if self.model not in MODELS:
             raise ValueError(f"unknown likelihood model {self.model!r}; choose one of {', '.join(MODELS)}")
 
@@ -158,25 +167,30 @@ class LikelihoodParams:
         return replace(self, focal_prior_hfov_deg=hfov_from_focal(middle, 1.0))
 
     @classmethod
-    def from_config(cls, measure: str | None = None, path: str | Path | None = None) -> "LikelihoodParams":
+    def from_config(cls, measure: str | None = None, path: str | Path | None = None,
+                    mode: str | None = None) -> "LikelihoodParams":
         """Read ``configs/likelihood.json`` (or ``path``: a file or a name, see
-        :func:`likelihood_config_path`); angles there are in degrees."""
+        :func:`likelihood_config_path`); angles there are in degrees.  ``mode`` (``"fr"`` /
+        ``"fast"``): apply that mode's focal-prior overrides (:meth:`from_dict`)."""
         source = likelihood_config_path(path)
         try:
             config = json.loads(source.read_text())
         except (OSError, UnicodeDecodeError, ValueError) as exc:
             raise ValueError(f"likelihood config {source}: not a readable JSON file ({exc})") from None
-        return cls.from_dict(config, measure, str(source))
+        return cls.from_dict(config, measure, str(source), mode)
 
     @classmethod
-    def from_dict(cls, config, measure: str | None = None, source: str = "likelihood config") -> "LikelihoodParams":
+    def from_dict(cls, config, measure: str | None = None, source: str = "likelihood config",
+                  mode: str | None = None) -> "LikelihoodParams":
         """Validate a likelihood config (the JSON's content) and build the parameters.
 
         Schema: ``{"default_measure": "a".."e" (optional), "measures": {m: {"unit": "deg"|"px",
         "lambda_vertical": > 0, "lambda_horizontal": > 0, "range_px": > 0 (a), "sigma": > 0 (d)}},
         "priors": {"vertical": >= 0, "horizontal": >= 0, "background": > 0}}`` (priors are
-        normalised so that vertical + 2 horizontal + background = 1).  Every violation raises a
-        ValueError naming the field.
+        normalised so that vertical + 2 horizontal + background = 1), and optionally
+        ``"focal_prior": {"weight": >= 0, "hfov_deg": [1, 179], "pseudo_length": >= 0,
+        "flat_halfwidth": [0, 3], "fr": {...}, "fast": {...}}``: a mode's block overrides any of the
+        four for that ``mode``.  Every violation raises a ValueError naming the field.
         """
         def fail(message: str):
             raise ValueError(f"{source}: {message}")
@@ -229,14 +243,19 @@ class LikelihoodParams:
         focal_prior = config.get("focal_prior", {})
         if not isinstance(focal_prior, dict):
             fail(f"'focal_prior' must be an object like {{\"weight\": 0.3, \"hfov_deg\": 82}}, got {focal_prior!r}")
-        gamma = number(focal_prior.get("weight", 0.0), "focal_prior.weight", 0.0, 100.0, low_inclusive=True)
-        prior_hfov = number(focal_prior.get("hfov_deg", cls.focal_prior_hfov_deg), "focal_prior.hfov_deg", 1.0, 179.0,
+        for name in MODES:
+            if not isinstance(focal_prior.get(name, {}), dict):
+                fail(f"focal_prior.{name} must be an object of overrides for mode {name!r}")
+        chosen = dict(focal_prior, **focal_prior.get(mode, {})) if mode in MODES else focal_prior
+        where = f"focal_prior.{mode}" if mode in MODES and focal_prior.get(mode) else "focal_prior"
+        gamma = number(chosen.get("weight", 0.0), f"{where}.weight", 0.0, 100.0, low_inclusive=True)
+        prior_hfov = number(chosen.get("hfov_deg", cls.focal_prior_hfov_deg), f"{where}.hfov_deg", 1.0, 179.0,
                             low_inclusive=True)
-        pseudo = number(focal_prior.get("pseudo_length", 0.0), "focal_prior.pseudo_length", 0.0, 1e6,
-                        low_inclusive=True)
+        pseudo = number(chosen.get("pseudo_length", 0.0), f"{where}.pseudo_length", 0.0, 1e6, low_inclusive=True)
+        flat = number(chosen.get("flat_halfwidth", 0.0), f"{where}.flat_halfwidth", 0.0, 3.0, low_inclusive=True)
         total = vertical + 2 * horizontal + background
         return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h, focal_prior_weight=gamma,
-                   focal_prior_hfov_deg=prior_hfov, focal_prior_pseudo_length=pseudo,
+                   focal_prior_hfov_deg=prior_hfov, focal_prior_pseudo_length=pseudo, focal_prior_flat_halfwidth=flat,
                    prior_vertical=vertical / total, prior_horizontal=horizontal / total,
                    prior_background=background / total, range_px=range_px)
 
@@ -468,12 +487,16 @@ class MixtureLikelihood:
         focal = focal.to(features.weight.dtype)
         weight = self.focal_prior_curvature(features)[:, None]  # (B, 1)
         offset = torch.log(focal / features.long_side[:, None]) - self._prior_centre
+        flat = self.params.focal_prior_flat_halfwidth
+        if flat:  # the distance to the flat band |log(f / f0)| <= h, signed
+            offset = torch.sign(offset) * (offset.abs() - flat).clamp_min(0.0)
         return -0.5 * weight * offset ** 2, -weight * offset / focal
 
     def focal_prior_curvature(self, features: SegmentFeatures) -> torch.Tensor:
         """``gamma * (W + W0)`` per image, (B,): minus the second derivative of the log focal prior
-        with respect to log f (the same at every f; 0 without a prior), in objective units per
-        (log f)^2, directly comparable with the curvature of the length-weighted likelihood."""
+        with respect to log f outside its flat band (the same at every such f; 0 inside the band and
+        without a prior), in objective units per (log f)^2, directly comparable with the curvature
+        of the length-weighted likelihood."""
         params = self.params
         evidence = features.weight.sum(-1) + params.focal_prior_pseudo_length * features.long_side  # W + W0
         return params.focal_prior_weight * evidence

@@ -53,7 +53,8 @@ class FRCalibrator:
             base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
             estimator_kwargs["search_config"] = base.with_fov_range(range)
         if model is not None:
-            params = estimator_kwargs.get("likelihood_params") or LikelihoodParams.from_config(measure, likelihood)
+            params = (estimator_kwargs.get("likelihood_params")
+                      or LikelihoodParams.from_config(measure, likelihood, mode=mode))
             estimator_kwargs["likelihood_params"] = replace(params, model=model)
         if hfov_min is not None or hfov_max is not None:  # validated on creation
             estimator_kwargs["search_config"] = hfov_search_config(hfov_min, hfov_max,

@@ -109,7 +109,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .resources import config_dir
+from .resources import MODES, config_dir
 
 _config_dir = config_dir  # load_default has an argument of that name
 
@@ -144,7 +144,6 @@ PRIOR_SET_FOCAL_SHARE = 0.5
 PRIOR_SET_FOCAL_HINT = ("the focal prior set most of the focal length (the lines barely constrain it): "
                         "give the focal length, or a FOV range, if the camera is known")
 DEFAULT_K_GRID = (1, 2, 3, 5, 8, 12, 17, 25, 35, 50, 70, 90, 120, 160, 220, 300)
-MODES = ("fr", "fast")
 PREDICT_BLOCK = 4096  # query rows ranked at once against the training set (memory ~ rows x n_train)
 
 

@@ -11,6 +11,9 @@ from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
+#: The estimator's modes (fR, Fast-fR); shipped settings and models may differ per mode.
+MODES = ("fr", "fast")
+
 
 @lru_cache(maxsize=1)
 def config_dir() -> Path:

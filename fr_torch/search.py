@@ -473,9 +473,10 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
 
     The objective (likelihood + prior) is scored on the 3^4 lattice of :data:`PRIOR_SHARE_STEP`
     around each estimate and fitted by a quadratic (a local Laplace approximation; the lattice
-    spacing smooths the kinks of the exponential likelihood).  The prior's known curvature in log f,
-    ``c_p`` (:meth:`MixtureLikelihood.focal_prior_curvature`), is taken out of the fitted Hessian,
-    leaving the likelihood's; its curvature along log f with the angles re-optimised (Schur
+    spacing smooths the kinks of the exponential likelihood).  The prior's curvature in log f,
+    ``c_p``, fitted the same way from its values on the lattice (:meth:`MixtureLikelihood.focal_prior`:
+    the log-normal's constant ``gamma (W + W0)``, 0 inside a flat top), is taken out of the fitted
+    Hessian, leaving the likelihood's; its curvature along log f with the angles re-optimised (Schur
     complement ``-(H_ff - H_fa H_aa^-1 H_af)``) is ``c_l``.  The cue is ``c_p / (c_p + max(c_l, 0))``:
     near 0 when the segments pin f down, 1 when the likelihood is flat (or curves up) along f and the
     prior alone sets it -- e.g. a narrow view whose vanishing points lie far outside the image,
@@ -495,14 +496,19 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     device = features.weight.device
     if not likelihood.params.focal_prior_weight:
         return torch.zeros(batch, dtype=torch.float64, device=device)
-    prior = likelihood.focal_prior_curvature(features).to(device=device, dtype=torch.float64)  # (B,)
     step = torch.tensor(PRIOR_SHARE_STEP, dtype=torch.float64, device=device)
     centre = _log_focal(params.to(device=device, dtype=torch.float64))
-    points = centre[:, None, :] + LATTICE.to(device) * step  # (B, 81, 4)
-    scores = score_grid(likelihood, features, _exp_focal(points), max_chunk_elements, vertical_block=3)
-    coef = scores.to(torch.float64) @ _QUADRATIC_FIT.to(device).T  # (B, 15)
+    points = _exp_focal(centre[:, None, :] + LATTICE.to(device) * step)  # (B, 81, 4)
+    scores = score_grid(likelihood, features, points, max_chunk_elements, vertical_block=3)
+    fit = _QUADRATIC_FIT.to(device).T
+    coef = scores.to(torch.float64) @ fit  # (B, 15)
     hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(batch, 4, 4)
-    hessian[:, 3, 3] += prior * step[3] ** 2  # the likelihood's Hessian alone (lattice units)
+    # The prior's curvature over the same lattice, fitted the same way (exact for the log-normal;
+    # a flat-topped prior has none inside its band and part of it at the band's edge).
+    prior_values = likelihood.focal_prior(features, points[..., 3].to(features.weight.dtype))[0]
+    prior_hessian = (prior_values.to(torch.float64) @ fit)[:, _HESSIAN_COLUMNS[15].item()]  # H_33, lattice units
+    hessian[:, 3, 3] -= prior_hessian  # the likelihood's Hessian alone (lattice units)
+    prior = (-prior_hessian / step[3] ** 2).clamp_min(0.0)  # per (log f)^2
     angles, focal_row = hessian[:, :3, :3], hessian[:, :3, 3:]
     solved, info = torch.linalg.solve_ex(angles, focal_row)
     profile = -(hessian[:, 3, 3] - (focal_row * solved).sum((-1, -2))) / step[3] ** 2  # per (log f)^2

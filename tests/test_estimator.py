@@ -190,6 +190,10 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     assert float(direct[0]) == pytest.approx(oblique.cues["focal_prior_share"], rel=1e-6, abs=1e-9)
     no_prior = MixtureLikelihood(replace(est.likelihood.params, focal_prior_weight=0.0))
     assert float(focal_prior_share(no_prior, features, params)[0]) == 0.0
+    # a flat-topped prior whose band holds the estimate sets none of f there
+    flat = MixtureLikelihood(replace(est.likelihood.params, focal_prior_hfov_deg=oblique.hfov_deg,
+                                     focal_prior_flat_halfwidth=0.3))
+    assert float(focal_prior_share(flat, features, params)[0]) == 0.0
 
 
 def test_focal_profile_gap_sign_and_scale(monkeypatch):

@@ -1,5 +1,6 @@
 """The mixture likelihood against a direct float64 computation, and where its parameters go."""
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -31,7 +32,8 @@ def _direct_objective(segments, R, f, pp, params):
     # the focal prior: -(gamma / 2) W (log(f / L) - log(f0 / L))^2, L = 2 * max(pp) = the long side here
     centre = math.log(0.5 / math.tan(math.radians(params.focal_prior_hfov_deg) / 2))
     evidence = weight + params.focal_prior_pseudo_length * 2 * max(pp)
-    return total - 0.5 * params.focal_prior_weight * evidence * (math.log(f / (2 * max(pp))) - centre) ** 2
+    distance = max(0.0, abs(math.log(f / (2 * max(pp))) - centre) - params.focal_prior_flat_halfwidth)
+    return total - 0.5 * params.focal_prior_weight * evidence * distance ** 2
 
 
 def test_objective_matches_direct_computation():
@@ -107,6 +109,41 @@ def test_focal_prior_peaks_at_its_centre_and_scales_with_segment_length():
     assert abs(value[0, 0]) < 1e-12 and abs(slope[0, 0]) < 1e-12 and (value[0, 1:] < 0).all()
     assert value[0, 2] == pytest.approx(-0.5 * 0.3 * (150.0 + 2 * 800.0) * math.log(1.5) ** 2)  # W + W0
     assert slope[0, 1] > 0 > slope[0, 2]
+
+
+def test_flat_topped_focal_prior():
+    """No pull within a factor e^h of the centre; outside, the log-normal of the distance to the
+    band, with the matching slope; the config's fR block selects it, Fast-fR keeps the log-normal."""
+    flat = 0.2
+    params = LikelihoodParams(focal_prior_weight=0.3, focal_prior_hfov_deg=90.0, focal_prior_flat_halfwidth=flat)
+    gauss = MixtureLikelihood(replace(params, focal_prior_flat_halfwidth=0.0))
+    model = MixtureLikelihood(params)
+    segs = np.array([[10.0, 10.0, 110.0, 10.0], [10.0, 20.0, 10.0, 70.0]])
+    features = SegmentFeatures.from_batch(SegmentBatch.from_list([segs], [(800, 600)], dtype=torch.float64),
+                                          torch.tensor([[400.0, 300.0]], dtype=torch.float64))
+    inside = torch.tensor([[400.0, 400.0 * math.exp(0.15), 400.0 * math.exp(-0.19)]], dtype=torch.float64)
+    value, slope = model.focal_prior(features, inside)
+    assert torch.equal(value, torch.zeros_like(value)) and torch.equal(slope, torch.zeros_like(slope))
+    outside = torch.tensor([[400.0 * math.exp(0.5), 400.0 * math.exp(-0.7)]], dtype=torch.float64)
+    value, slope = model.focal_prior(features, outside)
+    shifted = gauss.focal_prior(features, torch.tensor([[400.0 * math.exp(0.3), 400.0 * math.exp(-0.5)]],
+                                                       dtype=torch.float64))[0]
+    torch.testing.assert_close(value, shifted)
+    step = 1e-4 * outside
+    numeric = (model.focal_prior(features, outside + step)[0] - model.focal_prior(features, outside - step)[0]) / (2 * step)
+    torch.testing.assert_close(slope, numeric, rtol=1e-5, atol=1e-9)
+    assert LikelihoodParams.from_config("b", mode="fr").focal_prior_flat_halfwidth > 0
+    assert LikelihoodParams.from_config("b", mode="fast").focal_prior_flat_halfwidth == 0.0
+    config = {"measures": {"b": {"lambda_vertical": 0.5, "lambda_horizontal": 1.5}},
+              "priors": {"vertical": 0.45, "horizontal": 0.26, "background": 0.03},
+              "focal_prior": {"weight": 0.3, "fr": {"flat_halfwidth": -1}}}
+    assert LikelihoodParams.from_dict(config, mode="fast").focal_prior_flat_halfwidth == 0.0
+    with pytest.raises(ValueError, match="focal_prior.fr.flat_halfwidth"):
+        LikelihoodParams.from_dict(config, mode="fr")
+    with pytest.raises(ValueError, match="focal_prior.fast must be an object"):
+        LikelihoodParams.from_dict(dict(config, focal_prior={"fast": 3}))
+    with pytest.raises(ValueError, match="focal_prior_flat_halfwidth"):
+        LikelihoodParams(focal_prior_flat_halfwidth=float("nan"))
 
 
 def test_longest_keeps_each_images_longest_segments():
