@@ -28,7 +28,8 @@ fR).
   and ``c_l`` the likelihood's (angles re-optimised), in [0, 1].  It sees what
   ``focal_conditioning`` sees (VPs that carry no information on f leave ``c_l`` small) and more: few
   segments, noisy ones, and narrow views whose VPs lie far outside the image, which the prior
-  (centred at 82 deg) pulls wide.  0 for a given focal length.
+  pulls wide (Fast-fR's log-normal, centred at 82 deg; fR's flat top from 64 deg).  0 for a given
+  focal length.
 * ``focal_profile_gap`` (not in the paper; :func:`fr_torch.search.focal_profile_gap`; fR only): the
   objective at the estimate minus the best objective of a known-focal search at 0.6 - 1.67 times the
   estimated focal length (nats, length-weighted): how much better the estimated focal length
