@@ -6,6 +6,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 FR=${FR:-.venv/bin/fr}
+# The YUD crop sizes: one list, fr_eval.datasets.panoviews.YUD_CROP_SIZES (datasets yud-crop-<size>).
+CROP_SIZES=$(.venv/bin/python -c "from fr_eval.datasets.panoviews import YUD_CROP_SIZES; print(*YUD_CROP_SIZES)")
 export MPLBACKEND=${MPLBACKEND:-Agg}
 steps=("$@")
 [ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability yud zind sota crops detectors bench)
@@ -26,7 +28,7 @@ for step in "${steps[@]}"; do
       .venv/bin/python -m fr_eval.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
         --yaw-csv "${FR_DATA:-../shared/data}/zind_sample_tour/manhattan_yaw_derived.csv" \
         --out "${FR_CACHE:-data_local}/zind-fr" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 --test-fraction 0.5
-      for s in 400x300 480x360; do
+      for s in $CROP_SIZES; do
         .venv/bin/python -m fr_eval.crop_views --dataset yud --size $s --out "${FR_CACHE:-data_local}/yud-crop-$s"
       done ;;
     yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e.
@@ -47,7 +49,7 @@ for step in "${steps[@]}"; do
       $FR eval --dataset yud --split test --methods "$M" --out results/sota/yud
       $FR eval --dataset zind-fr --split test --methods "$M" --out results/sota/zind-fr ;;
     crops)  # Narrow cameras: YUD crops around the calibrated principal point (33.0 and 39.2 deg HFOV)
-      for s in 400x300 480x360; do  # built by the dataset step
+      for s in $CROP_SIZES; do  # built by the dataset step
         $FR eval --dataset yud-crop-$s --split test \
           --methods "fr,fr[range=paper],fast-fr,lee2009,simon2018,prior" --out results/yud-crop/$s
       done ;;
@@ -58,7 +60,7 @@ for step in "${steps[@]}"; do
       done ;;
     reliability)  # Issue "reliability": models shipped in configs/, tables in results/reliability/;
                   # train splits of ZInD-fR, YUD and the YUD crops (the dataset step builds them)
-      T=zind-fr,yud,yud-crop-400x300,yud-crop-480x360
+      T=zind-fr,yud$(printf ',yud-crop-%s' $CROP_SIZES)
       $FR train-reliability --dataset $T --split train --method fast --no-cache \
         --report-dataset zind-fr --report-split test --compare-synthetic 300
       $FR train-reliability --dataset $T --split train --method fr --no-cache \
