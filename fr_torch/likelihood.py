@@ -243,16 +243,20 @@ class LikelihoodParams:
         focal_prior = config.get("focal_prior", {})
         if not isinstance(focal_prior, dict):
             fail(f"'focal_prior' must be an object like {{\"weight\": 0.3, \"hfov_deg\": 82}}, got {focal_prior!r}")
-        for name in MODES:
-            if not isinstance(focal_prior.get(name, {}), dict):
+        def prior_settings(block: dict, where: str) -> tuple[float, float, float, float]:
+            return (number(block.get("weight", 0.0), f"{where}.weight", 0.0, 100.0, low_inclusive=True),
+                    number(block.get("hfov_deg", cls.focal_prior_hfov_deg), f"{where}.hfov_deg", 1.0, 179.0,
+                           low_inclusive=True),
+                    number(block.get("pseudo_length", 0.0), f"{where}.pseudo_length", 0.0, 1e6, low_inclusive=True),
+                    number(block.get("flat_halfwidth", 0.0), f"{where}.flat_halfwidth", 0.0, 3.0, low_inclusive=True))
+
+        settings = {None: prior_settings(focal_prior, "focal_prior")}
+        for name in MODES:  # every mode's overrides are checked, whichever mode asks
+            overrides = focal_prior.get(name, {})
+            if not isinstance(overrides, dict):
                 fail(f"focal_prior.{name} must be an object of overrides for mode {name!r}")
-        chosen = dict(focal_prior, **focal_prior.get(mode, {})) if mode in MODES else focal_prior
-        where = f"focal_prior.{mode}" if mode in MODES and focal_prior.get(mode) else "focal_prior"
-        gamma = number(chosen.get("weight", 0.0), f"{where}.weight", 0.0, 100.0, low_inclusive=True)
-        prior_hfov = number(chosen.get("hfov_deg", cls.focal_prior_hfov_deg), f"{where}.hfov_deg", 1.0, 179.0,
-                            low_inclusive=True)
-        pseudo = number(chosen.get("pseudo_length", 0.0), f"{where}.pseudo_length", 0.0, 1e6, low_inclusive=True)
-        flat = number(chosen.get("flat_halfwidth", 0.0), f"{where}.flat_halfwidth", 0.0, 3.0, low_inclusive=True)
+            settings[name] = prior_settings(dict(focal_prior, **overrides), f"focal_prior.{name}")
+        gamma, prior_hfov, pseudo, flat = settings[mode if mode in MODES else None]
         total = vertical + 2 * horizontal + background
         return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h, focal_prior_weight=gamma,
                    focal_prior_hfov_deg=prior_hfov, focal_prior_pseudo_length=pseudo, focal_prior_flat_halfwidth=flat,

@@ -130,16 +130,20 @@ def test_flat_topped_focal_prior():
                                                        dtype=torch.float64))[0]
     torch.testing.assert_close(value, shifted)
     step = 1e-4 * outside
-    numeric = (model.focal_prior(features, outside + step)[0] - model.focal_prior(features, outside - step)[0]) / (2 * step)
+    above, below = model.focal_prior(features, outside + step)[0], model.focal_prior(features, outside - step)[0]
+    numeric = (above - below) / (2 * step)
     torch.testing.assert_close(slope, numeric, rtol=1e-5, atol=1e-9)
     assert LikelihoodParams.from_config("b", mode="fr").focal_prior_flat_halfwidth > 0
     assert LikelihoodParams.from_config("b", mode="fast").focal_prior_flat_halfwidth == 0.0
     config = {"measures": {"b": {"lambda_vertical": 0.5, "lambda_horizontal": 1.5}},
               "priors": {"vertical": 0.45, "horizontal": 0.26, "background": 0.03},
               "focal_prior": {"weight": 0.3, "fr": {"flat_halfwidth": -1}}}
+    for mode in ("fr", "fast", None):  # a bad override is an error whichever mode reads the file
+        with pytest.raises(ValueError, match="focal_prior.fr.flat_halfwidth"):
+            LikelihoodParams.from_dict(config, mode=mode)
+    config["focal_prior"]["fr"] = {"flat_halfwidth": 0.5}
+    assert LikelihoodParams.from_dict(config, mode="fr").focal_prior_flat_halfwidth == 0.5
     assert LikelihoodParams.from_dict(config, mode="fast").focal_prior_flat_halfwidth == 0.0
-    with pytest.raises(ValueError, match="focal_prior.fr.flat_halfwidth"):
-        LikelihoodParams.from_dict(config, mode="fr")
     with pytest.raises(ValueError, match="focal_prior.fast must be an object"):
         LikelihoodParams.from_dict(dict(config, focal_prior={"fast": 3}))
     with pytest.raises(ValueError, match="focal_prior_flat_halfwidth"):
