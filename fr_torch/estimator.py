@@ -176,7 +176,7 @@ class FREstimator:
         elif isinstance(reliability, (str, Path)):
             reliability = ReliabilityModel.load(reliability)
         self.reliability = reliability
-        model_cues = getattr(reliability, "cue_names", ()) if reliability is not None else ()
+        model_cues = getattr(reliability, "cue_names", ())  # () without a model
         if profile_gap is False and "focal_profile_gap" in model_cues:
             raise FRInputError("the reliability model uses the focal_profile_gap cue: profile_gap=False "
                                "needs reliability=None or a model without it")
@@ -415,7 +415,7 @@ class FREstimator:
             return {name: torch.zeros(params.shape[0], dtype=torch.float64, device=params.device) for name in names}
         cues = {"focal_prior_share": focal_prior_share(self.likelihood, features, params,
                                                        self.search.max_chunk_elements)}
-        if "focal_profile_gap" in names:
+        if self.profile_gap:
             cues["focal_profile_gap"] = focal_profile_gap(self.likelihood, features, params, scores, self.search,
                                                           self.search.iterations("fast"))
         return cues

@@ -228,12 +228,13 @@ def check_regular_file(path) -> os.stat_result:
     return info
 
 
-def read_image(path, max_long_side: int | None = None, gray: bool = False) -> tuple[np.ndarray, tuple[int, int]]:
+def read_image(path, max_long_side: int | None = None) -> tuple[np.ndarray, tuple[int, int]]:
     """Decode an image file safely (see the module docstring for the limits).
 
     ``max_long_side``: decode no more than needed for a copy of this long side (pixels; the result
     may be up to 2x larger, or down to 0.9x: the native reductions are 1, 1/2, 1/4, 1/8; None =
-    full size, subject only to the memory bound).  ``gray``: decode to one channel.
+    full size, subject only to the memory bound).  Decoded in colour, except a non-JPEG too big
+    for the memory bound in colour, which is decoded to one channel.
     Returns (image, (width, height)): an 8-bit grey (H, W) or BGR (H, W, 3) array, and the input's
     size in pixels as displayed (after EXIF orientation), which the array may be a reduction of.
     Raises FRInputError with a one-line reason on any problem.
@@ -241,6 +242,7 @@ def read_image(path, max_long_side: int | None = None, gray: bool = False) -> tu
     name = display_name(path)
     check_regular_file(path)
     declared = probe_image_size(path)
+    gray = False
     if declared is not None:
         width, height = (int(v) for v in declared)
         if width <= 0 or height <= 0:

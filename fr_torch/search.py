@@ -568,16 +568,16 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     pairs = inside.nonzero()  # (M, 2) [image, ratio]: only focal lengths inside the range are searched
     best = torch.full((batch, count), -math.inf, dtype=torch.float64, device=device)
     if len(pairs):
-        image = pairs[:, 0]
+        image, ratio = pairs.unbind(1)
         searched = features.take_images(image.to(device))
-        long_rep, focal_rep = long_side[image], focal[pairs[:, 0], pairs[:, 1]]
+        long_rep, focal_rep = long_side[image], focal[image, ratio]
         hypotheses = grid_hypotheses(config, long_rep, focal_rep).to(device)
         grid_scores = score_grid(likelihood, searched, hypotheses, config.max_chunk_elements,
                                  vertical_block=config.grid_points_per_dim)
         starts, _ = select_starts(config, grid_scores, hypotheses)
         lower, upper = parameter_box(config, long_rep, focal_rep)
         _, refined = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations, fast=True)
-        best[pairs[:, 0].to(device), pairs[:, 1].to(device)] = refined.to(torch.float64).amax(1)
+        best[image.to(device), ratio.to(device)] = refined.to(torch.float64).amax(1)
     gap = scores.to(torch.float64) - best.amax(1)
     return torch.where(torch.isfinite(gap), gap, torch.zeros_like(gap))
 
