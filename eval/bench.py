@@ -31,7 +31,7 @@ and ``<out>/scaling.png`` (default ``results/bench``):
 Every measurement is written as it is taken: one JSON line per row in ``<out>/bench.jsonl``
 (flushed) and one progress line on stderr; bench.json / bench.md / scaling.png at the end.
 ``--budget-s`` bounds the run: settings not started within the budget are skipped and listed
-(default 170 s when a CUDA device is measured, so ``fr bench --device cuda`` ends in about 3
+(default 150 s when a CUDA device is measured, so ``fr bench --device cuda`` ends in about 3
 minutes; the CUDA figures are taken first, with batches 1 ... 4096 and 3 repeats).
 
 ``--quick`` is a tiny smoke run (seconds).  The machine (CPU model, cores, torch version, threads,
@@ -66,6 +66,7 @@ from fr_torch.workers import usable_cores
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "results" / "bench"
 STAGES = ("detect", "grid", "refine", "cues", "total")
+SECTIONS = ("device", "latency", "parallel", "cpu", "memory", "scaling")  # --sections, in running order
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -85,10 +86,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CPU batch sizes for throughput and memory (default 1,8,64,256,1024)")
     parser.add_argument("--budget-s", type=float, default=None,
                         help="time budget in seconds: settings not started by then are skipped and listed "
-                             "(default 170 with a CUDA device, else none; 0 = none)")
+                             "(default 150 with a CUDA device, else none; 0 = none)")
     parser.add_argument("--compile", action="store_true",
                         help="also measure throughput given segments with the search compiled by torch.compile "
                              "(SearchConfig.compile_search; its compilation time is reported beside)")
+    parser.add_argument("--sections", default=",".join(SECTIONS), metavar="S,S,...",
+                        help="what to measure (default all): device = throughput, outside-search work and "
+                             "profile on the --device GPU; latency = end to end per photo; parallel = CPU "
+                             "threads vs worker processes; cpu = CPU throughput, outside-search work and "
+                             "profile; memory; scaling = time against segments and grid size")
     parser.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: "B,N,k,mode,device"
 
 
@@ -281,7 +287,11 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
             continue
         segs = [pool[i % len(pool)] for i in range(batch)]
         sizes = [(640, 480)] * batch
-        reps = repeats if batch <= 64 else max(1, min(repeats, 2))
+        reps = repeats if batch <= 64 else 1 if batch > 4096 else max(1, min(repeats, 2))
+        if device.startswith("cuda"):
+            import torch
+
+            torch.cuda.reset_peak_memory_stats()
         times = _median_times(lambda: est.calibrate_segments(segs, sizes), reps, warmup=1 if batch <= 64 else 0,
                               sync=_sync(device))
         t = statistics.median(times)
@@ -289,16 +299,62 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
                "images_per_s": batch / t, "ms_per_image": 1000 * t / batch, "repeats": reps, "reliability": reliability}
         if compile_search:
             row["compile_s"] = warmup_s
-        if device.startswith("cuda"):
-            import torch
-
-            torch.cuda.reset_peak_memory_stats()
-            est.calibrate_segments(segs, sizes)
-            torch.cuda.synchronize()
+        if device.startswith("cuda"):  # over the timed runs (no extra run: a batch of 16384 takes seconds)
             row["peak_memory_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
         rows.append(row)
         progress.update(1, "throughput", row)
     return rows
+
+
+#: Arithmetic per deviation of the measure-b grid kernel, in FLOPs (an FMA = 2): s and t (two 3-term
+#: dot products, 10), |s|, |t| (2), atan2 (a division and a degree-9 polynomial with range
+#: reduction, about 20), the exponent's scale, offset and clamp (3), exp (about 10) and the
+#: mixture's add (1).  A convention, for the fraction of peak below, not a count of instructions.
+FLOPS_PER_DEVIATION = 46
+#: FP32 (non-tensor-core) peak of GPUs we have measured on, FLOP/s, from the vendor's data sheets
+#: (SXM boards, boost clock).
+GPU_FP32_PEAK = {"H100": 66.9e12, "H200": 66.9e12}
+
+
+def grid_kernel(device: str, batch: int, n_segments: int, repeats: int, progress,
+                compile_search: bool = False) -> dict | None:
+    """Stage 1 alone: the 8^4 grid of ``batch`` images x ``n_segments`` segments scored by
+    :func:`fr_torch.search.score_grid`, eager or compiled.  Reports deviations per second
+    (B x G x N x 3, the nominal count) and, on a GPU of :data:`GPU_FP32_PEAK`, the fraction of its
+    FP32 peak that :data:`FLOPS_PER_DEVIATION` per deviation amounts to."""
+    import torch
+
+    from fr_torch.camera import image_centre
+    from fr_torch.likelihood import SegmentFeatures
+    from fr_torch.search import grid_hypotheses, score_grid
+    from fr_torch.segments import SegmentBatch
+
+    label = f"grid kernel {device} {'compiled' if compile_search else 'eager'}"
+    if progress.out_of_time(label):
+        return None
+    est = _estimator("fast", device, compile_search=compile_search)
+    pool = [_segments(n_segments, seed=i) for i in range(8)]
+    sizes = [(640, 480)] * batch
+    segments = SegmentBatch.from_list([pool[i % len(pool)] for i in range(batch)], sizes, device, torch.float32)
+    centre = torch.tensor([image_centre(640, 480)] * batch, dtype=torch.float32, device=device)
+    features = SegmentFeatures.from_batch(segments, centre)
+    hypotheses = grid_hypotheses(est.search, torch.full((batch,), 640.0, dtype=torch.float64)).to(device)
+    k = est.search.grid_points_per_dim
+    fn = lambda: score_grid(est.likelihood, features, hypotheses, est.search.max_chunk_elements,  # noqa: E731
+                            vertical_block=k)
+    fn()  # warm-up (compiles, the first time in this process)
+    t = statistics.median(_median_times(fn, repeats, warmup=1, sync=_sync(device)))
+    deviations = batch * hypotheses.shape[1] * n_segments * 3
+    row = {"device": device, "search": "compiled" if est.likelihood.compiled else "eager", "batch": batch,
+           "segments": n_segments, "hypotheses": int(hypotheses.shape[1]), "seconds": t,
+           "deviations_per_s": deviations / t, "images_per_s": batch / t}
+    if device.startswith("cuda"):
+        name = torch.cuda.get_device_name(device)
+        peak = next((v for key, v in GPU_FP32_PEAK.items() if key in name), None)
+        if peak:
+            row["fraction_of_fp32_peak"] = deviations * FLOPS_PER_DEVIATION / t / peak
+    progress.update(1, "grid_kernel", row)
+    return row
 
 
 def outside_search(batch: int, n_segments: int, device: str, repeats: int, progress) -> dict | None:
@@ -534,14 +590,9 @@ def _figure(scale: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _markdown(report: dict) -> str:
-    m = report["machine"]
-    lines = ["# fR speed benchmark", "",
-             f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']}, {m['threads']} threads, "
-             f"device {m['device']}" + (f" ({m['gpu']})" if "gpu" in m else "")
-             + (f", load average {m.get('load_average')}" if m.get("load_average") else "") + ".",
-             f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up.", ""]
-    lines += ["## End-to-end latency per image (CPU, batch 1, ms)", "",
+def _latency_lines(report: dict) -> list[str]:
+    """bench.md's end-to-end latency table."""
+    lines = ["## End-to-end latency per image (CPU, batch 1, ms)", "",
               "| image | mode | search | segments | decode+LSD | grid | refine | cues | total | floor: decode | floor: LSD | grid floor |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["end_to_end"]:
@@ -551,6 +602,18 @@ def _markdown(report: dict) -> str:
     lines += ["", "Grid floor = G x N x 3 deviations x (atan2 + exp ns/element measured in cache: "
               f"{report['transcendental_ns']:.2f} ns), G = the k^4 grid only; the grid column also holds the "
               "focal sweep and the lattice passes.", ""]
+    return lines
+
+
+def _markdown(report: dict) -> str:
+    m = report["machine"]
+    lines = ["# fR speed benchmark", "",
+             f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']}, {m['threads']} threads, "
+             f"device {m['device']}" + (f" ({m['gpu']})" if "gpu" in m else "")
+             + (f", load average {m.get('load_average')}" if m.get("load_average") else "") + ".",
+             f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up.", ""]
+    if report["end_to_end"]:
+        lines += _latency_lines(report)
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
               "| device | mode | search | batch | segments | images/s | ms/image | peak memory (MB) |",
               "|---|---|---|---|---|---|---|---|"]
@@ -584,14 +647,15 @@ def _markdown(report: dict) -> str:
             else:
                 lines.append(f"| {r['device']} | {r['mode']} | {r['batch']} | {r['segments']} | {r['k']} | - | - | - | "
                              f"FAILED: {r.get('error')} |")
-    lines += ["", "## Scaling (fast, batch 1, CPU, ms per image)", "", "| segments | grid | refine | cues | total |",
-              "|---|---|---|---|---|"]
-    for r in report["scaling"]["segments"]:
-        lines.append(f"| {r['segments']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['cues_ms']:.1f} | {r['total_ms']:.1f} |")
-    lines += ["", "| k | hypotheses | grid | refine | total |", "|---|---|---|---|---|"]
-    for r in report["scaling"]["grid"]:
-        lines.append(f"| {r['k']} | {r['hypotheses']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['total_ms']:.1f} |")
-    lines += ["", "![scaling](scaling.png)", ""]
+    if report["scaling"]:
+        lines += ["", "## Scaling (fast, batch 1, CPU, ms per image)", "", "| segments | grid | refine | cues | total |",
+                  "|---|---|---|---|---|"]
+        for r in report["scaling"]["segments"]:
+            lines.append(f"| {r['segments']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['cues_ms']:.1f} | {r['total_ms']:.1f} |")
+        lines += ["", "| k | hypotheses | grid | refine | total |", "|---|---|---|---|---|"]
+        for r in report["scaling"]["grid"]:
+            lines.append(f"| {r['k']} | {r['hypotheses']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['total_ms']:.1f} |")
+        lines += ["", "![scaling](scaling.png)", ""]
     if report.get("parallel"):
         lines += ["## CPU parallelism (given segments, images/s)", "",
                   "T intra-op threads in one process vs W single-threaded worker processes "
@@ -614,6 +678,19 @@ def _markdown(report: dict) -> str:
                   "| device | batch | segments | ms/image | ceiling (images/s) |", "|---|---|---|---|---|"]
         lines += [f"| {r['device']} | {r['batch']} | {r['segments']} | {r['ms_per_image']:.3f} | "
                   f"{r['ceiling_images_per_s']:.0f} |" for r in report["outside_search"]]
+        lines.append("")
+    if report.get("grid_kernel"):
+        lines += ["## Grid kernel alone (stage 1: 8^4 hypotheses, `score_grid`)", "",
+                  f"Deviations = B x G x N x 3 (nominal). Fraction of FP32 peak: {FLOPS_PER_DEVIATION} FLOPs per "
+                  "deviation (a convention: s, t, atan2, exp, mixture) against the GPU's data-sheet FP32 peak "
+                  f"({', '.join(f'{k} {v / 1e12:.1f} TFLOP/s' for k, v in GPU_FP32_PEAK.items())}).", "",
+                  "| device | search | batch | segments | hypotheses | ms | images/s | deviations/s | fraction of FP32 peak |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for r in report["grid_kernel"]:
+            fraction = r.get("fraction_of_fp32_peak")
+            lines.append(f"| {r['device']} | {r['search']} | {r['batch']} | {r['segments']} | {r['hypotheses']} | "
+                         f"{1000 * r['seconds']:.1f} | {r['images_per_s']:.0f} | {r['deviations_per_s']:.3g} | "
+                         f"{'' if fraction is None else f'{100 * fraction:.1f} %'} |")
         lines.append("")
     for p in report.get("profiles", []):
         lines += [f"## Where the time goes: {p['device']} {p['mode']}, batch {p['batch']} (torch profiler, "
@@ -660,10 +737,14 @@ def run(args: argparse.Namespace) -> int:
         except FileNotFoundError:
             pass
 
+    sections = {name.strip() for name in args.sections.split(",") if name.strip()}
+    if not sections or sections - set(SECTIONS):
+        raise ValueError(f"--sections: choose from {', '.join(SECTIONS)}, got {args.sections!r}")
     batches = [1, 4] if quick else [1, 8, 64, 256, 1024]
     if args.batches:
         batches = [int(b) for b in args.batches.split(",")]
-    device_batches = [1, 4] if quick else [1, 64, 256, 1024, 4096]  # CUDA: large batches, capped by the budget
+    # CUDA: large batches, capped by the budget; 16384 shows memory stays bounded (issue 14: <= 16 GB).
+    device_batches = [1, 4] if quick else [1, 64, 1024, 4096, 16384]
     cores = usable_cores()  # affinity and container quota, as the worker defaults count them
     counts = [1, 2] if quick else sorted({1, 2, min(4, cores), min(8, cores), cores} - {0})
     par_batch = 4 if quick else 64
@@ -671,48 +752,57 @@ def run(args: argparse.Namespace) -> int:
     seg_counts = [100] if quick else [100, 300, 1000, 3000, 5000]
     grid_sizes = [4] if quick else [4, 6, 8, 10, 12]
     devices = ["cpu"] + ([device] if device != "cpu" else [])
+    gpu = devices[1:] if "device" in sections else []
     mem_settings = [(4, 50, 4, "fast", "cpu")] if quick else (
         [(b, n_seg_tp, 8, "fast", "cpu") for b in batches] + ([(4096, 1000, 4, "fast", "cpu")] if args.stress else [])
         + ([(b, n_seg_tp, 8, "fast", device) for b in batches] + ([(4096, 1000, 8, "fast", device)] if args.stress else [])
            if device != "cpu" else []))
-    if args.no_memory:
+    if args.no_memory or "memory" not in sections:
         mem_settings = []
     modes = ("fast",) if quick else ("fast", "fr")
     tp_runs = 2 if args.compile else 1  # eager, and compiled with --compile
-    steps = (tp_runs * len(modes) * len(images) + tp_runs * len(modes) * (len(batches) + len(device_batches) * (len(devices) - 1))
-             + ("fr" in modes) * len(batches)
-             + len(mem_settings) + len(seg_counts) + len(grid_sizes) + 2 * len(modes) * len(counts)
-             + 2 * len(devices))
+    steps = (("latency" in sections) * tp_runs * len(modes) * len(images)
+             + len(gpu) * (tp_runs * len(modes) * len(device_batches) + tp_runs + 1 + len(modes))
+             + ("cpu" in sections) * (tp_runs * len(modes) * len(batches) + ("fr" in modes) * len(batches) + 2)
+             + len(mem_settings) + ("scaling" in sections) * (len(seg_counts) + len(grid_sizes))
+             + ("parallel" in sections) * 2 * len(modes) * len(counts))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    budget = args.budget_s if args.budget_s is not None else (170.0 if device.startswith("cuda") else 0.0)
+    budget = args.budget_s if args.budget_s is not None else (150.0 if device.startswith("cuda") else 0.0)
     progress = _progress(steps, args.no_progress, out / "bench.jsonl", budget)
 
     ns = _transcendental_ns("cpu")
-    tp, profiles, outside = [], [], []
+    tp, profiles, outside, e2e, parallel, mem, scale, kernels = [], [], [], [], [], [], {}, []
     outside_batch = 16 if quick else 1024
     # A GPU figure first (the budget may cut the rest), then CPU latency, throughput, scaling.
-    for dev in devices[1:]:
+    for dev in gpu:
         for mode in modes:
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode)
         for mode in modes if args.compile else ():
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode, compile_search=True)
+        kernels += [grid_kernel(dev, 1024, n_seg_tp, min(repeats, 3), progress, compiled)
+                    for compiled in ((False, True) if args.compile else (False,))]
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
-        profiles.append(profile_table(dev, device_batches[-2], n_seg_tp, out, progress))
-    e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
+        for mode in modes:
+            profiles.append(profile_table(dev, 1024, n_seg_tp, out, progress, mode))
+    if "latency" in sections:
+        e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
     for row in e2e:
         row["grid_floor_ms"] = row["grid_hypotheses"] * row["segments"] * 3 * ns / 1e6
-    parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
-    profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
-    for mode in modes:
-        tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
-    if "fr" in modes:  # fR without the reliability stage, hence without its focal_profile_gap cue
-        tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, "fr", reliability=False)
-    for mode in modes if args.compile else ():
-        tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode, compile_search=True)
-    outside.insert(0, outside_search(outside_batch, n_seg_tp, "cpu", min(repeats, 3), progress))
+    if "parallel" in sections:
+        parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
+    if "cpu" in sections:
+        profiles.insert(0, profile_table("cpu", par_batch, n_seg_tp, out, progress))
+        for mode in modes:
+            tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
+        if "fr" in modes:  # fR without the reliability stage, hence without its focal_profile_gap cue
+            tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, "fr", reliability=False)
+        for mode in modes if args.compile else ():
+            tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode, compile_search=True)
+        outside.insert(0, outside_search(outside_batch, n_seg_tp, "cpu", min(repeats, 3), progress))
     mem = memory(mem_settings, args.threads, progress)
-    scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)
+    if "scaling" in sections:
+        scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)
     progress.close()
     tmp.cleanup()
 
@@ -720,13 +810,17 @@ def run(args: argparse.Namespace) -> int:
               sys.argv[1:2] == ["bench"] else sys.argv[1:]), "quick": quick, "repeats": repeats,
               "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale,
               "parallel": parallel, "outside_search": [r for r in outside if r],
+              "grid_kernel": [r for r in kernels if r],
               "profiles": [p for p in profiles if p], "skipped": progress.skipped,
-              "budget_s": budget}
+              "budget_s": budget, "sections": sorted(sections, key=SECTIONS.index)}
     (out / "bench.json").write_text(json.dumps(report, indent=1))
     (out / "bench.md").write_text(_markdown(report))
-    _figure(scale, out / "scaling.png")
+    written = [out / "bench.md", out / "bench.json"]
+    if scale:
+        _figure(scale, out / "scaling.png")
+        written.append(out / "scaling.png")
     print(_markdown(report))
-    print(f"fr bench: wrote {out / 'bench.md'}, {out / 'bench.json'}, {out / 'scaling.png'}", file=sys.stderr)
+    print(f"fr bench: wrote {', '.join(map(str, written))}", file=sys.stderr)
     return 0
 
 

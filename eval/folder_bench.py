@@ -27,8 +27,18 @@ from fr_torch.workers import default_workers, usable_cores
 MODES = {"fast": ["--fast"], "fr": []}
 
 
-def _run(paths: list[str], mode: str, workers: str) -> tuple[float, list[float | None]]:
-    command = [sys.executable, "-m", "fr_torch.cli", "calibrate", *MODES[mode], *paths]
+def _gpu_name(device: str) -> str:
+    """', <GPU name>' for a CUDA device, '' otherwise."""
+    if not device.startswith("cuda"):
+        return ""
+    import torch
+
+    return f", {torch.cuda.get_device_name(device)}" if torch.cuda.is_available() else ""
+
+
+def _run(paths: list[str], mode: str, workers: str, device: str = "cpu",
+         extra: tuple[str, ...] = ()) -> tuple[float, list[float | None]]:
+    command = [sys.executable, "-m", "fr_torch.cli", "calibrate", *MODES[mode], "--device", device, *extra, *paths]
     if workers != "default":
         command += ["--workers", workers]
     start = time.perf_counter()
@@ -47,6 +57,8 @@ def main(argv=None) -> int:
     parser.add_argument("--modes", default="fast,fr")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--data-root", default=None)
+    parser.add_argument("--device", default="cpu", help="fr calibrate's --device (cpu or cuda)")
+    parser.add_argument("--extra", default="", help="more fr calibrate options, e.g. '--compile'")
     parser.add_argument("--out", type=Path, default=None, help="write the Markdown table here")
     args = parser.parse_args(argv)
     photos = sorted(str(p) for p in (data_root(args.data_root) / "yorkurbandb").glob("*/*.jpg"))
@@ -60,24 +72,26 @@ def main(argv=None) -> int:
             for workers in args.workers.split(","):
                 runs = []
                 for _ in range(args.rounds):
-                    seconds, focal = _run(paths, mode, workers)
+                    seconds, focal = _run(paths, mode, workers, args.device, tuple(args.extra.split()))
                     runs.append(seconds)
                     reference = reference if reference is not None else focal
                     same = focal == reference
-                shown = workers if workers != "default" else f"default ({default_workers(len(paths))})"
+                shown = workers if workers != "default" else f"default ({default_workers(len(paths), args.device)})"
                 row = {"images": len(paths), "mode": mode, "workers": shown, "seconds": runs,
                        "images_per_s": len(paths) / (sum(runs) / len(runs)), "same_as_in_process": same}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     lines = [
-        f"# Folder end to end (`fr calibrate` on YorkUrbanDB photos, {usable_cores()} cores)", "",
+        f"# Folder end to end (`fr calibrate --device {args.device}` on YorkUrbanDB photos, {usable_cores()} cores)", "",
         "Command: `python -m fr_eval.folder_bench " + " ".join(argv if argv is not None else sys.argv[1:]) + "`.",
         "Wall time of each whole `fr calibrate [--fast] [--workers W] PATHS...` process (start-up, model loading,",
         "decode, LSD, search, JSON output), 640×480 JPEGs, the 102 photos repeated to make larger folders;",
         f"rounds one after the other, seconds per round, images/s from their mean. Machine: {machine_description('cpu')['cpu']},",
-        f"{usable_cores()} usable cores, load average after the run {tuple(round(v, 2) for v in load) if load else 'n/a'}.",
-        "W = 0: in-process (intra-op threads); W > 0 on a CPU: whole-image worker processes, one thread each.",
+        f"{usable_cores()} usable cores{_gpu_name(args.device)}, load average after the run "
+        f"{tuple(round(v, 2) for v in load) if load else 'n/a'}.",
+        "W = 0: in-process (intra-op threads); W > 0 on a CPU: whole-image worker processes, one thread each; "
+        "W > 0 on a GPU: decode + detection workers feeding the search in this process.",
         "", "| images | mode | workers W | seconds | images/s | focal lengths = in-process |", "|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['images']} | {r['mode']} | {r['workers']} | {' / '.join(f'{s:.2f}' for s in r['seconds'])} "

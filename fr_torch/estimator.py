@@ -313,7 +313,7 @@ class FREstimator:
 
         t0 = time.perf_counter()
         long_side = torch.maximum(width, height)  # the FOV range is on the long side (portrait = landscape)
-        hypotheses = grid_hypotheses(self.search, long_side, focal).to(device)  # one host->device copy
+        hypotheses = grid_hypotheses(self.search, long_side.to(device), None if focal is None else focal.to(device))
         # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
         grid_count = self.search.grid_segment_count(self.mode)
         grid_features = features.longest(grid_count) if grid_count else features

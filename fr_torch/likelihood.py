@@ -677,18 +677,24 @@ def _family_density(line_along, columns, neg_inv_scale, log_coef, floor, workspa
     return s.clamp_min_(floor).exp_()
 
 
+def _without_vertical(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """``x`` without index ``VERTICAL_AXIS`` along ``dim`` (the two horizontal families), from two
+    slices: indexing a GPU tensor with a Python list copies the index to the device and waits for
+    it, once per grid chunk."""
+    return torch.cat([x.narrow(dim, 0, VERTICAL_AXIS), x.narrow(dim, VERTICAL_AXIS + 1, 2 - VERTICAL_AXIS)], dim)
+
+
 def _objective_b_shared_vertical(line_along, weight, flat, neg_inv_scale, log_coef, background, floor,
                                  workspace, block):
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
     if hyp % block:
         raise ValueError(f"vertical_block {block} does not divide the {hyp} hypotheses")
-    horizontal = [k for k in range(3) if k != VERTICAL_AXIS]
     columns = flat.view(batch, 3, 3, hyp)
-    h_cols = columns[:, :, horizontal].reshape(batch, 3, 2 * hyp)
+    h_cols = _without_vertical(columns, 2).reshape(batch, 3, 2 * hyp)
     v_cols = columns[:, :, VERTICAL_AXIS, ::block]  # (B, 3, H / k): one per run
-    h = _family_density(line_along, h_cols, neg_inv_scale[horizontal], log_coef[horizontal], floor,
-                        workspace, "h", groups=2).view(batch, n_seg, 2, hyp)
+    h = _family_density(line_along, h_cols, _without_vertical(neg_inv_scale, 0), _without_vertical(log_coef, 0),
+                        floor, workspace, "h", groups=2).view(batch, n_seg, 2, hyp)
     v = _family_density(line_along, v_cols, neg_inv_scale[VERTICAL_AXIS], log_coef[VERTICAL_AXIS], floor,
                         workspace, "v")
     p = torch.add(h[:, :, 0], h[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), weight))

@@ -142,6 +142,12 @@ class SearchConfig:
     (:mod:`fr_torch.likelihood`, "Compiled search"; ``--compile``).  The same estimates to float
     rounding; a compilation per process (10-25 s on a 2-core CPU), then faster: for long batch jobs and
     video, not for one photo.  Off by default.
+    ``max_chunk_elements``: on a GPU, at most this many per-segment deviations are scored at once
+    (grid, sweep, passes, cue lattice) and refined at once; about 7 bytes each in the eager grid
+    (2^27: under 1 GB).  Larger chunks mean fewer kernel launches: with 2^24 a batch of 1024
+    images took the H100 about 27,000 launches for Fast-fR and kept it about 20 % busy (issue 14).
+    On a CPU the chunks are cache-sized (``CPU_CHUNK_ELEMENTS``, ``CPU_REFINE_ELEMENTS``) and this
+    only caps them.  Results do not depend on it.
     ``refine_tolerance``: fR refinement stops once no hypothesis' normalised objective (per unit
     segment length) changed by more than this over ``refine_patience`` steps, or after
     ``refine_iterations_fr`` steps; 0 = always the full count.
@@ -164,7 +170,7 @@ class SearchConfig:
     refine_iterations_fast: int = 10
     refine_tolerance: float = 0.0
     refine_patience: int = 10
-    max_chunk_elements: int = 1 << 24
+    max_chunk_elements: int = 1 << 27
     compile_search: bool = False
 
     def __post_init__(self):
@@ -256,7 +262,7 @@ def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:
     """The k stage-1 focal values per image, (B, k) float64 pixels, at cell centres of the range,
     spaced per ``config.focal_grid`` (linear in f, in log f, or in FOV)."""
     k = config.grid_points_per_dim
-    frac = (torch.arange(k, dtype=torch.float64) + 0.5) / k
+    frac = (torch.arange(k, dtype=torch.float64, device=long_side.device) + 0.5) / k
     long_side = long_side.to(torch.float64)
     if config.focal_grid == "fov":
         lo, hi = config.hfov_range_deg
@@ -269,21 +275,24 @@ def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:
 
 
 def grid_hypotheses(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None = None):
-    """Grid of [pan, pitch, roll, focal] per image: (B, G, 4) float64, G = k^4 (k^3 with known f).
+    """Grid of [pan, pitch, roll, focal] per image: (B, G, 4) float64, G = k^4 (k^3 with known f),
+    on the device of ``known_focal`` if given, else of ``long_side``.
 
     ``long_side``: (B,) the longer image side in pixels.  Order: focal slowest, then pitch, roll,
     pan fastest -- runs of k hypotheses differing only in pan share the vertical VP (pan turns the
     camera about the vertical), which :func:`score_grid` scores once per run (``vertical_block``).
     """
     k = config.grid_points_per_dim
-    pan = _cell_centres(*config.pan_range_deg, k)
-    pitch = _cell_centres(*config.pitch_range_deg, k)
-    roll = _cell_centres(*config.roll_range_deg, k)
-    angles = torch.cartesian_prod(pitch, roll, pan)[:, [2, 0, 1]]  # (k^3, 3) as [pan, pitch, roll]
     if known_focal is not None:
         focal = known_focal.to(torch.float64)[:, None]
     else:
         focal = focal_grid(config, long_side)
+    pan = _cell_centres(*config.pan_range_deg, k)
+    pitch = _cell_centres(*config.pitch_range_deg, k)
+    roll = _cell_centres(*config.roll_range_deg, k)
+    # (k^3, 3) as [pan, pitch, roll], on the device of the inputs (a GPU batch's grid is built there:
+    # 128 KB per image, 0.5 GB for 4096 images, is not worth a host->device copy)
+    angles = torch.cartesian_prod(pitch, roll, pan)[:, [2, 0, 1]].to(focal.device)
     batch, n_focal = focal.shape
     hyp = torch.cat([angles.expand(batch, n_focal, -1, -1),
                      focal[:, :, None, None].expand(-1, -1, angles.shape[0], 1)], -1)
