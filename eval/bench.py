@@ -95,6 +95,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "profile on the --device GPU; latency = end to end per photo; parallel = CPU "
                              "threads vs worker processes; cpu = CPU throughput, outside-search work and "
                              "profile; memory; scaling = time against segments and grid size")
+    parser.add_argument("--from-jsonl", type=Path, default=None, metavar="JSONL",
+                        help="measure nothing: write bench.md / bench.json / the figures to --out from the rows of "
+                             "an earlier run's bench.jsonl (one that was cut short, say)")
     parser.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: "B,N,k,mode,device"
 
 
@@ -590,6 +593,11 @@ def _figure(scale: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _grid_floor_ms(row: dict, ns: float) -> float:
+    """The grid floor of an end-to-end row: G x N x 3 deviations at ``ns`` per atan2 + exp."""
+    return row["grid_hypotheses"] * row["segments"] * 3 * ns / 1e6
+
+
 def _latency_lines(report: dict) -> list[str]:
     """bench.md's end-to-end latency table."""
     lines = ["## End-to-end latency per image (CPU, batch 1, ms)", "",
@@ -598,7 +606,7 @@ def _latency_lines(report: dict) -> list[str]:
     for r in report["end_to_end"]:
         lines.append(f"| {r['image']} | {r['mode']} | {r.get('search', 'eager')} | {r['segments']} | {r['detect_ms']:.1f} | {r['grid_ms']:.1f} | "
                      f"{r['refine_ms']:.1f} | {r['cues_ms']:.1f} | **{r['wall_ms']:.1f}** | {r['decode_ms']:.1f} | "
-                     f"{r['lsd_ms']:.1f} | {r['grid_floor_ms']:.1f} |")
+                     f"{r['lsd_ms']:.1f} | {_grid_floor_ms(r, report['transcendental_ns']):.1f} |")
     lines += ["", "Grid floor = G x N x 3 deviations x (atan2 + exp ns/element measured in cache: "
               f"{report['transcendental_ns']:.2f} ns), G = the k^4 grid only; the grid column also holds the "
               "focal sweep and the lattice passes.", ""]
@@ -612,6 +620,9 @@ def _markdown(report: dict) -> str:
              f"device {m['device']}" + (f" ({m['gpu']})" if "gpu" in m else "")
              + (f", load average {m.get('load_average')}" if m.get("load_average") else "") + ".",
              f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up.", ""]
+    if report.get("from_jsonl"):
+        lines += [f"Rebuilt from the rows of `{report['from_jsonl']}` (`fr bench --from-jsonl`): what that run "
+                  "had measured when it ended.", ""]
     if report["end_to_end"]:
         lines += _latency_lines(report)
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
@@ -702,6 +713,72 @@ def _markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
+def write_report(report: dict, out: Path) -> None:
+    """bench.json, bench.md and the figures of ``report`` in ``out``: scaling.png (time against
+    segments and grid size) when it has the scaling rows, throughput.png when it has throughput rows."""
+    written = [out / "bench.md", out / "bench.json"]
+    (out / "bench.json").write_text(json.dumps(report, indent=1))
+    (out / "bench.md").write_text(_markdown(report))
+    if report.get("scaling"):
+        _figure(report["scaling"], out / "scaling.png")
+        written.append(out / "scaling.png")
+    if report.get("throughput"):
+        _throughput_figure(report["throughput"], out / "throughput.png")
+        written.append(out / "throughput.png")
+    print(_markdown(report))
+    print(f"fr bench: wrote {', '.join(map(str, written))}", file=sys.stderr)
+
+
+def report_from_jsonl(path: Path) -> dict:
+    """The report of an earlier run rebuilt from its ``bench.jsonl`` rows (what was measured before
+    it ended; the profiles without their top-op tables, which only the full report holds)."""
+    rows = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    by = {}
+    for row in rows:
+        by.setdefault(row.pop("section"), []).append(row)
+    machine = (by.get("machine") or [{}])[0]
+    scale = {"segments": [r for r in by.get("scaling", []) if "k" not in r],
+             "grid": [r for r in by.get("scaling", []) if "k" in r]}
+    return {"machine": {k: v for k, v in machine.items() if k not in ("command", "repeats", "budget_s")} or
+            {"cpu": "not recorded", "cores": "?", "torch": "?", "threads": "?", "device": "?"},
+            "command": machine.get("command", f"(rows of {path})"), "quick": False,
+            "repeats": machine.get("repeats", "?"),
+            "transcendental_ns": (by.get("transcendental") or [{"ns_per_element": float("nan")}])[0]["ns_per_element"],
+            "end_to_end": by.get("end_to_end", []), "throughput": by.get("throughput", []),
+            "memory": by.get("memory", []), "scaling": scale if scale["segments"] or scale["grid"] else {},
+            "parallel": by.get("parallel", []), "outside_search": by.get("outside_search", []),
+            "grid_kernel": by.get("grid_kernel", []), "profiles": [], "skipped": [],
+            "budget_s": machine.get("budget_s", 0.0), "sections": [], "from_jsonl": str(path)}
+
+
+def _throughput_figure(rows: list[dict], path: Path) -> None:
+    """Images/s against batch size (log-log), one line per device, mode, search and reliability."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines: dict = {}
+    for r in rows:
+        key = (r["device"], r.get("mode", "fast"), r.get("search", "eager"), r.get("reliability", True))
+        lines.setdefault(key, []).append((r["batch"], r["images_per_s"]))
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for (device, mode, search, reliability), points in sorted(lines.items()):
+        points.sort()
+        label = f"{device} {mode} {search}" + ("" if reliability else ", reliability off")
+        ax.plot([b for b, _ in points], [v for _, v in points], marker="o",
+                linestyle="-" if search == "eager" else "--", label=label)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("batch (images searched together)")
+    ax.set_ylabel("images/s given 300 segments per image")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -709,6 +786,11 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     if args.memory_probe:
         print(json.dumps(memory_probe(args.memory_probe)))
+        return 0
+    if args.from_jsonl:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_report(report_from_jsonl(args.from_jsonl), out)
         return 0
     device = args.device
     if device == "auto":
@@ -770,8 +852,11 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     budget = args.budget_s if args.budget_s is not None else (150.0 if device.startswith("cuda") else 0.0)
     progress = _progress(steps, args.no_progress, out / "bench.jsonl", budget)
+    command = "fr bench " + " ".join(sys.argv[2:] if sys.argv[1:2] == ["bench"] else sys.argv[1:])
+    progress.update(0, "machine", dict(machine_description(device), command=command, repeats=repeats, budget_s=budget))
 
     ns = _transcendental_ns("cpu")
+    progress.update(0, "transcendental", {"ns_per_element": ns})
     tp, profiles, outside, e2e, parallel, mem, scale, kernels = [], [], [], [], [], [], {}, []
     outside_batch = 16 if quick else 1024
     # A GPU figure first (the budget may cut the rest), then CPU latency, throughput, scaling.
@@ -788,7 +873,7 @@ def run(args: argparse.Namespace) -> int:
     if "latency" in sections:
         e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
     for row in e2e:
-        row["grid_floor_ms"] = row["grid_hypotheses"] * row["segments"] * 3 * ns / 1e6
+        row["grid_floor_ms"] = _grid_floor_ms(row, ns)
     if "parallel" in sections:
         parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
     if "cpu" in sections:
@@ -806,21 +891,13 @@ def run(args: argparse.Namespace) -> int:
     progress.close()
     tmp.cleanup()
 
-    report = {"machine": machine_description(device), "command": "fr bench " + " ".join(sys.argv[2:] if
-              sys.argv[1:2] == ["bench"] else sys.argv[1:]), "quick": quick, "repeats": repeats,
+    report = {"machine": machine_description(device), "command": command, "quick": quick, "repeats": repeats,
               "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale,
               "parallel": parallel, "outside_search": [r for r in outside if r],
               "grid_kernel": [r for r in kernels if r],
               "profiles": [p for p in profiles if p], "skipped": progress.skipped,
               "budget_s": budget, "sections": sorted(sections, key=SECTIONS.index)}
-    (out / "bench.json").write_text(json.dumps(report, indent=1))
-    (out / "bench.md").write_text(_markdown(report))
-    written = [out / "bench.md", out / "bench.json"]
-    if scale:
-        _figure(scale, out / "scaling.png")
-        written.append(out / "scaling.png")
-    print(_markdown(report))
-    print(f"fr bench: wrote {', '.join(map(str, written))}", file=sys.stderr)
+    write_report(report, out)
     return 0
 
 

@@ -8,7 +8,9 @@ setting, runs ``fr calibrate [--fast] --workers W PATHS...`` as a new process (s
 loading, decode, LSD, search and JSON output included), ``--rounds`` times one after the other,
 and reports seconds per round and images/s from their mean.  ``default`` leaves ``--workers``
 unset (:func:`fr_torch.workers.default_workers`).  Also checks that every setting gives the same
-focal lengths as in-process (``--workers 0``).  Run it on an idle machine.
+focal lengths as in-process (``--workers 0``).  ``--device cuda`` times ``fr calibrate --device
+cuda`` (workers then decode and detect while the process searches on the GPU; results/bench/h100);
+``--extra`` passes more options (``--compile``).  Run it on an idle machine.
 """
 from __future__ import annotations
 

@@ -233,6 +233,23 @@ def test_bench_quick_smoke(tmp_path):
     assert {(r["kind"], r["count"]) for r in report["parallel"]} == {("threads", 1), ("threads", 2),
                                                                      ("workers", 1), ("workers", 2)}
     assert report["profiles"] and (tmp_path / report["profiles"][0]["file"]).read_text()
+    assert (tmp_path / "throughput.png").stat().st_size > 0
+    # A run cut short leaves its rows: --from-jsonl rebuilds the report from them (same tables).
+    rebuilt = tmp_path / "rebuilt"
+    assert bench.main(["--from-jsonl", str(tmp_path / "bench.jsonl"), "--out", str(rebuilt)]) == 0
+    again = json.loads((rebuilt / "bench.json").read_text())
+    assert again["throughput"] == report["throughput"] and again["parallel"] == report["parallel"]
+    assert again["machine"]["cpu"] == report["machine"]["cpu"] and again["command"] == report["command"]
+    table = [line for line in (tmp_path / "bench.md").read_text().splitlines() if line.startswith("| cpu | fast")]
+    assert table and all(line in (rebuilt / "bench.md").read_text() for line in table)
+    # --sections: only what is asked for
+    only = tmp_path / "only"
+    assert bench.main(["--quick", "--out", str(only), "--device", "cpu", "--sections", "parallel",
+                       "--no-progress"]) == 0
+    part = json.loads((only / "bench.json").read_text())
+    assert part["parallel"] and not part["throughput"] and not part["end_to_end"] and not part["scaling"]
+    with pytest.raises(ValueError, match="--sections"):
+        bench.main(["--quick", "--out", str(only), "--device", "cpu", "--sections", "everything"])
 
 
 def test_refinement_closed_form_gradient_matches_autograd():
