@@ -25,14 +25,21 @@ and ``<out>/scaling.png`` (default ``results/bench``):
    the throughput a device can reach (1000 / ms images/s), per device; it includes tensor work that
    runs on the device (the minimal search, and the ``focal_prior_share`` cue's 81-point lattice per
    image), so on a CPU it is an upper bound of the host's share.
-7. **Where the time goes**: a torch profiler table (top ops by self time) of one batch, per device,
-   in ``<out>/profile_<device>_fast.txt`` and summarised in bench.md.
+7. **Where the time goes**: a torch profiler table (top ops by self time) of one batch, per device
+   (on a GPU per mode), in ``<out>/profile_<device>_<mode>.txt`` and summarised in bench.md.
+8. **The grid kernel alone** (on a GPU): stage 1 of 1024 images, eager and with ``--compile``
+   compiled, as deviations per second and the fraction of the card's FP32 peak they amount to
+   (:data:`FLOPS_PER_DEVIATION`, :data:`GPU_FP32_PEAK`).
 
 Every measurement is written as it is taken: one JSON line per row in ``<out>/bench.jsonl``
 (flushed) and one progress line on stderr; bench.json / bench.md / scaling.png at the end.
 ``--budget-s`` bounds the run: settings not started within the budget are skipped and listed
-(default 150 s when a CUDA device is measured, so ``fr bench --device cuda`` ends in about 3
-minutes; the CUDA figures are taken first, with batches 1 ... 4096 and 3 repeats).
+(default 150 s when a CUDA device is measured, meant to end ``fr bench --device cuda`` in about 3
+minutes without ``--compile``: with it, compiling took 16-39 s per mode on an H100 and two runs
+went past 3 minutes, results/bench/h100/README.md; the CUDA figures are taken first, with batches 1 ... 16384, 3 repeats
+up to 64, 2 up to 4096, then 1).  ``--sections`` picks what to measure (e.g. ``parallel`` alone for
+CPU scaling on a large machine); ``--from-jsonl`` writes the report of a run that was cut short from
+its rows.  Throughput is drawn in ``<out>/throughput.png``.
 
 ``--quick`` is a tiny smoke run (seconds).  The machine (CPU model, cores, torch version, threads,
 device, load average) is recorded with the numbers: on a shared machine timings are noisy, so
@@ -865,11 +872,11 @@ def run(args: argparse.Namespace) -> int:
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode)
         for mode in modes if args.compile else ():
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode, compile_search=True)
-        kernels += [grid_kernel(dev, 1024, n_seg_tp, min(repeats, 3), progress, compiled)
+        kernels += [grid_kernel(dev, outside_batch, n_seg_tp, min(repeats, 3), progress, compiled)
                     for compiled in ((False, True) if args.compile else (False,))]
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         for mode in modes:
-            profiles.append(profile_table(dev, 1024, n_seg_tp, out, progress, mode))
+            profiles.append(profile_table(dev, outside_batch, n_seg_tp, out, progress, mode))
     if "latency" in sections:
         e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
     for row in e2e:

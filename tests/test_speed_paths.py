@@ -248,6 +248,13 @@ def test_bench_quick_smoke(tmp_path):
                        "--no-progress"]) == 0
     part = json.loads((only / "bench.json").read_text())
     assert part["parallel"] and not part["throughput"] and not part["end_to_end"] and not part["scaling"]
+    # The accelerator section's code path, run on a second CPU device name (CI has no GPU)
+    device = tmp_path / "device"
+    assert bench.main(["--quick", "--out", str(device), "--device", "cpu:0", "--sections", "device",
+                       "--no-progress"]) == 0
+    part = json.loads((device / "bench.json").read_text())
+    assert {r["device"] for r in part["throughput"]} == {"cpu:0"} and part["grid_kernel"][0]["deviations_per_s"] > 0
+    assert part["outside_search"] and part["profiles"] and "Grid kernel alone" in (device / "bench.md").read_text()
     with pytest.raises(ValueError, match="--sections"):
         bench.main(["--quick", "--out", str(only), "--device", "cpu", "--sections", "everything"])
 
