@@ -348,7 +348,7 @@ def grid_kernel(device: str, batch: int, n_segments: int, repeats: int, progress
     segments = SegmentBatch.from_list([pool[i % len(pool)] for i in range(batch)], sizes, device, torch.float32)
     centre = torch.tensor([image_centre(640, 480)] * batch, dtype=torch.float32, device=device)
     features = SegmentFeatures.from_batch(segments, centre)
-    hypotheses = grid_hypotheses(est.search, torch.full((batch,), 640.0, dtype=torch.float64)).to(device)
+    hypotheses = grid_hypotheses(est.search, torch.full((batch,), 640.0, dtype=torch.float64, device=device))
     k = est.search.grid_points_per_dim
     fn = lambda: score_grid(est.likelihood, features, hypotheses, est.search.max_chunk_elements,  # noqa: E731
                             vertical_block=k)
@@ -724,15 +724,16 @@ def write_report(report: dict, out: Path) -> None:
     """bench.json, bench.md and the figures of ``report`` in ``out``: scaling.png (time against
     segments and grid size) when it has the scaling rows, throughput.png when it has throughput rows."""
     written = [out / "bench.md", out / "bench.json"]
+    markdown = _markdown(report)
     (out / "bench.json").write_text(json.dumps(report, indent=1))
-    (out / "bench.md").write_text(_markdown(report))
+    (out / "bench.md").write_text(markdown)
     if report.get("scaling"):
         _figure(report["scaling"], out / "scaling.png")
         written.append(out / "scaling.png")
     if report.get("throughput"):
         _throughput_figure(report["throughput"], out / "throughput.png")
         written.append(out / "throughput.png")
-    print(_markdown(report))
+    print(markdown)
     print(f"fr bench: wrote {', '.join(map(str, written))}", file=sys.stderr)
 
 

@@ -580,7 +580,7 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
         image, ratio = pairs.unbind(1)
         searched = features.take_images(image.to(device))
         long_rep, focal_rep = long_side[image], focal[image, ratio]
-        hypotheses = grid_hypotheses(config, long_rep, focal_rep).to(device)
+        hypotheses = grid_hypotheses(config, long_rep.to(device), focal_rep.to(device))  # built on the device
         grid_scores = score_grid(likelihood, searched, hypotheses, config.max_chunk_elements,
                                  vertical_block=config.grid_points_per_dim)
         starts, _ = select_starts(config, grid_scores, hypotheses)
