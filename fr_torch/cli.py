@@ -139,7 +139,9 @@ def build_parser(command: str | None = None, commands: dict[str, tuple[str, str]
 
 
 def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str]] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    from .options import attach_range_values
+
+    argv = attach_range_values(list(sys.argv[1:] if argv is None else argv))
     commands = all_subcommands(extra_commands)
     if argv and not argv[0].startswith("-") and argv[0] not in commands:
         print(f"fr: unknown command {argv[0]!r} (commands: {', '.join(commands)}; the evaluation commands "

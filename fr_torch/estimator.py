@@ -328,7 +328,8 @@ class FREstimator:
 
         refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
                                          fast=self.mode == "fast", tolerance=self.search.refine_tolerance,
-                                         patience=self.search.refine_patience)
+                                         patience=self.search.refine_patience,
+                                         periodic_pan=self.search.periodic_pan)
         # Keep the best of {best grid point, refined points}.
         candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
         candidate_scores = torch.cat([top_scores[:, :1], refined_scores], 1)
@@ -371,8 +372,8 @@ class FREstimator:
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             r.reliable, r.reason = self._sanity(r)
-            # non-finite -> ok=False; focal at the range edge -> unreliable
-            check_result(r, self.search, known_focal, finite=bool(finite[j]))
+            # non-finite -> ok=False; focal or an angle at its range's edge -> unreliable
+            check_result(r, self.search, known_focal, finite=bool(finite[j]), search_params=params_all[j])
 
     def _cues(self, grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[str, torch.Tensor]:
         """The reliability cues, per image: the paper's three (§3.4) and ``focal_conditioning``.

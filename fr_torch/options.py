@@ -15,8 +15,8 @@ MEASURE_CHOICES = tuple("abcde")
 
 
 def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--hfov-range``, ``--device``,
-    ``--compile``."""
+    """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--hfov-range``, ``--pitch-range``,
+    ``--roll-range``, ``--device``, ``--compile``."""
     parser.add_argument("--fast", action="store_true", help="Fast-fR: at most 10 refinement iterations")
     parser.add_argument("--measure", choices=MEASURE_CHOICES, default=None, help="deviation measure (default b)")
     parser.add_argument("--detector", default="lsd", help="line segment detector (default lsd)")
@@ -26,11 +26,36 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
                         help="search range of the field of view across the image's long side, degrees "
                              "(default 30,120; 'paper' = the paper's 50,130; narrow for zoomed-in PTZ or "
                              "traffic cameras)")
+    parser.add_argument("--pitch-range", default=None, metavar="MIN,MAX",
+                        help="search range of the camera's pitch, degrees (default -35,35; widen for cameras "
+                             "that look steeply down, e.g. -70,20 for traffic cameras: a coarser grid, so level "
+                             "views lose some accuracy; a pitch found at the range's edge is marked unreliable)")
+    parser.add_argument("--roll-range", default=None, metavar="MIN,MAX",
+                        help="search range of the camera's roll, degrees (default -15,15; an estimate at the "
+                             "edge is marked unreliable)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--compile", action="store_true",
                         help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
                              "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "
                              "jobs and video; falls back with a warning where it cannot compile)")
+
+
+#: Options whose MIN,MAX value may start with a minus sign.
+RANGE_OPTIONS = ("--hfov-range", "--pitch-range", "--roll-range")
+
+
+def attach_range_values(argv: list[str]) -> list[str]:
+    """``["--pitch-range", "-70,20"]`` -> ``["--pitch-range=-70,20"]`` for :data:`RANGE_OPTIONS`:
+    argparse reads a separate value that starts with ``-`` (and is not a plain number) as an option."""
+    out: list[str] = []
+    pending = False
+    for arg in argv:
+        if pending and arg.startswith("-") and arg[1:2].isdigit() or pending and arg[:2] == "-.":
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+        pending = arg in RANGE_OPTIONS
+    return out
 
 
 def hfov_search_config(hfov_min=None, hfov_max=None, base=None):
@@ -72,7 +97,8 @@ def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     kwargs: dict[str, Any] = dict(mode="fast" if args.fast else "fr", measure=args.measure, detector=args.detector,
                                   likelihood=args.likelihood, device=args.device)
     compile_search = bool(getattr(args, "compile", False))  # front ends without --compile: off
-    if args.hfov_range or compile_search:
+    angle_ranges = {name: getattr(args, f"{name}_range", None) for name in ("pitch", "roll")}
+    if args.hfov_range or compile_search or any(angle_ranges.values()):
         from .search import SearchConfig
 
         config = SearchConfig.from_config(**({"compile_search": True} if compile_search else {}))
@@ -81,5 +107,11 @@ def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
                 config = config.with_fov_range(args.hfov_range)
             except ValueError as exc:
                 raise FRInputError(f"--hfov-range: {exc}") from None
+        for name, value in angle_ranges.items():
+            if value:
+                try:
+                    config = config.with_angle_range(name, value)
+                except ValueError as exc:
+                    raise FRInputError(f"--{name}-range: {exc}") from None
         kwargs["search_config"] = config
     return kwargs

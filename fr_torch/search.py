@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -60,6 +61,14 @@ CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 liv
 NAMED_FOV_RANGES: dict[str, tuple[float, float]] = {"default": (30.0, 120.0), "paper": (50.0, 130.0)}
 FOV_LIMITS_DEG = (1.0, 179.0)
 EDGE_REASON = "focal at the edge of the search range"
+
+
+def angle_edge_reason(name: str, low: float, high: float) -> str:
+    """The reason given for a ``name`` angle (pan, pitch or roll) found at the edge of its search
+    box [``low``, ``high``] (degrees): the camera may lie outside it."""
+    return f"{name} at the edge of the search range [{low:g}, {high:g}] deg (the camera may lie outside it)"
+
+
 NON_FINITE_REASON = "non-finite estimate (NaN/inf in the parameters, objective or outputs)"
 FOCAL_GRIDS = ("linear_f", "log_f", "fov")
 
@@ -179,6 +188,10 @@ class SearchConfig:
             low, high = getattr(self, key)
             if not (math.isfinite(low) and math.isfinite(high) and low <= high):
                 raise FRInputError(f"{key} must be finite (min, max) with min <= max, got {low}, {high}")
+        for key in ("pitch_range_deg", "roll_range_deg"):  # +-90 deg: the vertical VP swaps families
+            low, high = getattr(self, key)
+            if not (-89.0 <= low and high <= 89.0):
+                raise FRInputError(f"{key} must lie within [-89, 89] degrees, got {low:g}, {high:g}")
         if self.grid_points_per_dim < 1 or self.top_l < 1:
             raise FRInputError("grid_points_per_dim and top_l must be at least 1")
         if self.grid_passes < 0:
@@ -194,12 +207,33 @@ class SearchConfig:
         if self.focal_grid not in FOCAL_GRIDS:
             raise FRInputError(f"focal_grid must be one of {', '.join(FOCAL_GRIDS)}, got {self.focal_grid!r}")
 
+    @property
+    def periodic_pan(self) -> bool:
+        """True when the pan range spans exactly one period of a Manhattan frame (90 deg, the
+        default [-45, 45]): pan is then an angle on a circle, and the sweep, the lattice passes and
+        the refinement wrap it around (-45 and +45 are the same camera with its two horizontal
+        families swapped, which score the same) instead of pinning it at the box's edge."""
+        low, high = self.pan_range_deg
+        return abs((high - low) - 90.0) < 1e-9
+
     @classmethod
     def from_config(cls, path: str | Path | None = None, **overrides) -> "SearchConfig":
         path = Path(path) if path is not None else CONFIG_DIR / "search.json"
         values = json.loads(path.read_text()) if path.exists() else {}
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
         return replace(cls(**values), **overrides)
+
+    def with_angle_range(self, name: str, value: str) -> "SearchConfig":
+        """A copy with the ``name`` (``pitch`` or ``roll``) search range from ``"MIN,MAX"`` (degrees,
+        within [-89, 89]); FRInputError (one line) when malformed."""
+        parts = str(value).split(",")
+        try:
+            low, high = (float(v) for v in parts)
+        except ValueError:
+            raise FRInputError(f"{name} range must be MIN,MAX in degrees, got {value!r}") from None
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise FRInputError(f"{name} range must be finite MIN,MAX with MIN < MAX, got {value!r}")
+        return replace(self, **{f"{name}_range_deg": (low, high)})
 
     def with_fov_range(self, value) -> "SearchConfig":
         """A copy with the FOV range from a name, ``"MIN,MAX"`` or a pair (see :func:`parse_fov_range`)."""
@@ -249,6 +283,17 @@ def parameter_box(config: SearchConfig, long_side: torch.Tensor, known_focal: to
     hi = torch.stack([torch.full_like(f_hi, config.pan_range_deg[1]), torch.full_like(f_hi, config.pitch_range_deg[1]),
                       torch.full_like(f_hi, config.roll_range_deg[1]), f_hi], -1)
     return lo, hi
+
+
+def into_box(points: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, periodic_pan: bool) -> torch.Tensor:
+    """``points`` (..., 4) [pan, pitch, roll, f or log f] moved into the box [``lower``, ``upper``]
+    (broadcastable to ``points``): clamped, but for pan when ``periodic_pan``
+    (:attr:`SearchConfig.periodic_pan`), which is wrapped into [lower, upper) instead."""
+    boxed = torch.minimum(torch.maximum(points, lower), upper)
+    if not periodic_pan:
+        return boxed
+    pan_low, pan_span = lower[..., :1], (upper - lower)[..., :1]
+    return torch.cat([pan_low + torch.remainder(points[..., :1] - pan_low, pan_span), boxed[..., 1:]], -1)
 
 
 def _log_spaced_focals(f_lo: torch.Tensor, f_hi: torch.Tensor, count: int) -> torch.Tensor:
@@ -375,7 +420,7 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     ZInD-fR train views (fR); with both refined, 3 (results/yud/README.md).
 
     ``starts`` (B, L, 4) [pan, pitch, roll, f], ``scores`` (B, L), ``lower`` / ``upper`` (B, 4)
-    the parameter box (points are clamped into it).  Returns (starts, scores) of shape (B, 2L, 4)
+    the parameter box (points are moved into it by :func:`into_box`).  Returns (starts, scores) of shape (B, 2L, 4)
     and (B, 2L): the L inputs, then for each the best swept point if it beats the start's score,
     else a copy of the start.  Each start is swept on its own (a batch gives the same answer as
     images one by one).  A known focal (``lower`` f == ``upper`` f) or m = 0 returns the inputs.
@@ -395,7 +440,7 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     pan_offsets = torch.stack([torch.zeros_like(pan_step), -pan_step, pan_step], -1)  # (B, 3)
     points = torch.cat([angles, focal[..., None]], -1)[:, :, :, None, :].repeat(1, 1, 1, 3, 1)
     points[..., 0] += pan_offsets[:, None, None, :]  # pan fastest: runs of 3 share the vertical VP
-    points = torch.minimum(torch.maximum(points, lower64[:, None, None, None]), upper64[:, None, None, None])
+    points = into_box(points, lower64[:, None, None, None], upper64[:, None, None, None], config.periodic_pan)
     points = points.view(batch, n_start, -1, 4)
     point_scores = score_grid(likelihood, features, points.view(batch, -1, 4), config.max_chunk_elements,
                               vertical_block=3)
@@ -430,7 +475,7 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
     the start).
 
     ``starts`` (B, L, 4) [pan, pitch, roll, f] and their ``scores`` (B, L); ``lower`` / ``upper``
-    (B, 4) the parameter box (points are clamped into it; a known focal stays fixed).  Returns
+    (B, 4) the parameter box (points are moved into it by :func:`into_box`; a known focal stays fixed).  Returns
     (starts, scores) of the same shapes; every score is >= its input score.  Each start moves on
     its own, so a batch gives the same answer as images one by one.
     """
@@ -448,7 +493,7 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
     for _ in range(config.grid_passes):
         fraction /= 3.0
         points = current[:, :, None, :] + lattice * (step * fraction)  # (B, L, 81, 4)
-        points = torch.minimum(torch.maximum(points, log_lower), log_upper)
+        points = into_box(points, log_lower, log_upper, config.periodic_pan)
         hypotheses = _exp_focal(points).view(batch, n_start * len(lattice), 4)
         point_scores = score_grid(likelihood, features, hypotheses, config.max_chunk_elements, vertical_block=3)
         current, scores = _keep_best(current, scores, points, point_scores)
@@ -585,7 +630,8 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
                                  vertical_block=config.grid_points_per_dim)
         starts, _ = select_starts(config, grid_scores, hypotheses)
         lower, upper = parameter_box(config, long_rep, focal_rep)
-        _, refined = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations, fast=True)
+        _, refined = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations, fast=True,
+                            periodic_pan=config.periodic_pan)
         best[image.to(device), ratio.to(device)] = refined.to(torch.float64).amax(1)
     gap = scores.to(torch.float64) - best.amax(1)
     return torch.where(torch.isfinite(gap), gap, torch.zeros_like(gap))
@@ -661,11 +707,13 @@ def _rotations_from_cos_sin(cos: torch.Tensor, sin: torch.Tensor) -> torch.Tenso
 def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
            lower: torch.Tensor, upper: torch.Tensor, iterations: int, fast: bool,
            max_chunk_elements: int = 1 << 24, tolerance: float = 0.0,
-           patience: int = 10) -> tuple[torch.Tensor, torch.Tensor]:
+           patience: int = 10, periodic_pan: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Refine starts (B, L, 4) inside the box [lower, upper] (B, 4).  Returns (params, objective).
 
     Parameters are optimised as u = (p - lower) / (upper - lower) in [0, 1] (a degenerate box,
-    e.g. a known focal length, keeps that parameter fixed).  The loss of every hypothesis is its
+    e.g. a known focal length, keeps that parameter fixed); with ``periodic_pan``
+    (:attr:`SearchConfig.periodic_pan`) pan wraps around its 90-degree box instead of stopping at
+    its edge.  The loss of every hypothesis is its
     negative log-likelihood divided by the image's total segment length, so step sizes do not
     depend on how many segments an image has.  Images are refined in independent slices of at
     most ``max_chunk_elements`` deviations (bounded memory; same result as one big batch).
@@ -684,10 +732,10 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
     tol = tolerance if not fast else 0.0
     if batch > step:
         parts = [_refine_slice(likelihood, features.images(b, b + step), starts[b:b + step],
-                               lower[b:b + step], upper[b:b + step], iterations, fast, tol, patience)
+                               lower[b:b + step], upper[b:b + step], iterations, fast, tol, patience, periodic_pan)
                  for b in range(0, batch, step)]
         return torch.cat([p for p, _ in parts]), torch.cat([o for _, o in parts])
-    return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tol, patience)
+    return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tol, patience, periodic_pan)
 
 
 #: Bound on each gradient component of the normalised loss in box units (real ones stay below ~1e4).
@@ -722,7 +770,8 @@ class _FusedAdam:
         self.lr = self.lr * self.gamma
 
 
-def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10):
+def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10,
+                  periodic_pan=False):
     dtype, device = features.weight.dtype, features.weight.device
     # The focal length is refined as log f: a step is the same relative change of f (and about the
     # same change of FOV) at every zoom, matching the log-spaced stage-1 grid.
@@ -767,6 +816,8 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
         # A finite, bounded gradient keeps Adam's moments and so every parameter finite.
         optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-_GRAD_BOUND, _GRAD_BOUND))
         with torch.no_grad():
+            if periodic_pan:  # u's pan is (pan - lower) / 90 deg: wrap it into [0, 1)
+                u[..., 0] = torch.remainder(u[..., 0], 1.0)
             u.clamp_(0.0, 1.0)
         if tolerance > 0:
             history.append(objective.detach() / total_length)
@@ -837,7 +888,8 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
 
 
 def check_result(result, config: SearchConfig, known_focal: bool = False,
-                 edge_tolerance_deg: float = 0.25, finite: bool | None = None) -> None:
+                 edge_tolerance_deg: float = 0.25, finite: bool | None = None,
+                 search_params: Sequence[float] | None = None) -> None:
     """Final checks on an estimator result (in place; ``result`` has the fields of
     :class:`fr_torch.estimator.CalibrationResult`).
 
@@ -847,6 +899,12 @@ def check_result(result, config: SearchConfig, known_focal: bool = False,
     * An estimated focal length whose long-side FOV lies within ``edge_tolerance_deg`` of the
       search range's edge -> ``reliable = False`` with reason :data:`EDGE_REASON` (the truth may lie
       outside the range).
+    * Likewise a search angle within ``edge_tolerance_deg`` of its box's edge, from
+      ``search_params`` ([pan, pitch, roll (degrees), f], the search's own parametrisation, which
+      the result's horizon angles only approximate): pitch or roll, and pan unless it wraps
+      (:attr:`SearchConfig.periodic_pan`) -> ``reliable = False`` with reason
+      :func:`angle_edge_reason` (a camera looking down more steeply than ``pitch_range_deg``
+      allows is found at the edge with a wrong focal length).
 
     ``finite``: the caller's batched finiteness check of the same values (the estimator checks its
     parameters, objective and rotation, from which every derived value follows finitely); None =
@@ -866,11 +924,22 @@ def check_result(result, config: SearchConfig, known_focal: bool = False,
             setattr(result, key, None)
         result.ok, result.reliable, result.reason = False, False, NON_FINITE_REASON
         return
-    if known_focal:
-        return
-    long_side = max(result.width, result.height)
-    fov = hfov_from_focal(result.focal_px, long_side)
-    low, high = config.hfov_range_deg
-    if fov <= low + edge_tolerance_deg or fov >= high - edge_tolerance_deg:
+    reasons = []
+    if search_params is not None:
+        boxes = {"pan": config.pan_range_deg, "pitch": config.pitch_range_deg, "roll": config.roll_range_deg}
+        for index, (name, (low, high)) in enumerate(boxes.items()):
+            if name == "pan" and config.periodic_pan:
+                continue
+            value = float(search_params[index])
+            if high - low > 2 * edge_tolerance_deg and (value <= low + edge_tolerance_deg
+                                                        or value >= high - edge_tolerance_deg):
+                reasons.append(angle_edge_reason(name, low, high))
+    if not known_focal:
+        long_side = max(result.width, result.height)
+        fov = hfov_from_focal(result.focal_px, long_side)
+        low, high = config.hfov_range_deg
+        if fov <= low + edge_tolerance_deg or fov >= high - edge_tolerance_deg:
+            reasons.append(EDGE_REASON)
+    if reasons:
         result.reliable = False
-        result.reason = "; ".join(r for r in (result.reason, EDGE_REASON) if r)
+        result.reason = "; ".join(r for r in (result.reason, *reasons) if r)
