@@ -124,6 +124,10 @@ class SearchConfig:
     landscape image that is the horizontal FOV; a portrait image gets the same focal range in
     pixels as the same camera held in landscape).  Results still report ``hfov_deg``, the
     horizontal FOV.  Validated here (the one place): finite, 1 <= min < max <= 179.
+    ``pan_range_deg`` / ``pitch_range_deg`` / ``roll_range_deg``: the angle boxes of the grid and the
+    refinement (default [-45, 45], [-35, 35], [-15, 15]; pitch and roll within [-89, 89];
+    :meth:`with_angle_range`).  A pan box of exactly 90 deg wraps (:attr:`periodic_pan`); a pitch
+    or roll estimate at its box's edge is flagged unreliable (:func:`check_result`).
     ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
     ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
     ``grid_segments`` (``fr`` mode) / ``grid_segments_fast`` (``fast`` mode): stage 1 scores only
@@ -568,7 +572,7 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     profile = -(hessian[:, 3, 3] - (focal_row * solved).sum((-1, -2))) / step[3] ** 2  # per (log f)^2
     share = prior / (prior + profile.clamp_min(0.0))
     ok = torch.isfinite(share) & (info == 0)
-    return torch.where(ok, share.clamp(0.0, 1.0), torch.ones_like(share))
+    return torch.where(ok, share.clamp(0.0, 1.0) + 0.0, torch.ones_like(share))  # + 0.0: no -0.0 in the output
 
 
 #: Focal lengths of :func:`focal_profile_gap`'s profile, as multiples of the estimate: about 15 % to
