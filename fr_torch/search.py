@@ -227,13 +227,15 @@ class SearchConfig:
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
         return replace(cls(**values), **overrides)
 
-    def with_angle_range(self, name: str, value: str) -> "SearchConfig":
-        """A copy with the ``name`` (``pitch`` or ``roll``) search range from ``"MIN,MAX"`` (degrees,
-        within [-89, 89]); FRInputError (one line) when malformed."""
-        parts = str(value).split(",")
+    def with_angle_range(self, name: str, value) -> "SearchConfig":
+        """A copy with the ``name`` (``pitch`` or ``roll``) search range from ``"MIN,MAX"`` or a
+        (min, max) pair (degrees, within [-89, 89]); FRInputError (one line) when malformed."""
+        if name not in ("pitch", "roll"):
+            raise FRInputError(f"angle range name must be 'pitch' or 'roll', got {name!r}")
+        parts = str(value).split(",") if isinstance(value, str) else list(value)
         try:
             low, high = (float(v) for v in parts)
-        except ValueError:
+        except (ValueError, TypeError):
             raise FRInputError(f"{name} range must be MIN,MAX in degrees, got {value!r}") from None
         if not (math.isfinite(low) and math.isfinite(high) and low < high):
             raise FRInputError(f"{name} range must be finite MIN,MAX with MIN < MAX, got {value!r}")

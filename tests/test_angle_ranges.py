@@ -52,6 +52,7 @@ def test_pitch_outside_the_box_is_flagged_and_a_wider_box_finds_it():
     assert default.ok and not default.reliable
     assert "at the edge of the search range" in default.reason  # pitch (or roll, bent to make up for it)
     wide = SearchConfig.from_config().with_angle_range("pitch", "-70,20")
+    assert wide == SearchConfig.from_config().with_angle_range("pitch", (-70, 20))
     found = FREstimator(mode="fast", reliability=None, search_config=wide).calibrate_segments([segments],
                                                                                              [(640, 480)])[0]
     assert found.ok and found.reliable, found.reason
@@ -66,6 +67,8 @@ def test_angle_range_options(tmp_path, capsys):
         SearchConfig().with_angle_range("pitch", "-95,10")
     with pytest.raises(FRInputError):
         SearchConfig().with_angle_range("roll", "5")
+    with pytest.raises(FRInputError):
+        SearchConfig().with_angle_range("yaw", (0, 5))
     for bad in ("-95,10", "20", "5,2", "a,b", "nan,3"):
         assert main(["calibrate", "--fast", "--pitch-range", bad, str(tmp_path / "missing.png")]) == 2
         err = capsys.readouterr().err.strip()
