@@ -147,7 +147,7 @@ def machine_description(device: str) -> dict:
         pass
     if device.startswith("cuda"):
         try:
-            info["gpu"] = torch.cuda.get_device_name(0)
+            info["gpu"] = torch.cuda.get_device_name(device)
         except (AssertionError, RuntimeError):  # no CUDA here: the record says so instead of failing
             info["gpu"] = "none available"
     return info

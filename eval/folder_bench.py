@@ -29,15 +29,6 @@ from fr_torch.workers import default_workers, usable_cores
 MODES = {"fast": ["--fast"], "fr": []}
 
 
-def _gpu_name(device: str) -> str:
-    """', <GPU name>' for a CUDA device, '' otherwise."""
-    if not device.startswith("cuda"):
-        return ""
-    import torch
-
-    return f", {torch.cuda.get_device_name(device)}" if torch.cuda.is_available() else ""
-
-
 def _run(paths: list[str], mode: str, workers: str, device: str = "cpu",
          extra: tuple[str, ...] = ()) -> tuple[float, list[float | None]]:
     command = [sys.executable, "-m", "fr_torch.cli", "calibrate", *MODES[mode], "--device", device, *extra, *paths]
@@ -84,13 +75,14 @@ def main(argv=None) -> int:
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
+    machine = machine_description(args.device)  # the CPU, and the GPU of a CUDA run
     lines = [
         f"# Folder end to end (`fr calibrate --device {args.device}` on YorkUrbanDB photos, {usable_cores()} cores)", "",
         "Command: `python -m fr_eval.folder_bench " + " ".join(argv if argv is not None else sys.argv[1:]) + "`.",
         "Wall time of each whole `fr calibrate [--fast] [--workers W] PATHS...` process (start-up, model loading,",
         "decode, LSD, search, JSON output), 640×480 JPEGs, the 102 photos repeated to make larger folders;",
-        f"rounds one after the other, seconds per round, images/s from their mean. Machine: {machine_description('cpu')['cpu']},",
-        f"{usable_cores()} usable cores{_gpu_name(args.device)}, load average after the run "
+        f"rounds one after the other, seconds per round, images/s from their mean. Machine: {machine['cpu']},",
+        f"{usable_cores()} usable cores{', ' + machine['gpu'] if 'gpu' in machine else ''}, load average after the run "
         f"{tuple(round(v, 2) for v in load) if load else 'n/a'}.",
         "W = 0: in-process (intra-op threads); W > 0 on a CPU: whole-image worker processes, one thread each; "
         "W > 0 on a GPU: decode + detection workers feeding the search in this process.",

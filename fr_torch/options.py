@@ -50,7 +50,7 @@ def attach_range_values(argv: list[str]) -> list[str]:
     out: list[str] = []
     pending = False
     for arg in argv:
-        if pending and arg.startswith("-") and arg[1:2].isdigit() or pending and arg[:2] == "-.":
+        if pending and arg[:1] == "-" and (arg[1:2].isdigit() or arg[1:2] == "."):
             out[-1] = f"{out[-1]}={arg}"
         else:
             out.append(arg)

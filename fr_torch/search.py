@@ -61,16 +61,14 @@ CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 liv
 NAMED_FOV_RANGES: dict[str, tuple[float, float]] = {"default": (30.0, 120.0), "paper": (50.0, 130.0)}
 FOV_LIMITS_DEG = (1.0, 179.0)
 EDGE_REASON = "focal at the edge of the search range"
+NON_FINITE_REASON = "non-finite estimate (NaN/inf in the parameters, objective or outputs)"
+FOCAL_GRIDS = ("linear_f", "log_f", "fov")
 
 
 def angle_edge_reason(name: str, low: float, high: float) -> str:
     """The reason given for a ``name`` angle (pan, pitch or roll) found at the edge of its search
     box [``low``, ``high``] (degrees): the camera may lie outside it."""
     return f"{name} at the edge of the search range [{low:g}, {high:g}] deg (the camera may lie outside it)"
-
-
-NON_FINITE_REASON = "non-finite estimate (NaN/inf in the parameters, objective or outputs)"
-FOCAL_GRIDS = ("linear_f", "log_f", "fov")
 
 
 def parse_fov_range(text) -> tuple[float, float]:
@@ -86,11 +84,16 @@ def parse_fov_range(text) -> tuple[float, float]:
         parts = key.replace(":", ",").split(",")
     else:
         parts = list(text)
+    return _two_numbers(parts, f"FOV range must be MIN,MAX in degrees or one of {', '.join(NAMED_FOV_RANGES)}, "
+                               f"got {text!r}")
+
+
+def _two_numbers(parts, message: str) -> tuple[float, float]:
+    """``parts`` (two items) as floats; FRInputError(``message``) when they are not two numbers."""
     try:
         low, high = (float(v) for v in parts)
     except (TypeError, ValueError):
-        raise FRInputError(f"FOV range must be MIN,MAX in degrees or one of {', '.join(NAMED_FOV_RANGES)}, "
-                           f"got {text!r}") from None
+        raise FRInputError(message) from None
     return low, high
 
 
@@ -232,11 +235,8 @@ class SearchConfig:
         (min, max) pair (degrees, within [-89, 89]); FRInputError (one line) when malformed."""
         if name not in ("pitch", "roll"):
             raise FRInputError(f"angle range name must be 'pitch' or 'roll', got {name!r}")
-        parts = str(value).split(",") if isinstance(value, str) else list(value)
-        try:
-            low, high = (float(v) for v in parts)
-        except (ValueError, TypeError):
-            raise FRInputError(f"{name} range must be MIN,MAX in degrees, got {value!r}") from None
+        parts = value.split(",") if isinstance(value, str) else list(value)
+        low, high = _two_numbers(parts, f"{name} range must be MIN,MAX in degrees, got {value!r}")
         if not (math.isfinite(low) and math.isfinite(high) and low < high):
             raise FRInputError(f"{name} range must be finite MIN,MAX with MIN < MAX, got {value!r}")
         return replace(self, **{f"{name}_range_deg": (low, high)})
