@@ -16,7 +16,7 @@ installed.
 
 Output (:data:`RESULT_SCHEMA`): a folder of Parquet part files, one row per input image with the
 fields of ``fr calibrate``'s JSON (:meth:`CalibrationResult.to_json`): rotation and vanishing points
-are fixed-size 3 x 3 list columns (world->camera R; row i of ``vanishing_points`` = homogeneous VP
+are 3 x 3 nested list columns (lists of 3 lists of 3; null for a failed image) (world->camera R; row i of ``vanishing_points`` = homogeneous VP
 i), ``cues`` / ``predicted_error`` / ``runtime_s`` are struct columns, and a failed image is a row
 with ``ok = false`` and a ``reason`` -- an image is never missing.  Non-finite numbers are stored as
 null, never NaN.  Read it with ``pandas.read_parquet(OUT)``, ``duckdb.sql("FROM 'OUT/*.parquet'")``
@@ -72,15 +72,18 @@ def result_schema():
     import pyarrow as pa
 
     f64 = pa.float64()
-    mat3 = pa.list_(pa.list_(f64, 3), 3)
+    # Variable-size lists, not fixed-size ones: a failed image stores null there, and pyarrow
+    # before 26 cannot read a null fixed-size list back from Parquet (apache/arrow GH-35692: the
+    # whole part file fails to load).  Shapes are checked on the way in (:func:`records_to_table`).
+    mat3 = pa.list_(pa.list_(f64))
     return pa.schema([
         ("image", pa.string()), ("width", pa.int32()), ("height", pa.int32()),
         ("ok", pa.bool_()), ("reliable", pa.bool_()), ("reason", pa.string()),
-        ("focal_px", f64), ("hfov_deg", f64), ("principal_point", pa.list_(f64, 2)),
+        ("focal_px", f64), ("hfov_deg", f64), ("principal_point", pa.list_(f64)),
         ("rotation", mat3), ("vertical_axis", pa.int8()),
         ("pan_deg", f64), ("tilt_deg", f64), ("roll_deg", f64), ("pitch_deg", f64),
         ("vanishing_points", mat3), ("log_likelihood", f64), ("num_segments", pa.int32()),
-        ("manhattan_fraction", f64), ("segments_per_family", pa.list_(pa.int32(), 4)),
+        ("manhattan_fraction", f64), ("segments_per_family", pa.list_(pa.int32())),
         ("cues", pa.struct([(k, f64) for k in CUE_NAMES])),
         ("predicted_error", pa.struct([(k, f64) for k in TARGETS])),
         ("runtime_s", pa.struct([(k, f64) for k in RUNTIME_KEYS])),
@@ -333,11 +336,19 @@ def _clean_float(value):
     return value if math.isfinite(value) else None
 
 
-def _clean_nested(value):
+#: Shapes of the nested-list columns (any other shape, or a non-finite entry, is stored as null).
+NESTED_SHAPES = {"rotation": (3, 3), "vanishing_points": (3, 3), "principal_point": (2,)}
+
+
+def _clean_nested(value, shape: tuple[int, ...]):
+    """``value`` as nested lists of floats when it has ``shape`` and is finite, else None."""
     if value is None:
         return None
-    array = np.asarray(value, np.float64)
-    if not np.isfinite(array).all():
+    try:
+        array = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        return None
+    if array.shape != shape or not np.isfinite(array).all():
         return None
     return array.tolist()
 
@@ -353,8 +364,8 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
         out = {name: record.get(name) for name in schema.names}
         for key in FLOAT_FIELDS:
             out[key] = _clean_float(out[key])
-        for key in ("rotation", "vanishing_points", "principal_point"):
-            out[key] = _clean_nested(out[key])
+        for key, shape in NESTED_SHAPES.items():
+            out[key] = _clean_nested(out[key], shape)
         for key, keys in (("cues", CUE_NAMES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
             value = out[key]
             out[key] = None if not value else {k: _clean_float(value.get(k)) for k in keys}
