@@ -29,7 +29,7 @@ the batches in flight.
 
 Engines: ``local`` runs :meth:`FREstimator.calibrate_images` on batches on this machine (Ray is
 never imported): on a CPU in single-threaded worker processes, one per core (:func:`_run_local`),
-on a GPU in this process; ``ray`` (:mod:`fr_torch.batch_ray`) runs the same per-batch function
+on a GPU in this process while worker processes decode and detect ahead of it; ``ray`` (:mod:`fr_torch.batch_ray`) runs the same per-batch function
 (:func:`calibrate_rows`) in a Ray Data actor pool, one estimator per actor, and this process
 writes the parts.  Both produce the same columns.
 
@@ -259,10 +259,7 @@ class BatchWorker:
         """Calibrate the images of ``rows`` (dicts with ``image`` and manifest columns) -> Arrow table,
         one output row per input row, in order.  Never raises for a bad image."""
         self._maybe_crash(rows)
-        names = [str(row["image"]) for row in rows]
-        default_focal = self.options.get("focal_px")
-        focal = [_finite_or_none(row.get("focal_px")) for row in rows]  # a manifest's known focal wins
-        focal = [default_focal if f is None else f for f in focal]
+        names, focal = self._names_and_focal(rows)
         inputs, failed = [], {}
         for i, name in enumerate(names):
             if has_scheme(name):
@@ -278,12 +275,45 @@ class BatchWorker:
                                                       principal_point=self.options.get("principal_point"))
         except Exception as exc:  # a bug or resource error must not lose the batch: fail its rows
             results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
-        records = []
-        for i, result in enumerate(results):
-            if i in failed:
-                result = _failed(names[i], failed[i])
-            records.append(result.to_json())
-        return records_to_table(records, rows, self.extras)
+        for i, reason in failed.items():
+            results[i] = _failed(names[i], reason)
+        return records_to_table([result.to_json() for result in results], rows, self.extras)
+
+    def calibrate_rows_pipelined(self, rows: Sequence[dict[str, Any]], batch_size: int, workers: int):
+        """Arrow tables of at most ``batch_size`` rows, in input order, like :meth:`calibrate_rows`
+        on each batch, but ``workers`` processes decode and detect the next images while this
+        process searches (:func:`fr_torch.pipeline.calibrate_paths` without whole-image workers:
+        the way to feed a GPU).  Rows with a URI (fsspec) go through :meth:`calibrate_rows`.  If a
+        search raises, the rest of the rows go through :meth:`calibrate_rows` batch by batch (a
+        batch that raises again becomes failed rows); a worker that dies fails only its image."""
+        from .pipeline import calibrate_paths
+
+        rows = list(rows)
+        if workers < 1 or any(has_scheme(str(row["image"])) for row in rows):
+            for begin in range(0, len(rows), batch_size):
+                yield self.calibrate_rows(rows[begin:begin + batch_size])
+            return
+        names, focal = self._names_and_focal(rows)
+        done = 0
+        try:
+            batches = calibrate_paths(self.estimator, names, batch_size, workers, focal,
+                                      self.options.get("principal_point"), names=names, whole_images=False)
+            for chunk, results in batches:
+                batch_rows = rows[done:done + len(chunk)]
+                self._maybe_crash(batch_rows)
+                table = records_to_table([result.to_json() for result in results], batch_rows, self.extras)
+                done += len(chunk)
+                yield table
+        except Exception:  # a search error: the remaining rows in-process, failing only what fails again
+            for begin in range(done, len(rows), batch_size):
+                yield self.calibrate_rows(rows[begin:begin + batch_size])
+
+    def _names_and_focal(self, rows: Sequence[dict[str, Any]]) -> tuple[list[str], list]:
+        """Image names and per-row known focal lengths (a manifest's ``focal_px`` wins over ``--focal``)."""
+        names = [str(row["image"]) for row in rows]
+        default_focal = self.options.get("focal_px")
+        focal = [_finite_or_none(row.get("focal_px")) for row in rows]
+        return names, [default_focal if f is None else f for f in focal]
 
     def _maybe_crash(self, rows) -> None:
         if not self.crash or ":" not in self.crash:
@@ -431,16 +461,21 @@ class PartWriter:
 # ---------------------------------------------------------------------------------------- driver
 
 
+#: Default rows per batch of ``fr batch`` (CPU workers, Ray actors); the local engine on a GPU uses
+#: :func:`fr_torch.workers.default_batch_size` instead.
+DEFAULT_BATCH_ROWS = 16
+
+
 def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], engine: str = "local",
-              workers: int | None = None, batch_size: int = 16, address: str | None = None,
+              workers: int | None = None, batch_size: int = DEFAULT_BATCH_ROWS, address: str | None = None,
               progress: bool = True, threads_per_worker: int | None = None, gpus_per_worker: float | None = None,
               rows_per_part: int = 0) -> dict[str, Any]:
     """Calibrate every image of ``inputs`` not yet in ``out``; returns a summary dict
     (``total``, ``skipped``, ``processed``, ``failed``, ``seconds``, ``images_per_s``).
 
     ``workers``: local engine on a CPU: worker processes (None = one per core, up to 8, for 32+
-    images each; 1 = this process, one thread; see :func:`_run_local`), on a GPU: this process's
-    torch / OpenCV threads; ray engine: actors (None = the cluster's CPUs / ``threads_per_worker``).
+    images each; 1 = this process, one thread; see :func:`_run_local`), on a GPU: decode + detection
+    processes feeding this process's search (0 = none); ray engine: actors (None = the cluster's CPUs / ``threads_per_worker``).
     ``rows_per_part``: 0 = one part file per batch (an interruption loses only the batches in
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
@@ -451,8 +486,9 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
 
     if batch_size < 1:
         raise ValueError("--batch-size must be at least 1")
-    if workers is not None and workers < 1:
-        raise ValueError("--workers must be at least 1")
+    on_gpu = engine == "local" and not str(options["estimator"].get("device", "cpu")).startswith("cpu")
+    if workers is not None and workers < (0 if on_gpu else 1):
+        raise ValueError("--workers must be at least 1" + (" (0 on a GPU: no detection processes)" if on_gpu else ""))
     rows = collect_inputs(inputs)
     writer = PartWriter(out)
     writer.cleanup()
@@ -505,16 +541,21 @@ def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: 
 
     CPU: ``workers`` >= 2 single-threaded worker processes, one :class:`BatchWorker` each (None =
     :func:`fr_torch.workers.default_workers`: one per core, up to 8, for 32+ images each); 1 =
-    this process with one thread (a default of no workers: torch's threads).  GPU: this process,
-    ``workers`` = its torch / OpenCV threads.  A worker that dies fails only the image it was on.
+    this process with one thread (a default of no workers: torch's threads).  GPU: this process
+    searches while ``workers`` processes decode and detect (None = ``default_workers``: every core
+    but one, up to 16; :meth:`BatchWorker.calibrate_rows_pipelined`).  A worker that dies fails
+    only the image it was on.
     """
     from .workers import default_workers
 
     device = str(options["estimator"].get("device", "cpu"))
     on_cpu = device.startswith("cpu")
     if workers is None:
-        workers = default_workers(len(rows), device) if on_cpu else 0
-    if workers < 2 or not on_cpu:
+        workers = default_workers(len(rows), device)
+    if not on_cpu:
+        yield from BatchWorker(options, extras).calibrate_rows_pipelined(rows, batch_size, workers)
+        return
+    if workers < 2:
         worker = BatchWorker(options, extras, threads=workers or None)
         for begin in range(0, len(rows), batch_size):
             yield worker.calibrate_rows(rows[begin:begin + batch_size])
@@ -575,7 +616,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=None,
                         help="ray: number of actors, one estimator each (default: the cluster's CPUs); "
                              "local on a CPU: single-threaded worker processes (default: one per core, up to 8, "
-                             "for 32+ images each; 1 = this process), on a GPU: this process's threads")
+                             "for 32+ images each; 1 = this process), on a GPU: decode + detection processes "
+                             "feeding the search (default: every core but one, up to 16; 0 = none)")
     parser.add_argument("--address", default=None,
                         help="ray: cluster to join (e.g. auto, ray://host:10001); default $RAY_ADDRESS, "
                              "else a local cluster (--workers CPUs, default all)")
@@ -583,7 +625,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ray: CPUs (torch threads) per actor (default 1)")
     parser.add_argument("--gpus-per-worker", type=float, default=None,
                         help="ray with --device cuda: GPUs per actor (default 1; 0.5 puts two actors on a GPU)")
-    parser.add_argument("--batch-size", type=int, default=16, help="images per batch (= per part file)")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="images per batch (= per part file; default 16, local engine on a GPU 256)")
     parser.add_argument("--rows-per-part", type=int, default=0, metavar="N",
                         help="gather batches into part files of at least N rows (default 0: one part per batch)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -611,11 +654,14 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         raise ValueError("fr batch writes Parquet and needs pyarrow: pip install 'fr-torch[batch]'") from None
     options = estimator_options(args)
-    from .workers import fit_threads_to_cores
+    from .workers import default_batch_size, fit_threads_to_cores
 
     fit_threads_to_cores()  # this process's threads (an explicit local --workers 1 still sets its own)
+    batch_size = args.batch_size
+    if batch_size is None:  # a GPU searches a large batch at about the cost of a small one
+        batch_size = default_batch_size(args.device) if args.engine == "local" else DEFAULT_BATCH_ROWS
     summary = run_batch([str(p) for p in args.inputs], args.out, options, engine=args.engine,
-                        workers=args.workers, batch_size=args.batch_size, address=args.address,
+                        workers=args.workers, batch_size=batch_size, address=args.address,
                         progress=not args.no_progress, threads_per_worker=args.threads_per_worker,
                         gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part)
     print(f"fr batch: {summary['total']} images, {summary['skipped']} already done, {summary['processed']} "

@@ -213,3 +213,31 @@ def test_records_with_missing_or_malformed_arrays_become_nulls():
     assert rows[0]["principal_point"] == [320.0, 240.0] and rows[0]["rotation"] == np.eye(3).tolist()
     assert all(rows[i][key] is None for i in (1, 2) for key in ("principal_point", "rotation", "vanishing_points"))
     assert rows[1]["focal_px"] is None
+
+
+def test_pipelined_rows_match_per_batch_rows_and_survive_a_search_error(image_set, monkeypatch):
+    """The local engine's GPU path (workers decode and detect, this process searches) gives the rows
+    of the per-batch path -- here on a CPU estimator, bad files included -- and a search that raises
+    mid-way loses no row: the rest goes through the per-batch path."""
+    import pyarrow as pa
+
+    rows = collect_inputs([str(image_set["manifest"])])[21:]  # 9 good rooms, then corrupt, empty, missing
+    worker = BatchWorker(_options())
+    reference = pa.concat_tables([worker.calibrate_rows(rows[i:i + 4]) for i in range(0, len(rows), 4)]).to_pandas()
+    piped = pa.concat_tables(list(worker.calibrate_rows_pipelined(rows, 4, 2))).to_pandas()
+    assert list(piped.image) == list(reference.image) and list(piped.ok) == list(reference.ok)
+    assert np.allclose(piped.focal_px, reference.focal_px, rtol=1e-4, equal_nan=True)
+    assert list(piped.reason[~piped.ok]) == list(reference.reason[~reference.ok])
+    calls = {"n": 0}
+    search = worker.estimator.calibrate_detections
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise RuntimeError("device lost")
+        return search(*args, **kwargs)
+
+    monkeypatch.setattr(worker.estimator, "calibrate_detections", flaky)
+    recovered = pa.concat_tables(list(worker.calibrate_rows_pipelined(rows, 4, 2))).to_pandas()
+    assert list(recovered.image) == list(reference.image)
+    assert np.allclose(recovered.focal_px, reference.focal_px, rtol=1e-4, equal_nan=True)
