@@ -645,7 +645,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """``fr batch``: prints a one-line summary; exit 0 even when some images failed (they are rows
     with ok=false), non-zero on a usage error."""
-    if args.engine == "local" and str(args.device).startswith("cpu") and args.workers != 1:
+    on_cpu = str(args.device).startswith("cpu")
+    if args.engine == "local" and (args.workers is None or args.workers > (1 if on_cpu else 0)):
         from .workers import start_worker_server
 
         start_worker_server()  # in case there are workers: they load the library while this process does
