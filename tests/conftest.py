@@ -44,6 +44,14 @@ def require_dataset(root: Path, name: str) -> Path:
     return path
 
 
+def checkout_env(**extra: str) -> dict[str, str]:
+    """This process's environment for a subprocess that imports the checkout: ``REPO`` first on
+    ``PYTHONPATH``, whatever was there kept (packages made importable that way, e.g. carried
+    wheels), plus ``extra`` variables."""
+    paths = [str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(paths), **extra}
+
+
 def has_cuda() -> bool:
     import torch
 

@@ -21,8 +21,8 @@ from fr_torch.batch import BatchWorker, collect_inputs, estimator_options, recor
 from fr_torch.camera import rotation_from_angles
 from fr_torch.cli import build_parser
 from fr_torch.synthetic import render_manhattan_room
+from tests.conftest import checkout_env
 
-REPO = Path(__file__).resolve().parents[1]
 N_GOOD = 30
 
 
@@ -114,7 +114,7 @@ def test_resume_after_interrupted_run(image_set, local_output, tmp_path):
     """A run killed mid-job (hard exit on one image) keeps its finished batches; a re-run completes
     the output with every image exactly once, and a third run has nothing to do."""
     out = tmp_path / "out.parquet"
-    env = dict(os.environ, PYTHONPATH=str(REPO), FR_BATCH_CRASH=f"room20.png:{tmp_path / 'marker'}")
+    env = checkout_env(FR_BATCH_CRASH=f"room20.png:{tmp_path / 'marker'}")
     command = [sys.executable, "-m", "fr_torch.cli", "batch", str(image_set["manifest"]), "--out", str(out),
                "--fast", "--batch-size", "8", "--workers", "1", "--no-progress"]
     crashed = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tests.conftest import REPO, require_dataset
+from tests.conftest import REPO, checkout_env, require_dataset
 
 SMALL = ["MODELS.BACKBONE", "resnet18", "MODELS.TRANSFORMER.ENC_LAYERS", "1", "MODELS.TRANSFORMER.DEC_LAYERS", "1",
          "MODELS.TRANSFORMER.HIDDEN_DIM", "64", "MODELS.TRANSFORMER.DIM_FEEDFORWARD", "128",
@@ -48,7 +48,7 @@ def ctrlc_source() -> Path:
 
 
 def _fr(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env = checkout_env()
     return subprocess.run([sys.executable, "-m", "fr_torch.cli", *args], cwd=cwd, env=env, capture_output=True,
                           text=True, timeout=900)
 

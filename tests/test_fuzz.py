@@ -28,8 +28,8 @@ from fr_torch.likelihood import LikelihoodParams
 from fr_torch.segments import load_image
 from fr_torch.synthetic import render_manhattan_room
 from fr_torch.validate import dumps, json_safe
+from tests.conftest import checkout_env
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 # --------------------------------------------------------------------------- hostile files
@@ -326,7 +326,7 @@ def test_same_scene_at_two_resolutions_gives_the_same_camera():
 def _peak_rss_mb(code: str, cwd: Path) -> tuple[int, float, str]:
     script = code + "\nimport resource, sys\nprint('PEAK_MB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)\n"
     proc = subprocess.run([sys.executable, "-c", script], cwd=cwd, capture_output=True, text=True, timeout=600,
-                          env={**os.environ, "PYTHONPATH": str(REPO)})
+                          env=checkout_env())
     peak = [float(line.split()[1]) for line in proc.stdout.splitlines() if line.startswith("PEAK_MB")]
     return proc.returncode, peak[0] if peak else math.nan, proc.stdout + proc.stderr
 

@@ -6,7 +6,7 @@ import subprocess
 import sys
 import tomllib
 
-from tests.conftest import REPO
+from tests.conftest import REPO, checkout_env
 
 # an import of, or a dotted module path into, the harness / baselines under their installed names
 # (fr_eval, fr_baselines) or their folder names (eval, baselines): "fr_eval.run_eval", "baselines"
@@ -58,7 +58,7 @@ def test_no_generic_top_level_packages():
 def test_harness_commands_run_from_a_checkout(tmp_path):
     """``fr`` (here ``python -m fr_torch.cli``) finds the harness commands also in a checkout that is
     not installed: the checkout's entry points name fr_eval, mapped to eval/ by checkout_packages."""
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    env = checkout_env()
     out = subprocess.run([sys.executable, "-m", "fr_torch.cli", "train-reliability", "--help"], capture_output=True,
                          text=True, cwd=tmp_path, env=env, timeout=120)
     assert out.returncode == 0 and "--extra-synthetic" in out.stdout, out.stderr
