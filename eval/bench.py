@@ -626,7 +626,8 @@ def _markdown(report: dict) -> str:
              f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']}, {m['threads']} threads, "
              f"device {m['device']}" + (f" ({m['gpu']})" if "gpu" in m else "")
              + (f", load average {m.get('load_average')}" if m.get("load_average") else "") + ".",
-             f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up.", ""]
+             f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up "
+             f"(fewer where a row gives its `repeats`: GPU rows 3, batches above 64 two, above 4096 one).", ""]
     if report.get("from_jsonl"):
         lines += [f"Rebuilt from the rows of `{report['from_jsonl']}` (`fr bench --from-jsonl`): what that run "
                   "had measured when it ended.", ""]
@@ -713,11 +714,21 @@ def _markdown(report: dict) -> str:
     for p in report.get("profiles", []):
         lines += [f"## Where the time goes: {p['device']} {p['mode']}, batch {p['batch']} (torch profiler, "
                   f"full table in `{p['file']}`)", "", "| op | self ms | share | calls |", "|---|---|---|---|"]
-        lines += [f"| `{o['op']}` | {o['self_ms']:.1f} | {100 * o['share']:.0f} % | {o['calls']} |" for o in p["top_ops"]]
+        lines += [f"| `{_short_op(o['op'])}` | {o['self_ms']:.1f} | {100 * o['share']:.0f} % | {o['calls']} |"
+                  for o in p["top_ops"]]
         lines.append("")
     if report.get("skipped"):
         lines += [f"Skipped (time budget {report['budget_s']:.0f} s): " + ", ".join(report["skipped"]) + ".", ""]
     return "\n".join(lines)
+
+
+def _short_op(name: str, limit: int = 100) -> str:
+    """A profiler op name short enough for a table cell: a CUDA kernel's C++ signature is cut to its
+    name and template arguments without ``at::native::``, then to ``limit`` characters (the full names are in the profile file)."""
+    if name.startswith("void "):
+        name = name[5:]
+    name = name.split(">(", 1)[0].replace("at::native::", "") + (">" if ">(" in name else "")
+    return name if len(name) <= limit else name[:limit - 1] + "…"
 
 
 def write_report(report: dict, out: Path) -> None:
