@@ -655,6 +655,10 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         raise ValueError("fr batch writes Parquet and needs pyarrow: pip install 'fr-torch[batch]'") from None
     options = estimator_options(args)
+    if args.engine == "local":  # a device that cannot run is a one-line error before any work
+        from .validate import resolve_device
+
+        resolve_device(args.device)
     from .workers import default_batch_size, fit_threads_to_cores
 
     fit_threads_to_cores()  # this process's threads (an explicit local --workers 1 still sets its own)

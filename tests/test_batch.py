@@ -241,3 +241,12 @@ def test_pipelined_rows_match_per_batch_rows_and_survive_a_search_error(image_se
     recovered = pa.concat_tables(list(worker.calibrate_rows_pipelined(rows, 4, 2))).to_pandas()
     assert list(recovered.image) == list(reference.image)
     assert np.allclose(recovered.focal_px, reference.focal_px, rtol=1e-4, equal_nan=True)
+
+
+def test_unusable_device_is_one_line_before_any_work(image_set, tmp_path, capsys):
+    from fr_torch.cli import main
+
+    out = tmp_path / "out.parquet"
+    assert main(["batch", str(image_set["manifest"]), "--out", str(out), "--device", "tpu", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "unknown device 'tpu'" in err and not out.exists()
