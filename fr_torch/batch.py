@@ -16,8 +16,8 @@ installed.
 
 Output (:data:`RESULT_SCHEMA`): a folder of Parquet part files, one row per input image with the
 fields of ``fr calibrate``'s JSON (:meth:`CalibrationResult.to_json`): rotation and vanishing points
-are 3 x 3 nested list columns (lists of 3 lists of 3; null for a failed image) (world->camera R; row i of ``vanishing_points`` = homogeneous VP
-i), ``cues`` / ``predicted_error`` / ``runtime_s`` are struct columns, and a failed image is a row
+are 3 x 3 nested list columns (world->camera R; row i of ``vanishing_points`` = homogeneous VP i;
+null for a failed image), ``cues`` / ``predicted_error`` / ``runtime_s`` are struct columns, and a failed image is a row
 with ``ok = false`` and a ``reason`` -- an image is never missing.  Non-finite numbers are stored as
 null, never NaN.  Read it with ``pandas.read_parquet(OUT)``, ``duckdb.sql("FROM 'OUT/*.parquet'")``
 or ``ray.data.read_parquet(OUT)``.
@@ -29,9 +29,10 @@ the batches in flight.
 
 Engines: ``local`` runs :meth:`FREstimator.calibrate_images` on batches on this machine (Ray is
 never imported): on a CPU in single-threaded worker processes, one per core (:func:`_run_local`),
-on a GPU in this process while worker processes decode and detect ahead of it; ``ray`` (:mod:`fr_torch.batch_ray`) runs the same per-batch function
-(:func:`calibrate_rows`) in a Ray Data actor pool, one estimator per actor, and this process
-writes the parts.  Both produce the same columns.
+on a GPU in this process while worker processes decode and detect ahead of it; ``ray``
+(:mod:`fr_torch.batch_ray`) runs the same per-batch function (:func:`calibrate_rows`) in a Ray
+Data actor pool, one estimator per actor, and this process writes the parts.  Both produce the
+same columns.
 
 Crash injection (tests only): ``FR_BATCH_CRASH=NAME:MARKER`` makes the worker that is about to
 process an image whose path ends with ``NAME`` exit hard (``os._exit(1)``) once -- the first to
@@ -475,7 +476,8 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
 
     ``workers``: local engine on a CPU: worker processes (None = one per core, up to 8, for 32+
     images each; 1 = this process, one thread; see :func:`_run_local`), on a GPU: decode + detection
-    processes feeding this process's search (0 = none); ray engine: actors (None = the cluster's CPUs / ``threads_per_worker``).
+    processes feeding this process's search (0 = none); ray engine: actors (None = the cluster's
+    CPUs / ``threads_per_worker``).
     ``rows_per_part``: 0 = one part file per batch (an interruption loses only the batches in
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
@@ -488,7 +490,8 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
         raise ValueError("--batch-size must be at least 1")
     on_gpu = engine == "local" and not str(options["estimator"].get("device", "cpu")).startswith("cpu")
     if workers is not None and workers < (0 if on_gpu else 1):
-        raise ValueError("--workers must be at least 1" + (" (0 on a GPU: no detection processes)" if on_gpu else ""))
+        raise ValueError("--workers must be at least 1"
+                         + (" (0 on a GPU: no detection processes)" if on_gpu else ""))
     rows = collect_inputs(inputs)
     writer = PartWriter(out)
     writer.cleanup()
