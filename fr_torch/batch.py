@@ -462,13 +462,8 @@ class PartWriter:
 # ---------------------------------------------------------------------------------------- driver
 
 
-#: Default rows per batch of ``fr batch`` (CPU workers, Ray actors); the local engine on a GPU uses
-#: :func:`fr_torch.workers.default_batch_size` instead.
-DEFAULT_BATCH_ROWS = 16
-
-
 def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], engine: str = "local",
-              workers: int | None = None, batch_size: int = DEFAULT_BATCH_ROWS, address: str | None = None,
+              workers: int | None = None, batch_size: int | None = None, address: str | None = None,
               progress: bool = True, threads_per_worker: int | None = None, gpus_per_worker: float | None = None,
               rows_per_part: int = 0) -> dict[str, Any]:
     """Calibrate every image of ``inputs`` not yet in ``out``; returns a summary dict
@@ -478,6 +473,8 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     images each; 1 = this process, one thread; see :func:`_run_local`), on a GPU: decode + detection
     processes feeding this process's search (0 = none); ray engine: actors (None = the cluster's
     CPUs / ``threads_per_worker``).
+    ``batch_size``: images per batch and per part file (None = :func:`fr_torch.workers.default_batch_size`
+    of the device: 16 on a CPU, 256 on a GPU, where a large batch costs about as much as a small one).
     ``rows_per_part``: 0 = one part file per batch (an interruption loses only the batches in
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
@@ -486,9 +483,13 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
 
     from tqdm import tqdm
 
+    from .workers import default_batch_size
+
+    device = str(options["estimator"].get("device", "cpu"))
+    batch_size = default_batch_size(device) if batch_size is None else batch_size
     if batch_size < 1:
         raise ValueError("--batch-size must be at least 1")
-    on_gpu = engine == "local" and not str(options["estimator"].get("device", "cpu")).startswith("cpu")
+    on_gpu = engine == "local" and not device.startswith("cpu")
     if workers is not None and workers < (0 if on_gpu else 1):
         raise ValueError("--workers must be at least 1"
                          + (" (0 on a GPU: no detection processes)" if on_gpu else ""))
@@ -629,7 +630,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gpus-per-worker", type=float, default=None,
                         help="ray with --device cuda: GPUs per actor (default 1; 0.5 puts two actors on a GPU)")
     parser.add_argument("--batch-size", type=int, default=None,
-                        help="images per batch (= per part file; default 16, local engine on a GPU 256)")
+                        help="images per batch (= per part file; default 16 on a CPU, 256 on a GPU)")
     parser.add_argument("--rows-per-part", type=int, default=0, metavar="N",
                         help="gather batches into part files of at least N rows (default 0: one part per batch)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -662,14 +663,11 @@ def run(args: argparse.Namespace) -> int:
         from .validate import resolve_device
 
         resolve_device(args.device)
-    from .workers import default_batch_size, fit_threads_to_cores
+    from .workers import fit_threads_to_cores
 
     fit_threads_to_cores()  # this process's threads (an explicit local --workers 1 still sets its own)
-    batch_size = args.batch_size
-    if batch_size is None:  # a GPU searches a large batch at about the cost of a small one
-        batch_size = default_batch_size(args.device) if args.engine == "local" else DEFAULT_BATCH_ROWS
     summary = run_batch([str(p) for p in args.inputs], args.out, options, engine=args.engine,
-                        workers=args.workers, batch_size=batch_size, address=args.address,
+                        workers=args.workers, batch_size=args.batch_size, address=args.address,
                         progress=not args.no_progress, threads_per_worker=args.threads_per_worker,
                         gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part)
     print(f"fr batch: {summary['total']} images, {summary['skipped']} already done, {summary['processed']} "
