@@ -249,12 +249,20 @@ def iter_detections(images: Sequence, names: Sequence[str], detector, segment_fi
     ``workers`` processes (0 = this process) decode and detect, at most ``queue_size`` images
     (default 4 per worker) in flight.
     """
+    yield from _detections_of_pairs(zip(images, names), detector, segment_filter, workers, queue_size,
+                                    working_long_side)
+
+
+def _detections_of_pairs(pairs: Iterable, detector, segment_filter: SegmentFilter | None, workers: int,
+                         queue_size: int | None, working_long_side: int | None) -> Iterator[Detection]:
+    """:func:`iter_detections` of an iterable of ``(image, name)`` pairs, read only as far as the
+    work in flight (a video's frames)."""
     segment_filter = segment_filter or SegmentFilter()
     if workers <= 0:
-        for image, name in zip(images, names):
+        for image, name in pairs:
             yield detect_image(image, name, detector, segment_filter, working_long_side)
         return
-    yield from ordered_pool_map(_detect_chunk, list(zip(images, names)), 1, workers, _init_worker,
+    yield from ordered_pool_map(_detect_chunk, pairs, 1, workers, _init_worker,
                                 (_portable_detector(detector), segment_filter, working_long_side),
                                 _detection_crash, queue_size or 4 * workers)
 
@@ -301,16 +309,35 @@ def _portable_estimator(estimator):
     return portable
 
 
-def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: int = 0) -> Iterator:
+def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: int = 0,
+                     whole_frames: bool | None = None) -> Iterator:
     """Calibrate a stream of ``(image, name)`` pairs (a video's frames: arrays or paths), yielding one
     :class:`~fr_torch.estimator.CalibrationResult` per frame, in order, without reading the stream
-    ahead by more than what is in flight (one batch in-process; two chunks of ``batch_size`` per
-    worker with ``workers > 0``, which on a CPU estimator calibrate whole frames in worker
-    processes as :func:`calibrate_paths` does; a GPU estimator stays in this process).
+    ahead by more than what is in flight (one batch in-process).  ``workers > 0`` with
+    ``whole_frames`` (the default for a CPU estimator): two chunks of ``batch_size`` frames per
+    worker, each calibrated whole in a worker process, as :func:`calibrate_paths` does.  Without
+    (always for a GPU estimator): the workers decode and detect up to two batches of frames ahead
+    while this process searches on the device.
     """
-    if workers > 0 and estimator.device.type == "cpu":
+    if workers > 0 and estimator.device.type == "cpu" and whole_frames is not False:
         yield from _calibrate_in_workers(estimator, ((image, name, None, None) for image, name in frames),
                                          batch_size, workers)
+        return
+    if workers > 0:
+        names: deque = deque()  # the names of the frames read so far and not yet searched, in order
+
+        def named():
+            for image, name in frames:
+                names.append(name)
+                yield image, name
+
+        detections = _detections_of_pairs(named(), estimator.detector, estimator.segment_filter, workers,
+                                          max(4 * workers, 2 * batch_size), estimator.working_long_side)
+        try:
+            while batch := list(itertools.islice(detections, batch_size)):
+                yield from estimator.calibrate_detections(batch, [names.popleft() for _ in batch])
+        finally:
+            detections.close()
         return
     source = iter(frames)
     while batch := list(itertools.islice(source, batch_size)):

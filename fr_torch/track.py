@@ -162,8 +162,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many processed frames")
     parser.add_argument("--batch-size", type=int, default=8, help="frames searched together")
     parser.add_argument("--workers", type=int, default=0, metavar="N",
-                        help="CPU: calibrate frames in N single-threaded worker processes, in order "
-                             "(default 0: this process; worth it for long videos on many cores)")
+                        help="CPU: calibrate frames in N single-threaded worker processes, in order; GPU: "
+                             "N processes decode and detect frames ahead of the search (default 0: this "
+                             "process; worth it for long videos on many cores)")
     add_estimator_arguments(parser)  # --fast, --measure, --detector, --likelihood, --hfov-range, --device
     parser.add_argument("--memory", type=float, default=30.0, help="fusion memory in accepted frames (forgetting)")
     parser.add_argument("--change-k", type=float, default=3.0, help="camera-moved threshold in predicted sigmas")

@@ -10,7 +10,7 @@ import pytest
 
 from fr_torch import FREstimator
 from fr_torch import workers as workers_module
-from fr_torch.pipeline import calibrate_paths, calibrate_segments_sharded, iter_detections
+from fr_torch.pipeline import calibrate_paths, calibrate_segments_sharded, calibrate_stream, iter_detections
 from fr_torch.segments import LSDDetector, SegmentFilter
 from fr_torch.segments import FRInputError
 from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
@@ -58,6 +58,30 @@ def test_pipeline_equals_in_process_and_keeps_order(folder, workers, whole_image
     for a, b in zip(results, reference):
         _same(a, b)
     assert all(r.ok for i, r in enumerate(results) if i not in (1, len(folder) - 1))
+
+
+@pytest.mark.parametrize("workers, whole_frames", [(0, None), (2, True), (2, False)])
+def test_stream_equals_in_process_and_reads_only_what_is_in_flight(folder, workers, whole_frames):
+    """A stream of frames (arrays and paths, a bad one among them): in-process, whole frames in
+    workers (a CPU's default) and detection-only workers (a GPU's), in order, never read far ahead."""
+    est = FREstimator(mode="fast")
+    frames = [(cv2.imread(p) if i == 0 else p, f"frame{i}") for i, p in enumerate(folder)] * 8
+    reference = est.calibrate_images([f for f, _ in frames], names=[n for _, n in frames])
+    read = []
+
+    def source():
+        for i, frame in enumerate(frames):
+            read.append(i)
+            yield frame
+
+    results, ahead = [], 0
+    for result in calibrate_stream(est, source(), batch_size=2, workers=workers, whole_frames=whole_frames):
+        ahead = max(ahead, len(read) - len(results))
+        results.append(result)
+    assert [r.image for r in results] == [n for _, n in frames]
+    for a, b in zip(results, reference):
+        _same(a, b)
+    assert ahead <= (2 if workers == 0 else 8 + 2) < len(frames)  # a batch; else the bounded queue + a batch
 
 
 def test_a_path_and_its_decoded_array_give_the_same_estimate(tmp_path):
