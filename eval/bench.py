@@ -627,7 +627,7 @@ def _markdown(report: dict) -> str:
              f"device {m['device']}" + (f" ({m['gpu']})" if "gpu" in m else "")
              + (f", load average {m.get('load_average')}" if m.get("load_average") else "") + ".",
              f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up "
-             f"(fewer where a row gives its `repeats`: GPU rows 3, batches above 64 two, above 4096 one).", ""]
+             f"(GPU rows and large batches fewer: each row's `repeats` in bench.json).", ""]
     if report.get("from_jsonl"):
         lines += [f"Rebuilt from the rows of `{report['from_jsonl']}` (`fr bench --from-jsonl`): what that run "
                   "had measured when it ended.", ""]
@@ -724,7 +724,8 @@ def _markdown(report: dict) -> str:
 
 def _short_op(name: str, limit: int = 100) -> str:
     """A profiler op name short enough for a table cell: a CUDA kernel's C++ signature is cut to its
-    name and template arguments without ``at::native::``, then to ``limit`` characters (the full names are in the profile file)."""
+    name and template arguments without ``at::native::``, then to ``limit`` characters (the full
+    names are in the profile file)."""
     if name.startswith("void "):
         name = name[5:]
     name = name.split(">(", 1)[0].replace("at::native::", "") + (">" if ">(" in name else "")

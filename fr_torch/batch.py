@@ -229,6 +229,11 @@ def estimator_options(args: argparse.Namespace) -> dict[str, Any]:
             "reliability": not getattr(args, "no_reliability", False)}
 
 
+def options_device(options: dict[str, Any]) -> str:
+    """The estimator's device name in ``options`` (from :func:`estimator_options`; default cpu)."""
+    return str(options["estimator"].get("device", "cpu"))
+
+
 class BatchWorker:
     """Holds one estimator; :meth:`__call__` turns a batch of input rows into an Arrow table.
 
@@ -485,7 +490,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
 
     from .workers import default_batch_size
 
-    device = str(options["estimator"].get("device", "cpu"))
+    device = options_device(options)
     batch_size = default_batch_size(device) if batch_size is None else batch_size
     if batch_size < 1:
         raise ValueError("--batch-size must be at least 1")
@@ -552,7 +557,7 @@ def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: 
     """
     from .workers import default_workers
 
-    device = str(options["estimator"].get("device", "cpu"))
+    device = options_device(options)
     on_cpu = device.startswith("cpu")
     if workers is None:
         workers = default_workers(len(rows), device)

@@ -15,7 +15,7 @@ import os
 import pickle
 from typing import Any, Iterator, Sequence
 
-from .batch import CRASH_ENV, BatchWorker
+from .batch import CRASH_ENV, BatchWorker, options_device
 
 
 class RayBatchWorker(BatchWorker):
@@ -63,7 +63,7 @@ def run_ray(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, bat
             context.print_on_execution_start = False
         logging.getLogger("ray.data").setLevel(logging.ERROR)
         gpus = 0.0
-        if str(options["estimator"].get("device", "cpu")).startswith("cuda"):
+        if options_device(options).startswith("cuda"):
             gpus = 1.0 if gpus_per_worker is None else float(gpus_per_worker)
         items = [{"image": str(row["image"]), "row": pickle.dumps(row)} for row in rows]
         dataset = ray.data.from_items(items)

@@ -309,6 +309,13 @@ def _portable_estimator(estimator):
     return portable
 
 
+def _ahead_of_search(workers: int, batch_size: int) -> int:
+    """Images in flight in detection workers that feed a search in this process: up to two batches,
+    so that the workers detect the whole next batch while this one is searched (a queue shorter
+    than a batch would stall them halfway through every search), and at least 4 per worker."""
+    return max(4 * workers, 2 * batch_size)
+
+
 def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: int = 0,
                      whole_frames: bool | None = None) -> Iterator:
     """Calibrate a stream of ``(image, name)`` pairs (a video's frames: arrays or paths), yielding one
@@ -332,7 +339,7 @@ def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: 
                 yield image, name
 
         detections = _detections_of_pairs(named(), estimator.detector, estimator.segment_filter, workers,
-                                          max(4 * workers, 2 * batch_size), estimator.working_long_side)
+                                          _ahead_of_search(workers, batch_size), estimator.working_long_side)
         try:
             while batch := list(itertools.islice(detections, batch_size)):
                 yield from estimator.calibrate_detections(batch, [names.popleft() for _ in batch])
@@ -373,10 +380,8 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
         finally:  # a caller that stops early shuts the pool down now, not at garbage collection
             results.close()
         return
-    # Up to two batches in flight: the workers detect the whole next batch while this one is searched
-    # (a queue shorter than a batch would stall them halfway through every search).
     detections = iter_detections(images, names, estimator.detector, estimator.segment_filter, workers,
-                                 queue_size=max(4 * workers, 2 * batch_size),
+                                 queue_size=_ahead_of_search(workers, batch_size),
                                  working_long_side=estimator.working_long_side)
     try:
         for start in range(0, len(images), batch_size):

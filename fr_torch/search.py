@@ -560,13 +560,13 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     centre = _log_focal(params.to(device=device, dtype=torch.float64))
     points = _exp_focal(centre[:, None, :] + LATTICE.to(device) * step)  # (B, 81, 4)
     scores = score_grid(likelihood, features, points, max_chunk_elements, vertical_block=3)
-    fit = _QUADRATIC_FIT.to(device).T
+    fit = _QUADRATIC_FIT.to(device).T  # (81, 15)
     coef = scores.to(torch.float64) @ fit  # (B, 15)
     hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(batch, 4, 4)
     # The prior's curvature over the same lattice, fitted the same way (exact for the log-normal;
     # a flat-topped prior has none inside its band and part of it at the band's edge).
     prior_values = likelihood.focal_prior(features, points[..., 3].to(features.weight.dtype))[0]
-    prior_hessian = (prior_values.to(torch.float64) @ fit)[:, _HESSIAN_COLUMNS[15].item()]  # H_33, lattice units
+    prior_hessian = prior_values.to(torch.float64) @ fit[:, _HESSIAN_COLUMNS[15].item()]  # H_33, lattice units
     hessian[:, 3, 3] -= prior_hessian  # the likelihood's Hessian alone (lattice units)
     prior = (-prior_hessian / step[3] ** 2).clamp_min(0.0)  # per (log f)^2
     angles, focal_row = hessian[:, :3, :3], hessian[:, :3, 3:]

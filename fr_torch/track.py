@@ -165,7 +165,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CPU: calibrate frames in N single-threaded worker processes, in order; GPU: "
                              "N processes decode and detect frames ahead of the search (default 0: this "
                              "process; worth it for long videos on many cores)")
-    add_estimator_arguments(parser)  # --fast, --measure, --detector, --likelihood, --hfov-range, --device
+    add_estimator_arguments(parser)  # the estimator options shared with fr calibrate and fr batch
     parser.add_argument("--memory", type=float, default=30.0, help="fusion memory in accepted frames (forgetting)")
     parser.add_argument("--change-k", type=float, default=3.0, help="camera-moved threshold in predicted sigmas")
     parser.add_argument("--patience", type=int, default=2,
