@@ -1,4 +1,4 @@
-"""Baseline calibration methods behind the common :class:`fr_torch.interface.Calibrator` interface.
+"""Baseline calibration methods behind the common :class:`fr_torch.plugins.interface.Calibrator` interface.
 
 They are found by name through the entry points of group ``fr_torch.calibrators`` declared in
 pyproject.toml, exactly like a third-party plug-in: ``lee2009`` (orthogonal VP triplet over a focal

@@ -5,7 +5,7 @@ Line-Classification", ICCV 2021.  The network itself is not re-implemented: the 
 official checkpoint to ONNX with ``fr export-ctrlc`` (:mod:`fr_baselines.export_ctrlc_onnx`) and points this adapter at
 the file (constructor argument ``onnx_path`` or environment variable ``FR_CTRLC_ONNX``).  Without
 weights the method is listed but ``available`` is False and every estimate is a flagged failure
-with an "n/a (not supplied: ...)" reason (:func:`fr_torch.registry.not_supplied`).
+with an "n/a (not supplied: ...)" reason (:func:`fr_torch.plugins.registry.not_supplied`).
 
 ONNX contract (what the export script produces)
 -----------------------------------------------
@@ -36,7 +36,7 @@ the vertical field of view.)  The vertical direction in the camera frame (x righ
 z forward) is ``(x_z, y_z, f_n w_z)`` for ``pred_zvp = (x_z, y_z, w_z)``; its sign is not
 predicted, so we take the one pointing *up* (negative camera-y component), which is world-up
 without needing ground truth.  Roll, tilt and pitch follow from it with the project's horizon
-definitions (:func:`fr_torch.camera.horizon_angles`).  CTRL-C estimates no pan, so ``rotation``
+definitions (:func:`fr_torch.core.camera.horizon_angles`).  CTRL-C estimates no pan, so ``rotation``
 and ``pan_deg`` are None (an upright-consistent rotation with pan 0 is in
 ``extra["rotation_pan0"]``); roll / tilt are reported directly.
 """
@@ -50,10 +50,11 @@ import cv2
 import numpy as np
 import torch
 
-from fr_torch.camera import Camera, hfov_from_focal, horizon_angles, image_centre
-from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
-from fr_torch.registry import not_supplied
-from fr_torch.segments import FRInputError, to_bgr8
+from fr_torch.core.camera import Camera, hfov_from_focal, horizon_angles, image_centre
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
+from fr_torch.plugins.registry import not_supplied
+from fr_torch.errors import FRInputError
+from fr_torch.images.convert import to_bgr8
 
 from . import vp_geometry as vg
 

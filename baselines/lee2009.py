@@ -13,7 +13,7 @@ reasoning of the paper is not needed for calibration):
    length of segments within ``inlier_deg`` wins and is refined by least squares
    (:func:`fr_baselines.vp_geometry.vertical_vp`).
 3. Focal sweep: ``n_focal`` focal lengths, log-spaced so that the horizontal field of view of the
-   image's *long side* spans ``hfov_range_deg`` (so the sweep scales with the image size; default:
+   image's *long side* spans ``range`` (a :class:`~fr_torch.core.fov.FovRange` or anything its ``parse`` takes) (so the sweep scales with the image size; default:
    fR's library default range, ``configs/search.json``; option ``lee2009[range=paper]`` or
    ``range=MIN:MAX``, and ``fr eval --hfov-range`` sets it for every method of a table).  For
    each focal the vertical VP fixes the horizon; every other segment's line meets the horizon in
@@ -39,10 +39,10 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from fr_torch.camera import Camera, focal_from_hfov
-from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
-from fr_torch.search import search_fov_range
-from fr_torch.segments import FRInputError
+from fr_torch.core.camera import Camera, focal_from_hfov
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
+from fr_torch.core.fov import FovRange
+from fr_torch.errors import FRInputError
 
 from . import vp_geometry as vg
 
@@ -52,13 +52,13 @@ class Lee2009(TimedCalibrator):
 
     name = "lee2009"
 
-    def __init__(self, n_focal: int = 64, hfov_range_deg=None, range=None,
+    def __init__(self, n_focal: int = 64, range=None,
                  inlier_deg: float = 2.0, vertical_max_deg: float = 30.0, min_length_frac: float = 0.02,
                  min_segments: int = 8, min_support: int = 3, refine: bool = True,
                  theta_step_deg: float = 0.25, max_hypothesis_segments: int = 200,
                  max_voting_segments: int = 1000):
         self.n_focal = int(n_focal)
-        self.hfov_range_deg = search_fov_range(range if range is not None else hfov_range_deg)
+        self.fov_range = FovRange.parse(range)
         self.inlier_deg = float(inlier_deg)
         self.vertical_max_deg = float(vertical_max_deg)
         self.min_length_frac = float(min_length_frac)
@@ -71,9 +71,9 @@ class Lee2009(TimedCalibrator):
 
     # ------------------------------------------------------------------ steps
     def focal_sweep(self, width: int, height: int) -> np.ndarray:
-        """Focal lengths (pixels) of the sweep: long-side hfov over ``hfov_range_deg``, log-spaced."""
+        """Focal lengths (pixels) of the sweep: long-side hfov over ``range`` (a :class:`~fr_torch.core.fov.FovRange` or anything its ``parse`` takes), log-spaced."""
         long_side = max(width, height)
-        low, high = self.hfov_range_deg
+        low, high = self.fov_range
         return np.geomspace(focal_from_hfov(high, long_side), focal_from_hfov(low, long_side), self.n_focal)
 
     def _estimate(self, image, meta: ImageMeta) -> CameraEstimate:

@@ -39,7 +39,7 @@ VPs"); the roll, which the zenith alone determines, and the detected VPs are kep
 share of images with a valid (focal + rotation) result, as the brief requires.  Bad input, too few
 segments and no zenith are flagged failures too.
 
-**Focal range.**  Long-side FOV in ``hfov_range_deg`` (default: fR's library default range,
+**Focal range.**  Long-side FOV in ``range`` (a :class:`~fr_torch.core.fov.FovRange` or anything its ``parse`` takes) (default: fR's library default range,
 ``configs/search.json``; option ``simon2018[range=paper]`` or ``range=MIN:MAX``; ``fr eval
 --hfov-range`` sets it for every method of a table).
 """
@@ -50,10 +50,10 @@ import math
 import numpy as np
 from scipy.stats import binom
 
-from fr_torch.camera import Camera, focal_from_hfov
-from fr_torch.interface import CameraEstimate, ImageMeta, TimedCalibrator
-from fr_torch.search import search_fov_range
-from fr_torch.segments import FRInputError
+from fr_torch.core.camera import Camera, focal_from_hfov
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
+from fr_torch.core.fov import FovRange
+from fr_torch.errors import FRInputError
 
 from . import vp_geometry as vg
 
@@ -119,7 +119,7 @@ class Simon2018(TimedCalibrator):
     def __init__(self, vertical_max_deg: float = 30.0, inlier_deg: float = 1.5, align_deg: float = 2.0,
                  min_length_frac: float = 0.02, min_segments: int = 8, n_offset_bins: int = 64,
                  n_angle_bins: int = 180, max_mode_deg: float = 10.0, n_prior: int = 48,
-                 hfov_range_deg=None, range=None, finite_limit: float = 20.0,
+                 range=None, finite_limit: float = 20.0,
                  zenith_tol_deg: float = 5.0, nfa_eps: float = 1.0, min_support: int = 3,
                  n_refine: int = 3, n_fine: int = 9):
         self.vertical_max_deg = float(vertical_max_deg)
@@ -131,7 +131,7 @@ class Simon2018(TimedCalibrator):
         self.n_angle_bins = int(n_angle_bins)
         self.max_mode_deg = float(max_mode_deg)
         self.n_prior = int(n_prior)
-        self.hfov_range_deg = search_fov_range(range if range is not None else hfov_range_deg)
+        self.fov_range = FovRange.parse(range)
         self.finite_limit = float(finite_limit)
         self.zenith_tol_deg = float(zenith_tol_deg)
         self.nfa_eps = float(nfa_eps)
@@ -222,7 +222,7 @@ class Simon2018(TimedCalibrator):
     # ------------------------------------------------------------------ horizon candidates
     def _focal_range(self, width, height):
         long_side = max(width, height)
-        low, high = self.hfov_range_deg
+        low, high = self.fov_range
         return focal_from_hfov(high, long_side), focal_from_hfov(low, long_side)
 
     def _hl_candidates(self, seg_h, pp, n, zenith_dist, width, height) -> list[float]:

@@ -17,7 +17,7 @@ and ``<out>/scaling.png`` (default ``results/bench``):
    k=4 grid to keep it short: memory does not depend on k, since the grid is chunked).
 4. **Scaling**: time against the number of segments (100 ... 5000) and the grid size k (4 ... 12).
 5. **CPU parallelism**: images/s given segments (batch 64) with T intra-op threads vs W
-   single-threaded worker processes (:func:`fr_torch.pipeline.calibrate_segments_sharded`),
+   single-threaded worker processes (:func:`fr_torch.runtime.pipeline.calibrate_segments_sharded`),
    for T, W in 1, 2, 4, 8, cores.
 6. **Work outside the search**: ms per image of ``calibrate_segments`` on a large batch with a
    minimal search (k = 2 grid, one start, no sweep or passes, one refinement step): input checks, the
@@ -54,6 +54,8 @@ Run ``fr bench [--quick] [--device cuda] [--out DIR] [--threads T]`` or ``python
 """
 from __future__ import annotations
 
+from fr_torch.cli.options import add_device_arguments
+
 import argparse
 import json
 import os
@@ -68,7 +70,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fr_torch.workers import usable_cores
+from fr_torch.runtime.workers import usable_cores
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "results" / "bench"
@@ -78,7 +80,8 @@ SECTIONS = ("device", "latency", "parallel", "cpu", "memory", "scaling")  # --se
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quick", action="store_true", help="tiny smoke run (CI): a few seconds")
-    parser.add_argument("--device", default="auto", help="cpu, cuda or auto (cuda when available; CPU is always measured)")
+    add_device_arguments(parser, default="auto", device_help="cpu, cuda or auto (cuda when available; CPU is always "
+                                                             "measured)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (default 1: on a shared machine multi-threaded torch ops stall "
@@ -155,7 +158,7 @@ def machine_description(device: str) -> dict:
 
 def _segments(n: int, seed: int = 0) -> np.ndarray:
     """About n synthetic segments of a 640x480 Manhattan scene (70 % Manhattan, 30 % clutter)."""
-    from fr_torch.camera import focal_from_hfov, rotation_from_angles
+    from fr_torch.core.camera import focal_from_hfov, rotation_from_angles
     from fr_torch.synthetic import synthetic_segments
 
     rng = np.random.default_rng(seed)
@@ -174,7 +177,7 @@ def _estimator(mode: str, device: str = "cpu", k: int | None = None, compile_sea
     """The estimator of a bench row; ``reliability=False``: no reliability stage (and so, in fR, no
     ``focal_profile_gap`` cue: ``fr batch --no-reliability``)."""
     from fr_torch import FREstimator
-    from fr_torch.search import SearchConfig
+    from fr_torch.core.config import SearchConfig
 
     config = SearchConfig.from_config(compile_search=compile_search, **({"grid_points_per_dim": k} if k else {}))
     return FREstimator(mode=mode, device=device, search_config=config, **({} if reliability else {"reliability": None}))
@@ -243,7 +246,8 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
                compile_search: bool = False) -> list[dict]:
     """Latency of calibrate_images on single images (batch 1), per stage, medians (ms);
     ``compile_search``: also each mode with the compiled search (after its compiling warm-up)."""
-    from fr_torch.segments import get_detector, load_image, to_gray8
+    from fr_torch.detectors.registry import get_detector
+    from fr_torch.images.convert import load_image, to_gray8
 
     rows = []
     detector = get_detector("lsd")
@@ -329,15 +333,15 @@ GPU_FP32_PEAK = {"H100": 66.9e12, "H200": 66.9e12}
 def grid_kernel(device: str, batch: int, n_segments: int, repeats: int, progress,
                 compile_search: bool = False) -> dict | None:
     """Stage 1 alone: the 8^4 grid of ``batch`` images x ``n_segments`` segments scored by
-    :func:`fr_torch.search.score_grid`, eager or compiled.  Reports deviations per second
+    :func:`fr_torch.core.search.score_grid`, eager or compiled.  Reports deviations per second
     (B x G x N x 3, the nominal count) and, on a GPU of :data:`GPU_FP32_PEAK`, the fraction of its
     FP32 peak that :data:`FLOPS_PER_DEVIATION` per deviation amounts to."""
     import torch
 
-    from fr_torch.camera import image_centre
-    from fr_torch.likelihood import SegmentFeatures
-    from fr_torch.search import grid_hypotheses, score_grid
-    from fr_torch.segments import SegmentBatch
+    from fr_torch.core.camera import image_centre
+    from fr_torch.core.likelihood import SegmentFeatures
+    from fr_torch.core.search import grid_hypotheses, score_grid
+    from fr_torch.core.segments import SegmentBatch
 
     label = f"grid kernel {device} {'compiled' if compile_search else 'eager'}"
     if progress.out_of_time(label):
@@ -372,12 +376,12 @@ def outside_search(batch: int, n_segments: int, device: str, repeats: int, progr
     minimal search (k = 2, one start, no focal sweep, no passes, one step), default reliability
     stage included."""
     from fr_torch import FREstimator
-    from fr_torch.search import SearchConfig
+    from fr_torch.core.config import SearchConfig
 
     if progress.out_of_time(f"outside-search {device}"):
         return None
     config = SearchConfig.from_config(grid_points_per_dim=2, top_l=1, focal_sweep_points=0, grid_passes=0,
-                                      refine_iterations_fast=1)
+                                      refine_iterations=1)
     est = FREstimator(mode="fast", device=device, search_config=config)
     pool = [_segments(n_segments, seed=i) for i in range(8)]
     segs, sizes = [pool[i % len(pool)] for i in range(batch)], [(640, 480)] * batch
@@ -391,10 +395,10 @@ def outside_search(batch: int, n_segments: int, device: str, repeats: int, progr
 
 def parallel_scaling(counts, batch: int, n_segments: int, repeats: int, progress, modes=("fast", "fr")) -> list[dict]:
     """CPU images/s given segments with T intra-op threads (one process) and with W single-threaded
-    worker processes (:func:`fr_torch.pipeline.calibrate_segments_sharded`, pool started before timing)."""
+    worker processes (:func:`fr_torch.runtime.pipeline.calibrate_segments_sharded`, pool started before timing)."""
     import torch
 
-    from fr_torch.pipeline import calibrate_segments_sharded, worker_pool
+    from fr_torch.runtime.pipeline import calibrate_segments_sharded, worker_pool
 
     pool = [_segments(n_segments, seed=i) for i in range(8)]
     segs = [pool[i % len(pool)] for i in range(batch)]
@@ -516,7 +520,7 @@ def _peak_rss() -> float:
     return float(peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
-_PROBE = "import sys; from fr_torch.registry import load_object; sys.exit(load_object('fr_eval.bench:main')())"
+_PROBE = "import sys; from fr_torch.plugins.registry import load_object; sys.exit(load_object('fr_eval.bench:main')())"
 
 
 def memory(settings, threads: int | None, progress) -> list[dict]:
@@ -678,7 +682,7 @@ def _markdown(report: dict) -> str:
     if report.get("parallel"):
         lines += ["## CPU parallelism (given segments, images/s)", "",
                   "T intra-op threads in one process vs W single-threaded worker processes "
-                  "(`fr_torch.pipeline.calibrate_segments_sharded`); batch "
+                  "(`fr_torch.runtime.pipeline.calibrate_segments_sharded`); batch "
                   f"{report['parallel'][0]['batch']} x {report['parallel'][0]['segments']} segments.", "",
                   "| mode | kind | count | images/s | ms/image | speed-up vs 1 |", "|---|---|---|---|---|---|"]
         base = {(r["mode"], r["kind"]): r["images_per_s"] for r in report["parallel"] if r["count"] == 1}
@@ -822,7 +826,7 @@ def run(args: argparse.Namespace) -> int:
 
     import cv2
 
-    from fr_torch.camera import focal_from_hfov, rotation_from_angles
+    from fr_torch.core.camera import focal_from_hfov, rotation_from_angles
     from fr_torch.synthetic import render_manhattan_room
 
     tmp = tempfile.TemporaryDirectory()

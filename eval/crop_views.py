@@ -31,8 +31,8 @@ import torch
 
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.datasets.registry import load_dataset
-from fr_torch.camera import hfov_from_focal, pan_from_rotation
-from fr_torch.segments import load_image
+from fr_torch.core.camera import hfov_from_focal, pan_from_rotation
+from fr_torch.images.convert import load_image
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -47,7 +47,7 @@ def _size(text: str) -> tuple[int, int]:
 
 def crop_origin(principal_point: tuple[float, float], size: tuple[int, int]) -> tuple[int, int]:
     """Top-left pixel (x0, y0) of the ``size`` = (width, height) crop whose centre (w/2, h/2) lies
-    nearest to ``principal_point`` (pixels, the convention of :func:`fr_torch.camera.image_centre`)."""
+    nearest to ``principal_point`` (pixels, the convention of :func:`fr_torch.core.camera.image_centre`)."""
     return int(round(principal_point[0] - size[0] / 2)), int(round(principal_point[1] - size[1] / 2))
 
 

@@ -8,7 +8,7 @@ scene).  For each method (``fr``, ``fast-fr``) the estimates of the CSV (``fr ev
 predictions, which carry the cues) are fused three ways, each a weighted mean of ``ln f``:
 
 * ``unweighted``: every estimate counts the same;
-* ``paper cues``: weights ``1 / s^2`` from :meth:`fr_torch.fusion.OnlineCalibrator.frame_sigmas`
+* ``paper cues``: weights ``1 / s^2`` from :meth:`fr_torch.video.fusion.OnlineCalibrator.frame_sigmas`
   (``fr track``'s rule), s from the focal error predicted by a model of the paper's three cues,
   trained here exactly as the shipped one (``fr train-reliability``: the same cached train records
   of the shipped model's training datasets, ``--records``, same K search) but with
@@ -31,8 +31,8 @@ import numpy as np
 import pandas as pd
 
 from fr_eval.reliability_train import DEFAULT_RECORDS, fit_model, usable
-from fr_torch.fusion import OnlineCalibrator
-from fr_torch.reliability import PAPER_CUE_NAMES, ReliabilityModel
+from fr_torch.video.fusion import OnlineCalibrator
+from fr_torch.core.reliability import PAPER_CUE_NAMES, ReliabilityModel
 
 MODES = {"fr": "fr", "fast-fr": "fast"}
 

@@ -7,7 +7,7 @@ For every number of copies of the 102 photos (a folder of 102 x c paths), mode a
 setting, runs ``fr calibrate [--fast] --workers W PATHS...`` as a new process (start-up, model
 loading, decode, LSD, search and JSON output included), ``--rounds`` times one after the other,
 and reports seconds per round and images/s from their mean.  ``default`` leaves ``--workers``
-unset (:func:`fr_torch.workers.default_workers`).  Also checks that every setting gives the same
+unset (:meth:`fr_torch.runtime.device.DevicePolicy.default_workers`).  Also checks that every setting gives the same
 focal lengths as in-process (``--workers 0``).  ``--device cuda`` times ``fr calibrate --device
 cuda`` (workers then decode and detect while the process searches on the GPU; results/bench/h100);
 ``--extra`` passes more options (``--compile``).  Run it on an idle machine.
@@ -24,7 +24,9 @@ from pathlib import Path
 
 from fr_eval.bench import machine_description
 from fr_eval.paths import data_root
-from fr_torch.workers import default_workers, usable_cores
+from fr_torch.cli.options import add_device_arguments
+from fr_torch.runtime.device import DevicePolicy
+from fr_torch.runtime.workers import usable_cores
 
 MODES = {"fast": ["--fast"], "fr": []}
 
@@ -50,7 +52,7 @@ def main(argv=None) -> int:
     parser.add_argument("--modes", default="fast,fr")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--data-root", default=None)
-    parser.add_argument("--device", default="cpu", help="fr calibrate's --device (cpu or cuda)")
+    add_device_arguments(parser, device_help="fr calibrate's --device (cpu or cuda)")
     parser.add_argument("--extra", default="", help="more fr calibrate options, e.g. '--compile'")
     parser.add_argument("--out", type=Path, default=None, help="write the Markdown table here")
     args = parser.parse_args(argv)
@@ -69,7 +71,7 @@ def main(argv=None) -> int:
                     runs.append(seconds)
                     reference = reference if reference is not None else focal
                     same = focal == reference
-                shown = workers if workers != "default" else f"default ({default_workers(len(paths), args.device)})"
+                shown = workers if workers != "default" else f"default ({DevicePolicy.parse(args.device).default_workers(len(paths))})"
                 row = {"images": len(paths), "mode": mode, "workers": shown, "seconds": runs,
                        "images_per_s": len(paths) / (sum(runs) / len(runs)), "same_as_in_process": same}
                 rows.append(row)

@@ -7,10 +7,10 @@ of upright (gravity-aligned) equirectangular panoramas (or 6-face cube maps, one
 * per panorama ``--views-per-pano`` views (default 15): with ``--fovs 60,75,90,105,120`` (default)
   an equal number of views per horizontal FOV (3 x 5 = 15), or ``--uniform-fov 60:120``;
 * per view pan ~ U[-180, 180], pitch ~ U[-30, 30], roll ~ U[-10, 10] degrees, with
-  ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (:func:`fr_torch.camera.rotation_from_angles`).  The paper's
+  ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (:func:`fr_torch.core.camera.rotation_from_angles`).  The paper's
   "tilt ~ U[-30, 30]" is applied to the **pitch** (elevation of the optical axis); the
   ground truth stores both the paper's horizon tilt (``tan tilt = tan pitch / cos roll``) and the
-  pitch, both computed with :func:`fr_torch.camera.horizon_angles` from the final R, exactly as
+  pitch, both computed with :func:`fr_torch.core.camera.horizon_angles` from the final R, exactly as
   the estimator defines them;
 * rendering: :mod:`fr_eval.panorama` (tensor ``grid_sample``, principal point exactly (w/2, h/2)).
 
@@ -53,6 +53,8 @@ The HorizonNet/PanoContext demo (already Manhattan-aligned) is built with ``--al
 """
 from __future__ import annotations
 
+from fr_torch.cli.options import add_device_arguments
+
 import argparse
 import json
 import math
@@ -68,7 +70,7 @@ import torch
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.panorama import (cubemap_to_equirect, load_cubemap, load_panorama, render_views, save_rgb,
                            yaw_rotation)
-from fr_torch.camera import focal_from_hfov, horizon_angles, image_centre, intrinsics, rotation_from_angles
+from fr_torch.core.camera import focal_from_hfov, horizon_angles, image_centre, intrinsics, rotation_from_angles
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 ZIND_WIDTH = 2048  # the width at which ZInD's u_px_of_one_manhattan_axis is given
@@ -185,13 +187,13 @@ def yaw_check(pano: np.ndarray, yaw_deg: float, search_deg: float = 45.0, step_d
     """Measure the room's Manhattan yaw from LSD segments in level views; compare with ``yaw_deg``.
 
     Renders 8 level views (pan 0, 45, ..., 315 in the room frame built from ``yaw_deg``), detects
-    LSD segments (:func:`fr_torch.segments.detect_segments`) and, for each yaw offset ``delta`` in
+    LSD segments (:func:`fr_torch.detectors.registry.detect_segments`) and, for each yaw offset ``delta`` in
     [-search, search), counts the total length of segments whose direction points (within
     ``inlier_deg``) at one of the two horizontal vanishing points ``K R(delta) e_x``, ``K R(delta)
     e_z``.  Returns the best offset (0 = the given yaw is right; it is only defined modulo 90) and
     the inlier length ratio best / at-0.
     """
-    from fr_torch.segments import detect_segments
+    from fr_torch.detectors.registry import detect_segments
 
     w, h = size
     f = focal_from_hfov(hfov_deg, w)
@@ -315,7 +317,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--roll-range", type=_parse_range, default=(-10.0, 10.0), metavar="MIN:MAX")
     parser.add_argument("--interp", choices=("bilinear", "bicubic"), default="bilinear")
     parser.add_argument("--format", choices=("jpg", "png"), default="jpg", help="view image format (jpg = quality 95)")
-    parser.add_argument("--device", default="cpu")
+    add_device_arguments(parser)
     parser.add_argument("--check-yaw", action="store_true",
                         help="measure each Manhattan pano's yaw with LSD and write yaw_check.csv")
     parser.add_argument("--sheet-views", type=int, default=15, help="views on the contact sheet")
@@ -414,7 +416,7 @@ def run(args: argparse.Namespace) -> int:
         "principal_point": "(w/2, h/2), pixel (0,0) centre at (0,0)",
         "rotation": "world->camera, room Manhattan frame when manhattan_known else panorama frame; "
                     "R.T = Ry(pan) Rx(pitch) Rz(roll); vertical (down) in column 1",
-        "angles": "the sampled range applies to the pitch; tilt/roll/pitch in gt.csv from fr_torch.camera.horizon_angles",
+        "angles": "the sampled range applies to the pitch; tilt/roll/pitch in gt.csv from fr_torch.core.camera.horizon_angles",
         "summary": summary, "seconds": round(time.time() - t0, 1),
     }
     (out / "dataset.json").write_text(json.dumps(meta, indent=2))

@@ -3,7 +3,7 @@
 Per image (``image_errors``):
 
 * ``roll_err_deg`` / ``tilt_err_deg``: ``|est - gt|`` in degrees, both angles with the paper's
-  horizon definitions (:func:`fr_torch.camera.horizon_angles`; an estimate that only gives a
+  horizon definitions (:func:`fr_torch.core.camera.horizon_angles`; an estimate that only gives a
   rotation gets its roll / tilt from it).
 * ``fov_err_pct``: ``100 |hfov_est - hfov_gt| / hfov_gt``; ``focal_err_pct``:
   ``100 |f_est - f_gt| / f_gt`` (normalised by the ground truth).  An estimate giving only one of
@@ -28,16 +28,14 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from fr_torch.camera import (MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal,  # noqa: F401
-                             manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg,
-                             rotation_angles)
+from fr_torch.core.camera import MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal, manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg, rotation_angles  # noqa: F401
 
-from fr_torch.registry import NA_PREFIX, NOT_SUPPLIED, is_not_supplied  # noqa: F401  (the one marker)
+from fr_torch.plugins.registry import NA_PREFIX, NOT_SUPPLIED, is_not_supplied  # noqa: F401  (the one marker)
 
 METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
 
 
-_G24 = MANHATTAN_SYMMETRIES  # the 24 proper signed permutations (fr_torch.camera)
+_G24 = MANHATTAN_SYMMETRIES  # the 24 proper signed permutations (fr_torch.core.camera)
 proper_signed_permutations = manhattan_symmetries
 
 
@@ -85,7 +83,7 @@ def _finite(x) -> float | None:
 def estimate_quantities(est: Any, width: int) -> dict[str, Any]:
     """roll / tilt / pitch / hfov / focal / rotation of an estimate, derived where possible.
 
-    ``est`` is a :class:`fr_torch.interface.CameraEstimate` (or dict with the same keys).  Roll and
+    ``est`` is a :class:`fr_torch.plugins.interface.CameraEstimate` (or dict with the same keys).  Roll and
     tilt come from the estimate's own fields if given, else from its rotation; focal and hfov are
     converted into each other with the image width.
     """
@@ -224,7 +222,7 @@ class Summary:
 
 def all_not_supplied(rows: Sequence[dict[str, Any]]) -> bool:
     """True when every row failed with an "n/a (...)" reason (weights / predictions absent; see
-    :func:`fr_torch.registry.not_supplied`)."""
+    :func:`fr_torch.plugins.registry.not_supplied`)."""
     return bool(rows) and all(r.get("failed") and is_not_supplied(r.get("reason")) for r in rows)
 
 

@@ -1,7 +1,7 @@
 """Equirectangular (and cube-map) panoramas -> pinhole views with exactly known K and R.
 
 Everything here is tensor code (``torch.nn.functional.grid_sample``), batched over views and
-runnable on CPU or CUDA.  Conventions follow :mod:`fr_torch.camera`; in addition:
+runnable on CPU or CUDA.  Conventions follow :mod:`fr_torch.core.camera`; in addition:
 
 Panorama world frame
 --------------------
@@ -31,7 +31,7 @@ Room (Manhattan) frame and ``manhattan_yaw_deg``
 ``manhattan_yaw_deg`` is the **longitude of one horizontal Manhattan axis** in the panorama
 frame (any of the four, they differ by 90 deg).  The room frame is the pano frame turned right by
 that yaw about the vertical: ``d_pano = Ry(yaw) @ d_room`` with ``Ry`` the active rotation of
-:func:`fr_torch.camera.rotation_from_angles` (``Ry(a) @ e_z`` has longitude ``a``).  So the room's
+:func:`fr_torch.core.camera.rotation_from_angles` (``Ry(a) @ e_z`` has longitude ``a``).  So the room's
 z axis is at longitude ``yaw`` and its x axis at ``yaw + 90``.  Rotations handed to
 :func:`render_views` are world->camera **in the room frame** (``X_cam = R @ X_room``); the
 renderer uses ``R_pano = R @ Ry(yaw).T``.  With yaw = 0 the room frame is the pano frame.
@@ -64,7 +64,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fr_torch.camera import image_centre, intrinsics, rotation_from_angles
+from fr_torch.core.camera import image_centre, intrinsics, rotation_from_angles
 
 __all__ = [
     "to_chw_float",

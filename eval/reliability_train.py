@@ -11,11 +11,11 @@ Examples::
 
 What is recorded per image (one CSV row, cached under ``--records``, default
 ``results/reliability/records/<dataset>_<split>_<mode>.csv``; delete it or pass ``--no-cache`` to
-recompute): the cues of :meth:`fr_torch.estimator.FREstimator._cues`, the estimate, the ground
+recompute): the cues of :meth:`fr_torch.runtime.estimator.FREstimator._cues`, the estimate, the ground
 truth and the absolute errors
 
 * ``roll_err_deg`` = ``|roll_est - roll_gt|`` and ``tilt_err_deg`` = ``|tilt_est - tilt_gt|``, both
-  angles with the paper's horizon definitions (:func:`fr_torch.camera.horizon_angles`; the same
+  angles with the paper's horizon definitions (:func:`fr_torch.core.camera.horizon_angles`; the same
   numbers as ``eval/metrics.py``);
 * ``focal_err_pct`` = ``100 |f_est - f_gt| / f_gt``.
 
@@ -44,9 +44,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from fr_torch.camera import focal_from_hfov, rotation_angles
-from fr_torch.reliability import (CUE_NAMES, ERROR_COLUMNS, MODEL_CUE_NAMES, PAPER_CUE_NAMES, ReliabilityModel,
-                                  model_cue_names)
+from fr_torch.core.camera import focal_from_hfov, rotation_angles
+from fr_torch.core.reliability import CUE_NAMES, ERROR_COLUMNS, MODEL_CUE_NAMES, PAPER_CUE_NAMES, ReliabilityModel, model_cue_names
 from fr_torch.resources import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -80,7 +79,7 @@ def dataset_records(dataset: str, split: str, mode: str, data_root=None, batch_s
 
     from fr_eval.datasets.registry import load_dataset
 
-    from fr_torch.estimator import FREstimator
+    from fr_torch.runtime.estimator import FREstimator
 
     samples = load_dataset(dataset, root=data_root, split=split)
     samples = [s for s in samples if s.focal_px and s.roll_deg is not None and s.tilt_deg is not None]
@@ -112,7 +111,7 @@ def synthetic_records(count: int, mode: str, seed: int = 0, batch_size: int = 8,
     """``count`` synthetic scenes of random camera and difficulty (see the module docstring)."""
     from tqdm import tqdm
 
-    from fr_torch.estimator import FREstimator
+    from fr_torch.runtime.estimator import FREstimator
     from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
     rng = np.random.default_rng(seed)
@@ -221,7 +220,7 @@ def reliability_table(frame: pd.DataFrame, predicted: np.ndarray, rank_by: str, 
     (sum of the three predicted errors each divided by ``scales`` -- by default the model's
     thresholds -- i.e. the largest share of its threshold).
     """
-    from fr_torch.reliability import TARGETS
+    from fr_torch.core.reliability import TARGETS
 
     if rank_by == "combined":
         scales = np.asarray(scales if scales is not None else [1.0, 1.0, 1.0], float)
@@ -243,7 +242,7 @@ def reliability_table(frame: pd.DataFrame, predicted: np.ndarray, rank_by: str, 
 def spearman(predicted: np.ndarray, frame: pd.DataFrame) -> dict[str, float]:
     from scipy.stats import spearmanr
 
-    from fr_torch.reliability import TARGETS
+    from fr_torch.core.reliability import TARGETS
 
     actual = frame[list(ERROR_COLUMNS)].to_numpy(float)
     return {t: float(spearmanr(predicted[:, j], actual[:, j]).statistic) for j, t in enumerate(TARGETS)}

@@ -25,8 +25,8 @@ from fr_eval.bench import machine_description
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.metrics import failure_reason, image_errors, is_failure, mean_se
 from fr_torch import FREstimator
-from fr_torch.image_io import WORKING_LONG_SIDE
-from fr_torch.segments import load_image
+from fr_torch.images.io import WORKING_LONG_SIDE
+from fr_torch.images.convert import load_image
 
 METRICS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct", "frame_err_deg")
 
@@ -95,7 +95,7 @@ def main(argv=None) -> int:
     failed = [f"- {k}x: " + "; ".join(names) for k, names in failed_at.items() if names]
     if failed:
         lines += ["", "Failed estimates (counted in `valid`, left out of the means):", ""] + failed
-    low, high = estimator.search.hfov_range_deg
+    low, high = estimator.search.fov_range
     machine = machine_description("cpu")
     command = " ".join(argv if argv is not None else sys.argv[1:])
     lines += ["", f"Command: `python -m fr_eval.resolution_check {command}` (YUD {args.split}, bicubic upscaling; "

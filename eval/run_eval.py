@@ -6,11 +6,11 @@ Example::
     fr eval --dataset yud --methods fr --measures a,b,c,d,e      # the deviation-measure table
     fr eval --dataset yud --methods "fr,fr@labelled,my_pkg.mod:MyCalibrator" --pp calibrated
     fr eval --dataset zind-fr --methods all                        # every registered method, per-FOV table
-    fr eval --dataset yud --methods "fr,fr[range=paper],lee2009,lee2009[range=paper]" --hfov-range 30,120
+    fr eval --dataset yud --methods "fr,fr[range=paper],lee2009,lee2009[range=paper]" --fov-range 30,120
 
-Methods are anything :func:`fr_torch.interface.get_calibrator` accepts (registered names,
+Methods are anything :func:`fr_torch.plugins.interface.get_calibrator` accepts (registered names,
 ``module:attr`` import paths, configuration variants such as ``fr[measure=a]`` passed through
-verbatim); ``all`` expands to every registered method (:func:`fr_torch.interface.available_methods`),
+verbatim); ``all`` expands to every registered method (:func:`fr_torch.plugins.interface.available_methods`),
 oracle methods included only on datasets with hand-labelled segments.  A ``@labelled`` suffix feeds that method the dataset's hand-labelled segments
 (``meta.segments``; oracle run); methods named ``oracle*`` (``oracle-fr``) always get them.  Every method also finds them in
 ``meta.extra["labelled_segments"]`` / ``meta.extra["labelled_segment_labels"]`` when the dataset has
@@ -64,20 +64,21 @@ from fr_eval.metrics import (NA_PREFIX, estimate_quantities, failure_reason, ima
 from fr_eval.paths import REPO
 from fr_eval.plots import distributions_figure, histogram_figure, safe_name
 from fr_eval.tables import deviation_measure_summaries, parse_method_spec, with_option, write_tables
-from fr_torch.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
-from fr_torch.registry import split_method_list
-from fr_torch.search import search_fov_range
-from fr_torch.segments import load_image
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
+from fr_torch.plugins.registry import split_method_list
+from fr_torch.cli.options import add_device_arguments, add_fov_range_argument
+from fr_torch.core.fov import FovRange
+from fr_torch.images.convert import load_image
 
 LABELLED_SUFFIX = "@labelled"
 ALL_METHODS = "all"
 TABLE_ORDER = ("fr", "fast-fr", "oracle-fr", "lee2009", "simon2018", "hold-geoffroy2018", "ctrlc", "ctrlc-retrained",
                "prior", "external")
 GROUP_METRICS = ("roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct")
-#: Methods that search the focal length: ``--hfov-range`` is given to each of them (as ``range``),
-#: unless the spec sets its own (``[range=...]``, ``[hfov_min=...]``, ``[hfov_max=...]``).
+#: Methods that search the focal length: ``--fov-range`` is given to each of them (as ``range``),
+#: unless the spec sets its own (``[range=...]``).
 FOCAL_SEARCH_METHODS = ("fr", "fast-fr", "oracle-fr", "lee2009", "simon2018")
-RANGE_OPTIONS = ("range", "hfov_min", "hfov_max")
+RANGE_OPTIONS = ("range",)
 AUTO_GROUP_MAX_VALUES = 10
 
 
@@ -153,12 +154,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CTRL-C weights exported by 'fr export-ctrlc' for the ctrlc row (or $FR_CTRLC_ONNX)")
     parser.add_argument("--ctrlc-retrained-onnx", default=None, metavar="ONNX",
                         help="the second CTRL-C training, for the ctrlc-retrained row (or $FR_CTRLC_RETRAINED_ONNX)")
-    parser.add_argument("--device", default="cpu", help="torch device passed to the methods (default cpu)")
-    parser.add_argument("--hfov-range", default=None, metavar="MIN,MAX|paper",
-                        help="FOV search range (degrees, image long side) given to every method that searches "
-                             f"the focal length ({', '.join(FOCAL_SEARCH_METHODS)}) unless its spec sets "
-                             "[range=...]; default: the library default (configs/search.json); 'paper' = 50,130. "
-                             "Stated in every table caption")
+    add_device_arguments(parser, device_help="torch device passed to the methods (default cpu)")
+    add_fov_range_argument(parser, "FOV search range (degrees, image long side) given to every method that "
+                                   f"searches the focal length ({', '.join(FOCAL_SEARCH_METHODS)}) unless its spec "
+                                   "sets [range=...]; default 30,120; 'paper' = 50,130. Stated in every table caption")
     parser.add_argument("--no-plots", action="store_true",
                         help="skip the figures (hist_<method>.png, distributions.png)")
     parser.add_argument("--group-by", default="auto",
@@ -188,7 +187,7 @@ def _dataset_names() -> list[str]:
         return ["yud"]
 
 
-def method_fov_range(spec: str, fov_range: tuple[float, float] | None) -> tuple[float, float] | None:
+def method_fov_range(spec: str, fov_range: FovRange | None) -> FovRange | None:
     """The FOV range ``fr eval`` gives method ``spec``: ``fov_range`` for a focal-searching method
     (:data:`FOCAL_SEARCH_METHODS`) whose spec sets no range option, else None (its own)."""
     base, options = parse_method_spec(_strip_labelled(spec)[0])
@@ -197,7 +196,7 @@ def method_fov_range(spec: str, fov_range: tuple[float, float] | None) -> tuple[
     return fov_range
 
 
-def make_calibrator(spec: str, device: str, fov_range: tuple[float, float] | None = None):
+def make_calibrator(spec: str, device: str, fov_range: FovRange | None = None):
     """Build a method; passes ``device`` to factories that accept it, and the table's FOV search
     range (``range``) to the focal-searching ones (:func:`method_fov_range`)."""
     extra = {}
@@ -422,9 +421,9 @@ def run(args: argparse.Namespace) -> int:
         if getattr(args, option, None):  # the option wins over the environment variable
             os.environ[env] = str(Path(getattr(args, option)).expanduser().resolve())
     try:
-        fov_range = search_fov_range(getattr(args, "hfov_range", None))
+        fov_range = FovRange.parse(getattr(args, "fov_range", None))
     except ValueError as exc:
-        print(f"error: --hfov-range: {exc}", file=sys.stderr)
+        print(f"error: --fov-range: {exc}", file=sys.stderr)
         return 2
     calibrators = {}
     for spec in methods:  # build every method first: a typo fails before hours of work
@@ -490,7 +489,7 @@ def run(args: argparse.Namespace) -> int:
     info = {"argv": sys.argv, "methods": methods, "dataset": args.dataset, "split": args.split,
             "requested_methods": requested, "skipped_methods": skipped, "group_by": group_key,
             "n_images": len(samples), "pp": args.pp, "known_focal": args.known_focal, "device": args.device,
-            "limit": args.limit, "hfov_range_deg": list(fov_range), "python": platform.python_version(),
+            "limit": args.limit, "fov_range_deg": list(fov_range), "python": platform.python_version(),
             # fR's figures move by ~0.1 point between CPUs (last-bit differences of vector maths carried through
             # 100 refinement steps; results/yud/README.md), so a table records the machine it came from.
             "machine": machine_description(args.device), "date": time.strftime("%Y-%m-%d %H:%M:%S")}

@@ -1,7 +1,18 @@
 """fR in PyTorch: reliable single-image estimation of focal length and camera rotation.
 
-Pipeline (one module each): segments -> likelihood -> search -> reliability, wrapped by the
-estimator; conventions in :mod:`fr_torch.camera`.
+Layers, each importing only those below it:
+
+* :mod:`fr_torch.core` -- the tensor engine: camera conventions, settings (FOV range, modes,
+  search configuration), the mixture likelihood, the two-stage search, reliability cues and the
+  error model, and :class:`~fr_torch.core.estimator.SegmentEstimator` over padded segment batches.
+* :mod:`fr_torch.images`, :mod:`fr_torch.detectors` -- decoding untrusted image files, colour
+  conversion, line-segment detectors by name, overlays.
+* :mod:`fr_torch.runtime` -- the public :class:`FREstimator` on images, the decode + detect +
+  search pipeline over worker processes, the device policy, result output.
+* :mod:`fr_torch.batch`, :mod:`fr_torch.video` -- ``fr batch`` jobs (local or Ray) and online
+  recalibration over a video.
+* :mod:`fr_torch.plugins` -- the common calibrator interface and registries; :mod:`fr_torch.cli`
+  -- the ``fr`` command.
 
 The names below are loaded on first use (PEP 562), so ``import fr_torch`` and the command line's
 start-up do not import torch until something needs it.
@@ -12,10 +23,12 @@ import importlib
 
 # public name -> module that defines it
 _EXPORTS = {
-    "VERTICAL_AXIS": "camera", "Camera": "camera", "angles_from_rotation": "camera",
-    "focal_from_hfov": "camera", "hfov_from_focal": "camera", "rotation_from_angles": "camera",
-    "CalibrationResult": "estimator", "FREstimator": "estimator", "calibrate": "estimator",
-    "FRInputError": "segments", "SegmentFilter": "segments", "detect_segments": "segments",
+    "VERTICAL_AXIS": "core.camera", "Camera": "core.camera", "angles_from_rotation": "core.camera",
+    "focal_from_hfov": "core.camera", "hfov_from_focal": "core.camera", "rotation_from_angles": "core.camera",
+    "FovRange": "core.fov", "Mode": "core.config", "SearchConfig": "core.config",
+    "CalibrationResult": "core.estimator", "SegmentEstimator": "core.estimator",
+    "FREstimator": "runtime.estimator", "calibrate": "runtime.estimator", "DevicePolicy": "runtime.device",
+    "FRInputError": "errors", "SegmentFilter": "core.segments", "detect_segments": "detectors.registry",
 }
 __all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"

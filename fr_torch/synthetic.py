@@ -1,14 +1,14 @@
 """Synthetic Manhattan scenes with exactly known camera: segment sets and rendered images.
 
 Used by the tests, the bundled example image and the benchmarks.  Conventions are those of
-:mod:`fr_torch.camera` (R world->camera, world y = down, pixels x right / y down).
+:mod:`fr_torch.core.camera` (R world->camera, world y = down, pixels x right / y down).
 """
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-from .camera import Camera, rotation_from_angles
+from fr_torch.core.camera import Camera, rotation_from_angles
 
 
 def camera_matrix(focal_px: float, width: int, height: int, principal_point=None) -> np.ndarray:

@@ -12,10 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from fr_torch.registry import checkout_packages
-
 REPO = Path(__file__).resolve().parents[1]
-checkout_packages()  # fr_eval / fr_baselines from eval/ and baselines/ when the checkout is not installed
 
 
 def _data_root() -> Path:

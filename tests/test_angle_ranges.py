@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from fr_torch.camera import rotation_from_angles
-from fr_torch.cli import main
-from fr_torch.estimator import FREstimator
-from fr_torch.options import attach_range_values
-from fr_torch.search import SearchConfig, into_box
-from fr_torch.segments import FRInputError
+from fr_torch.cli.main import main
+from fr_torch.cli.options import attach_range_values
+from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.config import SearchConfig
+from fr_torch.core.search import into_box
+from fr_torch.errors import FRInputError
+from fr_torch.runtime.estimator import FREstimator
 from fr_torch.synthetic import synthetic_segments
 
 

@@ -15,17 +15,27 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from fr_torch.camera import focal_from_hfov, horizon_angles, rotation_from_angles
-from fr_torch.interface import Calibrator, CameraEstimate, ImageMeta, available_methods, get_calibrator
-from fr_torch.synthetic import camera_matrix, render_manhattan_room, synthetic_segments
-
 from fr_baselines import vp_geometry as vg
-from fr_baselines.ctrlc import CTRLC, camera_from_ctrlc, preprocess_image, preprocess_lines
+from fr_baselines.ctrlc import (
+    CTRLC,
+    camera_from_ctrlc,
+    preprocess_image,
+    preprocess_lines,
+)
 from fr_baselines.external import ExternalPredictions
 from fr_baselines.lee2009 import Lee2009
 from fr_baselines.prior import Prior
 from fr_baselines.simon2018 import Simon2018, meaningful_modes
+
+from fr_torch.core.camera import focal_from_hfov, horizon_angles, rotation_from_angles
+from fr_torch.plugins.interface import (
+    Calibrator,
+    CameraEstimate,
+    ImageMeta,
+    available_methods,
+    get_calibrator,
+)
+from fr_torch.synthetic import camera_matrix, render_manhattan_room, synthetic_segments
 
 W, H = 640, 480
 
@@ -253,7 +263,7 @@ def test_ctrlc_without_weights_is_not_supplied(monkeypatch):
 
 
 def test_named_rows_read_their_own_weights_and_predictions(monkeypatch, tmp_path):
-    from fr_torch.interface import get_calibrator as get_method
+    from fr_torch.plugins.interface import get_calibrator as get_method
 
     monkeypatch.setenv("FR_CTRLC_ONNX", str(tmp_path / "gsv.onnx"))
     monkeypatch.delenv("FR_CTRLC_RETRAINED_ONNX", raising=False)

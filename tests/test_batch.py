@@ -5,7 +5,6 @@ missing path.  The Ray tests share one local cluster with 2 CPUs (skipped when R
 """
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,9 +16,10 @@ import pytest
 
 pq = pytest.importorskip("pyarrow.parquet")  # fr batch needs pyarrow (extra "batch" / "ray")
 
-from fr_torch.batch import BatchWorker, collect_inputs, estimator_options, records_to_table, run_batch
-from fr_torch.camera import rotation_from_angles
-from fr_torch.cli import build_parser
+from fr_torch.batch.jobs import BatchWorker, collect_inputs, records_to_table, run_batch
+from fr_torch.cli.batch import estimator_options
+from fr_torch.cli.main import build_parser
+from fr_torch.core.camera import rotation_from_angles
 from fr_torch.synthetic import render_manhattan_room
 from tests.conftest import checkout_env
 
@@ -149,7 +149,7 @@ def test_local_worker_processes_match_in_process_and_survive_a_crash(image_set, 
 
 
 def test_rows_per_part_gathers_batches_and_cli_summary(image_set, tmp_path, capsys):
-    from fr_torch.cli import main
+    from fr_torch.cli.main import main
 
     (tmp_path / "list.txt").write_text("\n".join(image_set["good"][:3] + image_set["bad"]))
     out = tmp_path / "out.parquet"
@@ -244,7 +244,7 @@ def test_pipelined_rows_match_per_batch_rows_and_survive_a_search_error(image_se
 
 
 def test_unusable_device_is_one_line_before_any_work(image_set, tmp_path, capsys):
-    from fr_torch.cli import main
+    from fr_torch.cli.main import main
 
     out = tmp_path / "out.parquet"
     assert main(["batch", str(image_set["manifest"]), "--out", str(out), "--device", "tpu", "--no-progress"]) == 2

@@ -6,8 +6,14 @@ import pytest
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from fr_torch.camera import (angles_from_rotation, focal_from_hfov, hfov_from_focal, horizon_angles,
-                             rotation_from_angles, vanishing_points)
+from fr_torch.core.camera import (
+    angles_from_rotation,
+    focal_from_hfov,
+    hfov_from_focal,
+    horizon_angles,
+    rotation_from_angles,
+    vanishing_points,
+)
 
 
 def _axis(angle_deg, k):

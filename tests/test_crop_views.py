@@ -3,11 +3,11 @@ loader reads them back."""
 import cv2
 import numpy as np
 import pytest
-
 from fr_eval.crop_views import crop_dataset, crop_origin, main
 from fr_eval.datasets.panoviews import PanoViews
 from fr_eval.datasets.registry import CalibrationSample
-from fr_torch.camera import Camera, hfov_from_focal, rotation_from_angles
+
+from fr_torch.core.camera import Camera, hfov_from_focal, rotation_from_angles
 from fr_torch.synthetic import render_manhattan_room
 
 

@@ -40,8 +40,8 @@ def ctrlc_source() -> Path:
 
     try:
         import_torchvision()
-        import yacs  # noqa: F401
         import onnx  # noqa: F401
+        import yacs  # noqa: F401
     except (ExportError, ImportError) as exc:
         _missing(f"the ctrlc extra is not installed: {exc}")
     return source
@@ -67,7 +67,6 @@ def small_onnx(ctrlc_source, data_root, tmp_path_factory) -> Path:
 
 def test_export_agrees_and_records_provenance(small_onnx):
     import onnxruntime as ort
-
     from fr_baselines.ctrlc import CTRLC
 
     session = ort.InferenceSession(str(small_onnx), providers=["CPUExecutionProvider"])
@@ -84,7 +83,8 @@ def test_exported_ctrlc_in_fr_eval(small_onnx, data_root, tmp_path, monkeypatch)
     refused by default (n/a), and with FR_CTRLC_ALLOW_RANDOM=1 every image gets finite numbers and
     the caption names the weights and says they are random."""
     from fr_baselines.ctrlc import CTRLC
-    from fr_torch.interface import ImageMeta
+
+    from fr_torch.plugins.interface import ImageMeta
 
     monkeypatch.delenv("FR_CTRLC_ALLOW_RANDOM", raising=False)
     refused = CTRLC(onnx_path=small_onnx).estimate(np.zeros((480, 640, 3), np.uint8), ImageMeta(name="x"))

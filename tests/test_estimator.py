@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from fr_torch import FREstimator
-from fr_torch.estimator import focal_conditioning
-from fr_torch.camera import focal_from_hfov, horizon_angles, rotation_from_angles
+from fr_torch.core.camera import focal_from_hfov, horizon_angles, rotation_from_angles
+from fr_torch.core.cues import focal_conditioning
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
 
@@ -63,8 +63,8 @@ def test_hfov_search_range_is_configurable():
     """A zoomed-in camera (hfov 30 deg) lies outside the paper's [50, 130] range: that search stops at
     its edge (flagged unreliable); a user-given range recovers it.  The option works through the
     method spec."""
-    from fr_torch.interface import get_calibrator
-    from fr_torch.search import SearchConfig
+    from fr_torch.core.config import SearchConfig
+    from fr_torch.plugins.interface import get_calibrator
 
     segments, focal, R = _scene(7, 30.0, 10.0, 6.0, 3.0)
     paper = SearchConfig.from_config().with_fov_range("paper")
@@ -72,26 +72,26 @@ def test_hfov_search_range_is_configurable():
     assert pinned.hfov_deg >= 50.0 - 1e-6
     assert not pinned.reliable and "focal at the edge of the search range" in pinned.reason
     # fr mode: at this focal length (1194 px) Fast-fR's 10 steps stop ~7 % short of the optimum.
-    narrow = FREstimator(mode="fr", search_config=SearchConfig.from_config(hfov_range_deg=(20.0, 60.0)))
+    narrow = FREstimator(mode="fr", search_config=SearchConfig.from_config(fov_range=(20.0, 60.0)))
     [result] = narrow.calibrate_segments([segments], [(640, 480)])
     # (tolerance 4 %: the default focal prior pulls clean synthetic scenes ~2.5 % wide)
     assert abs(result.focal_px - focal) / focal < 0.04 and abs(result.hfov_deg - 30.0) < 1.0, result.focal_px
-    method = get_calibrator("fr[hfov_min=20,hfov_max=60]")
-    assert method.name == "fr[hfov_min=20,hfov_max=60]"
+    method = get_calibrator("fr[range=20:60]")
+    assert method.name == "fr[range=20:60]"
     est = method.estimator.calibrate_segments([segments], [(640, 480)])[0]
     assert est.focal_px == pytest.approx(result.focal_px)
     with pytest.raises(ValueError, match="min < max"):
-        SearchConfig.from_config(hfov_range_deg=(60.0, 20.0))
+        SearchConfig.from_config(fov_range=(60.0, 20.0))
     with pytest.raises(ValueError, match="likelihood config"):
         FREstimator(likelihood="no-such-config")
 
 
 def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
-    """With ``grid_segments_fast`` set, Fast-fR's stage 1 scores each image's longest that many
-    segments and fR's all of them (``grid_segments`` = 0, both 0 by default); the other stages
-    always get every segment; negative counts are refused."""
-    import fr_torch.estimator as estimator_module
-    from fr_torch.search import SearchConfig
+    """With ``grid_segments`` set, stage 1 scores each image's longest that many segments (0, all,
+    by default in both modes' presets); the other stages always get every segment; negative counts
+    are refused."""
+    import fr_torch.core.estimator as estimator_module
+    from fr_torch.core.config import SearchConfig
 
     seen = []
     original = estimator_module.score_grid
@@ -99,14 +99,16 @@ def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
                         lambda model, features, *a, **k: seen.append(features.weight.shape[1]) or original(
                             model, features, *a, **k))
     segments, _, _ = _scene(3, 70.0, 10.0, 5.0, 2.0)  # 3 x 60 + 30 % clutter
-    assert SearchConfig.from_config().grid_segment_count("fast") == 0  # default: all
-    config = SearchConfig.from_config(grid_segments_fast=250)
-    assert config.grid_segment_count("fast") == 250 and config.grid_segment_count("fr") == 0
+    assert SearchConfig.from_config().resolve("fast").grid_segments == 0  # default: all
+    config = SearchConfig.from_config(grid_segments=250)
+    assert config.resolve("fast").grid_segments == 250 and config.resolve("fast").refine_iterations == 10
     FREstimator(mode="fast", search_config=config).calibrate_segments([segments], [(640, 480)])
-    FREstimator(mode="fr", search_config=config).calibrate_segments([segments], [(640, 480)])
-    assert seen[0] == 250 and seen[1] > 250  # fast: the longest 250; fr: all that the filter kept
-    with pytest.raises(ValueError, match="grid_segments_fast must be >= 0"):
-        SearchConfig.from_config(grid_segments_fast=-1)
+    FREstimator(mode="fr").calibrate_segments([segments], [(640, 480)])
+    assert seen[0] == 250 and seen[1] > 250  # set: the longest 250; default: all that the filter kept
+    with pytest.raises(ValueError, match="grid_segments must be >= 0"):
+        SearchConfig.from_config(grid_segments=-1)
+    with pytest.raises(ValueError, match="unknown setting"):
+        SearchConfig.from_config(grid_segments_fast=1)
 
 def test_known_focal_searches_rotation_only(scenes):
     segments, focal, R = scenes[1]
@@ -160,11 +162,11 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     """A view with finite, well-spread VPs has its f set by the segments (share near 0); a camera
     square to a wall (one horizontal VP on the principal point, the others at infinity) leaves f to
     the prior (share near 1); without a prior, or with the focal length given, the share is 0.
-    The cue matches a direct evaluation of :func:`fr_torch.search.focal_prior_share`."""
+    The cue matches a direct evaluation of :func:`fr_torch.core.cues.focal_prior_share`."""
     from dataclasses import replace
 
-    from fr_torch.likelihood import MixtureLikelihood
-    from fr_torch.search import focal_prior_share
+    from fr_torch.core.cues import focal_prior_share
+    from fr_torch.core.likelihood import MixtureLikelihood
 
     focal = focal_from_hfov(70.0, 640)
     views = {"oblique": rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0, 3.0).numpy(),
@@ -178,9 +180,9 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     [given] = est.calibrate_segments(segments[:1], [(640, 480)], focal_px=focal)
     assert given.cues["focal_prior_share"] == 0.0
 
-    from fr_torch.likelihood import SegmentFeatures
-    from fr_torch.search import angles_from_search_rotation
-    from fr_torch.segments import SegmentBatch
+    from fr_torch.core.likelihood import SegmentFeatures
+    from fr_torch.core.search import angles_from_search_rotation
+    from fr_torch.core.segments import SegmentBatch
 
     batch = SegmentBatch.from_list([oblique.segments], [(640, 480)])
     features = SegmentFeatures.from_batch(batch, torch.tensor([[320.0, 240.0]]))
@@ -200,9 +202,10 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
     """``focal_profile_gap``: large at a well-determined estimate, small where the lines say little
     about f (camera square to a wall), negative at an estimate a clearly different focal length
     beats, 0 for a given focal length (fR only; Fast-fR does not compute it)."""
-    from fr_torch.likelihood import SegmentFeatures
-    from fr_torch.search import angles_from_search_rotation, focal_profile_gap, hypothesis_rotations
-    from fr_torch.segments import SegmentBatch
+    from fr_torch.core.cues import focal_profile_gap
+    from fr_torch.core.likelihood import SegmentFeatures
+    from fr_torch.core.search import angles_from_search_rotation, hypothesis_rotations
+    from fr_torch.core.segments import SegmentBatch
 
     focal = focal_from_hfov(70.0, 640)
     views = [rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0, 3.0).numpy(),
@@ -234,13 +237,13 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
                                       torch.tensor([[320.0, 240.0]] * 2))
     args = (est.likelihood, both, wrong.expand(2, 4), wrong_score.expand(2), est.search, 10)
     together = focal_profile_gap(*args)
-    monkeypatch.setattr("fr_torch.search.PROFILE_CHUNK_IMAGES", 1)
+    monkeypatch.setattr("fr_torch.core.cues.PROFILE_CHUNK_IMAGES", 1)
     torch.testing.assert_close(focal_profile_gap(*args), together)
     assert float(together[0]) == pytest.approx(float(gap[0]), rel=1e-4)
     # only focal lengths inside the range are searched: an estimate at the wide edge (ratios < 1 out)
     # batched with one in the middle gives each the gap it gets alone; none inside -> 0
     edge = wrong.clone()
-    edge[0, 3] = focal_from_hfov(est.search.hfov_range_deg[1], 640)
+    edge[0, 3] = focal_from_hfov(est.search.fov_range.max_deg, 640)
     edge_score = est.likelihood.objective(features, hypothesis_rotations(edge)[:, None].float(),
                                           edge[:, None, 3].float())[:, 0]
     alone = focal_profile_gap(est.likelihood, features, edge, edge_score, est.search, 10)
@@ -255,7 +258,7 @@ def test_profile_gap_follows_the_reliability_model():
     """The gap costs a quarter of fR's time: computed when the reliability model uses it (fR's
     shipped model) or when asked, skipped with reliability off; turning it off under a model that
     needs it is a one-line error."""
-    from fr_torch.segments import FRInputError
+    from fr_torch.errors import FRInputError
 
     segments = [synthetic_segments(500.0, rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0,
                                                                3.0).numpy(), 640, 480, seed=4)[0]]

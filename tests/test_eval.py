@@ -12,12 +12,12 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
-
 from fr_eval import fit_likelihood, run_eval
 from fr_eval.datasets.registry import CalibrationSample
-from fr_torch.camera import Camera, rotation_from_angles
-from fr_torch.interface import CameraEstimate, ImageMeta
-from fr_torch.registry import not_supplied
+
+from fr_torch.core.camera import Camera, rotation_from_angles
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta
+from fr_torch.plugins.registry import not_supplied
 from fr_torch.resources import config_dir
 from tests.conftest import require_dataset
 
@@ -263,7 +263,7 @@ def fake_images(monkeypatch):
 
 
 def test_methods_all_expansion(monkeypatch):
-    from fr_torch.interface import available_methods
+    from fr_torch.plugins.interface import available_methods
 
     registered = available_methods()
     monkeypatch.delenv("FR_EXTERNAL_CSV", raising=False)
@@ -373,8 +373,8 @@ def test_em_recovers_mixing_weights():
 
 def test_fit_on_yud_train(data_root, tmp_path):
     require_dataset(data_root, "yorkurbandb")
-    pytest.importorskip("fr_torch.likelihood")
-    from fr_torch.likelihood import LikelihoodParams
+    pytest.importorskip("fr_torch.core.likelihood")
+    from fr_torch.core.likelihood import LikelihoodParams
 
     out, report = tmp_path / "fitted.json", tmp_path / "fit.md"
     parser = argparse.ArgumentParser()
@@ -423,7 +423,7 @@ def test_common_subset_table_compares_methods_on_shared_images():
 def test_fr_uses_segments_given_in_meta():
     """fR / Fast-fR calibrate from ``meta.segments`` when given (what ``fr@labelled`` means), not
     from the image; the oracle requires them."""
-    from fr_torch.interface import ImageMeta, get_calibrator
+    from fr_torch.plugins.interface import ImageMeta, get_calibrator
     from fr_torch.synthetic import random_rotation, synthetic_segments
 
     segments, _ = synthetic_segments(420.0, random_rotation(np.random.default_rng(4)), 640, 480, seed=4)

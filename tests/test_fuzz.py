@@ -21,16 +21,14 @@ import numpy as np
 import pytest
 
 from fr_torch import FREstimator, FRInputError
-from fr_torch.camera import rotation_from_angles
-from fr_torch.cli import main
-from fr_torch.image_io import probe_image_size, read_image
-from fr_torch.likelihood import LikelihoodParams
-from fr_torch.segments import load_image
+from fr_torch.cli.main import main
+from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.likelihood import LikelihoodParams
+from fr_torch.images.convert import load_image
+from fr_torch.images.io import probe_image_size, read_image
+from fr_torch.runtime.output import dumps, json_safe
 from fr_torch.synthetic import render_manhattan_room
-from fr_torch.validate import dumps, json_safe
 from tests.conftest import checkout_env
-
-
 
 # --------------------------------------------------------------------------- hostile files
 

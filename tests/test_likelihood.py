@@ -6,9 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from fr_torch.camera import VERTICAL_AXIS, rotation_from_angles
-from fr_torch.likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
-from fr_torch.segments import SegmentBatch
+from fr_torch.core.camera import VERTICAL_AXIS, rotation_from_angles
+from fr_torch.core.likelihood import (
+    LikelihoodParams,
+    MixtureLikelihood,
+    SegmentFeatures,
+)
+from fr_torch.core.segments import SegmentBatch
 
 
 def _direct_objective(segments, R, f, pp, params):

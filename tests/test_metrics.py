@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
-
+from fr_eval.datasets.registry import CalibrationSample
 from fr_eval.metrics import (
     NOT_SUPPLIED,
     frame_error_deg,
@@ -16,7 +16,6 @@ from fr_eval.metrics import (
     summarize,
     summarize_groups,
 )
-from fr_eval.datasets.registry import CalibrationSample
 from fr_eval.tables import (
     deviation_measure_summaries,
     display_frame,
@@ -26,9 +25,15 @@ from fr_eval.tables import (
     to_markdown,
     with_option,
 )
-from fr_torch.camera import Camera, hfov_from_focal, horizon_angles, rotation_from_angles
-from fr_torch.interface import CameraEstimate
-from fr_torch.registry import not_supplied
+
+from fr_torch.core.camera import (
+    Camera,
+    hfov_from_focal,
+    horizon_angles,
+    rotation_from_angles,
+)
+from fr_torch.plugins.interface import CameraEstimate
+from fr_torch.plugins.registry import not_supplied
 
 
 def rot_z(deg: float) -> np.ndarray:

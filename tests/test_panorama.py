@@ -16,11 +16,24 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-
 from fr_eval import make_dataset
-from fr_eval.panorama import (cube_face_rotations, cubemap_to_equirect, direction_from_lonlat,
-                           equirect_pixel_from_direction, lonlat_from_direction, render_views, save_rgb, yaw_rotation)
-from fr_torch.camera import focal_from_hfov, horizon_angles, intrinsics, rotation_from_angles
+from fr_eval.panorama import (
+    cube_face_rotations,
+    cubemap_to_equirect,
+    direction_from_lonlat,
+    equirect_pixel_from_direction,
+    lonlat_from_direction,
+    render_views,
+    save_rgb,
+    yaw_rotation,
+)
+
+from fr_torch.core.camera import (
+    focal_from_hfov,
+    horizon_angles,
+    intrinsics,
+    rotation_from_angles,
+)
 
 PANO_W, PANO_H = 1024, 512
 VIEW = (160, 120)

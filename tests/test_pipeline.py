@@ -9,11 +9,21 @@ import numpy as np
 import pytest
 
 from fr_torch import FREstimator
-from fr_torch import workers as workers_module
-from fr_torch.pipeline import calibrate_paths, calibrate_segments_sharded, calibrate_stream, iter_detections
-from fr_torch.segments import LSDDetector, SegmentFilter
-from fr_torch.segments import FRInputError
-from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
+from fr_torch.runtime import workers as workers_module
+from fr_torch.core.segments import SegmentFilter
+from fr_torch.detectors.lsd import LSDDetector
+from fr_torch.errors import FRInputError
+from fr_torch.runtime.pipeline import (
+    calibrate_paths,
+    calibrate_segments_sharded,
+    calibrate_stream,
+    iter_detections,
+)
+from fr_torch.synthetic import (
+    random_rotation,
+    render_manhattan_room,
+    synthetic_segments,
+)
 
 
 def _same(a, b):
@@ -207,8 +217,8 @@ def test_shutting_down_a_broken_pool_never_waits_for_a_worker():
     import time
     from concurrent.futures import ProcessPoolExecutor
 
-    from fr_torch.pipeline import _shutdown
-    from fr_torch.workers import context
+    from fr_torch.runtime.pipeline import _shutdown
+    from fr_torch.runtime.workers import context
 
     pool = ProcessPoolExecutor(1, mp_context=context())
     pool.submit(time.sleep, 0).result()  # the worker is up
@@ -242,7 +252,7 @@ def test_a_worker_started_while_the_pool_breaks_is_not_left_running(monkeypatch)
     import time
     from concurrent.futures import process as futures_process
 
-    from fr_torch.pipeline import ordered_pool_map
+    from fr_torch.runtime.pipeline import ordered_pool_map
 
     started = {}
     spawn = futures_process.ProcessPoolExecutor._spawn_process
@@ -268,19 +278,29 @@ def test_a_worker_started_while_the_pool_breaks_is_not_left_running(monkeypatch)
     assert not running, f"{len(running)} worker(s) left running"
 
 
-def test_default_workers(monkeypatch):
-    monkeypatch.setattr(workers_module, "usable_cores", lambda: 16)
-    assert workers_module.default_workers(1000, "cpu") == workers_module.MAX_DEFAULT_WORKERS
-    assert workers_module.default_workers(100, "cpu") == 3  # one per 32 images
-    assert workers_module.default_workers(40, "cpu") == 0  # a pool does not pay
-    assert workers_module.default_workers(100, "cuda") == 15  # detection on every other core, for the device
-    assert workers_module.default_workers(1, "cuda") == 0
-    monkeypatch.setattr(workers_module, "usable_cores", lambda: 64)
-    assert workers_module.default_workers(10_000, "cuda:0") == workers_module.MAX_DEFAULT_DETECTION_WORKERS
-    monkeypatch.setattr(workers_module, "usable_cores", lambda: 1)
-    assert workers_module.default_workers(1000, "cpu") == 0
-    assert workers_module.default_workers(1000, "cuda:0") == 0
-    assert workers_module.default_batch_size("cpu") == 16 and workers_module.default_batch_size("cuda:1") == 256
+def test_device_policy_defaults():
+    """Worker and batch defaults follow from the device and the usable cores (no GPU needed: a
+    CUDA policy is built by hand)."""
+    import torch
+
+    from fr_torch.runtime import device as device_module
+    from fr_torch.runtime.device import DevicePolicy
+
+    cpu, gpu = DevicePolicy(torch.device("cpu"), 16), DevicePolicy(torch.device("cuda", 0), 16)
+    assert cpu.default_workers(1000) == device_module.MAX_DEFAULT_WORKERS
+    assert cpu.default_workers(100) == 3  # one per 32 images
+    assert cpu.default_workers(40) == 0  # a pool does not pay
+    assert gpu.default_workers(100) == 15  # detection on every other core, for the device
+    assert gpu.default_workers(1) == 0
+    assert DevicePolicy(torch.device("cuda", 0), 64).default_workers(10_000) == device_module.MAX_DEFAULT_DETECTION_WORKERS
+    assert DevicePolicy(torch.device("cpu"), 1).default_workers(1000) == 0
+    assert DevicePolicy(torch.device("cuda", 0), 1).default_workers(1000) == 0
+    assert cpu.default_batch_size == 16 and gpu.default_batch_size == 256
+    assert cpu.whole_image_workers and not gpu.whole_image_workers
+    assert DevicePolicy.resolve("cpu").device == torch.device("cpu") and DevicePolicy.resolve(cpu) is cpu
+    assert DevicePolicy.parse("cuda:1").device == torch.device("cuda", 1)  # planning for a remote node
+    with pytest.raises(ValueError, match="unknown device"):
+        DevicePolicy.parse("tpu-9")
 
 
 def test_cgroup_cpu_quota(tmp_path):
@@ -304,9 +324,10 @@ def test_threads_fit_the_usable_cores(monkeypatch):
     import torch
 
     before, before_cv = torch.get_num_threads(), cv2.getNumThreads()
-    monkeypatch.setattr(workers_module, "usable_cores", lambda: 1)
+    from fr_torch.runtime.device import DevicePolicy
+
     try:
-        workers_module.fit_threads_to_cores()
+        DevicePolicy(torch.device("cpu"), 1).apply_threads()
         assert torch.get_num_threads() == 1 and cv2.getNumThreads() <= 1
     finally:
         torch.set_num_threads(before)
@@ -316,7 +337,7 @@ def test_threads_fit_the_usable_cores(monkeypatch):
 def test_importing_the_library_and_its_command_line_loads_no_torch():
     """``import fr_torch`` and ``fr_torch.cli`` are light, so ``fr`` can start its workers' server
     while it loads torch; the public names still load on use."""
-    code = ("import sys, fr_torch, fr_torch.cli, fr_torch.workers; assert 'torch' not in sys.modules; "
+    code = ("import sys, fr_torch, fr_torch.cli, fr_torch.runtime.workers; assert 'torch' not in sys.modules; "
             "from fr_torch import FREstimator, Camera; assert 'torch' in sys.modules; print(sorted(fr_torch.__all__))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr

@@ -14,10 +14,20 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fr_torch.interface import available_methods, get_calibrator
-from fr_torch.registry import (NOT_SUPPLIED, Registry, entry_points, format_method_spec, is_not_supplied,
-                               not_supplied, parse_method_spec, split_method_list, with_option)
-from fr_torch.segments import FRInputError, available_detectors, get_detector
+from fr_torch.detectors.registry import available_detectors, get_detector
+from fr_torch.errors import FRInputError
+from fr_torch.plugins.interface import available_methods, get_calibrator
+from fr_torch.plugins.registry import (
+    NOT_SUPPLIED,
+    Registry,
+    entry_points,
+    format_method_spec,
+    is_not_supplied,
+    not_supplied,
+    parse_method_spec,
+    split_method_list,
+    with_option,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "fr_plugin_example"
@@ -97,10 +107,10 @@ def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
     """After installation (and only then) ``horizon-lines`` is a method and ``long-lsd`` a detector:
     in ``fr eval --methods all``, by name, with options, and estimating a synthetic room's roll."""
     code = textwrap.dedent("""
-        from fr_torch.camera import rotation_from_angles
-        from fr_torch.interface import ImageMeta, available_methods, get_calibrator
-        from fr_torch.registry import load_object  # finds fr_eval also in a checkout that is not installed
-        from fr_torch.segments import available_detectors, get_detector
+        from fr_torch.core.camera import rotation_from_angles
+        from fr_torch.plugins.interface import ImageMeta, available_methods, get_calibrator
+        from fr_torch.plugins.registry import load_object  # finds fr_eval also in a checkout that is not installed
+        from fr_torch.core.segments import available_detectors, get_detector
         from fr_torch.synthetic import render_manhattan_room
         assert "horizon-lines" in available_methods() and "long-lsd" in available_detectors()
         methods, _ = load_object("fr_eval.run_eval:resolve_methods")(["all"], has_segments=False)
@@ -120,7 +130,7 @@ def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
 
 def test_installed_plugin_in_fr_eval(installed_plugin, tmp_path):
     """``fr eval --methods horizon-lines,prior`` on a two-image synthetic dataset given by import path."""
-    from fr_torch.camera import rotation_from_angles
+    from fr_torch.core.camera import rotation_from_angles
     from fr_torch.synthetic import render_manhattan_room
 
     for i, roll in enumerate((4.0, -7.0)):
@@ -129,7 +139,7 @@ def test_installed_plugin_in_fr_eval(installed_plugin, tmp_path):
     (tmp_path / "rooms_ds.py").write_text(textwrap.dedent(f"""
         from pathlib import Path
         from fr_eval.datasets.registry import CalibrationSample
-        from fr_torch.camera import Camera, rotation_from_angles
+        from fr_torch.core.camera import Camera, rotation_from_angles
 
         def load(root=None, split="test", **kwargs):
             return [CalibrationSample(name=f"room{{i}}.png", image_path=Path({str(tmp_path)!r}) / f"room{{i}}.png",

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 import torch
 
-from fr_torch.camera import Camera
-from fr_torch.estimator import FREstimator
-from fr_torch.interface import CameraEstimate
-from fr_torch.search import (NAMED_FOV_RANGES, SearchConfig, check_result, focal_bounds,
-                             search_fov_range)
-from fr_torch.segments import FRInputError
+from fr_torch.core.camera import Camera
+from fr_torch.core.config import SearchConfig
+from fr_torch.core.cues import check_result
+from fr_torch.core.fov import FovRange
+from fr_torch.errors import FRInputError
+from fr_torch.plugins.interface import CameraEstimate
+from fr_torch.runtime.estimator import FREstimator
 from fr_torch.synthetic import random_rotation, synthetic_segments
 
 
@@ -52,7 +53,7 @@ def test_check_result_marks_non_finite_as_failure():
 def test_non_finite_refinement_fails_that_image_only(monkeypatch):
     """A NaN from the search (parameters or objective) makes that image's result ok=False with the
     reason, in a batch whose other images keep their estimates."""
-    import fr_torch.estimator as estimator_module
+    import fr_torch.core.estimator as estimator_module
 
     real_refine = estimator_module.refine
 
@@ -93,19 +94,20 @@ def test_metrics_count_non_finite_estimate_as_failure():
 
 
 def test_fov_range_validation_and_names():
-    assert search_fov_range("paper") == (50.0, 130.0) == NAMED_FOV_RANGES["paper"]
-    assert search_fov_range("30:120") == (30.0, 120.0) == search_fov_range("30,120")
-    lo, hi = SearchConfig.from_config().hfov_range_deg
+    assert tuple(FovRange.parse("paper")) == (50.0, 130.0) == FovRange.NAMED["paper"]
+    assert FovRange.parse("30:120") == FovRange(30.0, 120.0) == FovRange.parse("30,120") == FovRange.parse(None)
+    assert FovRange.parse((40, 90)) == FovRange.parse(FovRange(40, 90)) and str(FovRange(40, 90)) == "[40°, 90°]"
+    lo, hi = SearchConfig.from_config().fov_range
     assert lo <= 30.0 and hi >= 120.0  # the library default covers the cameras users have
     for bad in ((60.0, 20.0), (0.5, 90.0), (30.0, 180.0), (float("nan"), 90.0), (30.0, math.inf), (40.0, 40.0)):
         with pytest.raises(FRInputError, match="min < max"):
-            SearchConfig.from_config(hfov_range_deg=bad)
+            SearchConfig.from_config(fov_range=bad)
     with pytest.raises(FRInputError, match="FOV range"):
-        search_fov_range("wide")
+        FovRange.parse("wide")
 
 
 def test_cli_hfov_range_errors_are_one_line(capsys, tmp_path):
-    from fr_torch.cli import main
+    from fr_torch.cli.main import main
 
     assert main(["calibrate", str(tmp_path / "x.png"), "--hfov-range", "120,30"]) == 2
     err = capsys.readouterr().err.strip()
@@ -116,8 +118,8 @@ def test_portrait_sees_the_same_focal_range_as_landscape():
     """The range is on the long side: a portrait image (480 x 640) gets the same focal bounds as the
     same camera held in landscape (640 x 480), and both recover the same focal length."""
     config = SearchConfig.from_config()
-    landscape = focal_bounds(config, torch.tensor([640.0]))
-    portrait = focal_bounds(config, torch.tensor([max(480.0, 640.0)]))
+    landscape = config.fov_range.focal_bounds(torch.tensor([640.0]))
+    portrait = config.fov_range.focal_bounds(torch.tensor([max(480.0, 640.0)]))
     assert torch.equal(landscape[0], portrait[0]) and torch.equal(landscape[1], portrait[1])
     focal = 520.0
     seg_l, _ = _scene(5, focal, 640, 480)
@@ -131,7 +133,7 @@ def test_portrait_sees_the_same_focal_range_as_landscape():
 
 
 def test_nomixture_ablation_runs():
-    from fr_torch.interface import get_calibrator
+    from fr_torch.plugins.interface import get_calibrator
 
     method = get_calibrator("fr[model=nomixture,range=paper]")
     assert method.name == "fr[range=paper,model=nomixture]"

@@ -8,11 +8,21 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from fr_torch.camera import Camera
-from fr_torch.estimator import CalibrationResult
+from fr_torch.core.camera import Camera
+from fr_torch.core.estimator import CalibrationResult
+from fr_torch.core.reliability import (
+    CUE_NAMES,
+    MODEL_CUE_NAMES,
+    PAPER_CUE_NAMES,
+    TARGETS,
+    ReliabilityModel,
+    ReliabilitySet,
+    cue_features,
+    cues_array,
+    load_thresholds,
+    model_cue_names,
+)
 from fr_torch.resources import config_dir
-from fr_torch.reliability import (CUE_NAMES, MODEL_CUE_NAMES, PAPER_CUE_NAMES, TARGETS, ReliabilityModel,
-                                  ReliabilitySet, cue_features, cues_array, load_thresholds, model_cue_names)
 
 
 def make_training(n=400, noise=0.3, seed=0, informative=True):
@@ -180,9 +190,9 @@ def test_shipped_models_and_thresholds():
 
 
 def test_reliability_is_a_stage_of_the_estimator():
-    from fr_torch.estimator import FREstimator
-    from fr_torch.methods import FRCalibrator
-    from fr_torch.interface import ImageMeta
+    from fr_torch.plugins.interface import ImageMeta
+    from fr_torch.plugins.methods import FRCalibrator
+    from fr_torch.runtime.estimator import FREstimator
     from fr_torch.synthetic import random_rotation, synthetic_segments
 
     segments, _ = synthetic_segments(420.0, random_rotation(np.random.default_rng(3)), 640, 480, seed=3)
@@ -229,7 +239,7 @@ def test_paper_cue_model_and_older_files(tmp_path):
 def test_given_focal_length_has_no_predicted_focal_error():
     """With focal_px given, the predicted focal error is 0 and the focal threshold never fires
     (the models predict the error of an *estimated* focal length)."""
-    from fr_torch.estimator import FREstimator
+    from fr_torch.runtime.estimator import FREstimator
     from fr_torch.synthetic import random_rotation, synthetic_segments
 
     path = config_dir() / "reliability_fast.npz"

@@ -8,12 +8,17 @@ import numpy as np
 import pytest
 import torch
 
-import fr_torch.search as search
+import fr_torch.core.search as search
 from fr_torch import FREstimator
-from fr_torch.camera import focal_from_hfov, rotation_from_angles
-from fr_torch.likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
-from fr_torch.search import SearchConfig, fast_rotations, grid_hypotheses, refine, score_grid
-from fr_torch.segments import SegmentBatch
+from fr_torch.core.camera import focal_from_hfov, rotation_from_angles
+from fr_torch.core.config import SearchConfig
+from fr_torch.core.likelihood import (
+    LikelihoodParams,
+    MixtureLikelihood,
+    SegmentFeatures,
+)
+from fr_torch.core.search import fast_rotations, grid_hypotheses, refine, score_grid
+from fr_torch.core.segments import SegmentBatch
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
 
@@ -138,7 +143,7 @@ def test_batch_equals_one_by_one(monkeypatch):
     segs = [_scene(5), _scene(6, 100.0, -20.0, 5.0, -3.0, n_per_family=30), _scene(7, 60.0, 30.0, -20.0, 8.0, 90)]
     est = FREstimator(mode="fast")
     batch = est.calibrate_segments(segs, [(640, 480)] * 3)
-    monkeypatch.setattr("fr_torch.estimator.SEARCH_CHUNK_IMAGES", 2)  # searched as 2 + 1 images
+    monkeypatch.setattr("fr_torch.core.estimator.SEARCH_CHUNK_IMAGES", 2)  # searched as 2 + 1 images
     chunked = est.calibrate_segments(segs, [(640, 480)] * 3)
     for i, seg in enumerate(segs):
         [single] = est.calibrate_segments([seg], [(640, 480)])
@@ -260,7 +265,7 @@ def test_bench_quick_smoke(tmp_path):
 
 
 def test_refinement_closed_form_gradient_matches_autograd():
-    from fr_torch.search import objective_and_grad
+    from fr_torch.core.search import objective_and_grad
     features = _features([_scene(0), _scene(1, hfov=90.0, n_per_family=40)], torch.float64)
     model = MixtureLikelihood()
     batch = features.weight.shape[0]
@@ -279,7 +284,7 @@ def test_refinement_closed_form_gradient_matches_autograd():
 def test_closed_form_refinement_gradient_matches_autograd_with_focal_prior():
     """search.objective_and_grad (the refinement's gradient, no autograd) = autograd of the full
     objective, focal prior included."""
-    from fr_torch.search import objective_and_grad
+    from fr_torch.core.search import objective_and_grad
 
     rng = np.random.default_rng(5)
     features = _features([_scene(3), _scene(4, n_per_family=20)], torch.float64)
@@ -457,7 +462,7 @@ def test_calibrating_does_not_import_the_compiler():
     import sys
 
     code = ("import sys; from fr_torch import FREstimator; from fr_torch.synthetic import synthetic_segments; "
-            "from fr_torch.camera import rotation_from_angles; "
+            "from fr_torch.core.camera import rotation_from_angles; "
             "s, _ = synthetic_segments(500.0, rotation_from_angles(10.0, 5.0, 2.0).numpy(), 640, 480, n_per_family=30, seed=0); "
             "[r] = FREstimator(mode='fr').calibrate_segments([s], [(640, 480)]); assert r.ok, r.reason; "
             "print('torch._dynamo' in sys.modules)")
@@ -469,8 +474,12 @@ def test_calibrating_does_not_import_the_compiler():
 @pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
 def test_elementwise_objective_equals_buffered(dtype, rtol):
     """objective_b_elementwise (the form torch.compile fuses) gives objective_b_nograd's sums."""
-    from fr_torch.likelihood import objective_b_elementwise, objective_b_nograd, vp_major
-    from fr_torch.camera import intrinsics
+    from fr_torch.core.camera import intrinsics
+    from fr_torch.core.likelihood import (
+        objective_b_elementwise,
+        objective_b_nograd,
+        vp_major,
+    )
 
     config = SearchConfig.from_config(grid_points_per_dim=3)
     features = _features([_scene(31, n_per_family=25), _scene(32, 95.0, -10.0, 20.0, 2.0, 20)], dtype)
@@ -505,7 +514,7 @@ def test_compiled_search_gives_the_eager_estimates(mode):
 def test_compiled_search_falls_back_with_one_warning(monkeypatch):
     """Where compilation fails (no C++ compiler, no Triton) the estimator warns once and runs the
     eager paths: the same results as without --compile."""
-    import fr_torch.likelihood as likelihood_module
+    import fr_torch.core.likelihood as likelihood_module
 
     def cannot_compile(*args, **kwargs):
         raise RuntimeError("InvalidCxxCompiler: No working C compiler detected\nmore detail")

@@ -10,13 +10,19 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fr_torch.camera import Camera, focal_from_hfov, rotation_from_angles
-from fr_torch.estimator import FREstimator
-from fr_torch.reliability import ReliabilityModel
+from fr_torch.core.camera import MANHATTAN_SYMMETRIES as SYMMETRIES
+from fr_torch.core.camera import (
+    Camera,
+    align_to,
+    focal_from_hfov,
+    nearest_rotation,
+    rotation_angle_deg,
+    rotation_from_angles,
+)
+from fr_torch.core.reliability import ReliabilityModel
+from fr_torch.runtime.estimator import FREstimator
 from fr_torch.synthetic import render_manhattan_room, synthetic_segments
-from fr_torch.camera import MANHATTAN_SYMMETRIES as SYMMETRIES
-from fr_torch.camera import align_to, nearest_rotation, rotation_angle_deg
-from fr_torch.fusion import FrameEstimate, OnlineCalibrator
+from fr_torch.video.fusion import FrameEstimate, OnlineCalibrator
 
 
 def frame_error(r_est, r_gt) -> float:
@@ -123,7 +129,7 @@ def test_synthetic_sequence_drift_then_sudden_change(fast_model):
 
 
 def test_fr_track_end_to_end(tmp_path):
-    from fr_torch.cli import main
+    from fr_torch.cli.main import main
 
     frames = tmp_path / "frames"
     frames.mkdir()

@@ -67,7 +67,7 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
     help_text = _run([str(fr), "--help"], cwd=work, env=env).stdout
     for command in ("calibrate", "track", "eval", "train-reliability", "bench"):  # harness: via entry points
         assert command in help_text
-    methods = _run([str(python), "-c", "from fr_torch.interface import available_methods as m; print(m())"],
+    methods = _run([str(python), "-c", "from fr_torch.plugins.interface import available_methods as m; print(m())"],
                    cwd=work, env=env).stdout
     assert "lee2009" in methods  # baselines registered through the fr_torch.calibrators entry point
     found = _run([str(python), "-c", "import importlib.util as u; print([u.find_spec(n) is not None for n in "

@@ -27,13 +27,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from fr_torch.batch.jobs import _run_local, collect_inputs
+from fr_torch.cli.options import add_device_arguments
+from fr_torch.core.camera import rotation_from_angles
+from fr_torch.plugins.registry import load_object
+from fr_torch.runtime.device import DevicePolicy
+from fr_torch.synthetic import render_manhattan_room
 
-from fr_torch.batch import _run_local, collect_inputs  # noqa: E402
-from fr_torch.camera import rotation_from_angles  # noqa: E402
-from fr_torch.registry import load_object  # noqa: E402  (fr_eval also from a checkout that is not installed)
-from fr_torch.synthetic import render_manhattan_room  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 
 def make_images(folder: Path, count: int) -> list[dict]:
@@ -70,7 +71,7 @@ def main() -> int:
     parser.add_argument("--engines", default="local,ray")
     parser.add_argument("--local-workers", default=None,
                         help="workers for the local engine (default --workers; threads stall on a loaded machine)")
-    parser.add_argument("--device", default="cpu")
+    add_device_arguments(parser)
     parser.add_argument("--out", type=Path, default=REPO / "results" / "bench")
     parser.add_argument("--cache", type=Path, default=Path("/tmp/fr_bench_batch_images"))
     args = parser.parse_args()
@@ -83,7 +84,7 @@ def main() -> int:
     if "ray" in engines:
         import ray
 
-        from fr_torch.batch_ray import init_ray, run_ray
+        from fr_torch.batch.ray import init_ray, run_ray
 
         init_ray(None, num_cpus=max(workers))
     load_before = [round(x, 2) for x in os.getloadavg()]
@@ -92,7 +93,7 @@ def main() -> int:
         for engine in engines:
             for w in (local_workers if engine == "local" else workers):
                 if engine == "local":  # start-up = building one estimator (< 0.5 s): wall time is fine
-                    result = timed(_run_local(rows, options, [], args.batch_size, threads=w))
+                    result = timed(_run_local(rows, options, [], args.batch_size, w, DevicePolicy.parse(args.device)))
                     result["steady_img_s"] = result["total_img_s"]
                 else:
                     small = rows[:w * args.batch_size]

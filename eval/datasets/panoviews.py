@@ -13,7 +13,7 @@ A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``i
 
 Each view becomes a :class:`fr_eval.datasets.registry.CalibrationSample` with the exact ground truth
 (focal, principal point (w/2, h/2), R world->camera, tilt / roll / pitch from
-:func:`fr_torch.camera.horizon_angles`).  When the panorama's Manhattan yaw was unknown
+:func:`fr_torch.core.camera.horizon_angles`).  When the panorama's Manhattan yaw was unknown
 (``manhattan_known`` False) ``rotation`` is still the exact camera orientation but in the
 panorama frame, so its columns 0 and 2 are not vanishing directions: the sample's
 ``extra["manhattan_known"]`` says so, and ``rotation`` is set to ``None`` unless
@@ -30,7 +30,7 @@ from typing import Iterator
 import numpy as np
 import pandas as pd
 
-from fr_torch.camera import Camera, image_centre
+from fr_torch.core.camera import Camera, image_centre
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import cache_root
 
@@ -43,7 +43,7 @@ SPLITS = ("train", "test", "all")
 
 @dataclass
 class PanoView:
-    """One generated view with its ground truth (conventions of :mod:`fr_torch.camera`)."""
+    """One generated view with its ground truth (conventions of :mod:`fr_torch.core.camera`)."""
 
     name: str
     image_path: Path

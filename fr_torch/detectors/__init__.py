@@ -1,13 +1,7 @@
-"""Extra line-segment detectors, found by name through the entry points of group
-``fr_torch.detectors`` declared in pyproject.toml (see :data:`fr_torch.segments.DETECTORS`).
+"""Line-segment detectors, found by name (:mod:`fr_torch.detectors.registry`).
 
+* ``lsd``: :class:`~fr_torch.detectors.lsd.LSDDetector`, OpenCV's LSD (the default).
 * ``mcmlsd``: :class:`~fr_torch.detectors.mcmlsd.MCMLSDDetector` (Almazan et al., CVPR 2017).
 * ``onnx``: :class:`~fr_torch.detectors.onnx_detector.OnnxLineDetector`, a learned detector
   supplied by the user as an ONNX model (``model_path=...``); needs ``onnxruntime`` only when used.
 """
-from __future__ import annotations
-
-from .mcmlsd import MCMLSDConfig, MCMLSDDetector
-from .onnx_detector import OnnxLineDetector
-
-__all__ = ["MCMLSDConfig", "MCMLSDDetector", "OnnxLineDetector"]

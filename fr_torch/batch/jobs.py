@@ -30,7 +30,7 @@ the batches in flight.
 Engines: ``local`` runs :meth:`FREstimator.calibrate_images` on batches on this machine (Ray is
 never imported): on a CPU in single-threaded worker processes, one per core (:func:`_run_local`),
 on a GPU in this process while worker processes decode and detect ahead of it; ``ray``
-(:mod:`fr_torch.batch_ray`) runs the same per-batch function (:func:`calibrate_rows`) in a Ray
+(:mod:`fr_torch.batch.ray`) runs the same per-batch function (:func:`calibrate_rows`) in a Ray
 Data actor pool, one estimator per actor, and this process writes the parts.  Both produce the
 same columns.
 
@@ -40,7 +40,6 @@ create the file ``MARKER``.
 """
 from __future__ import annotations
 
-import argparse
 import glob as globlib
 import math
 import os
@@ -52,7 +51,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from .reliability import CUE_NAMES, TARGETS
+from fr_torch.core.reliability import CUE_NAMES, TARGETS
+from fr_torch.runtime.device import DevicePolicy
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".jp2")
 MANIFEST_SUFFIXES = (".csv", ".parquet", ".pq", ".txt")
@@ -68,7 +68,7 @@ FLOAT_FIELDS = ("focal_px", "hfov_deg", "pan_deg", "tilt_deg", "roll_deg", "pitc
 def result_schema():
     """The Arrow schema of the output rows (without carried-through manifest columns).
 
-    Units as in :class:`fr_torch.estimator.CalibrationResult`: pixels, degrees, seconds.
+    Units as in :class:`fr_torch.core.estimator.CalibrationResult`: pixels, degrees, seconds.
     """
     import pyarrow as pa
 
@@ -218,17 +218,6 @@ def output_column_name(name: str, reserved: set[str]) -> str:
 # ---------------------------------------------------------------------------------------- work
 
 
-def estimator_options(args: argparse.Namespace) -> dict[str, Any]:
-    """Picklable options from the CLI arguments (shipped to every worker): ``estimator`` = the
-    FREstimator keyword arguments of the shared estimator options (:mod:`fr_torch.options`), plus
-    the known focal length / principal point for all images and whether reliability is on."""
-    from .options import camera_options, estimator_kwargs
-
-    focal, pp = camera_options(args)
-    return {"estimator": estimator_kwargs(args), "principal_point": pp, "focal_px": focal,
-            "reliability": not getattr(args, "no_reliability", False)}
-
-
 def options_device(options: dict[str, Any]) -> str:
     """The estimator's device name in ``options`` (from :func:`estimator_options`; default cpu)."""
     return str(options["estimator"].get("device", "cpu"))
@@ -245,7 +234,7 @@ class BatchWorker:
     def __init__(self, options: dict[str, Any], extras=(), threads: int | None = None, crash: str | None = None):
         import torch
 
-        from .estimator import FREstimator
+        from fr_torch.runtime.estimator import FREstimator
         if threads:  # torch and OpenCV: oversubscribed threads stall on a loaded machine
             import cv2
 
@@ -288,11 +277,11 @@ class BatchWorker:
     def calibrate_rows_pipelined(self, rows: Sequence[dict[str, Any]], batch_size: int, workers: int):
         """Arrow tables of at most ``batch_size`` rows, in input order, like :meth:`calibrate_rows`
         on each batch, but ``workers`` processes decode and detect the next images while this
-        process searches (:func:`fr_torch.pipeline.calibrate_paths` without whole-image workers:
+        process searches (:func:`fr_torch.runtime.pipeline.calibrate_paths` without whole-image workers:
         the way to feed a GPU).  Rows with a URI (fsspec) go through :meth:`calibrate_rows`.  If a
         search raises, the rest of the rows go through :meth:`calibrate_rows` batch by batch (a
         batch that raises again becomes failed rows); a worker that dies fails only its image."""
-        from .pipeline import calibrate_paths
+        from fr_torch.runtime.pipeline import calibrate_paths
 
         rows = list(rows)
         if workers < 1 or any(has_scheme(str(row["image"])) for row in rows):
@@ -335,7 +324,7 @@ class BatchWorker:
 
 
 def _failed(name: str, reason: str):
-    from .estimator import CalibrationResult
+    from fr_torch.core.estimator import CalibrationResult
 
     return CalibrationResult(image=name, width=0, height=0, ok=False, reason=reason)
 
@@ -352,7 +341,8 @@ def read_remote_image(uri: str) -> np.ndarray:
     """Read and decode an image at an fsspec URI -> 8-bit BGR (H, W, 3)."""
     import cv2
 
-    from .segments import FRInputError, to_bgr8
+    from fr_torch.errors import FRInputError
+    from fr_torch.images.convert import to_bgr8
 
     fs, path = _fsspec_fs(uri)
     with fs.open(path, "rb") as handle:
@@ -478,23 +468,22 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     images each; 1 = this process, one thread; see :func:`_run_local`), on a GPU: decode + detection
     processes feeding this process's search (0 = none); ray engine: actors (None = the cluster's
     CPUs / ``threads_per_worker``).
-    ``batch_size``: images per batch and per part file (None = :func:`fr_torch.workers.default_batch_size`
-    of the device: 16 on a CPU, 256 on a GPU, where a large batch costs about as much as a small one).
+    ``batch_size``: images per batch and per part file (None = the device's
+    :attr:`~fr_torch.runtime.device.DevicePolicy.default_batch_size`: 16 on a CPU, 256 on a GPU).
     ``rows_per_part``: 0 = one part file per batch (an interruption loses only the batches in
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
     """
     import pyarrow as pa
-
     from tqdm import tqdm
 
-    from .workers import default_batch_size
-
     device = options_device(options)
-    batch_size = default_batch_size(device) if batch_size is None else batch_size
+    # Local: this machine runs the search.  Ray: the actors resolve the device on their nodes.
+    policy = DevicePolicy.resolve(device) if engine == "local" else DevicePolicy.parse(device)
+    batch_size = policy.default_batch_size if batch_size is None else batch_size
     if batch_size < 1:
         raise ValueError("--batch-size must be at least 1")
-    on_gpu = engine == "local" and not device.startswith("cpu")
+    on_gpu = engine == "local" and not policy.on_cpu
     if workers is not None and workers < (0 if on_gpu else 1):
         raise ValueError("--workers must be at least 1"
                          + (" (0 on a GPU: no detection processes)" if on_gpu else ""))
@@ -519,9 +508,9 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     try:
         if todo:
             if engine == "local":
-                tables = _run_local(todo, options, extras, batch_size, workers)
+                tables = _run_local(todo, options, extras, batch_size, workers, policy)
             elif engine == "ray":
-                from .batch_ray import run_ray
+                from fr_torch.batch.ray import run_ray
 
                 tables = run_ray(todo, options, extras, batch_size, workers, address=address,
                                  threads_per_worker=threads_per_worker, gpus_per_worker=gpus_per_worker)
@@ -545,23 +534,20 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     return summary
 
 
-def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: int | None) -> Iterable:
+def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: int | None,
+               policy: DevicePolicy) -> Iterable:
     """Arrow tables of at most ``batch_size`` rows, in input order, for the local engine.
 
     CPU: ``workers`` >= 2 single-threaded worker processes, one :class:`BatchWorker` each (None =
-    :func:`fr_torch.workers.default_workers`: one per core, up to 8, for 32+ images each); 1 =
+    :meth:`~fr_torch.runtime.device.DevicePolicy.default_workers`: one per core, up to 8, for 32+ images each); 1 =
     this process with one thread (a default of no workers: torch's threads).  GPU: this process
     searches while ``workers`` processes decode and detect (None = ``default_workers``: every core
     but one, up to 16; :meth:`BatchWorker.calibrate_rows_pipelined`).  A worker that dies fails
     only the image it was on.
     """
-    from .workers import default_workers
-
-    device = options_device(options)
-    on_cpu = device.startswith("cpu")
     if workers is None:
-        workers = default_workers(len(rows), device)
-    if not on_cpu:
+        workers = policy.default_workers(len(rows))
+    if not policy.whole_image_workers:
         yield from BatchWorker(options, extras).calibrate_rows_pipelined(rows, batch_size, workers)
         return
     if workers < 2:
@@ -571,7 +557,7 @@ def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: 
         return
     import pyarrow as pa
 
-    from .pipeline import ordered_pool_map
+    from fr_torch.runtime.pipeline import ordered_pool_map
 
     rows = list(rows)
     crash = os.environ.get(CRASH_ENV)  # tests: read here, the workers' fork server may predate it
@@ -605,7 +591,7 @@ class _CrashedRow:
         self.extras = extras
 
     def __call__(self, row):
-        from .pipeline import crash_reason
+        from fr_torch.runtime.pipeline import crash_reason
 
         name = str(row["image"])
         return records_to_table([_failed(name, crash_reason(name)).to_json()], [row], self.extras)
@@ -614,68 +600,3 @@ class _CrashedRow:
 # ---------------------------------------------------------------------------------------- CLI
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``fr batch``."""
-    parser.add_argument("inputs", nargs="+", metavar="INPUT",
-                        help="folders (recursive), globs, image files or manifests (.csv/.parquet/.txt); "
-                             "fsspec URIs (s3://...) when the filesystem package is installed")
-    parser.add_argument("--out", required=True, type=Path, help="output Parquet dataset (a folder of part files)")
-    parser.add_argument("--engine", choices=("local", "ray"), default="local",
-                        help="local: this machine (default); ray: Ray Data actor pool (pip install 'fr-torch[ray]')")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="ray: number of actors, one estimator each (default: the cluster's CPUs); "
-                             "local on a CPU: single-threaded worker processes (default: one per core, up to 8, "
-                             "for 32+ images each; 1 = this process), on a GPU: decode + detection processes "
-                             "feeding the search (default: every core but one, up to 16; 0 = none)")
-    parser.add_argument("--address", default=None,
-                        help="ray: cluster to join (e.g. auto, ray://host:10001); default $RAY_ADDRESS, "
-                             "else a local cluster (--workers CPUs, default all)")
-    parser.add_argument("--threads-per-worker", type=int, default=None,
-                        help="ray: CPUs (torch threads) per actor (default 1)")
-    parser.add_argument("--gpus-per-worker", type=float, default=None,
-                        help="ray with --device cuda: GPUs per actor (default 1; 0.5 puts two actors on a GPU)")
-    parser.add_argument("--batch-size", type=int, default=None,
-                        help="images per batch (= per part file; default 16 on a CPU, 256 on a GPU)")
-    parser.add_argument("--rows-per-part", type=int, default=0, metavar="N",
-                        help="gather batches into part files of at least N rows (default 0: one part per batch)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--no-reliability", action="store_true",
-                        help="do not add predicted errors (fR then skips the focal_profile_gap cue: about "
-                             "twice the images per second)")
-    # Estimator options, shared with `fr calibrate` and `fr track`.
-    from .options import add_estimator_arguments
-
-    add_estimator_arguments(parser)
-    parser.add_argument("--focal", type=float, default=None, metavar="PX",
-                        help="known focal length in pixels for all images (a manifest's focal_px column wins)")
-    parser.add_argument("--pp", type=str, default=None, metavar="X,Y", help="principal point (default: centre)")
-
-
-def run(args: argparse.Namespace) -> int:
-    """``fr batch``: prints a one-line summary; exit 0 even when some images failed (they are rows
-    with ok=false), non-zero on a usage error."""
-    on_cpu = str(args.device).startswith("cpu")
-    if args.engine == "local" and (args.workers is None or args.workers > (1 if on_cpu else 0)):
-        from .workers import start_worker_server
-
-        start_worker_server()  # in case there are workers: they load the library while this process does
-    try:
-        import pyarrow  # noqa: F401
-    except ImportError:
-        raise ValueError("fr batch writes Parquet and needs pyarrow: pip install 'fr-torch[batch]'") from None
-    options = estimator_options(args)
-    if args.engine == "local":  # a device that cannot run is a one-line error before any work
-        from .validate import resolve_device
-
-        resolve_device(args.device)
-    from .workers import fit_threads_to_cores
-
-    fit_threads_to_cores()  # this process's threads (an explicit local --workers 1 still sets its own)
-    summary = run_batch([str(p) for p in args.inputs], args.out, options, engine=args.engine,
-                        workers=args.workers, batch_size=args.batch_size, address=args.address,
-                        progress=not args.no_progress, threads_per_worker=args.threads_per_worker,
-                        gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part)
-    print(f"fr batch: {summary['total']} images, {summary['skipped']} already done, {summary['processed']} "
-          f"processed ({summary['failed']} failed) in {summary['seconds']:.1f} s "
-          f"({summary['images_per_s']:.1f} img/s) -> {args.out}", file=sys.stderr)
-    return 0

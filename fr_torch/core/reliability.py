@@ -1,7 +1,7 @@
 """Reliability prediction: predicted absolute errors of roll, tilt and focal length from fR's cues.
 
 The model follows the authors' online-fR error predictor (paper §3.4): the cues of
-:meth:`fr_torch.estimator.FREstimator._cues` (the paper's three and geometric cues of ours) are
+:meth:`fr_torch.runtime.estimator.FREstimator._cues` (the paper's three and geometric cues of ours) are
 normalised, whitened, and a K-nearest-neighbour
 regressor returns the **mean absolute error of the K most similar training images**, for roll
 (degrees), tilt (degrees) and focal length (percent of the true focal length).
@@ -14,15 +14,15 @@ Fast-fR more than half of its time); the shipped models use :func:`model_cue_nam
 fR).
 
 * ``min_family_segments``, ``grid_entropy``, ``mean_log_likelihood``: the paper's cues (defined in
-  :meth:`fr_torch.estimator.FREstimator._cues`);
+  :meth:`fr_torch.runtime.estimator.FREstimator._cues`);
 * ``focal_conditioning`` (not in the paper): how well the estimated Manhattan frame's geometry
-  constrains f, from the estimated rotation alone (:func:`fr_torch.estimator.focal_conditioning`):
+  constrains f, from the estimated rotation alone (:func:`fr_torch.core.cues.focal_conditioning`):
   a VP whose direction makes an angle theta with the optical axis sits at ``f tan(theta)`` from the
   principal point; at theta = 0 (VP on the principal point) and theta = 90 deg (VP at infinity) its
   position says nothing about f.  The cue is ``sqrt(sum_i (sin(theta_i) cos(theta_i))^2)`` over the
   three VPs, in [0, sqrt(3)/2].  A camera panned square to a wall (one horizontal VP near the
   centre, the other and the vertical one near infinity) scores near 0.
-* ``focal_prior_share`` (not in the paper; :func:`fr_torch.search.focal_prior_share`): the share of
+* ``focal_prior_share`` (not in the paper; :func:`fr_torch.core.cues.focal_prior_share`): the share of
   the focal length's determination that comes from the focal prior, from a quadratic fit of the
   objective around the estimate: ``c_p / (c_p + c_l)`` with ``c_p`` the prior's curvature in log f
   and ``c_l`` the likelihood's (angles re-optimised), in [0, 1].  It sees what
@@ -30,7 +30,7 @@ fR).
   segments, noisy ones, and narrow views whose VPs lie far outside the image, which the prior
   pulls wide (Fast-fR's log-normal, centred at 82 deg; fR's flat top from 64 deg).  0 for a given
   focal length.
-* ``focal_profile_gap`` (not in the paper; :func:`fr_torch.search.focal_profile_gap`; fR only): the
+* ``focal_profile_gap`` (not in the paper; :func:`fr_torch.core.cues.focal_profile_gap`; fR only): the
   objective at the estimate minus the best objective of a known-focal search at 0.6 - 1.67 times the
   estimated focal length (nats, length-weighted): how much better the estimated focal length
   explains the segments than a clearly different one.  Small or negative: a second basin nearly as
@@ -90,7 +90,7 @@ string array with the JSON metadata; it is read with ``np.load(allow_pickle=Fals
 human-readable copy of the metadata is written beside it as ``<name>.json``.  Fitting uses
 scikit-learn; prediction is plain numpy.
 
-Run-time use: the last stage of :class:`fr_torch.estimator.FREstimator` (its ``reliability``
+Run-time use: the last stage of :class:`fr_torch.runtime.estimator.FREstimator` (its ``reliability``
 option, on by default) loads :meth:`ReliabilityModel.load_default` for its mode (models
 ``configs/reliability_fr.npz`` and ``configs/reliability_fast.npz``; thresholds in
 ``configs/reliability.json``) and calls :meth:`ReliabilityModel.annotate_many` on the estimates,
@@ -110,7 +110,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .resources import MODES, config_dir
+from fr_torch.resources import MODES, config_dir
 
 _config_dir = config_dir  # load_default has an argument of that name
 

@@ -1,7 +1,7 @@
 """One plug-in registry, one method-spec grammar and one "not supplied" marker for the whole project.
 
-**Registries.**  Calibrators (:data:`fr_torch.interface.CALIBRATORS`), line detectors
-(:data:`fr_torch.segments.DETECTORS`) and the harness's datasets are :class:`Registry` objects.  A
+**Registries.**  Calibrators (:data:`fr_torch.plugins.interface.CALIBRATORS`), line detectors
+(:data:`fr_torch.detectors.registry.DETECTORS`) and the harness's datasets are :class:`Registry` objects.  A
 name is found, in this order, among
 
 1. factories registered in code (``REGISTRY.register(name, factory)`` or as a decorator);
@@ -17,11 +17,8 @@ A third-party package therefore adds a method without editing this project::
     [project.entry-points."fr_torch.calibrators"]
     horizon-lines = "fr_plugin_example:HorizonFromLines"
 
-(see ``examples/fr_plugin_example``).  When this project runs from a source checkout that is not
-installed (``PYTHONPATH=.``), the entry points declared in the checkout's own ``pyproject.toml``
-are read as well, so the built-in methods are found the same way in both cases; the packages it
-installs under another name (``[tool.setuptools.package-dir]``) are then mapped to their folders by
-:func:`checkout_packages`.
+(see ``examples/fr_plugin_example``).  A source checkout runs through an editable install
+(``pip install -e .``), which declares this project's own entry points the same way.
 
 **Method specs.**  ``name[key=value,key=value]`` selects a registered factory and passes the options
 as keyword arguments (strings): ``fr[measure=a]``, ``fast-fr[detector=mcmlsd]``.
@@ -37,10 +34,6 @@ import importlib
 import importlib.metadata
 import importlib.util
 import re
-import sys
-import tomllib
-from functools import lru_cache
-from pathlib import Path
 from typing import Any, Callable, Generic, Iterable, TypeVar
 
 T = TypeVar("T")
@@ -127,75 +120,15 @@ def with_option(spec: str, key: str, value: Any) -> str:
 
 # --------------------------------------------------------------------------- entry points
 
-CHECKOUT = Path(__file__).resolve().parents[1]  # the source checkout, when fr_torch runs from one
-
-
-@lru_cache(maxsize=None)
-def _checkout_pyproject() -> dict[str, Any]:
-    """The parsed pyproject.toml of the source checkout this package is imported from ({} when
-    there is none, e.g. installed from a wheel, or when it is another project's)."""
-    pyproject = CHECKOUT / "pyproject.toml"
-    if not pyproject.is_file():
-        return {}
-    try:
-        data = tomllib.loads(pyproject.read_text())
-    except (OSError, tomllib.TOMLDecodeError):
-        return {}
-    return data if data.get("project", {}).get("name") == "fr-torch" else {}
-
-
-def _checkout_entry_points() -> dict[str, dict[str, str]]:
-    """``{group: {name: "module:attr"}}`` declared in the pyproject.toml of the source checkout this
-    package is imported from, when it is not installed as a distribution (``PYTHONPATH=.``)."""
-    project = _checkout_pyproject().get("project", {})
-    return {group: dict(items) for group, items in project.get("entry-points", {}).items()}
-
-
-@lru_cache(maxsize=None)
-def checkout_packages() -> tuple[str, ...]:
-    """Make the checkout's renamed top-level packages importable when it is not installed.
-
-    ``[tool.setuptools.package-dir]`` of the checkout's pyproject.toml installs some folders under
-    another name (``name = "folder"``); an installation (wheel or ``pip install -e``) makes those
-    names importable, a bare ``PYTHONPATH=checkout`` does not.  For each top-level ``name`` that
-    cannot be found otherwise, this loads ``folder/__init__.py`` as package ``name`` (its
-    submodules then import normally from ``folder``).  Called before every entry-point or
-    import-path lookup (:func:`load_object`); returns the names it mapped.  Nothing happens for an
-    installed copy (no checkout pyproject.toml, or the names already importable).
-    """
-    table = _checkout_pyproject().get("tool", {}).get("setuptools", {}).get("package-dir", {})
-    mapped = []
-    for name, folder in table.items():
-        init = CHECKOUT / folder / "__init__.py"
-        if "." in name or not name.isidentifier() or name in sys.modules or not init.is_file():
-            continue
-        if importlib.util.find_spec(name) is not None:  # installed (editable or not): use that
-            continue
-        spec = importlib.util.spec_from_file_location(name, init, submodule_search_locations=[str(init.parent)])
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        try:
-            spec.loader.exec_module(module)
-        except BaseException:
-            del sys.modules[name]
-            raise
-        mapped.append(name)
-    return tuple(mapped)
-
-
 def entry_points(group: str) -> dict[str, str]:
-    """``{name: "module:attr"}`` of every entry point of ``group``: the installed distributions'
-    and, for an uninstalled source checkout, those of its pyproject.toml (which win on a clash, as
-    they describe the code that is running)."""
-    found = {ep.name: ep.value for ep in importlib.metadata.entry_points(group=group)}
-    found.update(_checkout_entry_points().get(group, {}))
-    return found
+    """``{name: "module:attr"}`` of every entry point of ``group`` of the installed distributions
+    (this project's own included: run a checkout through ``pip install -e .``)."""
+    return {ep.name: ep.value for ep in importlib.metadata.entry_points(group=group)}
 
 
 def load_object(path: str) -> Any:
     """The object named by ``"package.module:attribute"`` (``attribute`` may be dotted)."""
     module_name, _, attr = path.partition(":")
-    checkout_packages()
     obj = importlib.import_module(module_name.strip())
     for part in filter(None, attr.strip().split(".")):
         obj = getattr(obj, part)
@@ -238,7 +171,6 @@ class Registry(Generic[T]):
         if self._modules_loaded:
             return
         self._modules_loaded = True
-        checkout_packages()
         for module in self.modules:
             try:
                 importlib.import_module(module)

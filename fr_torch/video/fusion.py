@@ -1,7 +1,7 @@
 """Fusion of per-frame fR estimates into a current calibration (:class:`OnlineCalibrator`).
 
-The maths only: frame sources, outputs and the ``fr track`` command live in :mod:`fr_torch.track`.
-Manhattan-frame geometry (the 24 symmetries, nearest rotation, angles) is in :mod:`fr_torch.camera`.
+The maths only: frame sources, outputs and the ``fr track`` command live in :mod:`fr_torch.video.track`.
+Manhattan-frame geometry (the 24 symmetries, nearest rotation, angles) is in :mod:`fr_torch.core.camera`.
 
 Fusion (one *epoch* = the frames since the last restart)
 --------------------------------------------------------
@@ -37,7 +37,14 @@ from typing import Any
 
 import numpy as np
 
-from .camera import Camera, align_to, camera_record, nearest_rotation, rotation_angle_deg, rotation_angles
+from fr_torch.core.camera import (
+    Camera,
+    align_to,
+    camera_record,
+    nearest_rotation,
+    rotation_angle_deg,
+    rotation_angles,
+)
 
 SIGMA_FROM_MAE = math.sqrt(math.pi / 2.0)  # Gaussian: std = MAE * sqrt(pi / 2)
 
@@ -47,7 +54,7 @@ SIGMA_FROM_MAE = math.sqrt(math.pi / 2.0)  # Gaussian: std = MAE * sqrt(pi / 2)
 class FrameEstimate:
     """What the calibrator needs from one frame (built from a CalibrationResult).
 
-    ``camera``: the frame's estimate (:class:`fr_torch.camera.Camera`, None when it failed);
+    ``camera``: the frame's estimate (:class:`fr_torch.core.camera.Camera`, None when it failed);
     ``focal_px``, ``rotation``, ``roll_deg``, ``tilt_deg`` ... are read-only views of it.
     """
 
@@ -108,7 +115,7 @@ class OnlineCalibrator:
 
     def __post_init__(self) -> None:
         if self.default_error is None:
-            from .reliability import load_thresholds
+            from fr_torch.core.reliability import load_thresholds
 
             self.default_error = load_thresholds()
         self.reset()

@@ -50,7 +50,7 @@ Compiled search (opt-in, ``MixtureLikelihood(compiled=True)``, ``SearchConfig.co
 ``--compile``): the no-gradient measure-b sums are written as broadcast elementwise ops and one
 reduction over segments (:func:`objective_b_elementwise`), which ``torch.compile`` turns into one
 fused kernel (C++ on CPU, Triton on CUDA) that never stores the (B, 2N, 3H) deviations; the
-refinement's closed-form objective and gradient (:func:`fr_torch.search.objective_and_grad`) are
+refinement's closed-form objective and gradient (:func:`fr_torch.core.search.objective_and_grad`) are
 compiled too, which removes most of its per-step operator overhead.  Compilation happens once per
 process (:func:`compiled_call`; 10-25 s on a 2-core CPU); where it fails (no C++ compiler, no Triton)
 the estimator warns once and keeps the eager paths.
@@ -65,9 +65,14 @@ from pathlib import Path
 
 import torch
 
-from .camera import VERTICAL_AXIS, focal_from_hfov, hfov_from_focal, intrinsics
-from .resources import MODES, config_dir
-from .segments import SegmentBatch
+from fr_torch.core.camera import (
+    VERTICAL_AXIS,
+    focal_from_hfov,
+    intrinsics,
+)
+from fr_torch.core.fov import FovRange
+from fr_torch.core.segments import SegmentBatch
+from fr_torch.resources import MODES, config_dir
 
 MEASURES = ("a", "b", "c", "d", "e")
 MODELS = ("mixture", "nomixture")
@@ -155,16 +160,14 @@ class LikelihoodParams:
         if self.model not in MODELS:
             raise ValueError(f"unknown likelihood model {self.model!r}; choose one of {', '.join(MODELS)}")
 
-    def with_prior_in_range(self, hfov_range_deg: tuple[float, float]) -> "LikelihoodParams":
+    def with_prior_in_range(self, fov_range: FovRange) -> "LikelihoodParams":
         """A copy whose focal-prior centre lies in the search range ``(min, max)`` (degrees, FOV
         across the long side): unchanged when it does, else the range's midpoint in log f (a user
         who searches a range that excludes the learned centre knows more about the camera than the
         train splits do)."""
-        low, high = hfov_range_deg
-        if low <= self.focal_prior_hfov_deg <= high:
+        if fov_range.min_deg <= self.focal_prior_hfov_deg <= fov_range.max_deg:
             return self
-        middle = math.sqrt(focal_from_hfov(low, 1.0) * focal_from_hfov(high, 1.0))  # f / L, geometric mean
-        return replace(self, focal_prior_hfov_deg=hfov_from_focal(middle, 1.0))
+        return replace(self, focal_prior_hfov_deg=fov_range.log_focal_midpoint_deg())
 
     @classmethod
     def from_config(cls, measure: str | None = None, path: str | Path | None = None,

@@ -9,7 +9,7 @@ Usage::
 
     est.calibrate_segments([segments], image_sizes=[(640, 480)])   # your own (N, 4) segments
 
-Conventions: see :mod:`fr_torch.camera` (pixels; degrees; R world->camera, x right / y down /
+Conventions: see :mod:`fr_torch.core.camera` (pixels; degrees; R world->camera, x right / y down /
 z forward, vertical Manhattan direction in column 1).
 """
 from __future__ import annotations
@@ -23,13 +23,27 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from .camera import VERTICAL_AXIS, Camera, camera_record, image_centre
-from .likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
-from .search import (SearchConfig, check_result, focal_prior_share, focal_profile_gap, grid_hypotheses,
-                     hypothesis_rotations, parameter_box, refine, score_grid, select_starts, subdivide_starts,
-                     sweep_focal)
-from . import image_io, validate
-from .segments import FRInputError, SegmentBatch, SegmentFilter, get_detector, validate_segments
+from fr_torch.core.camera import VERTICAL_AXIS, Camera, camera_record, image_centre
+from fr_torch.core.checks import check_camera, per_image, resolve_device
+from fr_torch.core.config import Mode, SearchConfig
+from fr_torch.core.cues import check_result, focal_cues, image_cues, sanity_check
+from fr_torch.core.likelihood import (
+    LikelihoodParams,
+    MixtureLikelihood,
+    SegmentFeatures,
+)
+from fr_torch.core.search import (
+    grid_hypotheses,
+    hypothesis_rotations,
+    parameter_box,
+    refine,
+    score_grid,
+    select_starts,
+    subdivide_starts,
+    sweep_focal,
+)
+from fr_torch.core.segments import SegmentBatch, SegmentFilter, validate_segments
+from fr_torch.errors import FRInputError
 
 BACKGROUND_LABEL = 3
 
@@ -61,10 +75,10 @@ JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px",
 class CalibrationResult:
     """Everything fR says about one image.  Angles in degrees, lengths in pixels.
 
-    ``camera`` is the estimate (:class:`fr_torch.camera.Camera`: focal length, principal point,
+    ``camera`` is the estimate (:class:`fr_torch.core.camera.Camera`: focal length, principal point,
     rotation); ``focal_px``, ``hfov_deg``, ``principal_point``, ``rotation`` (3, 3) world->camera,
     ``pan_deg`` / ``tilt_deg`` / ``roll_deg`` / ``pitch_deg`` and ``vanishing_points`` (3, 3; row i
-    = homogeneous VP i (x, y, w), w >= 0) are read-only views of it (:func:`fr_torch.camera.camera_record`).
+    = homogeneous VP i (x, y, w), w >= 0) are read-only views of it (:func:`fr_torch.core.camera.camera_record`).
     ``ok`` is False when no estimate could be made (then ``camera`` and those fields are None and
     ``reason`` says why).  ``reliable`` is False when the estimate exists but should not be
     trusted (too few segments, a Manhattan family nearly empty, or predicted errors above the
@@ -103,28 +117,7 @@ class CalibrationResult:
         return out
 
 
-def focal_conditioning(rotation: torch.Tensor) -> torch.Tensor:
-    """How well a Manhattan frame's vanishing points constrain the focal length (a reliability cue).
-
-    Args:
-        rotation: (..., 3, 3) world->camera rotations; column i is the direction of VP i in camera
-            coordinates (x right, y down, z along the optical axis), as in ``VP_i = K R[:, i]``.
-
-    Returns:
-        (...,) ``sqrt(sum_i (sin(theta_i) cos(theta_i))^2)`` in [0, sqrt(3)/2], theta_i the angle
-        between VP direction i and the optical axis.  A VP sits at ``f tan(theta)`` from the
-        principal point; on the principal point (theta = 0) or at infinity (theta = 90 deg) its
-        position carries no information on f, and ``sin cos`` peaks at theta = 45 deg.  A camera
-        panned square to a wall with level tilt (all three VPs at the centre or at infinity) gives
-        0: its focal length is left to the prior.  No f enters (the directions alone decide).
-    """
-    columns = rotation / rotation.norm(dim=-2, keepdim=True).clamp_min(1e-12)
-    off_axis = columns[..., :2, :].norm(dim=-2)  # sin(theta_i), (..., 3)
-    along_axis = columns[..., 2, :].abs()  # cos(theta_i)
-    return (off_axis * along_axis).square().sum(-1).sqrt()
-
-
-class FREstimator:
+class SegmentEstimator:
     """fR / Fast-fR (Qian & Elder, ECCV 2022) on CPU or CUDA, batched over images.
 
     ``mode``: ``"fr"`` (refine to convergence) or ``"fast"`` (10 refinement iterations).
@@ -139,7 +132,7 @@ class FREstimator:
     family has fewer than ``min_family_segments`` segments, or when less than
     ``min_manhattan_fraction`` of the total segment length is labelled with a Manhattan family
     (random texture, nature scenes: real built scenes measure 0.75-0.95 with LSD).
-    ``reliability``: the error predictor stage (:mod:`fr_torch.reliability`): ``"default"`` (the
+    ``reliability``: the error predictor stage (:mod:`fr_torch.core.reliability`): ``"default"`` (the
     shipped model of this mode, when installed), a model object, a path to a model ``.npz``, or None
     (off).  When on, every estimate gets ``predicted_error`` and ``reliable = False`` above the
     thresholds of ``configs/reliability.json``.
@@ -149,27 +142,25 @@ class FREstimator:
     for training a model), False never (a model that uses it is then an error).
     """
 
-    def __init__(self, mode: str = "fr", measure: str | None = None, detector="lsd", device: str = "cpu",
+    def __init__(self, mode: Mode | str = Mode.FR, measure: str | None = None, device: str = "cpu",
                  dtype: torch.dtype = torch.float32, likelihood_params: LikelihoodParams | None = None,
                  likelihood: str | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
                  min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6,
                  reliability="default", profile_gap: bool | None = None):
-        self.mode = mode
-        self.search = search_config or SearchConfig.from_config()
-        self.iterations = self.search.iterations(mode)
-        params = likelihood_params or LikelihoodParams.from_config(measure, likelihood, mode=mode)
-        self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.hfov_range_deg),
+        self.mode = Mode.parse(mode)
+        self.search = (search_config or SearchConfig.from_config()).resolve(self.mode)
+        self.iterations = self.search.refine_iterations
+        params = likelihood_params or LikelihoodParams.from_config(measure, likelihood, mode=self.mode)
+        self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.fov_range),
                                             compiled=self.search.compile_search)
-        self.detector = get_detector(detector)
-        self.device = validate.resolve_device(device)
-        self.working_long_side = image_io.WORKING_LONG_SIDE
+        self.device = resolve_device(device)
         self.dtype = dtype
-        self.segment_filter = segment_filter or SegmentFilter(max_segments=self.search.max_segments(mode))
+        self.segment_filter = segment_filter or SegmentFilter(max_segments=self.search.max_segments)
         self.min_segments = min_segments
         self.min_family_segments = min_family_segments
         self.min_manhattan_fraction = min_manhattan_fraction
-        from .reliability import ReliabilityModel
+        from fr_torch.core.reliability import ReliabilityModel
 
         if isinstance(reliability, str) and reliability == "default":
             reliability = ReliabilityModel.load_default(mode)
@@ -184,19 +175,6 @@ class FREstimator:
 
     # ------------------------------------------------------------------ public API
 
-    def calibrate_images(self, images: Sequence, names: Sequence[str] | None = None, focal_px=None,
-                         principal_point=None) -> list[CalibrationResult]:
-        """Calibrate images given as file paths or arrays (grey, BGR, BGRA; 8/16-bit or float).
-
-        ``focal_px``: None (unknown), a number for all images, or one value (or None) per image.
-        ``principal_point``: None (image centre), an (x, y) pair for all, or one per image.
-        A bad image yields a result with ``ok=False`` and the reason; the others are unaffected.
-        """
-        from .pipeline import calibrate_paths  # decode + detect + search; also with worker processes
-
-        return [r for _, batch in calibrate_paths(self, images, max(1, len(images)), 0, focal_px, principal_point,
-                                                  names) for r in batch]
-
     def calibrate_segments(self, segments: Sequence, image_sizes: Sequence[tuple[int, int]],
                            names: Sequence[str] | None = None, focal_px=None, principal_point=None,
                            apply_filter: bool = True) -> list[CalibrationResult]:
@@ -208,8 +186,8 @@ class FREstimator:
         if len(segments) != len(image_sizes):
             raise FRInputError(f"got {len(segments)} segment sets but {len(image_sizes)} image sizes")
         names = list(names) if names is not None else [f"image{i}" for i in range(len(segments))]
-        focal_list = validate.per_image(focal_px, len(segments), "focal_px")
-        pp_list = validate.per_image(principal_point, len(segments), "principal_point", width=2)
+        focal_list = per_image(focal_px, len(segments), "focal_px")
+        pp_list = per_image(principal_point, len(segments), "principal_point", width=2)
         items = []
         for i, seg in enumerate(segments):
             size = tuple(image_sizes[i])
@@ -217,7 +195,7 @@ class FREstimator:
                 if len(size) != 2 or not all(np.isfinite(size)) or min(size) <= 0:
                     raise FRInputError(f"{names[i]}: image size must be (width, height) > 0, got {size}")
                 checked = validate_segments(seg, f"{names[i]} segments")
-                validate.check_camera(focal_list[i], pp_list[i], size, names[i])
+                check_camera(focal_list[i], pp_list[i], size, names[i])
                 items.append(_Image(names[i], size, checked))
             except FRInputError as exc:
                 shown = size if len(size) == 2 and all(np.isfinite(size)) else (0, 0)
@@ -228,42 +206,6 @@ class FREstimator:
                                                                   [v.size for v in valid])):
                 item.segments = kept
         return self._calibrate(items, focal_list, pp_list)
-
-    def calibrate_detections(self, detections: Sequence, names: Sequence[str], focal_px=None,
-                             principal_point=None) -> list[CalibrationResult]:
-        """Calibrate images that were already decoded and detected, one
-        :class:`fr_torch.pipeline.Detection` each (from :func:`fr_torch.pipeline.iter_detections`,
-        possibly in worker processes).
-
-        A detection holds its segments in *working* pixels (the image brought to a long side of at
-        most :attr:`working_long_side`) and ``scale``, input pixels per working pixel.
-        ``focal_px`` / ``principal_point`` are in the **input** image's pixels (None, one value for
-        all, or one per image), and so is every result: they are brought to working pixels for the
-        search and the results back to the input's pixels.  A detection with ``error`` set, or an
-        image whose focal length / principal point is invalid, gives ``ok=False`` with the reason.
-        """
-        count = len(detections)
-        names = list(names)
-        if len(names) != count:
-            raise FRInputError(f"got {count} detections but {len(names)} names")
-        focal_list = validate.per_image(focal_px, count, "focal_px")
-        pp_list = validate.per_image(principal_point, count, "principal_point", width=2)
-        items, focal_work, pp_work = [], [], []
-        for d, name, f, pp in zip(detections, names, focal_list, pp_list):
-            item = _Image(name, d.size, d.segments, error=d.error, detect_s=d.seconds)
-            if item.error is None:
-                try:  # checked in the input's pixels, so the message quotes the user's numbers
-                    validate.check_camera(f, pp, d.input_size, name)
-                    f, pp = image_io.focal_and_pp_to_working(f, pp, d.scale)
-                except FRInputError as exc:
-                    item.error, f, pp = str(exc), None, None
-            items.append(item)
-            focal_work.append(f)
-            pp_work.append(pp)
-        results = self._calibrate(items, focal_work, pp_work)
-        for result, d in zip(results, detections):
-            image_io.result_to_input_pixels(result, d.scale, d.input_size)
-        return results
 
     # ------------------------------------------------------------------ internals
 
@@ -315,7 +257,7 @@ class FREstimator:
         long_side = torch.maximum(width, height)  # the FOV range is on the long side (portrait = landscape)
         hypotheses = grid_hypotheses(self.search, long_side.to(device), None if focal is None else focal.to(device))
         # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
-        grid_count = self.search.grid_segment_count(self.mode)
+        grid_count = self.search.grid_segments
         grid_features = features.longest(grid_count) if grid_count else features
         grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements,
                                  vertical_block=self.search.grid_points_per_dim)
@@ -342,8 +284,9 @@ class FREstimator:
         rotation = hypothesis_rotations(best_params)  # float64 (B, 3, 3)
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, 3].to(dtype))
         labels = posterior[:, 0].argmax(-1)
-        cues = self._cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
-        cues.update(self._focal_cues(features, best_params, best_scores, known_focal))
+        cues = image_cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
+        cues.update(focal_cues(self.likelihood, self.search, features, best_params, best_scores, known_focal,
+                                self.profile_gap))
         t3 = time.perf_counter()
 
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
@@ -371,75 +314,7 @@ class FREstimator:
             r.manhattan_fraction = float(manhattan[j])
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
-            r.reliable, r.reason = self._sanity(r)
+            r.reliable, r.reason = sanity_check(r, self.min_segments, self.min_family_segments,
+                                                 self.min_manhattan_fraction)
             # non-finite -> ok=False; focal or an angle at its range's edge -> unreliable
             check_result(r, self.search, known_focal, finite=bool(finite[j]), search_params=params_all[j])
-
-    def _cues(self, grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[str, torch.Tensor]:
-        """The reliability cues, per image: the paper's three (§3.4) and ``focal_conditioning``.
-
-        * ``min_family_segments``: smallest number of segments labelled (argmax posterior) with one
-          of the three Manhattan families; background excluded; raw counts.
-        * ``grid_entropy``: entropy (nats) of the stage-1 grid likelihoods normalised into a
-          distribution, ``p_j = softmax_j(L_j / N)`` with N the number of segments the grid scored,
-          ``grid_counts`` (B,) (a softmax at
-          temperature N, as in the authors' code; unlike the code we do not divide the entropy by N
-          a second time: the entropy of that distribution is the cue).
-        * ``mean_log_likelihood``: mean over segments of log p_i at the final estimate (the
-          paper's definition; the authors' MATLAB release uses the mean log max-posterior instead).
-        * ``focal_conditioning``: :func:`focal_conditioning` of the final ``rotation`` (B, 3, 3).
-
-        The fifth and sixth cues, ``focal_prior_share`` and (fR only) ``focal_profile_gap``, come
-        from :meth:`_focal_cues`.
-        """
-        n = mask.sum(-1).clamp_min(1)
-        counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
-        log_q = torch.log_softmax(grid_scores / grid_counts.clamp_min(1)[:, None].to(grid_scores), -1)
-        entropy = -(log_q.exp() * log_q).sum(-1)
-        mean_log = (log_p * mask).sum(-1) / n
-        return {"min_family_segments": counts.min(-1).values.to(torch.float64),
-                "grid_entropy": entropy.to(torch.float64),
-                "mean_log_likelihood": mean_log.to(torch.float64),
-                "focal_conditioning": focal_conditioning(rotation).to(torch.float64)}
-
-    def _focal_cues(self, features: SegmentFeatures, params: torch.Tensor, scores: torch.Tensor,
-                    known_focal: bool) -> dict[str, torch.Tensor]:
-        """The focal cues of the estimates ``params`` (B, 4) with objectives ``scores`` (B,), each
-        float64 (B,): ``focal_prior_share`` (:func:`fr_torch.search.focal_prior_share`) and, when
-        ``profile_gap`` is on (fR's shipped model uses it), ``focal_profile_gap``
-        (:func:`fr_torch.search.focal_profile_gap`, each known-focal search refined for Fast-fR's
-        number of steps; ~25 ms per photo, over half of Fast-fR's time, so Fast-fR and its model go
-        without it).  0 for a given focal length: the prior plays no
-        part and there is no focal length to single out."""
-        names = ("focal_prior_share", "focal_profile_gap") if self.profile_gap else ("focal_prior_share",)
-        if known_focal:
-            return {name: torch.zeros(params.shape[0], dtype=torch.float64, device=params.device) for name in names}
-        cues = {"focal_prior_share": focal_prior_share(self.likelihood, features, params,
-                                                       self.search.max_chunk_elements)}
-        if self.profile_gap:
-            cues["focal_profile_gap"] = focal_profile_gap(self.likelihood, features, params, scores, self.search,
-                                                          self.search.iterations("fast"))
-        return cues
-
-    def _sanity(self, r: CalibrationResult) -> tuple[bool, str]:
-        reasons = []
-        if r.num_segments < self.min_segments:
-            reasons.append(f"only {r.num_segments} segments (< {self.min_segments})")
-        if r.cues.get("min_family_segments", 0) < self.min_family_segments:
-            reasons.append(f"a Manhattan family has only {int(r.cues['min_family_segments'])} segments "
-                           "(scene may not be Manhattan)")
-        if r.manhattan_fraction is not None and r.manhattan_fraction < self.min_manhattan_fraction:
-            reasons.append(f"only {100 * r.manhattan_fraction:.0f} % of the segment length follows a Manhattan "
-                           "frame (scene may not be Manhattan)")
-        return (not reasons), "; ".join(reasons)
-
-
-def calibrate(inputs: Sequence, mode: str = "fr", **kwargs) -> list[CalibrationResult]:
-    """One-call API: calibrate images (paths or arrays) with fR (``mode="fr"``) or Fast-fR (``"fast"``).
-
-    Keyword arguments go to :class:`FREstimator` (measure, detector, device, dtype, ...) or to
-    :meth:`FREstimator.calibrate_images` (focal_px, principal_point, names).
-    """
-    call_keys = {"focal_px", "principal_point", "names"}
-    call_kwargs = {k: kwargs.pop(k) for k in list(kwargs) if k in call_keys}
-    return FREstimator(mode=mode, **kwargs).calibrate_images(inputs, **call_kwargs)

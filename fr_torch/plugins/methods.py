@@ -1,28 +1,27 @@
-"""fR and Fast-fR behind the common :class:`~fr_torch.interface.Calibrator` interface.
+"""fR and Fast-fR behind the common :class:`~fr_torch.plugins.interface.Calibrator` interface.
 
 Registered names: ``fr``, ``fast-fr`` (image in, LSD or another detector), and ``oracle-fr``
 (fR run on the segments given in ``ImageMeta.segments``, e.g. YUD's hand-labelled lines: the
 upper bound of a line-based method).  Options select configurations:
 ``fr[measure=a]`` ... ``fr[measure=e]`` (deviation measure), ``fr[detector=mcmlsd]``,
 ``fr[likelihood=paper]`` (likelihood config by name or path, see
-:func:`fr_torch.likelihood.likelihood_config_path`), ``fr[hfov_min=40,hfov_max=130]`` (search
-range of the field of view across the long side, degrees; default ``configs/search.json``),
-``fr[range=paper]`` / ``fr[range=30:120]`` (the same by name: ``paper`` = [50, 130], ``default``),
-``fr[model=nomixture]`` (the paper's "no probabilistic model" ablation, see
-:class:`fr_torch.likelihood.LikelihoodParams`).
+:func:`fr_torch.core.likelihood.likelihood_config_path`), ``fr[range=paper]`` / ``fr[range=40:130]``
+(the FOV search range across the long side, anything :meth:`fr_torch.core.fov.FovRange.parse`
+accepts: ``paper`` = [50, 130], ``default`` = [30, 120]), ``fr[model=nomixture]`` (the paper's "no
+probabilistic model" ablation, see :class:`fr_torch.core.likelihood.LikelihoodParams`).
 """
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
-import time
 import numpy as np
 
-from .estimator import CalibrationResult, FREstimator
-from .interface import CameraEstimate, ImageMeta, register
-from .likelihood import LikelihoodParams
-from .options import hfov_search_config
-from .search import SearchConfig
+from fr_torch.core.config import SearchConfig
+from fr_torch.core.estimator import CalibrationResult
+from fr_torch.core.likelihood import LikelihoodParams
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, register
+from fr_torch.runtime.estimator import FREstimator
 
 
 def estimate_from_result(method: str, result: CalibrationResult, runtime_s: float) -> CameraEstimate:
@@ -46,8 +45,7 @@ class FRCalibrator:
     """
 
     def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
-                 likelihood: str | None = None, hfov_min: float | str | None = None,
-                 hfov_max: float | str | None = None, use_meta_segments: bool = False, name: str | None = None,
+                 likelihood: str | None = None, use_meta_segments: bool = False, name: str | None = None,
                  range=None, model: str | None = None, **estimator_kwargs):
         if range is not None:
             base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
@@ -56,9 +54,6 @@ class FRCalibrator:
             params = (estimator_kwargs.get("likelihood_params")
                       or LikelihoodParams.from_config(measure, likelihood, mode=mode))
             estimator_kwargs["likelihood_params"] = replace(params, model=model)
-        if hfov_min is not None or hfov_max is not None:  # validated on creation
-            estimator_kwargs["search_config"] = hfov_search_config(hfov_min, hfov_max,
-                                                                   estimator_kwargs.get("search_config"))
         self.estimator = FREstimator(mode=mode, measure=measure, detector=detector, device=device,
                                      likelihood=likelihood, **estimator_kwargs)
         self.use_meta_segments = use_meta_segments
@@ -66,8 +61,6 @@ class FRCalibrator:
         options = [f"measure={measure}"] if measure else []
         options += [f"detector={detector}"] if detector != "lsd" else []
         options += [f"likelihood={likelihood}"] if likelihood else []
-        options += [f"hfov_min={hfov_min}"] if hfov_min is not None else []
-        options += [f"hfov_max={hfov_max}"] if hfov_max is not None else []
         options += [f"range={range}"] if isinstance(range, str) else []
         options += [f"model={model}"] if model is not None else []
         self.name = f"{base}[{','.join(options)}]" if options else base

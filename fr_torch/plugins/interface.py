@@ -4,11 +4,11 @@ A method is any object with a ``name`` and ``estimate(image, meta) -> CameraEsti
 are looked up by name (``fr``, ``fast-fr``, ``lee2009``, ...) in :data:`CALIBRATORS`, which reads
 the entry points of group ``fr_torch.calibrators`` of every installed package, or by import path
 (``"my_package.my_module:MyCalibrator"``), so a third party plugs one in without editing this
-project (see :mod:`fr_torch.registry` and ``examples/fr_plugin_example``)::
+project (see :mod:`fr_torch.plugins.registry` and ``examples/fr_plugin_example``)::
 
     fr eval --dataset yud --methods fr,my_package.my_module:MyCalibrator
 
-Conventions for every field are those of :mod:`fr_torch.camera` (pixels, degrees, R world->camera
+Conventions for every field are those of :mod:`fr_torch.core.camera` (pixels, degrees, R world->camera
 with x right / y down / z forward, vertical Manhattan direction in column 1).
 """
 from __future__ import annotations
@@ -19,8 +19,8 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
-from .camera import Camera, camera_record
-from .registry import Registry, parse_method_spec  # noqa: F401  (parse_method_spec re-exported)
+from fr_torch.core.camera import Camera, camera_record
+from fr_torch.plugins.registry import Registry
 
 
 @dataclass
@@ -46,7 +46,7 @@ class ImageMeta:
 class CameraEstimate:
     """One method's answer for one image.
 
-    ``camera``: what the method estimated, as one :class:`fr_torch.camera.Camera` of the image
+    ``camera``: what the method estimated, as one :class:`fr_torch.core.camera.Camera` of the image
     (``Camera(width, height, focal_px, principal_point, rotation)``): ``focal_px=None`` for a method
     that estimates only the orientation, ``rotation=None`` for one that estimates only the focal
     length, ``Camera.from_angles(..., roll_deg=, tilt_deg=)`` (``pan_known=False``) for one that
@@ -103,7 +103,7 @@ def available_methods() -> list[str]:
 def get_calibrator(spec: str, **kwargs) -> Calibrator:
     """Build a method from a spec: registered name or import path ``module:attribute``, with
     options in brackets passed to the factory as keyword arguments (strings): ``fr[measure=a]``,
-    ``fast-fr[detector=mcmlsd]`` (see :func:`fr_torch.registry.parse_method_spec`)."""
+    ``fast-fr[detector=mcmlsd]`` (see :func:`fr_torch.plugins.registry.parse_method_spec`)."""
     method = CALIBRATORS.create(spec, **kwargs)
     if not isinstance(method, Calibrator):
         raise ValueError(f"{spec!r} did not produce a Calibrator (needs .name and .estimate())")

@@ -24,9 +24,9 @@ or the exception's one line).  A worker that dies (a native crash in a decoder o
 only the image it was on: the chunk it lost is retried one image at a time, each alone in a fresh
 pool, and only an image that kills its worker when alone fails (:func:`ordered_pool_map`).
 
-Workers are forked from a fork server that has loaded the library (:mod:`fr_torch.workers`;
+Workers are forked from a fork server that has loaded the library (:mod:`fr_torch.runtime.workers`;
 ``spawn`` where there is no fork server); each runs with one torch thread and one OpenCV thread.
-A pool pays for folders and large batches, not for a few images (:func:`fr_torch.workers.default_workers`).
+A pool pays for folders and large batches, not for a few images (:func:`fr_torch.runtime.workers.default_workers`).
 """
 from __future__ import annotations
 
@@ -42,9 +42,12 @@ from typing import Iterable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from . import image_io, validate
-from .workers import context as workers_context
-from .segments import FRInputError, SegmentFilter, detect_segments, get_detector
+from fr_torch.core.checks import per_image
+from fr_torch.core.segments import SegmentFilter
+from fr_torch.detectors.registry import detect_segments, get_detector
+from fr_torch.errors import FRInputError
+from fr_torch.images.io import WORKING_LONG_SIDE, read_any, working_image
+from fr_torch.runtime.workers import context as workers_context
 
 
 class Detection(NamedTuple):
@@ -64,7 +67,7 @@ class Detection(NamedTuple):
 
 
 def detect_image(image, name: str, detector, segment_filter: SegmentFilter,
-                 working_long_side: int | None = image_io.WORKING_LONG_SIDE) -> Detection:
+                 working_long_side: int | None = WORKING_LONG_SIDE) -> Detection:
     """Decode (path, bounded) or normalise (array) one image, bring it to the working resolution
     (long side at most ``working_long_side`` pixels) and detect its segments there.
 
@@ -72,8 +75,8 @@ def detect_image(image, name: str, detector, segment_filter: SegmentFilter,
     """
     start = time.perf_counter()
     try:
-        gray, input_size = image_io.read_any(image, name, working_long_side)
-        gray, scale = image_io.working_image(gray, input_size, working_long_side)
+        gray, input_size = read_any(image, name, working_long_side)
+        gray, scale = working_image(gray, input_size, working_long_side)
         segments = detect_segments(gray, detector, segment_filter)
         return Detection(segments, (gray.shape[1], gray.shape[0]), None, time.perf_counter() - start, scale,
                          tuple(input_size))
@@ -89,7 +92,7 @@ def detect_image(image, name: str, detector, segment_filter: SegmentFilter,
 _WORKER: dict = {}
 
 
-def _init_worker(detector_spec, segment_filter, working_long_side=image_io.WORKING_LONG_SIDE) -> None:
+def _init_worker(detector_spec, segment_filter, working_long_side=WORKING_LONG_SIDE) -> None:
     import cv2
     import torch
 
@@ -243,7 +246,7 @@ def _detection_crash(item) -> Detection:
 
 def iter_detections(images: Sequence, names: Sequence[str], detector, segment_filter: SegmentFilter | None = None,
                     workers: int = 0, queue_size: int | None = None,
-                    working_long_side: int | None = image_io.WORKING_LONG_SIDE) -> Iterator[Detection]:
+                    working_long_side: int | None = WORKING_LONG_SIDE) -> Iterator[Detection]:
     """Yield a :class:`Detection` per image of ``images``, in input order (see module docstring).
 
     ``workers`` processes (0 = this process) decode and detect, at most ``queue_size`` images
@@ -284,7 +287,7 @@ def _calibrate_chunk(chunk):
 
 
 def _calibration_crash(item):
-    from .estimator import CalibrationResult
+    from fr_torch.core.estimator import CalibrationResult
 
     return CalibrationResult(image=item[1], width=0, height=0, ok=False, reason=crash_reason(item[1]))
 
@@ -319,14 +322,14 @@ def _ahead_of_search(workers: int, batch_size: int) -> int:
 def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: int = 0,
                      whole_frames: bool | None = None) -> Iterator:
     """Calibrate a stream of ``(image, name)`` pairs (a video's frames: arrays or paths), yielding one
-    :class:`~fr_torch.estimator.CalibrationResult` per frame, in order, without reading the stream
+    :class:`~fr_torch.core.estimator.CalibrationResult` per frame, in order, without reading the stream
     ahead by more than what is in flight (one batch in-process).  ``workers > 0`` with
     ``whole_frames`` (the default for a CPU estimator): two chunks of ``batch_size`` frames per
     worker, each calibrated whole in a worker process, as :func:`calibrate_paths` does.  Without
     (always for a GPU estimator): the workers decode and detect up to two batches of frames ahead
     while this process searches on the device.
     """
-    if workers > 0 and estimator.device.type == "cpu" and whole_frames is not False:
+    if workers > 0 and estimator.policy.whole_image_workers and whole_frames is not False:
         yield from _calibrate_in_workers(estimator, ((image, name, None, None) for image, name in frames),
                                          batch_size, workers)
         return
@@ -367,9 +370,9 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
     images = list(images)
     names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
                                                    for i, im in enumerate(images)]
-    focal_list = validate.per_image(focal_px, len(images), "focal_px")
-    pp_list = validate.per_image(principal_point, len(images), "principal_point", width=2)
-    if workers > 0 and estimator.device.type == "cpu" and whole_images is not False:
+    focal_list = per_image(focal_px, len(images), "focal_px")
+    pp_list = per_image(principal_point, len(images), "principal_point", width=2)
+    if workers > 0 and estimator.policy.whole_image_workers and whole_images is not False:
         # Chunks small enough that every worker gets several (the last ones finish together).
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
         results = _calibrate_in_workers(estimator, zip(images, names, focal_list, pp_list), chunk_size, workers)
@@ -431,12 +434,12 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
     breaks is left to the caller and the batch is redone through it.
     """
     count = len(segments)
-    if workers <= 1 or count < 2 or estimator.device.type != "cpu":
+    if workers <= 1 or count < 2 or not estimator.policy.whole_image_workers:
         return estimator.calibrate_segments(segments, image_sizes, names=names, focal_px=focal_px,
                                             principal_point=principal_point, apply_filter=apply_filter)
     names = list(names) if names is not None else [f"image{i}" for i in range(count)]
-    focal_list = validate.per_image(focal_px, count, "focal_px")
-    pp_list = validate.per_image(principal_point, count, "principal_point", width=2)
+    focal_list = per_image(focal_px, count, "focal_px")
+    pp_list = per_image(principal_point, count, "principal_point", width=2)
     portable = copy.copy(estimator)
     portable.detector = None  # detectors need not pickle; the search does not use them
     items = [(segments[i], names[i], tuple(image_sizes[i]), focal_list[i], pp_list[i], apply_filter)

@@ -15,7 +15,7 @@ Policy (what a file may cost before it is refused or reduced):
   whose colour buffer would exceed :data:`MAX_COLOR_BYTES` are decoded in grey, so the peak
   decode buffer stays below ~600 MB and the peak RSS per image below ~1 GB.
 * Any decoder failure (``cv2.error``, ``None``, whatever exception) becomes a
-  :class:`~fr_torch.segments.FRInputError` with a one-line reason; OpenCV's own ``[ WARN ]`` /
+  :class:`~fr_torch.errors.FRInputError` with a one-line reason; OpenCV's own ``[ WARN ]`` /
   ``[ERROR ]`` log lines are silenced while decoding.
 * **EXIF orientation is applied** (OpenCV's ``IMREAD_COLOR`` / ``IMREAD_GRAYSCALE`` default):
   the image is calibrated as a viewer displays it, so roll, tilt and the width / height refer to
@@ -59,7 +59,7 @@ import cv2  # noqa: E402  (after the environment variable above)
 
 
 def _error(message: str):
-    from .segments import FRInputError
+    from fr_torch.errors import FRInputError
 
     return FRInputError(message)
 
@@ -357,8 +357,8 @@ def result_to_input_pixels(result, scale: float, input_size: tuple[int, int]) ->
 
 def read_any(image, name: str, max_long_side: int | None = WORKING_LONG_SIDE) -> tuple[np.ndarray, tuple[int, int]]:
     """Grey uint8 image and the input's (width, height) from a path (bounded decode, see
-    :func:`read_image`) or an array (any format :func:`~fr_torch.segments.to_bgr8` accepts)."""
-    from .segments import to_gray8
+    :func:`read_image`) or an array (any format :func:`~fr_torch.images.convert.to_bgr8` accepts)."""
+    from fr_torch.images.convert import to_gray8
 
     if isinstance(image, (str, bytes, os.PathLike)):
         # Decoded in colour and converted like an array (not decoded to grey: a JPEG's grey decode

@@ -257,9 +257,9 @@ def pitch_from_tilt(tilt_deg: float, roll_deg: float) -> float:
 class Camera:
     """A pinhole camera: image size, focal length, principal point and orientation.
 
-    The one camera value of the project: :class:`~fr_torch.estimator.CalibrationResult`,
-    :class:`~fr_torch.interface.CameraEstimate`, :class:`~fr_torch.fusion.FrameEstimate`,
-    :class:`~fr_torch.fusion.FusedState` and the harness's ``CalibrationSample`` hold one and read
+    The one camera value of the project: :class:`~fr_torch.core.estimator.CalibrationResult`,
+    :class:`~fr_torch.plugins.interface.CameraEstimate`, :class:`~fr_torch.video.fusion.FrameEstimate`,
+    :class:`~fr_torch.video.fusion.FusedState` and the harness's ``CalibrationSample`` hold one and read
     every derived quantity (K, hfov, angles, vanishing points) from it through :class:`CameraField`.
 
     Args:
@@ -468,7 +468,7 @@ class CameraField:
 
     def __set__(self, obj, value) -> None:
         if value is not None or self.part is None:
-            raise AttributeError(f"{self.name} is derived from .camera (a fr_torch.camera.Camera); set .camera")
+            raise AttributeError(f"{self.name} is derived from .camera (a fr_torch.core.camera.Camera); set .camera")
         if obj.camera is not None:
             obj.camera = replace(obj.camera, **{self.part: None})
 

@@ -1,0 +1,90 @@
+"""``fr calibrate IMAGE...``: estimate focal length and rotation of images, one JSON object each."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tqdm import tqdm
+
+from fr_torch.cli.options import (
+    add_camera_arguments,
+    add_device_arguments,
+    add_estimator_arguments,
+    camera_options,
+    device_policy,
+    estimator_kwargs,
+)
+from fr_torch.errors import FRInputError
+from fr_torch.images.overlay import write_overlay
+from fr_torch.runtime.estimator import FREstimator
+from fr_torch.runtime.output import dumps, json_safe, output_folder, write_text_atomic
+from fr_torch.runtime.pipeline import calibrate_paths
+from fr_torch.runtime.workers import start_worker_server
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``fr calibrate``."""
+    parser.add_argument("images", nargs="+", help="image files (any format OpenCV reads)")
+    add_estimator_arguments(parser, device=False)
+    add_device_arguments(
+        parser, batch_help="images searched together (default 16 on a CPU, 256 on a GPU)",
+        workers_help="worker processes (0 = in-process). CPU: each decodes, detects and searches its share of "
+                     "the images (default: one per core, up to 8, for 64+ images); GPU: they decode + detect "
+                     "ahead of the search (default: cores - 1, up to 16; 0 on 1-2 cores)")
+    add_camera_arguments(parser)
+    output = parser.add_argument_group("output")
+    output.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write a JSON list to OUT")
+    output.add_argument("--overlay", type=Path, default=None, metavar="DIR",
+                        help="write <image>_fr.png overlays (segments by family, horizon) to DIR")
+    output.add_argument("--segments", action="store_true", help="include segments and labels in the JSON")
+    output.add_argument("--no-reliability", action="store_true",
+                        help="no predicted errors and reliable = the sanity checks only (fR then skips the "
+                             "focal_profile_gap cue, a quarter of its time per photo)")
+    output.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (shown on a terminal's stderr when stdout goes to a file or pipe)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
+    paths = [str(p) for p in args.images]
+    policy = device_policy(args)
+    workers = policy.default_workers(len(paths)) if args.workers is None else args.workers
+    workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
+    if workers > 0:  # the workers' server loads the library while this process does the same
+        start_worker_server()
+    policy.apply_threads()
+    focal_px, principal_point = camera_options(args)  # per image: within a 1-179 deg field of view
+    batch_size = policy.default_batch_size if args.batch_size is None else args.batch_size
+    estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
+    if args.overlay:
+        output_folder(args.overlay, "--overlay")
+    if args.json and args.json.is_dir():
+        raise FRInputError(f"--json {args.json}: is a folder, not a file")
+    everything, failures = [], 0
+    # A bar when the JSON lines go to a file or pipe and stderr is a terminal (else they show progress).
+    show_bar = not args.no_progress and len(paths) > 1 and sys.stderr.isatty() and not sys.stdout.isatty()
+    bar = tqdm(total=len(paths), unit="img", desc="fr calibrate", disable=not show_bar, file=sys.stderr)
+    try:
+        for chunk, results in calibrate_paths(estimator, paths, batch_size, workers, focal_px,
+                                              principal_point):
+            for path, result in zip(chunk, results):
+                record = json_safe(result.to_json(include_segments=args.segments))
+                everything.append(record)
+                print(dumps(record), flush=True)
+                if not result.ok:
+                    failures += 1
+                    reason = result.reason  # image reading reasons already start with the path
+                    bar.write(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
+                              file=sys.stderr)
+                if args.overlay and result.width > 0:
+                    try:
+                        write_overlay(path, result, args.overlay)
+                    except FRInputError as exc:
+                        bar.write(f"fr: {exc}", file=sys.stderr)
+            bar.update(len(chunk))
+    finally:  # the JSON holds every result so far, written atomically (never a truncated file)
+        bar.close()
+        if args.json:
+            write_text_atomic(args.json, dumps(everything, indent=1))
+    return 1 if failures else 0

@@ -1,0 +1,90 @@
+"""The ``fr`` command line.
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
+``run(args) -> int``, imported only when used (so ``fr calibrate`` starts fast); the option groups
+they share are :mod:`fr_torch.cli.options`.  The core's commands are :data:`SUBCOMMANDS`; the evaluation harness
+adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.plugins.registry`).  Errors
+in user input print one line and exit non-zero; set ``FR_DEBUG=1`` to see tracebacks.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+# name -> (module, one-line help).  The module provides add_arguments(parser) and run(args).
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "calibrate": ("fr_torch.cli.calibrate", "estimate focal length and rotation of images"),
+    "track": ("fr_torch.cli.track", "online recalibration from a video or a folder of frames"),
+    "batch": ("fr_torch.cli.batch", "calibrate many images into a resumable Parquet dataset (local or Ray)"),
+}
+
+
+def all_subcommands(extra: dict[str, tuple[str, str]] | None = None) -> dict[str, tuple[str, str]]:
+    """The core's commands, then those declared in the ``fr_torch.commands`` entry-point group
+    (value: an object ``(module, one-line help)``, see :mod:`fr_torch.plugins.registry`)."""
+    from fr_torch.plugins.registry import entry_points, load_object
+
+    commands = dict(SUBCOMMANDS)
+    for name, target in entry_points("fr_torch.commands").items():
+        try:
+            commands.setdefault(name, tuple(load_object(target)))
+        except (ImportError, AttributeError) as exc:  # a plugin whose package is broken or partly installed
+            commands.setdefault(name, (target.partition(":")[0], f"(unavailable: {exc})"))
+    commands.update(extra or {})
+    return commands
+
+
+def build_parser(command: str | None = None, commands: dict[str, tuple[str, str]] | None = None
+                 ) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fr", description="fR: focal length and camera rotation from one image "
+                                     "(Qian & Elder, ECCV 2022).")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in (commands or SUBCOMMANDS).items():
+        sp = sub.add_parser(name, help=help_text)
+        if name == command:
+            importlib.import_module(module).add_arguments(sp)
+    return parser
+
+
+def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str]] | None = None) -> int:
+    from fr_torch.cli.options import attach_range_values
+
+    argv = attach_range_values(list(sys.argv[1:] if argv is None else argv))
+    commands = all_subcommands(extra_commands)
+    if argv and not argv[0].startswith("-") and argv[0] not in commands:
+        print(f"fr: unknown command {argv[0]!r} (commands: {', '.join(commands)}; the evaluation commands "
+              "come with a pip-installed checkout)", file=sys.stderr)
+        return 2
+    command = argv[0] if argv else None
+    try:
+        parser = build_parser(command, commands)
+    except ModuleNotFoundError as exc:
+        print(f"fr: the '{command}' command is not available in this installation ({exc})", file=sys.stderr)
+        return 2
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    from fr_torch.errors import FRInputError
+
+    module = importlib.import_module(commands[args.command][0])
+    try:
+        return int(module.run(args) or 0)
+    except (FRInputError, FileNotFoundError, ValueError) as exc:
+        if os.environ.get("FR_DEBUG"):
+            raise
+        print(f"fr {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:  # output piped into `head` & co.: stop quietly, as Unix tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    except (OSError, RuntimeError, TypeError, KeyError, AttributeError, ZeroDivisionError, OverflowError) as exc:
+        if os.environ.get("FR_DEBUG"):  # last guard: one line, never a traceback (FR_DEBUG=1 shows it)
+            raise
+        print(f"fr {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 2
+

@@ -1,0 +1,150 @@
+"""The option groups the commands share, each parsed once into the library's types.
+
+* :func:`add_estimator_arguments` -> :func:`estimator_kwargs`: the method (``--fast``,
+  ``--measure``, ``--detector``, ``--likelihood``), the search box (``--fov-range``,
+  ``--pitch-range``, ``--roll-range``) as one :class:`~fr_torch.core.config.SearchConfig`, and
+  ``--compile``.
+* :func:`add_device_arguments` -> :func:`device_policy`: ``--device`` (and, where the command
+  takes them, ``--workers`` / ``--batch-size``) as one
+  :class:`~fr_torch.runtime.device.DevicePolicy`.
+* :func:`add_camera_arguments` -> :func:`camera_options`: ``--focal`` / ``--pp``.
+
+``fr calibrate``, ``fr track``, ``fr batch`` and the evaluation harness's commands use the same
+groups, so an option means the same thing everywhere.
+"""
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from fr_torch.core.checks import finite_number, positive_number
+from fr_torch.core.config import Mode, SearchConfig
+from fr_torch.errors import FRInputError
+from fr_torch.runtime.device import DevicePolicy
+
+MEASURE_CHOICES = tuple("abcde")
+
+#: Options whose MIN,MAX value may start with a minus sign.
+RANGE_OPTIONS = ("--fov-range", "--hfov-range", "--pitch-range", "--roll-range")
+
+
+def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True) -> None:
+    """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--fov-range``,
+    ``--pitch-range``, ``--roll-range``, ``--compile`` and (``device``) ``--device``."""
+    group = parser.add_argument_group("estimator")
+    group.add_argument("--fast", action="store_true", help="Fast-fR: 10 refinement iterations")
+    group.add_argument("--measure", choices=MEASURE_CHOICES, default=None, help="deviation measure (default b)")
+    group.add_argument("--detector", default="lsd", help="line segment detector (default lsd)")
+    group.add_argument("--likelihood", default=None, metavar="NAME|JSON",
+                       help="likelihood config: 'paper', 'fitted' or a JSON path (default configs/likelihood.json)")
+    add_fov_range_argument(group)
+    group.add_argument("--pitch-range", default=None, metavar="MIN,MAX",
+                       help="search range of the camera's pitch, degrees (default -35,35; widen for cameras "
+                            "that look steeply down, e.g. -70,20 for traffic cameras: a coarser grid, so level "
+                            "views lose some accuracy; a pitch found at the range's edge is marked unreliable)")
+    group.add_argument("--roll-range", default=None, metavar="MIN,MAX",
+                       help="search range of the camera's roll, degrees (default -15,15; an estimate at the "
+                            "edge is marked unreliable)")
+    group.add_argument("--compile", action="store_true",
+                       help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
+                            "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "
+                            "jobs and video; falls back with a warning where it cannot compile)")
+    if device:
+        add_device_arguments(parser)
+
+
+def add_device_arguments(parser: argparse.ArgumentParser, workers_help: str | None = None,
+                         batch_help: str | None = None, default: str = "cpu", device_help: str | None = None) -> None:
+    """``--device`` (default ``default``) and, when their help text is given, ``--workers`` /
+    ``--batch-size``."""
+    group = parser.add_argument_group("device")
+    group.add_argument("--device", default=default, help=device_help or f"cpu, cuda or cuda:N (default {default})")
+    if workers_help:
+        group.add_argument("--workers", type=int, default=None, metavar="N", help=workers_help)
+    if batch_help:
+        group.add_argument("--batch-size", type=int, default=None, metavar="N", help=batch_help)
+
+
+def add_fov_range_argument(parser, help_text: str | None = None) -> None:
+    """``--fov-range`` (alias ``--hfov-range``): the FOV search range across the long side."""
+    parser.add_argument("--fov-range", "--hfov-range", dest="fov_range", default=None, metavar="MIN,MAX|paper",
+                        help=help_text or "search range of the field of view across the image's long side, degrees "
+                                          "(default 30,120; 'paper' = the paper's 50,130; narrow for zoomed-in PTZ "
+                                          "or traffic cameras)")
+
+
+def add_camera_arguments(parser: argparse.ArgumentParser, focal_help: str | None = None) -> None:
+    """``--focal`` (known focal length) and ``--pp`` (principal point)."""
+    group = parser.add_argument_group("camera")
+    group.add_argument("--focal", type=float, default=None, metavar="PX",
+                       help=focal_help or "known focal length in pixels (then only the rotation is searched)")
+    group.add_argument("--pp", type=str, default=None, metavar="X,Y",
+                       help="principal point in pixels (default: image centre)")
+
+
+def attach_range_values(argv: list[str]) -> list[str]:
+    """``["--pitch-range", "-70,20"]`` -> ``["--pitch-range=-70,20"]`` for :data:`RANGE_OPTIONS`:
+    argparse reads a separate value that starts with ``-`` (and is not a plain number) as an option."""
+    out: list[str] = []
+    pending = False
+    for arg in argv:
+        if pending and arg[:1] == "-" and (arg[1:2].isdigit() or arg[1:2] == "."):
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+        pending = arg in RANGE_OPTIONS
+    return out
+
+
+def camera_options(args: argparse.Namespace) -> tuple[float | None, tuple[float, float] | None]:
+    """The known focal length (``--focal``, pixels, > 0) and principal point (``--pp X,Y``, pixels,
+    finite) for all images of a command, or None; FRInputError (one line) when malformed.  Whether
+    they fit each image is checked per image (:func:`fr_torch.core.checks.check_camera`)."""
+    principal_point = None
+    if getattr(args, "pp", None):
+        parts = args.pp.split(",")
+        if len(parts) != 2:
+            raise FRInputError(f"--pp expects X,Y in pixels, got {args.pp!r}")
+        principal_point = tuple(finite_number(v, "--pp") for v in parts)
+    focal = getattr(args, "focal", None)
+    if focal is not None:
+        focal = positive_number(focal, "--focal")
+    return focal, principal_point
+
+
+def search_config(args: argparse.Namespace) -> SearchConfig:
+    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range`` and
+    ``--compile`` over the shipped defaults; FRInputError (one line) naming a malformed option."""
+    overrides = {"compile_search": True} if getattr(args, "compile", False) else {}
+    config = SearchConfig.from_config(**overrides)
+    if getattr(args, "fov_range", None):
+        try:
+            config = config.with_fov_range(args.fov_range)
+        except ValueError as exc:
+            raise FRInputError(f"--fov-range: {exc}") from None
+    for name in ("pitch", "roll"):
+        value = getattr(args, f"{name}_range", None)
+        if value:
+            try:
+                config = config.with_angle_range(name, value)
+            except ValueError as exc:
+                raise FRInputError(f"--{name}-range: {exc}") from None
+    return config
+
+
+def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """FREstimator keyword arguments from :func:`add_estimator_arguments`'s options (picklable)."""
+    return dict(mode=Mode.FAST if args.fast else Mode.FR, measure=args.measure, detector=args.detector,
+                likelihood=args.likelihood, device=args.device, search_config=search_config(args))
+
+
+def device_policy(args: argparse.Namespace) -> DevicePolicy:
+    """The :class:`DevicePolicy` of ``--device``; ``--workers`` < 0 or ``--batch-size`` < 1 are
+    one-line errors."""
+    workers = getattr(args, "workers", None)
+    if workers is not None and workers < 0:
+        raise FRInputError("--workers must be 0 (in-process) or more")
+    batch_size = getattr(args, "batch_size", None)
+    if batch_size is not None and batch_size < 1:
+        raise FRInputError("--batch-size must be at least 1")
+    return DevicePolicy.resolve(args.device)

@@ -1,0 +1,183 @@
+"""The search configuration and the modes (fR, Fast-fR) that preset it.
+
+A :class:`SearchConfig` is built once from its dataclass defaults, the overrides of
+``configs/search.json`` (which holds overrides only; empty as shipped) and the caller's keyword
+overrides (:meth:`SearchConfig.from_config`).  The mode-dependent fields (refinement steps,
+segment cap, stage-1 segment count) may be left ``None``; :meth:`SearchConfig.resolve` fills them
+from the mode's preset (:data:`MODE_PRESETS`), so the estimator always runs one concrete
+configuration.
+
+Example::
+
+    config = SearchConfig.from_config(fov_range="paper").resolve(Mode.FAST)
+    config.refine_iterations, config.max_segments     # 10, 500
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, fields, replace
+from enum import StrEnum
+from pathlib import Path
+
+from fr_torch.core.fov import FovRange, two_numbers
+from fr_torch.errors import FRInputError
+from fr_torch.resources import config_path
+
+FOCAL_GRIDS = ("linear_f", "log_f", "fov")
+
+
+class Mode(StrEnum):
+    """The estimator's modes: ``fr`` refines to convergence, ``fast`` (Fast-fR) for 10 steps."""
+
+    FR = "fr"
+    FAST = "fast"
+
+    @classmethod
+    def parse(cls, value) -> "Mode":
+        """A mode from ``"fr"``, ``"fast"`` or a :class:`Mode`; FRInputError (one line) otherwise."""
+        try:
+            return cls(value)
+        except ValueError:
+            raise FRInputError(f"mode must be 'fr' or 'fast', got {value!r}") from None
+
+
+#: Refinement steps of Fast-fR (the paper's definition).
+FAST_REFINE_ITERATIONS = 10
+
+#: The mode-dependent settings of each mode: refinement steps, the segment cap per image
+#: (``max_segments``: each image keeps its longest this many) and the segments stage 1 scores
+#: (``grid_segments``, 0 = all).  ``results/DECISIONS.md`` records how they were chosen.
+MODE_PRESETS: dict[Mode, dict[str, int]] = {
+    Mode.FR: {"refine_iterations": 100, "max_segments": 750, "grid_segments": 0},
+    Mode.FAST: {"refine_iterations": FAST_REFINE_ITERATIONS, "max_segments": 500, "grid_segments": 0},
+}
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """Search settings; angles in degrees.
+
+    ``fov_range``: the :class:`~fr_torch.core.fov.FovRange` searched (FOV across the image's long
+    side; default [30, 120]); a name, ``"MIN,MAX"`` or a pair is parsed on construction.
+    ``pan_range_deg`` / ``pitch_range_deg`` / ``roll_range_deg``: the angle boxes of the grid and the
+    refinement (default [-45, 45], [-35, 35], [-15, 15]; pitch and roll within [-89, 89];
+    :meth:`with_angle_range`).  A pan box of exactly 90 deg wraps (:attr:`periodic_pan`); a pitch
+    or roll estimate at its box's edge is flagged unreliable (:func:`fr_torch.core.cues.check_result`).
+    ``grid_points_per_dim``: k of the stage-1 k^4 grid.  ``top_l``: grid points refined.
+    ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
+    ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
+    ``focal_sweep_points``: focal values of :func:`fr_torch.core.search.sweep_focal` (each ``top_l``
+    start tried at this many focal lengths over the whole range with its vertical VP fixed, the
+    best added as a second start; 0 = off).
+    ``grid_passes``: coarse-to-fine passes around each start before refinement
+    (:func:`fr_torch.core.search.subdivide_starts`); each scores 3^4 = 81 points per start.
+    0 = the paper's two stages.
+    ``refine_iterations``: refinement steps; ``max_segments``: each image keeps at most this many
+    of its longest segments (bounds the time per image whatever the photo); ``grid_segments``:
+    stage 1 scores only each image's longest this many (0 = all; the later stages use all).  None =
+    the mode's preset (:data:`MODE_PRESETS`, filled by :meth:`resolve`).
+    ``refine_tolerance``: refinement stops once no hypothesis' normalised objective (per unit
+    segment length) changed by more than this over ``refine_patience`` steps; 0 = always the full
+    count.
+    ``max_chunk_elements``: on a GPU, at most this many per-segment deviations are scored and
+    refined at once (about 7 bytes each in the eager grid; 2^27 is under 1 GB).  On a CPU the
+    chunks are cache-sized (:mod:`fr_torch.core.search`) and this only caps them.  Results do not
+    depend on it.
+    ``compile_search``: score the no-gradient hypotheses with one kernel fused by ``torch.compile``
+    and compile the refinement step too (``--compile``); the same estimates to float rounding, a
+    compilation per process (10-25 s on a 2-core CPU), then faster.  Off by default.
+
+    Invalid values raise :class:`~fr_torch.errors.FRInputError` (one line).
+    """
+
+    grid_points_per_dim: int = 8
+    pan_range_deg: tuple[float, float] = (-45.0, 45.0)
+    pitch_range_deg: tuple[float, float] = (-35.0, 35.0)
+    roll_range_deg: tuple[float, float] = (-15.0, 15.0)
+    fov_range: FovRange = FovRange(*FovRange.NAMED["default"])
+    focal_grid: str = "log_f"
+    top_l: int = 4
+    focal_sweep_points: int = 16
+    grid_passes: int = 3
+    refine_iterations: int | None = None
+    max_segments: int | None = None
+    grid_segments: int | None = None
+    refine_tolerance: float = 0.0
+    refine_patience: int = 10
+    max_chunk_elements: int = 1 << 27
+    compile_search: bool = False
+
+    def __post_init__(self):
+        object.__setattr__(self, "fov_range", FovRange.parse(self.fov_range))
+        for key in ("pan_range_deg", "pitch_range_deg", "roll_range_deg"):
+            low, high = getattr(self, key)
+            if not (math.isfinite(low) and math.isfinite(high) and low <= high):
+                raise FRInputError(f"{key} must be finite (min, max) with min <= max, got {low}, {high}")
+            object.__setattr__(self, key, (float(low), float(high)))
+        for key in ("pitch_range_deg", "roll_range_deg"):  # +-90 deg: the vertical VP swaps families
+            low, high = getattr(self, key)
+            if not (-89.0 <= low and high <= 89.0):
+                raise FRInputError(f"{key} must lie within [-89, 89] degrees, got {low:g}, {high:g}")
+        if self.grid_points_per_dim < 1 or self.top_l < 1:
+            raise FRInputError("grid_points_per_dim and top_l must be at least 1")
+        if self.grid_passes < 0:
+            raise FRInputError(f"grid_passes must be >= 0, got {self.grid_passes}")
+        if self.focal_sweep_points < 0:
+            raise FRInputError(f"focal_sweep_points must be >= 0 (0 = off), got {self.focal_sweep_points}")
+        minimum = {"refine_iterations": 0, "max_segments": 1, "grid_segments": 0}
+        for key, low in minimum.items():
+            value = getattr(self, key)
+            if value is not None and value < low:
+                raise FRInputError(f"{key} must be >= {low}, got {value}")
+        if self.focal_grid not in FOCAL_GRIDS:
+            raise FRInputError(f"focal_grid must be one of {', '.join(FOCAL_GRIDS)}, got {self.focal_grid!r}")
+
+    @property
+    def periodic_pan(self) -> bool:
+        """True when the pan range spans exactly one period of a Manhattan frame (90 deg, the
+        default [-45, 45]): pan is then an angle on a circle, and the sweep, the lattice passes and
+        the refinement wrap it around (-45 and +45 are the same camera with its two horizontal
+        families swapped, which score the same) instead of pinning it at the box's edge."""
+        low, high = self.pan_range_deg
+        return abs((high - low) - 90.0) < 1e-9
+
+    @classmethod
+    def from_config(cls, path: str | Path | None = None, **overrides) -> "SearchConfig":
+        """Defaults, then the JSON overrides of ``path`` (default ``configs/search.json``), then
+        ``overrides``.  Unknown keys are an FRInputError naming them."""
+        path = Path(path) if path is not None else config_path("search.json")
+        try:
+            values = json.loads(path.read_text()) if path.exists() else {}
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            raise FRInputError(f"search config {path}: not a readable JSON file ({exc})") from None
+        if not isinstance(values, dict):
+            raise FRInputError(f"search config {path}: expected a JSON object of overrides")
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+        values.update(overrides)
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise FRInputError(f"search config: unknown setting(s) {', '.join(unknown)}")
+        return cls(**values)
+
+    def resolve(self, mode: Mode | str) -> "SearchConfig":
+        """This configuration with every mode-dependent field left None filled from ``mode``'s
+        preset (:data:`MODE_PRESETS`)."""
+        preset = MODE_PRESETS[Mode.parse(mode)]
+        return replace(self, **{k: v for k, v in preset.items() if getattr(self, k) is None})
+
+    def with_angle_range(self, name: str, value) -> "SearchConfig":
+        """A copy with the ``name`` (``pitch`` or ``roll``) search range from ``"MIN,MAX"`` or a
+        (min, max) pair (degrees, within [-89, 89]); FRInputError (one line) when malformed."""
+        if name not in ("pitch", "roll"):
+            raise FRInputError(f"angle range name must be 'pitch' or 'roll', got {name!r}")
+        parts = value.split(",") if isinstance(value, str) else list(value)
+        low, high = two_numbers(parts, f"{name} range must be MIN,MAX in degrees, got {value!r}")
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise FRInputError(f"{name} range must be finite MIN,MAX with MIN < MAX, got {value!r}")
+        return replace(self, **{f"{name}_range_deg": (low, high)})
+
+    def with_fov_range(self, value) -> "SearchConfig":
+        """A copy searching the FOV range ``value`` (anything :meth:`FovRange.parse` accepts)."""
+        return replace(self, fov_range=FovRange.parse(value))

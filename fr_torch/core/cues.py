@@ -1,0 +1,316 @@
+"""Reliability cues and final sanity checks of an estimate.
+
+The cues feed the error model (:mod:`fr_torch.core.reliability`): the paper's three (segments per
+family, grid entropy, mean log-likelihood) and geometric ones of ours (focal conditioning, the focal
+prior's share, the focal profile gap).  The checks flag non-finite estimates and estimates at the
+edge of the search box.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from fr_torch.core.config import FAST_REFINE_ITERATIONS, SearchConfig
+from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
+from fr_torch.core.search import (
+    LATTICE,
+    from_log_focal,
+    grid_hypotheses,
+    parameter_box,
+    refine,
+    score_grid,
+    select_starts,
+    to_log_focal,
+)
+
+EDGE_REASON = "focal at the edge of the search range"
+
+
+NON_FINITE_REASON = "non-finite estimate (NaN/inf in the parameters, objective or outputs)"
+
+
+def angle_edge_reason(name: str, low: float, high: float) -> str:
+    """The reason given for a ``name`` angle (pan, pitch or roll) found at the edge of its search
+    box [``low``, ``high``] (degrees): the camera may lie outside it."""
+    return f"{name} at the edge of the search range [{low:g}, {high:g}] deg (the camera may lie outside it)"
+
+
+def _quadratic_fit_matrix() -> torch.Tensor:
+    """(15, 81) least-squares map from objective values on :data:`LATTICE` to the coefficients of
+    ``c + g.x + x.H.x / 2`` in lattice units: [c, g (4), H_00, H_01, H_02, H_03, H_11, H_12, ..., H_33]."""
+    x = LATTICE
+    columns = [torch.ones(len(x), dtype=torch.float64)] + [x[:, j] for j in range(4)]
+    columns += [x[:, i] * x[:, j] * (0.5 if i == j else 1.0) for i in range(4) for j in range(i, 4)]
+    return torch.linalg.pinv(torch.stack(columns, 1))
+
+
+#: Lattice spacing of :func:`focal_prior_share`: [pan, pitch, roll] in degrees, then log f (5 % of f).
+#: Chosen on the train splits (YUD, ZInD-fR, YUD crops) from (0.25 / 0.5 / 1 deg) x (0.01 - 0.05):
+#: the Spearman rho of the cue with the focal error stays within 0.4 - 0.57 across them.
+PRIOR_SHARE_STEP = (0.5, 0.5, 0.5, 0.05)
+
+
+_QUADRATIC_FIT = _quadratic_fit_matrix()
+#: Column of the fit's coefficients holding H[i, j], for the 16 entries of the symmetric 4 x 4 H.
+_HESSIAN_COLUMNS = torch.tensor([5 + [(a, b) for a in range(4) for b in range(a, 4)].index((min(i, j), max(i, j)))
+                                 for i in range(4) for j in range(4)])
+
+
+
+def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                      max_chunk_elements: int = 1 << 24) -> torch.Tensor:
+    """How much of the focal length's determination comes from the focal prior (a reliability cue).
+
+    The objective (likelihood + prior) is scored on the 3^4 lattice of :data:`PRIOR_SHARE_STEP`
+    around each estimate and fitted by a quadratic (a local Laplace approximation; the lattice
+    spacing smooths the kinks of the exponential likelihood).  The prior's curvature in log f,
+    ``c_p``, fitted the same way from its values on the lattice (:meth:`MixtureLikelihood.focal_prior`:
+    the log-normal's constant ``gamma (W + W0)``, 0 inside a flat top), is taken out of the fitted
+    Hessian, leaving the likelihood's; its curvature along log f with the angles re-optimised (Schur
+    complement ``-(H_ff - H_fa H_aa^-1 H_af)``) is ``c_l``.  The cue is ``c_p / (c_p + max(c_l, 0))``:
+    near 0 when the segments pin f down, 1 when the likelihood is flat (or curves up) along f and the
+    prior alone sets it -- e.g. a narrow view whose vanishing points lie far outside the image,
+    which the prior pulls towards its centre.
+
+    Args:
+        likelihood: the estimator's model (its focal prior included).
+        features: the segments of B images.
+        params: (B, 4) estimates [pan, pitch, roll (degrees), f (pixels)].
+        max_chunk_elements: as for :func:`score_grid`.
+
+    Returns:
+        (B,) float64 in [0, 1]; 0 for every image when the model has no focal prior; 1 where the fit
+        is not finite.
+    """
+    batch = params.shape[0]
+    device = features.weight.device
+    if not likelihood.params.focal_prior_weight:
+        return torch.zeros(batch, dtype=torch.float64, device=device)
+    step = torch.tensor(PRIOR_SHARE_STEP, dtype=torch.float64, device=device)
+    centre = to_log_focal(params.to(device=device, dtype=torch.float64))
+    points = from_log_focal(centre[:, None, :] + LATTICE.to(device) * step)  # (B, 81, 4)
+    scores = score_grid(likelihood, features, points, max_chunk_elements, vertical_block=3)
+    fit = _QUADRATIC_FIT.to(device).T  # (81, 15)
+    coef = scores.to(torch.float64) @ fit  # (B, 15)
+    hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(batch, 4, 4)
+    # The prior's curvature over the same lattice, fitted the same way (exact for the log-normal;
+    # a flat-topped prior has none inside its band and part of it at the band's edge).
+    prior_values = likelihood.focal_prior(features, points[..., 3].to(features.weight.dtype))[0]
+    prior_hessian = prior_values.to(torch.float64) @ fit[:, _HESSIAN_COLUMNS[15].item()]  # H_33, lattice units
+    hessian[:, 3, 3] -= prior_hessian  # the likelihood's Hessian alone (lattice units)
+    prior = (-prior_hessian / step[3] ** 2).clamp_min(0.0)  # per (log f)^2
+    angles, focal_row = hessian[:, :3, :3], hessian[:, :3, 3:]
+    solved, info = torch.linalg.solve_ex(angles, focal_row)
+    profile = -(hessian[:, 3, 3] - (focal_row * solved).sum((-1, -2))) / step[3] ** 2  # per (log f)^2
+    share = prior / (prior + profile.clamp_min(0.0))
+    ok = torch.isfinite(share) & (info == 0)
+    return torch.where(ok, share.clamp(0.0, 1.0) + 0.0, torch.ones_like(share))  # + 0.0: no -0.0 in the output
+
+
+#: Focal lengths of :func:`focal_profile_gap`'s profile, as multiples of the estimate: about 15 % to
+#: 67 % away on either side, evenly spaced in log f (narrower than the search range's 6.5x, wider
+#: than the basin of a well-determined estimate, ~5 %).
+PROFILE_FOCAL_RATIOS = (0.6, 0.7, 0.8, 0.87, 1.15, 1.25, 1.43, 1.67)
+#: Images profiled together by :func:`focal_profile_gap` (their segments are copied once per ratio:
+#: 256 x 8 copies of 750 segments are about 90 MB); the gaps do not depend on it.
+PROFILE_CHUNK_IMAGES = 256
+
+
+def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                      scores: torch.Tensor, config: SearchConfig, iterations: int) -> torch.Tensor:
+    """How much better the estimate scores than the best hypothesis at a clearly different focal
+    length (a reliability cue): ``scores`` minus the best objective of a known-focal search at each
+    f x :data:`PROFILE_FOCAL_RATIOS` inside the search range.
+
+    Each known-focal search is Fast-fR's with the focal length fixed: the k^3 angle grid, its
+    ``top_l`` best points refined for ``iterations`` Adam steps.  A large gap (hundreds of nats)
+    means the segments single out the estimate's focal length; a small one, that another focal
+    length explains them almost as well (two basins: the estimate may be the wrong one); a negative
+    one, that the search missed a better basin.  Values are in objective units (nats, weighted by
+    segment length in pixels), like ``scores``.
+
+    Args:
+        likelihood: the estimator's model.
+        features: the segments of B images.
+        params: (B, 4) estimates [pan, pitch, roll (degrees), f (pixels)].
+        scores: (B,) the estimates' objectives.
+        config: the search settings (FOV range, grid, top_l).
+        iterations: Adam steps per start.
+
+    Returns:
+        (B,) float64, finite: 0 (no evidence that the estimate's focal length is singled out) where
+        the gap is not finite (a non-finite estimate, or no ratio's focal length inside the range).
+    """
+    batch, count = params.shape[0], len(PROFILE_FOCAL_RATIOS)
+    device = features.weight.device
+    if batch > PROFILE_CHUNK_IMAGES:  # each image's segments are copied once per ratio searched: bound the copies
+        return torch.cat([focal_profile_gap(likelihood, features.images(b, b + PROFILE_CHUNK_IMAGES),
+                                            params[b:b + PROFILE_CHUNK_IMAGES], scores[b:b + PROFILE_CHUNK_IMAGES],
+                                            config, iterations)
+                          for b in range(0, batch, PROFILE_CHUNK_IMAGES)])
+    if batch == 0:
+        return torch.zeros(0, dtype=torch.float64, device=device)
+    ratios = torch.tensor(PROFILE_FOCAL_RATIOS, dtype=torch.float64)
+    long_side = features.long_side.to("cpu", torch.float64)
+    f_lo, f_hi = config.fov_range.focal_bounds(long_side)
+    focal = params[:, 3].to("cpu", torch.float64)[:, None] * ratios  # (B, R)
+    inside = (focal >= f_lo[:, None]) & (focal <= f_hi[:, None])
+    pairs = inside.nonzero()  # (M, 2) [image, ratio]: only focal lengths inside the range are searched
+    best = torch.full((batch, count), -math.inf, dtype=torch.float64, device=device)
+    if len(pairs):
+        image, ratio = pairs.unbind(1)
+        searched = features.take_images(image.to(device))
+        long_rep, focal_rep = long_side[image], focal[image, ratio]
+        hypotheses = grid_hypotheses(config, long_rep.to(device), focal_rep.to(device))  # built on the device
+        grid_scores = score_grid(likelihood, searched, hypotheses, config.max_chunk_elements,
+                                 vertical_block=config.grid_points_per_dim)
+        starts, _ = select_starts(config, grid_scores, hypotheses)
+        lower, upper = parameter_box(config, long_rep, focal_rep)
+        _, refined = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations, fast=True,
+                            periodic_pan=config.periodic_pan)
+        best[image.to(device), ratio.to(device)] = refined.to(torch.float64).amax(1)
+    gap = scores.to(torch.float64) - best.amax(1)
+    return torch.where(torch.isfinite(gap), gap, torch.zeros_like(gap))
+
+
+def check_result(result, config: SearchConfig, known_focal: bool = False,
+                 edge_tolerance_deg: float = 0.25, finite: bool | None = None,
+                 search_params: Sequence[float] | None = None) -> None:
+    """Final checks on an estimator result (in place; ``result`` has the fields of
+    :class:`fr_torch.core.estimator.CalibrationResult`).
+
+    * Anything non-finite in the focal length, angles, rotation, vanishing points or objective ->
+      ``ok = False``, ``reliable = False``, camera fields cleared, ``reason`` says so (a NaN is a
+      failure, never a valid number).
+    * An estimated focal length whose long-side FOV lies within ``edge_tolerance_deg`` of the
+      search range's edge -> ``reliable = False`` with reason :data:`EDGE_REASON` (the truth may lie
+      outside the range).
+    * Likewise a search angle within ``edge_tolerance_deg`` of its box's edge, from
+      ``search_params`` ([pan, pitch, roll (degrees), f], the search's own parametrisation, which
+      the result's horizon angles only approximate): pitch or roll, and pan unless it wraps
+      (:attr:`SearchConfig.periodic_pan`) -> ``reliable = False`` with reason
+      :func:`angle_edge_reason` (a camera looking down more steeply than ``pitch_range_deg``
+      allows is found at the edge with a wrong focal length).
+
+    ``finite``: the caller's batched finiteness check of the same values (the estimator checks its
+    parameters, objective and rotation, from which every derived value follows finitely); None =
+    check the record's values here.
+    """
+    if not result.ok:
+        return
+    if finite is None:
+        values = [result.focal_px, result.hfov_deg, result.roll_deg, result.tilt_deg, result.pitch_deg,
+                  result.log_likelihood]
+        arrays = [result.rotation, result.vanishing_points]
+        finite = all(v is not None and math.isfinite(float(v)) for v in values) and \
+            all(a is not None and bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays)
+    if not finite:
+        for key in ("focal_px", "hfov_deg", "rotation", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg",
+                    "vanishing_points", "log_likelihood"):
+            setattr(result, key, None)
+        result.ok, result.reliable, result.reason = False, False, NON_FINITE_REASON
+        return
+    reasons = []
+    if search_params is not None:
+        boxes = {"pan": config.pan_range_deg, "pitch": config.pitch_range_deg, "roll": config.roll_range_deg}
+        for index, (name, (low, high)) in enumerate(boxes.items()):
+            if name == "pan" and config.periodic_pan:
+                continue
+            value = float(search_params[index])
+            if high - low > 2 * edge_tolerance_deg and (value <= low + edge_tolerance_deg
+                                                        or value >= high - edge_tolerance_deg):
+                reasons.append(angle_edge_reason(name, low, high))
+    if not known_focal:
+        if config.fov_range.at_edge(result.focal_px, max(result.width, result.height), edge_tolerance_deg):
+            reasons.append(EDGE_REASON)
+    if reasons:
+        result.reliable = False
+        result.reason = "; ".join(r for r in (result.reason, *reasons) if r)
+
+
+def focal_conditioning(rotation: torch.Tensor) -> torch.Tensor:
+    """How well a Manhattan frame's vanishing points constrain the focal length (a reliability cue).
+
+    Args:
+        rotation: (..., 3, 3) world->camera rotations; column i is the direction of VP i in camera
+            coordinates (x right, y down, z along the optical axis), as in ``VP_i = K R[:, i]``.
+
+    Returns:
+        (...,) ``sqrt(sum_i (sin(theta_i) cos(theta_i))^2)`` in [0, sqrt(3)/2], theta_i the angle
+        between VP direction i and the optical axis.  A VP sits at ``f tan(theta)`` from the
+        principal point; on the principal point (theta = 0) or at infinity (theta = 90 deg) its
+        position carries no information on f, and ``sin cos`` peaks at theta = 45 deg.  A camera
+        panned square to a wall with level tilt (all three VPs at the centre or at infinity) gives
+        0: its focal length is left to the prior.  No f enters (the directions alone decide).
+    """
+    columns = rotation / rotation.norm(dim=-2, keepdim=True).clamp_min(1e-12)
+    off_axis = columns[..., :2, :].norm(dim=-2)  # sin(theta_i), (..., 3)
+    along_axis = columns[..., 2, :].abs()  # cos(theta_i)
+    return (off_axis * along_axis).square().sum(-1).sqrt()
+
+
+def image_cues(grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[str, torch.Tensor]:
+    """The reliability cues, per image: the paper's three (§3.4) and ``focal_conditioning``.
+
+    * ``min_family_segments``: smallest number of segments labelled (argmax posterior) with one
+      of the three Manhattan families; background excluded; raw counts.
+    * ``grid_entropy``: entropy (nats) of the stage-1 grid likelihoods normalised into a
+      distribution, ``p_j = softmax_j(L_j / N)`` with N the number of segments the grid scored,
+      ``grid_counts`` (B,) (a softmax at
+      temperature N, as in the authors' code; unlike the code we do not divide the entropy by N
+      a second time: the entropy of that distribution is the cue).
+    * ``mean_log_likelihood``: mean over segments of log p_i at the final estimate (the
+      paper's definition; the authors' MATLAB release uses the mean log max-posterior instead).
+    * ``focal_conditioning``: :func:`focal_conditioning` of the final ``rotation`` (B, 3, 3).
+
+    The fifth and sixth cues, ``focal_prior_share`` and (fR only) ``focal_profile_gap``, come
+    from :func:`focal_cues`.
+    """
+    n = mask.sum(-1).clamp_min(1)
+    counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
+    log_q = torch.log_softmax(grid_scores / grid_counts.clamp_min(1)[:, None].to(grid_scores), -1)
+    entropy = -(log_q.exp() * log_q).sum(-1)
+    mean_log = (log_p * mask).sum(-1) / n
+    return {"min_family_segments": counts.min(-1).values.to(torch.float64),
+            "grid_entropy": entropy.to(torch.float64),
+            "mean_log_likelihood": mean_log.to(torch.float64),
+            "focal_conditioning": focal_conditioning(rotation).to(torch.float64)}
+
+
+def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: SegmentFeatures,
+               params: torch.Tensor, scores: torch.Tensor, known_focal: bool, profile_gap: bool) -> dict[str, torch.Tensor]:
+    """The focal cues of the estimates ``params`` (B, 4) with objectives ``scores`` (B,), each
+    float64 (B,): ``focal_prior_share`` (:func:`fr_torch.core.cues.focal_prior_share`) and, when
+    ``profile_gap`` is on (fR's shipped model uses it), ``focal_profile_gap``
+    (:func:`fr_torch.core.cues.focal_profile_gap`, each known-focal search refined for Fast-fR's
+    number of steps; ~25 ms per photo, over half of Fast-fR's time, so Fast-fR and its model go
+    without it).  0 for a given focal length: the prior plays no
+    part and there is no focal length to single out."""
+    names = ("focal_prior_share", "focal_profile_gap") if profile_gap else ("focal_prior_share",)
+    if known_focal:
+        return {name: torch.zeros(params.shape[0], dtype=torch.float64, device=params.device) for name in names}
+    cues = {"focal_prior_share": focal_prior_share(likelihood, features, params,
+                                                   search.max_chunk_elements)}
+    if profile_gap:
+        cues["focal_profile_gap"] = focal_profile_gap(likelihood, features, params, scores, search,
+                                                      FAST_REFINE_ITERATIONS)
+    return cues
+
+
+def sanity_check(r, min_segments: int, min_family_segments: int, min_manhattan_fraction: float) -> tuple[bool, str]:
+    """(reliable, reason) of a result from its segment counts: fewer than ``min_segments`` segments,
+    a Manhattan family with fewer than ``min_family_segments``, or less than
+    ``min_manhattan_fraction`` of the segment length labelled with a family -> not reliable."""
+    reasons = []
+    if r.num_segments < min_segments:
+        reasons.append(f"only {r.num_segments} segments (< {min_segments})")
+    if r.cues.get("min_family_segments", 0) < min_family_segments:
+        reasons.append(f"a Manhattan family has only {int(r.cues['min_family_segments'])} segments "
+                       "(scene may not be Manhattan)")
+    if r.manhattan_fraction is not None and r.manhattan_fraction < min_manhattan_fraction:
+        reasons.append(f"only {100 * r.manhattan_fraction:.0f} % of the segment length follows a Manhattan "
+                       "frame (scene may not be Manhattan)")
+    return (not reasons), "; ".join(reasons)

@@ -1,0 +1,112 @@
+"""The public estimator: :class:`FREstimator` calibrates images (paths or arrays), detected
+segments and user-supplied segments, on CPU or CUDA.
+
+Usage::
+
+    from fr_torch import FREstimator
+    est = FREstimator(mode="fr")                      # or "fast" (Fast-fR)
+    [result] = est.calibrate_images(["photo.jpg"])    # paths or arrays; batches welcome
+    result.focal_px, result.roll_deg, result.rotation
+
+    est.calibrate_segments([segments], image_sizes=[(640, 480)])   # your own (N, 4) segments
+
+The search itself is the engine's (:class:`fr_torch.core.estimator.SegmentEstimator`); this class
+adds the line detector and the decoding pipeline (:mod:`fr_torch.runtime.pipeline`).
+Conventions: see :mod:`fr_torch.core.camera`.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+from fr_torch.core.checks import check_camera, per_image
+from fr_torch.core.config import Mode
+from fr_torch.core.estimator import CalibrationResult, SegmentEstimator, _Image
+from fr_torch.detectors.registry import get_detector
+from fr_torch.errors import FRInputError
+from fr_torch.images.io import (
+    WORKING_LONG_SIDE,
+    focal_and_pp_to_working,
+    result_to_input_pixels,
+)
+from fr_torch.runtime.device import DevicePolicy
+
+
+class FREstimator(SegmentEstimator):
+    """fR / Fast-fR on images: :class:`~fr_torch.core.estimator.SegmentEstimator` plus a line
+    detector.
+
+    ``detector``: name of a registered detector (``lsd`` default; :mod:`fr_torch.detectors`) or a
+    detector object.  ``device``: a name (``cpu``, ``cuda``, ``cuda:1``), a torch.device or a
+    :class:`~fr_torch.runtime.device.DevicePolicy` (:attr:`policy` holds the resolved one).  Images are detected at a long side of at most :attr:`working_long_side`
+    pixels; every result is reported in the input image's pixels.  The other arguments are the
+    engine's.
+    """
+
+    def __init__(self, mode: Mode | str = Mode.FR, measure: str | None = None, detector="lsd",
+                 device: str | torch.device | DevicePolicy = "cpu", **kwargs):
+        self.policy = DevicePolicy.resolve(device)
+        super().__init__(mode=mode, measure=measure, device=self.policy.device, **kwargs)
+        self.detector = get_detector(detector)
+        self.working_long_side = WORKING_LONG_SIDE
+
+    def calibrate_images(self, images: Sequence, names: Sequence[str] | None = None, focal_px=None,
+                         principal_point=None) -> list[CalibrationResult]:
+        """Calibrate images given as file paths or arrays (grey, BGR, BGRA; 8/16-bit or float).
+
+        ``focal_px``: None (unknown), a number for all images, or one value (or None) per image.
+        ``principal_point``: None (image centre), an (x, y) pair for all, or one per image.
+        A bad image yields a result with ``ok=False`` and the reason; the others are unaffected.
+        """
+        from fr_torch.runtime.pipeline import calibrate_paths
+
+        return [r for _, batch in calibrate_paths(self, images, max(1, len(images)), 0, focal_px, principal_point,
+                                                  names) for r in batch]
+
+    def calibrate_detections(self, detections: Sequence, names: Sequence[str], focal_px=None,
+                             principal_point=None) -> list[CalibrationResult]:
+        """Calibrate images that were already decoded and detected, one
+        :class:`fr_torch.runtime.pipeline.Detection` each (from :func:`fr_torch.runtime.pipeline.iter_detections`,
+        possibly in worker processes).
+
+        A detection holds its segments in *working* pixels (the image brought to a long side of at
+        most :attr:`working_long_side`) and ``scale``, input pixels per working pixel.
+        ``focal_px`` / ``principal_point`` are in the **input** image's pixels (None, one value for
+        all, or one per image), and so is every result: they are brought to working pixels for the
+        search and the results back to the input's pixels.  A detection with ``error`` set, or an
+        image whose focal length / principal point is invalid, gives ``ok=False`` with the reason.
+        """
+        count = len(detections)
+        names = list(names)
+        if len(names) != count:
+            raise FRInputError(f"got {count} detections but {len(names)} names")
+        focal_list = per_image(focal_px, count, "focal_px")
+        pp_list = per_image(principal_point, count, "principal_point", width=2)
+        items, focal_work, pp_work = [], [], []
+        for d, name, f, pp in zip(detections, names, focal_list, pp_list):
+            item = _Image(name, d.size, d.segments, error=d.error, detect_s=d.seconds)
+            if item.error is None:
+                try:  # checked in the input's pixels, so the message quotes the user's numbers
+                    check_camera(f, pp, d.input_size, name)
+                    f, pp = focal_and_pp_to_working(f, pp, d.scale)
+                except FRInputError as exc:
+                    item.error, f, pp = str(exc), None, None
+            items.append(item)
+            focal_work.append(f)
+            pp_work.append(pp)
+        results = self._calibrate(items, focal_work, pp_work)
+        for result, d in zip(results, detections):
+            result_to_input_pixels(result, d.scale, d.input_size)
+        return results
+
+
+def calibrate(inputs: Sequence, mode: str = "fr", **kwargs) -> list[CalibrationResult]:
+    """One-call API: calibrate images (paths or arrays) with fR (``mode="fr"``) or Fast-fR (``"fast"``).
+
+    Keyword arguments go to :class:`FREstimator` (measure, detector, device, dtype, ...) or to
+    :meth:`FREstimator.calibrate_images` (focal_px, principal_point, names).
+    """
+    call_keys = {"focal_px", "principal_point", "names"}
+    call_kwargs = {k: kwargs.pop(k) for k in list(kwargs) if k in call_keys}
+    return FREstimator(mode=mode, **kwargs).calibrate_images(inputs, **call_kwargs)

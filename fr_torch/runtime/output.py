@@ -1,0 +1,86 @@
+"""Writing results: JSON that never holds NaN, atomic files, checked output folders."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fr_torch.errors import FRInputError
+
+
+def json_safe(value: Any) -> Any:
+    """A copy of ``value`` with every NaN / inf float replaced by None (JSON null) and numpy
+    scalars / arrays turned into Python numbers / lists: the last guard before serialisation."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        number = float(value)
+        return number if math.isfinite(number) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def dumps(value: Any, **kwargs) -> str:
+    """json.dumps of :func:`json_safe` (never writes NaN / Infinity)."""
+    return json.dumps(json_safe(value), allow_nan=False, **kwargs)
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` via a temporary file in the same folder and a rename, so the file is
+    never seen truncated.  Errors are FRInputError one-liners."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(handle, "w") as out:
+                out.write(text)
+            os.replace(tmp, path)
+        except BaseException:
+            with _suppress():
+                os.unlink(tmp)
+            raise
+    except OSError as exc:
+        raise FRInputError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write bytes (any file name, including ones that are not valid UTF-8); one-line errors."""
+    try:
+        Path(path).write_bytes(data)
+    except OSError as exc:
+        raise FRInputError(f"cannot write {os.fsdecode(path)!r}: {exc.strerror or exc}") from None
+
+
+def output_folder(path: Path, option: str = "--overlay") -> Path:
+    """Create (if needed) and check a writable output folder; FRInputError otherwise."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise FRInputError(f"{option} {path}: exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FRInputError(f"{option} {path}: cannot create the folder ({exc.strerror or exc})") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise FRInputError(f"{option} {path}: folder is not writable")
+    return path
+
+
+class _suppress:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return True
