@@ -262,7 +262,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from fr_torch.images.convert import load_image
+    from fr_torch.images.io import load_image
     from fr_torch.synthetic import render_manhattan_room
 
     source = args.ctrlc_source or (Path(os.environ[SOURCE_ENV]) if os.environ.get(SOURCE_ENV) else None)

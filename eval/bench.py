@@ -247,7 +247,8 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
     """Latency of calibrate_images on single images (batch 1), per stage, medians (ms);
     ``compile_search``: also each mode with the compiled search (after its compiling warm-up)."""
     from fr_torch.detectors.registry import get_detector
-    from fr_torch.images.convert import load_image, to_gray8
+    from fr_torch.images.io import load_image
+    from fr_torch.images.convert import to_gray8
 
     rows = []
     detector = get_detector("lsd")

@@ -191,7 +191,7 @@ def em_mixing_weights(deviations: Sequence[np.ndarray], weights: Sequence[np.nda
 def detected_segment_deviations(samples: Sequence[Any], detector: str = "lsd"):
     """Measure-b deviations (N, 3) and lengths (N,) of detected segments per training image."""
     from fr_torch.detectors.registry import detect_segments
-    from fr_torch.images.convert import load_image
+    from fr_torch.images.io import load_image
 
     devs, lengths = [], []
     for sample in samples:

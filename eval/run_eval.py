@@ -68,7 +68,7 @@ from fr_torch.plugins.interface import CameraEstimate, ImageMeta, available_meth
 from fr_torch.plugins.registry import split_method_list
 from fr_torch.cli.options import add_device_arguments, add_fov_range_argument
 from fr_torch.core.fov import FovRange
-from fr_torch.images.convert import load_image
+from fr_torch.images.io import load_image
 
 LABELLED_SUFFIX = "@labelled"
 ALL_METHODS = "all"
@@ -166,12 +166,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              f"horizontal FOV takes 2..{AUTO_GROUP_MAX_VALUES} distinct rounded values)")
 
 
-def range_caption(methods: Sequence[str], fov_range: tuple[float, float]) -> str:
+def range_caption(methods: Sequence[str], fov_range: FovRange) -> str:
     """The caption sentence stating the FOV search range of every method in the table."""
     searched = [m for m in methods if method_fov_range(m, fov_range) is not None]
     own = [m for m in methods if m not in searched and parse_method_spec(_strip_labelled(m)[0])[0]
            in FOCAL_SEARCH_METHODS]
-    text = (f"FOV search range [{fov_range[0]:g}°, {fov_range[1]:g}°] (FOV across the image's long side) for "
+    text = (f"FOV search range {fov_range} (FOV across the image's long side) for "
             f"{', '.join(searched) if searched else 'no method'}")
     if own:
         text += "; rows with [range=...] use their own (paper = [50°, 130°])"

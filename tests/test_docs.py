@@ -90,7 +90,7 @@ def test_docs_site_builds_strict(tmp_path):
                            str(REPO / "mkdocs.yml"), "--site-dir", str(tmp_path / "site")],
                           cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"mkdocs build --strict failed:\n{proc.stdout}\n{proc.stderr}"
-    for page in ("index.html", "cli/index.html", "reference/estimator/index.html"):
+    for page in ("index.html", "cli/index.html", "reference/core/index.html"):
         assert (tmp_path / "site" / page).is_file(), page
     reference = (tmp_path / "site" / "reference" / "estimator" / "index.html").read_text(encoding="utf-8")
     assert "FREstimator" in reference and "calibrate_images" in reference  # docstrings were rendered

@@ -24,7 +24,7 @@ from fr_torch import FREstimator, FRInputError
 from fr_torch.cli.main import main
 from fr_torch.core.camera import rotation_from_angles
 from fr_torch.core.likelihood import LikelihoodParams
-from fr_torch.images.convert import load_image
+from fr_torch.images.io import load_image
 from fr_torch.images.io import probe_image_size, read_image
 from fr_torch.runtime.output import dumps, json_safe
 from fr_torch.synthetic import render_manhattan_room
@@ -180,7 +180,7 @@ def _cli(capsys, *argv):
     (["--focal", "nan"], "finite"),
     (["--focal", "-5"], "> 0"),
     (["--batch-size", "0"], "batch-size"),
-    (["--hfov-range", "x"], "hfov-range"),
+    (["--fov-range", "x"], "fov-range"),
 ])
 def test_calibrate_bad_options_are_one_line(capsys, files, options, message):
     code, out, err = _cli(capsys, "calibrate", files["good"][0], *options)

@@ -4,6 +4,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+
+from fr_torch.core.fov import FovRange
 import torch
 
 from fr_torch.core.camera import VERTICAL_AXIS, rotation_from_angles
@@ -93,8 +95,8 @@ def test_vertical_parameters_sit_on_the_vertical_column():
 
 def test_focal_prior_centre_moves_into_a_search_range_that_excludes_it():
     params = LikelihoodParams(focal_prior_weight=0.3, focal_prior_hfov_deg=82.0)
-    assert params.with_prior_in_range((30.0, 120.0)) is params
-    narrow = params.with_prior_in_range((20.0, 60.0))
+    assert params.with_prior_in_range(FovRange(30.0, 120.0)) is params
+    narrow = params.with_prior_in_range(FovRange(20.0, 60.0))
     # the range's midpoint in log f: tan(c/2) = sqrt(tan(10 deg) tan(30 deg))
     expected = math.degrees(2 * math.atan(math.sqrt(math.tan(math.radians(10)) * math.tan(math.radians(30)))))
     assert narrow.focal_prior_hfov_deg == pytest.approx(expected) and 20 < expected < 60

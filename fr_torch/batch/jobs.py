@@ -6,7 +6,7 @@ Usage::
     fr batch manifest.csv --out results.parquet --engine ray --workers 8
     fr batch 's3://bucket/cams/**/*.jpg' --out results.parquet --engine ray --address auto
 
-Input (:func:`collect_inputs`): folders (searched recursively for image suffixes), globs, single
+Input (:func:`fr_torch.batch.inputs.collect_inputs`): folders (searched recursively for image suffixes), globs, single
 files, or manifests (``.csv`` / ``.parquet`` / ``.txt``) with one image path per row.  A manifest's
 path column is ``image`` (or ``path``, or the first column); its other columns (camera id, ...) are
 carried through to the output; a ``focal_px`` column is the known focal length in pixels of that
@@ -14,7 +14,7 @@ row (empty / NaN = unknown) and comes back as ``known_focal_px``.  Paths with a 
 (``s3://``, ``gs://``, ``https://``...) are read with fsspec when its filesystem package is
 installed.
 
-Output (:data:`RESULT_SCHEMA`): a folder of Parquet part files, one row per input image with the
+Output (:func:`fr_torch.batch.table.result_schema`): a folder of Parquet part files, one row per input image with the
 fields of ``fr calibrate``'s JSON (:meth:`CalibrationResult.to_json`): rotation and vanishing points
 are 3 x 3 nested list columns (world->camera R; row i of ``vanishing_points`` = homogeneous VP i;
 null for a failed image), ``cues`` / ``predicted_error`` / ``runtime_s`` are struct columns, and a failed image is a row
@@ -30,7 +30,7 @@ the batches in flight.
 Engines: ``local`` runs :meth:`FREstimator.calibrate_images` on batches on this machine (Ray is
 never imported): on a CPU in single-threaded worker processes, one per core (:func:`_run_local`),
 on a GPU in this process while worker processes decode and detect ahead of it; ``ray``
-(:mod:`fr_torch.batch.ray`) runs the same per-batch function (:func:`calibrate_rows`) in a Ray
+(:mod:`fr_torch.batch.ray`) runs the same per-batch function (:meth:`fr_torch.batch.worker.BatchWorker.calibrate_rows`) in a Ray
 Data actor pool, one estimator per actor, and this process writes the parts.  Both produce the
 same columns.
 
@@ -40,421 +40,18 @@ create the file ``MARKER``.
 """
 from __future__ import annotations
 
-import glob as globlib
-import math
 import os
 import sys
 import time
-import uuid
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-import numpy as np
-
-from fr_torch.core.reliability import CUE_NAMES, TARGETS
+from fr_torch.batch.inputs import collect_inputs, extra_columns
+from fr_torch.batch.ray import run_ray
+from fr_torch.batch.table import PartWriter, records_to_table
+from fr_torch.batch.worker import CRASH_ENV, BatchWorker, _failed, options_device
 from fr_torch.runtime.device import DevicePolicy
-
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".jp2")
-MANIFEST_SUFFIXES = (".csv", ".parquet", ".pq", ".txt")
-PATH_COLUMNS = ("image", "path", "file", "filename")
-CRASH_ENV = "FR_BATCH_CRASH"
-
-# Keys of the dict-valued result fields (struct columns); unknown keys are dropped.
-RUNTIME_KEYS = ("detect", "grid", "refine", "cues", "total")
-FLOAT_FIELDS = ("focal_px", "hfov_deg", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "log_likelihood",
-                "manhattan_fraction")
-
-
-def result_schema():
-    """The Arrow schema of the output rows (without carried-through manifest columns).
-
-    Units as in :class:`fr_torch.core.estimator.CalibrationResult`: pixels, degrees, seconds.
-    """
-    import pyarrow as pa
-
-    f64 = pa.float64()
-    # Variable-size lists, not fixed-size ones: a failed image stores null there, and pyarrow
-    # before 26 cannot read a null fixed-size list back from Parquet (apache/arrow GH-35692: the
-    # whole part file fails to load).  Shapes are checked on the way in (:func:`records_to_table`).
-    mat3 = pa.list_(pa.list_(f64))
-    return pa.schema([
-        ("image", pa.string()), ("width", pa.int32()), ("height", pa.int32()),
-        ("ok", pa.bool_()), ("reliable", pa.bool_()), ("reason", pa.string()),
-        ("focal_px", f64), ("hfov_deg", f64), ("principal_point", pa.list_(f64)),
-        ("rotation", mat3), ("vertical_axis", pa.int8()),
-        ("pan_deg", f64), ("tilt_deg", f64), ("roll_deg", f64), ("pitch_deg", f64),
-        ("vanishing_points", mat3), ("log_likelihood", f64), ("num_segments", pa.int32()),
-        ("manhattan_fraction", f64), ("segments_per_family", pa.list_(pa.int32())),
-        ("cues", pa.struct([(k, f64) for k in CUE_NAMES])),
-        ("predicted_error", pa.struct([(k, f64) for k in TARGETS])),
-        ("runtime_s", pa.struct([(k, f64) for k in RUNTIME_KEYS])),
-    ])
-
-
-# ---------------------------------------------------------------------------------------- input
-
-
-def has_scheme(path: str) -> bool:
-    """True for URIs such as ``s3://b/k.jpg`` (read with fsspec); False for local paths."""
-    head, sep, _ = str(path).partition("://")
-    return bool(sep) and head.isidentifier() and len(head) > 1 and head != "file"
-
-
-def _strip_file_scheme(path: str) -> str:
-    return path[len("file://"):] if path.startswith("file://") else path
-
-
-def _fsspec_fs(uri: str):
-    try:
-        import fsspec
-    except ImportError:
-        raise ValueError(f"{uri}: reading URIs needs fsspec (pip install fsspec and the filesystem package)") from None
-    try:
-        return fsspec.core.url_to_fs(uri)
-    except (ImportError, ValueError) as exc:
-        raise ValueError(f"{uri}: cannot open this filesystem ({exc})") from None
-
-
-def _is_image(name: str) -> bool:
-    return name.lower().endswith(IMAGE_SUFFIXES)
-
-
-def _read_manifest(path: str) -> list[dict[str, Any]]:
-    """Rows of a manifest file: dicts with ``image`` plus the manifest's other columns."""
-    import pandas as pd
-
-    lower = path.lower()
-    if lower.endswith(".txt"):
-        opener = _fsspec_fs(path)[0].open if has_scheme(path) else open
-        with opener(path, "r") as handle:
-            lines = [line.strip() for line in handle]
-        return [{"image": line} for line in lines if line and not line.startswith("#")]
-    frame = pd.read_parquet(path) if lower.endswith((".parquet", ".pq")) else pd.read_csv(path)
-    if frame.empty:
-        return []
-    column = next((c for c in PATH_COLUMNS if c in frame.columns), frame.columns[0])
-    frame = frame.rename(columns={column: "image"})
-    frame["image"] = frame["image"].astype(str)
-    # Paths relative to the manifest's folder (local manifests only).
-    base = os.path.dirname(path)
-    if base and not has_scheme(path):
-        frame["image"] = [p if has_scheme(p) or os.path.isabs(p) else os.path.join(base, p) for p in frame["image"]]
-    frame = frame.astype(object).where(frame.notna(), None)  # missing cells -> None, not NaN
-    return frame.to_dict("records")
-
-
-def collect_inputs(inputs: Sequence[str]) -> list[dict[str, Any]]:
-    """Expand folders, globs, files and manifests into rows ``{"image": path, <manifest columns>}``.
-
-    Order: inputs in the order given; within a folder or glob, sorted.  Duplicate paths are kept
-    once (the first row wins).  A path that does not exist is kept (it becomes a failed row); a
-    glob or folder that matches nothing raises ValueError.
-    """
-    rows: list[dict[str, Any]] = []
-    for raw in inputs:
-        item = _strip_file_scheme(str(raw))
-        remote = has_scheme(item)
-        if item.lower().endswith(MANIFEST_SUFFIXES):
-            rows += _read_manifest(item)
-            continue
-        if remote:
-            fs, root = _fsspec_fs(item)
-            protocol = item.split("://", 1)[0]
-            if any(ch in item for ch in "*?["):
-                found = [p for p in fs.glob(root) if _is_image(p)]
-            elif fs.isdir(root):
-                found = [p for p in fs.find(root) if _is_image(p)]
-            else:
-                rows.append({"image": item})
-                continue
-            if not found:
-                raise ValueError(f"{item}: no images found")
-            rows += [{"image": f"{protocol}://{p}" if "://" not in p else p} for p in sorted(found)]
-            continue
-        if os.path.isdir(item):
-            found = sorted(str(p) for p in Path(item).rglob("*") if p.is_file() and _is_image(p.name))
-            if not found:
-                raise ValueError(f"{item}: no images found in this folder")
-            rows += [{"image": p} for p in found]
-        elif any(ch in item for ch in "*?[") and not os.path.exists(item):
-            found = sorted(p for p in globlib.glob(item, recursive=True) if os.path.isfile(p))
-            if not found:
-                raise ValueError(f"{item}: the pattern matches no file")
-            rows += [{"image": p} for p in found]
-        else:
-            rows.append({"image": item})
-    seen, unique = set(), []
-    for row in rows:
-        if row["image"] not in seen:
-            seen.add(row["image"])
-            unique.append(row)
-    return unique
-
-
-def extra_columns(rows: Sequence[dict[str, Any]]):
-    """Arrow fields of the manifest columns carried through (``focal_px`` -> ``known_focal_px``;
-    a name that clashes with a result field gets the prefix ``input_``)."""
-    import pyarrow as pa
-
-    names = [k for k in dict.fromkeys(k for row in rows for k in row) if k != "image"]
-    if not names:
-        return []
-    table = pa.Table.from_pylist([{k: row.get(k) for k in names} for row in rows])
-    reserved = set(result_schema().names)
-    fields = []
-    for field in table.schema:
-        target = output_column_name(field.name, reserved)
-        kind = pa.float64() if field.name == "focal_px" else (pa.string() if pa.types.is_null(field.type) else field.type)
-        fields.append((field.name, target, kind))
-    return fields
-
-
-def output_column_name(name: str, reserved: set[str]) -> str:
-    if name == "focal_px":
-        return "known_focal_px"
-    return f"input_{name}" if name in reserved else name
-
-
-# ---------------------------------------------------------------------------------------- work
-
-
-def options_device(options: dict[str, Any]) -> str:
-    """The estimator's device name in ``options`` (from :func:`estimator_options`; default cpu)."""
-    return str(options["estimator"].get("device", "cpu"))
-
-
-class BatchWorker:
-    """Holds one estimator; :meth:`__call__` turns a batch of input rows into an Arrow table.
-
-    This is the unit of work of both engines (a Ray Data actor is one ``BatchWorker``).
-    ``options``: from :func:`estimator_options`; ``extras``: from :func:`extra_columns`;
-    ``threads``: torch intra-op and OpenCV threads (None = leave as is).
-    """
-
-    def __init__(self, options: dict[str, Any], extras=(), threads: int | None = None, crash: str | None = None):
-        import torch
-
-        from fr_torch.runtime.estimator import FREstimator
-        if threads:  # torch and OpenCV: oversubscribed threads stall on a loaded machine
-            import cv2
-
-            torch.set_num_threads(int(threads))
-            cv2.setNumThreads(int(threads))
-        self.options = dict(options)
-        self.estimator = FREstimator(**options["estimator"],
-                                     reliability="default" if options.get("reliability", True) else None)
-        self.extras = list(extras)
-        self.crash = crash if crash is not None else os.environ.get(CRASH_ENV)
-
-    def __call__(self, batch):
-        """Ray Data entry point: ``batch`` is a ``pyarrow.Table`` of input rows."""
-        return self.calibrate_rows(batch.to_pylist())
-
-    def calibrate_rows(self, rows: Sequence[dict[str, Any]]):
-        """Calibrate the images of ``rows`` (dicts with ``image`` and manifest columns) -> Arrow table,
-        one output row per input row, in order.  Never raises for a bad image."""
-        self._maybe_crash(rows)
-        names, focal = self._names_and_focal(rows)
-        inputs, failed = [], {}
-        for i, name in enumerate(names):
-            if has_scheme(name):
-                try:
-                    inputs.append(read_remote_image(name))
-                except Exception as exc:  # any fsspec / network / decode error -> failed row
-                    failed[i] = f"{name}: cannot read ({type(exc).__name__}: {exc})"
-                    inputs.append(np.zeros((1, 1), np.uint8))
-            else:
-                inputs.append(name)
-        try:
-            results = self.estimator.calibrate_images(inputs, names=names, focal_px=focal,
-                                                      principal_point=self.options.get("principal_point"))
-        except Exception as exc:  # a bug or resource error must not lose the batch: fail its rows
-            results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
-        for i, reason in failed.items():
-            results[i] = _failed(names[i], reason)
-        return records_to_table([result.to_json() for result in results], rows, self.extras)
-
-    def calibrate_rows_pipelined(self, rows: Sequence[dict[str, Any]], batch_size: int, workers: int):
-        """Arrow tables of at most ``batch_size`` rows, in input order, like :meth:`calibrate_rows`
-        on each batch, but ``workers`` processes decode and detect the next images while this
-        process searches (:func:`fr_torch.runtime.pipeline.calibrate_paths` without whole-image workers:
-        the way to feed a GPU).  Rows with a URI (fsspec) go through :meth:`calibrate_rows`.  If a
-        search raises, the rest of the rows go through :meth:`calibrate_rows` batch by batch (a
-        batch that raises again becomes failed rows); a worker that dies fails only its image."""
-        from fr_torch.runtime.pipeline import calibrate_paths
-
-        rows = list(rows)
-        if workers < 1 or any(has_scheme(str(row["image"])) for row in rows):
-            for begin in range(0, len(rows), batch_size):
-                yield self.calibrate_rows(rows[begin:begin + batch_size])
-            return
-        names, focal = self._names_and_focal(rows)
-        done = 0
-        try:
-            batches = calibrate_paths(self.estimator, names, batch_size, workers, focal,
-                                      self.options.get("principal_point"), names=names, whole_images=False)
-            for chunk, results in batches:
-                batch_rows = rows[done:done + len(chunk)]
-                self._maybe_crash(batch_rows)
-                table = records_to_table([result.to_json() for result in results], batch_rows, self.extras)
-                done += len(chunk)
-                yield table
-        except Exception:  # a search error: the remaining rows in-process, failing only what fails again
-            for begin in range(done, len(rows), batch_size):
-                yield self.calibrate_rows(rows[begin:begin + batch_size])
-
-    def _names_and_focal(self, rows: Sequence[dict[str, Any]]) -> tuple[list[str], list]:
-        """Image names and per-row known focal lengths (a manifest's ``focal_px`` wins over ``--focal``)."""
-        names = [str(row["image"]) for row in rows]
-        default_focal = self.options.get("focal_px")
-        focal = [_finite_or_none(row.get("focal_px")) for row in rows]
-        return names, [default_focal if f is None else f for f in focal]
-
-    def _maybe_crash(self, rows) -> None:
-        if not self.crash or ":" not in self.crash:
-            return
-        name, marker = self.crash.split(":", 1)
-        if any(str(row["image"]).endswith(name) for row in rows):
-            try:
-                fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-            except FileExistsError:
-                return
-            os.close(fd)
-            os._exit(1)
-
-
-def _failed(name: str, reason: str):
-    from fr_torch.core.estimator import CalibrationResult
-
-    return CalibrationResult(image=name, width=0, height=0, ok=False, reason=reason)
-
-
-def _finite_or_none(value):
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        return None
-    return value if math.isfinite(value) else None
-
-
-def read_remote_image(uri: str) -> np.ndarray:
-    """Read and decode an image at an fsspec URI -> 8-bit BGR (H, W, 3)."""
-    import cv2
-
-    from fr_torch.errors import FRInputError
-    from fr_torch.images.convert import to_bgr8
-
-    fs, path = _fsspec_fs(uri)
-    with fs.open(path, "rb") as handle:
-        data = np.frombuffer(handle.read(), np.uint8)
-    if data.size == 0:
-        raise FRInputError(f"{uri}: empty file")
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise FRInputError(f"{uri}: not a readable image")
-    return to_bgr8(image, uri)
-
-
-def _clean_float(value):
-    if value is None:
-        return None
-    value = float(value)
-    return value if math.isfinite(value) else None
-
-
-#: Shapes of the nested-list columns (any other shape, or a non-finite entry, is stored as null).
-NESTED_SHAPES = {"rotation": (3, 3), "vanishing_points": (3, 3), "principal_point": (2,)}
-
-
-def _clean_nested(value, shape: tuple[int, ...]):
-    """``value`` as nested lists of floats when it has ``shape`` and is finite, else None."""
-    if value is None:
-        return None
-    try:
-        array = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        return None
-    if array.shape != shape or not np.isfinite(array).all():
-        return None
-    return array.tolist()
-
-
-def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]], extras=()):
-    """JSON records (``CalibrationResult.to_json``) + their input rows -> Arrow table of the output
-    schema plus the carried manifest columns ``extras`` (from :func:`extra_columns`)."""
-    import pyarrow as pa
-
-    schema = result_schema()
-    clean = []
-    for record in records:
-        out = {name: record.get(name) for name in schema.names}
-        for key in FLOAT_FIELDS:
-            out[key] = _clean_float(out[key])
-        for key, shape in NESTED_SHAPES.items():
-            out[key] = _clean_nested(out[key], shape)
-        for key, keys in (("cues", CUE_NAMES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
-            value = out[key]
-            out[key] = None if not value else {k: _clean_float(value.get(k)) for k in keys}
-        clean.append(out)
-    table = pa.Table.from_pylist(clean, schema=schema)
-    for source, target, kind in extras:
-        values = [row.get(source) for row in rows]
-        if source == "focal_px":
-            values = [_finite_or_none(v) for v in values]
-        table = table.append_column(pa.field(target, kind), pa.array(values, type=kind, from_pandas=True))
-    return table
-
-
-# ---------------------------------------------------------------------------------------- output
-
-
-class PartWriter:
-    """Writes a Parquet dataset as one part file per batch, atomically (hidden temp file + rename).
-
-    ``out``: the dataset folder (created).  Readers (pyarrow, pandas, DuckDB, Ray) ignore names
-    starting with ``.`` or ``_``, so a half-written temp file is never read.
-    """
-
-    def __init__(self, out: str | Path):
-        self.out = Path(out)
-        if self.out.exists() and not self.out.is_dir():
-            raise ValueError(f"{self.out}: exists and is not a folder (the output is a folder of Parquet parts)")
-        self.out.mkdir(parents=True, exist_ok=True)
-        self.run_id = time.strftime("%Y%m%dT%H%M%S") + "-" + uuid.uuid4().hex[:8]
-        self.count = 0
-
-    def done_images(self) -> set[str]:
-        """``image`` values of the rows already written (resume)."""
-        import pyarrow.parquet as pq
-
-        done: set[str] = set()
-        for part in sorted(self.out.glob("part-*.parquet")):
-            try:
-                done.update(pq.read_table(part, columns=["image"]).column("image").to_pylist())
-            except Exception as exc:  # an unreadable part (should not happen: parts are atomic)
-                print(f"fr batch: warning: ignoring unreadable part {part} ({exc})", file=sys.stderr)
-        return done
-
-    def write(self, table) -> Path:
-        import pyarrow.parquet as pq
-
-        self.count += 1
-        final = self.out / f"part-{self.run_id}-{self.count:06d}.parquet"
-        temp = self.out / f".{final.name}.tmp"
-        pq.write_table(table, temp)
-        os.replace(temp, final)
-        return final
-
-    def cleanup(self) -> None:
-        """Remove temp files left by an interrupted run."""
-        for temp in self.out.glob(".part-*.tmp"):
-            try:
-                temp.unlink()
-            except OSError:
-                pass
-
-
-# ---------------------------------------------------------------------------------------- driver
+from fr_torch.runtime.pipeline import crash_reason, ordered_pool_map
 
 
 def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], engine: str = "local",
@@ -510,7 +107,6 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
             if engine == "local":
                 tables = _run_local(todo, options, extras, batch_size, workers, policy)
             elif engine == "ray":
-                from fr_torch.batch.ray import run_ray
 
                 tables = run_ray(todo, options, extras, batch_size, workers, address=address,
                                  threads_per_worker=threads_per_worker, gpus_per_worker=gpus_per_worker)
@@ -557,7 +153,6 @@ def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: 
         return
     import pyarrow as pa
 
-    from fr_torch.runtime.pipeline import ordered_pool_map
 
     rows = list(rows)
     crash = os.environ.get(CRASH_ENV)  # tests: read here, the workers' fork server may predate it
@@ -591,8 +186,6 @@ class _CrashedRow:
         self.extras = extras
 
     def __call__(self, row):
-        from fr_torch.runtime.pipeline import crash_reason
-
         name = str(row["image"])
         return records_to_table([_failed(name, crash_reason(name)).to_json()], [row], self.extras)
 

@@ -1,11 +1,11 @@
 """The Ray Data engine of ``fr batch`` (``--engine ray``; needs ``pip install 'fr-torch[ray]'``).
 
 The file list becomes a Ray dataset (``ray.data.from_items``); ``map_batches`` runs
-:class:`fr_torch.batch.jobs.BatchWorker` in an actor pool of ``workers`` actors, one ``FREstimator`` each
+:class:`fr_torch.batch.worker.BatchWorker` in an actor pool of ``workers`` actors, one ``FREstimator`` each
 (``num_gpus`` per actor with ``--device cuda``).  Actors that die are restarted and their batches
 retried by Ray (``max_restarts`` / ``max_task_retries``), so every image comes back exactly once.
 Output blocks stream back to the calling process, which writes them as Parquet parts (see
-:class:`fr_torch.batch.jobs.PartWriter`) -- the rows are small (no segments), and one writer keeps the
+:class:`fr_torch.batch.table.PartWriter`) -- the rows are small (no segments), and one writer keeps the
 resume bookkeeping in one place.
 """
 from __future__ import annotations
@@ -15,7 +15,7 @@ import os
 import pickle
 from typing import Any, Iterator, Sequence
 
-from fr_torch.batch.jobs import CRASH_ENV, BatchWorker, options_device
+from fr_torch.batch.worker import CRASH_ENV, BatchWorker, options_device
 from fr_torch.runtime.device import DevicePolicy
 
 

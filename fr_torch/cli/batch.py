@@ -11,7 +11,9 @@ from fr_torch.cli.options import (
     add_camera_arguments,
     add_device_arguments,
     add_estimator_arguments,
+    camera_options,
     device_policy,
+    estimator_kwargs,
 )
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.runtime.workers import start_worker_server
@@ -21,7 +23,6 @@ def estimator_options(args: argparse.Namespace) -> dict[str, Any]:
     """Picklable options from the CLI arguments (shipped to every worker): ``estimator`` = the
     FREstimator keyword arguments of the shared estimator options (:mod:`fr_torch.cli.options`), plus
     the known focal length / principal point for all images and whether reliability is on."""
-    from fr_torch.cli.options import camera_options, estimator_kwargs
 
     focal, pp = camera_options(args)
     return {"estimator": estimator_kwargs(args), "principal_point": pp, "focal_px": focal,

@@ -13,6 +13,9 @@ import importlib
 import os
 import sys
 
+from fr_torch.errors import FRInputError
+from fr_torch.plugins.registry import entry_points, load_object
+
 # name -> (module, one-line help).  The module provides add_arguments(parser) and run(args).
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("fr_torch.cli.calibrate", "estimate focal length and rotation of images"),
@@ -24,7 +27,6 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 def all_subcommands(extra: dict[str, tuple[str, str]] | None = None) -> dict[str, tuple[str, str]]:
     """The core's commands, then those declared in the ``fr_torch.commands`` entry-point group
     (value: an object ``(module, one-line help)``, see :mod:`fr_torch.plugins.registry`)."""
-    from fr_torch.plugins.registry import entry_points, load_object
 
     commands = dict(SUBCOMMANDS)
     for name, target in entry_points("fr_torch.commands").items():
@@ -49,8 +51,6 @@ def build_parser(command: str | None = None, commands: dict[str, tuple[str, str]
 
 
 def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str]] | None = None) -> int:
-    from fr_torch.cli.options import attach_range_values
-
     argv = attach_range_values(list(sys.argv[1:] if argv is None else argv))
     commands = all_subcommands(extra_commands)
     if argv and not argv[0].startswith("-") and argv[0] not in commands:
@@ -67,7 +67,6 @@ def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str
     if args.command is None:
         parser.print_help()
         return 2
-    from fr_torch.errors import FRInputError
 
     module = importlib.import_module(commands[args.command][0])
     try:
@@ -88,3 +87,20 @@ def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str
         print(f"fr {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2
 
+
+#: Options whose MIN,MAX value may start with a minus sign.
+RANGE_OPTIONS = ("--fov-range", "--hfov-range", "--pitch-range", "--roll-range")
+
+
+def attach_range_values(argv: list[str]) -> list[str]:
+    """``["--pitch-range", "-70,20"]`` -> ``["--pitch-range=-70,20"]`` for :data:`RANGE_OPTIONS`:
+    argparse reads a separate value that starts with ``-`` (and is not a plain number) as an option."""
+    out: list[str] = []
+    pending = False
+    for arg in argv:
+        if pending and arg[:1] == "-" and (arg[1:2].isdigit() or arg[1:2] == "."):
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+        pending = arg in RANGE_OPTIONS
+    return out

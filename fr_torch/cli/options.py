@@ -24,9 +24,6 @@ from fr_torch.runtime.device import DevicePolicy
 
 MEASURE_CHOICES = tuple("abcde")
 
-#: Options whose MIN,MAX value may start with a minus sign.
-RANGE_OPTIONS = ("--fov-range", "--hfov-range", "--pitch-range", "--roll-range")
-
 
 def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True) -> None:
     """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--fov-range``,
@@ -80,20 +77,6 @@ def add_camera_arguments(parser: argparse.ArgumentParser, focal_help: str | None
                        help=focal_help or "known focal length in pixels (then only the rotation is searched)")
     group.add_argument("--pp", type=str, default=None, metavar="X,Y",
                        help="principal point in pixels (default: image centre)")
-
-
-def attach_range_values(argv: list[str]) -> list[str]:
-    """``["--pitch-range", "-70,20"]`` -> ``["--pitch-range=-70,20"]`` for :data:`RANGE_OPTIONS`:
-    argparse reads a separate value that starts with ``-`` (and is not a plain number) as an option."""
-    out: list[str] = []
-    pending = False
-    for arg in argv:
-        if pending and arg[:1] == "-" and (arg[1:2].isdigit() or arg[1:2] == "."):
-            out[-1] = f"{out[-1]}={arg}"
-        else:
-            out.append(arg)
-        pending = arg in RANGE_OPTIONS
-    return out
 
 
 def camera_options(args: argparse.Namespace) -> tuple[float | None, tuple[float, float] | None]:

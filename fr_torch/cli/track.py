@@ -7,9 +7,15 @@ import sys
 from collections import deque
 from pathlib import Path
 
-from fr_torch.cli.options import add_estimator_arguments, device_policy
+from fr_torch.cli.options import (
+    add_estimator_arguments,
+    device_policy,
+    estimator_kwargs,
+)
 from fr_torch.core.checks import finite_number, positive_int, positive_number
 from fr_torch.errors import FRInputError
+from fr_torch.runtime.estimator import FREstimator
+from fr_torch.runtime.pipeline import calibrate_stream
 from fr_torch.runtime.workers import start_worker_server
 from fr_torch.video.fusion import OnlineCalibrator
 from fr_torch.video.track import frame_row, iter_frames, plot_track
@@ -50,9 +56,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from fr_torch.cli.options import estimator_kwargs
-    from fr_torch.errors import FRInputError
-    from fr_torch.runtime.estimator import FREstimator
 
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
@@ -71,7 +74,6 @@ def run(args: argparse.Namespace) -> int:
     tracker = OnlineCalibrator(memory=args.memory, change_k=args.change_k, patience=args.patience)
     out = args.out or Path(f"track_{args.source.stem or args.source.name}")
     out.mkdir(parents=True, exist_ok=True)
-    from fr_torch.runtime.pipeline import calibrate_stream
 
     rows, indices = [], deque()
 

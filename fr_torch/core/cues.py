@@ -48,8 +48,6 @@ def _quadratic_fit_matrix() -> torch.Tensor:
 
 
 #: Lattice spacing of :func:`focal_prior_share`: [pan, pitch, roll] in degrees, then log f (5 % of f).
-#: Chosen on the train splits (YUD, ZInD-fR, YUD crops) from (0.25 / 0.5 / 1 deg) x (0.01 - 0.05):
-#: the Spearman rho of the cue with the focal error stays within 0.4 - 0.57 across them.
 PRIOR_SHARE_STEP = (0.5, 0.5, 0.5, 0.05)
 
 
@@ -283,12 +281,11 @@ def image_cues(grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[
 def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: SegmentFeatures,
                params: torch.Tensor, scores: torch.Tensor, known_focal: bool, profile_gap: bool) -> dict[str, torch.Tensor]:
     """The focal cues of the estimates ``params`` (B, 4) with objectives ``scores`` (B,), each
-    float64 (B,): ``focal_prior_share`` (:func:`fr_torch.core.cues.focal_prior_share`) and, when
+    float64 (B,): ``focal_prior_share`` (:func:`focal_prior_share`) and, when
     ``profile_gap`` is on (fR's shipped model uses it), ``focal_profile_gap``
-    (:func:`fr_torch.core.cues.focal_profile_gap`, each known-focal search refined for Fast-fR's
-    number of steps; ~25 ms per photo, over half of Fast-fR's time, so Fast-fR and its model go
-    without it).  0 for a given focal length: the prior plays no
-    part and there is no focal length to single out."""
+    (:func:`focal_profile_gap`, each known-focal search refined for Fast-fR's number of steps; it
+    costs about a Fast-fR search per photo, so Fast-fR and its model go without it).  0 for a
+    given focal length: the prior plays no part and there is no focal length to single out."""
     names = ("focal_prior_share", "focal_profile_gap") if profile_gap else ("focal_prior_share",)
     if known_focal:
         return {name: torch.zeros(params.shape[0], dtype=torch.float64, device=params.device) for name in names}

@@ -32,6 +32,7 @@ from fr_torch.core.likelihood import (
     MixtureLikelihood,
     SegmentFeatures,
 )
+from fr_torch.core.reliability import ReliabilityModel
 from fr_torch.core.search import (
     grid_hypotheses,
     hypothesis_rotations,
@@ -160,7 +161,6 @@ class SegmentEstimator:
         self.min_segments = min_segments
         self.min_family_segments = min_family_segments
         self.min_manhattan_fraction = min_manhattan_fraction
-        from fr_torch.core.reliability import ReliabilityModel
 
         if isinstance(reliability, str) and reliability == "default":
             reliability = ReliabilityModel.load_default(mode)

@@ -41,7 +41,7 @@ custom autograd function returns the analytic gradient with respect to the vanis
 (``d obj / d v = sum_i [G_is l_i + G_it g_i]``), so autograd only sees the small (B, H, 3, 3)
 tensors.  One deliberate detail: the exponent ``log(prior / lambda) - x / lambda`` is clamped
 below at -87 (float32; -700 for float64) because ``exp`` of a more negative float32 argument
-takes a ~40x slower denormal path; the clamped term (< 1e-37) is then added to the background
+takes a much slower denormal path; the clamped term (< 1e-37) is then added to the background
 density (>= 0.019 for measure b), which it cannot change in float32 or float64, so the objective
 is unchanged bit for bit whenever the background prior exceeds ~1e-28.  ``atan2(0, 0) = 0`` as in
 the generic path (and the gradient there is 0, as the generic path's guard gives).
@@ -52,7 +52,7 @@ reduction over segments (:func:`objective_b_elementwise`), which ``torch.compile
 fused kernel (C++ on CPU, Triton on CUDA) that never stores the (B, 2N, 3H) deviations; the
 refinement's closed-form objective and gradient (:func:`fr_torch.core.search.objective_and_grad`) are
 compiled too, which removes most of its per-step operator overhead.  Compilation happens once per
-process (:func:`compiled_call`; 10-25 s on a 2-core CPU); where it fails (no C++ compiler, no Triton)
+process (:func:`compiled_call`); where it fails (no C++ compiler, no Triton)
 the estimator warns once and keeps the eager paths.
 """
 from __future__ import annotations
@@ -113,13 +113,14 @@ class LikelihoodParams:
     with few segments (a blank wall) leans on it more than one with many.  It counters the
     likelihood's pull towards narrow fields of view when the image barely constrains f (the
     f -> infinity bias the paper describes: far VPs make the horizontal families nearly parallel,
-    which fits noisy or non-Manhattan segments slightly better).  The centre is the mean log focal ratio of the train splits and gamma was chosen on
-    them (``configs/likelihood.json``, results/yud/README.md); gamma = 0 = no prior.
+    which fits noisy or non-Manhattan segments slightly better).  The shipped centre and gamma are
+    in ``configs/likelihood.json`` (``results/DECISIONS.md`` says how they were chosen); gamma = 0 =
+    no prior.
     ``focal_prior_flat_halfwidth`` (h >= 0, in log f): a flat top, no pull while f is within a
     factor e^h of f0; outside, the same quadratic in the distance to that band,
     ``log p(f) = -(gamma / 2) * (W + W0) * max(0, |log(f / f0)| - h)^2`` (h = 0: the log-normal).
     The config's ``focal_prior`` block may hold per-mode overrides (``"fr": {...}``, ``"fast":
-    {...}``; :meth:`from_dict`): fR's prior is the flat-topped one, chosen on the train splits.
+    {...}``; :meth:`from_dict`): fR's shipped prior is the flat-topped one.
     """
 
     measure: str = "b"

@@ -55,10 +55,8 @@ from fr_torch.core.likelihood import (
 )
 
 PARAMS = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
-# Grid deviations per chunk and intra-op thread on CPU: float32 buffers of a few MB.  Fewer, larger
-# chunks mean less per-op overhead: on an AMD EPYC 2^17 was 12 % slower than 2^18; on an Intel Xeon
-# (2 MB L2 per core) 2^19 took Fast-fR's search at batch 1 from 37.7 to 34.0 ms (fR 112 -> 108 ms),
-# 2^20 gained no more.  Scores are the same for any chunk size.
+# Grid deviations per chunk and intra-op thread on CPU: float32 buffers of a few MB, sized to the
+# L2 cache (results/DECISIONS.md).  Scores are the same for any chunk size.
 CPU_CHUNK_ELEMENTS = 1 << 19
 CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
 
@@ -213,8 +211,7 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     (:func:`_focal_ridge_rotations`), at pan offsets 0 and +-1/3 of a grid cell.
 
     The swept points are added, not swapped in: a point that scores higher than its start can
-    still lie in a lower basin, and replacing the start lost the better answer on 42 of 204
-    ZInD-fR train views (fR); with both refined, 3 (results/yud/README.md).
+    still lie in a lower basin, so both are refined.
 
     ``starts`` (B, L, 4) [pan, pitch, roll, f], ``scores`` (B, L), ``lower`` / ``upper`` (B, 4)
     the parameter box (points are moved into it by :func:`into_box`).  Returns (starts, scores) of shape (B, 2L, 4)

@@ -1,26 +1,10 @@
 """Image arrays in any common format (grey, BGR, BGRA; 8/16-bit or float) to 8-bit BGR or grey."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 
 from fr_torch.errors import FRInputError
-
-
-def load_image(path: str | Path) -> np.ndarray:
-    """Read an image file as an 8-bit BGR array (H, W, 3).  Raises FRInputError on any problem.
-
-    Safe on hostile input (regular files only, declared size checked before decoding, bounded
-    decode memory, EXIF orientation applied): see :mod:`fr_torch.images.io`.  A huge image (colour
-    buffer > ~400 MB) comes back reduced by 2, 4 or 8; use :func:`fr_torch.read_image`
-    to get the input's size as well.
-    """
-    from fr_torch.images.io import read_image
-
-    image, _ = read_image(path)
-    return to_bgr8(image, str(path))
 
 
 def to_bgr8(image: np.ndarray, name: str = "image") -> np.ndarray:

@@ -26,9 +26,7 @@ Working resolution: the detector runs on a copy whose long side is at most
 designed on; images smaller than that are used as they are).  The estimate is made in working
 pixels and scaled back (``scale`` = input pixels per working pixel), so results are always
 reported in the **input image's pixels**, and the time per image does not grow with the input
-resolution.  640 rather than 1024 was chosen on YUD train upscaled 2x and 4x: the same errors
-within one standard error, Fast-fR 57-60 ms per image instead of 87-94 ms
-(results/resolution/).
+resolution.
 """
 from __future__ import annotations
 
@@ -36,8 +34,12 @@ import contextlib
 import os
 import stat
 import struct
+from pathlib import Path
 
 import numpy as np
+
+from fr_torch.errors import FRInputError
+from fr_torch.images.convert import to_bgr8, to_gray8
 
 
 def _env_number(name: str, default: float) -> float:
@@ -59,8 +61,6 @@ import cv2  # noqa: E402  (after the environment variable above)
 
 
 def _error(message: str):
-    from fr_torch.errors import FRInputError
-
     return FRInputError(message)
 
 
@@ -358,7 +358,6 @@ def result_to_input_pixels(result, scale: float, input_size: tuple[int, int]) ->
 def read_any(image, name: str, max_long_side: int | None = WORKING_LONG_SIDE) -> tuple[np.ndarray, tuple[int, int]]:
     """Grey uint8 image and the input's (width, height) from a path (bounded decode, see
     :func:`read_image`) or an array (any format :func:`~fr_torch.images.convert.to_bgr8` accepts)."""
-    from fr_torch.images.convert import to_gray8
 
     if isinstance(image, (str, bytes, os.PathLike)):
         # Decoded in colour and converted like an array (not decoded to grey: a JPEG's grey decode
@@ -369,3 +368,16 @@ def read_any(image, name: str, max_long_side: int | None = WORKING_LONG_SIDE) ->
     gray = to_gray8(image) if not (isinstance(image, np.ndarray) and image.ndim == 2 and image.dtype == np.uint8) \
         else image
     return gray, (gray.shape[1], gray.shape[0])
+
+
+def load_image(path: str | Path) -> np.ndarray:
+    """Read an image file as an 8-bit BGR array (H, W, 3).  Raises FRInputError on any problem.
+
+    Safe on hostile input (regular files only, declared size checked before decoding, bounded
+    decode memory, EXIF orientation applied): see :mod:`fr_torch.images.io`.  A huge image (colour
+    buffer > ~400 MB) comes back reduced by 2, 4 or 8; use :func:`fr_torch.read_image`
+    to get the input's size as well.
+    """
+
+    image, _ = read_image(path)
+    return to_bgr8(image, str(path))

@@ -10,6 +10,9 @@ import numpy as np
 
 from fr_torch.core.camera import VERTICAL_AXIS
 from fr_torch.core.estimator import BACKGROUND_LABEL, CalibrationResult
+from fr_torch.images.convert import to_bgr8
+from fr_torch.images.io import encode_png, read_image
+from fr_torch.runtime.output import write_bytes
 
 # BGR colours: family of column 0 red, vertical (column 1) green, column 2 blue, background grey.
 FAMILY_COLOURS = {0: (40, 40, 230), 1: (40, 200, 40), 2: (230, 120, 30), BACKGROUND_LABEL: (150, 150, 150)}
@@ -86,9 +89,6 @@ def write_overlay(image_path, result: CalibrationResult, folder) -> Path:
     names that are not valid UTF-8).  A huge image is drawn at its reduced decode size.  Raises
     FRInputError with a one-line reason (unreadable image, existing folder in the way, read-only...).
     """
-    from fr_torch.images.convert import to_bgr8
-    from fr_torch.images.io import encode_png, read_image
-    from fr_torch.runtime.output import write_bytes
 
     image, size = read_image(image_path)
     image = to_bgr8(image)

@@ -31,6 +31,7 @@ from fr_torch.images.io import (
     result_to_input_pixels,
 )
 from fr_torch.runtime.device import DevicePolicy
+from fr_torch.runtime.pipeline import calibrate_paths
 
 
 class FREstimator(SegmentEstimator):
@@ -59,7 +60,6 @@ class FREstimator(SegmentEstimator):
         ``principal_point``: None (image centre), an (x, y) pair for all, or one per image.
         A bad image yields a result with ``ok=False`` and the reason; the others are unaffected.
         """
-        from fr_torch.runtime.pipeline import calibrate_paths
 
         return [r for _, batch in calibrate_paths(self, images, max(1, len(images)), 0, focal_px, principal_point,
                                                   names) for r in batch]

@@ -43,6 +43,7 @@ from typing import Iterable, Iterator, NamedTuple, Sequence
 import numpy as np
 
 from fr_torch.core.checks import per_image
+from fr_torch.core.estimator import CalibrationResult
 from fr_torch.core.segments import SegmentFilter
 from fr_torch.detectors.registry import detect_segments, get_detector
 from fr_torch.errors import FRInputError
@@ -287,8 +288,6 @@ def _calibrate_chunk(chunk):
 
 
 def _calibration_crash(item):
-    from fr_torch.core.estimator import CalibrationResult
-
     return CalibrationResult(image=item[1], width=0, height=0, ok=False, reason=crash_reason(item[1]))
 
 

@@ -45,6 +45,7 @@ from fr_torch.core.camera import (
     rotation_angle_deg,
     rotation_angles,
 )
+from fr_torch.core.reliability import load_thresholds
 
 SIGMA_FROM_MAE = math.sqrt(math.pi / 2.0)  # Gaussian: std = MAE * sqrt(pi / 2)
 
@@ -115,7 +116,6 @@ class OnlineCalibrator:
 
     def __post_init__(self) -> None:
         if self.default_error is None:
-            from fr_torch.core.reliability import load_thresholds
 
             self.default_error = load_thresholds()
         self.reset()

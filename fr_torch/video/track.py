@@ -26,6 +26,8 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
+from fr_torch.errors import FRInputError
+from fr_torch.images.io import load_image
 from fr_torch.video.fusion import FusedState
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
@@ -36,8 +38,6 @@ def iter_frames(source: str | Path, every: int = 1, max_frames: int | None = Non
     """(frame index, name, BGR/grey image) from a folder of images (sorted names) or a video file."""
     import cv2
 
-    from fr_torch.errors import FRInputError
-    from fr_torch.images.convert import load_image
 
     source = Path(source)
     every = max(1, int(every))

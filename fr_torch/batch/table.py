@@ -1,0 +1,151 @@
+"""``fr batch``'s output: the Arrow schema of a result row, records to tables, resumable part files."""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from fr_torch.core.reliability import CUE_NAMES, TARGETS
+
+# Keys of the dict-valued result fields (struct columns); unknown keys are dropped.
+RUNTIME_KEYS = ("detect", "grid", "refine", "cues", "total")
+
+
+FLOAT_FIELDS = ("focal_px", "hfov_deg", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "log_likelihood",
+                "manhattan_fraction")
+
+
+def result_schema():
+    """The Arrow schema of the output rows (without carried-through manifest columns).
+
+    Units as in :class:`fr_torch.core.estimator.CalibrationResult`: pixels, degrees, seconds.
+    """
+    import pyarrow as pa
+
+    f64 = pa.float64()
+    # Variable-size lists, not fixed-size ones: a failed image stores null there, and pyarrow
+    # before 26 cannot read a null fixed-size list back from Parquet (apache/arrow GH-35692: the
+    # whole part file fails to load).  Shapes are checked on the way in (:func:`records_to_table`).
+    mat3 = pa.list_(pa.list_(f64))
+    return pa.schema([
+        ("image", pa.string()), ("width", pa.int32()), ("height", pa.int32()),
+        ("ok", pa.bool_()), ("reliable", pa.bool_()), ("reason", pa.string()),
+        ("focal_px", f64), ("hfov_deg", f64), ("principal_point", pa.list_(f64)),
+        ("rotation", mat3), ("vertical_axis", pa.int8()),
+        ("pan_deg", f64), ("tilt_deg", f64), ("roll_deg", f64), ("pitch_deg", f64),
+        ("vanishing_points", mat3), ("log_likelihood", f64), ("num_segments", pa.int32()),
+        ("manhattan_fraction", f64), ("segments_per_family", pa.list_(pa.int32())),
+        ("cues", pa.struct([(k, f64) for k in CUE_NAMES])),
+        ("predicted_error", pa.struct([(k, f64) for k in TARGETS])),
+        ("runtime_s", pa.struct([(k, f64) for k in RUNTIME_KEYS])),
+    ])
+
+
+def _finite_or_none(value):
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _clean_float(value):
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+#: Shapes of the nested-list columns (any other shape, or a non-finite entry, is stored as null).
+NESTED_SHAPES = {"rotation": (3, 3), "vanishing_points": (3, 3), "principal_point": (2,)}
+
+
+def _clean_nested(value, shape: tuple[int, ...]):
+    """``value`` as nested lists of floats when it has ``shape`` and is finite, else None."""
+    if value is None:
+        return None
+    try:
+        array = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        return None
+    if array.shape != shape or not np.isfinite(array).all():
+        return None
+    return array.tolist()
+
+
+def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]], extras=()):
+    """JSON records (``CalibrationResult.to_json``) + their input rows -> Arrow table of the output
+    schema plus the carried manifest columns ``extras`` (from :func:`extra_columns`)."""
+    import pyarrow as pa
+
+    schema = result_schema()
+    clean = []
+    for record in records:
+        out = {name: record.get(name) for name in schema.names}
+        for key in FLOAT_FIELDS:
+            out[key] = _clean_float(out[key])
+        for key, shape in NESTED_SHAPES.items():
+            out[key] = _clean_nested(out[key], shape)
+        for key, keys in (("cues", CUE_NAMES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
+            value = out[key]
+            out[key] = None if not value else {k: _clean_float(value.get(k)) for k in keys}
+        clean.append(out)
+    table = pa.Table.from_pylist(clean, schema=schema)
+    for source, target, kind in extras:
+        values = [row.get(source) for row in rows]
+        if source == "focal_px":
+            values = [_finite_or_none(v) for v in values]
+        table = table.append_column(pa.field(target, kind), pa.array(values, type=kind, from_pandas=True))
+    return table
+
+
+class PartWriter:
+    """Writes a Parquet dataset as one part file per batch, atomically (hidden temp file + rename).
+
+    ``out``: the dataset folder (created).  Readers (pyarrow, pandas, DuckDB, Ray) ignore names
+    starting with ``.`` or ``_``, so a half-written temp file is never read.
+    """
+
+    def __init__(self, out: str | Path):
+        self.out = Path(out)
+        if self.out.exists() and not self.out.is_dir():
+            raise ValueError(f"{self.out}: exists and is not a folder (the output is a folder of Parquet parts)")
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.run_id = time.strftime("%Y%m%dT%H%M%S") + "-" + uuid.uuid4().hex[:8]
+        self.count = 0
+
+    def done_images(self) -> set[str]:
+        """``image`` values of the rows already written (resume)."""
+        import pyarrow.parquet as pq
+
+        done: set[str] = set()
+        for part in sorted(self.out.glob("part-*.parquet")):
+            try:
+                done.update(pq.read_table(part, columns=["image"]).column("image").to_pylist())
+            except Exception as exc:  # an unreadable part (should not happen: parts are atomic)
+                print(f"fr batch: warning: ignoring unreadable part {part} ({exc})", file=sys.stderr)
+        return done
+
+    def write(self, table) -> Path:
+        import pyarrow.parquet as pq
+
+        self.count += 1
+        final = self.out / f"part-{self.run_id}-{self.count:06d}.parquet"
+        temp = self.out / f".{final.name}.tmp"
+        pq.write_table(table, temp)
+        os.replace(temp, final)
+        return final
+
+    def cleanup(self) -> None:
+        """Remove temp files left by an interrupted run."""
+        for temp in self.out.glob(".part-*.tmp"):
+            try:
+                temp.unlink()
+            except OSError:
+                pass
