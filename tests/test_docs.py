@@ -92,6 +92,6 @@ def test_docs_site_builds_strict(tmp_path):
     assert proc.returncode == 0, f"mkdocs build --strict failed:\n{proc.stdout}\n{proc.stderr}"
     for page in ("index.html", "cli/index.html", "reference/core/index.html"):
         assert (tmp_path / "site" / page).is_file(), page
-    reference = (tmp_path / "site" / "reference" / "estimator" / "index.html").read_text(encoding="utf-8")
+    reference = (tmp_path / "site" / "reference" / "runtime" / "index.html").read_text(encoding="utf-8")
     assert "FREstimator" in reference and "calibrate_images" in reference  # docstrings were rendered
     assert ":class:`" not in reference  # reST roles rendered as code (docs/griffe_rst_roles.py)

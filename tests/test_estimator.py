@@ -204,7 +204,8 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
     beats, 0 for a given focal length (fR only; Fast-fR does not compute it)."""
     from fr_torch.core.cues import focal_profile_gap
     from fr_torch.core.likelihood import SegmentFeatures
-    from fr_torch.core.search import angles_from_search_rotation, hypothesis_rotations
+    from fr_torch.core.params import rotations as hypothesis_rotations
+    from fr_torch.core.search import angles_from_search_rotation
     from fr_torch.core.segments import SegmentBatch
 
     focal = focal_from_hfov(70.0, 640)

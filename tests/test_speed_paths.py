@@ -17,7 +17,8 @@ from fr_torch.core.likelihood import (
     MixtureLikelihood,
     SegmentFeatures,
 )
-from fr_torch.core.search import fast_rotations, grid_hypotheses, refine, score_grid
+from fr_torch.core.params import rotations as fast_rotations
+from fr_torch.core.search import grid_hypotheses, refine, score_grid
 from fr_torch.core.segments import SegmentBatch
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu

@@ -37,7 +37,6 @@ from functools import cached_property
 
 import numpy as np
 import torch
-from kornia.geometry.conversions import quaternion_to_rotation_matrix
 
 VERTICAL_AXIS = 1  # column of R holding the (downward) vertical Manhattan direction
 Y_UP = (1.0, -1.0, 1.0)  # diag flipping the camera y axis (y-down <-> y-up frames)
@@ -94,23 +93,32 @@ def rotation_from_angles(pan_deg, pitch_deg, roll_deg) -> torch.Tensor:
     """World->camera rotation(s) R, shape (..., 3, 3), from pan / pitch / roll in degrees.
 
     ``R.T = Ry(pan) Rx(pitch) Rz(roll)``; see the module docstring for the meaning of each angle.
-    Built as the unit quaternion ``q_y(pan) q_x(pitch) q_z(roll)`` (closed form) converted by
-    kornia; inputs broadcast and gradients flow (the refinement differentiates through it).
-    Python numbers and integer inputs give float64.
+    Inputs broadcast and gradients flow; Python numbers and integer inputs give float64.  The one
+    rotation builder of the project (:func:`rotation_from_cos_sin`).
     """
     tensors = [a for a in (pan_deg, pitch_deg, roll_deg) if torch.is_tensor(a) and a.is_floating_point()]
     dtype = tensors[0].dtype if tensors else torch.float64
     device = tensors[0].device if tensors else None
-    half = torch.broadcast_tensors(
-        *(torch.deg2rad(torch.as_tensor(a, dtype=dtype, device=device)) / 2 for a in (pan_deg, pitch_deg, roll_deg)))
-    cp, ct, cr = (torch.cos(a) for a in half)
-    sp, st, sr = (torch.sin(a) for a in half)
-    quaternion = torch.stack([cp * ct * cr + sp * st * sr,  # w
-                              cp * st * cr + sp * ct * sr,  # x
-                              sp * ct * cr - cp * st * sr,  # y
-                              cp * ct * sr - sp * st * cr], -1)  # z
-    cam_to_world = quaternion_to_rotation_matrix(quaternion)  # kornia: (w, x, y, z) order
-    return cam_to_world.transpose(-1, -2)
+    angles = torch.stack(torch.broadcast_tensors(
+        *(torch.as_tensor(a, dtype=dtype, device=device) for a in (pan_deg, pitch_deg, roll_deg))), -1)
+    rad = torch.deg2rad(angles)
+    return rotation_from_cos_sin(torch.cos(rad), torch.sin(rad))
+
+
+def rotation_from_cos_sin(cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """World->camera R (..., 3, 3) from the cosines and sines of [pan, pitch, roll] (..., 3).
+
+    Closed form of ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (each a right-handed rotation about the
+    camera axis); differentiable.  The search calls it with the cosines it already has.
+    """
+    cp, ct, cr = cos.unbind(-1)
+    sp, st, sr = sin.unbind(-1)
+    spst, cpst = sp * st, cp * st
+    # Row i of R = column i of R.T.
+    rows = torch.stack([cp * cr + spst * sr, ct * sr, cpst * sr - sp * cr,
+                        spst * cr - cp * sr, ct * cr, sp * sr + cpst * cr,
+                        sp * ct, -st, cp * ct], -1)
+    return rows.view(cos.shape[:-1] + (3, 3))
 
 
 def world_up_in_camera_yup(rotation: torch.Tensor, vertical_axis: int = VERTICAL_AXIS) -> torch.Tensor:

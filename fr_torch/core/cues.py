@@ -15,15 +15,14 @@ import torch
 
 from fr_torch.core.config import FAST_REFINE_ITERATIONS, SearchConfig
 from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
+from fr_torch.core.params import FOCAL, from_log_focal, to_log_focal
 from fr_torch.core.search import (
     LATTICE,
-    from_log_focal,
     grid_hypotheses,
     parameter_box,
     refine,
     score_grid,
     select_starts,
-    to_log_focal,
 )
 
 EDGE_REASON = "focal at the edge of the search range"
@@ -96,7 +95,7 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(batch, 4, 4)
     # The prior's curvature over the same lattice, fitted the same way (exact for the log-normal;
     # a flat-topped prior has none inside its band and part of it at the band's edge).
-    prior_values = likelihood.focal_prior(features, points[..., 3].to(features.weight.dtype))[0]
+    prior_values = likelihood.focal_prior(features, points[..., FOCAL].to(features.weight.dtype))[0]
     prior_hessian = prior_values.to(torch.float64) @ fit[:, _HESSIAN_COLUMNS[15].item()]  # H_33, lattice units
     hessian[:, 3, 3] -= prior_hessian  # the likelihood's Hessian alone (lattice units)
     prior = (-prior_hessian / step[3] ** 2).clamp_min(0.0)  # per (log f)^2
@@ -154,7 +153,7 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     ratios = torch.tensor(PROFILE_FOCAL_RATIOS, dtype=torch.float64)
     long_side = features.long_side.to("cpu", torch.float64)
     f_lo, f_hi = config.fov_range.focal_bounds(long_side)
-    focal = params[:, 3].to("cpu", torch.float64)[:, None] * ratios  # (B, R)
+    focal = params[:, FOCAL].to("cpu", torch.float64)[:, None] * ratios  # (B, R)
     inside = (focal >= f_lo[:, None]) & (focal <= f_hi[:, None])
     pairs = inside.nonzero()  # (M, 2) [image, ratio]: only focal lengths inside the range are searched
     best = torch.full((batch, count), -math.inf, dtype=torch.float64, device=device)

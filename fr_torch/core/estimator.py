@@ -32,10 +32,10 @@ from fr_torch.core.likelihood import (
     MixtureLikelihood,
     SegmentFeatures,
 )
+from fr_torch.core.params import FOCAL, rotations
 from fr_torch.core.reliability import ReliabilityModel
 from fr_torch.core.search import (
     grid_hypotheses,
-    hypothesis_rotations,
     parameter_box,
     refine,
     score_grid,
@@ -281,8 +281,8 @@ class SegmentEstimator:
         best_scores = candidate_scores[rows, best]
         t2 = time.perf_counter()
 
-        rotation = hypothesis_rotations(best_params)  # float64 (B, 3, 3)
-        posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, 3].to(dtype))
+        rotation = rotations(best_params)  # float64 (B, 3, 3)
+        posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, FOCAL].to(dtype))
         labels = posterior[:, 0].argmax(-1)
         cues = image_cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
         cues.update(focal_cues(self.likelihood, self.search, features, best_params, best_scores, known_focal,
@@ -300,7 +300,7 @@ class SegmentEstimator:
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
         family = labels_all != BACKGROUND_LABEL
         manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
-        cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, 3], pp_np, rotation_all)
+        cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, FOCAL], pp_np, rotation_all)
         # Finite parameters, objective and rotation give finite hfov, angles and VPs (f > 0 in the box).
         finite = np.isfinite(params_all).all(-1) & np.isfinite(scores_all) & np.isfinite(rotation_all).all((-1, -2))
         for j, item in enumerate(group):

@@ -42,7 +42,7 @@ from fr_torch.core.camera import (
     VERTICAL_AXIS,
     focal_from_hfov,
     pan_from_rotation,
-    rotation_from_angles,
+    rotation_from_cos_sin,
 )
 from fr_torch.core.config import SearchConfig
 from fr_torch.core.likelihood import (
@@ -53,8 +53,15 @@ from fr_torch.core.likelihood import (
     measure_b_forward,
     vp_major,
 )
+from fr_torch.core.params import (
+    ANGLES,
+    FOCAL,
+    PAN,
+    from_log_focal,
+    rotations,
+    to_log_focal,
+)
 
-PARAMS = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
 # Grid deviations per chunk and intra-op thread on CPU: float32 buffers of a few MB, sized to the
 # L2 cache (results/DECISIONS.md).  Scores are the same for any chunk size.
 CPU_CHUNK_ELEMENTS = 1 << 19
@@ -154,14 +161,14 @@ def grid_cell(config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor) ->
     the focal step in log f (``log(f_max / f_min) / k``, the log-f grid's spacing; 0 for a known
     focal).  ``lower``, ``upper``: (B, 4) from :func:`parameter_box`."""
     k = config.grid_points_per_dim
-    angles = (upper[:, :3] - lower[:, :3]) / k
+    angles = (upper[:, ANGLES] - lower[:, ANGLES]) / k
     log_focal = (upper[:, 3:].log() - lower[:, 3:].log()) / k
     return torch.cat([angles, log_focal], -1)
 
 
 def angles_from_search_rotation(rotation: torch.Tensor) -> torch.Tensor:
     """[pan, pitch, roll] in degrees, (..., 3), from world->camera R (..., 3, 3): the inverse of
-    :func:`fast_rotations` (``R.T = Ry(pan) Rx(pitch) Rz(roll)``) for |pitch| < 90 deg, pan folded
+    :func:`fr_torch.core.params.rotations` (``R.T = Ry(pan) Rx(pitch) Rz(roll)``) for |pitch| < 90 deg, pan folded
     into [-45, 45) (:func:`fr_torch.core.camera.pan_from_rotation`; the Manhattan frame is symmetric
     under quarter turns about the vertical)."""
     pitch = torch.rad2deg(torch.asin((-rotation[..., 2, 1]).clamp(-1.0, 1.0)))
@@ -220,20 +227,20 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     images one by one).  A known focal (``lower`` f == ``upper`` f) or m = 0 returns the inputs.
     """
     count = config.focal_sweep_points
-    if count == 0 or bool((upper[:, 3] <= lower[:, 3]).all()):
+    if count == 0 or bool((upper[:, FOCAL] <= lower[:, FOCAL]).all()):
         return starts, scores
     device = features.weight.device
     batch, n_start = starts.shape[:2]
     start64 = starts.to(device=device, dtype=torch.float64)
     lower64 = lower.to(device=device, dtype=torch.float64)
     upper64 = upper.to(device=device, dtype=torch.float64)
-    focal = _log_spaced_focals(lower64[:, 3], upper64[:, 3], count)[:, None, :].expand(batch, n_start, count)
-    rotation = _focal_ridge_rotations(fast_rotations(start64), focal / start64[..., 3:])  # (B, L, m, 3, 3)
+    focal = _log_spaced_focals(lower64[:, FOCAL], upper64[:, FOCAL], count)[:, None, :].expand(batch, n_start, count)
+    rotation = _focal_ridge_rotations(rotations(start64), focal / start64[..., FOCAL:])  # (B, L, m, 3, 3)
     angles = angles_from_search_rotation(rotation)  # (B, L, m, 3)
-    pan_step = (upper64[:, 0] - lower64[:, 0]) / (3 * config.grid_points_per_dim)  # 1/3 of a grid cell
+    pan_step = (upper64[:, PAN] - lower64[:, PAN]) / (3 * config.grid_points_per_dim)  # 1/3 of a grid cell
     pan_offsets = torch.stack([torch.zeros_like(pan_step), -pan_step, pan_step], -1)  # (B, 3)
     points = torch.cat([angles, focal[..., None]], -1)[:, :, :, None, :].repeat(1, 1, 1, 3, 1)
-    points[..., 0] += pan_offsets[:, None, None, :]  # pan fastest: runs of 3 share the vertical VP
+    points[..., PAN] += pan_offsets[:, None, None, :]  # pan fastest: runs of 3 share the vertical VP
     points = into_box(points, lower64[:, None, None, None], upper64[:, None, None, None], config.periodic_pan)
     points = points.view(batch, n_start, -1, 4)
     point_scores = score_grid(likelihood, features, points.view(batch, -1, 4), config.max_chunk_elements,
@@ -294,11 +301,6 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
     return from_log_focal(current).to(starts), scores
 
 
-def hypothesis_rotations(params: torch.Tensor) -> torch.Tensor:
-    """World->camera R (..., 3, 3) from [pan, pitch, roll, focal] parameters (..., 4)."""
-    return rotation_from_angles(params[..., 0], params[..., 1], params[..., 2])
-
-
 def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypotheses: torch.Tensor,
                max_chunk_elements: int, vertical_block: int = 1) -> torch.Tensor:
     """Length-weighted log-likelihood of every hypothesis, (B, G), in chunks of hypotheses and images.
@@ -329,36 +331,13 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
             sub = features.images(b0, b1)
             # Rotations of this image slice: (b, G, 3, 3) -- small (9 numbers per hypothesis).
             part = hypotheses[b0:b1].to(device)
-            rotation = fast_rotations(part.to(dtype))
-            focal = part[..., 3].to(dtype)
+            rotation = rotations(part.to(dtype))
+            focal = part[..., FOCAL].to(dtype)
             for h0 in range(0, count, hyp_chunk):
                 h1 = min(count, h0 + hyp_chunk)
                 scores[b0:b1, h0:h1] = likelihood.objective(sub, rotation[:, h0:h1], focal[:, h0:h1],
                                                             workspace=workspace, vertical_block=vertical_block)
     return scores.nan_to_num_(nan=-math.inf)  # a NaN score is never the best (topk ranks NaN first)
-
-
-def fast_rotations(params: torch.Tensor) -> torch.Tensor:
-    """World->camera R (..., 3, 3) from [pan, pitch, roll, ...] (degrees), closed form.
-
-    ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (each a right-handed rotation about the camera axis) --
-    the same rotation as :func:`hypothesis_rotations` (kornia quaternion route) up to rounding, in
-    fewer operations; differentiable.
-    """
-    rad = torch.deg2rad(params[..., :3])
-    return _rotations_from_cos_sin(torch.cos(rad), torch.sin(rad))
-
-
-def _rotations_from_cos_sin(cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """:func:`fast_rotations` from the cosines and sines of [pan, pitch, roll] (..., 3)."""
-    cp, ct, cr = cos.unbind(-1)
-    sp, st, sr = sin.unbind(-1)
-    spst, cpst = sp * st, cp * st
-    # Columns of R.T are the rows of R; build R row by row (row i of R = column i of R.T).
-    rows = torch.stack([cp * cr + spst * sr, ct * sr, cpst * sr - sp * cr,
-                        spst * cr - cp * sr, ct * cr, sp * sr + cpst * cr,
-                        sp * ct, -st, cp * ct], -1)
-    return rows.view(cos.shape[:-1] + (3, 3))
 
 
 def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
@@ -451,8 +430,8 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
 
     def evaluate(u_value):
         params = from_log_focal(lower + u_value * span)
-        rotation = fast_rotations(params)
-        return params, likelihood.objective(features, rotation, params[..., 3])
+        rotation = rotations(params)
+        return params, likelihood.objective(features, rotation, params[..., FOCAL])
 
     analytic = likelihood._fast_path(features)
     grad_out = -1.0 / total_length
@@ -474,7 +453,7 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
         optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-_GRAD_BOUND, _GRAD_BOUND))
         with torch.no_grad():
             if periodic_pan:  # u's pan is (pan - lower) / 90 deg: wrap it into [0, 1)
-                u[..., 0] = torch.remainder(u[..., 0], 1.0)
+                u[..., PAN] = torch.remainder(u[..., PAN], 1.0)
             u.clamp_(0.0, 1.0)
         if tolerance > 0:
             history.append(objective.detach() / total_length)
@@ -489,16 +468,6 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     return params.detach(), objective.detach()
 
 
-def to_log_focal(params: torch.Tensor) -> torch.Tensor:
-    """[pan, pitch, roll, f] -> [pan, pitch, roll, log f] (..., 4)."""
-    return torch.cat([params[..., :3], torch.log(params[..., 3:])], -1)
-
-
-def from_log_focal(params: torch.Tensor) -> torch.Tensor:
-    """[pan, pitch, roll, log f] -> [pan, pitch, roll, f] (..., 4)."""
-    return torch.cat([params[..., :3], torch.exp(params[..., 3:])], -1)
-
-
 def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures, lower: torch.Tensor,
                        span: torch.Tensor, u: torch.Tensor, grad_out: torch.Tensor):
     """Measure-b objective (B, L) at ``params = lower + u * span`` and the gradient of
@@ -509,7 +478,7 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     ``lower``, ``span``: (B, 1, 4); ``grad_out``: broadcastable to (B, L).  The chain is written
     out: G = d obj / d V for the VPs V = K R from :func:`fr_torch.core.likelihood.measure_b_backward`;
     ``dV/df = [R_0; R_1; 0]``; and for the angles, with ``R.T = Ry(pan) Rx(pitch) Rz(roll)``
-    (:func:`fast_rotations`), ``dR/d angle = -R [w]_x`` for the axis ``w`` = e_y (pan),
+    (:func:`fr_torch.core.params.rotations`), ``dR/d angle = -R [w]_x`` for the axis ``w`` = e_y (pan),
     ``Ry(pan) e_x`` (pitch) and ``R.T e_z`` (roll), so ``d obj / d angle = -w . axial(V.T G)``
     (``<G, K dR> = <K.T G, -R [w]_x> = -<R.T K.T G, [w]_x>``; axial(M) = (M21 - M12, M02 - M20,
     M10 - M01)).  Equal to the autograd gradient of the same objective to rounding (tests); used
@@ -517,10 +486,10 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     """
     params = lower + u * span
     batch, n_hyp = params.shape[:2]
-    rad = torch.deg2rad(params[..., :3])
+    rad = torch.deg2rad(params[..., ANGLES])
     cos, sin = torch.cos(rad), torch.sin(rad)
-    rotation = _rotations_from_cos_sin(cos, sin)  # (B, L, 3, 3)
-    focal = torch.exp(params[..., 3])
+    rotation = rotation_from_cos_sin(cos, sin)  # (B, L, 3, 3)
+    focal = torch.exp(params[..., FOCAL])
     pp = features.principal_point[:, None, :]  # (B, 1, 2)
     # V = K R: rows 0, 1 = f R_j + c_j R_2, row 2 = R_2.
     top = focal[..., None, None] * rotation[..., :2, :] + pp[..., None] * rotation[..., 2:, :]
