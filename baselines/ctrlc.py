@@ -5,7 +5,7 @@ Line-Classification", ICCV 2021.  The network itself is not re-implemented: the 
 official checkpoint to ONNX with ``fr export-ctrlc`` (:mod:`fr_baselines.export_ctrlc_onnx`) and points this adapter at
 the file (constructor argument ``onnx_path`` or environment variable ``FR_CTRLC_ONNX``).  Without
 weights the method is listed but ``available`` is False and every estimate is a flagged failure
-with an "n/a (not supplied: ...)" reason (:func:`fr_torch.plugins.registry.not_supplied`).
+with an "n/a (not supplied: ...)" reason (:func:`fr_torch.registry.not_supplied`).
 
 ONNX contract (what the export script produces)
 -----------------------------------------------
@@ -51,10 +51,10 @@ import numpy as np
 import torch
 
 from fr_torch.core.camera import Camera, hfov_from_focal, horizon_angles, image_centre
-from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
-from fr_torch.plugins.registry import not_supplied
 from fr_torch.errors import FRInputError
 from fr_torch.images.convert import to_bgr8
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
+from fr_torch.registry import not_supplied
 
 from . import vp_geometry as vg
 

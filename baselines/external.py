@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from fr_torch.core.camera import Camera, focal_from_hfov
-from fr_torch.plugins.interface import CameraEstimate, ImageMeta, Timer
-from fr_torch.plugins.registry import NOT_SUPPLIED
 from fr_torch.errors import FRInputError
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, Timer
+from fr_torch.registry import NOT_SUPPLIED
 
 from . import vp_geometry as vg
 

@@ -51,9 +51,9 @@ import numpy as np
 from scipy.stats import binom
 
 from fr_torch.core.camera import Camera, focal_from_hfov
-from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.core.fov import FovRange
 from fr_torch.errors import FRInputError
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 
 from . import vp_geometry as vg
 

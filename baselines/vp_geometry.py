@@ -17,11 +17,17 @@ import math
 
 import numpy as np
 
-from fr_torch.core.camera import Camera, hfov_from_focal, nearest_rotation, principal_point_or_centre, rotation_angles  # noqa: F401
-from fr_torch.plugins.interface import CameraEstimate, ImageMeta
-from fr_torch.errors import FRInputError
+from fr_torch.core.camera import (  # noqa: F401
+    Camera,
+    hfov_from_focal,
+    nearest_rotation,
+    principal_point_or_centre,
+    rotation_angles,
+)
 from fr_torch.core.segments import SegmentFilter, validate_segments
 from fr_torch.detectors.registry import detect_segments
+from fr_torch.errors import FRInputError
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta
 
 EPS = 1e-12
 

@@ -3,6 +3,7 @@ copies; ``fr`` itself finds them through entry points, also in a checkout run wi
 import sys
 
 from fr_eval.commands import COMMANDS
+
 from fr_torch.cli.main import main
 
 sys.exit(main(extra_commands=COMMANDS))

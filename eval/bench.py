@@ -54,8 +54,6 @@ Run ``fr bench [--quick] [--device cuda] [--out DIR] [--threads T]`` or ``python
 """
 from __future__ import annotations
 
-from fr_torch.cli.options import add_device_arguments
-
 import argparse
 import json
 import os
@@ -70,6 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fr_torch.cli.options import add_device_arguments
 from fr_torch.runtime.workers import usable_cores
 
 REPO = Path(__file__).resolve().parents[1]
@@ -247,8 +246,8 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
     """Latency of calibrate_images on single images (batch 1), per stage, medians (ms);
     ``compile_search``: also each mode with the compiled search (after its compiling warm-up)."""
     from fr_torch.detectors.registry import get_detector
-    from fr_torch.images.io import load_image
     from fr_torch.images.convert import to_gray8
+    from fr_torch.images.io import load_image
 
     rows = []
     detector = get_detector("lsd")
@@ -521,7 +520,7 @@ def _peak_rss() -> float:
     return float(peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
-_PROBE = "import sys; from fr_torch.plugins.registry import load_object; sys.exit(load_object('fr_eval.bench:main')())"
+_PROBE = "import sys; from fr_torch.registry import load_object; sys.exit(load_object('fr_eval.bench:main')())"
 
 
 def memory(settings, threads: int | None, progress) -> list[dict]:

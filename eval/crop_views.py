@@ -28,9 +28,9 @@ import cv2
 import numpy as np
 import pandas as pd
 import torch
-
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.datasets.registry import load_dataset
+
 from fr_torch.core.camera import hfov_from_focal, pan_from_rotation
 from fr_torch.images.io import load_image
 

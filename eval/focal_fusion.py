@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-
 from fr_eval.reliability_train import DEFAULT_RECORDS, fit_model, usable
-from fr_torch.video.fusion import OnlineCalibrator
+
 from fr_torch.core.reliability import PAPER_CUE_NAMES, ReliabilityModel
+from fr_torch.video.fusion import OnlineCalibrator
 
 MODES = {"fr": "fr", "fast-fr": "fast"}
 

@@ -53,8 +53,6 @@ The HorizonNet/PanoContext demo (already Manhattan-aligned) is built with ``--al
 """
 from __future__ import annotations
 
-from fr_torch.cli.options import add_device_arguments
-
 import argparse
 import json
 import math
@@ -66,11 +64,24 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
-from fr_eval.panorama import (cubemap_to_equirect, load_cubemap, load_panorama, render_views, save_rgb,
-                           yaw_rotation)
-from fr_torch.core.camera import focal_from_hfov, horizon_angles, image_centre, intrinsics, rotation_from_angles
+from fr_eval.panorama import (
+    cubemap_to_equirect,
+    load_cubemap,
+    load_panorama,
+    render_views,
+    save_rgb,
+    yaw_rotation,
+)
+
+from fr_torch.cli.options import add_device_arguments
+from fr_torch.core.camera import (
+    focal_from_hfov,
+    horizon_angles,
+    image_centre,
+    intrinsics,
+    rotation_from_angles,
+)
 
 IMAGE_EXTS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp")
 ZIND_WIDTH = 2048  # the width at which ZInD's u_px_of_one_manhattan_axis is given

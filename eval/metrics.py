@@ -28,9 +28,16 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from fr_torch.core.camera import MANHATTAN_SYMMETRIES, focal_from_hfov, hfov_from_focal, manhattan_frame_error_deg, manhattan_symmetries, rotation_angle_deg, rotation_angles  # noqa: F401
-
-from fr_torch.plugins.registry import NA_PREFIX, NOT_SUPPLIED, is_not_supplied  # noqa: F401  (the one marker)
+from fr_torch.core.camera import (  # noqa: F401
+    MANHATTAN_SYMMETRIES,
+    focal_from_hfov,
+    hfov_from_focal,
+    manhattan_frame_error_deg,
+    manhattan_symmetries,
+    rotation_angle_deg,
+    rotation_angles,
+)
+from fr_torch.registry import NA_PREFIX, NOT_SUPPLIED, is_not_supplied  # noqa: F401  (the one marker)
 
 METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
 
@@ -222,7 +229,7 @@ class Summary:
 
 def all_not_supplied(rows: Sequence[dict[str, Any]]) -> bool:
     """True when every row failed with an "n/a (...)" reason (weights / predictions absent; see
-    :func:`fr_torch.plugins.registry.not_supplied`)."""
+    :func:`fr_torch.registry.not_supplied`)."""
     return bool(rows) and all(r.get("failed") and is_not_supplied(r.get("reason")) for r in rows)
 
 

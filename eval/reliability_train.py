@@ -45,7 +45,14 @@ import numpy as np
 import pandas as pd
 
 from fr_torch.core.camera import focal_from_hfov, rotation_angles
-from fr_torch.core.reliability import CUE_NAMES, ERROR_COLUMNS, MODEL_CUE_NAMES, PAPER_CUE_NAMES, ReliabilityModel, model_cue_names
+from fr_torch.core.reliability import (
+    CUE_NAMES,
+    ERROR_COLUMNS,
+    MODEL_CUE_NAMES,
+    PAPER_CUE_NAMES,
+    ReliabilityModel,
+    model_cue_names,
+)
 from fr_torch.resources import config_dir
 
 REPO = Path(__file__).resolve().parents[1]
@@ -75,9 +82,8 @@ def _record(result, gt: dict) -> dict:
 def dataset_records(dataset: str, split: str, mode: str, data_root=None, batch_size: int = 8,
                     limit: int | None = None, progress: bool = True) -> pd.DataFrame:
     """Run FREstimator(mode) over a registered evaluation dataset (``fr_eval.datasets``)."""
-    from tqdm import tqdm
-
     from fr_eval.datasets.registry import load_dataset
+    from tqdm import tqdm
 
     from fr_torch.runtime.estimator import FREstimator
 
@@ -112,7 +118,11 @@ def synthetic_records(count: int, mode: str, seed: int = 0, batch_size: int = 8,
     from tqdm import tqdm
 
     from fr_torch.runtime.estimator import FREstimator
-    from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
+    from fr_torch.synthetic import (
+        random_rotation,
+        render_manhattan_room,
+        synthetic_segments,
+    )
 
     rng = np.random.default_rng(seed)
     estimator = FREstimator(mode=mode, reliability=None, profile_gap=mode == "fr")  # the raw sanity flag and cues

@@ -32,7 +32,7 @@ for step in "${steps[@]}"; do
         .venv/bin/python -m fr_eval.crop_views --dataset yud --size $s --out "${FR_CACHE:-data_local}/yud-crop-$s"
       done ;;
     yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e.
-          # Every table: the library's default FOV range (configs/search.json, [30, 120]) with the
+          # Every table: the library's default FOV range ([30, 120]) with the
           # paper's [50, 130] rows ([range=paper]) next to it (issue 13).
       $FR eval --dataset yud --split test --out results/yud \
         --methods "fr,fr[range=paper],fast-fr,fast-fr[range=paper],oracle-fr,oracle-fr[range=paper]"
@@ -44,7 +44,7 @@ for step in "${steps[@]}"; do
       $FR eval --dataset zind-fr --split test --out results/zind-fr \
         --methods "fr,fr[range=paper],fast-fr,fast-fr[range=paper]" ;;
     sota)  # Issue "baselines" + issue 13: every method that searches focal gets the same range
-          # (--hfov-range, default = the library default); the paper-range rows beside them.
+          # (--fov-range, default = the library default); the paper-range rows beside them.
       M="fr,fr[range=paper],fast-fr,fast-fr[range=paper],lee2009,lee2009[range=paper],simon2018,simon2018[range=paper],prior"
       $FR eval --dataset yud --split test --methods "$M" --out results/sota/yud
       $FR eval --dataset zind-fr --split test --methods "$M" --out results/sota/zind-fr ;;

@@ -19,14 +19,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
-
 from fr_eval.bench import machine_description
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.metrics import failure_reason, image_errors, is_failure, mean_se
+from tqdm import tqdm
+
 from fr_torch import FREstimator
-from fr_torch.images.io import WORKING_LONG_SIDE
-from fr_torch.images.io import load_image
+from fr_torch.images.io import WORKING_LONG_SIDE, load_image
 
 METRICS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct", "frame_err_deg")
 

@@ -45,8 +45,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import math
+import os
 import platform
 import sys
 import time
@@ -55,20 +55,37 @@ from typing import Any, Sequence
 
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
-
 from fr_eval.bench import machine_description
 from fr_eval.datasets.registry import available_datasets, load_dataset
-from fr_eval.metrics import (NA_PREFIX, estimate_quantities, failure_reason, image_errors, is_failure, summarize,
-                          summarize_groups)
+from fr_eval.metrics import (
+    NA_PREFIX,
+    estimate_quantities,
+    failure_reason,
+    image_errors,
+    is_failure,
+    summarize,
+    summarize_groups,
+)
 from fr_eval.paths import REPO
 from fr_eval.plots import distributions_figure, histogram_figure, safe_name
-from fr_eval.tables import deviation_measure_summaries, parse_method_spec, with_option, write_tables
-from fr_torch.plugins.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
-from fr_torch.plugins.registry import split_method_list
+from fr_eval.tables import (
+    deviation_measure_summaries,
+    parse_method_spec,
+    with_option,
+    write_tables,
+)
+from tqdm import tqdm
+
 from fr_torch.cli.options import add_device_arguments, add_fov_range_argument
 from fr_torch.core.fov import FovRange
 from fr_torch.images.io import load_image
+from fr_torch.plugins.interface import (
+    CameraEstimate,
+    ImageMeta,
+    available_methods,
+    get_calibrator,
+)
+from fr_torch.registry import split_method_list
 
 LABELLED_SUFFIX = "@labelled"
 ALL_METHODS = "all"

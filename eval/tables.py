@@ -14,10 +14,10 @@ from pathlib import Path
 from typing import Sequence
 
 import pandas as pd
-
 from fr_eval.metrics import METRICS, NOT_SUPPLIED, Summary
-from fr_torch.plugins.registry import parse_method_spec as _parse_method_spec
-from fr_torch.plugins.registry import with_option  # noqa: F401  (re-exported for run_eval)
+
+from fr_torch.registry import parse_method_spec as _parse_method_spec
+from fr_torch.registry import with_option  # noqa: F401  (re-exported for run_eval)
 
 HEADERS = {
     "runtime_s": "run time (s)",
@@ -31,7 +31,7 @@ DECIMALS = {"runtime_s": 3}
 VALID_HEADER = "valid (%)"
 
 def parse_method_spec(spec: str) -> tuple[str, dict[str, str]]:
-    """:func:`fr_torch.plugins.registry.parse_method_spec` for labels read back (never raises)."""
+    """:func:`fr_torch.registry.parse_method_spec` for labels read back (never raises)."""
     return _parse_method_spec(spec, strict=False)
 
 

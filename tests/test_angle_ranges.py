@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fr_torch.cli.main import main
-from fr_torch.cli.main import attach_range_values
+from fr_torch.cli.main import attach_range_values, main
 from fr_torch.core.camera import rotation_from_angles
 from fr_torch.core.config import SearchConfig
 from fr_torch.core.search import into_box

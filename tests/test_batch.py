@@ -16,10 +16,10 @@ import pytest
 
 pq = pytest.importorskip("pyarrow.parquet")  # fr batch needs pyarrow (extra "batch" / "ray")
 
-from fr_torch.batch.worker import BatchWorker
 from fr_torch.batch.inputs import collect_inputs
-from fr_torch.batch.table import records_to_table
 from fr_torch.batch.jobs import run_batch
+from fr_torch.batch.table import records_to_table
+from fr_torch.batch.worker import BatchWorker
 from fr_torch.cli.batch import estimator_options
 from fr_torch.cli.main import build_parser
 from fr_torch.core.camera import rotation_from_angles

@@ -7,9 +7,13 @@ import numpy as np
 import pytest
 
 from fr_torch.core.camera import rotation_from_angles
-from fr_torch.detectors.mcmlsd import MCMLSDDetector
+from fr_torch.detectors.mcmlsd import (
+    PARAMS_PATH,
+    MCMLSDDetector,
+    _posterior_on,
+    _viterbi,
+)
 from fr_torch.detectors.onnx_detector import OnnxLineDetector
-from fr_torch.detectors.mcmlsd import PARAMS_PATH, _posterior_on, _viterbi
 from fr_torch.detectors.registry import available_detectors, get_detector
 from fr_torch.synthetic import camera_matrix, render_manhattan_room
 

@@ -17,7 +17,7 @@ from fr_eval.datasets.registry import CalibrationSample
 
 from fr_torch.core.camera import Camera, rotation_from_angles
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta
-from fr_torch.plugins.registry import not_supplied
+from fr_torch.registry import not_supplied
 from fr_torch.resources import config_dir
 from tests.conftest import require_dataset
 

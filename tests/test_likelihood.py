@@ -4,11 +4,10 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from fr_torch.core.fov import FovRange
 import torch
 
 from fr_torch.core.camera import VERTICAL_AXIS, rotation_from_angles
+from fr_torch.core.fov import FovRange
 from fr_torch.core.likelihood import (
     LikelihoodParams,
     MixtureLikelihood,

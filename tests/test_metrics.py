@@ -33,7 +33,7 @@ from fr_torch.core.camera import (
     rotation_from_angles,
 )
 from fr_torch.plugins.interface import CameraEstimate
-from fr_torch.plugins.registry import not_supplied
+from fr_torch.registry import not_supplied
 
 
 def rot_z(deg: float) -> np.ndarray:

@@ -9,17 +9,21 @@ import numpy as np
 import pytest
 
 from fr_torch import FREstimator
-from fr_torch.runtime import workers as workers_module
 from fr_torch.core.segments import SegmentFilter
 from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.errors import FRInputError
+from fr_torch.runtime import workers as workers_module
 from fr_torch.runtime.pipeline import (
     calibrate_paths,
     calibrate_segments_sharded,
     calibrate_stream,
     iter_detections,
 )
-from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
+from fr_torch.synthetic import (
+    random_rotation,
+    render_manhattan_room,
+    synthetic_segments,
+)
 
 
 def _same(a, b):

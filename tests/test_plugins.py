@@ -17,7 +17,7 @@ import pytest
 from fr_torch.detectors.registry import available_detectors, get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import available_methods, get_calibrator
-from fr_torch.plugins.registry import (
+from fr_torch.registry import (
     NOT_SUPPLIED,
     Registry,
     entry_points,
@@ -109,7 +109,7 @@ def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
     code = textwrap.dedent("""
         from fr_torch.core.camera import rotation_from_angles
         from fr_torch.plugins.interface import ImageMeta, available_methods, get_calibrator
-        from fr_torch.plugins.registry import load_object  # finds fr_eval also in a checkout that is not installed
+        from fr_torch.registry import load_object  # finds fr_eval also in a checkout that is not installed
         from fr_torch.detectors.registry import available_detectors, get_detector
         from fr_torch.synthetic import render_manhattan_room
         assert "horizon-lines" in available_methods() and "long-lsd" in available_detectors()

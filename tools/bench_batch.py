@@ -27,11 +27,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fr_torch.batch.jobs import _run_local
 from fr_torch.batch.inputs import collect_inputs
+from fr_torch.batch.jobs import _run_local
 from fr_torch.cli.options import add_device_arguments
 from fr_torch.core.camera import rotation_from_angles
-from fr_torch.plugins.registry import load_object
+from fr_torch.registry import load_object
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.synthetic import render_manhattan_room
 

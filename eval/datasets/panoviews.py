@@ -29,10 +29,10 @@ from typing import Iterator
 
 import numpy as np
 import pandas as pd
-
-from fr_torch.core.camera import Camera, image_centre
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import cache_root
+
+from fr_torch.core.camera import Camera, image_centre
 
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
 #: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.crop_views``.

@@ -40,7 +40,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from fr_torch.core.camera import Camera, camera_record
-from fr_torch.plugins.registry import Registry
+from fr_torch.registry import Registry
 
 
 @camera_record

@@ -17,8 +17,8 @@ from fr_torch.cli.options import (
 )
 from fr_torch.errors import FRInputError
 from fr_torch.images.overlay import write_overlay
+from fr_torch.output import dumps, json_safe, output_folder, write_text_atomic
 from fr_torch.runtime.estimator import FREstimator
-from fr_torch.runtime.output import dumps, json_safe, output_folder, write_text_atomic
 from fr_torch.runtime.pipeline import calibrate_paths
 from fr_torch.runtime.workers import start_worker_server
 

@@ -3,7 +3,7 @@
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``, imported only when used (so ``fr calibrate`` starts fast); the option groups
 they share are :mod:`fr_torch.cli.options`.  The core's commands are :data:`SUBCOMMANDS`; the evaluation harness
-adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.plugins.registry`).  Errors
+adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.registry`).  Errors
 in user input print one line and exit non-zero; set ``FR_DEBUG=1`` to see tracebacks.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ import os
 import sys
 
 from fr_torch.errors import FRInputError
-from fr_torch.plugins.registry import entry_points, load_object
+from fr_torch.registry import entry_points, load_object
 
 # name -> (module, one-line help).  The module provides add_arguments(parser) and run(args).
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -26,7 +26,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 def all_subcommands(extra: dict[str, tuple[str, str]] | None = None) -> dict[str, tuple[str, str]]:
     """The core's commands, then those declared in the ``fr_torch.commands`` entry-point group
-    (value: an object ``(module, one-line help)``, see :mod:`fr_torch.plugins.registry`)."""
+    (value: an object ``(module, one-line help)``, see :mod:`fr_torch.registry`)."""
 
     commands = dict(SUBCOMMANDS)
     for name, target in entry_points("fr_torch.commands").items():

@@ -16,7 +16,7 @@ from fr_torch.core.segments import SegmentFilter
 from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.errors import FRInputError
 from fr_torch.images.convert import to_gray8
-from fr_torch.plugins.registry import Registry
+from fr_torch.registry import Registry
 
 
 class Detector(Protocol):

@@ -12,7 +12,7 @@ from fr_torch.core.camera import VERTICAL_AXIS
 from fr_torch.core.estimator import BACKGROUND_LABEL, CalibrationResult
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import encode_png, read_image
-from fr_torch.runtime.output import write_bytes
+from fr_torch.output import write_bytes
 
 # BGR colours: family of column 0 red, vertical (column 1) green, column 2 blue, background grey.
 FAMILY_COLOURS = {0: (40, 40, 230), 1: (40, 200, 40), 2: (230, 120, 30), BACKGROUND_LABEL: (150, 150, 150)}

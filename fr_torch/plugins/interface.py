@@ -4,7 +4,7 @@ A method is any object with a ``name`` and ``estimate(image, meta) -> CameraEsti
 are looked up by name (``fr``, ``fast-fr``, ``lee2009``, ...) in :data:`CALIBRATORS`, which reads
 the entry points of group ``fr_torch.calibrators`` of every installed package, or by import path
 (``"my_package.my_module:MyCalibrator"``), so a third party plugs one in without editing this
-project (see :mod:`fr_torch.plugins.registry` and ``examples/fr_plugin_example``)::
+project (see :mod:`fr_torch.registry` and ``examples/fr_plugin_example``)::
 
     fr eval --dataset yud --methods fr,my_package.my_module:MyCalibrator
 
@@ -20,7 +20,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 import numpy as np
 
 from fr_torch.core.camera import Camera, camera_record
-from fr_torch.plugins.registry import Registry
+from fr_torch.registry import Registry
 
 
 @dataclass
@@ -103,7 +103,7 @@ def available_methods() -> list[str]:
 def get_calibrator(spec: str, **kwargs) -> Calibrator:
     """Build a method from a spec: registered name or import path ``module:attribute``, with
     options in brackets passed to the factory as keyword arguments (strings): ``fr[measure=a]``,
-    ``fast-fr[detector=mcmlsd]`` (see :func:`fr_torch.plugins.registry.parse_method_spec`)."""
+    ``fast-fr[detector=mcmlsd]`` (see :func:`fr_torch.registry.parse_method_spec`)."""
     method = CALIBRATORS.create(spec, **kwargs)
     if not isinstance(method, Calibrator):
         raise ValueError(f"{spec!r} did not produce a Calibrator (needs .name and .estimate())")
