@@ -6,7 +6,10 @@ import os
 from pathlib import Path
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
+import pandas as pd
+import pyarrow as pa
 
 from fr_torch.batch.table import result_schema
 from fr_torch.errors import FRInputError
@@ -48,7 +51,6 @@ def _is_image(name: str) -> bool:
 
 def _read_manifest(path: str) -> list[dict[str, Any]]:
     """Rows of a manifest file: dicts with ``image`` plus the manifest's other columns."""
-    import pandas as pd
 
     lower = path.lower()
     if lower.endswith(".txt"):
@@ -121,7 +123,6 @@ def collect_inputs(inputs: Sequence[str]) -> list[dict[str, Any]]:
 def extra_columns(rows: Sequence[dict[str, Any]]):
     """Arrow fields of the manifest columns carried through (``focal_px`` -> ``known_focal_px``;
     a name that clashes with a result field gets the prefix ``input_``)."""
-    import pyarrow as pa
 
     names = [k for k in dict.fromkeys(k for row in rows for k in row) if k != "image"]
     if not names:
@@ -144,7 +145,6 @@ def output_column_name(name: str, reserved: set[str]) -> str:
 
 def read_remote_image(uri: str) -> np.ndarray:
     """Read and decode an image at an fsspec URI -> 8-bit BGR (H, W, 3)."""
-    import cv2
 
 
     fs, path = _fsspec_fs(uri)

@@ -46,6 +46,9 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+import pyarrow as pa
+from tqdm import tqdm
+
 from fr_torch.batch.inputs import collect_inputs, extra_columns
 from fr_torch.batch.ray import run_ray
 from fr_torch.batch.table import PartWriter, records_to_table
@@ -71,8 +74,6 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
     """
-    import pyarrow as pa
-    from tqdm import tqdm
 
     device = options_device(options)
     # Local: this machine runs the search.  Ray: the actors resolve the device on their nodes.
@@ -151,7 +152,6 @@ def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: 
         for begin in range(0, len(rows), batch_size):
             yield worker.calibrate_rows(rows[begin:begin + batch_size])
         return
-    import pyarrow as pa
 
 
     rows = list(rows)

@@ -10,6 +10,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from fr_torch.core.reliability import CUE_NAMES, TARGETS
 
@@ -26,7 +28,6 @@ def result_schema():
 
     Units as in :class:`fr_torch.core.estimator.CalibrationResult`: pixels, degrees, seconds.
     """
-    import pyarrow as pa
 
     f64 = pa.float64()
     # Variable-size lists, not fixed-size ones: a failed image stores null there, and pyarrow
@@ -82,7 +83,6 @@ def _clean_nested(value, shape: tuple[int, ...]):
 def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]], extras=()):
     """JSON records (``CalibrationResult.to_json``) + their input rows -> Arrow table of the output
     schema plus the carried manifest columns ``extras`` (from :func:`extra_columns`)."""
-    import pyarrow as pa
 
     schema = result_schema()
     clean = []
@@ -122,7 +122,6 @@ class PartWriter:
 
     def done_images(self) -> set[str]:
         """``image`` values of the rows already written (resume)."""
-        import pyarrow.parquet as pq
 
         done: set[str] = set()
         for part in sorted(self.out.glob("part-*.parquet")):
@@ -133,8 +132,6 @@ class PartWriter:
         return done
 
     def write(self, table) -> Path:
-        import pyarrow.parquet as pq
-
         self.count += 1
         final = self.out / f"part-{self.run_id}-{self.count:06d}.parquet"
         temp = self.out / f".{final.name}.tmp"

@@ -4,7 +4,9 @@ from __future__ import annotations
 import os
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
+import torch
 
 from fr_torch.batch.inputs import has_scheme, read_remote_image
 from fr_torch.batch.table import _finite_or_none, records_to_table
@@ -29,10 +31,7 @@ class BatchWorker:
     """
 
     def __init__(self, options: dict[str, Any], extras=(), threads: int | None = None, crash: str | None = None):
-        import torch
-
         if threads:  # torch and OpenCV: oversubscribed threads stall on a loaded machine
-            import cv2
 
             torch.set_num_threads(int(threads))
             cv2.setNumThreads(int(threads))

@@ -7,6 +7,9 @@ import sys
 from collections import deque
 from pathlib import Path
 
+import pandas as pd
+from tqdm import tqdm
+
 from fr_torch.cli.options import (
     add_estimator_arguments,
     device_policy,
@@ -54,9 +57,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
-
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
     if args.workers < 0:
@@ -96,7 +96,6 @@ def run(args: argparse.Namespace) -> int:
     if not rows:
         raise FRInputError(f"{args.source}: no frame could be read (all skipped)")
 
-    import pandas as pd
 
     pd.DataFrame(rows).to_csv(out / "frames.csv", index=False)
     final = tracker.history[-1] if tracker.history else None

@@ -101,7 +101,6 @@ def positive_number(value, name: str) -> float:
 
 def resolve_device(device) -> "torch.device":
     """A usable torch device from a name ('cpu', 'cuda', 'cuda:1') or a torch.device; else FRInputError."""
-    import torch
 
     try:
         resolved = torch.device(device)

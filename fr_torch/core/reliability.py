@@ -109,6 +109,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+from sklearn.decomposition import PCA
+from sklearn.model_selection import GroupKFold, KFold
 
 from fr_torch.resources import MODES, config_dir
 
@@ -240,8 +242,6 @@ class ReliabilityModel:
 
         ``groups`` (n,): images of one group (panorama, scene) stay in one fold.
         """
-        from sklearn.decomposition import PCA
-        from sklearn.model_selection import GroupKFold, KFold
 
         cues = np.asarray(cues, np.float64)
         errors = np.asarray(errors, np.float64)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import torch
 
 from fr_torch.core.checks import resolve_device
@@ -94,7 +95,6 @@ class DevicePolicy:
         """Cap torch's intra-op threads and OpenCV's threads at :attr:`cores`: in a container both
         count the host's cores, not the CPUs the quota grants, and an OpenMP region with more
         threads than CPUs stalls on every op."""
-        import cv2
 
         if torch.get_num_threads() > self.cores:
             torch.set_num_threads(self.cores)

@@ -40,7 +40,9 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Iterable, Iterator, NamedTuple, Sequence
 
+import cv2
 import numpy as np
+import torch
 
 from fr_torch.core.checks import per_image
 from fr_torch.core.estimator import CalibrationResult
@@ -94,9 +96,6 @@ _WORKER: dict = {}
 
 
 def _init_worker(detector_spec, segment_filter, working_long_side=WORKING_LONG_SIDE) -> None:
-    import cv2
-    import torch
-
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     _WORKER["detector"] = get_detector(detector_spec) if detector_spec is not None else None
@@ -408,7 +407,6 @@ def _calibrate_segment_items(estimator, chunk) -> list:
 
 def _shard_task(estimator, chunk):
     """A shard in a caller's pool (its workers have no estimator of their own)."""
-    import torch
 
     torch.set_num_threads(1)
     return _calibrate_segment_items(estimator, chunk)

@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
+import cv2
 import numpy as np
 
 from fr_torch.errors import FRInputError
@@ -36,7 +37,6 @@ IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".p
 
 def iter_frames(source: str | Path, every: int = 1, max_frames: int | None = None) -> Iterator[tuple[int, str, np.ndarray]]:
     """(frame index, name, BGR/grey image) from a folder of images (sorted names) or a video file."""
-    import cv2
 
 
     source = Path(source)
