@@ -64,7 +64,7 @@ from fr_eval.metrics import (NA_PREFIX, estimate_quantities, failure_reason, ima
 from fr_eval.paths import REPO
 from fr_eval.plots import distributions_figure, histogram_figure, safe_name
 from fr_eval.tables import deviation_measure_summaries, parse_method_spec, with_option, write_tables
-from fr_torch.plugins.interface import CameraEstimate, ImageMeta, available_methods, get_calibrator
+from fr_torch.plugins.interface import CALIBRATORS, CameraEstimate, ImageMeta, available_methods, get_calibrator
 from fr_torch.plugins.registry import split_method_list
 from fr_torch.cli.options import add_device_arguments, add_fov_range_argument
 from fr_torch.core.fov import FovRange
@@ -171,7 +171,8 @@ def range_caption(methods: Sequence[str], fov_range: tuple[float, float]) -> str
     searched = [m for m in methods if method_fov_range(m, fov_range) is not None]
     own = [m for m in methods if m not in searched and parse_method_spec(_strip_labelled(m)[0])[0]
            in FOCAL_SEARCH_METHODS]
-    text = (f"FOV search range [{fov_range[0]:g}°, {fov_range[1]:g}°] (FOV across the image's long side) for "
+    low, high = fov_range
+    text = (f"FOV search range [{low:g}°, {high:g}°] (FOV across the image's long side) for "
             f"{', '.join(searched) if searched else 'no method'}")
     if own:
         text += "; rows with [range=...] use their own (paper = [50°, 130°])"
@@ -197,21 +198,16 @@ def method_fov_range(spec: str, fov_range: FovRange | None) -> FovRange | None:
 
 
 def make_calibrator(spec: str, device: str, fov_range: FovRange | None = None):
-    """Build a method; passes ``device`` to factories that accept it, and the table's FOV search
-    range (``range``) to the focal-searching ones (:func:`method_fov_range`)."""
-    extra = {}
+    """Build a method; offers ``device`` (and, to the focal-searching methods, the table's FOV
+    search range as ``range``, :func:`method_fov_range`) to a factory that takes them
+    (``docs/plugins-options.md``)."""
+    offered: dict[str, Any] = {"device": device}
     method_range = method_fov_range(spec, fov_range)
     if method_range is not None:
-        extra["range"] = method_range
-    try:
-        return get_calibrator(spec, device=device, **extra)
-    except TypeError as exc:
-        if "device" not in str(exc):
-            raise
-        if device not in ("cpu", None):
-            print(f"warning: method {spec!r} takes no device argument; it runs on its own default",
-                  file=sys.stderr)
-        return get_calibrator(spec, **extra)
+        offered["range"] = method_range
+    if device not in ("cpu", None) and not CALIBRATORS.takes(spec, "device"):
+        print(f"warning: method {spec!r} takes no device argument; it runs on its own default", file=sys.stderr)
+    return get_calibrator(spec, offered=offered)
 
 
 def build_meta(sample: Any, pp_mode: str, labelled: bool, known_focal: bool, dataset: str, device: str) -> ImageMeta:
