@@ -254,8 +254,10 @@ class CTRLC(TimedCalibrator):
 
 
 
-def make_ctrlc_retrained(onnx_path: str | os.PathLike | None = None, **kwargs) -> CTRLC:
+def make_ctrlc_retrained(onnx_path: str | os.PathLike | None = None, providers=None, seed: int = 0,
+                         num_lines: int = NUM_LINES, min_line_length: float = MIN_LINE_LENGTH) -> CTRLC:
     """The paper reports CTRL-C with two trainings: the published checkpoint (``ctrlc``,
     ``$FR_CTRLC_ONNX``) and a second training; this row takes the second checkpoint, exported the
     same way, from ``onnx_path`` or ``$FR_CTRLC_RETRAINED_ONNX``."""
-    return CTRLC(onnx_path, name="ctrlc-retrained", env_var="FR_CTRLC_RETRAINED_ONNX", **kwargs)
+    return CTRLC(onnx_path, providers=providers, seed=seed, num_lines=num_lines, min_line_length=min_line_length,
+                 name="ctrlc-retrained", env_var="FR_CTRLC_RETRAINED_ONNX")

@@ -480,6 +480,15 @@ def _plot_focal_cues(train: pd.DataFrame, png: Path, mode: str) -> None:
 
 # ---------------------------------------------------------------------------------- CLI
 
+def trained_for(mode: str) -> dict[str, str]:
+    """The setting the records of :func:`gather` come from (the estimator's defaults: the default
+    likelihood config and its deviation measure, LSD), stored as the model's ``meta["trained_for"]``
+    (:attr:`fr_torch.core.reliability.ReliabilityModel.trained_for`)."""
+    from fr_torch.core.likelihood import LikelihoodParams
+
+    return {"measure": LikelihoodParams.from_config(mode=mode).measure, "detector": "lsd", "likelihood": "default"}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", default="zind-fr",
                         help="comma-separated registered datasets to train on (zind-fr, yud, ...); '' for none")
@@ -526,6 +535,7 @@ def run(args: argparse.Namespace) -> int:
     command = " ".join(["fr train-reliability"] + sys.argv[2:])
     model = fit_model(train, cue_names, k_grid=k_grid, seed=args.seed,
                       meta={"mode": args.method, "training_data": sizes, "split": args.split,
+                            "trained_for": trained_for(args.method),
                             "failed_or_dropped": int(len(frame) - len(train)), "command": command})
     out = args.out or config_dir() / f"reliability_{args.method}.npz"
     model.save(out)

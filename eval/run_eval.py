@@ -80,6 +80,7 @@ from fr_torch.cli.options import add_device_arguments, add_fov_range_argument
 from fr_torch.core.fov import FovRange
 from fr_torch.images.io import load_image
 from fr_torch.plugins.interface import (
+    CALIBRATORS,
     CameraEstimate,
     ImageMeta,
     available_methods,
@@ -214,21 +215,16 @@ def method_fov_range(spec: str, fov_range: FovRange | None) -> FovRange | None:
 
 
 def make_calibrator(spec: str, device: str, fov_range: FovRange | None = None):
-    """Build a method; passes ``device`` to factories that accept it, and the table's FOV search
-    range (``range``) to the focal-searching ones (:func:`method_fov_range`)."""
-    extra = {}
+    """Build a method; offers ``device`` (and, to the focal-searching methods, the table's FOV
+    search range as ``range``, :func:`method_fov_range`) to a factory that takes them
+    (``docs/plugins-options.md``)."""
+    offered: dict[str, Any] = {"device": device}
     method_range = method_fov_range(spec, fov_range)
     if method_range is not None:
-        extra["range"] = method_range
-    try:
-        return get_calibrator(spec, device=device, **extra)
-    except TypeError as exc:
-        if "device" not in str(exc):
-            raise
-        if device not in ("cpu", None):
-            print(f"warning: method {spec!r} takes no device argument; it runs on its own default",
-                  file=sys.stderr)
-        return get_calibrator(spec, **extra)
+        offered["range"] = method_range
+    if device not in ("cpu", None) and not CALIBRATORS.takes(spec, "device"):
+        print(f"warning: method {spec!r} takes no device argument; it runs on its own default", file=sys.stderr)
+    return get_calibrator(spec, offered=offered)
 
 
 def build_meta(sample: Any, pp_mode: str, labelled: bool, known_focal: bool, dataset: str, device: str) -> ImageMeta:

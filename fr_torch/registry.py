@@ -9,7 +9,11 @@ name is found, in this order, among
    ...), declared by any installed distribution -- this project's own methods included (see
    ``[project.entry-points.*]`` in ``pyproject.toml``) -- and loaded only when first used, so a
    broken or slow optional plug-in costs nothing until it is asked for;
-3. an import path ``"package.module:attribute"`` (no installation needed).
+3. an import path ``"package.module:attribute"`` (no installation needed).  Such a path is called
+   only when what it names declares itself a plug-in of the registry's kind (:meth:`Registry.factory`):
+   a class implementing the kind's protocol (a calibrator class has ``estimate(image, meta)``), a
+   factory registered in this registry or marked with :func:`plugin`, or an entry point's target;
+   anything else (``subprocess:getoutput``) is a one-line error and nothing is called.
 
 A third-party package therefore adds a method without editing this project::
 
@@ -23,6 +27,9 @@ A third-party package therefore adds a method without editing this project::
 **Method specs.**  ``name[key=value,key=value]`` selects a registered factory and passes the options
 as keyword arguments (strings): ``fr[measure=a]``, ``fast-fr[detector=mcmlsd]``.
 :func:`parse_method_spec` and :func:`format_method_spec` are the only parser / printer of it.
+An option the factory's signature does not take is a one-line error; options a caller merely
+offers (``fr eval``'s ``device``) go only to factories that take them (:meth:`Registry.create`;
+``docs/plugins-options.md``).
 
 **Not supplied.**  A method whose weights or predictions the user did not supply fails every image
 with a reason starting with :data:`NA_PREFIX`; :data:`NOT_SUPPLIED` is the marker the tables show and
@@ -33,6 +40,7 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import importlib.util
+import inspect
 import re
 from typing import Any, Callable, Generic, Iterable, TypeVar
 
@@ -135,6 +143,37 @@ def load_object(path: str) -> Any:
     return obj
 
 
+# --------------------------------------------------------------------------- declarations
+
+PLUGIN_MARK = "__fr_plugin__"  # attribute holding the kinds a class or factory declared (see plugin)
+
+
+def plugin(kind: str) -> Callable[[T], T]:
+    """Decorator declaring a class or factory a plug-in of ``kind`` (``"method"``, ``"detector"``,
+    ``"dataset"``), so that it may be named by import path (``fr eval --methods my_mod:make_mine``)::
+
+        @plugin("method")
+        def make_mine(**options) -> MyCalibrator: ...
+    """
+    def mark(obj: T) -> T:
+        setattr(obj, PLUGIN_MARK, (*getattr(obj, PLUGIN_MARK, ()), kind))
+        return obj
+
+    return mark
+
+
+def factory_options(factory: Callable) -> tuple[frozenset[str], bool] | None:
+    """The keyword options ``factory`` takes: (names, whether it takes ``**options``), or None when
+    its signature cannot be read (a builtin)."""
+    try:
+        signature = inspect.signature(factory)
+    except (TypeError, ValueError):
+        return None
+    kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    names = frozenset(p.name for p in signature.parameters.values() if p.kind in kinds)
+    return names, any(p.kind == inspect.Parameter.VAR_KEYWORD for p in signature.parameters.values())
+
+
 # --------------------------------------------------------------------------- registry
 
 class Registry(Generic[T]):
@@ -144,14 +183,20 @@ class Registry(Generic[T]):
     ``group``: the entry-point group read lazily (None: none).
     ``modules``: modules imported on first lookup that register factories themselves (kept for
     code that registers several names at once; a module that is not installed is skipped).
+    ``implements``: whether a class implements this kind's protocol (a class named by import path
+    that does is a plug-in without further declaration); ``protocol``: that protocol in words, for
+    messages.
     """
 
     def __init__(self, kind: str, group: str | None = None, modules: Iterable[str] = (),
-                 error: type[Exception] = ValueError):
+                 error: type[Exception] = ValueError, implements: Callable[[type], bool] | None = None,
+                 protocol: str = ""):
         self.kind = kind
         self.group = group
         self.modules = tuple(modules)
         self.error = error
+        self.implements = implements
+        self.protocol = protocol
         self._factories: dict[str, Callable[..., T]] = {}
         self._modules_loaded = False
 
@@ -205,14 +250,61 @@ class Registry(Generic[T]):
             return factory
         if ":" in name:
             try:
-                return load_object(name)
-            except (ImportError, AttributeError) as exc:
-                raise self.error(f"cannot import {self.kind} {name!r}: {exc}") from None
+                obj = load_object(name)
+            except Exception as exc:  # noqa: BLE001 - a missing or broken module is a one-line error
+                raise self.error(f"cannot import {self.kind} {name!r}: {type(exc).__name__}: {exc}") from None
+            if not self.declared(name, obj):
+                ways = (f"{self.protocol}, " if self.protocol else "") + \
+                    f"a factory registered as a {self.kind} or marked @fr_torch.registry.plugin({self.kind!r})"
+                raise self.error(f"{name!r} is not a {self.kind} plug-in (an import path must name {ways}); "
+                                 "nothing was called")
+            return obj
         raise self.error(f"unknown {self.kind} {name!r}; available: {', '.join(self.names())} "
                          "(or give an import path module:attribute)")
 
-    def create(self, spec: str, **kwargs) -> T:
-        """Build from a method spec ``name[key=value,...]``; ``kwargs`` override the spec's options."""
+    def declared(self, path: str, obj: Any) -> bool:
+        """Whether ``obj``, found at import path ``path``, declared itself a plug-in of this kind: a
+        class implementing the protocol (:attr:`implements`), a factory marked with :func:`plugin`
+        or registered here (importing its module ran the registration), or an entry point's target."""
+        try:
+            if self.kind in getattr(obj, PLUGIN_MARK, ()):
+                return True
+        except Exception:  # noqa: BLE001 - an object whose attributes misbehave declares nothing
+            return False
+        if any(obj is factory for factory in self._factories.values()):
+            return True
+        if "".join(path.split()) in {"".join(v.split()) for v in self._entry_points().values()}:
+            return True
+        return isinstance(obj, type) and self.implements is not None and bool(self.implements(obj))
+
+    def create(self, spec: str, offered: dict[str, Any] | None = None, **kwargs) -> T:
+        """Build from a method spec ``name[key=value,...]``.
+
+        The spec's options and ``kwargs`` (which override them) are passed to the factory; one its
+        signature does not take (by name or ``**options``) is an error naming it.  ``offered``:
+        options passed only to a factory that takes them and only when the spec does not set them
+        (a harness's ``device``; see ``docs/plugins-options.md``)."""
         name, options = parse_method_spec(spec)
-        return self.factory(name)(**{**options, **kwargs})
+        factory = self.factory(name)
+        given = {**options, **kwargs}
+        takes = factory_options(factory)
+        if takes is not None:
+            names, any_option = takes
+            unknown = [key for key in given if key not in names and not any_option]
+            if unknown:
+                raise self.error(f"{self.kind} {name!r} takes no option {', '.join(map(repr, unknown))} "
+                                 f"(it takes: {', '.join(sorted(names)) or 'none'})")
+            given.update({key: value for key, value in (offered or {}).items()
+                          if key not in given and (key in names or any_option)})
+            if not any_option:
+                return factory(**given)
+        try:  # a factory that passes **options on: what it cannot take surfaces as a TypeError
+            return factory(**given)
+        except TypeError as exc:
+            raise self.error(f"{self.kind} {spec!r}: {exc}") from None
+
+    def takes(self, spec: str, option: str) -> bool:
+        """Whether the factory of ``spec`` takes keyword ``option`` (by name or ``**options``)."""
+        takes = factory_options(self.factory(parse_method_spec(spec)[0]))
+        return takes is not None and (option in takes[0] or takes[1])
 

@@ -17,7 +17,7 @@ from fr_eval.datasets.registry import CalibrationSample
 
 from fr_torch.core.camera import Camera, rotation_from_angles
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta
-from fr_torch.registry import not_supplied
+from fr_torch.registry import not_supplied, plugin
 from fr_torch.resources import config_dir
 from tests.conftest import require_dataset
 
@@ -26,6 +26,7 @@ from tests.conftest import require_dataset
 FAKE = {}
 
 
+@plugin("dataset")
 def load_fake(root=None, split="test", **_):
     """Six synthetic samples (no image files) with known cameras."""
     samples = []
@@ -80,6 +81,7 @@ class RotationOnly(OracleCalibrator):
         return est
 
 
+@plugin("method")
 def make_flaky(**kwargs):
     return OracleCalibrator(fail_on={"fake_2", "fake_4"}, **kwargs)
 
@@ -205,6 +207,7 @@ def test_eval_on_two_yud_images(data_root, tmp_path):
 FOVS = (60.0, 90.0, 120.0)
 
 
+@plugin("dataset")
 def load_fake_fov(root=None, split="test", **_):
     """Nine samples with GT horizontal FOV 60 / 90 / 120 (no hand-labelled segments); image files are
     named but do not exist (the tests patch ``run_eval.load_image``)."""

@@ -57,7 +57,8 @@ def test_registry_lookup_order_and_errors():
     reg.register("a", lambda **kw: ("a", kw))
     assert reg.names() == ["a"] and "a" in reg
     assert reg.create("a[k=v]", extra=1) == ("a", {"k": "v", "extra": 1})
-    assert reg.factory("os.path:join") is os.path.join  # import path
+    with pytest.raises(ValueError, match="is not a thing plug-in"):  # an import path must declare itself
+        reg.factory("os.path:join")
     with pytest.raises(ValueError, match="unknown thing 'b'; available: a"):
         reg.factory("b")
     with pytest.raises(ValueError, match="cannot import"):
@@ -78,7 +79,7 @@ def test_builtins_come_from_entry_points():
 
 def test_registries_name_no_harness():
     """The core's registries never import or name eval/ or baselines/ (they read entry points)."""
-    for name in ("plugins/registry.py", "plugins/interface.py", "core/segments.py", "detectors/registry.py"):
+    for name in ("registry.py", "plugins/interface.py", "core/segments.py", "detectors/registry.py"):
         text = (REPO / "fr_torch" / name).read_text()
         assert "baselines" not in text and "eval." not in text, name
 
@@ -140,7 +141,9 @@ def test_installed_plugin_in_fr_eval(installed_plugin, tmp_path):
         from pathlib import Path
         from fr_eval.datasets.registry import CalibrationSample
         from fr_torch.core.camera import Camera, rotation_from_angles
+        from fr_torch.registry import plugin
 
+        @plugin("dataset")
         def load(root=None, split="test", **kwargs):
             return [CalibrationSample(name=f"room{{i}}.png", image_path=Path({str(tmp_path)!r}) / f"room{{i}}.png",
                                       width=640, height=480,

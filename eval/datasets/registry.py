@@ -29,7 +29,9 @@ Register a loader with the decorator::
 
 and add its module to ``_BUILTIN_MODULES`` below (modules that are missing are skipped), declare it
 as an entry point of group ``fr_torch.datasets`` in another package, or name it by import path on
-the command line: ``fr eval --dataset my_pkg.my_mod:load_my_data``.
+the command line: ``fr eval --dataset my_pkg.my_mod:load_my_data``.  A loader named by import path
+must be registered (the decorator above runs when its module is imported) or marked
+``@fr_torch.registry.plugin("dataset")``; any other callable is refused, never called.
 """
 from __future__ import annotations
 

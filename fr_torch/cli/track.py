@@ -68,8 +68,12 @@ def run(args: argparse.Namespace) -> int:
     track_options(args)
     estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
     mode = estimator.mode
+    scope_gap = estimator.reliability_scope_gap(detected=True) if estimator.reliability is not None else None
+    if scope_gap is not None:  # its "not reliable" would reject every frame: track without it
+        estimator = FREstimator(**estimator_kwargs(args), reliability=None)
+        print(f"fr track: {scope_gap}: all reliable frames weigh the same", file=sys.stderr)
     model = estimator.reliability
-    if model is None and not args.no_reliability:
+    if model is None and not args.no_reliability and scope_gap is None:
         print(f"fr track: no reliability model for {mode}: all reliable frames weigh the same", file=sys.stderr)
     tracker = OnlineCalibrator(memory=args.memory, change_k=args.change_k, patience=args.patience)
     out = args.out or Path(f"track_{args.source.stem or args.source.name}")

@@ -228,6 +228,53 @@ def check_result(result, config: SearchConfig, known_focal: bool = False,
         result.reason = "; ".join(r for r in (result.reason, *reasons) if r)
 
 
+# The record's fields that make up the estimate (a non-finite one fails it) and its side fields (a
+# non-finite one is removed): see :func:`finite_record`.
+ESTIMATE_FIELDS = ("focal_px", "hfov_deg", "principal_point", "rotation", "pan_deg", "tilt_deg", "roll_deg",
+                   "pitch_deg", "vanishing_points", "log_likelihood")
+
+
+def _all_finite(value) -> bool:
+    if value is None:
+        return True
+    try:
+        return bool(np.isfinite(np.asarray(value, dtype=np.float64)).all())
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
+def finite_record(result) -> None:
+    """The last check of every result (in place; ``result`` has the fields of
+    :class:`fr_torch.core.estimator.CalibrationResult`): afterwards no field holds NaN or inf.
+
+    * A non-finite value in the estimate (:data:`ESTIMATE_FIELDS`) fails it as :func:`check_result`
+      does (``ok = False``, camera and objective cleared, reason :data:`NON_FINITE_REASON`).
+    * A non-finite ``manhattan_fraction`` becomes None, a non-finite cue is removed from ``cues``,
+      a ``predicted_error`` with a non-finite value becomes None; an estimate that had one is not
+      reliable, and ``reason`` names what was removed.  Non-finite ``runtime_s`` entries are removed.
+    """
+    if result.ok and not all(_all_finite(getattr(result, key)) for key in ESTIMATE_FIELDS):
+        result.camera, result.log_likelihood = None, None
+        result.ok, result.reliable, result.reason = False, False, NON_FINITE_REASON
+    if not _all_finite(result.log_likelihood):
+        result.log_likelihood = None
+    removed = []
+    if not _all_finite(result.manhattan_fraction):
+        result.manhattan_fraction = None
+        removed.append("manhattan_fraction")
+    for key in [key for key, value in result.cues.items() if not _all_finite(value)]:
+        del result.cues[key]
+        removed.append(f"cue {key}")
+    if result.predicted_error is not None and not all(_all_finite(v) for v in result.predicted_error.values()):
+        result.predicted_error = None
+        removed.append("predicted_error")
+    result.runtime_s = {key: value for key, value in result.runtime_s.items() if _all_finite(value)}
+    if removed and result.ok:
+        message = f"non-finite {', '.join(removed)} removed from the record"
+        result.reliable = False
+        result.reason = f"{result.reason}; {message}" if result.reason else message
+
+
 def focal_conditioning(rotation: torch.Tensor) -> torch.Tensor:
     """How well a Manhattan frame's vanishing points constrain the focal length (a reliability cue).
 

@@ -24,9 +24,24 @@ import numpy as np
 import torch
 
 from fr_torch.core.camera import VERTICAL_AXIS, Camera, camera_record, image_centre
-from fr_torch.core.checks import check_camera, per_image, resolve_device
+from fr_torch.core.checks import (
+    MAX_REACH_IMAGE_SIZES,
+    check_camera,
+    check_image_size,
+    image_names,
+    per_image,
+    resolve_device,
+    segment_sets,
+)
+from fr_torch.core.checks import image_sizes as checked_image_sizes
 from fr_torch.core.config import Mode, SearchConfig
-from fr_torch.core.cues import check_result, focal_cues, image_cues, sanity_check
+from fr_torch.core.cues import (
+    check_result,
+    finite_record,
+    focal_cues,
+    image_cues,
+    sanity_check,
+)
 from fr_torch.core.likelihood import (
     LikelihoodParams,
     MixtureLikelihood,
@@ -43,7 +58,12 @@ from fr_torch.core.search import (
     subdivide_starts,
     sweep_focal,
 )
-from fr_torch.core.segments import SegmentBatch, SegmentFilter, validate_segments
+from fr_torch.core.segments import (
+    SegmentBatch,
+    SegmentFilter,
+    drop_absurd_segments,
+    validate_segments,
+)
 from fr_torch.errors import FRInputError
 
 BACKGROUND_LABEL = 3
@@ -61,6 +81,22 @@ class _Image:
     focal_px: float | None = None  # known focal length, pixels
     principal_point: tuple[float, float] | None = None  # None: image centre
     result: CalibrationResult | None = None
+    dropped: int = 0  # segments dropped as absurd (drop_absurd_segments)
+
+
+def absurd_segments_note(dropped: int) -> str:
+    """The reason part of a result that lost ``dropped`` segments to :func:`drop_absurd_segments`."""
+    return (f"{dropped} segment(s) with non-finite coordinates or beyond {MAX_REACH_IMAGE_SIZES} image sizes "
+            "from the image dropped")
+
+
+def keep_sane_segments(segments: np.ndarray, size: tuple, name: str) -> tuple[np.ndarray, int]:
+    """:func:`drop_absurd_segments`, and an FRInputError for ``name`` when it drops every segment."""
+    kept, dropped = drop_absurd_segments(segments, size)
+    if dropped and not len(kept):
+        raise FRInputError(f"{name}: all {dropped} segments have non-finite coordinates or lie beyond "
+                           f"{MAX_REACH_IMAGE_SIZES} image sizes from the image: cannot calibrate")
+    return kept, dropped
 
 
 SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device memory for any batch)
@@ -153,6 +189,9 @@ class SegmentEstimator:
         self.search = (search_config or SearchConfig.from_config()).resolve(self.mode)
         self.iterations = self.search.refine_iterations
         params = likelihood_params or LikelihoodParams.from_config(measure, likelihood, mode=self.mode)
+        # the likelihood as given (the reliability model's scope is checked against it)
+        self.likelihood_params = params
+        self.likelihood_name = "custom parameters" if likelihood_params is not None else str(likelihood or "default")
         self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.fov_range),
                                             compiled=self.search.compile_search)
         self.device = resolve_device(device)
@@ -180,26 +219,38 @@ class SegmentEstimator:
                            apply_filter: bool = True) -> list[CalibrationResult]:
         """Calibrate from user-supplied segments: one (N_i, 4) array [x1, y1, x2, y2] per image.
 
-        ``image_sizes``: (width, height) per image, pixels.  Segments are filtered like detected
-        ones unless ``apply_filter`` is False.
+        ``segments``: a sequence (list, tuple, (B, N, 4) array or tensor) of one (N_i, 4) array,
+        nested list or tensor per image; counts may differ.  ``image_sizes``: one (width, height)
+        pair of numbers per image, pixels.  ``names``: one per image (default ``image0``, ...).
+        ``focal_px`` / ``principal_point``: None, one value for all images or one per image
+        (:func:`fr_torch.core.checks.per_image`).  An argument of the wrong form or length is an
+        FRInputError naming it; a bad value of one image (its segments, size, focal length or
+        principal point) fails only that image (``ok=False`` and the reason).  Rows with non-finite
+        coordinates fail their image; rows beyond :data:`~fr_torch.core.checks.MAX_REACH_IMAGE_SIZES`
+        image sizes from the image are dropped (the result is then not reliable and its reason
+        says how many).  Segments are filtered like detected ones unless ``apply_filter`` is False.
         """
-        if len(segments) != len(image_sizes):
-            raise FRInputError(f"got {len(segments)} segment sets but {len(image_sizes)} image sizes")
-        names = list(names) if names is not None else [f"image{i}" for i in range(len(segments))]
-        focal_list = per_image(focal_px, len(segments), "focal_px")
-        pp_list = per_image(principal_point, len(segments), "principal_point", width=2)
+        segments = segment_sets(segments)
+        count = len(segments)
+        sizes = checked_image_sizes(image_sizes, count)
+        names = image_names(names, count, [f"image{i}" for i in range(count)])
+        focal_list = per_image(focal_px, count, "focal_px")
+        pp_list = per_image(principal_point, count, "principal_point", width=2)
         items = []
         for i, seg in enumerate(segments):
-            size = tuple(image_sizes[i])
+            size = sizes[i]
             try:
-                if len(size) != 2 or not all(np.isfinite(size)) or min(size) <= 0:
-                    raise FRInputError(f"{names[i]}: image size must be (width, height) > 0, got {size}")
+                check_image_size(size, names[i])
+            except FRInputError as exc:
+                items.append(_Image(names[i], (0, 0), np.zeros((0, 4)), error=str(exc)))
+                continue
+            try:
                 checked = validate_segments(seg, f"{names[i]} segments")
                 check_camera(focal_list[i], pp_list[i], size, names[i])
-                items.append(_Image(names[i], size, checked))
+                kept, dropped = keep_sane_segments(checked, size, names[i])
+                items.append(_Image(names[i], size, kept, dropped=dropped))
             except FRInputError as exc:
-                shown = size if len(size) == 2 and all(np.isfinite(size)) else (0, 0)
-                items.append(_Image(names[i], shown, np.zeros((0, 4)), error=str(exc)))
+                items.append(_Image(names[i], size, np.zeros((0, 4)), error=str(exc)))
         if apply_filter:  # the whole batch in one pass
             valid = [item for item in items if item.error is None]
             for item, kept in zip(valid, self.segment_filter.many([v.segments for v in valid],
@@ -209,10 +260,13 @@ class SegmentEstimator:
 
     # ------------------------------------------------------------------ internals
 
-    def _calibrate(self, items: list[_Image], focal_list: list, pp_list: list) -> list[CalibrationResult]:
+    def _calibrate(self, items: list[_Image], focal_list: list, pp_list: list,
+                   detected: bool = False) -> list[CalibrationResult]:
         """Search ``items`` (their sizes and segments in working pixels); ``focal_list`` /
         ``pp_list``: one focal length / principal point (or None) per item, in working pixels,
-        already checked by the public entry that built the items (in the user's pixels)."""
+        already checked by the public entry that built the items (in the user's pixels).
+        ``detected``: the segments come from this estimator's detector (the reliability model's
+        scope then includes it, :meth:`reliability_scope_gap`)."""
         for item, f, pp in zip(items, focal_list, pp_list):
             item.focal_px, item.principal_point = f, pp
             r = item.result = CalibrationResult(image=item.name, width=int(item.size[0]), height=int(item.size[1]))
@@ -234,10 +288,35 @@ class SegmentEstimator:
             if item.detect_s is not None:
                 item.result.runtime_s["detect"] = item.detect_s
                 item.result.runtime_s["total"] = item.result.runtime_s.get("total", 0.0) + item.detect_s
-        if self.reliability is not None:  # the last stage: predicted errors, reliable above thresholds
-            self.reliability.annotate_many(results, mode=self.mode,
-                                           focal_known=[item.focal_px is not None for item in items])
+        for item in items:
+            if item.dropped and item.result.ok:
+                item.result.reliable = False
+                item.result.reason = "; ".join(r for r in (item.result.reason, absurd_segments_note(item.dropped)) if r)
+        if self.reliability is not None:  # predicted errors, reliable above thresholds
+            scope_gap = self.reliability_scope_gap(detected)
+            if scope_gap is None:
+                self.reliability.annotate_many(results, mode=self.mode,
+                                               focal_known=[item.focal_px is not None for item in items])
+            else:  # the model knows nothing of this setting: no prediction, not reliable
+                for result in results:
+                    if result.ok:
+                        result.predicted_error, result.reliable = None, False
+                        result.reason = "; ".join(r for r in (result.reason, scope_gap) if r)
+        for result in results:  # the last stage: no NaN / inf in any field
+            finite_record(result)
         return results
+
+    def reliability_scope_gap(self, detected: bool) -> str | None:
+        """Why the reliability model does not apply to this estimator's results, or None when it
+        does: it was trained on another deviation measure or likelihood
+        (:meth:`fr_torch.core.reliability.ReliabilityModel.scope_gap`), or -- for segments from
+        this estimator's detector (``detected``), not the caller's -- on another detector."""
+        scope_gap = getattr(self.reliability, "scope_gap", None)
+        if scope_gap is None:  # a model object without a declared scope
+            return None
+        detector = getattr(self, "detector", None) if detected else None
+        detector_name = None if detector is None else str(getattr(detector, "name", type(detector).__name__))
+        return scope_gap(self.likelihood_params, self.likelihood_name, detector_name, mode=self.mode)
 
     def _search_group(self, group: list[_Image], known_focal: bool):
         start_all = time.perf_counter()

@@ -98,9 +98,17 @@ which fills ``result.predicted_error`` and clears ``result.reliable`` when a pre
 its threshold.  An image whose focal length was given (``focal_px``) gets a predicted focal error
 of 0: the models were trained on estimated focal lengths, and a given one is not the estimator's
 error.
+
+Scope: a model predicts only for the setting it was trained on, ``meta["trained_for"]`` (deviation
+measure, line detector, likelihood config; :data:`DEFAULT_TRAINED_FOR` for a file that does not say,
+the shipped models' setting).  An estimator with another measure, likelihood or detector gets no
+predicted errors (``predicted_error`` None) and ``reliable = False`` with the reason
+(:meth:`ReliabilityModel.scope_gap`): with measure a, whose focal MAE on YUD is 67 %, the measure-b
+model would predict 8-9 %.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import sys
@@ -112,6 +120,7 @@ import numpy as np
 from sklearn.decomposition import PCA
 from sklearn.model_selection import GroupKFold, KFold
 
+from fr_torch.core.likelihood import LikelihoodParams
 from fr_torch.resources import MODES, config_dir
 
 _config_dir = config_dir  # load_default has an argument of that name
@@ -141,6 +150,9 @@ _CUE_TRANSFORMS = {
 }
 
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
+#: The setting a model was trained on (``meta["trained_for"]``), where its file does not say: the
+#: shipped models' (deviation measure b, LSD segments, the default likelihood config).
+DEFAULT_TRAINED_FOR = {"measure": "b", "detector": "lsd", "likelihood": "default"}
 #: ``focal_prior_share`` from which an unreliable focal length is explained as the prior's
 #: (the prior carries at least half of the curvature along log f) and the reason says what helps.
 PRIOR_SET_FOCAL_SHARE = 0.5
@@ -314,6 +326,37 @@ class ReliabilityModel:
             out[rows] = self.train_errors[idx].mean(1)
         return out
 
+    @property
+    def trained_for(self) -> dict[str, str]:
+        """The setting the model was trained on: ``measure`` (deviation measure), ``detector``
+        (name of the line detector) and ``likelihood`` (likelihood config name, ``default`` =
+        ``configs/likelihood.json``); :data:`DEFAULT_TRAINED_FOR` where the file does not say."""
+        return {**DEFAULT_TRAINED_FOR, **self.meta.get("trained_for", {})}
+
+    def scope_gap(self, likelihood_params, likelihood_name: str, detector: str | None = None,
+                  mode: str | None = None) -> str | None:
+        """Why this model's predictions do not apply to an estimator's results, or None when they do.
+
+        The cues, and the errors they predict, depend on the deviation measure, the likelihood and
+        the segments' detector: a model predicts only for the setting it was trained on
+        (:attr:`trained_for`).  ``likelihood_params``: the estimator's
+        :class:`~fr_torch.core.likelihood.LikelihoodParams` (before its FOV range is applied), compared
+        with those of the trained measure and likelihood config in ``mode``; ``likelihood_name``: what
+        the message calls them.  ``detector``: the name of the detector that produced the segments,
+        None when they came from the caller (not checked)."""
+        trained = self.trained_for
+        gaps = []
+        if likelihood_params.measure != trained["measure"]:
+            gaps.append(f"measure {likelihood_params.measure}")
+        elif likelihood_params != _trained_params(trained["measure"], trained["likelihood"], mode):
+            gaps.append(f"likelihood {likelihood_name}")
+        if detector is not None and detector != trained["detector"]:
+            gaps.append(f"detector {detector}")
+        if not gaps:
+            return None
+        return (f"reliability model not trained for {' and '.join(gaps)} (trained for measure {trained['measure']}, "
+                f"detector {trained['detector']}, likelihood {trained['likelihood']}): no predicted error")
+
     def predict_dict(self, cues: dict) -> dict[str, float]:
         return dict(zip(TARGETS, (float(v) for v in self.predict(cues)[0])))
 
@@ -402,6 +445,14 @@ class ReliabilityModel:
         return models[mode] if mode else ReliabilitySet(models)
 
 
+@functools.lru_cache(maxsize=32)
+def _trained_params(measure: str, likelihood: str, mode: str | None):
+    """The likelihood parameters of a model's training setting (:meth:`ReliabilityModel.scope_gap`)."""
+
+    return LikelihoodParams.from_config(measure, None if likelihood == "default" else likelihood,
+                                        mode=None if mode is None else str(mode))
+
+
 @dataclass
 class ReliabilitySet:
     """The default models per estimator mode (``fr``, ``fast``); :meth:`annotate` picks by mode."""
@@ -419,3 +470,9 @@ class ReliabilitySet:
 
     def predict(self, cues, mode: str = "fr") -> np.ndarray:
         return self.models[mode].predict(cues)
+
+    def scope_gap(self, likelihood_params, likelihood_name: str, detector: str | None = None,
+                  mode: str = "fr") -> str | None:
+        """:meth:`ReliabilityModel.scope_gap` of the model of ``mode`` (None without one)."""
+        model = self.models.get(mode)
+        return None if model is None else model.scope_gap(likelihood_params, likelihood_name, detector, mode)

@@ -12,6 +12,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from fr_torch.core.checks import MAX_REACH_IMAGE_SIZES
 from fr_torch.errors import FRInputError
 
 # --------------------------------------------------------------------------- filters
@@ -71,8 +72,9 @@ class SegmentFilter:
         return np.split(segments[keep], np.cumsum(kept_counts)[:-1])
 
 
-def validate_segments(segments, name: str = "segments") -> np.ndarray:
-    """Check user-supplied segments: an (N, 4) array of finite numbers.  Returns float64 (N, 4)."""
+def validate_segments(segments, name: str = "segments", finite: bool = True) -> np.ndarray:
+    """Check user-supplied segments: an (N, 4) array of numbers, finite unless ``finite`` is False
+    (then :func:`drop_absurd_segments` drops the non-finite rows).  Returns float64 (N, 4)."""
     if torch.is_tensor(segments):
         segments = segments.detach().cpu().numpy()
     try:
@@ -83,10 +85,25 @@ def validate_segments(segments, name: str = "segments") -> np.ndarray:
         array = array.reshape(0, 4)
     if array.ndim != 2 or array.shape[1] != 4:
         raise FRInputError(f"{name}: expected shape (N, 4) [x1, y1, x2, y2], got {array.shape}")
-    if not np.isfinite(array).all():
+    if finite and not np.isfinite(array).all():
         bad = int((~np.isfinite(array)).any(1).sum())
         raise FRInputError(f"{name}: {bad} segment(s) have NaN or infinite coordinates")
     return array
+
+
+def drop_absurd_segments(segments: np.ndarray, size: tuple[float, float]) -> tuple[np.ndarray, int]:
+    """Drop the rows of (N, 4) ``segments`` of an image of ``size`` (width, height) pixels that no
+    image of that size can hold: a non-finite coordinate, or an endpoint further than
+    :data:`~fr_torch.core.checks.MAX_REACH_IMAGE_SIZES` long sides from the image centre (1e20 px
+    is a bug upstream, not a line; kept, it overflows the float32 search into NaN).  Returns the
+    kept rows (input order) and how many were dropped."""
+    width, height = float(size[0]), float(size[1])
+    reach = MAX_REACH_IMAGE_SIZES * max(width, height)
+    with np.errstate(invalid="ignore"):
+        keep = ((np.abs(segments[:, 0::2] - width / 2) <= reach) & (np.abs(segments[:, 1::2] - height / 2) <= reach)
+                ).all(1)
+    dropped = int(len(segments) - keep.sum())
+    return (segments[keep] if dropped else segments), dropped
 
 
 # --------------------------------------------------------------------------- batches

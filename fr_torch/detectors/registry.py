@@ -3,8 +3,10 @@
 A detector is any callable object taking a 2-D ``uint8`` grey image and returning an ``(N, 4)``
 float array ``[x1, y1, x2, y2]`` in pixels.  ``lsd`` is the default; the others come from entry
 points of group ``fr_torch.detectors`` (this project's ``mcmlsd`` / ``onnx`` too, see
-pyproject.toml) or an import path ``module:attr``; register new ones with
-:func:`register_detector` or pass the object itself.
+pyproject.toml) or an import path ``module:attr`` naming a detector class (a ``name`` and
+``__call__``) or a factory registered here or marked ``@plugin("detector")``
+(:mod:`fr_torch.registry`); register new ones with :func:`register_detector` or pass the
+object itself.
 """
 from __future__ import annotations
 
@@ -29,7 +31,15 @@ class Detector(Protocol):
 
 # Detectors by name: ``lsd`` here, the others from entry points of group ``fr_torch.detectors``
 # (this project's ``mcmlsd`` / ``onnx`` too, see pyproject.toml), or an import path "module:attr".
-DETECTORS: Registry[Detector] = Registry("detector", group="fr_torch.detectors", error=FRInputError)
+def is_detector_class(cls: type) -> bool:
+    """A class implementing :class:`Detector`: its instances are callable (``__call__`` defined by
+    the class or a base other than ``object``) and it has a ``name``."""
+    return hasattr(cls, "name") and any("__call__" in vars(base) for base in cls.__mro__ if base is not object)
+
+
+DETECTORS: Registry[Detector] = Registry("detector", group="fr_torch.detectors", error=FRInputError,
+                                         implements=is_detector_class,
+                                         protocol="a class with a name and __call__(gray) -> (N, 4) segments")
 
 
 def register_detector(name: str, factory: Callable[..., Detector]) -> None:

@@ -85,9 +85,17 @@ class Calibrator(Protocol):
         ...
 
 
+def is_calibrator_class(cls: type) -> bool:
+    """A class implementing :class:`Calibrator`: it has an ``estimate`` method (``name`` may be set
+    by its constructor; the built object is checked in full by :func:`get_calibrator`)."""
+    return callable(getattr(cls, "estimate", None))
+
+
 # Calibrators by name: registered in code (``register``), entry points of group
-# ``fr_torch.calibrators`` (this project's own methods too, see pyproject.toml), or "module:attr".
-CALIBRATORS: Registry[Calibrator] = Registry("method", group="fr_torch.calibrators")
+# ``fr_torch.calibrators`` (this project's own methods too, see pyproject.toml), or "module:attr"
+# naming a Calibrator class or a declared factory (fr_torch.registry.Registry.factory).
+CALIBRATORS: Registry[Calibrator] = Registry("method", group="fr_torch.calibrators", implements=is_calibrator_class,
+                                             protocol="a class with an estimate(image, meta) method")
 
 
 def register(name: str) -> Callable:
@@ -100,11 +108,13 @@ def available_methods() -> list[str]:
     return CALIBRATORS.names()
 
 
-def get_calibrator(spec: str, **kwargs) -> Calibrator:
+def get_calibrator(spec: str, offered: dict[str, Any] | None = None, **kwargs) -> Calibrator:
     """Build a method from a spec: registered name or import path ``module:attribute``, with
     options in brackets passed to the factory as keyword arguments (strings): ``fr[measure=a]``,
-    ``fast-fr[detector=mcmlsd]`` (see :func:`fr_torch.registry.parse_method_spec`)."""
-    method = CALIBRATORS.create(spec, **kwargs)
+    ``fast-fr[detector=mcmlsd]`` (see :func:`fr_torch.registry.parse_method_spec`).
+    ``kwargs`` are passed too (and override the spec's); ``offered`` options only to a factory that
+    takes them (:meth:`fr_torch.registry.Registry.create`; ``docs/plugins-options.md``)."""
+    method = CALIBRATORS.create(spec, offered=offered, **kwargs)
     if not isinstance(method, Calibrator):
         raise ValueError(f"{spec!r} did not produce a Calibrator (needs .name and .estimate())")
     return method

@@ -18,11 +18,27 @@ from __future__ import annotations
 
 from typing import Sequence
 
+import numpy as np
 import torch
 
-from fr_torch.core.checks import check_camera, per_image
+from fr_torch.core.checks import (
+    batch_of,
+    check_camera,
+    check_image_size,
+    image_names,
+    per_image,
+    positive_number,
+    shown,
+)
 from fr_torch.core.config import Mode
-from fr_torch.core.estimator import CalibrationResult, SegmentEstimator, _Image
+from fr_torch.core.cues import finite_record
+from fr_torch.core.estimator import (
+    CalibrationResult,
+    SegmentEstimator,
+    _Image,
+    keep_sane_segments,
+)
+from fr_torch.core.segments import validate_segments
 from fr_torch.detectors.registry import get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import (
@@ -31,7 +47,7 @@ from fr_torch.images.io import (
     result_to_input_pixels,
 )
 from fr_torch.runtime.device import DevicePolicy
-from fr_torch.runtime.pipeline import calibrate_paths
+from fr_torch.runtime.pipeline import Detection, calibrate_paths
 
 
 class FREstimator(SegmentEstimator):
@@ -56,11 +72,18 @@ class FREstimator(SegmentEstimator):
                          principal_point=None) -> list[CalibrationResult]:
         """Calibrate images given as file paths or arrays (grey, BGR, BGRA; 8/16-bit or float).
 
+        ``images``: a sequence (list, tuple, (B, H, W[, C]) array) of images, one per result, even
+        for one image (``[image]``).  ``names``: one per image (default: the path, or ``image<i>``).
         ``focal_px``: None (unknown), a number for all images, or one value (or None) per image.
         ``principal_point``: None (image centre), an (x, y) pair for all, or one per image.
-        A bad image yields a result with ``ok=False`` and the reason; the others are unaffected.
+        An argument of the wrong form or length is an FRInputError naming it; a bad image (or a bad
+        value of one image) yields a result with ``ok=False`` and the reason; the others are unaffected.
         """
 
+        if (isinstance(images, np.ndarray) or torch.is_tensor(images)) and images.ndim == 3 and images.shape[-1] in (3, 4):
+            raise FRInputError(f"images: expected a sequence of images (paths or arrays), one per image; got "
+                               f"{shown(images)} (one colour image? wrap it in a list)")
+        images = batch_of(images, "images", "images (file paths or arrays)")
         return [r for _, batch in calibrate_paths(self, images, max(1, len(images)), 0, focal_px, principal_point,
                                                   names) for r in batch]
 
@@ -77,17 +100,29 @@ class FREstimator(SegmentEstimator):
         search and the results back to the input's pixels.  A detection with ``error`` set, or an
         image whose focal length / principal point is invalid, gives ``ok=False`` with the reason.
         """
+
+        detections = batch_of(detections, "detections", "Detection records")
         count = len(detections)
-        names = list(names)
-        if len(names) != count:
-            raise FRInputError(f"got {count} detections but {len(names)} names")
+        for i, d in enumerate(detections):
+            if not isinstance(d, Detection):
+                raise FRInputError(f"detections[{i}]: expected a fr_torch.runtime.pipeline.Detection (from "
+                                   f"iter_detections or detect_image), got {shown(d)}")
+        names = image_names(names, count, [f"image{i}" for i in range(count)])
         focal_list = per_image(focal_px, count, "focal_px")
         pp_list = per_image(principal_point, count, "principal_point", width=2)
         items, focal_work, pp_work = [], [], []
         for d, name, f, pp in zip(detections, names, focal_list, pp_list):
             item = _Image(name, d.size, d.segments, error=d.error, detect_s=d.seconds)
+            try:  # a failed detection has size (0, 0): its own error stays the reason
+                check_image_size(d.size, f"{name}: working")
+                check_image_size(d.input_size, name)
+                positive_number(d.scale, f"{name}: scale")
+            except FRInputError as exc:
+                item.error, item.size, f, pp = item.error or str(exc), (0, 0), None, None
             if item.error is None:
                 try:  # checked in the input's pixels, so the message quotes the user's numbers
+                    segments = validate_segments(d.segments, f"{name} segments", finite=False)
+                    item.segments, item.dropped = keep_sane_segments(segments, d.size, name)
                     check_camera(f, pp, d.input_size, name)
                     f, pp = focal_and_pp_to_working(f, pp, d.scale)
                 except FRInputError as exc:
@@ -95,9 +130,10 @@ class FREstimator(SegmentEstimator):
             items.append(item)
             focal_work.append(f)
             pp_work.append(pp)
-        results = self._calibrate(items, focal_work, pp_work)
+        results = self._calibrate(items, focal_work, pp_work, detected=True)
         for result, d in zip(results, detections):
             result_to_input_pixels(result, d.scale, d.input_size)
+            finite_record(result)  # the last check, in the input's pixels
         return results
 
 

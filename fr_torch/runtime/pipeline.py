@@ -44,7 +44,8 @@ import cv2
 import numpy as np
 import torch
 
-from fr_torch.core.checks import per_image
+from fr_torch.core.checks import image_names, per_image, segment_sets
+from fr_torch.core.checks import image_sizes as checked_image_sizes
 from fr_torch.core.estimator import CalibrationResult
 from fr_torch.core.segments import SegmentFilter
 from fr_torch.detectors.registry import detect_segments, get_detector
@@ -366,8 +367,8 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
     ``focal_px`` / ``principal_point``: as for ``calibrate_images`` (one value or one per image).
     """
     images = list(images)
-    names = list(names) if names is not None else [str(im) if isinstance(im, (str, Path)) else f"image{i}"
-                                                   for i, im in enumerate(images)]
+    names = image_names(names, len(images), [str(im) if isinstance(im, (str, Path)) else f"image{i}"
+                                             for i, im in enumerate(images)])
     focal_list = per_image(focal_px, len(images), "focal_px")
     pp_list = per_image(principal_point, len(images), "principal_point", width=2)
     if workers > 0 and estimator.policy.whole_image_workers and whole_images is not False:
@@ -430,11 +431,13 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
     :func:`ordered_pool_map`: without a ``pool`` the shards run through it; a given ``pool`` that
     breaks is left to the caller and the batch is redone through it.
     """
+    segments = segment_sets(segments)
     count = len(segments)
     if workers <= 1 or count < 2 or not estimator.policy.whole_image_workers:
         return estimator.calibrate_segments(segments, image_sizes, names=names, focal_px=focal_px,
                                             principal_point=principal_point, apply_filter=apply_filter)
-    names = list(names) if names is not None else [f"image{i}" for i in range(count)]
+    image_sizes = checked_image_sizes(image_sizes, count)  # the form; each size is checked in its worker
+    names = image_names(names, count, [f"image{i}" for i in range(count)])
     focal_list = per_image(focal_px, count, "focal_px")
     pp_list = per_image(principal_point, count, "principal_point", width=2)
     portable = copy.copy(estimator)
