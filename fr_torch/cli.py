@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "focal_profile_gap cue, a quarter of its time per photo)")
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bar (shown on a terminal's stderr when stdout goes to a file or pipe)")
+    from .shared_focal_cli import add_arguments as add_focal_arguments
+
+    add_focal_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -84,26 +87,36 @@ def run(args: argparse.Namespace) -> int:
     # A bar when the JSON lines go to a file or pipe and stderr is a terminal (else they show progress).
     show_bar = not args.no_progress and len(paths) > 1 and sys.stderr.isatty() and not sys.stdout.isatty()
     bar = tqdm(total=len(paths), unit="img", desc="fr calibrate", disable=not show_bar, file=sys.stderr)
-    try:
-        for chunk, results in calibrate_paths(estimator, paths, batch_size, workers, focal_px,
-                                              principal_point):
-            for path, result in zip(chunk, results):
-                record = validate.json_safe(result.to_json(include_segments=args.segments))
-                everything.append(record)
-                print(validate.dumps(record), flush=True)
-                if not result.ok:
-                    failures += 1
-                    reason = result.reason  # image_io reasons already start with the path
-                    bar.write(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
-                              file=sys.stderr)
-                if args.overlay and result.width > 0:
-                    from .overlay import write_overlay
 
-                    try:
-                        write_overlay(path, result, args.overlay)
-                    except FRInputError as exc:
-                        bar.write(f"fr: {exc}", file=sys.stderr)
-            bar.update(len(chunk))
+    def emit(path, result, extra=None):
+        nonlocal failures
+        record = validate.json_safe(dict(result.to_json(include_segments=args.segments), **(extra or {})))
+        everything.append(record)
+        print(validate.dumps(record), flush=True)
+        if not result.ok:
+            failures += 1
+            reason = result.reason  # image_io reasons already start with the path
+            bar.write(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
+                      file=sys.stderr)
+        if args.overlay and result.width > 0:
+            from .overlay import write_overlay
+
+            try:
+                write_overlay(path, result, args.overlay)
+            except FRInputError as exc:
+                bar.write(f"fr: {exc}", file=sys.stderr)
+        bar.update(1)
+
+    try:
+        if args.shared_focal or args.focal_prior:
+            from .shared_focal_cli import run as run_focal_options
+
+            run_focal_options(args, estimator, paths, batch_size, workers, principal_point, emit)
+        else:
+            for chunk, results in calibrate_paths(estimator, paths, batch_size, workers, focal_px,
+                                                  principal_point):
+                for path, result in zip(chunk, results):
+                    emit(path, result)
     finally:  # the JSON holds every result so far, written atomically (never a truncated file)
         bar.close()
         if args.json:
