@@ -266,6 +266,20 @@ class BatchWorker:
         one output row per input row, in order.  Never raises for a bad image."""
         self._maybe_crash(rows)
         names, focal = self._names_and_focal(rows)
+        inputs, failed = self.read_inputs(names)
+        try:
+            results = self.estimator.calibrate_images(inputs, names=names, focal_px=focal,
+                                                      principal_point=self.options.get("principal_point"))
+        except Exception as exc:  # a bug or resource error must not lose the batch: fail its rows
+            results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
+        for i, reason in failed.items():
+            results[i] = _failed(names[i], reason)
+        return records_to_table([result.to_json() for result in results], rows, self.extras)
+
+    @staticmethod
+    def read_inputs(names: Sequence[str]) -> tuple[list, dict[int, str]]:
+        """(inputs for the estimator: local paths as they are, URIs read into arrays; {row index:
+        reason} for URIs that could not be read, whose input is a 1 x 1 placeholder)."""
         inputs, failed = [], {}
         for i, name in enumerate(names):
             if has_scheme(name):
@@ -276,14 +290,7 @@ class BatchWorker:
                     inputs.append(np.zeros((1, 1), np.uint8))
             else:
                 inputs.append(name)
-        try:
-            results = self.estimator.calibrate_images(inputs, names=names, focal_px=focal,
-                                                      principal_point=self.options.get("principal_point"))
-        except Exception as exc:  # a bug or resource error must not lose the batch: fail its rows
-            results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
-        for i, reason in failed.items():
-            results[i] = _failed(names[i], reason)
-        return records_to_table([result.to_json() for result in results], rows, self.extras)
+        return inputs, failed
 
     def calibrate_rows_pipelined(self, rows: Sequence[dict[str, Any]], batch_size: int, workers: int):
         """Arrow tables of at most ``batch_size`` rows, in input order, like :meth:`calibrate_rows`
@@ -470,7 +477,7 @@ class PartWriter:
 def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], engine: str = "local",
               workers: int | None = None, batch_size: int | None = None, address: str | None = None,
               progress: bool = True, threads_per_worker: int | None = None, gpus_per_worker: float | None = None,
-              rows_per_part: int = 0) -> dict[str, Any]:
+              rows_per_part: int = 0, shared_focal_by: str | None = None) -> dict[str, Any]:
     """Calibrate every image of ``inputs`` not yet in ``out``; returns a summary dict
     (``total``, ``skipped``, ``processed``, ``failed``, ``seconds``, ``images_per_s``).
 
@@ -483,6 +490,8 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     ``rows_per_part``: 0 = one part file per batch (an interruption loses only the batches in
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
+    ``shared_focal_by``: a manifest column; the rows of each of its values share one focal length
+    (:mod:`fr_torch.batch_shared`; local engine only).
     """
     import pyarrow as pa
 
@@ -518,7 +527,13 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
                file=sys.stderr)
     try:
         if todo:
-            if engine == "local":
+            if shared_focal_by:
+                from .batch_shared import run_shared_groups
+
+                if engine != "local":
+                    raise ValueError("--shared-focal-by runs on the local engine only (not yet on Ray)")
+                tables = run_shared_groups(todo, options, extras, shared_focal_by)
+            elif engine == "local":
                 tables = _run_local(todo, options, extras, batch_size, workers)
             elif engine == "ray":
                 from .batch_ray import run_ray
@@ -649,6 +664,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--focal", type=float, default=None, metavar="PX",
                         help="known focal length in pixels for all images (a manifest's focal_px column wins)")
     parser.add_argument("--pp", type=str, default=None, metavar="X,Y", help="principal point (default: centre)")
+    parser.add_argument("--shared-focal-by", default=None, metavar="COLUMN",
+                        help="manifest column (e.g. a camera id): the rows of each value share one focal length "
+                             "(docs/shared-focal.md; local engine, groups searched in this process)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -674,7 +692,8 @@ def run(args: argparse.Namespace) -> int:
     summary = run_batch([str(p) for p in args.inputs], args.out, options, engine=args.engine,
                         workers=args.workers, batch_size=args.batch_size, address=args.address,
                         progress=not args.no_progress, threads_per_worker=args.threads_per_worker,
-                        gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part)
+                        gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part,
+                        shared_focal_by=getattr(args, "shared_focal_by", None))
     print(f"fr batch: {summary['total']} images, {summary['skipped']} already done, {summary['processed']} "
           f"processed ({summary['failed']} failed) in {summary['seconds']:.1f} s "
           f"({summary['images_per_s']:.1f} img/s) -> {args.out}", file=sys.stderr)

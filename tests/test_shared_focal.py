@@ -113,3 +113,35 @@ def test_cli_shared_focal(tmp_path, capsys):
     assert records[0]["focal_px"] == pytest.approx(records[1]["focal_px"])
     assert records[0]["focal_prior"] is None
     assert main(["calibrate", *paths, "--shared-focal", "--focal", "500"]) == 2
+
+
+def test_batch_shared_focal_by(tmp_path):
+    import shutil
+    from pathlib import Path
+
+    import pandas as pd
+
+    from fr_torch.batch import run_batch
+
+    room = Path(__file__).resolve().parents[1] / "examples" / "room.png"
+    a, b, c = (shutil.copy(room, tmp_path / f"{name}.png") for name in ("a", "b", "c"))
+    manifest = tmp_path / "m.csv"
+    pd.DataFrame({"image": [str(a), str(tmp_path / "missing.png"), str(b), str(c)],
+                  "camera": ["c1", "c1", "c1", ""]}).to_csv(manifest, index=False)
+    options = {"estimator": {"mode": "fast"}, "principal_point": None, "focal_px": None, "reliability": False}
+    with pytest.raises(ValueError, match="local engine"):
+        run_batch([str(manifest)], tmp_path / "ray_out", options, engine="ray", progress=False,
+                  shared_focal_by="camera")
+    with pytest.raises(ValueError, match="no such manifest column"):
+        run_batch([str(manifest)], tmp_path / "bad_out", options, progress=False, shared_focal_by="cam")
+    summary = run_batch([str(manifest)], tmp_path / "out", options, progress=False, shared_focal_by="camera")
+    assert summary["processed"] == 4 and summary["failed"] == 1
+    table = pd.read_parquet(tmp_path / "out").set_index("image")
+    group = table.loc[[str(a), str(b)]]
+    assert group["shared_focal_ok"].all() and (group["shared_focal_images_used"] == 2).all()
+    assert group["focal_px"].iloc[0] == pytest.approx(group["focal_px"].iloc[1])
+    assert abs(group["shared_focal_px"].iloc[0] / ROOM_F - 1) < 0.04
+    missing = table.loc[str(tmp_path / "missing.png")]
+    assert not missing["ok"] and missing["shared_focal_ok"]  # its group has a value; it keeps its failure
+    single = table.loc[str(c)]  # an empty group value: a group of one
+    assert single["ok"] and single["shared_focal_images_used"] == 1
