@@ -11,17 +11,18 @@ Usage::
 Method (``docs/shared-focal.md``; choices in ``results/decisions/38.md``):
 
 1. Every photo is calibrated alone (the estimator as usual; its segments and reliability kept).
-2. **Focal profile** (:func:`focal_profiles`): for each photo, the best data objective (the
-   length-weighted log-likelihood, the estimator's focal prior taken out) with the focal length
-   held at each of :attr:`SharedFocalSettings.grid_points` values spaced uniformly in
-   ``log(f / L)`` over the search's FOV range (L = the image's long side), the rotation optimised at
-   each: starts from the photo's own estimate moved along its focal ridge and from the best points of
-   a coarse angle grid, refined with Fast-fR's Adam steps.
+2. **Focal profile** (:func:`focal_profiles`, :func:`with_estimator_prior`): for each photo, the
+   best objective (the length-weighted log-likelihood plus the estimator's own focal prior, which
+   corrects the likelihood's pull towards narrow views) with the focal length held at each of
+   :attr:`SharedFocalSettings.grid_points` values spaced uniformly in ``log(f / L)`` over the
+   search's FOV range (L = the image's long side), the rotation optimised at each: starts from the
+   photo's own estimate moved along its focal ridge and from the best points of a coarse angle
+   grid, refined with Fast-fR's Adam steps.
 3. **Combination** (:func:`combine_profiles`): each profile is tempered into a log-likelihood of
    ``log(f / L)`` (``beta * (P - max P) / W``, W the photo's total segment length), floored at
    ``-cap`` (a photo can say "not here" at most that strongly, so a non-Manhattan photo or a wrong
-   basin cannot veto the truth), weighted by the reliability stage's predicted focal error, summed
-   over the photos, plus the log of an optional focal prior (:class:`~fr_torch.focal_prior.FocalPrior`).
+   basin cannot veto the truth), optionally weighted by the reliability stage's predicted focal
+   error (off by default: it tied with equal weights on train), summed over the photos, plus the log of an optional focal prior (:class:`~fr_torch.focal_prior.FocalPrior`).
    The shared ``log(f / L)`` is the sum's argmax, refined by a parabola through its neighbours.
    Photos whose profile is flat (a wall seen square on, VPs at infinity) add a constant: no drag.
 4. Every photo is searched again with the focal length known (its rotation at the shared f).
@@ -59,8 +60,10 @@ class SharedFocalSettings:
     its best points are refined (besides the ridge start) and Adam steps per start.
     ``beta``: temperature, nats of log-likelihood per unit of mean objective per segment pixel.
     ``cap``: floor of each photo's tempered profile (nats below its own peak).
-    ``error_scale_pct``: photo weight ``1 / (1 + (e / error_scale_pct)^2)``, e the reliability
-    stage's predicted focal error (%); 1 without a reliability model.
+    ``error_scale_pct``: None (default: every photo weighs 1) or a photo weight
+    ``1 / (1 + (e / error_scale_pct)^2)``, e the reliability stage's predicted focal error (%;
+    weight 1 where a photo has none).  On the train groups the weighting tied with none (3-20 %,
+    results/shared_focal/tune_train.md), so it is off.
     ``kappa``: calibration factor of ``predicted_error_pct``.
     """
 
@@ -69,15 +72,17 @@ class SharedFocalSettings:
     starts: int = 2
     iterations: int = 10
     beta: float = 30.0
-    cap: float = 3.0
-    error_scale_pct: float = 10.0
-    kappa: float = 1.0
+    cap: float = 6.0
+    error_scale_pct: float | None = None
+    kappa: float = 1.291
 
     def __post_init__(self):
         if self.grid_points < 5 or self.angle_grid < 1 or self.starts < 1 or self.iterations < 0:
             raise FRInputError("SharedFocalSettings: grid_points >= 5, angle_grid >= 1, starts >= 1, iterations >= 0")
         for name in ("beta", "cap", "error_scale_pct", "kappa"):
             value = getattr(self, name)
+            if value is None and name == "error_scale_pct":
+                continue
             if not (math.isfinite(value) and value > 0):
                 raise FRInputError(f"SharedFocalSettings.{name} must be a finite number > 0, got {value!r}")
 
@@ -182,7 +187,8 @@ def combine_profiles(log_ratios: np.ndarray, profiles: np.ndarray, total_length:
         log_ratios: (K,) grid of ``log(f / L)``, uniform.
         profiles: (n, K) from :func:`focal_profiles`; a row without a finite value is not used.
         total_length: (n,) total segment length per photo, pixels.
-        predicted_focal_pct: (n,) the reliability stage's predicted focal error (%), or None (weight 1).
+        predicted_focal_pct: (n,) the reliability stage's predicted focal error (%), or None (weight 1;
+            likewise when ``settings.error_scale_pct`` is None).
         settings: temperature, floor, weights, calibration.
         prior: optional ``(log(f / L) centre, sigma in log f)``: a log-normal prior added once.
 
@@ -192,7 +198,7 @@ def combine_profiles(log_ratios: np.ndarray, profiles: np.ndarray, total_length:
     profiles = np.asarray(profiles, dtype=np.float64).reshape(-1, len(log_ratios))
     used = np.isfinite(profiles).any(1) & np.isfinite(total_length) & (np.asarray(total_length) > 0)
     weights = np.ones(len(profiles))
-    if predicted_focal_pct is not None:
+    if predicted_focal_pct is not None and settings.error_scale_pct is not None:
         error = np.asarray(predicted_focal_pct, dtype=np.float64)
         weights = np.where(np.isfinite(error), 1.0 / (1.0 + (error / settings.error_scale_pct) ** 2), 1.0)
     weights = np.where(used, weights, 0.0)
@@ -321,6 +327,27 @@ def profile_results(estimator, results, settings: SharedFocalSettings) -> tuple[
     return log_ratios, profiles, features.weight.sum(-1).to("cpu", torch.float64).numpy()
 
 
+def with_estimator_prior(estimator, log_ratios: np.ndarray, profiles: np.ndarray, total_length: np.ndarray,
+                         long_side: np.ndarray) -> np.ndarray:
+    """``profiles`` (n, K) of the data term plus the estimator's own focal prior
+    (:meth:`~fr_torch.likelihood.MixtureLikelihood.focal_prior`) at each grid value: the objective each
+    photo's own estimate maximises.  ``total_length`` (n,) segment length W and ``long_side`` (n,)
+    pixels, as the prior's weight and scale.  The prior corrects the likelihood's pull towards narrow
+    views per photo; summed over a group it stays a per-photo correction (each profile is tempered
+    and floored on its own)."""
+    likelihood = estimator.likelihood
+    if not likelihood.params.focal_prior_weight or len(profiles) == 0:
+        return profiles
+    from types import SimpleNamespace
+
+    long_side = torch.as_tensor(np.asarray(long_side, np.float64))
+    features = SimpleNamespace(weight=torch.as_tensor(np.asarray(total_length, np.float64))[:, None],
+                               long_side=long_side)
+    focal = long_side[:, None] * torch.as_tensor(np.exp(log_ratios))[None, :]
+    prior = likelihood.focal_prior(features, focal)[0].numpy()
+    return profiles + prior
+
+
 def predicted_focal_pct(results) -> np.ndarray | None:
     """(n,) the reliability stage's predicted focal error (%) per result, nan where absent; None when
     no result has one."""
@@ -377,6 +404,7 @@ def shared_from_results(estimator, alone: Sequence, focal_prior=None,
     kept = [alone[i] for i in usable]
     check_group_sizes([(r.width, r.height) for r in kept], [r.image for r in kept])
     log_ratios, profiles, lengths = profile_results(estimator, kept, settings)
+    profiles = with_estimator_prior(estimator, log_ratios, profiles, lengths, [max(r.width, r.height) for r in kept])
     prior = focal_prior.log_ratio_prior(kept[0].width, kept[0].height) if focal_prior is not None else None
     combined = combine_profiles(log_ratios, profiles, lengths, predicted_focal_pct(kept), settings, prior)
     ratio = math.exp(combined.log_ratio)
@@ -409,6 +437,7 @@ def apply_focal_priors(estimator, alone: Sequence, priors: Sequence, settings: S
         return results
     kept = [alone[i] for i in todo]
     log_ratios, profiles, lengths = profile_results(estimator, kept, settings)
+    profiles = with_estimator_prior(estimator, log_ratios, profiles, lengths, [max(r.width, r.height) for r in kept])
     errors = predicted_focal_pct(kept)
     focal, errors_out, edges = [], [], []
     for j, (r, i) in enumerate(zip(kept, todo)):

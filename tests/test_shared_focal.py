@@ -92,7 +92,7 @@ def test_combination_is_robust():
     assert only_prior.log_ratio == pytest.approx(grid[10], abs=1e-6)
     # a photo predicted to be badly wrong weighs less
     weighted = combine_profiles(grid, np.array([peaked(grid[15]), peaked(grid[25])]), lengths[:2],
-                                np.array([2.0, 40.0]), settings)
+                                np.array([2.0, 40.0]), SharedFocalSettings(error_scale_pct=10.0))
     assert weighted.log_ratio < 0.5 * (grid[15] + grid[25])
 
 
