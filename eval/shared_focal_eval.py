@@ -254,6 +254,7 @@ def run_plot(args) -> None:
         ax.plot(sizes, p90, "s--", color=line.get_color(), label=f"{label}: p90")
         ax.axhline(data["per_photo"]["median"], color=line.get_color(), lw=0.8, ls=":")
     ax.set_xscale("log")
+    ax.set_yscale("log")
     ax.set_xticks([1, 2, 5, 10, 50])
     ax.set_xticklabels(["1", "2", "5", "10", "50"])
     ax.set_xlabel("photos per group")
