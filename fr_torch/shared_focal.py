@@ -74,7 +74,7 @@ class SharedFocalSettings:
     beta: float = 30.0
     cap: float = 6.0
     error_scale_pct: float | None = None
-    kappa: float = 1.291
+    kappa: float = 1.613
 
     def __post_init__(self):
         if self.grid_points < 5 or self.angle_grid < 1 or self.starts < 1 or self.iterations < 0:
