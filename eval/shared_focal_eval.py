@@ -323,7 +323,7 @@ def run_prior(args) -> None:
     import torch
 
     from fr_torch import FREstimator
-    from fr_torch.focal_prior import FocalPrior
+    from fr_torch.focal_prior import FocalPrior, FocalPriorOption
     from fr_torch.shared_focal import SharedFocalSettings, combine_profiles
 
     torch.set_num_threads(1)
@@ -338,20 +338,29 @@ def run_prior(args) -> None:
     roll_a = np.abs(data["roll_deg"][usable] - data["gt_roll_deg"][usable])
     tilt_a = np.abs(data["tilt_deg"][usable] - data["gt_tilt_deg"][usable])
     rows.append(("none (fR alone)", photo_err, roll_a, tilt_a))
-    for offset in (0.0, 0.2):
-        for sigma in (10.0, 25.0):
-            focal = []
-            for j, i in enumerate(usable):
-                prior = FocalPrior(focal_px=float(gt[j]) * (1 + offset), sigma_pct=sigma, source="user")
-                c = combine_profiles(data["log_ratios"], data["profile"][i:i + 1], data["total_length"][i:i + 1],
-                                     data["pred_focal_pct"][i:i + 1], settings,
-                                     prior.log_ratio_prior(int(data["width"][i]), int(data["height"][i])))
-                focal.append(math.exp(c.log_ratio) * long_side[j])
-            focal = np.array(focal)
-            results = resolve_at(estimator, data, usable, focal)
-            roll, tilt = angle_errors(data, usable, results)
-            rows.append((f"{100 * (1 + offset):.0f} % of the truth, sigma {sigma:g} %", 100 * np.abs(focal - gt) / gt,
-                         roll, tilt))
+    paths = {s.name: s.image_path for s in load_samples(args.dataset, args.split)}
+    exif = FocalPriorOption(exif=True)
+    exif_priors = [exif.for_image(paths[str(data["name"][i])], int(data["width"][i]), int(data["height"][i]))[0]
+                   for i in usable]
+    settings_rows = [(f"{100 * (1 + offset):.0f} % of the truth, sigma {sigma:g} %",
+                      [FocalPrior(float(gt[j]) * (1 + offset), sigma, "user") for j in range(len(usable))])
+                     for offset in (0.0, 0.2) for sigma in (10.0, 25.0)]
+    if all(p is not None for p in exif_priors):
+        centre = np.median([p.focal_px for p in exif_priors])
+        settings_rows.append((f"EXIF ({exif_priors[0].detail}: {centre:.1f} px), sigma {exif.sigma_pct:g} %",
+                              exif_priors))
+    for name, priors in settings_rows:
+        focal = []
+        for j, i in enumerate(usable):
+            prior = priors[j]
+            c = combine_profiles(data["log_ratios"], data["profile"][i:i + 1], data["total_length"][i:i + 1],
+                                 data["pred_focal_pct"][i:i + 1], settings,
+                                 prior.log_ratio_prior(int(data["width"][i]), int(data["height"][i])))
+            focal.append(math.exp(c.log_ratio) * long_side[j])
+        focal = np.array(focal)
+        results = resolve_at(estimator, data, usable, focal)
+        roll, tilt = angle_errors(data, usable, results)
+        rows.append((name, 100 * np.abs(focal - gt) / gt, roll, tilt))
     text = (f"### {args.dataset} {args.split} ({len(usable)} photos), principal point {args.pp}: a focal prior "
             "`--focal-prior PX,SIGMA%`\n\n| prior centre, width | focal error mean / median % | roll error mean / "
             "median deg | tilt error mean / median deg |\n|---|---|---|---|\n" +
