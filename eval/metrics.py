@@ -37,7 +37,7 @@ from fr_torch.core.camera import (  # noqa: F401
     rotation_angle_deg,
     rotation_angles,
 )
-from fr_torch.registry import NA_PREFIX, NOT_SUPPLIED, is_not_supplied  # noqa: F401  (the one marker)
+from fr_torch.registry import NOT_SUPPLIED, is_not_supplied
 
 METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
 

@@ -17,7 +17,6 @@ import pandas as pd
 from fr_eval.metrics import METRICS, NOT_SUPPLIED, Summary
 
 from fr_torch.registry import parse_method_spec as _parse_method_spec
-from fr_torch.registry import with_option  # noqa: F401  (re-exported for run_eval)
 
 HEADERS = {
     "runtime_s": "run time (s)",

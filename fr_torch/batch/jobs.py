@@ -51,6 +51,7 @@ from tqdm import tqdm
 
 from fr_torch.batch.inputs import collect_inputs, extra_columns
 from fr_torch.batch.ray import run_ray
+from fr_torch.batch.shared import run_shared_groups
 from fr_torch.batch.table import PartWriter, records_to_table
 from fr_torch.batch.worker import CRASH_ENV, BatchWorker, _failed, options_device
 from fr_torch.runtime.device import DevicePolicy
@@ -60,7 +61,7 @@ from fr_torch.runtime.pipeline import crash_reason, ordered_pool_map
 def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], engine: str = "local",
               workers: int | None = None, batch_size: int | None = None, address: str | None = None,
               progress: bool = True, threads_per_worker: int | None = None, gpus_per_worker: float | None = None,
-              rows_per_part: int = 0) -> dict[str, Any]:
+              rows_per_part: int = 0, shared_focal_by: str | None = None) -> dict[str, Any]:
     """Calibrate every image of ``inputs`` not yet in ``out``; returns a summary dict
     (``total``, ``skipped``, ``processed``, ``failed``, ``seconds``, ``images_per_s``).
 
@@ -73,6 +74,8 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     ``rows_per_part``: 0 = one part file per batch (an interruption loses only the batches in
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
+    ``shared_focal_by``: a manifest column; the rows of each of its values share one focal length
+    (:mod:`fr_torch.batch.shared`; local engine only).
     """
 
     device = options_device(options)
@@ -105,7 +108,11 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
                file=sys.stderr)
     try:
         if todo:
-            if engine == "local":
+            if shared_focal_by:
+                if engine != "local":
+                    raise ValueError("--shared-focal-by runs on the local engine only (not yet on Ray)")
+                tables = run_shared_groups(todo, options, extras, shared_focal_by)
+            elif engine == "local":
                 tables = _run_local(todo, options, extras, batch_size, workers, policy)
             elif engine == "ray":
 

@@ -50,6 +50,20 @@ class BatchWorker:
         one output row per input row, in order.  Never raises for a bad image."""
         self._maybe_crash(rows)
         names, focal = self._names_and_focal(rows)
+        inputs, failed = self.read_inputs(names)
+        try:
+            results = self.estimator.calibrate_images(inputs, names=names, focal_px=focal,
+                                                      principal_point=self.options.get("principal_point"))
+        except Exception as exc:  # a bug or resource error must not lose the batch: fail its rows
+            results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
+        for i, reason in failed.items():
+            results[i] = _failed(names[i], reason)
+        return records_to_table([result.to_json() for result in results], rows, self.extras)
+
+    @staticmethod
+    def read_inputs(names: Sequence[str]) -> tuple[list, dict[int, str]]:
+        """(inputs for the estimator: local paths as they are, URIs read into arrays; {row index:
+        reason} for URIs that could not be read, whose input is a 1 x 1 placeholder)."""
         inputs, failed = [], {}
         for i, name in enumerate(names):
             if has_scheme(name):
@@ -60,14 +74,7 @@ class BatchWorker:
                     inputs.append(np.zeros((1, 1), np.uint8))
             else:
                 inputs.append(name)
-        try:
-            results = self.estimator.calibrate_images(inputs, names=names, focal_px=focal,
-                                                      principal_point=self.options.get("principal_point"))
-        except Exception as exc:  # a bug or resource error must not lose the batch: fail its rows
-            results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
-        for i, reason in failed.items():
-            results[i] = _failed(names[i], reason)
-        return records_to_table([result.to_json() for result in results], rows, self.extras)
+        return inputs, failed
 
     def calibrate_rows_pipelined(self, rows: Sequence[dict[str, Any]], batch_size: int, workers: int):
         """Arrow tables of at most ``batch_size`` rows, in input order, like :meth:`calibrate_rows`

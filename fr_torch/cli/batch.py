@@ -59,6 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      "every core but one, up to 16; 0 = none)")
     add_camera_arguments(parser, focal_help="known focal length in pixels for all images (a manifest's "
                                             "focal_px column wins)")
+    parser.add_argument("--shared-focal-by", default=None, metavar="COLUMN",
+                        help="manifest column (e.g. a camera id): the rows of each value share one focal length "
+                             "(docs/shared-focal.md; local engine, groups searched in this process)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -75,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     summary = run_batch([str(p) for p in args.inputs], args.out, options, engine=args.engine,
                         workers=args.workers, batch_size=args.batch_size, address=args.address,
                         progress=not args.no_progress, threads_per_worker=args.threads_per_worker,
-                        gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part)
+                        gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part,
+                        shared_focal_by=args.shared_focal_by)
     print(f"fr batch: {summary['total']} images, {summary['skipped']} already done, {summary['processed']} "
           f"processed ({summary['failed']} failed) in {summary['seconds']:.1f} s "
           f"({summary['images_per_s']:.1f} img/s) -> {args.out}", file=sys.stderr)

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from fr_torch.cli.focal import add_arguments as add_focal_arguments
+from fr_torch.cli.focal import run as run_focal_options
 from fr_torch.cli.options import (
     add_camera_arguments,
     add_device_arguments,
@@ -43,6 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "focal_profile_gap cue, a quarter of its time per photo)")
     output.add_argument("--no-progress", action="store_true",
                         help="no progress bar (shown on a terminal's stderr when stdout goes to a file or pipe)")
+    add_focal_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -65,24 +68,33 @@ def run(args: argparse.Namespace) -> int:
     # A bar when the JSON lines go to a file or pipe and stderr is a terminal (else they show progress).
     show_bar = not args.no_progress and len(paths) > 1 and sys.stderr.isatty() and not sys.stdout.isatty()
     bar = tqdm(total=len(paths), unit="img", desc="fr calibrate", disable=not show_bar, file=sys.stderr)
+
+    def emit(path, result, extra=None):
+        """Print (and keep) one image's record; report a failure; write its overlay."""
+        nonlocal failures
+        record = json_safe(dict(result.to_json(include_segments=args.segments), **(extra or {})))
+        everything.append(record)
+        print(dumps(record), flush=True)
+        if not result.ok:
+            failures += 1
+            reason = result.reason  # image reading reasons already start with the path
+            bar.write(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
+                      file=sys.stderr)
+        if args.overlay and result.width > 0:
+            try:
+                write_overlay(path, result, args.overlay)
+            except FRInputError as exc:
+                bar.write(f"fr: {exc}", file=sys.stderr)
+        bar.update(1)
+
     try:
-        for chunk, results in calibrate_paths(estimator, paths, batch_size, workers, focal_px,
-                                              principal_point):
-            for path, result in zip(chunk, results):
-                record = json_safe(result.to_json(include_segments=args.segments))
-                everything.append(record)
-                print(dumps(record), flush=True)
-                if not result.ok:
-                    failures += 1
-                    reason = result.reason  # image reading reasons already start with the path
-                    bar.write(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
-                              file=sys.stderr)
-                if args.overlay and result.width > 0:
-                    try:
-                        write_overlay(path, result, args.overlay)
-                    except FRInputError as exc:
-                        bar.write(f"fr: {exc}", file=sys.stderr)
-            bar.update(len(chunk))
+        if args.shared_focal or args.focal_prior:
+            run_focal_options(args, estimator, paths, batch_size, workers, principal_point, emit)
+        else:
+            for chunk, results in calibrate_paths(estimator, paths, batch_size, workers, focal_px,
+                                                  principal_point):
+                for path, result in zip(chunk, results):
+                    emit(path, result)
     finally:  # the JSON holds every result so far, written atomically (never a truncated file)
         bar.close()
         if args.json:

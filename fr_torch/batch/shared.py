@@ -1,0 +1,103 @@
+"""``fr batch --shared-focal-by COLUMN``: the rows of each value of a manifest column (a camera id)
+share one focal length (:func:`fr_torch.runtime.shared_focal.shared_from_results`).
+
+Groups are searched one after another in this process, with one estimator (on a GPU a group is
+one batch); each group is written as one Arrow table, so a group is in the output completely or
+not at all (resume skips whole groups).  Rows whose group value is empty (null, NaN, "") are each a
+group of one (calibrated alone).  Known focal lengths (``--focal``, a manifest ``focal_px``
+column) cannot be combined with it.
+
+Output: the usual columns (each row's camera at the shared focal length) plus
+``shared_focal_ok`` (bool), ``shared_focal_px`` (the group's focal length in the pixels of its
+first usable photo), ``shared_focal_error_pct`` (its predicted error), ``shared_focal_images_used``
+and ``shared_focal_reason`` (why the group has no shared value: no usable photo, or photos of
+different aspect ratios, whose per-photo results are then kept).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Iterable, Sequence
+
+from fr_torch.batch.table import _finite_or_none, records_to_table
+from fr_torch.batch.worker import BatchWorker, _failed
+from fr_torch.errors import FRInputError
+
+SHARED_COLUMNS = ("shared_focal_ok", "shared_focal_px", "shared_focal_error_pct", "shared_focal_images_used",
+                  "shared_focal_reason")
+
+
+def _group_key(value) -> Any:
+    """The group of a row's column value; None for an empty value (the row is a group of its own)."""
+    if value is None or (isinstance(value, float) and math.isnan(value)) or (isinstance(value, str) and not value):
+        return None
+    return value
+
+
+def group_rows(rows: Sequence[dict[str, Any]], column: str) -> list[list[dict[str, Any]]]:
+    """Rows grouped by ``column``, groups in order of first appearance (empty values: one group each).
+    ValueError (one line) when no row has the column."""
+    if rows and not any(column in row for row in rows):
+        names = sorted({key for row in rows[:100] for key in row})
+        raise ValueError(f"--shared-focal-by {column}: no such manifest column (columns: {', '.join(names)})")
+    groups: dict[Any, list] = {}
+    singles = []
+    for row in rows:
+        key = _group_key(row.get(column))
+        if key is None:
+            singles.append([row])
+        else:
+            groups.setdefault(key, []).append(row)
+    return list(groups.values()) + singles
+
+
+def run_shared_groups(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, column: str) -> Iterable:
+    """One Arrow table per group of ``rows`` (:func:`group_rows`), in group order."""
+
+    if options.get("focal_px") is not None or any(_finite_or_none(row.get("focal_px")) is not None for row in rows):
+        raise ValueError("--shared-focal-by estimates the focal length: it cannot be combined with --focal or a "
+                         "manifest focal_px column")
+    groups = group_rows(rows, column)
+    worker = BatchWorker(options, extras)
+    for group in groups:
+        yield calibrate_group(worker, group)
+
+
+def calibrate_group(worker, rows: Sequence[dict[str, Any]]):
+    """The Arrow table of one group's rows (input order): calibrated alone, then at the shared focal
+    length; never raises for bad images or a refused group."""
+    import pyarrow as pa
+
+    from fr_torch.runtime.shared_focal import shared_from_results
+
+    names = [str(row["image"]) for row in rows]
+    inputs, failed = worker.read_inputs(names)
+    shared_record = {"ok": False, "focal_px": None, "predicted_error_pct": None, "images_used": 0, "reason": ""}
+    try:
+        alone = worker.estimator.calibrate_images(inputs, names=names,
+                                                  principal_point=worker.options.get("principal_point"))
+        for i, reason in failed.items():
+            alone[i] = _failed(names[i], reason)
+        try:
+            shared = shared_from_results(worker.estimator, alone)
+            results = shared.results
+            shared_record = shared.to_json()
+        except FRInputError as exc:  # photos of different aspect ratios: their own results are kept
+            results = alone
+            shared_record["reason"] = str(exc)
+    except Exception as exc:  # a bug or resource error must not lose the group: fail its rows
+        results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
+        shared_record["reason"] = f"calibration error: {type(exc).__name__}: {exc}"
+    table = records_to_table([result.to_json() for result in results], rows, worker.extras)
+    count = len(rows)
+    error = shared_record.get("predicted_error_pct")
+    columns = {
+        "shared_focal_ok": pa.array([bool(shared_record["ok"])] * count, pa.bool_()),
+        "shared_focal_px": pa.array([shared_record.get("focal_px")] * count, pa.float64()),
+        "shared_focal_error_pct": pa.array([error if error is not None and math.isfinite(error) else None] * count,
+                                           pa.float64()),
+        "shared_focal_images_used": pa.array([int(shared_record.get("images_used") or 0)] * count, pa.int64()),
+        "shared_focal_reason": pa.array([shared_record.get("reason") or ""] * count, pa.string()),
+    }
+    for name in SHARED_COLUMNS:
+        table = table.append_column(name, columns[name])
+    return table

@@ -1,0 +1,152 @@
+"""Shared focal length across photos of one camera (fr_torch.runtime.shared_focal), on synthetic segments."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from fr_torch import FREstimator
+from fr_torch.errors import FRInputError
+from fr_torch.runtime.shared_focal import (
+    SharedFocalSettings,
+    calibrate_shared,
+    combine_profiles,
+    log_ratio_grid,
+)
+from fr_torch.synthetic import random_rotation, synthetic_segments
+
+TRUE_F = 600.0
+ROOM_F = 420.0  # examples/room.png (examples/make_example.py)
+
+
+@pytest.fixture(scope="module")
+def estimator():
+    return FREstimator(mode="fast", reliability=None)
+
+
+@pytest.fixture(scope="module")
+def photos():
+    rng = np.random.default_rng(0)
+    return [synthetic_segments(TRUE_F, random_rotation(rng), seed=i, n_per_family=30)[0] for i in range(3)]
+
+
+def test_shared_focal_of_three_photos(estimator, photos):
+    shared = calibrate_shared(estimator, segments=photos, image_sizes=[(640, 480)] * 3, names=["a", "b", "c"])
+    assert shared.ok and shared.images == shared.images_used == 3
+    assert abs(shared.focal_px / TRUE_F - 1) < 0.02
+    assert 0 < shared.predicted_error_pct < 10
+    assert [r.image for r in shared.results] == ["a", "b", "c"]
+    assert all(r.ok and r.focal_px == pytest.approx(shared.focal_px) for r in shared.results)
+    record = json.dumps(shared.to_json(), allow_nan=False)
+    assert "predicted_error_pct" in record
+
+
+def test_bad_photos_do_not_drag(estimator, photos):
+    clutter = np.random.default_rng(5).uniform(0, 480, (80, 4))  # not Manhattan
+    empty = np.zeros((0, 4))
+    shared = calibrate_shared(estimator, segments=photos + [clutter, empty], image_sizes=[(640, 480)] * 5)
+    assert shared.ok and shared.images == 5 and shared.images_used == 4
+    assert abs(shared.focal_px / TRUE_F - 1) < 0.02
+    assert not shared.results[-1].ok and "no line segments" in shared.results[-1].reason
+
+
+def test_group_of_one_and_of_none(estimator, photos):
+    [alone] = estimator.calibrate_segments([photos[0]], [(640, 480)])
+    one = calibrate_shared(estimator, segments=[photos[0]], image_sizes=[(640, 480)])
+    assert one.ok and abs(one.focal_px / alone.focal_px - 1) < 0.02
+    none = calibrate_shared(estimator, segments=[np.zeros((0, 4)), np.full((3, 4), np.nan)],
+                            image_sizes=[(640, 480)] * 2)
+    assert not none.ok and none.focal_px is None and "no photo" in none.reason
+    assert [r.ok for r in none.results] == [False, False] and all(r.reason for r in none.results)
+    assert json.dumps(none.to_json(), allow_nan=False)
+
+
+def test_sizes_in_a_group(estimator, photos):
+    # a copy at twice the resolution and a portrait photo share f / long side
+    double = photos[1] * 2.0
+    portrait = synthetic_segments(TRUE_F, random_rotation(np.random.default_rng(9)), 480, 640, seed=9,
+                                  n_per_family=40)[0]
+    shared = calibrate_shared(estimator, segments=[photos[0], double, portrait],
+                              image_sizes=[(640, 480), (1280, 960), (480, 640)])
+    assert shared.ok and abs(shared.focal_px / TRUE_F - 1) < 0.02
+    assert shared.results[1].focal_px == pytest.approx(2 * shared.focal_px)
+    with pytest.raises(FRInputError, match="aspect ratio"):
+        calibrate_shared(estimator, segments=[photos[0], photos[1]], image_sizes=[(640, 480), (640, 360)])
+
+
+def test_combination_is_robust():
+    settings = SharedFocalSettings()
+    grid = log_ratio_grid((30.0, 120.0), 48)
+    truth = grid[20] + 0.3 * (grid[1] - grid[0])
+
+    def peaked(centre, width=0.3):
+        return -((grid - centre) / width) ** 2 * 1000.0  # objective units; W = 1000
+
+    lengths = np.full(6, 1000.0)
+    good = [peaked(truth) for _ in range(4)]
+    flat = np.zeros(len(grid))  # a photo that does not constrain f
+    wrong = peaked(grid[40], 0.05)  # a confidently wrong one
+    out = combine_profiles(grid, np.array(good + [flat, wrong]), lengths, None, settings)
+    assert abs(out.log_ratio - truth) < 0.01
+    assert out.used.all()
+    # without usable photos: nan, no exception; with only a prior: the prior's centre
+    empty = combine_profiles(grid, np.full((2, len(grid)), -np.inf), np.zeros(2), None, settings)
+    assert math.isnan(empty.log_ratio) and not empty.used.any()
+    only_prior = combine_profiles(grid, np.full((1, len(grid)), -np.inf), np.zeros(1), None, settings,
+                                  prior=(grid[10], 0.1))
+    assert only_prior.log_ratio == pytest.approx(grid[10], abs=1e-6)
+    # a photo predicted to be badly wrong weighs less
+    weighted = combine_profiles(grid, np.array([peaked(grid[15]), peaked(grid[25])]), lengths[:2],
+                                np.array([2.0, 40.0]), SharedFocalSettings(error_scale_pct=10.0))
+    assert weighted.log_ratio < 0.5 * (grid[15] + grid[25])
+
+
+def test_cli_shared_focal(tmp_path, capsys):
+    import shutil
+    from pathlib import Path
+
+    from fr_torch.cli.main import main
+
+    room = Path(__file__).resolve().parents[1] / "examples" / "room.png"  # rendered with f = ROOM_F
+    paths = [str(shutil.copy(room, tmp_path / f"view{i}.png")) for i in range(2)]
+    code = main(["calibrate", *paths, "--shared-focal", "--fast", "--no-reliability", "--workers", "0"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    records = [json.loads(line) for line in out.out.splitlines()]
+    assert len(records) == 2 and records[0]["shared_focal"] == records[1]["shared_focal"]
+    assert abs(records[0]["shared_focal"]["focal_px"] / ROOM_F - 1) < 0.04
+    assert records[0]["focal_px"] == pytest.approx(records[1]["focal_px"])
+    assert records[0]["focal_prior"] is None
+    assert main(["calibrate", *paths, "--shared-focal", "--focal", "500"]) == 2
+
+
+def test_batch_shared_focal_by(tmp_path):
+    import shutil
+    from pathlib import Path
+
+    import pandas as pd
+
+    from fr_torch.batch.jobs import run_batch
+
+    room = Path(__file__).resolve().parents[1] / "examples" / "room.png"
+    a, b, c = (shutil.copy(room, tmp_path / f"{name}.png") for name in ("a", "b", "c"))
+    manifest = tmp_path / "m.csv"
+    pd.DataFrame({"image": [str(a), str(tmp_path / "missing.png"), str(b), str(c)],
+                  "camera": ["c1", "c1", "c1", ""]}).to_csv(manifest, index=False)
+    options = {"estimator": {"mode": "fast"}, "principal_point": None, "focal_px": None, "reliability": False}
+    with pytest.raises(ValueError, match="local engine"):
+        run_batch([str(manifest)], tmp_path / "ray_out", options, engine="ray", progress=False,
+                  shared_focal_by="camera")
+    with pytest.raises(ValueError, match="no such manifest column"):
+        run_batch([str(manifest)], tmp_path / "bad_out", options, progress=False, shared_focal_by="cam")
+    summary = run_batch([str(manifest)], tmp_path / "out", options, progress=False, shared_focal_by="camera")
+    assert summary["processed"] == 4 and summary["failed"] == 1
+    table = pd.read_parquet(tmp_path / "out").set_index("image")
+    group = table.loc[[str(a), str(b)]]
+    assert group["shared_focal_ok"].all() and (group["shared_focal_images_used"] == 2).all()
+    assert group["focal_px"].iloc[0] == pytest.approx(group["focal_px"].iloc[1])
+    assert abs(group["shared_focal_px"].iloc[0] / ROOM_F - 1) < 0.04
+    missing = table.loc[str(tmp_path / "missing.png")]
+    assert not missing["ok"] and missing["shared_focal_ok"]  # its group has a value; it keeps its failure
+    single = table.loc[str(c)]  # an empty group value: a group of one
+    assert single["ok"] and single["shared_focal_images_used"] == 1
