@@ -18,9 +18,12 @@ from __future__ import annotations
 import math
 from typing import Any, Iterable, Sequence
 
+import pyarrow as pa
+
 from fr_torch.batch.table import _finite_or_none, records_to_table
 from fr_torch.batch.worker import BatchWorker, _failed
 from fr_torch.errors import FRInputError
+from fr_torch.runtime.shared_focal import shared_from_results
 
 SHARED_COLUMNS = ("shared_focal_ok", "shared_focal_px", "shared_focal_error_pct", "shared_focal_images_used",
                   "shared_focal_reason")
@@ -52,7 +55,6 @@ def group_rows(rows: Sequence[dict[str, Any]], column: str) -> list[list[dict[st
 
 def run_shared_groups(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, column: str) -> Iterable:
     """One Arrow table per group of ``rows`` (:func:`group_rows`), in group order."""
-
     if options.get("focal_px") is not None or any(_finite_or_none(row.get("focal_px")) is not None for row in rows):
         raise ValueError("--shared-focal-by estimates the focal length: it cannot be combined with --focal or a "
                          "manifest focal_px column")
@@ -65,10 +67,6 @@ def run_shared_groups(rows: Sequence[dict[str, Any]], options: dict[str, Any], e
 def calibrate_group(worker, rows: Sequence[dict[str, Any]]):
     """The Arrow table of one group's rows (input order): calibrated alone, then at the shared focal
     length; never raises for bad images or a refused group."""
-    import pyarrow as pa
-
-    from fr_torch.runtime.shared_focal import shared_from_results
-
     names = [str(row["image"]) for row in rows]
     inputs, failed = worker.read_inputs(names)
     shared_record = {"ok": False, "focal_px": None, "predicted_error_pct": None, "images_used": 0, "reason": ""}

@@ -13,7 +13,9 @@ import argparse
 import sys
 
 from fr_torch.errors import FRInputError
+from fr_torch.runtime.focal_prior import parse_focal_prior
 from fr_torch.runtime.pipeline import calibrate_paths
+from fr_torch.runtime.shared_focal import apply_focal_priors, shared_from_results
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,8 +32,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def focal_options(args: argparse.Namespace):
     """The parsed ``--focal-prior`` (a :class:`~fr_torch.runtime.focal_prior.FocalPriorOption` or None),
     checked against ``--focal``; FRInputError (one line) when they conflict or are malformed."""
-    from fr_torch.runtime.focal_prior import parse_focal_prior
-
     if getattr(args, "focal", None) is not None and (args.shared_focal or args.focal_prior):
         raise FRInputError("--focal fixes the focal length: it cannot be combined with --shared-focal or "
                            "--focal-prior (use --focal-prior PX,SIGMA% for a soft value)")
@@ -62,8 +62,6 @@ def run(args: argparse.Namespace, estimator, paths: list[str], batch_size: int, 
         emit) -> None:
     """Calibrate ``paths`` with the focal options of ``args``; ``emit(path, result, extra)`` prints
     one image's record (``extra``: the keys above), in input order."""
-    from fr_torch.runtime.shared_focal import apply_focal_priors, shared_from_results
-
     option = focal_options(args)
     if not args.shared_focal:
         for chunk, results in calibrate_paths(estimator, paths, batch_size, workers, None, principal_point):

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from types import SimpleNamespace
 from typing import Sequence
 
 import numpy as np
@@ -81,7 +82,6 @@ class SharedFocalSettings:
     results/shared_focal/tune_train.md), so it is off.
     ``kappa``: calibration factor of ``predicted_error_pct``.
     """
-
     grid_points: int = 48
     angle_grid: int = 4
     starts: int = 2
@@ -125,7 +125,6 @@ def focal_profiles(estimator, features, estimates: torch.Tensor, log_ratios: np.
         (B, K) float64: the length-weighted log-likelihood (objective units, without the estimator's
         focal prior) maximised over the rotation at each focal length; -inf where not finite.
     """
-
     likelihood, config = estimator.likelihood, estimator.search
     grid_config = replace(config, grid_points_per_dim=settings.angle_grid, top_l=settings.starts)
     device = features.weight.device
@@ -172,7 +171,6 @@ class CombinedFocal:
     its predicted 1-sigma error in percent (nan likewise); ``used``: (n,) bool, photos that entered;
     ``weights``: (n,) their weights; ``score``: (K,) the summed log-likelihood on the grid.
     """
-
     log_ratio: float
     predicted_error_pct: float
     used: np.ndarray
@@ -258,7 +256,6 @@ class SharedFocalResult:
     focal length known (a photo that failed alone keeps its failure).  ``focal_prior``: the prior
     that entered (:meth:`fr_torch.runtime.focal_prior.FocalPrior.to_json`) or None.
     """
-
     focal_px: float | None
     focal_ratio: float | None
     predicted_error_pct: float | None
@@ -289,7 +286,6 @@ def _mark_focal(result, predicted_error_pct: float, at_edge: bool) -> None:
     """A photo searched again at a combined focal length (in place): its predicted focal error becomes
     the combination's (when the result has predicted errors), and a focal length at the edge of the
     FOV range makes it unreliable."""
-
     if not result.ok:
         return
     if result.predicted_error is not None:
@@ -301,7 +297,6 @@ def _mark_focal(result, predicted_error_pct: float, at_edge: bool) -> None:
 
 def _search_estimates(results) -> torch.Tensor:
     """(n, 4) float64 [pan, pitch, roll, f] of ok results (the search's parametrisation)."""
-
     rotation = torch.as_tensor(np.stack([np.asarray(r.rotation, np.float64) for r in results]))
     angles = angles_from_search_rotation(rotation)
     focal = torch.tensor([float(r.focal_px) for r in results], dtype=torch.float64)
@@ -322,7 +317,6 @@ def check_group_sizes(sizes: Sequence[tuple[int, int]], names: Sequence[str]) ->
 def profile_results(estimator, results, settings: SharedFocalSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(log_ratios (K,), profiles (n, K), total segment lengths (n,)) of ok per-photo results that
     hold their segments (``result.segments`` in the result's pixels, principal point from its camera)."""
-
     log_ratios = log_ratio_grid(estimator.search.fov_range, settings.grid_points)
     if not results:
         return log_ratios, np.zeros((0, len(log_ratios))), np.zeros(0)
@@ -346,7 +340,7 @@ def with_estimator_prior(estimator, log_ratios: np.ndarray, profiles: np.ndarray
     likelihood = estimator.likelihood
     if not likelihood.params.focal_prior_weight or len(profiles) == 0:
         return profiles
-    from types import SimpleNamespace
+
 
     long_side = torch.as_tensor(np.asarray(long_side, np.float64))
     features = SimpleNamespace(weight=torch.as_tensor(np.asarray(total_length, np.float64))[:, None],
