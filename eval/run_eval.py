@@ -235,9 +235,16 @@ def build_meta(sample: Any, pp_mode: str, labelled: bool, known_focal: bool, dat
         height=int(sample.height),
         focal_px=float(sample.focal_px) if known_focal and sample.focal_px is not None else None,
         principal_point=pp,
-        segments=np.asarray(segments, dtype=np.float64) if labelled else None,
+        segments=np.asarray(segments, dtype=np.float64) if labelled else given_segments(sample),
         extra=extra,
     )
+
+
+def given_segments(sample: Any) -> np.ndarray | None:
+    """The segments a dataset without pixels gives every method (``extra["detected_segments"]``,
+    (N, 4) pixels, e.g. NYU-VP's own LSD segments), else None (the methods detect on the image)."""
+    given = (getattr(sample, "extra", None) or {}).get("detected_segments")
+    return None if given is None else np.asarray(given, dtype=np.float64).reshape(-1, 4)
 
 
 def _num(x) -> float:
