@@ -85,3 +85,38 @@ def test_zenith_error_and_families():
     for dataset, split in REPORTED:
         for method in ("fr", "fast-fr"):
             assert (dataset, split, method, setting_name(family_of(dataset)), "centre") in planned
+
+
+def test_lodo_reliability_scales_and_judgement():
+    """Out-of-family conformal scales and the held-out judgement on self-made records."""
+    import pandas as pd
+
+    from fr_eval.lodo_reliability import evaluate, family_scales
+    from fr_torch.reliability import ERROR_COLUMNS, MODEL_CUE_NAMES
+    from fr_torch.reliability_bounds import ReliabilityPromise
+
+    rng = np.random.default_rng(0)
+    n = 120
+    segments = np.round(np.exp(rng.uniform(np.log(3), np.log(80), n)))
+    difficulty = 30.0 / segments * np.exp(0.2 * rng.normal(size=n))
+    table = pd.DataFrame({"min_family_segments": segments, "grid_entropy": np.exp(rng.uniform(-10, 0, n)),
+                          "mean_log_likelihood": rng.normal(0, 0.3, n), "focal_prior_share": rng.uniform(0.01, 0.5, n),
+                          "roll_err_deg": 0.2 * difficulty, "tilt_err_deg": 0.5 * difficulty,
+                          "focal_err_pct": 3.0 * difficulty})
+    table["dataset"] = np.where(np.arange(n) < 60, "yud", "nyu-vp")
+    table["group"] = [f"g{i}" for i in range(n)]
+    scales = family_scales(table, "fast", 0.9)
+    assert set(scales) == {"roll_deg", "tilt_deg", "focal_pct"}
+    worst, per = scales["focal_pct"]
+    assert set(per) == {"yud", "nyu-vp"} and worst == max(per.values()) and 0 < worst < 10
+    pooled = family_scales(table, "fast", 0.9, rule="pooled")["focal_pct"][0]
+    assert pooled <= worst + 1e-12
+    predicted = table[list(ERROR_COLUMNS)].to_numpy() * 1.0  # a perfect predictor
+    predicted[0, 1] = np.nan  # a missing prediction is never reliable
+    table.loc[1, "tilt_err_deg"] = np.nan  # no known vertical: focal only
+    promise = ReliabilityPromise(limits={"focal_pct": 10.0, "tilt_deg": 3.0},
+                                 scales={"fast": {"focal_pct": 1.0, "tilt_deg": 1.0}})
+    out = evaluate(table, predicted, promise, "fast")
+    assert out["rho_focal"] == pytest.approx(1.0) and out["coverage_both"] == 100.0
+    assert out["top_quarter_ratio"] < 0.5 and 0 < out["reliable_n"] < n
+    assert MODEL_CUE_NAMES == ("min_family_segments", "grid_entropy", "mean_log_likelihood", "focal_prior_share")
