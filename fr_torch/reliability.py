@@ -350,7 +350,8 @@ class ReliabilityModel:
             if bounds is not None:
                 if given and "focal_pct" in bounds:
                     bounds["focal_pct"] = 0.0
-                result.error_bound = {"coverage": self.promise.coverage, **bounds,
+                result.error_bound = {"coverage": self.promise.coverage,  # None: no bound (missing cues)
+                                      **{k: (v if math.isfinite(v) else None) for k, v in bounds.items()},
                                       "limits": dict(self.promise.limits), "enforced": self.promise.enforce}
                 if not self.promise.enforce:
                     bounds = None  # reported only: `reliable` keeps the thresholds below

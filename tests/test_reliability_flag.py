@@ -100,6 +100,15 @@ def test_annotate_with_a_promise_sets_bounds_and_reliable(tmp_path):
     hard = _result([2.0, 2.0, -1.0, 1.0])
     reported.annotate_many([hard], mode="fast")
     assert hard.reliable and hard.error_bound["focal_pct"] > 10.0 and hard.error_bound["enforced"] is False
+    # missing cues: no bound (None in the JSON, never NaN) and not reliable under an enforced promise
+    (tmp_path / "reliability.json").write_text(json.dumps({"promise": {"limits": {"focal_pct": 10.0},
+                                                                       "scales": {"fast": {"focal_pct": 2.0}}}}))
+    strict = ReliabilityModel.load_default("fast", config_dir=tmp_path)
+    blind = _result([70.0, 1e-6, 0.5, 0.01])
+    blind.cues.pop("grid_entropy")
+    strict.annotate_many([blind], mode="fast")
+    assert blind.error_bound["focal_pct"] is None and not blind.reliable
+    assert "NaN" not in json.dumps(blind.to_json()["error_bound"])
     # an unreadable promise is a warning, not a crash
     (tmp_path / "reliability.json").write_text(json.dumps({"promise": {"coverage": 7}}))
     assert ReliabilityModel.load_default("fast", config_dir=tmp_path).promise is None
