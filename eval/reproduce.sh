@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability yud zind sota crops detectors bench
+# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors bench
 # (default: all, in this order: the reliability models are trained before the tables that use them).  Data root: $FR_DATA (default ../shared/data); generated views go
 # to $FR_CACHE (default data_local/).
 set -euo pipefail
@@ -10,7 +10,7 @@ FR=${FR:-.venv/bin/fr}
 CROP_SIZES=$(.venv/bin/python -c "from fr_eval.datasets.panoviews import YUD_CROP_SIZES; print(*YUD_CROP_SIZES)")
 export MPLBACKEND=${MPLBACKEND:-Agg}
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability yud zind sota crops detectors bench)
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
@@ -65,6 +65,13 @@ for step in "${steps[@]}"; do
         --report-dataset zind-fr --report-split test --compare-synthetic 300
       $FR train-reliability --dataset $T --split train --method fr --no-cache \
         --report-dataset zind-fr --report-split test ;;
+    lodo)  # Issue 35: leave-one-dataset-out protocol over YUD, ZInD-fR, NYU-VP and the YUD crops
+           # (results/cross_dataset/; per-image predictions cached in $FR_CACHE/lodo); the reliable
+           # promise's conformal scales go to configs/reliability.json (before the tables that use it)
+      .venv/bin/python -m fr_eval.lodo run
+      .venv/bin/python -m fr_eval.lodo table
+      .venv/bin/python -m fr_eval.lodo_reliability table
+      .venv/bin/python -m fr_eval.lodo_reliability promise --write ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)

@@ -58,7 +58,6 @@ import pandas as pd
 from fr_eval.bench import machine_description
 from fr_eval.datasets.registry import available_datasets, load_dataset
 from fr_eval.metrics import (
-    NA_PREFIX,
     estimate_quantities,
     failure_reason,
     image_errors,
@@ -71,7 +70,6 @@ from fr_eval.plots import distributions_figure, histogram_figure, safe_name
 from fr_eval.tables import (
     deviation_measure_summaries,
     parse_method_spec,
-    with_option,
     write_tables,
 )
 from tqdm import tqdm
@@ -86,7 +84,7 @@ from fr_torch.plugins.interface import (
     available_methods,
     get_calibrator,
 )
-from fr_torch.registry import split_method_list
+from fr_torch.registry import NA_PREFIX, split_method_list, with_option
 
 LABELLED_SUFFIX = "@labelled"
 ALL_METHODS = "all"
@@ -247,9 +245,16 @@ def build_meta(sample: Any, pp_mode: str, labelled: bool, known_focal: bool, dat
         height=int(sample.height),
         focal_px=float(sample.focal_px) if known_focal and sample.focal_px is not None else None,
         principal_point=pp,
-        segments=np.asarray(segments, dtype=np.float64) if labelled else None,
+        segments=np.asarray(segments, dtype=np.float64) if labelled else given_segments(sample),
         extra=extra,
     )
+
+
+def given_segments(sample: Any) -> np.ndarray | None:
+    """The segments a dataset without pixels gives every method (``extra["detected_segments"]``,
+    (N, 4) pixels, e.g. NYU-VP's own LSD segments), else None (the methods detect on the image)."""
+    given = (getattr(sample, "extra", None) or {}).get("detected_segments")
+    return None if given is None else np.asarray(given, dtype=np.float64).reshape(-1, 4)
 
 
 def _num(x) -> float:

@@ -57,8 +57,8 @@ def gt_angles(sample) -> tuple[float, float]:
 def calibrate_alone(estimator, samples, pp: str):
     """Per-photo fR results (segments kept), in sample order."""
     pps = [tuple(s.principal_point) for s in samples] if pp == "calibrated" else None
-    if "lsd_segments" in samples[0].extra:
-        return estimator.calibrate_segments([s.extra["lsd_segments"] for s in samples],
+    if "detected_segments" in samples[0].extra:
+        return estimator.calibrate_segments([s.extra["detected_segments"] for s in samples],
                                             [(s.width, s.height) for s in samples],
                                             names=[s.name for s in samples], principal_point=pps)
     return estimator.calibrate_images([str(s.image_path) for s in samples], names=[s.name for s in samples],

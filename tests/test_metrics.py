@@ -23,7 +23,6 @@ from fr_eval.tables import (
     parse_method_spec,
     to_latex,
     to_markdown,
-    with_option,
 )
 
 from fr_torch.core.camera import (
@@ -33,7 +32,7 @@ from fr_torch.core.camera import (
     rotation_from_angles,
 )
 from fr_torch.plugins.interface import CameraEstimate
-from fr_torch.registry import not_supplied
+from fr_torch.registry import not_supplied, with_option
 
 
 def rot_z(deg: float) -> np.ndarray:

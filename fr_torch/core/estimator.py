@@ -104,7 +104,8 @@ SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device m
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
 JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px", "hfov_deg", "principal_point",
              "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
-             "log_likelihood", "num_segments", "manhattan_fraction", "cues", "predicted_error", "runtime_s")
+             "log_likelihood", "num_segments", "manhattan_fraction", "cues", "predicted_error", "error_bound",
+             "runtime_s")
 
 
 @camera_record
@@ -137,6 +138,9 @@ class CalibrationResult:
     labels: np.ndarray | None = None  # (N,) 0, 1, 2 = Manhattan column (1 = vertical), 3 = background
     cues: dict[str, float] = field(default_factory=dict)
     predicted_error: dict[str, float] | None = None
+    # what `reliable` promises (fr_torch.core.reliability_bounds): {"coverage", "focal_pct", "tilt_deg" (the
+    # bounds), "limits": {...}}; None without a reliability promise
+    error_bound: dict[str, Any] | None = None
     # seconds per image: detect, grid (the k^4 grid, the focal sweep and the lattice passes), refine, cues, total
     runtime_s: dict[str, float] = field(default_factory=dict)
 

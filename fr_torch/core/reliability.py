@@ -121,6 +121,7 @@ from sklearn.decomposition import PCA
 from sklearn.model_selection import GroupKFold, KFold
 
 from fr_torch.core.likelihood import LikelihoodParams
+from fr_torch.core.reliability_bounds import ReliabilityPromise
 from fr_torch.resources import MODES, config_dir
 
 _config_dir = config_dir  # load_default has an argument of that name
@@ -228,6 +229,8 @@ class ReliabilityModel:
     k: int
     meta: dict[str, Any] = field(default_factory=dict)
     thresholds: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_THRESHOLDS))
+    # when set (and it has scales for the mode), `reliable` means the promise instead of the thresholds
+    promise: ReliabilityPromise | None = None
 
     def __post_init__(self) -> None:
         self.train_cues = np.asarray(self.train_cues, np.float64)
@@ -386,13 +389,29 @@ class ReliabilityModel:
             if given:
                 predicted["focal_pct"] = 0.0
             result.predicted_error = predicted
-            over = [f"{name.split('_')[0]} {predicted[name]:.1f}{' %' if name == 'focal_pct' else ' deg'} > "
-                    f"{limit:g}{' %' if name == 'focal_pct' else ' deg'}"
-                    for name, limit in self.thresholds.items()
-                    if not (predicted.get(name, math.nan) <= limit)]
+            bounds = self.promise.bounds(predicted, mode or mine) if self.promise is not None else None
+            if bounds is not None:
+                if given and "focal_pct" in bounds:
+                    bounds["focal_pct"] = 0.0
+                result.error_bound = {"coverage": self.promise.coverage,  # None: no bound (missing cues)
+                                      **{k: (v if math.isfinite(v) else None) for k, v in bounds.items()},
+                                      "limits": dict(self.promise.limits), "enforced": self.promise.enforce}
+                if not self.promise.enforce:
+                    bounds = None  # reported only: `reliable` keeps the thresholds below
+            if bounds is not None:
+                over = self.promise.violations(bounds)
+            else:
+                over = [f"{name.split('_')[0]} {predicted[name]:.1f}{' %' if name == 'focal_pct' else ' deg'} > "
+                        f"{limit:g}{' %' if name == 'focal_pct' else ' deg'}"
+                        for name, limit in self.thresholds.items()
+                        if not (predicted.get(name, math.nan) <= limit)]
             if over:
-                message = "predicted error above threshold: " + ", ".join(over)
-                if (not given and not predicted["focal_pct"] <= self.thresholds.get("focal_pct", math.inf)
+                message = ("predicted error above its limit: " if bounds is not None
+                           else "predicted error above threshold: ") + ", ".join(over)
+                focal_over = (not bounds.get("focal_pct", 0.0) <= self.promise.limits.get("focal_pct", math.inf)) \
+                    if bounds is not None \
+                    else not predicted["focal_pct"] <= self.thresholds.get("focal_pct", math.inf)
+                if (not given and focal_over
                         and result.cues.get("focal_prior_share", 0.0) >= PRIOR_SET_FOCAL_SHARE):
                     message += f"; {PRIOR_SET_FOCAL_HINT}"
                 result.reliable = False
@@ -417,13 +436,14 @@ class ReliabilityModel:
         return path
 
     @classmethod
-    def load(cls, path: str | Path, thresholds: dict | None = None) -> "ReliabilityModel":
+    def load(cls, path: str | Path, thresholds: dict | None = None,
+             promise: ReliabilityPromise | None = None) -> "ReliabilityModel":
         with np.load(Path(path), allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
         meta = json.loads(str(arrays["meta_json"]))
         return cls(arrays["train_cues"], arrays["train_errors"], arrays["feature_mean"],
                    arrays["feature_components"], arrays["feature_variance"], int(arrays["k"]), meta,
-                   dict(thresholds) if thresholds else load_thresholds())
+                   dict(thresholds) if thresholds else load_thresholds(), promise)
 
     @classmethod
     def load_default(cls, mode: str | None = None, config_dir: str | Path | None = None):
@@ -432,12 +452,18 @@ class ReliabilityModel:
         (or a file cannot be read: a warning goes to stderr)."""
         folder = Path(config_dir) if config_dir is not None else _config_dir()
         thresholds = load_thresholds(folder / "reliability.json")
+        try:
+            promise = ReliabilityPromise.from_config(folder / "reliability.json")
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            print(f"fr: warning: cannot read the reliability promise in {folder / 'reliability.json'}: {exc}",
+                  file=sys.stderr)
+            promise = None
         models = {}
         for m in ([mode] if mode else MODES):
             path = folder / f"reliability_{m}.npz"
             if path.is_file():
                 try:
-                    models[m] = cls.load(path, thresholds)
+                    models[m] = cls.load(path, thresholds, promise)
                 except (OSError, ValueError, KeyError) as exc:
                     print(f"fr: warning: cannot read reliability model {path}: {exc}", file=sys.stderr)
         if not models:
