@@ -17,6 +17,8 @@ from fr_torch.core.reliability import CUE_NAMES, TARGETS
 
 # Keys of the dict-valued result fields (struct columns); unknown keys are dropped.
 RUNTIME_KEYS = ("detect", "grid", "refine", "cues", "total")
+#: Bounded targets of ``error_bound`` (:mod:`fr_torch.core.reliability_bounds`).
+BOUND_KEYS = ("focal_pct", "tilt_deg")
 
 
 FLOAT_FIELDS = ("focal_px", "hfov_deg", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "log_likelihood",
@@ -44,6 +46,8 @@ def result_schema():
         ("manhattan_fraction", f64), ("segments_per_family", pa.list_(pa.int32())),
         ("cues", pa.struct([(k, f64) for k in CUE_NAMES])),
         ("predicted_error", pa.struct([(k, f64) for k in TARGETS])),
+        ("error_bound", pa.struct([("coverage", f64), *[(k, f64) for k in BOUND_KEYS],
+                                   ("limits", pa.struct([(k, f64) for k in BOUND_KEYS])), ("enforced", pa.bool_())])),
         ("runtime_s", pa.struct([(k, f64) for k in RUNTIME_KEYS])),
     ])
 
@@ -95,6 +99,13 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
         for key, keys in (("cues", CUE_NAMES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
             value = out[key]
             out[key] = None if not value else {k: _clean_float(value.get(k)) for k in keys}
+        bound = out["error_bound"]
+        if bound:
+            limits = bound.get("limits") or {}
+            out["error_bound"] = {"coverage": _clean_float(bound.get("coverage")),
+                                  **{k: _clean_float(bound.get(k)) for k in BOUND_KEYS},
+                                  "limits": {k: _clean_float(limits.get(k)) for k in BOUND_KEYS},
+                                  "enforced": bool(bound.get("enforced"))}
         clean.append(out)
     table = pa.Table.from_pylist(clean, schema=schema)
     for source, target, kind in extras:
