@@ -141,7 +141,7 @@ def test_components_match_opencv_labelling():
     flat = torch.from_numpy(np.flatnonzero(active))
     angle = torch.from_numpy(rng.uniform(-np.pi, np.pi, flat.numel())).float()
     bins_a, bins_b = _orientation_bins(angle, 4)
-    labels_a, labels_b = _components(flat, bins_a, bins_b, active.size, width)
+    labels_a, labels_b = _components(flat, bins_a, bins_b, width)
     for bins, labels in ((bins_a, labels_a), (bins_b, labels_b)):
         grid = np.full(active.size, -1)
         grid[flat.numpy()] = bins.numpy()

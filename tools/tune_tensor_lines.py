@@ -46,8 +46,9 @@ def main() -> None:
     parser.add_argument("--variant", action="append", required=True)
     parser.add_argument("--out", default="data_local/tune37")
     parser.add_argument("--limit", type=int, default=None)
+    parser.add_argument("--stride", type=int, default=1, help="every STRIDE-th sample only (a quick screen)")
     args = parser.parse_args()
-    samples = load_dataset(args.dataset, split=args.split)[: args.limit]
+    samples = load_dataset(args.dataset, split=args.split)[:: args.stride][: args.limit]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for variant in args.variant:
@@ -57,7 +58,7 @@ def main() -> None:
                                    dataset=args.dataset, progress=False)
             s = summarize(label, rows)
             ms = 1000 * float(np.median(detector.seconds))
-            line = {"dataset": args.dataset, "split": args.split, "variant": variant, "method": label,
+            line = {"dataset": args.dataset, "split": f"{args.split}/{args.stride}", "variant": variant, "method": label,
                     "n": s.n_images, "failures": s.failures, "det_ms": round(ms, 1),
                     **{f"{m}": round(s.mean[m], 3) for m in ("roll_err_deg", "tilt_err_deg", "focal_err_pct")},
                     **{f"{m}_se": round(s.se[m], 3) for m in ("roll_err_deg", "tilt_err_deg", "focal_err_pct")}}

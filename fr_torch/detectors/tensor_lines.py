@@ -18,11 +18,11 @@ that a whole batch of images is processed by the same tensor operations on any d
 4. **Voting** (Burns): each active pixel votes for the larger of its two regions; a region is
    kept when at least ``min_support`` of its pixels voted for it, and is formed by its voters.
 5. **Rectangle fit**: per region, the gradient-magnitude-weighted centroid and second moments
-   give the line direction (principal axis); the voters' extents along it give the end points
-   and across it the width.  A region is a segment when its length is at least ``min_length``
-   px, its width at most ``max_width`` px, its pixel density in the ``length x width``
-   rectangle at least ``min_density``, and its direction within ``max_angle_deg`` of the normal
-   to its bin's mean gradient direction.
+   give the line direction (principal axis) and the RMS distance of the pixels from the line
+   (the smaller eigenvalue); the voters' extents along it give the end points.  A region is a
+   segment when its length is at least ``min_length`` px, its RMS width at most
+   ``max_rms_width`` px, its pixels per px of length at least ``min_density``, and its
+   direction within ``max_angle_deg`` of the normal to its mean gradient direction.
 
 Coordinates: ``[x1, y1, x2, y2]`` pixels, x right, y down, origin at the centre of the top-left
 pixel (the project's convention, as LSD).  Segments of an image are sorted by decreasing length;
@@ -51,12 +51,12 @@ class TensorLinesConfig:
 
     sigma: float = 1.0              # Gaussian pre-smoothing (px); 0 = none
     grad_threshold: float = 5.0     # minimum gradient magnitude (grey levels per px)
-    nms: bool = False               # keep only maxima of the magnitude along the gradient
+    nms: bool = True                # keep only maxima of the magnitude along the gradient
     n_bins: int = 8                 # orientation bins over 360 deg (gradient polarity kept)
     min_support: float = 0.5        # share of a region's pixels that must vote for it
     min_length: float = 10.0        # px
-    max_width: float = 6.0          # px, widest accepted rectangle
-    min_density: float = 0.4        # region pixels / (length x width)
+    max_rms_width: float = 1.0      # px, largest weighted RMS distance of the pixels from the line
+    min_density: float = 0.5        # region pixels per px of length
     max_angle_deg: float = 30.0     # line direction vs the normal of the region's mean gradient
     max_segments: int = 1000        # per image, the longest kept
     cpu_threads: int | None = 1     # torch intra-op threads while detecting on the CPU (None: leave)
@@ -64,7 +64,7 @@ class TensorLinesConfig:
     def __post_init__(self):
         if self.n_bins < 2:
             raise ValueError(f"n_bins must be >= 2, got {self.n_bins}")
-        for name in ("sigma", "grad_threshold", "min_length", "max_width", "min_density"):
+        for name in ("sigma", "grad_threshold", "min_length", "max_rms_width", "min_density"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -148,24 +148,29 @@ class TensorLinesDetector:
         empty = (torch.zeros(batch, 1, 4, device=dev), torch.zeros(batch, 1, dtype=torch.bool, device=dev))
         if batch == 0 or height < 3 or width < 3:
             return empty
-        image = torch.nan_to_num(images[:, 0].float())
-        gx, gy, magnitude = _gradients(image, cfg.sigma)
-        active = magnitude > cfg.grad_threshold
+        image = images[:, 0]
+        if image.is_floating_point():
+            image = torch.nan_to_num(image.float())
+        elif image.dtype != torch.uint8 or dev.type != "cpu":                # OpenCV reads uint8
+            image = image.float()
+        gx, gy = _gradients(image, cfg.sigma)
+        squared = gx * gx + gy * gy                                         # squared magnitude
+        active = squared > cfg.grad_threshold ** 2
         active[:, :1] = active[:, -1:] = False                              # borders never active:
         active[:, :, :1] = active[:, :, -1:] = False                        # neighbours always exist
         flat = torch.nonzero(active.reshape(-1)).squeeze(1)                 # active pixel ids (P,)
         if flat.numel() == 0:
             return empty
-        gx, gy, magnitude = gx.reshape(-1), gy.reshape(-1), magnitude.reshape(-1)
+        gx, gy, squared = gx.reshape(-1), gy.reshape(-1), squared.reshape(-1)
         angle = torch.atan2(gy[flat], gx[flat])                             # gradient direction
         if cfg.nms:
-            keep = _local_maximum(magnitude, flat, angle, width)
+            keep = _local_maximum(squared, flat, angle, width)
             flat, angle = flat[keep], angle[keep]
             if flat.numel() == 0:
                 return empty
         bins_a, bins_b = _orientation_bins(angle, cfg.n_bins)
-        labels_a, labels_b = _components(flat, bins_a, bins_b, active.numel(), width)
-        return self._segments(flat, labels_a, labels_b, magnitude[flat], angle, batch, height, width)
+        labels_a, labels_b = _components(flat, bins_a, bins_b, width)
+        return self._segments(flat, labels_a, labels_b, squared[flat].sqrt(), angle, batch, height, width)
 
     def _segments(self, flat, labels_a, labels_b, w, a, batch, height, width):
         """Segments from the active pixels ``flat`` (P,) with region labels in the two partitions,
@@ -180,7 +185,7 @@ class TensorLinesDetector:
         region = torch.where(to_a, labels_a, n_a + labels_b)
         size = torch.cat([size_a, size_b])
         votes = torch.bincount(region, minlength=size.numel())
-        # A region of v pixels has density <= v / (length + 1) (width >= 1 px): fewer than
+        # A region of v voters has density v / (length + 1): fewer than
         # min_density * (min_length + 1) voters cannot make a segment.
         min_votes = max(2.0, cfg.min_density * (cfg.min_length + 1.0))
         kept_region = (votes.float() >= cfg.min_support * size.float()) & (votes.float() >= min_votes)
@@ -209,22 +214,20 @@ class TensorLinesDetector:
         sxy = sums[:, 5] / weight - mx * my
         theta = 0.5 * torch.atan2(2 * sxy, sxx - syy)
         ux, uy = torch.cos(theta), torch.sin(theta)
-        dx, dy = x - mx[region], y - my[region]
-        along = dx * ux[region] + dy * uy[region]
-        across = dy * ux[region] - dx * uy[region]
-        extents = torch.stack([along, -along, across, -across], 1)
-        extents = torch.full((n, 4), float("-inf"), device=dev).scatter_reduce_(
-            0, region[:, None].expand(-1, 4), extents, "amax")
+        # the smaller eigenvalue of the covariance: the weighted mean squared distance from the line
+        across_var = (0.5 * (sxx + syy) - torch.sqrt((0.25 * (sxx - syy) ** 2 + sxy * sxy))).clamp_min(0)
+        along = (x - mx[region]) * ux[region] + (y - my[region]) * uy[region]
+        extents = torch.full((n, 2), float("-inf"), device=dev).scatter_reduce_(
+            0, region[:, None].expand(-1, 2), torch.stack([along, -along], 1), "amax")
         t1, t0 = extents[:, 0], -extents[:, 1]
         owner = torch.zeros(n, dtype=torch.long, device=dev).scatter_(0, region, owner_pixel)
 
         length = t1 - t0
-        width_px = extents[:, 2] + extents[:, 3] + 1.0
-        density = count / ((length + 1.0) * width_px)
+        density = count / (length + 1.0)
         gcos, gsin = sums[:, 6], sums[:, 7]
         # |cos| of the angle between the line direction and the mean gradient direction
         normal_cos = (ux * gcos + uy * gsin).abs() / torch.hypot(gcos, gsin).clamp_min(1e-12)
-        good = ((length >= cfg.min_length) & (width_px <= cfg.max_width) & (density >= cfg.min_density)
+        good = ((length >= cfg.min_length) & (across_var <= cfg.max_rms_width ** 2) & (density >= cfg.min_density)
                 & (normal_cos <= math.sin(math.radians(cfg.max_angle_deg))))
         endpoints = torch.stack([mx + t0 * ux, my + t0 * uy, mx + t1 * ux, my + t1 * uy], 1)
         return _pad_by_owner(endpoints[good], length[good], owner[good], batch, cfg.max_segments)
@@ -260,67 +263,84 @@ def _smooth_1d(image: torch.Tensor, taps: torch.Tensor, dim: int) -> torch.Tenso
     return out
 
 
-def _smooth(image: torch.Tensor, sigma: float) -> torch.Tensor:
-    """(B, H, W) smoothed by the sampled Gaussian of ``sigma`` px, separable, replicated borders."""
-    taps = _gaussian_taps(sigma, image.device)
-    if image.device.type == "cpu":  # OpenCV's separable filter: same taps, ~10x faster than torch here
+def _gradients(image: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(gx, gy), each (B, H, W) float32, grey levels per px, of ``image`` (B, H, W) (uint8 or
+    float, finite): central differences of the image smoothed
+    by the sampled Gaussian of ``sigma`` px (separable, replicated borders; none for sigma 0).
+
+    On the CPU, OpenCV applies the smoothing and the difference as one separable filter per
+    direction (the same taps composed; ~10x faster than torch there).
+    """
+    taps = _gaussian_taps(sigma, image.device) if sigma > 0 else torch.ones(1, device=image.device)
+    if image.device.type == "cpu":
         import cv2
 
-        k = taps.numpy()
-        return torch.stack([torch.from_numpy(cv2.sepFilter2D(plane.numpy(), cv2.CV_32F, k, k,
-                                                             borderType=cv2.BORDER_REPLICATE))
-                            for plane in image.contiguous()])
-    return _smooth_1d(_smooth_1d(image, taps, 2), taps, 1)
-
-
-def _gradients(image: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(gx, gy, magnitude), each (B, H, W): central differences of the Gaussian-smoothed image."""
-    if sigma > 0:
-        image = _smooth(image, sigma)
+        smooth = taps.numpy()
+        derivative = np.convolve(smooth, [-0.5, 0.0, 0.5]).astype(np.float32)  # correlation taps
+        gx = np.empty(image.shape, np.float32)
+        gy = np.empty(image.shape, np.float32)
+        for b, plane in enumerate(image.contiguous().numpy()):
+            cv2.sepFilter2D(plane, cv2.CV_32F, derivative, smooth, dst=gx[b], borderType=cv2.BORDER_REPLICATE)
+            cv2.sepFilter2D(plane, cv2.CV_32F, smooth, derivative, dst=gy[b], borderType=cv2.BORDER_REPLICATE)
+        return torch.from_numpy(gx), torch.from_numpy(gy)
+    if taps.numel() > 1:
+        image = _smooth_1d(_smooth_1d(image, taps, 2), taps, 1)
     padded = F.pad(image[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
     gx = 0.5 * (padded[:, 1:-1, 2:] - padded[:, 1:-1, :-2])
     gy = 0.5 * (padded[:, 2:, 1:-1] - padded[:, :-2, 1:-1])
-    return gx, gy, torch.hypot(gx, gy)
+    return gx, gy
 
 
 def _local_maximum(magnitude: torch.Tensor, flat: torch.Tensor, angle: torch.Tensor, width: int) -> torch.Tensor:
-    """(P,) bool: the pixels ``flat`` (ids into the flattened (B, H, W) ``magnitude``, none on a
-    border) that are maxima of the magnitude along their gradient direction ``angle`` quantised
-    to 4 directions (Canny-style: >= the pixel ahead, > the pixel behind)."""
+    """(P,) bool: the pixels ``flat`` (ids into the flattened (B, H, W) ``magnitude``, or any
+    increasing function of it; none on a border) that are maxima of the magnitude along their
+    gradient direction ``angle`` quantised to 4 directions (Canny-style: >= the pixel ahead,
+    > the pixel behind)."""
     sector = torch.remainder(torch.round(angle / (math.pi / 4)), 4).long()
     steps = torch.tensor([1, width + 1, width, width - 1], device=flat.device)[sector]
     centre = magnitude[flat]
     return (centre >= magnitude[flat + steps]) & (centre > magnitude[flat - steps])
 
 
-def _components(flat: torch.Tensor, bins_a: torch.Tensor, bins_b: torch.Tensor, grid_size: int,
+def _components(flat: torch.Tensor, bins_a: torch.Tensor, bins_b: torch.Tensor,
                 width: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Region labels of the active pixels in the two orientation partitions.
 
-    ``flat`` (P,): ascending ids of the active pixels in the flattened (B, H, W) grid of
-    ``grid_size`` pixels, none on an image border; ``bins_a``, ``bins_b`` (P,): their bins.
+    ``flat`` (P,): ascending ids of the active pixels in the flattened (B, H, W) grid, none on
+    an image border; ``bins_a``, ``bins_b`` (P,): their bins.
     Active 8-neighbours in the same bin share a region.  Returns two (P,) long tensors of compact
     labels 0, 1, ... (one numbering per partition).
+
+    Runs of same-bin pixels along rows are the graph's nodes (consecutive in ``flat``); the
+    three lower neighbours link runs, one edge per run pair of consecutive pixels.
     """
     dev = flat.device
     count = flat.numel()
-    index = torch.full((grid_size,), -1, dtype=torch.long, device=dev)
-    index[flat] = torch.arange(count, device=dev)
-    sources, targets = [], []
-    for offset in (1, width - 1, width, width + 1):                    # the forward half of the 8
-        neighbour = index[flat + offset]
-        node = torch.nonzero(neighbour >= 0).squeeze(1)
-        other = neighbour[node]
-        same_a = bins_a[node] == bins_a[other]
-        same_b = bins_b[node] == bins_b[other]
-        sources += [node[same_a], node[same_b] + count]                # partition B: nodes P..2P-1
-        targets += [other[same_a], other[same_b] + count]
-    roots = _connected_roots(2 * count, torch.cat(sources), torch.cat(targets))
-    labels = []
-    for part in (roots[:count], roots[count:] - count):
-        is_root = part == torch.arange(count, device=dev)
-        labels.append((torch.cumsum(is_root, 0) - 1)[part])
-    return labels[0], labels[1]
+    bins = torch.stack([bins_a, bins_b])                                # (2, P)
+    # runs: a pixel joins the run of the previous active pixel when that is its left neighbour
+    joined = torch.zeros(2, count, dtype=torch.bool, device=dev)
+    joined[:, 1:] = ((flat[1:] - flat[:-1]) == 1) & (bins[:, 1:] == bins[:, :-1])
+    runs = torch.cumsum(~joined.reshape(-1), 0).view(2, count) - 1      # B's ids follow A's
+    n_runs = int(runs[1, -1]) + 1
+    # the lower neighbours (ids + width - 1, width, width + 1) are among the three active pixels
+    # that follow the first id >= id + width - 1
+    first = torch.searchsorted(flat, flat + (width - 1))
+    position = (first[None] + torch.arange(3, device=dev)[:, None]).clamp_max(count - 1).reshape(-1)
+    node = torch.arange(count, device=dev).repeat(3)
+    gap = flat[position] - flat[node]
+    adjacent = (gap >= width - 1) & (gap <= width + 1)
+    node, other = node[adjacent], position[adjacent]
+    source, target = runs[:, node], runs[:, other]                      # (2, E) run pairs
+    # the pair's runs have one bin each: one test per pair; repeats of the previous pair dropped
+    keep = bins[:, node] == bins[:, other]
+    keep[:, 1:] &= (source[:, 1:] != source[:, :-1]) | (target[:, 1:] != target[:, :-1])
+    roots = _connected_roots(n_runs, source[keep], target[keep])
+    root = roots[runs]                                                 # (2, P) smallest run id
+    is_root = torch.zeros(n_runs, dtype=torch.bool, device=dev)
+    is_root[root.reshape(-1)] = True
+    rank = torch.cumsum(is_root, 0) - 1
+    first_b = rank[int(runs[1, 0])]                                    # B's labels start here
+    return rank[root[0]], rank[root[1]] - first_b
 
 
 def _connected_roots(nodes: int, sources: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
