@@ -7,11 +7,20 @@ import torch
 
 from fr_torch.camera import rotation_from_angles
 from fr_torch.detectors.tensor_lines import (TensorLinesConfig, TensorLinesDetector, _components,
-                                             _orientation_bins)
+                                             _gaussian_taps, _gradients, _gradients_torch, _orientation_bins)
 from fr_torch.segments import available_detectors, get_detector
 from fr_torch.synthetic import camera_matrix, render_manhattan_room
 
 FOCAL, WIDTH, HEIGHT = 500.0, 320, 240
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Small tensors: one torch thread is faster, the more so on a busy machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -154,9 +163,50 @@ def test_components_match_opencv_labelling():
             assert len(pairs) == len(set(ours.tolist())) == len(set(theirs.tolist())) == count - 1
 
 
+def test_torch_gradients_match_the_cpu_filter(room):
+    """The gradient code used on a GPU (torch) equals the CPU's OpenCV filter inside the image."""
+    image, _ = room
+    batch = torch.from_numpy(np.stack([image, image[::-1].copy()]))
+    for sigma in (0.0, 1.0):
+        cpu = _gradients(batch, sigma)
+        taps = _gaussian_taps(sigma, "cpu") if sigma > 0 else torch.ones(1)
+        reference = _gradients_torch(batch.float(), taps)
+        for a, b in zip(cpu, reference):
+            assert float((a[:, 1:-1, 1:-1] - b[:, 1:-1, 1:-1]).abs().max()) < 1e-3
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu(room):
     image, _ = room
     cpu = TensorLinesDetector()(image)
     gpu = TensorLinesDetector(device="cuda")(image)
     assert abs(len(cpu) - len(gpu)) <= max(2, 0.02 * len(cpu))
+
+
+def test_calibrate_decoded_batch(room):
+    from fr_torch.device_pipeline import calibrate_decoded
+    from fr_torch.estimator import FREstimator
+
+    image, _ = room
+    blank = np.zeros_like(image)
+    results = calibrate_decoded(FREstimator(mode="fast"), TensorLinesDetector(),
+                                torch.from_numpy(np.stack([image, blank])))
+    assert len(results) == 2 and results[0].ok and not results[1].ok
+    assert abs(results[0].focal_px - FOCAL) / FOCAL < 0.1
+    assert "no line segments" in results[1].reason
+
+
+def test_decode_jpeg_batch(room):
+    try:
+        import torchvision.io  # noqa: F401
+    except Exception:  # noqa: BLE001 - missing or built for another torch
+        pytest.skip("no working torchvision")
+    import cv2
+
+    from fr_torch.detectors.tensor_lines import decode_jpeg_batch
+
+    image, _ = room
+    ok, encoded = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    decoded = decode_jpeg_batch([encoded.tobytes()] * 2)
+    assert len(decoded) == 2 and decoded[0].shape == (1, HEIGHT, WIDTH) and decoded[0].dtype == torch.uint8
+    assert np.abs(decoded[0][0].numpy().astype(int) - image.astype(int)).mean() < 3

@@ -57,6 +57,12 @@ def main() -> None:
             rows = evaluate_method(label, samples, calibrator=FRCalibrator(mode=mode, detector=detector),
                                    dataset=args.dataset, progress=False)
             s = summarize(label, rows)
+            safe = "".join(c if c.isalnum() or c in "-=." else "_" for c in variant)
+            keys = ("image", "failed", "roll_err_deg", "tilt_err_deg", "focal_err_pct")
+            with (out / f"rows_{args.dataset}_{args.split}_{args.stride}_{safe}_{label}.csv").open("w", newline="") as fh:
+                writer = csv.writer(fh)
+                writer.writerow(keys)
+                writer.writerows([[r.get(k) for k in keys] for r in rows])
             ms = 1000 * float(np.median(detector.seconds))
             line = {"dataset": args.dataset, "split": f"{args.split}/{args.stride}", "variant": variant, "method": label,
                     "n": s.n_images, "failures": s.failures, "det_ms": round(ms, 1),

@@ -162,12 +162,11 @@ class TensorLinesDetector:
         if flat.numel() == 0:
             return empty
         gx, gy, squared = gx.reshape(-1), gy.reshape(-1), squared.reshape(-1)
-        angle = torch.atan2(gy[flat], gx[flat])                             # gradient direction
         if cfg.nms:
-            keep = _local_maximum(squared, flat, angle, width)
-            flat, angle = flat[keep], angle[keep]
+            flat = flat[_local_maximum(squared, flat, gx[flat], gy[flat], width)]
             if flat.numel() == 0:
                 return empty
+        angle = torch.atan2(gy[flat], gx[flat])                             # gradient direction
         bins_a, bins_b = _orientation_bins(angle, cfg.n_bins)
         labels_a, labels_b = _components(flat, bins_a, bins_b, width)
         return self._segments(flat, labels_a, labels_b, squared[flat].sqrt(), angle, batch, height, width)
@@ -283,6 +282,12 @@ def _gradients(image: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.T
             cv2.sepFilter2D(plane, cv2.CV_32F, derivative, smooth, dst=gx[b], borderType=cv2.BORDER_REPLICATE)
             cv2.sepFilter2D(plane, cv2.CV_32F, smooth, derivative, dst=gy[b], borderType=cv2.BORDER_REPLICATE)
         return torch.from_numpy(gx), torch.from_numpy(gy)
+    return _gradients_torch(image.float(), taps)
+
+
+def _gradients_torch(image: torch.Tensor, taps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`_gradients` in torch operations (any device): ``image`` (B, H, W) float, ``taps``
+    the odd 1-D smoothing taps."""
     if taps.numel() > 1:
         image = _smooth_1d(_smooth_1d(image, taps, 2), taps, 1)
     padded = F.pad(image[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
@@ -291,13 +296,16 @@ def _gradients(image: torch.Tensor, sigma: float) -> tuple[torch.Tensor, torch.T
     return gx, gy
 
 
-def _local_maximum(magnitude: torch.Tensor, flat: torch.Tensor, angle: torch.Tensor, width: int) -> torch.Tensor:
+def _local_maximum(magnitude: torch.Tensor, flat: torch.Tensor, gx: torch.Tensor, gy: torch.Tensor,
+                   width: int) -> torch.Tensor:
     """(P,) bool: the pixels ``flat`` (ids into the flattened (B, H, W) ``magnitude``, or any
     increasing function of it; none on a border) that are maxima of the magnitude along their
-    gradient direction ``angle`` quantised to 4 directions (Canny-style: >= the pixel ahead,
-    > the pixel behind)."""
-    sector = torch.remainder(torch.round(angle / (math.pi / 4)), 4).long()
-    steps = torch.tensor([1, width + 1, width, width - 1], device=flat.device)[sector]
+    gradient ``(gx, gy)`` (P,) quantised to 4 directions, 45 deg apart (Canny-style: >= the
+    pixel ahead, > the pixel behind)."""
+    ax, ay = gx.abs(), gy.abs()
+    tan_half = math.tan(math.pi / 8)
+    diagonal = torch.where(gx * gy > 0, width + 1, width - 1)          # y grows downwards
+    steps = torch.where(ay <= tan_half * ax, 1, torch.where(ax <= tan_half * ay, width, diagonal))
     centre = magnitude[flat]
     return (centre >= magnitude[flat + steps]) & (centre > magnitude[flat - steps])
 
@@ -326,10 +334,9 @@ def _components(flat: torch.Tensor, bins_a: torch.Tensor, bins_b: torch.Tensor,
     # that follow the first id >= id + width - 1
     first = torch.searchsorted(flat, flat + (width - 1))
     position = (first[None] + torch.arange(3, device=dev)[:, None]).clamp_max(count - 1).reshape(-1)
-    node = torch.arange(count, device=dev).repeat(3)
-    gap = flat[position] - flat[node]
-    adjacent = (gap >= width - 1) & (gap <= width + 1)
-    node, other = node[adjacent], position[adjacent]
+    gap = flat[position] - flat.repeat(3)
+    pair = torch.nonzero((gap >= width - 1) & (gap <= width + 1)).squeeze(1)
+    node, other = pair % count, position[pair]
     source, target = runs[:, node], runs[:, other]                      # (2, E) run pairs
     # the pair's runs have one bin each: one test per pair; repeats of the previous pair dropped
     keep = bins[:, node] == bins[:, other]
@@ -395,8 +402,9 @@ def decode_jpeg_batch(data: Sequence[bytes], device: str | torch.device = "cpu")
     (``decode_jpeg`` runs on the GPU for a CUDA device).  Needs torchvision (optional)."""
     try:
         from torchvision.io import ImageReadMode, decode_jpeg
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise RuntimeError("decode_jpeg_batch needs torchvision (pip install torchvision)") from exc
+    except Exception as exc:  # noqa: BLE001 - missing, or built for another torch (RuntimeError)
+        raise RuntimeError(f"decode_jpeg_batch needs a torchvision built for this torch ({torch.__version__}): "
+                           f"{type(exc).__name__}: {exc}") from None
     tensors = [torch.frombuffer(bytearray(b), dtype=torch.uint8) for b in data]
     decoded = decode_jpeg(tensors, mode=ImageReadMode.GRAY, device=device)
     return list(decoded)
