@@ -162,18 +162,20 @@ class TensorLinesDetector:
         if flat.numel() == 0:
             return empty
         gx, gy, squared = gx.reshape(-1), gy.reshape(-1), squared.reshape(-1)
+        gx, gy = gx[flat], gy[flat]
         if cfg.nms:
-            flat = flat[_local_maximum(squared, flat, gx[flat], gy[flat], width)]
+            keep = _local_maximum(squared, flat, gx, gy, width)
+            flat, gx, gy = flat[keep], gx[keep], gy[keep]
             if flat.numel() == 0:
                 return empty
-        angle = torch.atan2(gy[flat], gx[flat])                             # gradient direction
+        angle = torch.atan2(gy, gx)                                         # gradient direction
         bins_a, bins_b = _orientation_bins(angle, cfg.n_bins)
         labels_a, labels_b = _components(flat, bins_a, bins_b, width)
-        return self._segments(flat, labels_a, labels_b, squared[flat].sqrt(), angle, batch, height, width)
+        return self._segments(flat, labels_a, labels_b, gx, gy, batch, height, width)
 
-    def _segments(self, flat, labels_a, labels_b, w, a, batch, height, width):
-        """Segments from the active pixels ``flat`` (P,) with region labels in the two partitions,
-        gradient magnitudes ``w`` and directions ``a`` (P,)."""
+    def _segments(self, flat, labels_a, labels_b, gx, gy, batch, height, width):
+        """Segments from the active pixels ``flat`` (P,) with region labels in the two partitions
+        and gradients ``gx``, ``gy`` (P,)."""
         cfg = self.config
         dev = flat.device
         n_a = int(labels_a.max()) + 1
@@ -189,7 +191,7 @@ class TensorLinesDetector:
         min_votes = max(2.0, cfg.min_density * (cfg.min_length + 1.0))
         kept_region = (votes.float() >= cfg.min_support * size.float()) & (votes.float() >= min_votes)
         keep = kept_region[region]
-        flat, region, w, a = flat[keep], region[keep], w[keep], a[keep]
+        flat, region, gx, gy = flat[keep], region[keep], gx[keep], gy[keep]
         if flat.numel() == 0:
             return (torch.zeros(batch, 1, 4, device=dev), torch.zeros(batch, 1, dtype=torch.bool, device=dev))
         renumber = torch.cumsum(kept_region, 0) - 1
@@ -202,20 +204,21 @@ class TensorLinesDetector:
         y = torch.div(within, width, rounding_mode="floor")
         x = (within - y * width).float()
         y = y.float()
-        # gradient-weighted sums -> centroid, second moments, mean gradient direction
-        columns = torch.stack([w, w * x, w * y, w * x * x, w * y * y, w * x * y,
-                               w * torch.cos(a), w * torch.sin(a), torch.ones_like(w)], 1)
+        w = torch.hypot(gx, gy)
+        # gradient-weighted sums -> centroid and mean gradient direction; then central moments
+        columns = torch.stack([w, w * x, w * y, gx, gy, torch.ones_like(w)], 1)
         sums = torch.zeros(n, columns.shape[1], device=dev).index_add_(0, region, columns)
-        weight, count = sums[:, 0], sums[:, 8]
+        weight, count = sums[:, 0], sums[:, 5]
         mx, my = sums[:, 1] / weight, sums[:, 2] / weight
-        sxx = sums[:, 3] / weight - mx * mx
-        syy = sums[:, 4] / weight - my * my
-        sxy = sums[:, 5] / weight - mx * my
+        dx, dy = x - mx[region], y - my[region]
+        central = torch.stack([w * dx * dx, w * dy * dy, w * dx * dy], 1)
+        moments = torch.zeros(n, 3, device=dev).index_add_(0, region, central) / weight[:, None]
+        sxx, syy, sxy = moments[:, 0], moments[:, 1], moments[:, 2]
         theta = 0.5 * torch.atan2(2 * sxy, sxx - syy)
         ux, uy = torch.cos(theta), torch.sin(theta)
         # the smaller eigenvalue of the covariance: the weighted mean squared distance from the line
         across_var = (0.5 * (sxx + syy) - torch.sqrt((0.25 * (sxx - syy) ** 2 + sxy * sxy))).clamp_min(0)
-        along = (x - mx[region]) * ux[region] + (y - my[region]) * uy[region]
+        along = dx * ux[region] + dy * uy[region]
         extents = torch.full((n, 2), float("-inf"), device=dev).scatter_reduce_(
             0, region[:, None].expand(-1, 2), torch.stack([along, -along], 1), "amax")
         t1, t0 = extents[:, 0], -extents[:, 1]
@@ -223,7 +226,7 @@ class TensorLinesDetector:
 
         length = t1 - t0
         density = count / (length + 1.0)
-        gcos, gsin = sums[:, 6], sums[:, 7]
+        gcos, gsin = sums[:, 3], sums[:, 4]
         # |cos| of the angle between the line direction and the mean gradient direction
         normal_cos = (ux * gcos + uy * gsin).abs() / torch.hypot(gcos, gsin).clamp_min(1e-12)
         good = ((length >= cfg.min_length) & (across_var <= cfg.max_rms_width ** 2) & (density >= cfg.min_density)
