@@ -50,7 +50,7 @@ class TensorLinesConfig:
     """Settings (lengths in pixels of the image as given; grey levels 0..255)."""
 
     sigma: float = 1.0              # Gaussian pre-smoothing (px); 0 = none
-    grad_threshold: float = 5.0     # minimum gradient magnitude (grey levels per px)
+    grad_threshold: float = 3.4     # minimum gradient magnitude (grey levels per px)
     nms: bool = True                # keep only maxima of the magnitude along the gradient
     n_bins: int = 8                 # orientation bins over 360 deg (gradient polarity kept)
     min_support: float = 0.5        # share of a region's pixels that must vote for it
