@@ -210,3 +210,25 @@ def test_decode_jpeg_batch(room):
     decoded = decode_jpeg_batch([encoded.tobytes()] * 2)
     assert len(decoded) == 2 and decoded[0].shape == (1, HEIGHT, WIDTH) and decoded[0].dtype == torch.uint8
     assert np.abs(decoded[0][0].numpy().astype(int) - image.astype(int)).mean() < 3
+
+
+def test_bench_detector_rows(room, tmp_path):
+    import cv2
+
+    from fr_eval import bench_detectors
+
+    class Progress:
+        def out_of_time(self, what):
+            return False
+
+        def update(self, n=1, section=None, row=None):
+            pass
+
+    path = tmp_path / "room.png"
+    cv2.imwrite(str(path), room[0])
+    rows = bench_detectors.detector_rows([("room", str(path))], 1, Progress())
+    assert len(rows) == 1 and rows[0]["lsd_ms"] > 0 and rows[0]["torch-lines_segments"] > 0
+    assert rows[0]["ratio"] == pytest.approx(rows[0]["torch-lines_ms"] / rows[0]["lsd_ms"])
+    assert bench_detectors.device_end_to_end([str(path)], "cpu", [1], 1, Progress()) == []  # CUDA only
+    text = "\n".join(bench_detectors.markdown_lines({"detectors": rows}))
+    assert "torch-lines / LSD" in text and "| room |" in text

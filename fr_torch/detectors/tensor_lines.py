@@ -5,7 +5,8 @@ Line-support regions grouped by orientation, in the manner of Burns, Hanson & Ri
 that a whole batch of images is processed by the same tensor operations on any device:
 
 1. **Gradients**: the grey image (0..255) is smoothed by a sampled Gaussian of ``sigma`` px
-   (separable, replicated borders) and differentiated by central differences; a pixel is
+   (separable, replicated borders; on the CPU by OpenCV with the same taps) and differentiated
+   by central differences; a pixel is
    *active* when its gradient magnitude exceeds ``grad_threshold`` (grey levels per px) and,
    with ``nms=True``, it is also a local maximum of the magnitude along the gradient
    (4 quantised directions, Canny-style).
@@ -13,8 +14,8 @@ that a whole batch of images is processed by the same tensor operations on any d
    into ``n_bins`` bins twice, the second partition shifted by half a bin, so that a line whose
    direction lies on a bin boundary of one partition lies mid-bin in the other.
 3. **Connected components**: in each partition, active 8-neighbours in the same bin belong to
-   one region.  On the GPU (or with ``components="torch"``) by label propagation with pointer
-   jumping; on the CPU by OpenCV's ``connectedComponents`` per bin (same regions, faster).
+   one region.  Computed on the sparse active pixels as a graph (row runs as nodes, links to
+   the row below as edges) by min-label propagation with hooking and pointer jumping.
 4. **Voting** (Burns): each active pixel votes for the larger of its two regions; a region is
    kept when at least ``min_support`` of its pixels voted for it, and is formed by its voters.
 5. **Rectangle fit**: per region, the gradient-magnitude-weighted centroid and second moments
