@@ -872,7 +872,7 @@ def run(args: argparse.Namespace) -> int:
              + ("cpu" in sections) * (tp_runs * len(modes) * len(batches) + ("fr" in modes) * len(batches) + 2)
              + len(mem_settings) + ("scaling" in sections) * (len(seg_counts) + len(grid_sizes))
              + ("parallel" in sections) * 2 * len(modes) * len(counts)
-             + ("detectors" in sections) * (len(images) + len(gpu) * len(modes) * 3))
+             + ("detectors" in sections) * (len(images) + len(devices[1:]) * len(modes) * 3))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     budget = args.budget_s if args.budget_s is not None else (150.0 if device.startswith("cuda") else 0.0)
@@ -897,13 +897,13 @@ def run(args: argparse.Namespace) -> int:
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         for mode in modes:
             profiles.append(profile_table(dev, outside_batch, n_seg_tp, out, progress, mode))
+    for dev in devices[1:] if "detectors" in sections else ():  # JPEG bytes to results on the GPU
+        device_e2e += bench_detectors.device_end_to_end(jpegs, dev, device_batches[:3], min(repeats, 3), progress,
+                                                        modes)
     if "latency" in sections:
         e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
     if "detectors" in sections:
         detectors = bench_detectors.detector_rows(images, repeats, progress)
-        for dev in gpu:
-            device_e2e += bench_detectors.device_end_to_end(jpegs, dev, device_batches[:3], min(repeats, 3), progress,
-                                                            modes)
     for row in e2e:
         row["grid_floor_ms"] = _grid_floor_ms(row, ns)
     if "parallel" in sections:
