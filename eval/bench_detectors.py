@@ -50,16 +50,17 @@ def detector_rows(images: list[tuple[str, str]], repeats: int, progress) -> list
 def device_end_to_end(paths: list[str], device: str, batch_sizes, repeats: int, progress,
                       modes=("fast", "fr")) -> list[dict]:
     """Images/s from JPEG bytes to results on ``device`` (CUDA only; [] elsewhere), per mode and
-    batch size; the batch repeats ``paths`` (same-size JPEGs) to the batch size."""
+    batch size; the batch repeats ``paths`` (same-size images; other formats are JPEG-encoded,
+    quality 95, before timing) to the batch size."""
     import torch
 
-    if not str(device).startswith("cuda") or not torch.cuda.is_available():
+    if not paths or not str(device).startswith("cuda") or not torch.cuda.is_available():
         return []
     from fr_torch.device_pipeline import calibrate_decoded
     from fr_torch.detectors.tensor_lines import TensorLinesDetector, decode_jpeg_batch
     from fr_torch.estimator import FREstimator
 
-    data = [Path(p).read_bytes() for p in paths]
+    data = [_jpeg_bytes(p) for p in paths]
     detector = TensorLinesDetector(device=device)
     rows = []
     for mode in modes:
@@ -91,6 +92,19 @@ def device_end_to_end(paths: list[str], device: str, batch_sizes, repeats: int, 
             rows.append(row)
             progress.update(1, "device_end_to_end", row)
     return rows
+
+
+def _jpeg_bytes(path: str) -> bytes:
+    """The file's bytes if it is a JPEG, else the image encoded as JPEG (quality 95)."""
+    raw = Path(path).read_bytes()
+    if raw[:2] == b"\xff\xd8":
+        return raw
+    import cv2
+
+    ok, encoded = cv2.imencode(".jpg", cv2.imread(path, cv2.IMREAD_COLOR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    if not ok:
+        raise ValueError(f"{path}: cannot encode as JPEG")
+    return encoded.tobytes()
 
 
 def markdown_lines(report: dict) -> list[str]:

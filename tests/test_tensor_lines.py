@@ -181,6 +181,24 @@ def test_cuda_matches_cpu(room):
     cpu = TensorLinesDetector()(image)
     gpu = TensorLinesDetector(device="cuda")(image)
     assert abs(len(cpu) - len(gpu)) <= max(2, 0.02 * len(cpu))
+    long_cpu, long_gpu = cpu[lengths(cpu) > 40], gpu[lengths(gpu) > 40]
+    assert abs(lengths(long_cpu).sum() - lengths(long_gpu).sum()) < 0.02 * lengths(long_cpu).sum()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_batch_stays_on_device_and_calibrates(room):
+    from fr_torch.device_pipeline import calibrate_decoded
+    from fr_torch.estimator import FREstimator
+
+    image, _ = room
+    detector = TensorLinesDetector(device="cuda")
+    batch = torch.from_numpy(np.stack([image, image[::-1].copy(), np.zeros_like(image)])).cuda()[:, None]
+    segments, mask = detector.detect_batch(batch)
+    assert segments.is_cuda and mask.is_cuda and not mask[2].any()
+    single, single_mask = detector.detect_batch(batch[:1])
+    torch.testing.assert_close(segments[0][mask[0]], single[0][single_mask[0]])
+    results = calibrate_decoded(FREstimator(mode="fast", device="cuda"), detector, batch)
+    assert results[0].ok and abs(results[0].focal_px - FOCAL) / FOCAL < 0.1 and not results[2].ok
 
 
 def test_calibrate_decoded_batch(room):
