@@ -67,6 +67,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from fr_eval import bench_detectors
 
 from fr_torch.cli.options import add_device_arguments
 from fr_torch.runtime.workers import usable_cores
@@ -74,7 +75,7 @@ from fr_torch.runtime.workers import usable_cores
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "results" / "bench"
 STAGES = ("detect", "grid", "refine", "cues", "total")
-SECTIONS = ("device", "latency", "parallel", "cpu", "memory", "scaling")  # --sections, in running order
+SECTIONS = ("device", "latency", "detectors", "parallel", "cpu", "memory", "scaling")  # --sections, in running order
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -101,7 +102,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(SearchConfig.compile_search; its compilation time is reported beside)")
     parser.add_argument("--sections", default=",".join(SECTIONS), metavar="S,S,...",
                         help="what to measure (default all): device = throughput, outside-search work and "
-                             "profile on the --device GPU; latency = end to end per photo; parallel = CPU "
+                             "profile on the --device GPU; latency = end to end per photo; detectors = LSD vs "
+                             "torch-lines per photo on the CPU (and JPEG-to-result on a GPU); parallel = CPU "
                              "threads vs worker processes; cpu = CPU throughput, outside-search work and "
                              "profile; memory; scaling = time against segments and grid size")
     parser.add_argument("--from-jsonl", type=Path, default=None, metavar="JSONL",
@@ -637,6 +639,7 @@ def _markdown(report: dict) -> str:
                   "had measured when it ended.", ""]
     if report["end_to_end"]:
         lines += _latency_lines(report)
+    lines += bench_detectors.markdown_lines(report)
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
               "| device | mode | search | batch | segments | images/s | ms/image | peak memory (MB) |",
               "|---|---|---|---|---|---|---|---|"]
@@ -771,7 +774,8 @@ def report_from_jsonl(path: Path) -> dict:
             "end_to_end": by.get("end_to_end", []), "throughput": by.get("throughput", []),
             "memory": by.get("memory", []), "scaling": scale if scale["segments"] or scale["grid"] else {},
             "parallel": by.get("parallel", []), "outside_search": by.get("outside_search", []),
-            "grid_kernel": by.get("grid_kernel", []), "profiles": [], "skipped": [],
+            "grid_kernel": by.get("grid_kernel", []), "detectors": by.get("detectors", []),
+            "device_end_to_end": by.get("device_end_to_end", []), "profiles": [], "skipped": [],
             "budget_s": machine.get("budget_s", 0.0), "sections": [], "from_jsonl": str(path)}
 
 
@@ -871,7 +875,8 @@ def run(args: argparse.Namespace) -> int:
              + len(gpu) * (tp_runs * len(modes) * len(device_batches) + tp_runs + 1 + len(modes))
              + ("cpu" in sections) * (tp_runs * len(modes) * len(batches) + ("fr" in modes) * len(batches) + 2)
              + len(mem_settings) + ("scaling" in sections) * (len(seg_counts) + len(grid_sizes))
-             + ("parallel" in sections) * 2 * len(modes) * len(counts))
+             + ("parallel" in sections) * 2 * len(modes) * len(counts)
+             + ("detectors" in sections) * (len(images) + len(devices[1:]) * len(modes) * 3))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     budget = args.budget_s if args.budget_s is not None else (150.0 if device.startswith("cuda") else 0.0)
@@ -882,6 +887,8 @@ def run(args: argparse.Namespace) -> int:
     ns = _transcendental_ns("cpu")
     progress.update(0, "transcendental", {"ns_per_element": ns})
     tp, profiles, outside, e2e, parallel, mem, scale, kernels = [], [], [], [], [], [], {}, []
+    detectors, device_e2e = [], []
+    jpegs = [path for label, path in images if label.startswith("YUD")] or [images[0][1]]  # same size
     outside_batch = 16 if quick else 1024
     # A GPU figure first (the budget may cut the rest), then CPU latency, throughput, scaling.
     for dev in gpu:
@@ -894,8 +901,13 @@ def run(args: argparse.Namespace) -> int:
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         for mode in modes:
             profiles.append(profile_table(dev, outside_batch, n_seg_tp, out, progress, mode))
+    for dev in devices[1:] if "detectors" in sections else ():  # JPEG bytes to results on the GPU
+        device_e2e += bench_detectors.device_end_to_end(jpegs, dev, device_batches[:3], min(repeats, 3), progress,
+                                                        modes)
     if "latency" in sections:
         e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
+    if "detectors" in sections:
+        detectors = bench_detectors.detector_rows(images, repeats, progress)
     for row in e2e:
         row["grid_floor_ms"] = _grid_floor_ms(row, ns)
     if "parallel" in sections:
@@ -918,7 +930,7 @@ def run(args: argparse.Namespace) -> int:
     report = {"machine": machine_description(device), "command": command, "quick": quick, "repeats": repeats,
               "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale,
               "parallel": parallel, "outside_search": [r for r in outside if r],
-              "grid_kernel": [r for r in kernels if r],
+              "grid_kernel": [r for r in kernels if r], "detectors": detectors, "device_end_to_end": device_e2e,
               "profiles": [p for p in profiles if p], "skipped": progress.skipped,
               "budget_s": budget, "sections": sorted(sections, key=SECTIONS.index)}
     write_report(report, out)

@@ -118,11 +118,7 @@ def synthetic_records(count: int, mode: str, seed: int = 0, batch_size: int = 8,
     from tqdm import tqdm
 
     from fr_torch.runtime.estimator import FREstimator
-    from fr_torch.synthetic import (
-        random_rotation,
-        render_manhattan_room,
-        synthetic_segments,
-    )
+    from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
     rng = np.random.default_rng(seed)
     estimator = FREstimator(mode=mode, reliability=None, profile_gap=mode == "fr")  # the raw sanity flag and cues

@@ -53,10 +53,14 @@ for step in "${steps[@]}"; do
         $FR eval --dataset yud-crop-$s --split test \
           --methods "fr,fr[range=paper],fast-fr,lee2009,simon2018,prior" --out results/yud-crop/$s
       done ;;
-    detectors)  # Issue "detectors": LSD vs MCMLSD (paper's Table 3)
+    detectors)  # Issue "detectors": LSD vs MCMLSD (paper's Table 3); issue 37: LSD vs torch-lines
       for d in yud zind-fr; do
         $FR eval --dataset $d --split test --no-plots --out results/detectors/$d \
           --methods "fr,fr[detector=mcmlsd],fast-fr,fast-fr[detector=mcmlsd]"
+      done
+      for d in yud zind-fr $(printf 'yud-crop-%s ' $CROP_SIZES); do
+        $FR eval --dataset $d --split test --no-plots --out results/detectors/torch-lines/$d \
+          --methods "fr,fr[detector=torch-lines],fast-fr,fast-fr[detector=torch-lines]"
       done ;;
     reliability)  # Issue "reliability": models shipped in configs/, tables in results/reliability/;
                   # train splits of ZInD-fR, YUD and the YUD crops (the dataset step builds them)

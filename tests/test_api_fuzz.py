@@ -26,11 +26,7 @@ from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.detectors.registry import get_detector
 from fr_torch.plugins.interface import get_calibrator
 from fr_torch.registry import Registry
-from fr_torch.synthetic import (
-    random_rotation,
-    render_manhattan_room,
-    synthetic_segments,
-)
+from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
 SIZE = (640, 480)
 

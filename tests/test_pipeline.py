@@ -19,11 +19,7 @@ from fr_torch.runtime.pipeline import (
     calibrate_stream,
     iter_detections,
 )
-from fr_torch.synthetic import (
-    random_rotation,
-    render_manhattan_room,
-    synthetic_segments,
-)
+from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
 
 def _same(a, b):
