@@ -117,8 +117,6 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-from sklearn.decomposition import PCA
-from sklearn.model_selection import GroupKFold, KFold
 
 from fr_torch.core.likelihood import LikelihoodParams
 from fr_torch.core.reliability_bounds import ReliabilityPromise
@@ -257,6 +255,9 @@ class ReliabilityModel:
 
         ``groups`` (n,): images of one group (panorama, scene) stay in one fold.
         """
+        # Training only: importing scikit-learn would add about 1.5 s to every command's start.
+        from sklearn.decomposition import PCA
+        from sklearn.model_selection import GroupKFold, KFold
 
         cues = np.asarray(cues, np.float64)
         errors = np.asarray(errors, np.float64)
