@@ -51,7 +51,7 @@ from tqdm import tqdm
 
 from fr_torch.batch.inputs import collect_inputs, extra_columns
 from fr_torch.batch.ray import run_ray
-from fr_torch.batch.shared import run_shared_groups
+from fr_torch.batch.shared import run_shared_groups, shared_groups
 from fr_torch.batch.table import PartWriter, records_to_table
 from fr_torch.batch.worker import CRASH_ENV, BatchWorker, _failed, options_device
 from fr_torch.runtime.device import DevicePolicy
@@ -75,7 +75,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
     ``shared_focal_by``: a manifest column; the rows of each of its values share one focal length
-    (:mod:`fr_torch.batch.shared`; local engine only).
+    (:mod:`fr_torch.batch.shared`; either engine).
     """
 
     device = options_device(options)
@@ -108,10 +108,12 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
                file=sys.stderr)
     try:
         if todo:
-            if shared_focal_by:
-                if engine != "local":
-                    raise ValueError("--shared-focal-by runs on the local engine only (not yet on Ray)")
+            if shared_focal_by and engine == "local":
                 tables = run_shared_groups(todo, options, extras, shared_focal_by)
+            elif shared_focal_by and engine == "ray":
+                tables = run_ray(todo, options, extras, batch_size, workers, address=address,
+                                 threads_per_worker=threads_per_worker, gpus_per_worker=gpus_per_worker,
+                                 groups=shared_groups(todo, options, shared_focal_by))
             elif engine == "local":
                 tables = _run_local(todo, options, extras, batch_size, workers, policy)
             elif engine == "ray":

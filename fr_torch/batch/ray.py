@@ -15,6 +15,9 @@ import os
 import pickle
 from typing import Any, Iterator, Sequence
 
+import pyarrow as pa
+
+from fr_torch.batch.shared import calibrate_group
 from fr_torch.batch.worker import CRASH_ENV, BatchWorker, options_device
 from fr_torch.runtime.device import DevicePolicy
 
@@ -26,6 +29,16 @@ class RayBatchWorker(BatchWorker):
     def __call__(self, batch):
         rows = [pickle.loads(blob) for blob in batch.column("row").to_pylist()]
         return self.calibrate_rows(rows)
+
+
+class RayGroupWorker(BatchWorker):
+    """A :class:`BatchWorker` that calibrates whole groups with a shared focal length
+    (:func:`fr_torch.batch.shared.calibrate_group`): each item's ``group`` column holds one group's
+    manifest rows, pickled."""
+
+    def __call__(self, batch):
+        groups = [pickle.loads(blob) for blob in batch.column("group").to_pylist()]
+        return pa.concat_tables([calibrate_group(self, rows) for rows in groups])
 
 
 def init_ray(address: str | None, num_cpus: int | None):
@@ -48,8 +61,13 @@ def init_ray(address: str | None, num_cpus: int | None):
 
 def run_ray(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, batch_size: int, workers: int | None,
             address: str | None = None, threads_per_worker: int | None = None,
-            gpus_per_worker: float | None = None) -> Iterator:
-    """Yield one Arrow table per finished batch (in completion order), computed by Ray Data."""
+            gpus_per_worker: float | None = None, groups: Sequence[Sequence[dict[str, Any]]] | None = None
+            ) -> Iterator:
+    """Yield one Arrow table per finished batch (in completion order), computed by Ray Data.
+
+    ``groups``: instead of batches of ``batch_size`` rows, each group of rows is one item, searched
+    with a shared focal length by one actor (``fr batch --shared-focal-by``; ``rows`` is then unused).
+    """
     threads = threads_per_worker or 1
     started = init_ray(address, num_cpus=workers * threads if workers else None)
     import ray
@@ -66,10 +84,15 @@ def run_ray(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, bat
         gpus = 0.0
         if not DevicePolicy.parse(options_device(options)).on_cpu:
             gpus = 1.0 if gpus_per_worker is None else float(gpus_per_worker)
-        items = [{"image": str(row["image"]), "row": pickle.dumps(row)} for row in rows]
+        if groups is not None:
+            items = [{"image": str(group[0]["image"]), "group": pickle.dumps(list(group))} for group in groups]
+            worker_class, batch_size = RayGroupWorker, 1
+        else:
+            items = [{"image": str(row["image"]), "row": pickle.dumps(row)} for row in rows]
+            worker_class = RayBatchWorker
         dataset = ray.data.from_items(items)
         results = dataset.map_batches(
-            RayBatchWorker, batch_size=batch_size, batch_format="pyarrow",
+            worker_class, batch_size=batch_size, batch_format="pyarrow",
             compute=ray.data.ActorPoolStrategy(size=workers), num_cpus=threads, num_gpus=gpus,
             fn_constructor_kwargs={"options": options, "extras": extras, "threads": threads,
                                    "crash": os.environ.get(CRASH_ENV)})

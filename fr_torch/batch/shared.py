@@ -1,9 +1,10 @@
 """``fr batch --shared-focal-by COLUMN``: the rows of each value of a manifest column (a camera id)
 share one focal length (:func:`fr_torch.runtime.shared_focal.shared_from_results`).
 
-Groups are searched one after another in this process, with one estimator (on a GPU a group is
-one batch); each group is written as one Arrow table, so a group is in the output completely or
-not at all (resume skips whole groups).  Rows whose group value is empty (null, NaN, "") are each a
+Local engine: groups are searched one after another in this process, with one estimator (on a GPU
+a group is one batch).  Ray engine (:func:`fr_torch.batch.ray.run_ray` with ``groups``): each group
+is one item of the Ray dataset, searched by one actor.  Each group is written as one Arrow table,
+so a group is in the output completely or not at all (resume skips whole groups).  Rows whose group value is empty (null, NaN, "") are each a
 group of one (calibrated alone).  Known focal lengths (``--focal``, a manifest ``focal_px``
 column) cannot be combined with it.
 
@@ -53,12 +54,18 @@ def group_rows(rows: Sequence[dict[str, Any]], column: str) -> list[list[dict[st
     return list(groups.values()) + singles
 
 
-def run_shared_groups(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, column: str) -> Iterable:
-    """One Arrow table per group of ``rows`` (:func:`group_rows`), in group order."""
+def shared_groups(rows: Sequence[dict[str, Any]], options: dict[str, Any], column: str) -> list[list[dict]]:
+    """The groups of ``rows`` (:func:`group_rows`); ValueError (one line) when a focal length is
+    given (``--focal`` or a manifest ``focal_px`` column): a shared one is estimated."""
     if options.get("focal_px") is not None or any(_finite_or_none(row.get("focal_px")) is not None for row in rows):
         raise ValueError("--shared-focal-by estimates the focal length: it cannot be combined with --focal or a "
                          "manifest focal_px column")
-    groups = group_rows(rows, column)
+    return group_rows(rows, column)
+
+
+def run_shared_groups(rows: Sequence[dict[str, Any]], options: dict[str, Any], extras, column: str) -> Iterable:
+    """One Arrow table per group of ``rows`` (:func:`group_rows`), in group order, in this process."""
+    groups = shared_groups(rows, options, column)
     worker = BatchWorker(options, extras)
     for group in groups:
         yield calibrate_group(worker, group)

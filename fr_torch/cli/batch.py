@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                             "focal_px column wins)")
     parser.add_argument("--shared-focal-by", default=None, metavar="COLUMN",
                         help="manifest column (e.g. a camera id): the rows of each value share one focal length "
-                             "(docs/shared-focal.md; local engine, groups searched in this process)")
+                             "(docs/shared-focal.md; each group is searched by one process or Ray actor)")
 
 
 def run(args: argparse.Namespace) -> int:
