@@ -1,5 +1,5 @@
 """``python -m fr_eval COMMAND ...``: the ``fr`` command line with the harness commands (installed
-copies; ``fr`` itself finds them through entry points, also in a checkout run with ``PYTHONPATH``)."""
+copies; ``fr`` itself finds them through the installation's entry points)."""
 import sys
 
 from fr_eval.commands import COMMANDS

@@ -2,17 +2,14 @@
 
 The single source is the repository's top-level ``configs/`` folder.  A wheel ships it as the
 package ``fr_torch.configs`` (``package-dir`` in ``pyproject.toml``), so an installed ``fr`` finds
-it from any working directory; a source checkout on ``PYTHONPATH`` (not installed) reads the
-folder beside ``fr_torch/``.  Every reader goes through :func:`config_dir`.
+it from any working directory; an editable install (``pip install -e .``) maps it to the
+folder itself.  Every reader goes through :func:`config_dir`.
 """
 from __future__ import annotations
 
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
-
-#: The estimator's modes (fR, Fast-fR); shipped settings and models may differ per mode.
-MODES = ("fr", "fast")
 
 
 @lru_cache(maxsize=1)
@@ -21,11 +18,7 @@ def config_dir() -> Path:
 
     Wheels install unpacked (never zipped), so this is a real folder on disk.
     """
-    try:
-        folder = resources.files("fr_torch.configs")
-    except ModuleNotFoundError:  # source checkout that is not installed
-        return Path(__file__).resolve().parents[1] / "configs"
-    return Path(str(folder))
+    return Path(str(resources.files("fr_torch.configs")))
 
 
 def config_path(name: str) -> Path:

@@ -70,9 +70,10 @@ from fr_torch.core.camera import (
     focal_from_hfov,
     intrinsics,
 )
+from fr_torch.core.config import Mode
 from fr_torch.core.fov import FovRange
 from fr_torch.core.segments import SegmentBatch
-from fr_torch.resources import MODES, config_dir
+from fr_torch.resources import config_dir
 
 MEASURES = ("a", "b", "c", "d", "e")
 MODELS = ("mixture", "nomixture")
@@ -255,12 +256,12 @@ class LikelihoodParams:
                     number(block.get("flat_halfwidth", 0.0), f"{where}.flat_halfwidth", 0.0, 3.0, low_inclusive=True))
 
         settings = {None: prior_settings(focal_prior, "focal_prior")}
-        for name in MODES:  # every mode's overrides are checked, whichever mode asks
+        for name in map(str, Mode):  # every mode's overrides are checked, whichever mode asks
             overrides = focal_prior.get(name, {})
             if not isinstance(overrides, dict):
                 fail(f"focal_prior.{name} must be an object of overrides for mode {name!r}")
             settings[name] = prior_settings(dict(focal_prior, **overrides), f"focal_prior.{name}")
-        gamma, prior_hfov, pseudo, flat = settings[mode if mode in MODES else None]
+        gamma, prior_hfov, pseudo, flat = settings[str(mode) if mode in set(Mode) else None]
         total = vertical + 2 * horizontal + background
         return cls(measure=measure, scale_vertical=scale_v, scale_horizontal=scale_h, focal_prior_weight=gamma,
                    focal_prior_hfov_deg=prior_hfov, focal_prior_pseudo_length=pseudo, focal_prior_flat_halfwidth=flat,

@@ -118,9 +118,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fr_torch.core.config import Mode
 from fr_torch.core.likelihood import LikelihoodParams
 from fr_torch.core.reliability_bounds import ReliabilityPromise
-from fr_torch.resources import MODES, config_dir
+from fr_torch.resources import config_dir
 
 _config_dir = config_dir  # load_default has an argument of that name
 
@@ -460,7 +461,7 @@ class ReliabilityModel:
                   file=sys.stderr)
             promise = None
         models = {}
-        for m in ([mode] if mode else MODES):
+        for m in ([mode] if mode else [str(m) for m in Mode]):
             path = folder / f"reliability_{m}.npz"
             if path.is_file():
                 try:

@@ -1,7 +1,7 @@
 """Two-stage search for (f, R): a k^4 grid, then batched refinement of the best l grid points.
 
 Stage 1 scores every grid hypothesis (pan x pitch x roll x focal, k values each, cell centres
-of the ranges; focal spaced uniformly in log f between f(hfov_max) and f(hfov_min) by default) as
+of the ranges; focal spaced uniformly in log f over the FOV range by default) as
 one batched tensor computation, chunked so that at most ``max_chunk_elements`` per-segment
 deviations exist at once.  Each of the best ``top_l`` grid points gains a second start, its best
 point along its focal ridge (:func:`sweep_focal`: the vertical VP, the best-determined, held
@@ -11,8 +11,8 @@ around each, keep the best), so refinement starts within 1/27 of a grid cell of 
 point instead of half a cell.  Stage 2 refines these starts of every image together
 with ``torch.optim`` (Adam on box-normalised parameters, projected back into the box after every
 step), focal length included (the MATLAB release pins f to its grid value; we refine it
-continuously, as the paper does).  ``fr`` mode runs ``refine_iterations_fr`` steps with a decaying step size, ``fast`` mode
-``refine_iterations_fast`` (10).  Each hypothesis' update depends only on its own gradient, so a
+continuously, as the paper does).  each mode runs its ``refine_iterations`` (fR 100 with a decaying step size, Fast-fR
+10; :data:`fr_torch.core.config.MODE_PRESETS`).  Each hypothesis' update depends only on its own gradient, so a
 batch gives the same answer as images one by one.
 
 Speed and memory (same math; see also :mod:`fr_torch.core.likelihood`):
