@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -211,14 +212,20 @@ def _time_commands(commands: Sequence[list[str]], env: dict) -> list[float]:
     procs = [subprocess.Popen(c, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env) for c in commands]
     walls = [0.0] * len(procs)
     pending = set(range(len(procs)))
-    while pending:
-        for i in list(pending):
-            if procs[i].poll() is not None:
-                walls[i] = time.perf_counter() - start
-                pending.discard(i)
-                if procs[i].returncode != 0:
-                    raise RuntimeError(f"fr calibrate failed: {procs[i].stderr.read().strip()[-300:]}")
-        time.sleep(0.01)
+    try:
+        while pending:
+            for i in list(pending):
+                if procs[i].poll() is not None:
+                    walls[i] = time.perf_counter() - start
+                    pending.discard(i)
+                    if procs[i].returncode != 0:
+                        raise RuntimeError(f"fr calibrate failed: {procs[i].stderr.read().strip()[-300:]}")
+            time.sleep(0.01)
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
     return walls
 
 
@@ -295,6 +302,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     paths = [p for p in args.images.split(",") if p]
     if args.action == "probe":
         return _probe_main(paths)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # stop the probes and the neighbour too
     split = lambda text: [v for v in text.split(",") if v]  # noqa: E731
     modes, kinds, policies = split(args.modes), split(args.kinds), split(args.policies)
     side = [int(v) for v in split(args.side)]
