@@ -22,7 +22,7 @@ search).  ``policy`` is the ``FR_THREADS`` value of the probes (``auto``, ``torc
 ``fr bench`` runs :func:`contention_rows` as its ``contention`` section.  For a report::
 
     python -m fr_eval.contention measure --modes fast,fr --kinds segments,images \\
-        --policies auto,torch --side 2,4 --rounds 3 --passes 3 --images P1.jpg,P2.jpg,...
+        --policies auto,torch --side 2 --command-side 2,4 --rounds 3 --passes 3 --images P1.jpg,P2.jpg,...
 """
 from __future__ import annotations
 
@@ -295,6 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="segments, images (in a probe process) and/or command (whole fr calibrate runs)")
     parser.add_argument("--policies", default="auto", help="FR_THREADS values to compare, e.g. auto,torch")
     parser.add_argument("--side", default="2", help="numbers of processes side by side, e.g. 2,4")
+    parser.add_argument("--command-side", default=None, help="the same for whole commands (default --side)")
     parser.add_argument("--passes", type=int, default=3)
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--json", type=Path, default=None, help="also write the rows to this JSON file")
@@ -306,6 +307,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     split = lambda text: [v for v in text.split(",") if v]  # noqa: E731
     modes, kinds, policies = split(args.modes), split(args.kinds), split(args.policies)
     side = [int(v) for v in split(args.side)]
+    command_side = [int(v) for v in split(args.command_side)] if args.command_side else side
 
     class _Print:
         def update(self, n, section, row):
@@ -318,11 +320,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             for row in contention_rows(paths, modes, probe_kinds, policies, side, args.passes, 1, _Print()):
                 rows.append(dict(row, round=round_index))
         if "command" in kinds:
-            for row in command_runs(paths, modes, policies, side, 1, _Print()):
+            for row in command_runs(paths, modes, policies, command_side, 1, _Print()):
                 rows.append(dict(row, round=round_index))
         if args.json:
             args.json.write_text(json.dumps(rows, indent=1))
-    print("\n".join(summary_lines(rows, side)))
+    if probe_kinds:
+        print("\n".join(summary_lines([r for r in rows if r["kind"] != "fr calibrate"], side)) + "\n")
+    if "command" in kinds:
+        print("\n".join(summary_lines([r for r in rows if r["kind"] == "fr calibrate"], command_side)))
     return 0
 
 

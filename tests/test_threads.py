@@ -188,3 +188,15 @@ def test_estimator_searches_within_the_policy(monkeypatch):
     before = torch.get_num_threads()
     [result] = est.calibrate_segments([seg], [(640, 480)])
     assert seen == [1] and result.ok and torch.get_num_threads() == before
+
+
+def test_contention_summary_table():
+    """fr bench's contention table: medians over rounds per mode, kind and policy."""
+    from fr_eval.contention import summary_lines
+
+    rows = [{"mode": "fast", "kind": "segments", "policy": "auto", "idle_s": t, "busy_s": 1.5 * t, "busy_ratio": 1.5,
+             "side2_s": 1.2 * t, "side2_throughput": 1.6, "load_before": load}
+            for t, load in ((0.04, 0.3), (0.05, 1.2), (0.06, 0.8))]
+    lines = summary_lines(rows, (2,))
+    assert len(lines) == 3 and lines[0].count("|") == lines[1].count("|") == lines[2].count("|")
+    assert "| fast | segments | auto | 0.050 | 0.075 | **1.50x** | 0.060 | **1.60x** | 3 | 0.3-1.2 |" == lines[2]
