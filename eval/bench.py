@@ -27,7 +27,12 @@ and ``<out>/scaling.png`` (default ``results/bench``):
    image), so on a CPU it is an upper bound of the host's share.
 7. **Where the time goes**: a torch profiler table (top ops by self time) of one batch, per device
    (on a GPU per mode), in ``<out>/profile_<device>_<mode>.txt`` and summarised in bench.md.
-8. **The grid kernel alone** (on a GPU): stage 1 of 1024 images, eager and with ``--compile``
+8. **Contention** (CPU): seconds per photo, one photo per call, given segments and end to end, in
+   fresh processes with the commands' thread policy (``FR_THREADS``, default ``auto``): idle, beside
+   a busy neighbour (a pure-Python spin loop in a subprocess started and stopped here), as a ratio
+   to idle, and two processes side by side (their photos/s together over one alone's)
+   (:mod:`fr_eval.contention`; docs/cpu-threads.md).
+9. **The grid kernel alone** (on a GPU): stage 1 of 1024 images, eager and with ``--compile``
    compiled, as deviations per second and the fraction of the card's FP32 peak they amount to
    (:data:`FLOPS_PER_DEVIATION`, :data:`GPU_FP32_PEAK`).
 
@@ -75,7 +80,7 @@ from fr_torch.runtime.workers import usable_cores
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "results" / "bench"
 STAGES = ("detect", "grid", "refine", "cues", "total")
-SECTIONS = ("device", "latency", "detectors", "parallel", "cpu", "memory", "scaling")  # --sections, in running order
+SECTIONS = ("device", "latency", "detectors", "parallel", "cpu", "memory", "scaling", "contention")  # --sections, in running order
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -105,7 +110,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "profile on the --device GPU; latency = end to end per photo; detectors = LSD vs "
                              "torch-lines per photo on the CPU (and JPEG-to-result on a GPU); parallel = CPU "
                              "threads vs worker processes; cpu = CPU throughput, outside-search work and "
-                             "profile; memory; scaling = time against segments and grid size")
+                             "profile; memory; scaling = time against segments and grid size; contention = "
+                             "per-photo time idle vs beside a busy neighbour vs 2 processes side by side")
     parser.add_argument("--from-jsonl", type=Path, default=None, metavar="JSONL",
                         help="measure nothing: write bench.md / bench.json / the figures to --out from the rows of "
                              "an earlier run's bench.jsonl (one that was cut short, say)")
@@ -143,7 +149,7 @@ def machine_description(device: str) -> dict:
     import torch
 
     info = {"cpu": _cpu_model(), "cores": os.cpu_count(), "usable_cores": usable_cores(), "torch": torch.__version__,
-            "threads": torch.get_num_threads(), "device": device, "python": platform.python_version(),
+            "threads": torch.get_num_threads(), "fr_threads": os.environ.get("FR_THREADS", "auto"), "device": device, "python": platform.python_version(),
             "platform": platform.platform()}
     try:
         info["load_average"] = [round(x, 2) for x in os.getloadavg()]
@@ -173,7 +179,7 @@ def _segments(n: int, seed: int = 0) -> np.ndarray:
     return seg[:n]
 
 
-def _estimator(mode: str, device: str = "cpu", k: int | None = None, compile_search: bool = False,
+def _estimator(mode: str, device="cpu", k: int | None = None, compile_search: bool = False,
                reliability: bool = True):
     """The estimator of a bench row; ``reliability=False``: no reliability stage (and so, in fR, no
     ``focal_profile_gap`` cue: ``fr batch --no-reliability``)."""
@@ -405,9 +411,11 @@ def parallel_scaling(counts, batch: int, n_segments: int, repeats: int, progress
     pool = [_segments(n_segments, seed=i) for i in range(8)]
     segs = [pool[i % len(pool)] for i in range(batch)]
     sizes = [(640, 480)] * batch
+    from fr_torch.runtime.device import DevicePolicy
+
     rows, threads_before = [], torch.get_num_threads()
     for mode in modes:
-        est = _estimator(mode)
+        est = _estimator(mode, DevicePolicy.resolve("cpu", threads="torch"))  # exactly T threads, whatever the load
         for count in counts:
             for kind in ("threads", "workers"):
                 if progress.out_of_time(f"parallel {mode} {kind} {count}"):
@@ -724,6 +732,16 @@ def _markdown(report: dict) -> str:
         lines += [f"| `{_short_op(o['op'])}` | {o['self_ms']:.1f} | {100 * o['share']:.0f} % | {o['calls']} |"
                   for o in p["top_ops"]]
         lines.append("")
+    if report.get("contention"):
+        from fr_eval.contention import summary_lines
+
+        lines += ["## Under contention (CPU, seconds per photo, one photo per call)", "",
+                  "Fresh processes with the commands' thread policy (`FR_THREADS` = "
+                  f"{m.get('fr_threads', 'auto')}): idle; beside a busy neighbour (a pure-Python spin loop in a "
+                  "subprocess keeping one core busy); 2 such processes side by side (photos/s of the 2 together "
+                  "over one alone's). `segments` = given segments, `images` = decode + LSD + search. "
+                  "docs/cpu-threads.md.", ""]
+        lines += summary_lines(report["contention"], (2,)) + [""]
     if report.get("skipped"):
         lines += [f"Skipped (time budget {report['budget_s']:.0f} s): " + ", ".join(report["skipped"]) + ".", ""]
     return "\n".join(lines)
@@ -774,7 +792,7 @@ def report_from_jsonl(path: Path) -> dict:
             "end_to_end": by.get("end_to_end", []), "throughput": by.get("throughput", []),
             "memory": by.get("memory", []), "scaling": scale if scale["segments"] or scale["grid"] else {},
             "parallel": by.get("parallel", []), "outside_search": by.get("outside_search", []),
-            "grid_kernel": by.get("grid_kernel", []), "detectors": by.get("detectors", []),
+            "grid_kernel": by.get("grid_kernel", []), "detectors": by.get("detectors", []), "contention": by.get("contention", []),
             "device_end_to_end": by.get("device_end_to_end", []), "profiles": [], "skipped": [],
             "budget_s": machine.get("budget_s", 0.0), "sections": [], "from_jsonl": str(path)}
 
@@ -870,13 +888,15 @@ def run(args: argparse.Namespace) -> int:
     if args.no_memory or "memory" not in sections:
         mem_settings = []
     modes = ("fast",) if quick else ("fast", "fr")
+    contention_kinds = ("segments",) if quick else ("segments", "images")
     tp_runs = 2 if args.compile else 1  # eager, and compiled with --compile
     steps = (("latency" in sections) * tp_runs * len(modes) * len(images)
              + len(gpu) * (tp_runs * len(modes) * len(device_batches) + tp_runs + 1 + len(modes))
              + ("cpu" in sections) * (tp_runs * len(modes) * len(batches) + ("fr" in modes) * len(batches) + 2)
              + len(mem_settings) + ("scaling" in sections) * (len(seg_counts) + len(grid_sizes))
              + ("parallel" in sections) * 2 * len(modes) * len(counts)
-             + ("detectors" in sections) * (len(images) + len(devices[1:]) * len(modes) * 3))
+             + ("detectors" in sections) * (len(images) + len(devices[1:]) * len(modes) * 3)
+             + ("contention" in sections) * len(modes) * len(contention_kinds))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     budget = args.budget_s if args.budget_s is not None else (150.0 if device.startswith("cuda") else 0.0)
@@ -924,13 +944,20 @@ def run(args: argparse.Namespace) -> int:
     mem = memory(mem_settings, args.threads, progress)
     if "scaling" in sections:
         scale = scaling(seg_counts, grid_sizes, "cpu", repeats, progress)
+    contention = []
+    if "contention" in sections and not progress.out_of_time("contention"):
+        from fr_eval.contention import contention_rows
+
+        contention = contention_rows([path for _, path in images], modes, contention_kinds,
+                                     (os.environ.get("FR_THREADS") or "auto",), (2,), passes=1 if quick else 3,
+                                     progress=progress)
     progress.close()
     tmp.cleanup()
 
     report = {"machine": machine_description(device), "command": command, "quick": quick, "repeats": repeats,
               "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale,
               "parallel": parallel, "outside_search": [r for r in outside if r],
-              "grid_kernel": [r for r in kernels if r], "detectors": detectors, "device_end_to_end": device_e2e,
+              "grid_kernel": [r for r in kernels if r], "detectors": detectors, "contention": contention, "device_end_to_end": device_e2e,
               "profiles": [p for p in profiles if p], "skipped": progress.skipped,
               "budget_s": budget, "sections": sorted(sections, key=SECTIONS.index)}
     write_report(report, out)

@@ -19,7 +19,7 @@ import pyarrow as pa
 
 from fr_torch.batch.shared import calibrate_group
 from fr_torch.batch.worker import CRASH_ENV, BatchWorker, options_device
-from fr_torch.runtime.device import DevicePolicy
+from fr_torch.runtime.device import THREADS_ENV, DevicePolicy
 
 
 class RayBatchWorker(BatchWorker):
@@ -42,8 +42,9 @@ class RayGroupWorker(BatchWorker):
 
 
 def init_ray(address: str | None, num_cpus: int | None):
-    """Join ``address`` (or ``$RAY_ADDRESS``), else start a quiet local cluster with ``num_cpus``.
-    Returns True when this call started Ray (the caller then shuts it down)."""
+    """Join ``address`` (or ``$RAY_ADDRESS``), else start a quiet local cluster with ``num_cpus``;
+    ``$FR_THREADS``, when set, goes to every actor.  Returns True when this call started Ray (the
+    caller then shuts it down)."""
     try:
         import ray
     except ImportError:
@@ -52,6 +53,8 @@ def init_ray(address: str | None, num_cpus: int | None):
         return False
     address = address or os.environ.get("RAY_ADDRESS") or None
     quiet = dict(logging_level=logging.WARNING, configure_logging=True, log_to_driver=True)
+    if THREADS_ENV in os.environ:  # the actors' thread policy (DevicePolicy.threads), on every node
+        quiet["runtime_env"] = {"env_vars": {THREADS_ENV: os.environ[THREADS_ENV]}}
     if address:
         ray.init(address=address, **quiet)
     else:

@@ -55,7 +55,9 @@ def add_device_arguments(parser: argparse.ArgumentParser, workers_help: str | No
     """``--device`` (default ``default``) and, when their help text is given, ``--workers`` /
     ``--batch-size``."""
     group = parser.add_argument_group("device")
-    group.add_argument("--device", default=default, help=device_help or f"cpu, cuda or cuda:N (default {default})")
+    group.add_argument("--device", default=default, help=(device_help or f"cpu, cuda or cuda:N (default {default})")
+                       + "; CPU threads per search: $FR_THREADS = auto (default: the cores other processes leave "
+                         "free), torch or N (docs/cpu-threads.md)")
     if workers_help:
         group.add_argument("--workers", type=int, default=None, metavar="N", help=workers_help)
     if batch_help:

@@ -5,20 +5,38 @@ cannot run fR) and derives every CPU-vs-GPU decision from it: how many worker pr
 gets, how they split the work (whole images on a CPU; decoding + detection ahead of one searching
 process on a GPU), the default batch size, and how many intra-op threads torch and OpenCV use.
 
+Threads on a CPU (:attr:`DevicePolicy.threads`, from ``FR_THREADS`` unless given; docs/cpu-threads.md):
+
+* ``"auto"`` (default): every search call (:meth:`DevicePolicy.search_threads`) runs with one
+  intra-op thread per core that other processes leave free (:mod:`fr_torch.runtime.cpuload`), at
+  least one and at most torch's thread count in effect (a command sets it to the usable cores,
+  :meth:`DevicePolicy.apply_threads`; worker processes to one); torch's setting is restored on return.
+  An OpenMP parallel region waits for its slowest thread, so a thread whose core another process
+  holds stalls every op (4-5x slower on 2 cores with one busy neighbour); one thread fewer does not.
+* ``N`` (a positive integer): every search call runs with at most N threads, whatever the load.
+* ``"torch"``: fR never changes torch's thread count (beyond :meth:`DevicePolicy.apply_threads`'s
+  cap at the usable cores).
+
 Example::
 
     policy = DevicePolicy.resolve("cpu")
     policy.default_workers(images=500), policy.default_batch_size    # e.g. 2, 16
+    DevicePolicy.resolve("cpu", threads=1)                            # one thread, whatever the load
 """
 from __future__ import annotations
 
+import contextlib
+import math
+import os
 from dataclasses import dataclass
+from typing import Iterator, Union
 
 import cv2
 import torch
 
 from fr_torch.core.checks import resolve_device
 from fr_torch.errors import FRInputError
+from fr_torch.runtime import cpuload
 from fr_torch.runtime.workers import usable_cores
 
 #: Images per worker below which a worker pool does not pay for its start-up (about a second).
@@ -31,6 +49,48 @@ MAX_DEFAULT_DETECTION_WORKERS = 16
 #: Default images searched together per device type: a GPU needs large batches to fill it; on a
 #: CPU a batch of 16 already amortises the per-call work and keeps the first results coming early.
 DEFAULT_BATCH_SIZE = {"cpu": 16, "cuda": 256}
+#: Environment variable holding the default :attr:`DevicePolicy.threads` (``auto``, ``torch`` or N).
+THREADS_ENV = "FR_THREADS"
+AUTO_THREADS = "auto"
+TORCH_THREADS = "torch"
+#: :attr:`DevicePolicy.threads`: ``"auto"``, ``"torch"`` or a fixed positive count.
+ThreadSetting = Union[str, int]
+
+
+def parse_threads(value: "str | int | None", source: str = THREADS_ENV) -> ThreadSetting:
+    """The thread setting of ``value`` (``auto``, ``torch``, a positive integer; None or empty =
+    ``auto``); FRInputError (one line, naming ``source``) otherwise."""
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return AUTO_THREADS
+    if isinstance(value, str):
+        text = value.strip().lower()
+        if text in (AUTO_THREADS, TORCH_THREADS):
+            return text
+        value = text
+    try:
+        count = int(value)
+        if isinstance(value, float) or count < 1:
+            raise ValueError
+    except (TypeError, ValueError):
+        raise FRInputError(f"{source}: expected auto, torch or a positive number of threads, got {value!r}") from None
+    return count
+
+
+#: Share of a core other processes must leave free for it to get a search thread.  On 2 cores a
+#: second thread still paid beside a neighbour busy 25 % of the time and lost 1.6-1.7x at 50 %
+#: (results/decisions/40.md): an OpenMP region waits for its slowest thread, so a part-time
+#: neighbour costs more than the thread brings.
+FREE_CORE_SHARE = 0.65
+
+
+def threads_for_free_cores(free_cores: "float | None", ceiling: int) -> int:
+    """Intra-op threads for a search: the cores other processes leave free, a partly free core
+    counting when at least :data:`FREE_CORE_SHARE` of it is; at least 1 and at most ``ceiling``;
+    ``ceiling`` when the free cores are unknown (None)."""
+    ceiling = max(1, ceiling)
+    if free_cores is None:
+        return ceiling
+    return max(1, min(ceiling, math.floor(free_cores + 1.0 - FREE_CORE_SHARE)))
 
 
 @dataclass(frozen=True)
@@ -40,27 +100,39 @@ class DevicePolicy:
     ``device``: the :class:`torch.device` the search runs on (``cpu`` or ``cuda[:i]``).
     ``cores``: CPU cores this process may use (affinity mask capped by the cgroup quota,
     :func:`fr_torch.runtime.workers.usable_cores`).
+    ``threads``: intra-op threads of a search on a CPU: ``"auto"`` (adapt to the load),
+    ``"torch"`` (leave torch's count) or a fixed positive count (module docstring).
     """
 
     device: torch.device
     cores: int
+    threads: ThreadSetting = AUTO_THREADS
 
     @classmethod
-    def resolve(cls, device: "str | torch.device | DevicePolicy" = "cpu") -> "DevicePolicy":
+    def resolve(cls, device: "str | torch.device | DevicePolicy" = "cpu",
+                threads: "str | int | None" = None) -> "DevicePolicy":
         """The policy of ``device`` (``"cpu"``, ``"cuda"``, ``"cuda:1"``, a torch.device or a
-        policy); :class:`~fr_torch.errors.FRInputError` (one line) when it cannot run fR."""
+        policy); :class:`~fr_torch.errors.FRInputError` (one line) when it cannot run fR.
+        ``threads``: see :attr:`threads` (None = ``$FR_THREADS``, else ``auto``; a policy keeps its own)."""
         if isinstance(device, DevicePolicy):
             return device
-        return cls(resolve_device(device), usable_cores())
+        return cls(resolve_device(device), usable_cores(), cls._threads(threads))
 
     @classmethod
-    def parse(cls, device: "str | torch.device" = "cpu") -> "DevicePolicy":
+    def parse(cls, device: "str | torch.device" = "cpu", threads: "str | int | None" = None) -> "DevicePolicy":
         """The policy of ``device`` without checking that this machine has it: for planning work
         that runs elsewhere (a Ray cluster's GPU nodes).  A malformed name is an FRInputError."""
         try:
-            return cls(torch.device(device), usable_cores())
+            torch_device = torch.device(device)
         except (RuntimeError, TypeError, ValueError):
             raise FRInputError(f"--device: unknown device {device!r} (use cpu or cuda)") from None
+        return cls(torch_device, usable_cores(), cls._threads(threads))
+
+    @staticmethod
+    def _threads(threads: "str | int | None") -> ThreadSetting:
+        if threads is None:
+            return parse_threads(os.environ.get(THREADS_ENV), THREADS_ENV)
+        return parse_threads(threads, "threads")
 
     @property
     def on_cpu(self) -> bool:
@@ -92,11 +164,49 @@ class DevicePolicy:
         return 0 if self.cores <= 2 or images < 2 else min(self.cores - 1, MAX_DEFAULT_DETECTION_WORKERS)
 
     def apply_threads(self) -> None:
-        """Cap torch's intra-op threads and OpenCV's threads at :attr:`cores`: in a container both
-        count the host's cores, not the CPUs the quota grants, and an OpenMP region with more
-        threads than CPUs stalls on every op."""
+        """A command's process-wide settings: torch's intra-op threads and OpenCV's threads at most
+        :attr:`cores` (in a container both count the host's cores, not the CPUs the quota grants,
+        and an OpenMP region with more threads than CPUs stalls on every op); a fixed
+        :attr:`threads` count becomes torch's; with ``auto`` the load monitor starts now, so that
+        the first search already has a window of the load to go by."""
 
-        if torch.get_num_threads() > self.cores:
+        if isinstance(self.threads, int):
+            torch.set_num_threads(min(self.threads, self.cores))
+        elif torch.get_num_threads() > self.cores:
             torch.set_num_threads(self.cores)
         if cv2.getNumThreads() > self.cores:
             cv2.setNumThreads(self.cores)
+        if self.threads == AUTO_THREADS and self.on_cpu:
+
+            cpuload.process_monitor().others_busy()
+
+    def search_thread_count(self) -> int | None:
+        """Intra-op threads for a search starting now, or None to leave torch's count.  Never more
+        than torch's count in effect (a command sets it, :meth:`apply_threads`; worker processes run
+        with one) nor :attr:`cores`: a fixed :attr:`threads` caps it; ``auto`` takes
+        :func:`threads_for_free_cores` of the cores other processes leave free
+        (:func:`fr_torch.runtime.cpuload.process_monitor`); None on a GPU or with ``torch``."""
+        if not self.on_cpu or self.threads == TORCH_THREADS:
+            return None
+        ceiling = min(torch.get_num_threads(), self.cores)
+        if isinstance(self.threads, int):
+            return min(self.threads, ceiling)
+        if ceiling <= 1:
+            return None
+
+        return threads_for_free_cores(cpuload.process_monitor().free_cores(), ceiling)
+
+    @contextlib.contextmanager
+    def search_threads(self) -> Iterator[None]:
+        """Run the enclosed search with :meth:`search_thread_count` intra-op threads, restoring
+        torch's count on exit (the library leaves the caller's process settings as they were)."""
+        count = self.search_thread_count()
+        previous = torch.get_num_threads()
+        if count is None or count == previous:
+            yield
+            return
+        torch.set_num_threads(count)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(previous)

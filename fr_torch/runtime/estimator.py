@@ -68,6 +68,11 @@ class FREstimator(SegmentEstimator):
         self.detector = get_detector(detector)
         self.working_long_side = WORKING_LONG_SIDE
 
+    def _calibrate(self, items, focal_list, pp_list, **kwargs) -> list[CalibrationResult]:
+        """The engine's search, with the intra-op threads of :meth:`DevicePolicy.search_threads`."""
+        with self.policy.search_threads():
+            return super()._calibrate(items, focal_list, pp_list, **kwargs)
+
     def calibrate_images(self, images: Sequence, names: Sequence[str] | None = None, focal_px=None,
                          principal_point=None) -> list[CalibrationResult]:
         """Calibrate images given as file paths or arrays (grey, BGR, BGRA; 8/16-bit or float).
