@@ -427,5 +427,11 @@ def decode_jpeg_batch(data: Sequence[bytes], device: str | torch.device = "cpu")
         raise RuntimeError(f"decode_jpeg_batch needs a torchvision built for this torch ({torch.__version__}): "
                            f"{type(exc).__name__}: {exc}") from None
     tensors = [torch.frombuffer(bytearray(b), dtype=torch.uint8) for b in data]
-    decoded = decode_jpeg(tensors, mode=ImageReadMode.GRAY, device=device)
+    try:
+        decoded = decode_jpeg(tensors, mode=ImageReadMode.GRAY, device=device)
+    except RuntimeError as exc:
+        if "extension" not in str(exc):  # a corrupt JPEG: torchvision's own message
+            raise
+        raise RuntimeError(f"decode_jpeg_batch needs a torchvision built for this torch ({torch.__version__}): "
+                           "its image extension does not load") from None
     return list(decoded)
