@@ -231,10 +231,13 @@ def _time_commands(commands: Sequence[list[str]], env: dict) -> list[float]:
 
 def command_runs(paths: Sequence[str], modes: Sequence[str] = ("fast", "fr"), policies: Sequence[str] = ("auto",),
                  side_counts: Sequence[int] = (2, 4), rounds: int = 1, progress=None) -> list[dict]:
-    """Whole ``fr calibrate`` commands on ``paths`` (start-up included): seconds per photo alone,
-    beside a busy neighbour, and for ``k`` commands side by side (``side{k}_throughput``: photos per
-    second of the ``k`` together over those of one alone).  One row per (mode, policy, round)."""
+    """Whole ``fr calibrate`` commands on ``paths`` (start-up included, after one untimed run):
+    seconds per photo alone, beside a busy neighbour, and for ``k`` commands side by side
+    (``side{k}_throughput``: photos per second of the ``k`` together over those of one alone).
+    One row per (mode, policy, round)."""
     rows = []
+    # Warm-up: the first run after a pause reads the library's files from disk (0.5-0.7 s more).
+    _time_commands([_fr_command(paths[:1], modes[0])], dict(os.environ))
     for round_index in range(rounds):
         for mode in modes:
             for policy in policies:
