@@ -29,6 +29,7 @@ _EXPORTS = {
     "CalibrationResult": "core.estimator", "SegmentEstimator": "core.estimator",
     "FREstimator": "runtime.estimator", "calibrate": "runtime.estimator", "DevicePolicy": "runtime.device",
     "FRInputError": "errors", "SegmentFilter": "core.segments", "detect_segments": "detectors.registry",
+    "calibrate_shared": "runtime.shared_focal", "FocalPrior": "runtime.focal_prior",
 }
 __all__ = sorted(_EXPORTS)
 __version__ = "0.1.0"

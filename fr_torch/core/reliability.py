@@ -37,74 +37,15 @@ fR).
   good (or better: a search miss), the case of most large focal errors; ``focal_prior_share`` sees
   a flat profile, this cue a second peak.  0 for a given focal length.
 
-Which cues the models use was chosen out of fold on the train splits of ZInD-fR, YUD and the YUD
-crops (``results/reliability/cues_<mode>.md``; 5 folds grouped by scene, so a crop never sits in
-another fold than its photo): with ``focal_prior_share`` instead of ``focal_conditioning`` the
-Spearman rho of predicted vs actual focal error rises, fR / Fast-fR, on YUD train from 0.31 / 0.32
-to 0.51 / 0.57, on the 33 deg crops from 0.30 / 0.23 to 0.42 / 0.38, on the 39 deg crops from
-0.28 / 0.15 to 0.40 / 0.25 and on ZInD-fR train from 0.45 / 0.43 to 0.48 / 0.51; all five cues
-together do no better (rho summed over the four sets 1.73 / 1.61 against 1.81 / 1.71: a KNN in more
-dimensions has sparser neighbours).  With ``focal_profile_gap`` (fR only), chosen the same way
-(``results/reliability/cues_fr.md``), fR's model uses all six cues: summed out-of-fold rho 1.81
-(paper + ``focal_prior_share``), 1.82 (+ ``focal_profile_gap``), 1.87 (all six), and the focal MAE
-of the quarter predicted most reliable over that of all, averaged over the four sets, 0.45, 0.38,
-0.27.
-
-Cue normalisation (exactly; :func:`cue_features`)
--------------------------------------------------
-Each image's cue vector becomes the feature vector ``x``, one feature per cue:
-
-* ``ln(1 + min_family_segments)`` -- the raw count of the smallest Manhattan family (the
-  authors use the raw count; the log makes 3 vs 6 segments as far apart as 30 vs 60);
-* ``ln(grid_entropy + 1e-6)`` -- the entropy (nats) of the stage-1 grid softmax spans
-  1e-9..8 nats, so it is compared on a log scale, floored at 1e-6 nats;
-* ``mean_log_likelihood`` -- unchanged (already a log quantity);
-* ``ln(focal_conditioning + 1e-3)`` -- near-degenerate frames (0.001-0.05) are as far apart as
-  ordinary ones (0.1-0.5);
-* ``ln(focal_prior_share + 1e-2)`` -- clipped to [0, 1]; well-constrained frames (0.003-0.05) are
-  told apart as well as prior-dominated ones (0.2-1).
-* ``asinh(focal_profile_gap / 100)`` -- gaps run from about -600 to 10,000 nats: roughly linear
-  within +-100 nats (near-ties, either sign), logarithmic beyond (2,000 vs 4,000 as far apart as
-  200 vs 400).
-
-A model keeps the names of the cues it was trained on (``meta["cue_names"]``): a model trained on
-the paper's three cues (``fr train-reliability --cues paper``, or a file written before the fourth
-cue existed) predicts from those three.
-
-Then ``x`` is **PCA-whitened** with the training mean ``mu``, the eigenvectors ``E`` (rows,
-descending eigenvalue) and eigenvalues ``lam`` of the training-feature covariance (ddof = 1):
-``w = ((x - mu) @ E.T) / sqrt(lam)``, so the whitened training cues have identity covariance and
-the Euclidean distance in ``w`` is the Mahalanobis distance of ``x`` (as the authors'
-``w = (c - meanx) F V``).  Prediction: the Euclidean K nearest training images in ``w`` (ties by
-training order), and for each of the three errors the arithmetic mean over them.  K is chosen by
-5-fold cross-validation (folds grouped by panorama / scene so that views of one panorama never
-sit in both halves) minimising the mean squared error of ``ln(error + eps)`` with eps = 0.1 deg,
-0.1 deg and 1 %: scale-free across the three targets and not dominated by a few failures.
-
-Storage (never pickle)
-----------------------
-``<name>.npz`` holds plain numeric arrays -- ``train_cues`` (n, c) raw cues (c cues, in the order
-of ``meta["cue_names"]``), ``train_errors`` (n, 3) absolute errors [roll deg, tilt deg, focal %],
-``feature_mean`` (c,), ``feature_components`` (c, c), ``feature_variance`` (c,), ``k`` -- plus ``meta_json``, a unicode
-string array with the JSON metadata; it is read with ``np.load(allow_pickle=False)``.  A
-human-readable copy of the metadata is written beside it as ``<name>.json``.  Fitting uses
-scikit-learn; prediction is plain numpy.
-
-Run-time use: the last stage of :class:`fr_torch.runtime.estimator.FREstimator` (its ``reliability``
-option, on by default) loads :meth:`ReliabilityModel.load_default` for its mode (models
-``configs/reliability_fr.npz`` and ``configs/reliability_fast.npz``; thresholds in
-``configs/reliability.json``) and calls :meth:`ReliabilityModel.annotate_many` on the estimates,
-which fills ``result.predicted_error`` and clears ``result.reliable`` when a predicted error exceeds
-its threshold.  An image whose focal length was given (``focal_px``) gets a predicted focal error
-of 0: the models were trained on estimated focal lengths, and a given one is not the estimator's
-error.
+The shipped models' cue sets (Fast-fR: the paper's three and ``focal_prior_share``; fR: all six)
+were chosen out of fold on the train splits (``results/DECISIONS.md``).
 
 Scope: a model predicts only for the setting it was trained on, ``meta["trained_for"]`` (deviation
 measure, line detector, likelihood config; :data:`DEFAULT_TRAINED_FOR` for a file that does not say,
 the shipped models' setting).  An estimator with another measure, likelihood or detector gets no
 predicted errors (``predicted_error`` None) and ``reliable = False`` with the reason
-(:meth:`ReliabilityModel.scope_gap`): with measure a, whose focal MAE on YUD is 67 %, the measure-b
-model would predict 8-9 %.
+(:meth:`ReliabilityModel.scope_gap`): a model's predictions say nothing about errors of another
+setting.
 """
 from __future__ import annotations
 

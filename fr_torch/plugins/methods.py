@@ -1,7 +1,7 @@
 """fR and Fast-fR behind the common :class:`~fr_torch.plugins.interface.Calibrator` interface.
 
 Registered names: ``fr``, ``fast-fr`` (image in, LSD or another detector), and ``oracle-fr``
-(fR run on the segments given in ``ImageMeta.segments``, e.g. YUD's hand-labelled lines: the
+(fR run on the segments given in ``ImageMeta.segments``, e.g. a dataset's hand-labelled lines: the
 upper bound of a line-based method).  Options select configurations:
 ``fr[measure=a]`` ... ``fr[measure=e]`` (deviation measure), ``fr[detector=mcmlsd]``,
 ``fr[likelihood=paper]`` (likelihood config by name or path, see

@@ -68,8 +68,8 @@ ASPECT_TOLERANCE = 0.01
 
 @dataclass(frozen=True)
 class SharedFocalSettings:
-    """Settings of the focal profile and of its combination (chosen on train data:
-    NYU-VP train photos 0-999 and YUD train; ``results/decisions/38.md``).
+    """Settings of the focal profile and of its combination (``results/decisions/38.md`` says how
+    the defaults were chosen).
 
     ``grid_points``: focal values of the profile, uniform in log f over the FOV range.
     ``angle_grid`` / ``starts`` / ``iterations``: per focal value, the k^3 angle grid, how many of
@@ -78,8 +78,7 @@ class SharedFocalSettings:
     ``cap``: floor of each photo's tempered profile (nats below its own peak).
     ``error_scale_pct``: None (default: every photo weighs 1) or a photo weight
     ``1 / (1 + (e / error_scale_pct)^2)``, e the reliability stage's predicted focal error (%;
-    weight 1 where a photo has none).  On the train groups the weighting tied with none (3-20 %,
-    results/shared_focal/tune_train.md), so it is off.
+    weight 1 where a photo has none).
     ``kappa``: calibration factor of ``predicted_error_pct``.
     """
     grid_points: int = 48
