@@ -14,11 +14,9 @@ import numpy as np
 import torch
 
 from fr_torch.core.camera import focal_from_hfov
+from fr_torch.core.fov import FOV_LIMITS_DEG
 from fr_torch.errors import FRInputError
 
-# A pinhole camera whose field of view (on the image's long side) is outside [MIN, MAX] degrees
-# means nothing we can estimate: a user focal length outside that range is refused.
-MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 179.0
 # How far from an image's centre a point given in its pixels (a principal point, a segment's
 # endpoint) may lie, in image sizes (the long side): beyond, the number is nonsense, not geometry.
 MAX_REACH_IMAGE_SIZES = 10
@@ -37,15 +35,16 @@ def finite_number(value, name: str) -> float:
 
 def check_focal(focal, width: float, height: float, name: str = "focal length") -> float:
     """A user focal length (pixels) that a pinhole camera of this size can have: finite, > 0 and a
-    field of view on the long side within [1, 179] degrees."""
+    field of view on the long side within :data:`~fr_torch.core.fov.FOV_LIMITS_DEG` ([1, 179] degrees)."""
     f = finite_number(focal, name)
     long_side = max(width, height)
-    low, high = focal_from_hfov(MAX_FOV_DEG, long_side), focal_from_hfov(MIN_FOV_DEG, long_side)
+    min_fov, max_fov = FOV_LIMITS_DEG
+    low, high = focal_from_hfov(max_fov, long_side), focal_from_hfov(min_fov, long_side)
     if not f > 0:
         raise FRInputError(f"{name} must be a positive number of pixels, got {focal}")
     if not low <= f <= high:
         raise FRInputError(f"{name} {f:g} px is outside [{low:.3g}, {high:.4g}] px, a field of view of "
-                           f"{MIN_FOV_DEG:g}-{MAX_FOV_DEG:g} deg on this {width} x {height} image")
+                           f"{min_fov:g}-{max_fov:g} deg on this {width} x {height} image")
     return f
 
 

@@ -47,7 +47,7 @@ from fr_torch.core.likelihood import (
     MixtureLikelihood,
     SegmentFeatures,
 )
-from fr_torch.core.params import FOCAL, rotations
+from fr_torch.core.params import FOCAL, CameraParams
 from fr_torch.core.reliability import ReliabilityModel
 from fr_torch.core.search import (
     grid_hypotheses,
@@ -360,15 +360,16 @@ class SegmentEstimator:
         candidate_scores = torch.cat([top_scores[:, :1], refined_scores], 1)
         best = candidate_scores.argmax(1)
         rows = torch.arange(len(group), device=device)
-        best_params = candidates[rows, best].to(torch.float64)
+        estimate = CameraParams(candidates[rows, best].to(torch.float64))
         best_scores = candidate_scores[rows, best]
         t2 = time.perf_counter()
 
-        rotation = rotations(best_params)  # float64 (B, 3, 3)
-        posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype), best_params[:, None, FOCAL].to(dtype))
+        rotation = estimate.rotation()  # float64 (B, 3, 3)
+        posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype),
+                                                      estimate.focal_px[:, None].to(dtype))
         labels = posterior[:, 0].argmax(-1)
         cues = image_cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
-        cues.update(focal_cues(self.likelihood, self.search, features, best_params, best_scores, known_focal,
+        cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
                                 self.profile_gap))
         t3 = time.perf_counter()
 
@@ -378,7 +379,7 @@ class SegmentEstimator:
         lengths_all = batch.lengths.cpu().numpy()
         labels_all = labels.cpu().numpy()
         rotation_all = rotation.cpu().numpy()
-        params_all = best_params.cpu().numpy()
+        params_all = estimate.data.cpu().numpy()
         scores_all = best_scores.to(torch.float64).cpu().numpy()
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
         family = labels_all != BACKGROUND_LABEL

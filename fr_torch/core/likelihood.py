@@ -71,7 +71,7 @@ from fr_torch.core.camera import (
     intrinsics,
 )
 from fr_torch.core.config import Mode
-from fr_torch.core.fov import FovRange
+from fr_torch.core.fov import FOV_LIMITS_DEG, FovRange
 from fr_torch.core.segments import SegmentBatch
 from fr_torch.resources import config_dir
 
@@ -151,8 +151,10 @@ class LikelihoodParams:
             raise ValueError("LikelihoodParams.prior_background must be > 0 (the background keeps p_i > 0)")
         if not (math.isfinite(self.focal_prior_weight) and self.focal_prior_weight >= 0):
             raise ValueError(f"focal_prior_weight must be a finite number >= 0, got {self.focal_prior_weight}")
-        if not (math.isfinite(self.focal_prior_hfov_deg) and 1.0 <= self.focal_prior_hfov_deg <= 179.0):
-            raise ValueError(f"focal_prior_hfov_deg must be in [1, 179] degrees, got {self.focal_prior_hfov_deg}")
+        low, high = FOV_LIMITS_DEG
+        if not (math.isfinite(self.focal_prior_hfov_deg) and low <= self.focal_prior_hfov_deg <= high):
+            raise ValueError(f"focal_prior_hfov_deg must be in [{low:g}, {high:g}] degrees, got "
+                             f"{self.focal_prior_hfov_deg}")
         if not (math.isfinite(self.focal_prior_pseudo_length) and self.focal_prior_pseudo_length >= 0):
             raise ValueError("focal_prior_pseudo_length must be a finite number >= 0, got "
                              f"{self.focal_prior_pseudo_length}")
@@ -250,7 +252,7 @@ class LikelihoodParams:
             fail(f"'focal_prior' must be an object like {{\"weight\": 0.3, \"hfov_deg\": 82}}, got {focal_prior!r}")
         def prior_settings(block: dict, where: str) -> tuple[float, float, float, float]:
             return (number(block.get("weight", 0.0), f"{where}.weight", 0.0, 100.0, low_inclusive=True),
-                    number(block.get("hfov_deg", cls.focal_prior_hfov_deg), f"{where}.hfov_deg", 1.0, 179.0,
+                    number(block.get("hfov_deg", cls.focal_prior_hfov_deg), f"{where}.hfov_deg", *FOV_LIMITS_DEG,
                            low_inclusive=True),
                     number(block.get("pseudo_length", 0.0), f"{where}.pseudo_length", 0.0, 1e6, low_inclusive=True),
                     number(block.get("flat_halfwidth", 0.0), f"{where}.flat_halfwidth", 0.0, 3.0, low_inclusive=True))
