@@ -95,17 +95,31 @@ def quiet_opencv():
 
 # --------------------------------------------------------------------------- header probes
 
-def _jpeg_size(head: bytes, handle) -> tuple[int, int] | None:
-    """(width, height) from the first SOF marker, reading segment by segment."""
-    pos, data = 2, head
-    while True:
-        while len(data) < pos + 4:  # need the marker and its length
-            more = handle.read(65536)
+def jpeg_segments(head: bytes, read=None, max_offset: int | None = None):
+    """The marker segments of a JPEG, from after its SOI marker to the first start of scan (SOS)
+    or end of image (EOI): yields ``(marker, length, body)``, ``length`` the segment's 2-byte
+    length field and ``body`` the bytes after it (shorter than ``length - 2`` when the data ends
+    first).
+
+    ``head``: the file's first bytes, from SOI on; ``read(n)``: more bytes of the same stream (None:
+    ``head`` is all there is).  Fill bytes and standalone markers (TEM, RSTn, a repeated SOI) are
+    skipped; the walk stops quietly at a byte that is not a marker, at the end of the data, or at a
+    segment starting past ``max_offset`` bytes.
+    """
+    data, pos = head, 2
+
+    def available(end: int) -> bool:  # read until data holds ``end`` bytes, if the stream has them
+        nonlocal data
+        while len(data) < end:
+            more = read(65536) if read is not None else b""
             if not more:
-                return None
+                return False
             data += more
-        if data[pos] != 0xFF:
-            return None
+        return True
+
+    while max_offset is None or pos <= max_offset:
+        if not available(pos + 4) or data[pos] != 0xFF:
+            return
         marker = data[pos + 1]
         if marker == 0xFF:  # fill byte
             pos += 1
@@ -113,20 +127,28 @@ def _jpeg_size(head: bytes, handle) -> tuple[int, int] | None:
         if marker in (0x01, 0xD8) or 0xD0 <= marker <= 0xD7:
             pos += 2
             continue
+        if marker in (0xD9, 0xDA):  # end of image / start of scan
+            return
         length = struct.unpack(">H", data[pos + 2:pos + 4])[0]
-        if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF):
-            while len(data) < pos + 9:
-                more = handle.read(65536)
-                if not more:
-                    return None
-                data += more
-            height, width = struct.unpack(">HH", data[pos + 5:pos + 9])
-            return width, height
-        if marker in (0xD9, 0xDA):  # end of image / start of scan before any SOF
-            return None
+        available(pos + 2 + length)
+        yield marker, length, data[pos + 4:pos + 2 + length]
         pos += 2 + length
-        if pos > 16 * 2 ** 20:  # no SOF in the first 16 MB: give up probing
-            return None
+
+
+#: Start-of-frame markers (baseline, progressive, lossless, arithmetic): their body holds the size.
+_SOF_MARKERS = (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF)
+
+
+def _jpeg_size(head: bytes, handle) -> tuple[int, int] | None:
+    """(width, height) from the first SOF marker, reading segment by segment (no SOF in the first
+    16 MB: None)."""
+    for marker, _, body in jpeg_segments(head, handle.read, max_offset=16 * 2 ** 20):
+        if marker in _SOF_MARKERS:
+            if len(body) < 5:
+                return None
+            height, width = struct.unpack(">HH", body[1:5])
+            return width, height
+    return None
 
 
 def _tiff_size(head: bytes, handle) -> tuple[int, int] | None:

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fr_torch.errors import FRInputError
+from fr_torch.images.io import jpeg_segments
 
 #: Default width (1 sigma, percent of f) of a prior read from EXIF.
 EXIF_SIGMA_PCT = 10.0
@@ -130,23 +131,11 @@ def jpeg_exif_block(data: bytes) -> bytes | None:
     """The TIFF structure of a JPEG's EXIF APP1 segment (from the byte order mark on), or None."""
     if data[:2] != b"\xff\xd8":
         return None
-    pos = 2
-    while pos + 4 <= len(data):
-        if data[pos] != 0xFF:
-            return None
-        marker = data[pos + 1]
-        if marker == 0xFF:  # fill byte
-            pos += 1
-            continue
-        if marker in (0xD9, 0xDA):  # end of image, start of scan: no EXIF before the pixels
-            return None
-        length = struct.unpack(">H", data[pos + 2:pos + 4])[0]
+    for marker, length, body in jpeg_segments(data):
         if length < 2:
             return None
-        body = data[pos + 4:pos + 2 + length]
         if marker == 0xE1 and body[:6] == b"Exif\x00\x00":
             return body[6:]
-        pos += 2 + length
     return None
 
 
