@@ -7,11 +7,14 @@ Usage (``FR_DATA`` set; results under ``results/shared_focal/``, caches under ``
     python -m fr_eval.shared_focal_eval groups --dataset nyu-vp --split val
     python -m fr_eval.shared_focal_eval rotation --dataset yud --split test --size 10
     python -m fr_eval.shared_focal_eval prior --dataset yud --split test
+    python -m fr_eval.shared_focal_eval principal-point --dataset nyu-vp --split val --size 10
 
 ``profile`` calibrates every photo alone with fR (the library defaults) and caches, per photo, its
 estimate, predicted errors, kept segments and focal profile (:func:`fr_torch.runtime.shared_focal.focal_profiles`),
 so the other stages only combine cached profiles (seconds), except ``rotation`` and ``prior``, which
-search each photo again with the focal length known.  ``--pp calibrated`` uses the dataset's
+search each photo again with the focal length known, and ``principal-point``, which runs the whole
+group method (:func:`fr_torch.runtime.shared_focal.shared_from_results`) per group, with and
+without the shared principal point (:attr:`~fr_torch.runtime.shared_focal.SharedFocalSettings.principal_point`).  ``--pp calibrated`` uses the dataset's
 calibrated principal point instead of the image centre (the library default).
 
 Groups: the photos of a split are shuffled and cut into groups of ``size`` (the last, smaller
@@ -370,6 +373,66 @@ def run_prior(args) -> None:
     (OUT_DIR / f"prior_{args.dataset}_{args.split}_{args.pp}.md").write_text(text)
 
 
+def run_principal_point(args) -> None:
+    """Groups of ``--size`` photos (image-centre principal point given to nobody): the shared focal
+    length without and with the group's estimated principal point, the principal point's error
+    against the dataset's calibrated one, and each photo's roll / tilt at the shared camera."""
+    import torch
+    from tqdm import tqdm
+
+    from fr_torch import FREstimator
+    from fr_torch.runtime.shared_focal import SharedFocalSettings, shared_from_results
+
+    torch.set_num_threads(1)
+    samples = load_samples(args.dataset, args.split)
+    estimator = FREstimator(mode="fr")
+    alone = calibrate_alone(estimator, samples, "centre")
+    gt_focal = np.array([s.focal_px for s in samples])
+    gt_pp = np.array([s.principal_point for s in samples], np.float64)
+    gt_roll, gt_tilt = np.array([(math.nan, math.nan) if s.roll_deg is None else gt_angles(s) for s in samples]).T
+    variants = {"image centre": SharedFocalSettings(principal_point=False),
+                "shared principal point": SharedFocalSettings(principal_point=True)}
+    groups = random_groups(len(samples), args.size, args.repeats)
+    focal_err = {name: [] for name in variants}
+    roll_err = {name: [] for name in variants}
+    tilt_err = {name: [] for name in variants}
+    pp_err = []
+    for group in tqdm(groups, desc=f"groups of {args.size}", file=sys.stderr):
+        for name, settings in variants.items():
+            shared = shared_from_results(estimator, [alone[i] for i in group], settings=settings)
+            if not shared.ok:
+                continue
+            focal_err[name].append(100 * abs(shared.focal_ratio * max(samples[group[0]].width, samples[group[0]].height)
+                                             / gt_focal[group[0]] - 1))
+            for i, result in zip(group, shared.results):
+                if result.ok:
+                    roll_err[name].append(abs(result.roll_deg - gt_roll[i]))
+                    tilt_err[name].append(abs(result.tilt_deg - gt_tilt[i]))
+            if shared.principal_point is not None:
+                pp_err.append(np.asarray(shared.principal_point) - gt_pp[group[0]])
+    photo = np.array([100 * abs(r.focal_px / f - 1) for r, f in zip(alone, gt_focal) if r.ok])
+    alone_roll = np.nanmean([abs(r.roll_deg - g) for r, g in zip(alone, gt_roll) if r.ok])
+    alone_tilt = np.nanmean([abs(r.tilt_deg - g) for r, g in zip(alone, gt_tilt) if r.ok])
+    rows = [f"| per photo (fR alone) | {np.median(photo):.2f} | {np.percentile(photo, 90):.2f} | "
+            f"{alone_roll:.2f} | {alone_tilt:.2f} |"]
+    for name in variants:
+        err = np.array(focal_err[name])
+        rows.append(f"| shared focal, {name} | {np.median(err):.2f} | {np.percentile(err, 90):.2f} | "
+                    f"{np.nanmean(roll_err[name]):.2f} | {np.nanmean(tilt_err[name]):.2f} |")
+    offsets = np.array(pp_err).reshape(-1, 2)
+    text = (f"### {args.dataset} {args.split}: groups of {args.size} ({len(groups)} groups, {args.repeats} random "
+            f"partitions), the principal point not given\n\n"
+            "| estimate | focal error median % | p90 % | roll MAE (deg) | tilt MAE (deg) |\n|---|---|---|---|---|\n"
+            + "\n".join(rows) + "\n\n"
+            f"Shared principal point minus the calibrated one ({len(offsets)} groups): mean "
+            f"({offsets[:, 0].mean():+.1f}, {offsets[:, 1].mean():+.1f}) px, SD ({offsets[:, 0].std():.1f}, "
+            f"{offsets[:, 1].std():.1f}) px; the image centre is "
+            f"({samples[0].width / 2 - gt_pp[0, 0]:+.1f}, {samples[0].height / 2 - gt_pp[0, 1]:+.1f}) px from it.\n")
+    print(text)
+    OUT_DIR.mkdir(parents=True, exist_ok=True)
+    (OUT_DIR / f"principal_point_{args.dataset}_{args.split}_{args.size}.md").write_text(text)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m fr_eval.shared_focal_eval", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="stage", required=True)
@@ -386,6 +449,11 @@ def main(argv=None) -> int:
             p.add_argument("--repeats", type=int, default=20)
         if name == "rotation":
             p.add_argument("--size", type=int, default=10)
+    pp = sub.add_parser("principal-point")
+    pp.add_argument("--dataset", choices=("nyu-vp", "yud"), default="nyu-vp")
+    pp.add_argument("--split", default="val")
+    pp.add_argument("--size", type=int, default=10)
+    pp.add_argument("--repeats", type=int, default=2)
     tune = sub.add_parser("tune")
     tune.add_argument("--caps", type=lambda s: [float(v) for v in s.split(",")], default=[1.5, 3, 6])
     tune.add_argument("--scales", type=lambda s: [float(v) for v in s.split(",")], default=[3, 5, 10, 20])
@@ -393,7 +461,7 @@ def main(argv=None) -> int:
     sub.add_parser("plot")
     args = parser.parse_args(argv)
     {"profile": run_profile, "tune": run_tune, "groups": run_groups, "rotation": run_rotation,
-     "prior": run_prior, "plot": run_plot}[args.stage](args)
+     "prior": run_prior, "plot": run_plot, "principal-point": run_principal_point}[args.stage](args)
     return 0
 
 

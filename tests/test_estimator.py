@@ -37,8 +37,8 @@ def test_recovers_synthetic_cameras(scenes, mode):
         assert np.allclose(result.rotation @ result.rotation.T, np.eye(3), atol=1e-6)
         assert result.labels.shape == (result.num_segments,)
         assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood",
-                                    "focal_conditioning", "focal_prior_share"} | ({"focal_profile_gap"} if mode == "fr"
-                                                                                 else set())
+                                    "focal_conditioning", "focal_prior_share", "focal_spread"} | (
+                                        {"focal_profile_gap"} if mode == "fr" else set())
         if mode == "fr":  # the segments single out the estimate's focal length: by hundreds of nats
             assert result.cues["focal_profile_gap"] > 100.0
         assert 0.0 <= result.cues["focal_prior_share"] < 0.2  # well-constrained views: the segments set f
@@ -177,8 +177,10 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     oblique, square = est.calibrate_segments(segments, [(640, 480)] * 2)
     assert oblique.cues["focal_prior_share"] < 0.1
     assert square.cues["focal_prior_share"] > 0.5
+    # the objective peaks sharply along f for the oblique view, hardly for the one square to a wall
+    assert 0.0 < oblique.cues["focal_spread"] < square.cues["focal_spread"] / 3
     [given] = est.calibrate_segments(segments[:1], [(640, 480)], focal_px=focal)
-    assert given.cues["focal_prior_share"] == 0.0
+    assert given.cues["focal_prior_share"] == 0.0 and given.cues["focal_spread"] == 0.0
 
     from fr_torch.core.likelihood import SegmentFeatures
     from fr_torch.core.search import angles_from_search_rotation

@@ -27,7 +27,8 @@ def _records(n, seed):
                           "grid_entropy": rng.uniform(1e-4, 2.0, n), "mean_log_likelihood": rng.normal(0, 0.5, n),
                           "focal_conditioning": rng.uniform(0.001, 0.7, n),
                           "focal_prior_share": np.exp(rng.uniform(np.log(3e-3), 0.0, n)),
-                          "focal_profile_gap": rng.uniform(-200.0, 5000.0, n)})
+                          "focal_profile_gap": rng.uniform(-200.0, 5000.0, n),
+                          "focal_spread": np.exp(rng.uniform(np.log(0.05), np.log(2.0), n))})
     frame[list(ERROR_COLUMNS)] = np.abs(rng.normal(size=(n, 3))) * [0.3, 0.8, 5.0]
     frame["ok"], frame["group"] = True, [f"g{i % 20}" for i in range(n)]
     return frame

@@ -108,7 +108,7 @@ def test_lodo_reliability_scales_and_judgement():
     difficulty = 30.0 / segments * np.exp(0.2 * rng.normal(size=n))
     table = pd.DataFrame({"min_family_segments": segments, "grid_entropy": np.exp(rng.uniform(-10, 0, n)),
                           "mean_log_likelihood": rng.normal(0, 0.3, n), "focal_prior_share": rng.uniform(0.01, 0.5, n),
-                          "roll_err_deg": 0.2 * difficulty, "tilt_err_deg": 0.5 * difficulty,
+                          "focal_spread": rng.uniform(0.05, 2.0, n), "roll_err_deg": 0.2 * difficulty, "tilt_err_deg": 0.5 * difficulty,
                           "focal_err_pct": 3.0 * difficulty})
     table["dataset"] = np.where(np.arange(n) < 60, "yud", "nyu-vp")
     table["group"] = [f"g{i}" for i in range(n)]
@@ -126,4 +126,5 @@ def test_lodo_reliability_scales_and_judgement():
     out = evaluate(table, predicted, promise, "fast")
     assert out["rho_focal"] == pytest.approx(1.0) and out["coverage_both"] == 100.0
     assert out["top_quarter_ratio"] < 0.5 and 0 < out["reliable_n"] < n
-    assert MODEL_CUE_NAMES == ("min_family_segments", "grid_entropy", "mean_log_likelihood", "focal_prior_share")
+    assert MODEL_CUE_NAMES == ("min_family_segments", "grid_entropy", "mean_log_likelihood", "focal_prior_share",
+                               "focal_spread")

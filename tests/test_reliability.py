@@ -26,26 +26,29 @@ from fr_torch.resources import config_dir
 
 
 def make_training(n=400, noise=0.3, seed=0, informative=True):
-    """Cues (n, 4) in MODEL_CUE_NAMES order like fR's: fewer family segments / larger entropy / lower
-    likelihood / a larger focal prior share -> larger errors (n, 3)."""
+    """Cues (n, 5) in MODEL_CUE_NAMES order like fR's: fewer family segments / larger entropy / lower
+    likelihood / a larger focal prior share / a wider focal spread -> larger errors (n, 3)."""
     rng = np.random.default_rng(seed)
     m = np.round(np.exp(rng.uniform(np.log(2), np.log(80), n)))
     h = np.exp(rng.uniform(np.log(1e-7), np.log(3.0), n))
     ll = rng.normal(0.0, 0.5, n)
     share = np.exp(rng.uniform(np.log(3e-3), 0.0, n))
-    difficulty = (-np.log1p(m) + 0.3 * np.log(h + 1e-6) - 0.5 * ll + 0.3 * np.log(share + 1e-2) if informative
-                  else rng.normal(size=n))
+    spread = np.exp(rng.uniform(np.log(0.05), np.log(2.0), n))
+    difficulty = (-np.log1p(m) + 0.3 * np.log(h + 1e-6) - 0.5 * ll + 0.3 * np.log(share + 1e-2)
+                  + 0.3 * np.log(spread) if informative else rng.normal(size=n))
     scale = np.exp(difficulty - difficulty.mean())
     errors = np.stack([0.5 * scale, 1.0 * scale, 5.0 * scale], 1) * np.exp(noise * rng.normal(size=(n, 3)))
-    return np.stack([m, h, ll, share], 1), errors
+    return np.stack([m, h, ll, share, spread], 1), errors
 
 
 def test_cue_features_documented_transform():
-    x = cue_features([[9.0, 0.0, -0.25, 0.0, 0.0, 0.0], [0.0, 1.0, 2.0, 0.5, 0.5, -250.0]])  # CUE_NAMES order
-    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25, np.log(1e-3), np.log(1e-2), 0.0])
+    x = cue_features([[9.0, 0.0, -0.25, 0.0, 0.0, 0.0, 0.0],
+                      [0.0, 1.0, 2.0, 0.5, 0.5, -250.0, 0.3]])  # CUE_NAMES order
+    np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25, np.log(1e-3), np.log(1e-2), 0.0,
+                                      np.log(1e-4)])
     np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0, np.log(0.5 + 1e-3), np.log(0.5 + 1e-2),
-                                      np.arcsinh(-2.5)])
-    np.testing.assert_allclose(cue_features([[9.0, 0.0, -0.25, 0.0]], MODEL_CUE_NAMES), x[:1, [0, 1, 2, 4]])
+                                      np.arcsinh(-2.5), np.log(0.3 + 1e-4)])
+    np.testing.assert_allclose(cue_features([[9.0, 0.0, -0.25, 0.0, 0.0]], MODEL_CUE_NAMES), x[:1, [0, 1, 2, 4, 6]])
     # the paper's three cues alone, and a cue set in another order: one transform per name
     np.testing.assert_allclose(cue_features([[9.0, 0.0, -0.25]], PAPER_CUE_NAMES), x[:1, :3])
     np.testing.assert_allclose(cue_features([[0.5, 2.0]], ("focal_conditioning", "mean_log_likelihood")),
@@ -75,7 +78,7 @@ def test_save_load_round_trip_without_pickle(tmp_path):
     np.testing.assert_array_equal(loaded.predict(probe), model.predict(probe))
     assert loaded.k == model.k and loaded.meta["mode"] == "fr"
     # whitened training cues have identity covariance
-    np.testing.assert_allclose(np.cov(loaded.whiten(loaded.train_cues).T), np.eye(4), atol=1e-8)
+    np.testing.assert_allclose(np.cov(loaded.whiten(loaded.train_cues).T), np.eye(5), atol=1e-8)
     assert loaded.cue_names == MODEL_CUE_NAMES and sidecar["cue_names"] == list(MODEL_CUE_NAMES)
 
 
@@ -114,7 +117,8 @@ def test_predictions_monotone_in_cues():
     cues, errors = make_training(600, noise=0.3)
     model = ReliabilityModel.fit(cues, errors)
     counts = np.array([2, 3, 5, 8, 13, 20, 30, 45, 70], float)
-    probe = np.stack([counts, np.full_like(counts, 1e-3), np.zeros_like(counts), np.full_like(counts, 0.05)], 1)
+    probe = np.stack([counts, np.full_like(counts, 1e-3), np.zeros_like(counts), np.full_like(counts, 0.05),
+                      np.full_like(counts, 0.3)], 1)
     predicted = model.predict(probe)
     for j in range(3):  # more segments in the weakest family -> smaller predicted error
         assert spearmanr(counts, predicted[:, j]).statistic < -0.8
@@ -132,7 +136,7 @@ def test_annotate_sets_fields_and_thresholds(tmp_path):
     cues, errors = make_training(400, noise=0.2)
     model = ReliabilityModel.fit(cues, errors, meta={"mode": "fast"},
                                  thresholds={"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0})
-    easy, hard = _result([70.0, 1e-6, 0.5, 0.01]), _result([2.0, 2.0, -1.0, 1.0])
+    easy, hard = _result([70.0, 1e-6, 0.5, 0.01, 0.1]), _result([2.0, 2.0, -1.0, 1.0, 2.0])
     model.annotate(easy, mode="fast")
     model.annotate(hard, mode="fast")
     assert set(easy.predicted_error) == set(TARGETS) and set(hard.predicted_error) == set(TARGETS)
@@ -141,26 +145,26 @@ def test_annotate_sets_fields_and_thresholds(tmp_path):
     assert not hard.reliable and "predicted error above threshold" in hard.reason and "focal" in hard.reason
     # its focal length is the prior's (focal_prior_share 1): the reason says so and what helps
     assert "focal prior set most of the focal length" in hard.reason
-    lines_set = _result([2.0, 2.0, -1.0, 0.2])  # as hard but the lines carry most of f: no hint
+    lines_set = _result([2.0, 2.0, -1.0, 0.2, 2.0])  # as hard but the lines carry most of f: no hint
     model.annotate(lines_set, mode="fast")
     assert not lines_set.reliable and "focal prior" not in lines_set.reason
     # an existing reason is kept, a failed result is left alone
-    prior = _result([2.0, 2.0, -1.0, 0.002])
+    prior = _result([2.0, 2.0, -1.0, 0.002, 2.0])
     prior.reliable, prior.reason = False, "only 5 segments (< 10)"
     model.annotate(prior, mode="fast")
     assert prior.reason.startswith("only 5 segments (< 10); predicted error")
     failed = CalibrationResult(image="y", width=1, height=1, ok=False, reason="boom")
     assert model.annotate(failed).predicted_error is None
     with pytest.raises(ValueError):
-        model.annotate(_result([10.0, 1e-3, 0.0, 0.3]), mode="fr")
+        model.annotate(_result([10.0, 1e-3, 0.0, 0.3, 0.3]), mode="fr")
     # load_default from a folder: a set keyed by mode, thresholds from reliability.json
     model.save(tmp_path / "reliability_fast.npz")
     (tmp_path / "reliability.json").write_text(json.dumps({"thresholds": {"focal_pct": 1000.0}}))
     models = ReliabilityModel.load_default(config_dir=tmp_path)
     assert isinstance(models, ReliabilitySet) and set(models.models) == {"fast"}
-    r = models.annotate(_result([2.0, 2.0, -1.0, 1.0]), mode="fast")
+    r = models.annotate(_result([2.0, 2.0, -1.0, 1.0, 2.0]), mode="fast")
     assert r.predicted_error is not None and "focal" not in r.reason
-    assert models.annotate(_result([2.0, 2.0, -1.0, 1.0]), mode="fr").predicted_error is None
+    assert models.annotate(_result([2.0, 2.0, -1.0, 1.0, 2.0]), mode="fr").predicted_error is None
     assert ReliabilityModel.load_default(config_dir=tmp_path / "nothing") is None
 
 
@@ -178,11 +182,11 @@ def test_shipped_models_and_thresholds():
         assert model.cue_names == (CUE_NAMES if mode == "fr" else MODEL_CUE_NAMES)
         # a clean scene; fR's cues: the estimate's focal length wins by 2,000 nats
         clean = dict(min_family_segments=60.0, grid_entropy=1e-6, mean_log_likelihood=0.3, focal_conditioning=0.3,
-                     focal_prior_share=0.02, focal_profile_gap=2000.0)
+                     focal_prior_share=0.02, focal_profile_gap=2000.0, focal_spread=0.15)
         good, bad = model.predict([clean, dict(clean, min_family_segments=2.0, grid_entropy=1.0,
                                                 mean_log_likelihood=-1.0)])
         assert good[2] < bad[2]  # a clean scene is predicted better than a near-empty family
-        pinned, prior_set = model.predict([clean, dict(clean, focal_prior_share=1.0)])
+        pinned, prior_set = model.predict([clean, dict(clean, focal_prior_share=1.0, focal_spread=1.0)])
         assert pinned[2] < prior_set[2]  # segments that pin f down beat a focal length the prior sets
         if mode == "fr":
             clear, tied = model.predict([dict(clean, focal_profile_gap=3000.0), dict(clean, focal_profile_gap=10.0)])

@@ -58,8 +58,9 @@ def test_promise_bounds_violations_and_config(tmp_path):
 def _training(n=300, seed=0):
     rng = np.random.default_rng(seed)
     cues = np.stack([np.round(np.exp(rng.uniform(np.log(2), np.log(80), n))), np.exp(rng.uniform(-15, 1, n)),
-                     rng.normal(0, 0.5, n), np.exp(rng.uniform(np.log(3e-3), 0, n))], 1)
-    scale = np.exp(-np.log1p(cues[:, 0]) + 0.3 * np.log(cues[:, 3] + 1e-2))
+                     rng.normal(0, 0.5, n), np.exp(rng.uniform(np.log(3e-3), 0, n)),
+                     np.exp(rng.uniform(np.log(0.05), np.log(2.0), n))], 1)
+    scale = np.exp(-np.log1p(cues[:, 0]) + 0.3 * np.log(cues[:, 3] + 1e-2) + 0.3 * np.log(cues[:, 4]))
     scale /= scale.mean()
     return cues, np.stack([0.5 * scale, 1.0 * scale, 5.0 * scale], 1)
 
@@ -80,7 +81,7 @@ def test_annotate_with_a_promise_sets_bounds_and_reliable(tmp_path):
         "promise": {"coverage": 0.9, "limits": {"focal_pct": 10.0, "tilt_deg": 3.0},
                     "scales": {"fast": {"focal_pct": 2.0, "tilt_deg": 2.0}}}}))
     loaded = ReliabilityModel.load_default("fast", config_dir=tmp_path)
-    easy, hard = _result([70.0, 1e-6, 0.5, 0.01]), _result([2.0, 2.0, -1.0, 1.0])
+    easy, hard = _result([70.0, 1e-6, 0.5, 0.01, 0.1]), _result([2.0, 2.0, -1.0, 1.0, 2.0])
     loaded.annotate_many([easy, hard], mode="fast")
     assert easy.reliable and easy.reason == ""
     assert easy.error_bound["focal_pct"] == pytest.approx(2.0 * max(easy.predicted_error["focal_pct"], 0.5))
@@ -88,11 +89,11 @@ def test_annotate_with_a_promise_sets_bounds_and_reliable(tmp_path):
     assert not hard.reliable and "90 % bound of focal" in hard.reason and "focal prior set" in hard.reason
     assert json.loads(json.dumps(hard.to_json()))["error_bound"]["focal_pct"] > 10.0
     # a given focal length: no focal bound to exceed
-    given = _result([2.0, 2.0, -1.0, 1.0])
+    given = _result([2.0, 2.0, -1.0, 1.0, 2.0])
     loaded.annotate_many([given], mode="fast", focal_known=[True])
     assert given.error_bound["focal_pct"] == 0.0 and "focal" not in given.reason
     # a model without a promise keeps the thresholds and writes no bound
-    plain = _result([70.0, 1e-6, 0.5, 0.01])
+    plain = _result([70.0, 1e-6, 0.5, 0.01, 0.1])
     model.annotate(plain, mode="fast")
     assert plain.error_bound is None and not plain.reliable and "above threshold" in plain.reason
     # "enforce": false -> the bounds are reported, `reliable` keeps the thresholds
@@ -101,14 +102,14 @@ def test_annotate_with_a_promise_sets_bounds_and_reliable(tmp_path):
         "promise": {"limits": {"focal_pct": 10.0, "tilt_deg": 3.0}, "enforce": False,
                     "scales": {"fast": {"focal_pct": 2.0, "tilt_deg": 2.0}}}}))
     reported = ReliabilityModel.load_default("fast", config_dir=tmp_path)
-    hard = _result([2.0, 2.0, -1.0, 1.0])
+    hard = _result([2.0, 2.0, -1.0, 1.0, 2.0])
     reported.annotate_many([hard], mode="fast")
     assert hard.reliable and hard.error_bound["focal_pct"] > 10.0 and hard.error_bound["enforced"] is False
     # missing cues: no bound (None in the JSON, never NaN) and not reliable under an enforced promise
     (tmp_path / "reliability.json").write_text(json.dumps({"promise": {"limits": {"focal_pct": 10.0},
                                                                        "scales": {"fast": {"focal_pct": 2.0}}}}))
     strict = ReliabilityModel.load_default("fast", config_dir=tmp_path)
-    blind = _result([70.0, 1e-6, 0.5, 0.01])
+    blind = _result([70.0, 1e-6, 0.5, 0.01, 0.1])
     blind.cues.pop("grid_entropy")
     strict.annotate_many([blind], mode="fast")
     assert blind.error_bound["focal_pct"] is None and not blind.reliable

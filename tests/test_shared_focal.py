@@ -117,6 +117,7 @@ def test_cli_shared_focal(tmp_path, capsys):
     assert abs(records[0]["shared_focal"]["focal_px"] / ROOM_F - 1) < 0.04
     assert records[0]["focal_px"] == pytest.approx(records[1]["focal_px"])
     assert records[0]["focal_prior"] is None
+    assert records[0]["shared_focal"]["principal_point"] is None  # two photos: too few to estimate it
     assert main(["calibrate", *paths, "--shared-focal", "--focal", "500"]) == 2
 
 
@@ -148,6 +149,7 @@ def _shared_batch_on_local_engine(tmp_path):
     assert not missing["ok"] and missing["shared_focal_ok"]  # its group has a value; it keeps its failure
     single = table.loc[str(c)]  # an empty group value: a group of one
     assert single["ok"] and single["shared_focal_images_used"] == 1
+    assert table["shared_pp_x"].isna().all()  # groups of fewer than 5 photos keep the image centre
     return manifest, options, table
 
 
@@ -178,3 +180,22 @@ def test_batch_shared_focal_by_on_ray_equals_local(tmp_path):
     assert list(remote.ok) == list(local.ok) and list(remote.shared_focal_ok) == list(local.shared_focal_ok)
     assert list(remote.columns) == list(local.columns)
     assert remote.focal_px.fillna(-1).tolist() == pytest.approx(local.focal_px.fillna(-1).tolist(), rel=1e-6)
+
+
+def test_shared_principal_point(estimator):
+    """Photos of a camera whose principal point is off the image centre: the group recovers it (and f);
+    a given principal point or ``estimate_principal_point=False`` keeps the centre."""
+    rng = np.random.default_rng(3)
+    truth = (340.0, 228.0)  # 20 px right of and 12 px above the centre of 640 x 480
+    photos = [synthetic_segments(TRUE_F, random_rotation(rng), seed=20 + i, n_per_family=40,
+                                 principal_point=truth)[0] for i in range(6)]
+    shared = calibrate_shared(estimator, segments=photos, image_sizes=[(640, 480)] * 6)
+    assert shared.ok and shared.principal_point is not None
+    assert np.hypot(*(np.subtract(shared.principal_point, truth))) < 6.0
+    assert abs(shared.focal_px / TRUE_F - 1) < 0.02
+    assert all(r.principal_point == pytest.approx(shared.principal_point) for r in shared.results)
+    assert json.loads(json.dumps(shared.to_json()))["principal_point"] == pytest.approx(list(shared.principal_point))
+    given = calibrate_shared(estimator, segments=photos, image_sizes=[(640, 480)] * 6, principal_point=(320, 240))
+    assert given.principal_point is None and given.results[0].principal_point == pytest.approx((320, 240))
+    few = calibrate_shared(estimator, segments=photos[:3], image_sizes=[(640, 480)] * 3)
+    assert few.principal_point is None  # fewer than SharedFocalSettings.pp_min_images photos

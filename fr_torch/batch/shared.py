@@ -11,8 +11,11 @@ column) cannot be combined with it.
 Output: the usual columns (each row's camera at the shared focal length) plus
 ``shared_focal_ok`` (bool), ``shared_focal_px`` (the group's focal length in the pixels of its
 first usable photo), ``shared_focal_error_pct`` (its predicted error), ``shared_focal_images_used``
-and ``shared_focal_reason`` (why the group has no shared value: no usable photo, or photos of
-different aspect ratios, whose per-photo results are then kept).
+``shared_focal_reason`` (why the group has no shared value: no usable photo, or photos of
+different aspect ratios, whose per-photo results are then kept), and ``shared_pp_x`` /
+``shared_pp_y``: the group's estimated principal point in the pixels of its first usable photo
+(null with ``--pp``, ``--fixed-pp`` or fewer than 5 usable photos; each row's camera then keeps
+its own principal point).
 """
 from __future__ import annotations
 
@@ -27,7 +30,7 @@ from fr_torch.errors import FRInputError
 from fr_torch.runtime.shared_focal import shared_from_results
 
 SHARED_COLUMNS = ("shared_focal_ok", "shared_focal_px", "shared_focal_error_pct", "shared_focal_images_used",
-                  "shared_focal_reason")
+                  "shared_focal_reason", "shared_pp_x", "shared_pp_y")
 
 
 def _group_key(value) -> Any:
@@ -83,7 +86,8 @@ def calibrate_group(worker, rows: Sequence[dict[str, Any]]):
         for i, reason in failed.items():
             alone[i] = _failed(names[i], reason)
         try:
-            shared = shared_from_results(worker.estimator, alone)
+            shared = shared_from_results(worker.estimator, alone,
+                                         estimate_principal_point=worker.options.get("shared_principal_point", True))
             results = shared.results
             shared_record = shared.to_json()
         except FRInputError as exc:  # photos of different aspect ratios: their own results are kept
@@ -103,6 +107,9 @@ def calibrate_group(worker, rows: Sequence[dict[str, Any]]):
         "shared_focal_images_used": pa.array([int(shared_record.get("images_used") or 0)] * count, pa.int64()),
         "shared_focal_reason": pa.array([shared_record.get("reason") or ""] * count, pa.string()),
     }
+    point = shared_record.get("principal_point") or (None, None)
+    columns["shared_pp_x"] = pa.array([point[0]] * count, pa.float64())
+    columns["shared_pp_y"] = pa.array([point[1]] * count, pa.float64())
     for name in SHARED_COLUMNS:
         table = table.append_column(name, columns[name])
     return table

@@ -26,7 +26,8 @@ def estimator_options(args: argparse.Namespace) -> dict[str, Any]:
 
     focal, pp = camera_options(args)
     return {"estimator": estimator_kwargs(args), "principal_point": pp, "focal_px": focal,
-            "reliability": not getattr(args, "no_reliability", False)}
+            "reliability": not getattr(args, "no_reliability", False),
+            "shared_principal_point": pp is None and not getattr(args, "fixed_pp", False)}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -61,7 +62,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                             "focal_px column wins)")
     parser.add_argument("--shared-focal-by", default=None, metavar="COLUMN",
                         help="manifest column (e.g. a camera id): the rows of each value share one focal length "
-                             "(docs/shared-focal.md; each group is searched by one process or Ray actor)")
+                             "(docs/shared-focal.md; each group is searched by one process or Ray actor) and, "
+                             "unless --pp or --fixed-pp, one principal point (groups of 5 or more usable images)")
+    parser.add_argument("--fixed-pp", action="store_true",
+                        help="with --shared-focal-by: keep the principal point at the image centre instead of "
+                             "estimating each group's")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -5,7 +5,8 @@ Every image's JSON record gets two keys besides :data:`fr_torch.core.estimator.J
 ``focal_prior`` (``{source, focal_px, sigma_pct}`` of the prior used for it, or null; with
 ``--focal-prior exif`` and no usable EXIF, ``focal_prior_reason`` says why) and, with
 ``--shared-focal``, ``shared_focal`` (:meth:`fr_torch.runtime.shared_focal.SharedFocalResult.to_json`, the
-same for every image of the call).
+same for every image of the call; its ``principal_point`` is the camera's estimated one, null with
+``--pp``, ``--fixed-pp`` or fewer than 5 usable images).
 """
 from __future__ import annotations
 
@@ -22,7 +23,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``--shared-focal`` and ``--focal-prior`` (added to ``fr calibrate``)."""
     parser.add_argument("--shared-focal", action="store_true",
                         help="the images come from one camera: estimate one focal length for all of them "
-                             "(robust to photos that do not constrain it) and each image's rotation at it")
+                             "(robust to photos that do not constrain it), its principal point (from 5 images, "
+                             "unless --pp or --fixed-pp) and each image's rotation at them")
+    parser.add_argument("--fixed-pp", action="store_true",
+                        help="with --shared-focal: keep the principal point at the image centre instead of "
+                             "estimating the camera's")
     parser.add_argument("--focal-prior", default=None, metavar="PX[,SIGMA%]|exif[,SIGMA%]",
                         help="a soft log-normal prior on the focal length: PX pixels with SIGMA %% width "
                              "(default 10), or 'exif' to read it from each JPEG's EXIF (FocalLengthIn35mmFilm, or "
@@ -79,7 +84,8 @@ def run(args: argparse.Namespace, estimator, paths: list[str], batch_size: int, 
         chunks += chunk
     priors, reasons = image_priors(option, chunks, alone)
     prior = group_prior(priors)
-    shared = shared_from_results(estimator, alone, focal_prior=prior)
+    shared = shared_from_results(estimator, alone, focal_prior=prior,
+                                 estimate_principal_point=principal_point is None and not args.fixed_pp)
     summary = shared.to_json()
     if not shared.ok:
         print(f"fr: shared focal length: {shared.reason}", file=sys.stderr)

@@ -57,20 +57,13 @@ _HESSIAN_COLUMNS = torch.tensor([5 + [(a, b) for a in range(4) for b in range(a,
 
 
 
-def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
-                      max_chunk_elements: int = 1 << 24) -> torch.Tensor:
-    """How much of the focal length's determination comes from the focal prior (a reliability cue).
+def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                    max_chunk_elements: int = 1 << 24) -> tuple[torch.Tensor, torch.Tensor]:
+    """A local Laplace approximation of the objective around each estimate.
 
-    The objective (likelihood + prior) is scored on the 3^4 lattice of :data:`PRIOR_SHARE_STEP`
-    around each estimate and fitted by a quadratic (a local Laplace approximation; the lattice
-    spacing smooths the kinks of the exponential likelihood).  The prior's curvature in log f,
-    ``c_p``, fitted the same way from its values on the lattice (:meth:`MixtureLikelihood.focal_prior`:
-    the log-normal's constant ``gamma (W + W0)``, 0 inside a flat top), is taken out of the fitted
-    Hessian, leaving the likelihood's; its curvature along log f with the angles re-optimised (Schur
-    complement ``-(H_ff - H_fa H_aa^-1 H_af)``) is ``c_l``.  The cue is ``c_p / (c_p + max(c_l, 0))``:
-    near 0 when the segments pin f down, 1 when the likelihood is flat (or curves up) along f and the
-    prior alone sets it -- e.g. a narrow view whose vanishing points lie far outside the image,
-    which the prior pulls towards its centre.
+    The objective (likelihood + focal prior) is scored on the 3^4 lattice of :data:`PRIOR_SHARE_STEP`
+    around each estimate and fitted by a quadratic (the lattice spacing smooths the kinks of the
+    exponential likelihood); the focal prior's values on the lattice are fitted the same way.
 
     Args:
         likelihood: the estimator's model (its focal prior included).
@@ -79,32 +72,83 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
         max_chunk_elements: as for :func:`score_grid`.
 
     Returns:
-        (B,) float64 in [0, 1]; 0 for every image when the model has no focal prior; 1 where the fit
-        is not finite.
+        ``(hessian, prior_curvature)``: (B, 4, 4) float64 second derivatives of the objective in
+        [pan, pitch, roll (degrees), log f] (objective units per unit^2; negative definite at a clean
+        maximum), and (B,) ``-d^2 prior / d(log f)^2`` (>= 0; 0 without a prior or inside its flat top).
     """
-    batch = params.shape[0]
     device = features.weight.device
-    if not likelihood.params.focal_prior_weight:
-        return torch.zeros(batch, dtype=torch.float64, device=device)
     step = torch.tensor(PRIOR_SHARE_STEP, dtype=torch.float64, device=device)
     centre = to_log_focal(params.to(device=device, dtype=torch.float64))
     points = from_log_focal(centre[:, None, :] + LATTICE.to(device) * step)  # (B, 81, 4)
     scores = score_grid(likelihood, features, points, max_chunk_elements, vertical_block=3)
     fit = _QUADRATIC_FIT.to(device).T  # (81, 15)
     coef = scores.to(torch.float64) @ fit  # (B, 15)
-    hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(batch, 4, 4)
+    hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(-1, 4, 4) / (step[:, None] * step[None, :])
+    if not likelihood.params.focal_prior_weight:
+        return hessian, torch.zeros(params.shape[0], dtype=torch.float64, device=device)
     # The prior's curvature over the same lattice, fitted the same way (exact for the log-normal;
     # a flat-topped prior has none inside its band and part of it at the band's edge).
     prior_values = likelihood.focal_prior(features, points[..., FOCAL].to(features.weight.dtype))[0]
     prior_hessian = prior_values.to(torch.float64) @ fit[:, _HESSIAN_COLUMNS[15].item()]  # H_33, lattice units
-    hessian[:, 3, 3] -= prior_hessian  # the likelihood's Hessian alone (lattice units)
-    prior = (-prior_hessian / step[3] ** 2).clamp_min(0.0)  # per (log f)^2
+    return hessian, (-prior_hessian / step[3] ** 2).clamp_min(0.0)
+
+
+def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                      max_chunk_elements: int = 1 << 24,
+                      fitted: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """How much of the focal length's determination comes from the focal prior (a reliability cue).
+
+    From :func:`local_quadratic` (or ``fitted``, its output): the prior's curvature in log f, ``c_p``,
+    is taken out of the fitted Hessian, leaving the likelihood's; its curvature along log f with the
+    angles re-optimised (Schur complement ``-(H_ff - H_fa H_aa^-1 H_af)``) is ``c_l``.  The cue is
+    ``c_p / (c_p + max(c_l, 0))``: near 0 when the segments pin f down, 1 when the likelihood is
+    flat (or curves up) along f and the prior alone sets it -- e.g. a narrow view whose vanishing
+    points lie far outside the image, which the prior pulls towards its centre.
+
+    Args:
+        likelihood, features, params, max_chunk_elements: as for :func:`local_quadratic`.
+        fitted: :func:`local_quadratic`'s output for the same arguments, when already computed.
+
+    Returns:
+        (B,) float64 in [0, 1]; 0 for every image when the model has no focal prior; 1 where the fit
+        is not finite.
+    """
+    if not likelihood.params.focal_prior_weight:
+        return torch.zeros(params.shape[0], dtype=torch.float64, device=features.weight.device)
+    hessian, prior = fitted if fitted is not None else local_quadratic(likelihood, features, params,
+                                                                       max_chunk_elements)
+    hessian = hessian.clone()
+    hessian[:, 3, 3] += prior  # the likelihood's Hessian alone
     angles, focal_row = hessian[:, :3, :3], hessian[:, :3, 3:]
     solved, info = torch.linalg.solve_ex(angles, focal_row)
-    profile = -(hessian[:, 3, 3] - (focal_row * solved).sum((-1, -2))) / step[3] ** 2  # per (log f)^2
+    profile = -(hessian[:, 3, 3] - (focal_row * solved).sum((-1, -2)))  # per (log f)^2
     share = prior / (prior + profile.clamp_min(0.0))
     ok = torch.isfinite(share) & (info == 0)
     return torch.where(ok, share.clamp(0.0, 1.0) + 0.0, torch.ones_like(share))  # + 0.0: no -0.0 in the output
+
+
+def focal_spread(hessian: torch.Tensor, total_length: torch.Tensor) -> torch.Tensor:
+    """The focal length's spread under the local Laplace approximation (a reliability cue).
+
+    Args:
+        hessian: (B, 4, 4) from :func:`local_quadratic` ([pan, pitch, roll (deg), log f]).
+        total_length: (B,) total segment length per image, pixels.
+
+    Returns:
+        (B,) float64 ``sqrt(W [-H^-1]_ff)``: the marginal spread of log f with the angles
+        re-optimised, focal prior included, for the objective normalised per pixel of segment length
+        (W = ``total_length``; the length-weighted sum over-counts correlated pixels, so the ranking,
+        not the scale, is what the error model uses).  :data:`MAX_SPREAD` where the fit has no
+        maximum along log f (or is not finite).
+    """
+    covariance, info = torch.linalg.inv_ex(-hessian)
+    variance = covariance[:, 3, 3] * total_length.to(covariance)
+    ok = (info == 0) & torch.isfinite(variance) & (variance > 0)
+    return torch.where(ok, variance.clamp_min(0.0).sqrt(), torch.full_like(variance, MAX_SPREAD)).clamp_max(MAX_SPREAD)
+
+
+#: Value of :func:`focal_spread` where the objective has no maximum along log f.
+MAX_SPREAD = 1e3
 
 
 #: Focal lengths of :func:`focal_profile_gap`'s profile, as multiples of the estimate: about 15 % to
@@ -327,16 +371,18 @@ def image_cues(grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[
 def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: SegmentFeatures,
                params: torch.Tensor, scores: torch.Tensor, known_focal: bool, profile_gap: bool) -> dict[str, torch.Tensor]:
     """The focal cues of the estimates ``params`` (B, 4) with objectives ``scores`` (B,), each
-    float64 (B,): ``focal_prior_share`` (:func:`focal_prior_share`) and, when
-    ``profile_gap`` is on (fR's shipped model uses it), ``focal_profile_gap``
-    (:func:`focal_profile_gap`, each known-focal search refined for Fast-fR's number of steps; it
-    costs about a Fast-fR search per photo, so Fast-fR and its model go without it).  0 for a
-    given focal length: the prior plays no part and there is no focal length to single out."""
-    names = ("focal_prior_share", "focal_profile_gap") if profile_gap else ("focal_prior_share",)
+    float64 (B,): ``focal_prior_share`` and ``focal_spread`` (:func:`focal_prior_share`,
+    :func:`focal_spread`, both from one :func:`local_quadratic` fit) and, when ``profile_gap`` is on
+    (fR's shipped model uses it), ``focal_profile_gap`` (:func:`focal_profile_gap`, each
+    known-focal search refined for Fast-fR's number of steps; it costs about a Fast-fR search per
+    photo, so Fast-fR and its model go without it).  0 for a given focal length: the prior plays no
+    part and there is no focal length to single out."""
+    names = ("focal_prior_share", "focal_spread") + (("focal_profile_gap",) if profile_gap else ())
     if known_focal:
         return {name: torch.zeros(params.shape[0], dtype=torch.float64, device=params.device) for name in names}
-    cues = {"focal_prior_share": focal_prior_share(likelihood, features, params,
-                                                   search.max_chunk_elements)}
+    fitted = local_quadratic(likelihood, features, params, search.max_chunk_elements)
+    cues = {"focal_prior_share": focal_prior_share(likelihood, features, params, fitted=fitted),
+            "focal_spread": focal_spread(fitted[0], features.weight.sum(-1))}
     if profile_gap:
         cues["focal_profile_gap"] = focal_profile_gap(likelihood, features, params, scores, search,
                                                       FAST_REFINE_ITERATIONS)

@@ -8,9 +8,9 @@ regressor returns the **mean absolute error of the K most similar training image
 
 Cues (:data:`CUE_NAMES`; the first three are the paper's, :data:`PAPER_CUE_NAMES`)
 ------------------------------------------------------------------------------------
-Every fR result reports all six (Fast-fR results all but ``focal_profile_gap``, which would cost
-Fast-fR more than half of its time); the shipped models use :func:`model_cue_names`: the paper's three and
-``focal_prior_share`` (:data:`MODEL_CUE_NAMES`, Fast-fR), and all six (:data:`FR_MODEL_CUE_NAMES`,
+Every fR result reports all seven (Fast-fR results all but ``focal_profile_gap``, which would cost
+Fast-fR more than half of its time); the shipped models use :func:`model_cue_names`: the paper's three,
+``focal_prior_share`` and ``focal_spread`` (:data:`MODEL_CUE_NAMES`, Fast-fR), and all seven (:data:`FR_MODEL_CUE_NAMES`,
 fR).
 
 * ``min_family_segments``, ``grid_entropy``, ``mean_log_likelihood``: the paper's cues (defined in
@@ -36,9 +36,16 @@ fR).
   explains the segments than a clearly different one.  Small or negative: a second basin nearly as
   good (or better: a search miss), the case of most large focal errors; ``focal_prior_share`` sees
   a flat profile, this cue a second peak.  0 for a given focal length.
+* ``focal_spread`` (not in the paper; :func:`fr_torch.core.cues.focal_spread`): the marginal spread
+  of log f (angles re-optimised, focal prior included) of the local quadratic fit that also gives
+  ``focal_prior_share``, for the objective per pixel of segment length: how sharply the whole
+  objective peaks along f (``focal_prior_share`` says how much of that peak is the prior's).  0 for
+  a given focal length.
 
-The shipped models' cue sets (Fast-fR: the paper's three and ``focal_prior_share``; fR: all six)
-were chosen out of fold on the train splits (``results/DECISIONS.md``).
+The shipped models' cue sets (Fast-fR: the paper's three, ``focal_prior_share`` and ``focal_spread``;
+fR: all seven)
+were chosen out of fold on the train splits (``results/DECISIONS.md``; ``focal_spread``: left-one-
+family-out on the train splits, ``results/decisions/35.md``).
 
 Scope: a model predicts only for the setting it was trained on, ``meta["trained_for"]`` (deviation
 measure, line detector, likelihood config; :data:`DEFAULT_TRAINED_FOR` for a file that does not say,
@@ -68,15 +75,16 @@ _config_dir = config_dir  # load_default has an argument of that name
 
 PAPER_CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")  # paper §3.4
 # what the estimator reports (focal_profile_gap in fr mode only)
-CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share", "focal_profile_gap")
-MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_prior_share",)  # Fast-fR's shipped model (module docstring)
-FR_MODEL_CUE_NAMES = CUE_NAMES  # fR's shipped model: all six
+CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share", "focal_profile_gap", "focal_spread")
+MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_prior_share", "focal_spread")  # Fast-fR's shipped model (module docstring)
+FR_MODEL_CUE_NAMES = CUE_NAMES  # fR's shipped model: all seven
 TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
 ERROR_COLUMNS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct")  # training-record column names
 LOG_EPS = np.array([0.1, 0.1, 1.0])  # CV loss: ln(error + eps)
 ENTROPY_FLOOR = 1e-6
 CONDITIONING_FLOOR = 1e-3
 PRIOR_SHARE_FLOOR = 1e-2
+SPREAD_FLOOR = 1e-4
 PROFILE_GAP_SCALE = 100.0  # nats: asinh(gap / scale) is linear within +-scale, logarithmic beyond
 # Raw cue -> feature, per cue name (module docstring, "Cue normalisation").
 _CUE_TRANSFORMS = {
@@ -88,6 +96,7 @@ _CUE_TRANSFORMS = {
     "focal_prior_share": (lambda c: np.log(np.clip(c, 0.0, 1.0) + PRIOR_SHARE_FLOOR), "ln(focal_prior_share + 1e-2)"),
     "focal_profile_gap": (lambda c: np.arcsinh(np.asarray(c, np.float64) / PROFILE_GAP_SCALE),
                           "asinh(focal_profile_gap / 100)"),
+    "focal_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR), "ln(focal_spread + 1e-4)"),
 }
 
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
@@ -104,7 +113,7 @@ PREDICT_BLOCK = 4096  # query rows ranked at once against the training set (memo
 
 
 def model_cue_names(mode: str) -> tuple[str, ...]:
-    """The cues the shipped model of ``mode`` (``fr`` / ``fast``) uses: fR's all six (Fast-fR does
+    """The cues the shipped model of ``mode`` (``fr`` / ``fast``) uses: fR's all seven (Fast-fR does
     not compute ``focal_profile_gap``)."""
     return FR_MODEL_CUE_NAMES if mode == "fr" else MODEL_CUE_NAMES
 

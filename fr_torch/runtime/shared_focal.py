@@ -26,6 +26,11 @@ Method (``docs/shared-focal.md``; choices in ``results/decisions/38.md``):
    The shared ``log(f / L)`` is the sum's argmax, refined by a parabola through its neighbours.
    Photos whose profile is flat (a wall seen square on, VPs at infinity) add a constant: no drag.
 4. Every photo is searched again with the focal length known (its rotation at the shared f).
+5. **Principal point** (:attr:`SharedFocalSettings.principal_point`, on by default; only when the
+   caller gives none): with at least ``pp_min_images`` photos of one orientation, each photo's
+   objective at the shared f is scored over a grid of principal-point offsets (rotation refined
+   from step 4's), tempered and floored as in step 3, summed, and the maximum of a quadratic fit
+   is the group's principal point (:func:`shared_principal_point`); steps 2-4 run again at it.
 
 Sizes: the shared quantity is ``f / L``, so resized copies and portrait / landscape shots of one
 camera share it; a group whose usable photos differ in aspect ratio (a crop, another camera) is
@@ -80,6 +85,11 @@ class SharedFocalSettings:
     ``1 / (1 + (e / error_scale_pct)^2)``, e the reliability stage's predicted focal error (%;
     weight 1 where a photo has none).
     ``kappa``: calibration factor of ``predicted_error_pct``.
+    ``principal_point``: also estimate one principal point for the group (:func:`shared_principal_point`;
+    only when the caller gives none, the group has at least ``pp_min_images`` usable photos and they
+    share one orientation): ``pp_offsets`` are the offsets from the image centre tried along each
+    axis (fractions of the long side; their grid is searched and a quadratic fitted to it), each
+    photo's rotation refined for ``pp_iterations`` Adam steps at each.
     """
     grid_points: int = 48
     angle_grid: int = 4
@@ -89,10 +99,17 @@ class SharedFocalSettings:
     cap: float = 6.0
     error_scale_pct: float | None = None
     kappa: float = 1.613
+    principal_point: bool = True
+    pp_offsets: tuple[float, ...] = (-0.04, -0.02, 0.0, 0.02, 0.04)
+    pp_iterations: int = 10
+    pp_min_images: int = 5
 
     def __post_init__(self):
         if self.grid_points < 5 or self.angle_grid < 1 or self.starts < 1 or self.iterations < 0:
             raise FRInputError("SharedFocalSettings: grid_points >= 5, angle_grid >= 1, starts >= 1, iterations >= 0")
+        if len(self.pp_offsets) < 3 or self.pp_iterations < 0 or self.pp_min_images < 2:
+            raise FRInputError("SharedFocalSettings: pp_offsets needs >= 3 values, pp_iterations >= 0, "
+                               "pp_min_images >= 2")
         for name in ("beta", "cap", "error_scale_pct", "kappa"):
             value = getattr(self, name)
             if value is None and name == "error_scale_pct":
@@ -254,6 +271,8 @@ class SharedFocalResult:
     :class:`~fr_torch.core.estimator.CalibrationResult` per photo, in input order, searched with the
     focal length known (a photo that failed alone keeps its failure).  ``focal_prior``: the prior
     that entered (:meth:`fr_torch.runtime.focal_prior.FocalPrior.to_json`) or None.
+    ``principal_point``: the group's estimated principal point (x, y) in the first usable photo's
+    pixels, or None where it was not estimated (:attr:`SharedFocalSettings.principal_point`).
     """
     focal_px: float | None
     focal_ratio: float | None
@@ -264,6 +283,7 @@ class SharedFocalResult:
     reason: str
     results: list = field(default_factory=list)
     focal_prior: dict | None = None
+    principal_point: tuple[float, float] | None = None
 
     def to_json(self) -> dict:
         """JSON-ready summary (no per-photo results): the ``shared_focal`` record of the CLI."""
@@ -272,7 +292,8 @@ class SharedFocalResult:
 
         return {"ok": self.ok, "reason": self.reason, "focal_px": clean(self.focal_px),
                 "focal_ratio": clean(self.focal_ratio), "predicted_error_pct": clean(self.predicted_error_pct),
-                "images": self.images, "images_used": self.images_used}
+                "images": self.images, "images_used": self.images_used,
+                "principal_point": None if self.principal_point is None else [float(v) for v in self.principal_point]}
 
 
 def at_range_edge(log_ratios: np.ndarray, log_ratio: float) -> bool:
@@ -313,16 +334,19 @@ def check_group_sizes(sizes: Sequence[tuple[int, int]], names: Sequence[str]) ->
                                "(resized copies and portrait/landscape are fine; crops are not)")
 
 
-def profile_results(estimator, results, settings: SharedFocalSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def profile_results(estimator, results, settings: SharedFocalSettings,
+                    principal_points: Sequence | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(log_ratios (K,), profiles (n, K), total segment lengths (n,)) of ok per-photo results that
-    hold their segments (``result.segments`` in the result's pixels, principal point from its camera)."""
+    hold their segments (``result.segments`` in the result's pixels, principal point from its camera
+    unless ``principal_points`` gives one (x, y) per result)."""
     log_ratios = log_ratio_grid(estimator.search.fov_range, settings.grid_points)
     if not results:
         return log_ratios, np.zeros((0, len(log_ratios))), np.zeros(0)
     device, dtype = estimator.device, estimator.dtype
     batch = SegmentBatch.from_list([np.asarray(r.segments, np.float64) for r in results],
                                    [(r.width, r.height) for r in results], device, dtype)
-    pp = torch.tensor([list(r.principal_point) for r in results], dtype=torch.float64)
+    points = principal_points if principal_points is not None else [r.principal_point for r in results]
+    pp = torch.tensor([list(p) for p in points], dtype=torch.float64)
     features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
     profiles = focal_profiles(estimator, features, _search_estimates(results), log_ratios, settings)
     return log_ratios, profiles, features.weight.sum(-1).to("cpu", torch.float64).numpy()
@@ -356,6 +380,73 @@ def predicted_focal_pct(results) -> np.ndarray | None:
     return None if all(not math.isfinite(v) for v in values) else np.asarray(values, np.float64)
 
 
+
+def principal_point_scores(estimator, results, offsets: np.ndarray, settings: SharedFocalSettings) -> np.ndarray:
+    """Best objective of each photo with the principal point moved from the image centre by each offset.
+
+    Args:
+        estimator: the :class:`~fr_torch.runtime.estimator.FREstimator` (likelihood, search box).
+        results: n ok results holding their segments, searched at the group's focal length (their
+            focal length is kept; their rotation is the start).
+        offsets: (M, 2) offsets (x, y) from the image centre, fractions of the long side.
+        settings: ``pp_iterations`` Adam steps of the rotation per offset.
+
+    Returns:
+        (n, M) float64 objective units (length-weighted log-likelihood plus the focal prior, which is
+        the same at every offset); -inf where not finite.
+    """
+    device, dtype = estimator.device, estimator.dtype
+    config = estimator.search
+    count, m = len(results), len(offsets)
+    batch = SegmentBatch.from_list([np.asarray(r.segments, np.float64) for r in results],
+                                   [(r.width, r.height) for r in results], device, dtype)
+    long_side = torch.tensor([float(max(r.width, r.height)) for r in results], dtype=torch.float64)
+    centre = torch.tensor([[r.width / 2, r.height / 2] for r in results], dtype=torch.float64)
+    features = SegmentFeatures.from_batch(batch, centre.to(device=device, dtype=dtype))
+    index = torch.arange(count).repeat_interleave(m)
+    moved = centre[index] + torch.as_tensor(offsets, dtype=torch.float64).repeat(count, 1) * long_side[index, None]
+    replicas = replace(features.take_images(index.to(device)), principal_point=moved.to(device=device, dtype=dtype))
+    estimates = _search_estimates(results)[index]
+    lower, upper = parameter_box(config, long_side[index], estimates[:, 3])
+    starts = estimates[:, None].to(device)
+    if settings.pp_iterations:
+        _, scores = refine(estimator.likelihood, replicas, starts, lower.to(device), upper.to(device),
+                           settings.pp_iterations, fast=True, periodic_pan=config.periodic_pan)
+    else:
+        scores = score_grid(estimator.likelihood, replicas, starts, config.max_chunk_elements)
+    values = scores.amax(1).to(torch.float64).view(count, m).cpu().numpy()
+    return np.where(np.isfinite(values), values, -np.inf)
+
+
+def shared_principal_point(estimator, results, settings: SharedFocalSettings) -> tuple[float, float] | None:
+    """One principal-point offset (x, y) from the image centre, fractions of the long side, for a group
+    of photos of one camera searched at their shared focal length, or None (fewer than
+    ``settings.pp_min_images`` photos, or photos of different orientations, whose sensor axes differ).
+
+    Each photo's scores over the ``pp_offsets`` x ``pp_offsets`` grid (:func:`principal_point_scores`)
+    are tempered and floored as the focal profiles are (:func:`tempered_profiles`: one photo moves
+    the sum by at most ``cap``), summed, and a quadratic in (x, y) is fitted to the sum; its maximum,
+    clipped to the grid, is the offset (the best grid point where the fit has no maximum).
+    """
+    if len(results) < settings.pp_min_images or len({r.width >= r.height for r in results}) > 1:
+        return None
+    axis = np.asarray(settings.pp_offsets, dtype=np.float64)
+    grid = np.stack(np.meshgrid(axis, axis, indexing="xy"), -1).reshape(-1, 2)  # (M, 2)
+    scores = principal_point_scores(estimator, results, grid, settings)
+    lengths = np.array([float(np.linalg.norm(np.asarray(r.segments)[:, 2:4] - np.asarray(r.segments)[:, :2],
+                                              axis=1).sum()) for r in results])
+    total = tempered_profiles(scores, lengths, settings).sum(0)
+    x, y = grid[:, 0], grid[:, 1]
+    design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], 1)
+    c = np.linalg.lstsq(design, total, rcond=None)[0]
+    hessian = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+    best = grid[int(np.argmax(total))]
+    if np.all(np.linalg.eigvalsh(hessian) < 0):
+        best = np.linalg.solve(hessian, -c[1:3])
+    best = np.clip(best, axis[0], axis[-1])
+    return float(best[0]), float(best[1])
+
+
 def calibrate_shared(estimator, images: Sequence | None = None, *, segments: Sequence | None = None,
                      image_sizes: Sequence[tuple[int, int]] | None = None, names: Sequence[str] | None = None,
                      principal_point=None, focal_prior=None,
@@ -387,14 +478,20 @@ def calibrate_shared(estimator, images: Sequence | None = None, *, segments: Seq
             raise FRInputError("calibrate_shared: segments need image_sizes")
         alone = estimator.calibrate_segments(list(segments), list(image_sizes), names=names,
                                              principal_point=principal_point)
-    return shared_from_results(estimator, alone, focal_prior=focal_prior, settings=settings)
+    return shared_from_results(estimator, alone, focal_prior=focal_prior, settings=settings,
+                               estimate_principal_point=principal_point is None)
 
 
 def shared_from_results(estimator, alone: Sequence, focal_prior=None,
-                        settings: SharedFocalSettings | None = None) -> SharedFocalResult:
+                        settings: SharedFocalSettings | None = None,
+                        estimate_principal_point: bool = True) -> SharedFocalResult:
     """Steps 2-4 of the method on per-photo results ``alone`` (each holding its segments, in the
-    pixels of its photo); see :func:`calibrate_shared`."""
+    pixels of its photo); see :func:`calibrate_shared`.  ``estimate_principal_point`` False keeps
+    each result's principal point (the caller gave it, or wants the image centre) whatever
+    ``settings.principal_point`` says."""
     settings = settings or SharedFocalSettings()
+    if not estimate_principal_point:
+        settings = replace(settings, principal_point=False)
     usable = [i for i, r in enumerate(alone) if r.ok and r.segments is not None and len(r.segments)
               and r.rotation is not None and r.focal_px is not None]
     prior_json = focal_prior.to_json() if focal_prior is not None else None
@@ -404,23 +501,41 @@ def shared_from_results(estimator, alone: Sequence, focal_prior=None,
                                  list(alone), prior_json)
     kept = [alone[i] for i in usable]
     check_group_sizes([(r.width, r.height) for r in kept], [r.image for r in kept])
-    log_ratios, profiles, lengths = profile_results(estimator, kept, settings)
-    profiles = with_estimator_prior(estimator, log_ratios, profiles, lengths, [max(r.width, r.height) for r in kept])
-    prior = focal_prior.log_ratio_prior(kept[0].width, kept[0].height) if focal_prior is not None else None
-    combined = combine_profiles(log_ratios, profiles, lengths, predicted_focal_pct(kept), settings, prior)
+    log_ratios, combined, again = _at_shared_focal(estimator, kept, None, focal_prior, settings)
+    principal_point = None
+    if settings.principal_point and all(r.ok for r in again):
+        offset = shared_principal_point(estimator, again, settings)
+        if offset is not None:
+            points = [(r.width / 2 + offset[0] * max(r.width, r.height), r.height / 2 + offset[1] * max(r.width, r.height))
+                      for r in kept]
+            log_ratios, combined, again = _at_shared_focal(estimator, kept, points, focal_prior, settings)
+            principal_point = points[0]
     ratio = math.exp(combined.log_ratio)
-    focal = [ratio * max(r.width, r.height) for r in kept]
-    again = estimator.calibrate_segments([np.asarray(r.segments, np.float64) for r in kept],
-                                         [(r.width, r.height) for r in kept], names=[r.image for r in kept],
-                                         focal_px=focal, principal_point=[tuple(r.principal_point) for r in kept],
-                                         apply_filter=False)
     results = list(alone)
     at_edge = at_range_edge(log_ratios, combined.log_ratio)
     for i, result in zip(usable, again):
         _mark_focal(result, combined.predicted_error_pct, at_edge)
         results[i] = result
-    return SharedFocalResult(focal[0], ratio, combined.predicted_error_pct, len(alone), int(combined.used.sum()),
-                             True, "", results, prior_json)
+    return SharedFocalResult(ratio * max(kept[0].width, kept[0].height), ratio, combined.predicted_error_pct,
+                             len(alone), int(combined.used.sum()), True, "", results, prior_json, principal_point)
+
+
+def _at_shared_focal(estimator, kept: Sequence, principal_points: Sequence | None, focal_prior,
+                     settings: SharedFocalSettings):
+    """Steps 2-4 for the usable results ``kept`` at ``principal_points`` (one (x, y) per photo, or
+    None: each result's own): (log-ratio grid, :class:`CombinedFocal`, the photos searched again at
+    the shared focal length)."""
+    log_ratios, profiles, lengths = profile_results(estimator, kept, settings, principal_points)
+    profiles = with_estimator_prior(estimator, log_ratios, profiles, lengths, [max(r.width, r.height) for r in kept])
+    prior = focal_prior.log_ratio_prior(kept[0].width, kept[0].height) if focal_prior is not None else None
+    combined = combine_profiles(log_ratios, profiles, lengths, predicted_focal_pct(kept), settings, prior)
+    ratio = math.exp(combined.log_ratio)
+    points = principal_points if principal_points is not None else [tuple(r.principal_point) for r in kept]
+    again = estimator.calibrate_segments([np.asarray(r.segments, np.float64) for r in kept],
+                                         [(r.width, r.height) for r in kept], names=[r.image for r in kept],
+                                         focal_px=[ratio * max(r.width, r.height) for r in kept],
+                                         principal_point=[tuple(p) for p in points], apply_filter=False)
+    return log_ratios, combined, again
 
 
 def apply_focal_priors(estimator, alone: Sequence, priors: Sequence, settings: SharedFocalSettings | None = None
