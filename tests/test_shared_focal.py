@@ -199,3 +199,37 @@ def test_shared_principal_point(estimator):
     assert given.principal_point is None and given.results[0].principal_point == pytest.approx((320, 240))
     few = calibrate_shared(estimator, segments=photos[:3], image_sizes=[(640, 480)] * 3)
     assert few.principal_point is None  # fewer than SharedFocalSettings.pp_min_images photos
+
+
+def test_batch_focal_prior(tmp_path):
+    """fr batch --focal-prior: each photo without a known focal length is searched with the prior,
+    the prior columns say which prior (or why none); with --focal it is a one-line usage error."""
+    import shutil
+    from pathlib import Path
+
+    import pandas as pd
+
+    from fr_torch.batch.jobs import run_batch
+    from fr_torch.cli.main import main
+    from fr_torch.runtime.focal_prior import parse_focal_prior
+
+    room = Path(__file__).resolve().parents[1] / "examples" / "room.png"
+    a, b = (shutil.copy(room, tmp_path / f"{name}.png") for name in ("a", "b"))
+    manifest = tmp_path / "m.csv"
+    pd.DataFrame({"image": [str(a), str(b), str(tmp_path / "missing.png")],
+                  "focal_px": [None, 450.0, None]}).to_csv(manifest, index=False)
+    options = {"estimator": {"mode": "fast"}, "principal_point": None, "focal_px": None, "reliability": False,
+               "focal_prior": parse_focal_prior(f"{ROOM_F * 1.1:.1f},5")}
+    summary = run_batch([str(manifest)], tmp_path / "out", options, progress=False)
+    assert summary["processed"] == 3 and summary["failed"] == 1
+    table = pd.read_parquet(tmp_path / "out").set_index("image")
+    with_prior, known = table.loc[str(a)], table.loc[str(b)]
+    assert with_prior["focal_prior_source"] == "user" and with_prior["focal_prior_px"] == pytest.approx(ROOM_F * 1.1)
+    assert with_prior["focal_prior_sigma_pct"] == 5.0 and with_prior["ok"]
+    assert known["focal_px"] == pytest.approx(450.0) and pd.isna(known["focal_prior_px"])
+    assert known["focal_prior_reason"] == "focal length given"
+    options["focal_prior"] = parse_focal_prior("exif")  # a PNG has no EXIF: no prior, and why
+    run_batch([str(a)], tmp_path / "out_exif", options, progress=False)
+    row = pd.read_parquet(tmp_path / "out_exif").iloc[0]
+    assert pd.isna(row["focal_prior_px"]) and row["focal_prior_reason"] and row["ok"]
+    assert main(["batch", str(a), "--out", str(tmp_path / "bad"), "--focal", "500", "--focal-prior", "400"]) == 2

@@ -24,9 +24,10 @@ from typing import Any, Iterable, Sequence
 
 import pyarrow as pa
 
-from fr_torch.batch.table import _finite_or_none, records_to_table
+from fr_torch.batch.table import _finite_or_none, records_to_table, with_prior_columns
 from fr_torch.batch.worker import BatchWorker, _failed
 from fr_torch.errors import FRInputError
+from fr_torch.runtime.focal_prior import group_prior, image_priors
 from fr_torch.runtime.shared_focal import shared_from_results
 
 SHARED_COLUMNS = ("shared_focal_ok", "shared_focal_px", "shared_focal_error_pct", "shared_focal_images_used",
@@ -80,13 +81,17 @@ def calibrate_group(worker, rows: Sequence[dict[str, Any]]):
     names = [str(row["image"]) for row in rows]
     inputs, failed = worker.read_inputs(names)
     shared_record = {"ok": False, "focal_px": None, "predicted_error_pct": None, "images_used": 0, "reason": ""}
+    option = worker.options.get("focal_prior")
+    prior, reasons = None, [""] * len(names)
     try:
         alone = worker.estimator.calibrate_images(inputs, names=names,
                                                   principal_point=worker.options.get("principal_point"))
         for i, reason in failed.items():
             alone[i] = _failed(names[i], reason)
+        priors, reasons = image_priors(option, inputs, alone)
+        prior = group_prior(priors)
         try:
-            shared = shared_from_results(worker.estimator, alone,
+            shared = shared_from_results(worker.estimator, alone, focal_prior=prior,
                                          estimate_principal_point=worker.options.get("shared_principal_point", True))
             results = shared.results
             shared_record = shared.to_json()
@@ -97,6 +102,8 @@ def calibrate_group(worker, rows: Sequence[dict[str, Any]]):
         results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
         shared_record["reason"] = f"calibration error: {type(exc).__name__}: {exc}"
     table = records_to_table([result.to_json() for result in results], rows, worker.extras)
+    if option is not None:  # the group's prior (the first photo's that has one) on every row
+        table = with_prior_columns(table, [prior] * len(rows), reasons)
     count = len(rows)
     error = shared_record.get("predicted_error_pct")
     columns = {

@@ -157,3 +157,22 @@ class PartWriter:
                 temp.unlink()
             except OSError:
                 pass
+
+
+#: Columns ``fr batch --focal-prior`` adds (only then): the prior each row's photo got, or why none.
+PRIOR_COLUMNS = ("focal_prior_px", "focal_prior_sigma_pct", "focal_prior_source", "focal_prior_reason")
+
+
+def with_prior_columns(table, priors: Sequence, reasons: Sequence[str]):
+    """``table`` with :data:`PRIOR_COLUMNS` appended: per row the focal prior used
+    (:class:`~fr_torch.runtime.focal_prior.FocalPrior`: centre in the row's pixels, width in %,
+    ``user`` / ``exif``), null where none, and the reason there is none ("" otherwise)."""
+    columns = {
+        "focal_prior_px": pa.array([None if p is None else float(p.focal_px) for p in priors], pa.float64()),
+        "focal_prior_sigma_pct": pa.array([None if p is None else float(p.sigma_pct) for p in priors], pa.float64()),
+        "focal_prior_source": pa.array([None if p is None else p.source for p in priors], pa.string()),
+        "focal_prior_reason": pa.array([str(r or "") for r in reasons], pa.string()),
+    }
+    for name in PRIOR_COLUMNS:
+        table = table.append_column(name, columns[name])
+    return table

@@ -9,10 +9,12 @@ import numpy as np
 import torch
 
 from fr_torch.batch.inputs import has_scheme, read_remote_image
-from fr_torch.batch.table import _finite_or_none, records_to_table
+from fr_torch.batch.table import _finite_or_none, records_to_table, with_prior_columns
 from fr_torch.core.estimator import CalibrationResult
 from fr_torch.runtime.estimator import FREstimator
+from fr_torch.runtime.focal_prior import image_priors
 from fr_torch.runtime.pipeline import calibrate_paths
+from fr_torch.runtime.shared_focal import apply_focal_priors
 
 CRASH_ENV = "FR_BATCH_CRASH"
 
@@ -58,7 +60,28 @@ class BatchWorker:
             results = [_failed(name, f"calibration error: {type(exc).__name__}: {exc}") for name in names]
         for i, reason in failed.items():
             results[i] = _failed(names[i], reason)
-        return records_to_table([result.to_json() for result in results], rows, self.extras)
+        return self._table(inputs, focal, results, rows)
+
+    def _table(self, inputs: Sequence, focal: Sequence, results: list, rows: Sequence[dict[str, Any]]):
+        """The Arrow table of ``results`` (one per row), after the ``--focal-prior`` option
+        (``options["focal_prior"]``, a :class:`~fr_torch.runtime.focal_prior.FocalPriorOption`) where
+        set: each photo without a known focal length searched again with its prior, and the prior
+        columns (:func:`~fr_torch.batch.table.with_prior_columns`) appended."""
+        option = self.options.get("focal_prior")
+        if option is None:
+            return records_to_table([result.to_json() for result in results], rows, self.extras)
+        priors, reasons = image_priors(option, inputs, results)
+        for i, known in enumerate(focal):
+            if known is not None:  # a manifest focal_px (or --focal) fixes f: no prior
+                priors[i], reasons[i] = None, "focal length given"
+        try:
+            results = apply_focal_priors(self.estimator, results, priors)
+        except Exception as exc:  # the photos keep their own estimates; the reason says why
+            reasons = [f"focal prior not applied: {type(exc).__name__}: {exc}" if p is not None else r
+                       for p, r in zip(priors, reasons)]
+            priors = [None] * len(priors)
+        table = records_to_table([result.to_json() for result in results], rows, self.extras)
+        return with_prior_columns(table, priors, reasons)
 
     @staticmethod
     def read_inputs(names: Sequence[str]) -> tuple[list, dict[int, str]]:
@@ -97,7 +120,7 @@ class BatchWorker:
             for chunk, results in batches:
                 batch_rows = rows[done:done + len(chunk)]
                 self._maybe_crash(batch_rows)
-                table = records_to_table([result.to_json() for result in results], batch_rows, self.extras)
+                table = self._table(chunk, focal[done:done + len(chunk)], list(results), batch_rows)
                 done += len(chunk)
                 yield table
         except Exception:  # a search error: the remaining rows in-process, failing only what fails again

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from fr_torch.batch.jobs import run_batch
+from fr_torch.cli.focal import add_focal_prior_argument, focal_options
 from fr_torch.cli.options import (
     add_camera_arguments,
     add_device_arguments,
@@ -22,10 +23,12 @@ from fr_torch.runtime.workers import start_worker_server
 def estimator_options(args: argparse.Namespace) -> dict[str, Any]:
     """Picklable options from the CLI arguments (shipped to every worker): ``estimator`` = the
     FREstimator keyword arguments of the shared estimator options (:mod:`fr_torch.cli.options`), plus
-    the known focal length / principal point for all images and whether reliability is on."""
+    the known focal length / principal point for all images, the parsed ``--focal-prior``, whether
+    reliability is on and whether shared-focal groups estimate their principal point."""
 
     focal, pp = camera_options(args)
     return {"estimator": estimator_kwargs(args), "principal_point": pp, "focal_px": focal,
+            "focal_prior": focal_options(args),
             "reliability": not getattr(args, "no_reliability", False),
             "shared_principal_point": pp is None and not getattr(args, "fixed_pp", False)}
 
@@ -64,6 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="manifest column (e.g. a camera id): the rows of each value share one focal length "
                              "(docs/shared-focal.md; each group is searched by one process or Ray actor) and, "
                              "unless --pp or --fixed-pp, one principal point (groups of 5 or more usable images)")
+    add_focal_prior_argument(parser)
     parser.add_argument("--fixed-pp", action="store_true",
                         help="with --shared-focal-by: keep the principal point at the image centre instead of "
                              "estimating each group's")

@@ -14,9 +14,17 @@ import argparse
 import sys
 
 from fr_torch.errors import FRInputError
-from fr_torch.runtime.focal_prior import parse_focal_prior
+from fr_torch.runtime.focal_prior import group_prior, image_priors, parse_focal_prior
 from fr_torch.runtime.pipeline import calibrate_paths
 from fr_torch.runtime.shared_focal import apply_focal_priors, shared_from_results
+
+
+def add_focal_prior_argument(parser: argparse.ArgumentParser) -> None:
+    """``--focal-prior`` (``fr calibrate``, ``fr batch``)."""
+    parser.add_argument("--focal-prior", default=None, metavar="PX[,SIGMA%]|exif[,SIGMA%]",
+                        help="a soft log-normal prior on the focal length: PX pixels with SIGMA %% width "
+                             "(default 10), or 'exif' to read it from each JPEG's EXIF (FocalLengthIn35mmFilm, or "
+                             "FocalLength with the focal plane resolution; default width 10 %%; no EXIF = no prior)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -28,39 +36,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fixed-pp", action="store_true",
                         help="with --shared-focal: keep the principal point at the image centre instead of "
                              "estimating the camera's")
-    parser.add_argument("--focal-prior", default=None, metavar="PX[,SIGMA%]|exif[,SIGMA%]",
-                        help="a soft log-normal prior on the focal length: PX pixels with SIGMA %% width "
-                             "(default 10), or 'exif' to read it from each JPEG's EXIF (FocalLengthIn35mmFilm, or "
-                             "FocalLength with the focal plane resolution; default width 10 %%; no EXIF = no prior)")
+    add_focal_prior_argument(parser)
 
 
 def focal_options(args: argparse.Namespace):
     """The parsed ``--focal-prior`` (a :class:`~fr_torch.runtime.focal_prior.FocalPriorOption` or None),
     checked against ``--focal``; FRInputError (one line) when they conflict or are malformed."""
-    if getattr(args, "focal", None) is not None and (args.shared_focal or args.focal_prior):
+    if getattr(args, "focal", None) is not None and (getattr(args, "shared_focal", False) or args.focal_prior):
         raise FRInputError("--focal fixes the focal length: it cannot be combined with --shared-focal or "
                            "--focal-prior (use --focal-prior PX,SIGMA% for a soft value)")
     return parse_focal_prior(args.focal_prior) if args.focal_prior else None
-
-
-def image_priors(option, paths, results) -> tuple[list, list[str]]:
-    """(one FocalPrior or None per result, one reason per result: why there is none, '' otherwise)."""
-    priors, reasons = [], []
-    for path, result in zip(paths, results):
-        if option is None or result.width <= 0:
-            priors.append(None)
-            reasons.append("")
-            continue
-        prior, reason = option.for_image(path, result.width, result.height)
-        priors.append(prior)
-        reasons.append(reason)
-    return priors, reasons
-
-
-def group_prior(priors: list):
-    """The prior of a group (added once to its combination): the first photo's that has one (photos of
-    one camera read alike), None when none has."""
-    return next((p for p in priors if p is not None), None)
 
 
 def run(args: argparse.Namespace, estimator, paths: list[str], batch_size: int, workers: int, principal_point,

@@ -26,6 +26,7 @@ import math
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import jpeg_segments
@@ -97,6 +98,28 @@ class FocalPriorOption:
         if focal is None:
             return None, detail
         return FocalPrior(focal, self.sigma_pct, "exif", detail), ""
+
+
+def image_priors(option: FocalPriorOption | None, paths: Sequence, results: Sequence) -> tuple[list, list[str]]:
+    """(one prior or None per result, one reason per result: why it has none, "" otherwise) for the
+    photos ``paths`` (file paths, or arrays: no EXIF) and their per-photo ``results`` under the
+    parsed ``--focal-prior`` ``option`` (None: no prior for any); a failed result (no size) gets none."""
+    priors, reasons = [], []
+    for path, result in zip(paths, results):
+        if option is None or result.width <= 0:
+            priors.append(None)
+            reasons.append("")
+            continue
+        prior, reason = option.for_image(path, result.width, result.height)
+        priors.append(prior)
+        reasons.append(reason)
+    return priors, reasons
+
+
+def group_prior(priors: Sequence):
+    """The prior of a group of one camera's photos (added once to its combination): the first photo's
+    that has one (photos of one camera read alike), None when none has."""
+    return next((p for p in priors if p is not None), None)
 
 
 def parse_focal_prior(text: str) -> FocalPriorOption:
