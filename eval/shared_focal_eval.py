@@ -241,7 +241,7 @@ def run_plot(args) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
     for stem, label in (("groups_nyu-vp_val_centre", "NYU-VP val (image centre pp)"),
                         ("groups_nyu-vp_val_calibrated", "NYU-VP val (calibrated pp)"),
                         ("groups_yud_test_centre", "YUD test (image centre pp)")):
@@ -255,6 +255,16 @@ def run_plot(args) -> None:
         line, = ax.plot(sizes, med, "o-", label=f"{label}: median")
         ax.plot(sizes, p90, "s--", color=line.get_color(), label=f"{label}: p90")
         ax.axhline(data["per_photo"]["median"], color=line.get_color(), lw=0.8, ls=":")
+    for dataset, label in (("nyu-vp_val", "NYU-VP val (group's own pp, default)"),
+                           ("yud_test", "YUD test (group's own pp, default)")):
+        runs = sorted((json.loads(p.read_text()) for p in OUT_DIR.glob(f"principal_point_{dataset}_*.json")),
+                      key=lambda run: run["size"])
+        if runs:
+            sizes = [run["size"] for run in runs]
+            variant = "shared principal point"
+            line, = ax.plot(sizes, [run[variant]["median"] for run in runs], "D-", lw=2, label=f"{label}: median")
+            ax.plot(sizes, [run[variant]["p90"] for run in runs], "D--", color=line.get_color(), lw=2,
+                    label=f"{label}: p90")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xticks([1, 2, 5, 10, 50])
@@ -263,7 +273,7 @@ def run_plot(args) -> None:
     ax.set_ylabel("shared focal error (%)")
     ax.axhline(1.5, color="grey", lw=0.5)
     ax.axhline(4.0, color="grey", lw=0.5)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(OUT_DIR / "group_size_curve.png", dpi=120)
@@ -430,7 +440,11 @@ def run_principal_point(args) -> None:
             f"({samples[0].width / 2 - gt_pp[0, 0]:+.1f}, {samples[0].height / 2 - gt_pp[0, 1]:+.1f}) px from it.\n")
     print(text)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
-    (OUT_DIR / f"principal_point_{args.dataset}_{args.split}_{args.size}.md").write_text(text)
+    stem = f"principal_point_{args.dataset}_{args.split}_{args.size}"
+    (OUT_DIR / f"{stem}.md").write_text(text)
+    (OUT_DIR / f"{stem}.json").write_text(json.dumps(
+        {"size": args.size, "groups": len(groups), "per_photo": summary(photo),
+         **{name: summary(np.array(focal_err[name])) for name in variants}}, indent=1))
 
 
 def main(argv=None) -> int:
