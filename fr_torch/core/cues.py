@@ -56,7 +56,6 @@ _HESSIAN_COLUMNS = torch.tensor([5 + [(a, b) for a in range(4) for b in range(a,
                                  for i in range(4) for j in range(4)])
 
 
-
 def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
                     max_chunk_elements: int = 1 << 24) -> tuple[torch.Tensor, torch.Tensor]:
     """A local Laplace approximation of the objective around each estimate.

@@ -364,7 +364,6 @@ def with_estimator_prior(estimator, log_ratios: np.ndarray, profiles: np.ndarray
     if not likelihood.params.focal_prior_weight or len(profiles) == 0:
         return profiles
 
-
     long_side = torch.as_tensor(np.asarray(long_side, np.float64))
     features = SimpleNamespace(weight=torch.as_tensor(np.asarray(total_length, np.float64))[:, None],
                                long_side=long_side)
@@ -378,7 +377,6 @@ def predicted_focal_pct(results) -> np.ndarray | None:
     no result has one."""
     values = [(r.predicted_error or {}).get("focal_pct", math.nan) for r in results]
     return None if all(not math.isfinite(v) for v in values) else np.asarray(values, np.float64)
-
 
 
 def principal_point_scores(estimator, results, offsets: np.ndarray, settings: SharedFocalSettings) -> np.ndarray:
