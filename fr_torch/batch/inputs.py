@@ -146,7 +146,6 @@ def output_column_name(name: str, reserved: set[str]) -> str:
 def read_remote_image(uri: str) -> np.ndarray:
     """Read and decode an image at an fsspec URI -> 8-bit BGR (H, W, 3)."""
 
-
     fs, path = _fsspec_fs(uri)
     with fs.open(path, "rb") as handle:
         data = np.frombuffer(handle.read(), np.uint8)

@@ -162,7 +162,6 @@ def _run_local(rows: Sequence[dict], options, extras, batch_size: int, workers: 
             yield worker.calibrate_rows(rows[begin:begin + batch_size])
         return
 
-
     rows = list(rows)
     crash = os.environ.get(CRASH_ENV)  # tests: read here, the workers' fork server may predate it
     one_row_tables = ordered_pool_map(_calibrate_rows_task, rows, batch_size, workers, _init_batch_worker,

@@ -100,7 +100,6 @@ def run(args: argparse.Namespace) -> int:
     if not rows:
         raise FRInputError(f"{args.source}: no frame could be read (all skipped)")
 
-
     pd.DataFrame(rows).to_csv(out / "frames.csv", index=False)
     final = tracker.history[-1] if tracker.history else None
     summary = {"source": str(args.source), "mode": mode, "frames_processed": len(rows),

@@ -38,7 +38,6 @@ IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".p
 def iter_frames(source: str | Path, every: int = 1, max_frames: int | None = None) -> Iterator[tuple[int, str, np.ndarray]]:
     """(frame index, name, BGR/grey image) from a folder of images (sorted names) or a video file."""
 
-
     source = Path(source)
     every = max(1, int(every))
     count = 0
