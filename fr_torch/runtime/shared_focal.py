@@ -390,8 +390,9 @@ def principal_point_scores(estimator, results, offsets: np.ndarray, settings: Sh
         settings: ``pp_iterations`` Adam steps of the rotation per offset.
 
     Returns:
-        (n, M) float64 objective units (length-weighted log-likelihood plus the focal prior, which is
-        the same at every offset); -inf where not finite.
+        ``(scores, lengths)``: (n, M) float64 objective units (length-weighted log-likelihood plus the
+        focal prior, which is the same at every offset; -inf where not finite) and (n,) each photo's
+        total segment length, pixels (the temperature's scale, :func:`tempered_profiles`).
     """
     device, dtype = estimator.device, estimator.dtype
     config = estimator.search
@@ -413,7 +414,7 @@ def principal_point_scores(estimator, results, offsets: np.ndarray, settings: Sh
     else:
         scores = score_grid(estimator.likelihood, replicas, starts, config.max_chunk_elements)
     values = scores.amax(1).to(torch.float64).view(count, m).cpu().numpy()
-    return np.where(np.isfinite(values), values, -np.inf)
+    return np.where(np.isfinite(values), values, -np.inf), features.weight.sum(-1).to("cpu", torch.float64).numpy()
 
 
 def shared_principal_point(estimator, results, settings: SharedFocalSettings) -> tuple[float, float] | None:
@@ -430,9 +431,7 @@ def shared_principal_point(estimator, results, settings: SharedFocalSettings) ->
         return None
     axis = np.asarray(settings.pp_offsets, dtype=np.float64)
     grid = np.stack(np.meshgrid(axis, axis, indexing="xy"), -1).reshape(-1, 2)  # (M, 2)
-    scores = principal_point_scores(estimator, results, grid, settings)
-    lengths = np.array([float(np.linalg.norm(np.asarray(r.segments)[:, 2:4] - np.asarray(r.segments)[:, :2],
-                                              axis=1).sum()) for r in results])
+    scores, lengths = principal_point_scores(estimator, results, grid, settings)
     total = tempered_profiles(scores, lengths, settings).sum(0)
     x, y = grid[:, 0], grid[:, 1]
     design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], 1)
