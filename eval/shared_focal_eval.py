@@ -294,17 +294,24 @@ def angle_errors(data, index, results) -> tuple[np.ndarray, np.ndarray]:
     return roll, tilt
 
 
-def run_rotation(args) -> None:
+def cached_photos(args):
+    """(the ``profile`` cache of ``args``' dataset / split / principal point (:func:`load_cache`), fR's
+    estimator, indices of the photos calibrated alone) for the stages that search cached photos
+    again, searching on one torch thread."""
     import torch
 
     from fr_torch import FREstimator
-    from fr_torch.runtime.shared_focal import SharedFocalSettings, combine_profiles
 
     torch.set_num_threads(1)
-    settings = SharedFocalSettings()
     data = load_cache(args.dataset, args.split, args.pp)
-    estimator = FREstimator(mode="fr")
-    usable = np.flatnonzero(data["ok"].astype(bool))
+    return data, FREstimator(mode="fr"), np.flatnonzero(data["ok"].astype(bool))
+
+
+def run_rotation(args) -> None:
+    from fr_torch.runtime.shared_focal import SharedFocalSettings, combine_profiles
+
+    settings = SharedFocalSettings()
+    data, estimator, usable = cached_photos(args)
     groups = [usable[g] for g in random_groups(len(usable), args.size, 1)]
     long_side = np.maximum(data["width"], data["height"]).astype(np.float64)
     index, focal = [], []
@@ -332,17 +339,11 @@ def run_rotation(args) -> None:
 
 
 def run_prior(args) -> None:
-    import torch
-
-    from fr_torch import FREstimator
     from fr_torch.runtime.focal_prior import FocalPrior, FocalPriorOption
     from fr_torch.runtime.shared_focal import SharedFocalSettings, combine_profiles
 
-    torch.set_num_threads(1)
     settings = SharedFocalSettings()
-    data = load_cache(args.dataset, args.split, args.pp)
-    estimator = FREstimator(mode="fr")
-    usable = np.flatnonzero(data["ok"].astype(bool))
+    data, estimator, usable = cached_photos(args)
     gt = data["gt_focal_px"][usable]
     long_side = np.maximum(data["width"], data["height"]).astype(np.float64)[usable]
     rows = []
