@@ -295,12 +295,17 @@ def finite_record(result) -> None:
     * A non-finite ``manhattan_fraction`` becomes None, a non-finite cue is removed from ``cues``,
       a ``predicted_error`` with a non-finite value becomes None; an estimate that had one is not
       reliable, and ``reason`` names what was removed.  Non-finite ``runtime_s`` entries are removed.
+    * The ranked vanishing points (with their support and families) are removed from a failed
+      estimate and from one where any of them is non-finite.
     """
     if result.ok and not all(_all_finite(getattr(result, key)) for key in ESTIMATE_FIELDS):
         result.camera, result.log_likelihood = None, None
         result.ok, result.reliable, result.reason = False, False, NON_FINITE_REASON
     if not _all_finite(result.log_likelihood):
         result.log_likelihood = None
+    if hasattr(result, "ranked_vanishing_points") and not (
+            result.ok and _all_finite(result.ranked_vanishing_points) and _all_finite(result.vanishing_point_support)):
+        result.ranked_vanishing_points = result.vanishing_point_support = result.vanishing_point_families = None
     removed = []
     if not _all_finite(result.manhattan_fraction):
         result.manhattan_fraction = None

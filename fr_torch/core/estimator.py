@@ -58,6 +58,7 @@ from fr_torch.core.search import (
     subdivide_starts,
     sweep_focal,
 )
+from fr_torch.core.vanishing import AtlantaConfig, rank_vanishing_points
 from fr_torch.core.segments import (
     SegmentBatch,
     SegmentFilter,
@@ -104,7 +105,7 @@ SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device m
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
 JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px", "hfov_deg", "principal_point",
              "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
-             "log_likelihood", "num_segments", "manhattan_fraction", "cues", "predicted_error", "error_bound",
+             "ranked_vanishing_points", "log_likelihood", "num_segments", "manhattan_fraction", "cues", "predicted_error", "error_bound",
              "runtime_s")
 
 
@@ -121,6 +122,12 @@ class CalibrationResult:
     ``reason`` says why).  ``reliable`` is False when the estimate exists but should not be
     trusted (too few segments, a Manhattan family nearly empty, or predicted errors above the
     threshold once a reliability model is loaded); ``reason`` lists why.
+
+    ``ranked_vanishing_points`` (M, 3): every vanishing point of the estimate, rows ``(x, y, w)``
+    (``w >= 0``), ranked by ``vanishing_point_support`` (M,), the length-weighted posterior mass of
+    each family's segments (pixels), most supported first; ``vanishing_point_families`` (M,) says
+    which family each is: 0-2 the column of R (1 = vertical), 3.. an Atlanta family (an extra
+    horizontal direction, ``atlanta`` option; :mod:`fr_torch.core.vanishing`).  M = 3 without it.
     """
 
     image: str
@@ -136,6 +143,9 @@ class CalibrationResult:
     manhattan_fraction: float | None = None  # share of total segment length labelled with a family
     segments: np.ndarray | None = None  # (N, 4) the segments used
     labels: np.ndarray | None = None  # (N,) 0, 1, 2 = Manhattan column (1 = vertical), 3 = background
+    ranked_vanishing_points: np.ndarray | None = None  # (M, 3) rows (x, y, w), most supported first
+    vanishing_point_support: np.ndarray | None = None  # (M,) pixels of segment length
+    vanishing_point_families: np.ndarray | None = None  # (M,) 0-2 Manhattan column, 3.. Atlanta family
     cues: dict[str, float] = field(default_factory=dict)
     predicted_error: dict[str, float] | None = None
     # what `reliable` promises (fr_torch.core.reliability_bounds): {"coverage", "focal_pct", "tilt_deg" (the
@@ -146,7 +156,9 @@ class CalibrationResult:
 
     def to_json(self, include_segments: bool = False) -> dict[str, Any]:
         """JSON-ready dict (the CLI's output schema, keys :data:`JSON_KEYS`; arrays become nested lists)."""
-        out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS}
+        out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS if key != "ranked_vanishing_points"}
+        out["ranked_vanishing_points"] = self.ranked_vanishing_points_json()
+        out = {key: out[key] for key in JSON_KEYS}
         for key in ("rotation", "vanishing_points"):
             if out[key] is not None:
                 out[key] = np.asarray(out[key]).tolist()
@@ -156,6 +168,18 @@ class CalibrationResult:
         if self.labels is not None:
             out["segments_per_family"] = np.bincount(self.labels, minlength=4).tolist()
         return out
+
+    def ranked_vanishing_points_json(self) -> list[dict[str, Any]] | None:
+        """``[{"point": [x, y, w], "support_px": s, "family": k}, ...]`` most supported first (the
+        JSON's ``ranked_vanishing_points``), or None without them."""
+        if self.ranked_vanishing_points is None:
+            return None
+        support = self.vanishing_point_support if self.vanishing_point_support is not None else \
+            np.full(len(self.ranked_vanishing_points), np.nan)
+        families = self.vanishing_point_families if self.vanishing_point_families is not None else \
+            np.full(len(self.ranked_vanishing_points), -1)
+        return [{"point": np.asarray(p, np.float64).tolist(), "support_px": float(s), "family": int(k)}
+                for p, s, k in zip(self.ranked_vanishing_points, support, families)]
 
 
 class SegmentEstimator:
@@ -181,6 +205,9 @@ class SegmentEstimator:
     time per photo, half of its batch throughput): None (default) when the reliability model uses
     it (fR's shipped model does; with ``reliability=None`` it is skipped), True always (records
     for training a model), False never (a model that uses it is then an error).
+    ``atlanta``: extra horizontal vanishing points at free azimuths after the fit
+    (:class:`fr_torch.core.vanishing.AtlantaConfig` or anything its ``parse`` takes; None = off);
+    they join ``ranked_vanishing_points`` and change neither f nor R.
     """
 
     def __init__(self, mode: Mode | str = Mode.FR, measure: str | None = None, device: str = "cpu",
@@ -188,8 +215,9 @@ class SegmentEstimator:
                  likelihood: str | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
                  min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6,
-                 reliability="default", profile_gap: bool | None = None):
+                 reliability="default", profile_gap: bool | None = None, atlanta=None):
         self.mode = Mode.parse(mode)
+        self.atlanta = AtlantaConfig.parse(atlanta)
         self.search = (search_config or SearchConfig.from_config()).resolve(self.mode)
         self.iterations = self.search.refine_iterations
         params = likelihood_params or LikelihoodParams.from_config(measure, likelihood, mode=self.mode)
@@ -368,6 +396,7 @@ class SegmentEstimator:
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype),
                                                       estimate.focal_px[:, None].to(dtype))
         labels = posterior[:, 0].argmax(-1)
+        ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta)
         cues = image_cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
                                 self.profile_gap))
@@ -382,6 +411,8 @@ class SegmentEstimator:
         params_all = estimate.data.cpu().numpy()
         scores_all = best_scores.to(torch.float64).cpu().numpy()
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
+        ranked_points, ranked_support, ranked_family = (ranked.points.cpu().numpy(), ranked.support.cpu().numpy(),
+                                                        ranked.family.cpu().numpy())
         family = labels_all != BACKGROUND_LABEL
         manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
         cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, FOCAL], pp_np, rotation_all)
@@ -395,6 +426,10 @@ class SegmentEstimator:
             r.num_segments = n
             r.segments = item.segments
             r.labels = labels_all[j, :n]
+            found = ranked_family[j] >= 0
+            r.ranked_vanishing_points = ranked_points[j][found]
+            r.vanishing_point_support = ranked_support[j][found]
+            r.vanishing_point_families = ranked_family[j][found]
             r.manhattan_fraction = float(manhattan[j])
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
