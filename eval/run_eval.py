@@ -170,6 +170,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CTRL-C weights exported by 'fr export-ctrlc' for the ctrlc row (or $FR_CTRLC_ONNX)")
     parser.add_argument("--ctrlc-retrained-onnx", default=None, metavar="ONNX",
                         help="the second CTRL-C training, for the ctrlc-retrained row (or $FR_CTRLC_RETRAINED_ONNX)")
+    parser.add_argument("--consac-weights", default=None, metavar="PATH",
+                        help="CONSAC's weights for the consac rows: a folder holding consac_vp.net / consac-s_vp.net "
+                             "or one .net file (or $FR_CONSAC_WEIGHTS; default ../shared/models/consac)")
     add_device_arguments(parser, device_help="torch device passed to the methods (default cpu)")
     add_fov_range_argument(parser, "FOV search range (degrees, image long side) given to every method that "
                                    f"searches the focal length ({', '.join(FOCAL_SEARCH_METHODS)}) unless its spec "
@@ -435,9 +438,7 @@ def run(args: argparse.Namespace) -> int:
               "(for every image)", file=sys.stderr)
         return 2
     group_key = resolve_group_by(getattr(args, "group_by", "auto"), samples)
-    for option, env in (("ctrlc_onnx", "FR_CTRLC_ONNX"), ("ctrlc_retrained_onnx", "FR_CTRLC_RETRAINED_ONNX")):
-        if getattr(args, option, None):  # the option wins over the environment variable
-            os.environ[env] = str(Path(getattr(args, option)).expanduser().resolve())
+    apply_weight_options(args)
     try:
         fov_range = FovRange.parse(getattr(args, "fov_range", None))
     except ValueError as exc:
@@ -515,6 +516,19 @@ def run(args: argparse.Namespace) -> int:
     print((out_dir / "summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out_dir}/predictions.csv, " + ", ".join(p.name for p in written))
     return 0
+
+
+#: ``fr eval`` options naming a learned method's weights -> the environment variable the method reads.
+WEIGHT_OPTIONS = (("ctrlc_onnx", "FR_CTRLC_ONNX"), ("ctrlc_retrained_onnx", "FR_CTRLC_RETRAINED_ONNX"),
+                  ("consac_weights", "FR_CONSAC_WEIGHTS"))
+
+
+def apply_weight_options(args: argparse.Namespace) -> None:
+    """Export the weight options given (:data:`WEIGHT_OPTIONS`) to the environment variables the
+    methods read; an option wins over a variable already set."""
+    for option, env in WEIGHT_OPTIONS:
+        if getattr(args, option, None):
+            os.environ[env] = str(Path(getattr(args, option)).expanduser().resolve())
 
 
 def weights_note(calibrators: dict[str, Any]) -> str:
