@@ -4,7 +4,7 @@
 
 Prints one row per file and mode: mean +- standard error of roll, tilt (deg) and focal length
 (% of the calibrated 674.9 px) over the images of the file, and the failure count, with the same
-per-image errors as ``fr eval`` (:func:`fr_eval.metrics.image_errors`).
+per-image errors as ``fr eval`` (:func:`fr_eval.scoring.metrics.image_errors`).
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from fr_eval.datasets.yud import load_yud
-from fr_eval.metrics import image_errors, mean_se
+from fr_eval.scoring.metrics import image_errors, mean_se
 
 
 def score(path: Path) -> list[str]:
