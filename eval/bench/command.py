@@ -86,6 +86,8 @@ from fr_torch.cli.options import add_device_arguments
 from fr_torch.runtime.workers import usable_cores
 
 DEFAULT_OUT = REPO / "results" / "bench"
+#: Batch sizes of the GPU rows from JPEG files to results (section ``detectors``).
+DEVICE_E2E_BATCHES = (1, 256, 1024)
 SECTIONS = ("device", "latency", "detectors", "parallel", "cpu", "memory", "scaling", "contention")  # --sections, in running order
 
 
@@ -173,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
         batches = [int(b) for b in args.batches.split(",")]
     # CUDA: large batches, capped by the budget; 16384 shows memory stays bounded (issue 14: <= 16 GB).
     device_batches = [1, 4] if quick else [1, 64, 1024, 4096, 16384]
+    e2e_batches = [1, 4] if quick else list(DEVICE_E2E_BATCHES)
     cores = usable_cores()  # affinity and container quota, as the worker defaults count them
     counts = [1, 2] if quick else sorted({1, 2, min(4, cores), min(8, cores), cores} - {0})
     par_batch = 4 if quick else 64
@@ -222,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
         for mode in modes:
             profiles.append(profile_table(dev, outside_batch, n_seg_tp, out, progress, mode))
     for dev in devices[1:] if "detectors" in sections else ():  # JPEG bytes to results on the GPU
-        device_e2e += bench_detectors.device_end_to_end(jpegs, dev, device_batches[:3], min(repeats, 3), progress,
+        device_e2e += bench_detectors.device_end_to_end(jpegs, dev, e2e_batches, min(repeats, 3), progress,
                                                         modes)
     if "latency" in sections:
         e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
