@@ -121,15 +121,19 @@ def test_calibrate_on_device_equals_the_host_path(files, fake_device_decoder):
     names = ["a.jpg", "broken.jpg", "b.png", "big.jpg", "a.jpg"]
     paths = [str(files / n) for n in names]
     count = len(paths)
-    ours = [r for _, batch in calibrate_on_device(estimator, paths, paths, [None] * count, [None] * count, 2)
-            for r in batch]
     host = [r for _, batch in calibrate_paths(estimator, paths, 2) for r in batch]
-    assert [r.ok for r in ours] == [r.ok for r in host] == [True, False, True, True, True]
-    for a, b in zip(ours, host):
-        if a.ok:
-            assert abs(a.focal_px - b.focal_px) / b.focal_px < 0.02 and a.width == b.width
-    assert abs(ours[0].focal_px - FOCAL) / FOCAL < 0.1 and ours[3].width == 3 * WIDTH
-    assert "broken.jpg" in ours[1].reason
+    assert [r.ok for r in host] == [True, False, True, True, True]
+    for batch_size, searchers in ((2, 1), (1, 2), (2, 3)):  # results in input order, whatever the overlap
+        pairs = list(calibrate_on_device(estimator, paths, paths, [None] * count, [None] * count, batch_size,
+                                         searchers))
+        assert [p for chunk, _ in pairs for p in chunk] == paths
+        ours = [r for _, batch in pairs for r in batch]
+        assert [r.ok for r in ours] == [r.ok for r in host] and [r.image for r in ours] == paths
+        for a, b in zip(ours, host):
+            if a.ok:
+                assert abs(a.focal_px - b.focal_px) / b.focal_px < 0.02 and a.width == b.width
+        assert abs(ours[0].focal_px - FOCAL) / FOCAL < 0.1 and ours[3].width == 3 * WIDTH
+        assert "broken.jpg" in ours[1].reason
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

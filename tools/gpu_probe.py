@@ -75,6 +75,7 @@ def main(argv=None) -> int:
     parser.add_argument("--batches", default="256,1024")
     parser.add_argument("--modes", default="fast,fr")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--searchers", default="1,2", help="pipeline stage: search threads to compare (eager)")
     parser.add_argument("--stages", default="pipeline,pipeline_profile,decode,detect,e2e,given,profile,accuracy,compiled")
     args = parser.parse_args(argv)
 
@@ -85,6 +86,7 @@ def main(argv=None) -> int:
     stages = set(args.stages.split(","))
     batches = [int(b) for b in args.batches.split(",")]
     modes = args.modes.split(",")
+    searcher_counts = [int(n) for n in args.searchers.split(",")]
 
     from fr_torch.core.config import SearchConfig
     from fr_torch.detectors.tensor_lines import TensorLinesDetector, decode_jpeg_batch
@@ -235,11 +237,16 @@ def main(argv=None) -> int:
     def run_pipeline(compiled_modes=()):
         """Files on disk to results through calibrate_paths (the path of calibrate_images, fr
         calibrate and fr batch on a GPU), over 4 batches of the largest size."""
+        from fr_torch.runtime import device_pipeline
         from fr_torch.runtime.pipeline import calibrate_paths
 
         files = [str(p) for p in paths]
-        for mode in modes:
-            for compiled in (False, True) if mode in compiled_modes else (False,):
+        default_searchers = device_pipeline.SEARCH_THREADS
+        settings = [(mode, False, n) for mode in modes for n in searcher_counts]
+        settings += [(mode, True, 1) for mode in compiled_modes]
+        for mode, compiled, searchers in settings:
+            device_pipeline.SEARCH_THREADS = searchers
+            try:
                 est = estimator(mode, compiled)
                 for batch in batches:
                     todo = [files[i % len(files)] for i in range(4 * batch)]
@@ -249,10 +256,12 @@ def main(argv=None) -> int:
                     results = [r for _, chunk in calibrate_paths(est, todo, batch) for r in chunk]
                     _sync(device)
                     wall = time.perf_counter() - start
-                    log("pipeline", mode=mode, compiled=compiled, batch=batch, images=len(todo), seconds=wall,
-                        images_per_s=len(todo) / wall, ok_share=float(np.mean([r.ok for r in results])),
+                    log("pipeline", mode=mode, compiled=compiled, searchers=searchers, batch=batch, images=len(todo),
+                        seconds=wall, images_per_s=len(todo) / wall, ok_share=float(np.mean([r.ok for r in results])),
                         reliable_share=float(np.mean([bool(r.reliable) for r in results])),
                         detect_ms=1000 * float(np.median([r.runtime_s.get("detect", 0.0) for r in results])))
+            finally:
+                device_pipeline.SEARCH_THREADS = default_searchers
 
     def run_pipeline_profile():
         from torch.profiler import ProfilerActivity, profile

@@ -51,6 +51,9 @@ from fr_torch.runtime.detection import Detection
 #: Largest long side (pixels) of a JPEG decoded on the device; larger photos are decoded on the
 #: host at a native DCT reduction (1/2 to 1/8), which costs less than a full-size device decode.
 DEVICE_DECODE_MAX_LONG_SIDE = 2 * WORKING_LONG_SIDE
+#: Threads that detect and search batches at once on a GPU (each on its own CUDA stream): while one
+#: does its host work (Python, launches, per-image checks) the device runs another's kernels.
+SEARCH_THREADS = 2
 #: Pixels detected in one ``detect_batch`` call (512 images of 640 x 480, ~6 GB of device memory
 #: for torch-lines' intermediate maps).
 DETECT_PIXELS = 512 * 640 * 480
@@ -226,38 +229,68 @@ def device_detector(estimator):
 
 
 def calibrate_on_device(estimator, images: Sequence, names: Sequence[str], focal_list: Sequence,
-                        pp_list: Sequence, batch_size: int) -> Iterator[tuple[list, list]]:
+                        pp_list: Sequence, batch_size: int, searchers: int | None = None) -> Iterator[tuple[list, list]]:
     """``(images, results)`` per batch of at most ``batch_size`` images, in input order (module
-    docstring): a reader thread decodes the next batch while this one is detected and searched.
+    docstring): a reader thread decodes the next batches while earlier ones are detected and
+    searched by ``searchers`` threads (None = :data:`SEARCH_THREADS`, one with a compiled search),
+    each on a CUDA stream of its own, so that one batch's host work overlaps another's device work.
     ``focal_list`` / ``pp_list``: one focal length / principal point (or None) per image, input pixels."""
     detector = device_detector(estimator)
     device = estimator.device
     working = estimator.working_long_side
-    stream = torch.cuda.Stream(device) if device.type == "cuda" else None
+    cuda = device.type == "cuda"
+    if searchers is None:
+        searchers = 1 if estimator.likelihood.compiled else SEARCH_THREADS
+    streams = [torch.cuda.Stream(device) for _ in range(searchers + 1)] if cuda else []
 
     def read(start: int) -> list[DecodedImage]:
-        chunk = images[start:start + batch_size]
-        if stream is None:
-            return decode_batch(chunk, names[start:start + batch_size], device, working)
-        with torch.cuda.stream(stream):
-            decoded = decode_batch(chunk, names[start:start + batch_size], device, working)
-        stream.synchronize()  # this thread waits; the search's stream never does
+        chunk, chunk_names = images[start:start + batch_size], names[start:start + batch_size]
+        if not cuda:
+            return decode_batch(chunk, chunk_names, device, working)
+        with torch.cuda.stream(streams[0]):
+            decoded = decode_batch(chunk, chunk_names, device, working)
+        streams[0].synchronize()  # the reader waits; the searchers' streams never do
         return decoded
 
-    starts = list(range(0, len(images), batch_size))
-    with ThreadPoolExecutor(1, thread_name_prefix="fr-decode") as reader:
-        pending = reader.submit(read, starts[0]) if starts else None
-        for k, start in enumerate(starts):
-            decoded = pending.result()
-            pending = reader.submit(read, starts[k + 1]) if k + 1 < len(starts) else None
-            if stream is not None:  # made on the reader's stream, used on this one
-                for d in decoded:
-                    if d.pixels is not None:
-                        d.pixels.record_stream(torch.cuda.current_stream(device))
+    def search(start: int, decoded: list[DecodedImage], stream) -> list:
+        stop = start + batch_size
+        if stream is None:
             detections = detect_decoded(detector, decoded, estimator.segment_filter)
-            stop = start + batch_size
-            yield images[start:stop], estimator.calibrate_detections(detections, names[start:stop],
-                                                                     focal_list[start:stop], pp_list[start:stop])
+            return estimator.calibrate_detections(detections, names[start:stop], focal_list[start:stop],
+                                                  pp_list[start:stop])
+        with torch.cuda.stream(stream):
+            for d in decoded:  # made on the reader's stream, used on this one
+                if d.pixels is not None:
+                    d.pixels.record_stream(stream)
+            detections = detect_decoded(detector, decoded, estimator.segment_filter)
+            results = estimator.calibrate_detections(detections, names[start:stop], focal_list[start:stop],
+                                                     pp_list[start:stop])
+        stream.synchronize()
+        return results
+
+    starts = list(range(0, len(images), batch_size))
+    count = len(starts)
+    with ThreadPoolExecutor(1, thread_name_prefix="fr-decode") as reader, \
+            ThreadPoolExecutor(searchers, thread_name_prefix="fr-search") as searching:
+        reads, searches = {}, {}
+        next_read = next_search = 0
+
+        def read_up_to(last: int) -> None:  # decoding submitted for every batch up to ``last``
+            nonlocal next_read
+            while next_read <= min(last, count - 1):
+                reads[next_read] = reader.submit(read, starts[next_read])
+                next_read += 1
+
+        for k, start in enumerate(starts):
+            # `searchers` batches detected and searched at once, the next one decoding meanwhile
+            while next_search < min(k + searchers, count):
+                read_up_to(next_search + 1)
+                stream = streams[1 + next_search % searchers] if cuda else None
+                searches[next_search] = searching.submit(search, starts[next_search],
+                                                         reads.pop(next_search).result(), stream)
+                next_search += 1
+            read_up_to(next_search)
+            yield images[start:start + batch_size], searches.pop(k).result()
 
 
 def calibrate_decoded(estimator, detector, images: torch.Tensor, names=None, focal_px=None,
