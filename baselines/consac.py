@@ -57,7 +57,6 @@ sampling run (``cpu`` default, ``cuda``; a different device draws a different ra
 """
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 from pathlib import Path
@@ -74,6 +73,7 @@ from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrato
 from fr_torch.registry import not_supplied
 
 from . import vp_geometry as vg
+from .provenance import sha256
 
 WEIGHTS_ENV = "FR_CONSAC_WEIGHTS"
 MODELS_ENV = "FR_MODELS"
@@ -239,7 +239,7 @@ class Consac(TimedCalibrator):
         """Caption text: the checkpoint's file name and sha256 (None when absent)."""
         if not self.available:
             return None
-        return f"{self.path.name} (sha256 {hashlib.sha256(self.path.read_bytes()).hexdigest()[:12]})"
+        return f"{self.path.name} (sha256 {sha256(self.path)})"
 
     def network(self) -> ConsacNetwork:
         if self._network is None:

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from fr_baselines import consac as consac_module
 from fr_baselines import vp_geometry as vg
-from fr_eval.vp_metric import (
+from fr_eval.scoring.vp_metric import (
     MISSING_VP_DEG,
     auc_table,
     consac_auc,

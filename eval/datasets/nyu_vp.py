@@ -31,7 +31,7 @@ Conventions (decided here, used by every NYU-VP number this project reports)
   labelled vanishing direction within :data:`LABEL_TOLERANCE_DEG` of a column of the rotation,
   labelled with that column; lines of other (non-Manhattan) directions are left out.  The number of
   labelled vanishing points is ``extra["num_labelled_vps"]``.
-* **Vanishing-point labels** (the VP task, :mod:`fr_eval.vp_metric`): every labelled VP as a unit
+* **Vanishing-point labels** (the VP task, :mod:`fr_eval.scoring.vp_metric`): every labelled VP as a unit
   direction ``K_vp^-1 [X, Y, 1]`` in ``extra["vp_directions"]`` (M, 3), file order, with
   ``K_vp`` = ``extra["vp_calibration"]`` the dataset's full calibration (``fx``, ``fy`` =
   519.4696, calibrated principal point, :data:`VP_CALIBRATION`): the matrix CONSAC's evaluation uses, so that the metric

@@ -16,6 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from fr_eval.scoring.vp_metric import auc_table, recall_curve  # noqa: E402
 
 QUANTITIES = (("roll_deg", "roll (°)"), ("tilt_deg", "tilt (°)"), ("hfov_deg", "horizontal FOV (°)"))
 
@@ -139,5 +140,32 @@ def distributions_figure(predictions: pd.DataFrame, path: Path, title: str = "",
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def vp_recall_figure(errors: dict[str, dict[str, np.ndarray]], path: Path, title: str = "",
+                     max_deg: float = 20.0) -> Path:
+    """Recall curves of pooled VP errors (degrees) up to ``max_deg``: ``errors[setting][method]``, one
+    panel per setting (``unknown``: f unknown, ``known``: K known), AUC@10 in each label."""
+    settings = list(errors)
+    fig, axes = plt.subplots(1, len(settings), figsize=(6.2 * len(settings), 4.4), squeeze=False)
+    for ax, setting in zip(axes[0], settings):
+        for method, values in errors[setting].items():
+            if not len(values):
+                continue
+            x, y = recall_curve(values, max_deg)
+            ax.plot(x, y, lw=1.6, label=f"{method} (AUC@10 {auc_table(values, (10.0,))['auc10']:.1f})")
+        ax.axvline(10.0, color="0.6", lw=0.8, ls=":")
+        ax.set_xlim(0, max_deg)
+        ax.set_ylim(0, 1)
+        ax.set_xlabel("error threshold (°)")
+        ax.set_ylabel("recall (share of labelled VPs)")
+        ax.set_title("f unknown, image-centre principal point" if setting == "unknown" else "K known")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

@@ -15,7 +15,7 @@ Each method runs once per ``--intrinsics`` setting: ``unknown`` (nothing given: 
 searched, principal point at the image centre) and ``known`` (the dataset's focal length and
 calibrated principal point given, ``--known-focal --pp calibrated``).  A method that ignores the
 intrinsics (attribute ``uses_intrinsics = False``, e.g. CONSAC) runs once and its answers fill both
-columns.  Scoring (:mod:`fr_eval.vp_metric`, docs/vp.md): the estimate's
+columns.  Scoring (:mod:`fr_eval.scoring.vp_metric`, docs/vp.md): the estimate's
 ``ranked_vanishing_points`` (else the camera's three Manhattan VPs in column order; a failed
 estimate without points scores 90 degrees per labelled VP) against the labelled directions,
 errors pooled over the split, AUC at 5 / 10 / 20 degrees.  An estimate's
@@ -37,17 +37,12 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from fr_eval.bench import machine_description  # noqa: E402
-from fr_eval.datasets.registry import load_dataset  # noqa: E402
-from fr_eval.paths import REPO  # noqa: E402
-from fr_eval.plots import safe_name  # noqa: E402
-from fr_eval.run_eval import (  # noqa: E402
+import numpy as np
+import pandas as pd
+from fr_eval.datasets.registry import load_dataset
+from fr_eval.machine import machine_description
+from fr_eval.paths import REPO
+from fr_eval.protocols.run_eval import (
     _call,
     _na_reason,
     _strip_labelled,
@@ -56,19 +51,18 @@ from fr_eval.run_eval import (  # noqa: E402
     make_calibrator,
     split_methods,
 )
-from fr_eval.tables import to_latex, to_markdown  # noqa: E402
-from fr_eval.vp_metric import AUC_CUTOFFS_DEG, MISSING_VP_DEG, auc_table, directions_from_vps, match_errors  # noqa: E402
-from fr_eval.vp_metric import recall_curve  # noqa: E402
-from tqdm import tqdm  # noqa: E402
+from fr_eval.scoring.plots import safe_name, vp_recall_figure
+from fr_eval.scoring.tables import to_latex, to_markdown
+from fr_eval.scoring.vp_metric import AUC_CUTOFFS_DEG, MISSING_VP_DEG, auc_table, directions_from_vps, match_errors
+from tqdm import tqdm
 
-from fr_torch.core.fov import FovRange  # noqa: E402
-from fr_torch.images.io import load_image  # noqa: E402
-from fr_torch.plugins.interface import CameraEstimate  # noqa: E402
+from fr_torch.core.fov import FovRange
+from fr_torch.images.io import load_image
+from fr_torch.plugins.interface import CameraEstimate
 
 INTRINSICS = ("unknown", "known")
 #: ``fr eval --task vp --dataset yud`` = YUD+'s photos and split (CONSAC's) with the 3 Manhattan VPs.
 VP_DATASET_ALIASES = {"yud": ("yud+", {"manhattan_only": True})}
-RECALL_MAX_DEG = 20.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -169,32 +163,6 @@ def display_table(summary: pd.DataFrame, settings: Sequence[str]) -> pd.DataFram
     return out
 
 
-def recall_figure(errors: pd.DataFrame, settings: Sequence[str], path: Path, title: str) -> Path:
-    """Recall of the pooled VP errors vs threshold (0-20 deg), one panel per intrinsics setting."""
-    fig, axes = plt.subplots(1, len(settings), figsize=(6.2 * len(settings), 4.4), squeeze=False)
-    for ax, setting in zip(axes[0], settings):
-        for method in dict.fromkeys(errors["method"]):
-            values = errors[(errors["method"] == method) & (errors["intrinsics"] == setting)]["error_deg"]
-            if not len(values):
-                continue
-            x, y = recall_curve(values.to_numpy(), RECALL_MAX_DEG)
-            auc10 = auc_table(values.to_numpy(), (10.0,))["auc10"]
-            ax.plot(x, y, lw=1.6, label=f"{method} (AUC@10 {auc10:.1f})")
-        ax.axvline(10.0, color="0.6", lw=0.8, ls=":")
-        ax.set_xlim(0, RECALL_MAX_DEG)
-        ax.set_ylim(0, 1)
-        ax.set_xlabel("error threshold (°)")
-        ax.set_ylabel("recall (share of labelled VPs)")
-        ax.set_title("f unknown, image-centre principal point" if setting == "unknown" else "K known")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
-
-
 def load_vp_samples(dataset: str, root, split: str) -> list[Any]:
     """Samples of ``dataset`` (with :data:`VP_DATASET_ALIASES`) that carry VP labels; ValueError otherwise."""
     name, kwargs = VP_DATASET_ALIASES.get(dataset, (dataset, {}))
@@ -266,7 +234,9 @@ def run(args: argparse.Namespace) -> int:
             "columns. Time per image: wall time of one estimate (s), one warm-up call excluded.")
     (out_dir / "vp_summary.md").write_text(f"# {title}\n\n" + to_markdown(display) + f"\n{note}\n", encoding="utf-8")
     (out_dir / "vp_summary.tex").write_text(to_latex(display, caption=title), encoding="utf-8")
-    recall_figure(errors, settings, out_dir / "vp_recall.png", title)
+    vp_recall_figure({setting: {method: errors[(errors["method"] == method) & (errors["intrinsics"] == setting)]
+                                ["error_deg"].to_numpy() for method in dict.fromkeys(errors["method"])}
+                      for setting in settings}, out_dir / "vp_recall.png", title)
     info = {"argv": sys.argv, "task": "vp", "methods": methods, "dataset": args.dataset, "split": args.split,
             "n_images": len(samples), "n_labelled_vps": n_vps, "intrinsics": settings,
             "fov_range_deg": list(fov_range), "device": args.device, "limit": args.limit,

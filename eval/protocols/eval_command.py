@@ -1,11 +1,11 @@
-"""``fr eval``: the camera task (:mod:`fr_eval.run_eval`, focal length and rotation) or, with
-``--task vp``, the vanishing-point task (:mod:`fr_eval.vp_eval`, CONSAC's metric)."""
+"""``fr eval``: the camera task (:mod:`fr_eval.protocols.run_eval`, focal length and rotation) or,
+with ``--task vp``, the vanishing-point task (:mod:`fr_eval.protocols.vp_eval`, CONSAC's metric)."""
 from __future__ import annotations
 
 import argparse
 from typing import Sequence
 
-from fr_eval import run_eval, vp_eval
+from fr_eval.protocols import run_eval, vp_eval
 
 TASKS = ("camera", "vp")
 
