@@ -2,7 +2,8 @@
 
 After the search, every estimate has the three Manhattan vanishing points ``K R[:, k]``.  This
 module ranks them, and optionally finds more (the Atlanta world: further horizontal families
-that share the vertical, at free azimuths), without touching f or R.
+that share the vertical, at free azimuths; then, where none is left, families in free
+directions), without touching f or R.
 
 **Support** of a family: the length-weighted posterior mass of its segments under the mixture,
 ``sum_i len_i q_ik`` (pixels of segment length; ``q_ik`` the posterior of segment i for family k).
@@ -19,7 +20,20 @@ log p_i]``; azimuths within ``exclusion_deg`` of a family already in the model a
 (a copy of a family always gains).  The best azimuth is kept when its gain is positive and its
 support reaches ``min_support`` of the image's total segment length; the mixture then includes it
 and the next family is searched.  The segments the Manhattan fit explains poorly (the background)
-are the ones that gain.  Settings: ``results/decisions/47.md`` (chosen on train splits).
+are the ones that gain.
+
+**Free directions** (``free_segments`` > 0): in every step the candidates are also the
+intersections of every pair of the ``free_segments`` segments the current mixture leaves most to
+its background (length times background posterior); the best one (same gain, same exclusion,
+measured as the angle between directions ``K^-1 v``) is refitted twice to the segments it explains
+(the weighted least-squares intersection of their lines, weights length times its posterior).  It
+is kept, instead of the horizontal family, when its gain is positive, its support reaches
+``free_min_support`` and either no horizontal family passes or it gains more than
+``free_gain_ratio`` times the best horizontal one.  Roofs, stairs, slanted objects: vanishing
+points off the horizon.
+
+The defaults of :class:`AtlantaConfig` were chosen on train splits (NYU-VP train, YUD+ train;
+``results/decisions/47.md``).
 """
 from __future__ import annotations
 
@@ -37,22 +51,26 @@ ATLANTA_CHUNK_IMAGES = 4
 
 @dataclass(frozen=True)
 class AtlantaConfig:
-    """Extra horizontal families at free azimuths (module docstring).
+    """Extra horizontal families at free azimuths, then free directions (module docstring).
 
     ``max_extra``: families added at most (0 = none: only the ranking).  ``prior``: mixture weight
-    of each added family, in (0, 0.5].  ``min_support``: a family is kept when its length-weighted
-    posterior mass reaches this share of the image's total segment length.  ``exclusion_deg``: no
-    candidate within this azimuth (degrees) of a family already in the model.  ``step_deg``: the
-    azimuth grid's step (degrees).
+    of each added family, in (0, 0.5].  ``min_support``: a horizontal family is kept when its
+    length-weighted posterior mass reaches this share of the image's total segment length.
+    ``exclusion_deg``: no candidate within this angle (degrees) of a family already in the model.
+    ``step_deg``: the azimuth grid's step (degrees).  ``free_segments``: segments whose pairs
+    propose free directions (0 = horizontal families only); ``free_min_support``: the share a free
+    family needs; ``free_gain_ratio``: how many times the best horizontal family's gain a free
+    direction must gain to be kept instead.  Defaults: chosen on train splits (module docstring).
     """
 
     max_extra: int = 3
-    prior: float = 0.03
-    min_support: float = 0.03
+    prior: float = 0.01
+    min_support: float = 0.01
     exclusion_deg: float = 5.0
     step_deg: float = 0.25
-    free_segments: int = 0
-    free_min_support: float = 0.04
+    free_segments: int = 24
+    free_min_support: float = 0.03
+    free_gain_ratio: float = 10.0
 
     def __post_init__(self) -> None:
         for name, high in (("max_extra", 10), ("free_segments", 200)):
@@ -60,7 +78,7 @@ class AtlantaConfig:
             if not (isinstance(value, int) and 0 <= value <= high):
                 raise FRInputError(f"atlanta {name} must be an integer in [0, {high}], got {value!r}")
         checks = {"prior": (0.0, 0.5), "min_support": (0.0, 1.0), "free_min_support": (0.0, 1.0),
-                  "exclusion_deg": (0.0, 45.0),
+                  "free_gain_ratio": (1.0, 1e6), "exclusion_deg": (0.0, 45.0),
                   "step_deg": (0.01, 5.0)}
         for name, (low, high) in checks.items():
             value = getattr(self, name)
@@ -211,7 +229,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
             gain, support, mixed = score(chosen)
             keep = active & (gain > 0) & (support >= atlanta.min_support * total)
             horizontal = keep.clone()
-            if atlanta.free_segments:  # no horizontal family passes: a free direction may
+            if atlanta.free_segments:  # a free direction where no horizontal family passes, or one that gains far more
                 background = comp[..., 3] * manhattan_scale[:, None] / mix
                 free_points, free_dirs, usable = _free_candidates(feats, weight * background, atlanta.free_segments,
                                                                   K, K_inv)
@@ -228,10 +246,12 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
                 free_gain, free_support, free_mixed = score(free_chosen)
                 free_dir = _unit_directions(K_inv, free_point[:, None])[:, 0]
                 apart = (free_dir[:, None] @ taken.transpose(1, 2))[:, 0].abs().le(cos_window).all(-1)
-                use_free = active & ~keep & apart & (free_gain > 0) & (free_support >= atlanta.free_min_support * total)
+                use_free = active & apart & (free_gain > 0) & (free_support >= atlanta.free_min_support * total) \
+                    & (~keep | (free_gain > atlanta.free_gain_ratio * gain))
                 point = torch.where(use_free[:, None], free_point, point)
                 chosen = torch.where(use_free[:, None], free_chosen, chosen)
                 mixed = torch.where(use_free[:, None], free_mixed, mixed)
+                horizontal = horizontal & ~use_free
                 keep = keep | use_free
             slot = 3 + j
             points[:, slot] = torch.where(keep[:, None], _signed_rows(point), points[:, slot])
