@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors bench
+# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp bench
 # (default: all, in this order: the reliability models are trained before the tables that use them).  Data root: $FR_DATA (default ../shared/data); generated views go
 # to $FR_CACHE (default data_local/).
 set -euo pipefail
@@ -10,7 +10,7 @@ FR=${FR:-.venv/bin/fr}
 CROP_SIZES=$(.venv/bin/python -c "from fr_eval.datasets.panoviews import YUD_CROP_SIZES; print(*YUD_CROP_SIZES)")
 export MPLBACKEND=${MPLBACKEND:-Agg}
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors bench)
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
@@ -76,6 +76,17 @@ for step in "${steps[@]}"; do
       .venv/bin/python -m fr_eval.protocols.lodo table
       .venv/bin/python -m fr_eval.protocols.lodo_reliability table
       .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write ;;
+    vp)  # Issue 47: vanishing points with CONSAC's metric (results/vp/); CONSAC needs its authors' weights
+         # ($FR_CONSAC_WEIGHTS or ../shared/models/consac) and takes ~3 s per photo on one thread
+      export OMP_NUM_THREADS=1 FR_THREADS=1
+      M='fr,fast-fr,fr[atlanta=on],lee2009,simon2018,consac,consac-s'
+      $FR eval --task vp --dataset nyu-vp --split val --methods "$M" --out results/vp/nyu-vp-val
+      $FR eval --task vp --dataset yud+ --split test --methods "$M,consac[seed=2]" --out results/vp/yud-plus-test
+      $FR eval --task vp --dataset yud --split test --methods "$M,consac[seed=2]" --out results/vp/yud-test
+      $FR eval --task vp --dataset nyu-vp --split val --intrinsics unknown --out results/vp/consac-seeds-nyu-vp-val \
+        --methods "consac[seed=1],consac[seed=2],consac[seed=3],consac[seed=4],consac[seed=5],consac-s[seed=1],consac-s[seed=2],consac-s[seed=3]"
+      $FR eval --dataset yud --split test --methods "fr,fast-fr,lee2009,simon2018,consac,consac-s" --out results/vp/camera-yud-test
+      $FR eval --dataset nyu-vp --split val --methods "fr,fast-fr,consac,consac-s" --out results/vp/camera-nyu-vp-val ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)

@@ -8,8 +8,6 @@ weights (``models_root``: fails in CI when missing, like the data), its state di
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,8 +29,6 @@ from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import ImageMeta
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.synthetic import camera_matrix, synthetic_segments
-
-from .conftest import REPO
 
 
 def _rotated(direction, axis, degrees):
@@ -191,18 +187,6 @@ def test_consac_without_weights_is_not_supplied(tmp_path):
     assert not estimate.ok and estimate.reason.startswith("n/a (")
 
 
-@pytest.fixture(scope="session")
-def models_root() -> Path:
-    """``$FR_MODELS`` (default ``../shared/models``); fails in CI when missing, skips elsewhere."""
-    root = Path(os.environ.get("FR_MODELS", REPO.parent / "shared" / "models"))
-    if not (root / "consac" / "consac_vp.net").is_file():
-        message = f"CONSAC weights not found under {root}/consac (set FR_MODELS)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(message)
-        pytest.skip(message)
-    return root
-
-
 @pytest.mark.data
 @pytest.mark.parametrize("variant", ["consac", "consac-s"])
 def test_consac_weights_load_and_run(models_root, variant):
@@ -224,3 +208,38 @@ def test_consac_weights_load_and_run(models_root, variant):
     found = directions_from_vps(points, K)
     worst = max(np.degrees(np.arccos(min(1.0, np.abs(found @ rotation[:, k]).max()))) for k in range(3))
     assert worst < 2.0
+
+
+# --------------------------------------------------------------------------- datasets and the VP task
+
+
+@pytest.mark.data
+def test_vp_labels_of_the_datasets(data_root):
+    from fr_eval.protocols.vp_eval import load_vp_samples
+
+    plus_test = load_vp_samples("yud+", data_root, "test")
+    plus_train = load_vp_samples("yud+", data_root, "train")
+    assert len(plus_train) == 25 and len(plus_test) == 77  # CONSAC's split, names sorted
+    assert plus_train[-1].name < plus_test[0].name
+    assert sum(len(s.extra["vp_directions"]) for s in plus_test) > 3 * 77
+    yud = load_vp_samples("yud", data_root, "test")  # the same photos, the three Manhattan VPs
+    assert [s.name for s in yud] == [s.name for s in plus_test]
+    assert all(len(s.extra["vp_directions"]) == 3 for s in yud)
+    for sample in yud[:5]:  # YUD's first three labels are its Manhattan frame
+        np.testing.assert_allclose(np.abs(sample.extra["vp_directions"] @ sample.rotation).max(0), 1.0, atol=0.02)
+    nyu = load_vp_samples("nyu-vp", data_root, "val")
+    assert len(nyu) == 224 and nyu[0].name == "nyu_1000"
+    np.testing.assert_allclose(np.linalg.norm(nyu[0].extra["vp_directions"], axis=1), 1.0)
+
+
+@pytest.mark.data
+def test_vp_task_end_to_end(data_root, tmp_path):
+    from fr_eval.protocols.eval_command import main
+
+    out = tmp_path / "vp"
+    assert main(["--task", "vp", "--dataset", "nyu-vp", "--split", "val", "--limit", "2", "--methods", "fast-fr",
+                 "--data-root", str(data_root), "--out", str(out)]) == 0
+    for name in ("vp_errors.csv", "vp_summary.md", "vp_summary.csv", "vp_recall.png", "run_info.json"):
+        assert (out / name).is_file()
+    text = (out / "vp_summary.md").read_text()
+    assert "| fast-fr |" in text and "AUC@10° (f unknown)" in text and "AUC@10° (K known)" in text

@@ -407,20 +407,29 @@ def _group_names(key: str) -> tuple[str, str]:
     return f"by_{safe_name(key)}", key
 
 
+def load_samples(args: argparse.Namespace, loader=load_dataset) -> list | None:
+    """The samples of ``--dataset`` / ``--split`` (``loader(dataset, root=, split=)``), the first
+    ``--limit``; None after printing a one-line error when the dataset cannot be loaded or is empty."""
+    try:
+        samples = loader(args.dataset, root=args.data_root, split=args.split)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    if args.limit is not None:
+        samples = samples[: max(0, args.limit)]
+    if not samples:
+        print(f"error: dataset {args.dataset!r} split {args.split!r} has no samples", file=sys.stderr)
+        return None
+    return samples
+
+
 def run(args: argparse.Namespace) -> int:
     requested = split_methods(args.methods)
     if not requested:
         print("error: no methods given", file=sys.stderr)
         return 2
-    try:
-        samples = load_dataset(args.dataset, root=args.data_root, split=args.split)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if args.limit is not None:
-        samples = samples[: max(0, args.limit)]
-    if not samples:
-        print(f"error: dataset {args.dataset!r} split {args.split!r} has no samples", file=sys.stderr)
+    samples = load_samples(args)
+    if samples is None:
         return 2
     has_segments = all(getattr(s, "segments", None) is not None for s in samples)
     resolved, skipped = resolve_methods(requested, has_segments)
@@ -543,13 +552,3 @@ def weights_note(calibrators: dict[str, Any]) -> str:
         if weights:
             parts.append(f"{spec} = {weights}")
     return f" Weights: {'; '.join(parts)}." if parts else ""
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="fr eval", description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

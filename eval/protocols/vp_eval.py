@@ -48,6 +48,7 @@ from fr_eval.protocols.run_eval import (
     _strip_labelled,
     apply_weight_options,
     build_meta,
+    load_samples,
     make_calibrator,
     split_methods,
 )
@@ -163,7 +164,7 @@ def display_table(summary: pd.DataFrame, settings: Sequence[str]) -> pd.DataFram
     return out
 
 
-def load_vp_samples(dataset: str, root, split: str) -> list[Any]:
+def load_vp_samples(dataset: str, root=None, split: str = "test") -> list[Any]:
     """Samples of ``dataset`` (with :data:`VP_DATASET_ALIASES`) that carry VP labels; ValueError otherwise."""
     name, kwargs = VP_DATASET_ALIASES.get(dataset, (dataset, {}))
     samples = load_dataset(name, root=root, split=split, **kwargs)
@@ -182,15 +183,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: need methods and --intrinsics from {', '.join(INTRINSICS)}", file=sys.stderr)
         return 2
     try:
-        samples = load_vp_samples(args.dataset, args.data_root, args.split)
         fov_range = FovRange.parse(getattr(args, "fov_range", None))
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except ValueError as exc:
+        print(f"error: --fov-range: {exc}", file=sys.stderr)
         return 2
-    if args.limit is not None:
-        samples = samples[: max(0, args.limit)]
-    if not samples:
-        print(f"error: dataset {args.dataset!r} split {args.split!r} has no samples", file=sys.stderr)
+    samples = load_samples(args, load_vp_samples)
+    if samples is None:
         return 2
     apply_weight_options(args)
     calibrators = {}
