@@ -181,6 +181,9 @@ class SegmentEstimator:
     time per photo, half of its batch throughput): None (default) when the reliability model uses
     it (fR's shipped model does; with ``reliability=None`` it is skipped), True always (records
     for training a model), False never (a model that uses it is then an error).
+    ``spreads``: compute the cues the bounds of ``reliable`` rest on
+    (:data:`fr_torch.core.cues.SPREAD_CUE_NAMES`): None (default) when the reliability stage holds
+    such bounds (the shipped one does), True always (records), False never.
     """
 
     def __init__(self, mode: Mode | str = Mode.FR, measure: str | None = None, device: str = "cpu",
@@ -188,7 +191,7 @@ class SegmentEstimator:
                  likelihood: str | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
                  min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6,
-                 reliability="default", profile_gap: bool | None = None):
+                 reliability="default", profile_gap: bool | None = None, spreads: bool | None = None):
         self.mode = Mode.parse(mode)
         self.search = (search_config or SearchConfig.from_config()).resolve(self.mode)
         self.iterations = self.search.refine_iterations
@@ -215,6 +218,8 @@ class SegmentEstimator:
             raise FRInputError("the reliability model uses the focal_profile_gap cue: profile_gap=False "
                                "needs reliability=None or a model without it")
         self.profile_gap = "focal_profile_gap" in model_cues if profile_gap is None else bool(profile_gap)
+        # the spread cues that the bounds of `reliable` rest on (fr_torch.core.reliability_bounds)
+        self.spreads = getattr(reliability, "needs_spreads", False) if spreads is None else bool(spreads)
 
     # ------------------------------------------------------------------ public API
 
@@ -370,7 +375,7 @@ class SegmentEstimator:
         labels = posterior[:, 0].argmax(-1)
         cues = image_cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
-                                self.profile_gap))
+                               self.profile_gap, self.spreads))
         t3 = time.perf_counter()
 
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
