@@ -74,8 +74,13 @@ for step in "${steps[@]}"; do
            # promise's conformal scales go to configs/reliability.json (before the tables that use it)
       .venv/bin/python -m fr_eval.protocols.lodo run
       .venv/bin/python -m fr_eval.protocols.lodo table
-      .venv/bin/python -m fr_eval.protocols.lodo_reliability table
-      .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write ;;
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write
+      for rule in worst pooled; do
+        .venv/bin/python -m fr_eval.protocols.lodo_reliability table --scale-rule $rule
+        .venv/bin/python -m fr_eval.protocols.lodo_reliability table --scale-rule $rule --focal-limit 15 --tilt-limit 5
+      done
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability table --bounds knn   # issue 35's bounds, for comparison
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability figure ;;            # results/reliability/risk_coverage.png
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)
