@@ -1,12 +1,12 @@
 """Loader for planar-view datasets generated from panoramas by ``fr make-dataset``.
 
 A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``images/``; see
-:mod:`fr_eval.make_dataset` for the columns.  Registered datasets:
+:mod:`fr_eval.datasets.make_dataset` for the columns.  Registered datasets:
 
 * ``zind-fr``: ``<cache_root>/zind-fr`` (``$FR_CACHE``, default ``<repo>/data_local``), built with
-  the command in :mod:`fr_eval.make_dataset`'s docstring;
+  the command in :mod:`fr_eval.datasets.make_dataset`'s docstring;
 * ``yud-crop-400x300``, ``yud-crop-480x360``: ``<cache_root>/<name>``, YorkUrbanDB crops around the
-  calibrated principal point (narrow cameras, 33.0 and 39.2 deg), built by :mod:`fr_eval.crop_views`
+  calibrated principal point (narrow cameras, 33.0 and 39.2 deg), built by :mod:`fr_eval.datasets.crop_views`
   (``eval/reproduce.sh crops``);
 * ``panoviews``: any generated folder, passed as ``path=`` (or as ``root`` when ``root`` itself holds
   a ``gt.csv``).
@@ -35,7 +35,7 @@ from fr_eval.paths import cache_root
 from fr_torch.core.camera import Camera, image_centre
 
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
-#: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.crop_views``.
+#: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.datasets.crop_views``.
 GT_COLUMNS = ["file", "pano", "group", "split", "width", "height", "focal_px", "hfov_deg", "pan_deg", "tilt_deg",
               "roll_deg", "pitch_deg", *R_COLUMNS, "manhattan_known", "manhattan_yaw_deg"]
 SPLITS = ("train", "test", "all")
@@ -73,7 +73,7 @@ class PanoViews:
         gt_path = self.folder / "gt.csv"
         if not gt_path.is_file():
             raise FileNotFoundError(f"{gt_path} not found: generate it with `fr make-dataset` "
-                                    "(see eval/make_dataset.py)")
+                                    "(see eval/datasets/make_dataset.py)")
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
         table = pd.read_csv(gt_path)
@@ -82,7 +82,7 @@ class PanoViews:
         self.table = table.reset_index(drop=True)
         self.split = split
         info = self.folder / "dataset.json"
-        # A folder cut from another dataset's images (fr_eval.crop_views) names it: its views show
+        # A folder cut from another dataset's images (fr_eval.datasets.crop_views) names it: its views show
         # the same scenes, so grouped cross-validation keeps a crop with its source photo.
         self.scene_source = json.loads(info.read_text()).get("source") if info.is_file() else None
 

@@ -41,7 +41,7 @@ from collections import deque
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
-from typing import Iterable, Iterator, NamedTuple, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -54,23 +54,9 @@ from fr_torch.core.segments import SegmentFilter
 from fr_torch.detectors.registry import detect_segments, get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import WORKING_LONG_SIDE, read_any, working_image
+from fr_torch.runtime.detection import Detection
+from fr_torch.runtime.device_pipeline import calibrate_on_device, device_path_gap
 from fr_torch.runtime.workers import process_pool
-
-
-class Detection(NamedTuple):
-    """One image decoded and detected at the working resolution (see :func:`detect_image`).
-
-    ``segments``: (N, 4) in working pixels (empty on error); ``size``: working (width, height),
-    (0, 0) on error; ``error``: the image's failure message or None; ``seconds``: decode + detect
-    time; ``scale``: input pixels per working pixel (>= 1); ``input_size``: the input's (width, height).
-    """
-
-    segments: np.ndarray
-    size: tuple[int, int]
-    error: str | None
-    seconds: float
-    scale: float = 1.0
-    input_size: tuple[int, int] = (0, 0)
 
 
 def detect_image(image, name: str, detector, segment_filter: SegmentFilter,
@@ -330,13 +316,14 @@ def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: 
     ``whole_frames`` (the default for a CPU estimator): two chunks of ``batch_size`` frames per
     worker, each calibrated whole in a worker process, as :func:`calibrate_paths` does.  Without
     (always for a GPU estimator): the workers decode and detect up to two batches of frames ahead
-    while this process searches on the device.
+    while this process searches on the device, or, for a detector of batches on a GPU, this process
+    decodes and detects each batch on the device (:mod:`fr_torch.runtime.device_pipeline`).
     """
     if workers > 0 and estimator.policy.whole_image_workers and whole_frames is not False:
         yield from _calibrate_in_workers(estimator, ((image, name, None, None) for image, name in frames),
                                          batch_size, workers)
         return
-    if workers > 0:
+    if workers > 0 and device_path_gap(estimator) is not None:
         names: deque = deque()  # the names of the frames read so far and not yet searched, in order
 
         def named():
@@ -367,7 +354,9 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
     tolerances).  ``workers > 0`` with ``whole_images`` (the default for a CPU estimator): chunks
     of at most ``batch_size`` images are calibrated in that many single-threaded processes (a copy
     of the estimator in each).  Without (always for a GPU estimator): this process searches while
-    the workers decode and detect the next images, up to two batches ahead (module docstring).
+    the workers decode and detect the next images, up to two batches ahead (module docstring);
+    on a GPU whose detector detects batches, this process decodes and detects on the device too
+    (:mod:`fr_torch.runtime.device_pipeline`; ``workers`` is then unused).
     ``focal_px`` / ``principal_point``: as for ``calibrate_images`` (one value or one per image).
     """
     images = list(images)
@@ -375,6 +364,9 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
                                              for i, im in enumerate(images)])
     focal_list = per_image(focal_px, len(images), "focal_px")
     pp_list = per_image(principal_point, len(images), "principal_point", width=2)
+    if device_path_gap(estimator) is None:  # decode, detect and search on the GPU
+        yield from calibrate_on_device(estimator, images, names, focal_list, pp_list, batch_size)
+        return
     if workers > 0 and estimator.policy.whole_image_workers and whole_images is not False:
         # Chunks small enough that every worker gets several (the last ones finish together).
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
