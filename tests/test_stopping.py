@@ -24,7 +24,13 @@ pytest.importorskip("pyarrow.parquet")
 from fr_torch.batch.jobs import run_batch
 from fr_torch.cli.batch import estimator_options
 from fr_torch.cli.main import build_parser, stopped_line
-from fr_torch.runtime.workers import Stopped, interrupt_exit_status, interrupt_on_signals, keep_signal_handler
+from fr_torch.runtime.workers import (
+    Stopped,
+    interrupt_exit_status,
+    interrupt_on_signals,
+    keep_signal_handler,
+    stops_held,
+)
 from fr_torch.synthetic import random_rotation, render_manhattan_room
 from tests.conftest import checkout_env
 
@@ -118,8 +124,9 @@ def test_stopped_batch_leaves_no_process_and_a_rerun_completes_it(folder, tmp_pa
 
 
 def test_sigterm_raises_like_ctrl_c_and_handlers_come_back():
-    """In the main thread SIGTERM raises :class:`Stopped` (a KeyboardInterrupt) inside the block;
-    the handler before it comes back after, also after a library replaced it (as ray.init does)."""
+    """In the main thread SIGTERM raises :class:`Stopped` (a KeyboardInterrupt) inside the block,
+    at the end of a :func:`stops_held` block when it arrives in one; the handler before it comes
+    back after, also after a library replaced it (as ray.init does)."""
     before = signal.signal(signal.SIGTERM, signal.SIG_DFL)  # earlier tests may have left one (Ray's)
     try:
         _check_sigterm_handling()
@@ -136,6 +143,14 @@ def _check_sigterm_handling():
     assert isinstance(caught.value, Stopped) and caught.value.signum == signal.SIGTERM
     assert signal.getsignal(signal.SIGTERM) is before
     assert interrupt_exit_status(caught.value) == 143 and interrupt_exit_status(KeyboardInterrupt()) == 130
+    steps = []
+    with pytest.raises(Stopped), interrupt_on_signals():
+        with stops_held():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.2)
+            steps.append("the held step ends")
+        steps.append("never")
+    assert steps == ["the held step ends"]
     caught.value.add_note("3 of 8 images are in out")
     assert stopped_line("batch", caught.value) == "fr batch: stopped by SIGTERM; 3 of 8 images are in out"
     assert stopped_line("track", KeyboardInterrupt()) == "fr track: stopped by SIGINT"

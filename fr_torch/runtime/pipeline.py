@@ -56,7 +56,7 @@ from fr_torch.errors import FRInputError
 from fr_torch.images.io import WORKING_LONG_SIDE, read_any, working_image
 from fr_torch.runtime.detection import Detection
 from fr_torch.runtime.device_pipeline import calibrate_on_device, device_path_gap
-from fr_torch.runtime.workers import process_pool
+from fr_torch.runtime.workers import WorkerPool
 
 
 def detect_image(image, name: str, detector, segment_filter: SegmentFilter,
@@ -145,7 +145,7 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
         return bool(todo)
 
     def start_pool():
-        return process_pool(workers, initializer, initargs)
+        return WorkerPool(workers, initializer, initargs)
 
     def restart(pool):
         nonlocal broken_in_a_row
@@ -451,6 +451,6 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
                                  (portable,), _calibration_crash))
 
 
-def worker_pool(workers: int) -> ProcessPoolExecutor:
-    """A process pool of ``workers`` single-threaded workers (:func:`fr_torch.runtime.workers.process_pool`)."""
-    return process_pool(workers, _init_worker, (None, None))
+def worker_pool(workers: int) -> WorkerPool:
+    """A process pool of ``workers`` single-threaded workers (:class:`~fr_torch.runtime.workers.WorkerPool`)."""
+    return WorkerPool(workers, _init_worker, (None, None))

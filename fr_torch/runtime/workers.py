@@ -6,8 +6,8 @@ worker is forked from it, already loaded, so a pool starts in milliseconds inste
 importing torch (about a second and a half of CPU each).  :func:`start_worker_server` starts that
 server ahead of time, e.g. while the command-line process is still importing torch itself.
 
-Every pool comes from :func:`process_pool`.  Its workers end with the process that started them,
-however that one ends (an exception, SIGTERM, SIGKILL, the out-of-memory killer): each watches
+Every pool of the library is a :class:`WorkerPool`.  Its workers end with the process that
+started them, however that one ends (an exception, SIGTERM, SIGKILL, the out-of-memory killer): each watches
 its parent (:func:`exit_with_parent`) and exits within milliseconds of its death.  A worker would
 otherwise wait for work forever -- it holds both ends of its own task queue, so it never sees the
 queue close -- and, because every worker holds the fork server's "clients alive" pipe and the
@@ -17,10 +17,12 @@ Workers ignore SIGINT: a terminal's CTRL-C reaches the whole process group, and 
 decides what to stop (:func:`fr_torch.runtime.pipeline.ordered_pool_map` kills the workers whose
 results it will no longer read).
 
-A command turns SIGTERM into an exception like CTRL-C's (:func:`interrupt_on_signals`,
-:class:`Stopped`), so that a service manager's, scheduler's or container's stop runs the same
-clean-up as CTRL-C: finished output is kept, the pool is shut down, the exit status is 128 + the
-signal's number (:func:`interrupt_exit_status`).
+A command turns SIGTERM, and CTRL-C's SIGINT, into one exception (:class:`Stopped`, a
+KeyboardInterrupt; :func:`interrupt_on_signals`), so that a service manager's, scheduler's or
+container's stop runs the same clean-up as CTRL-C: finished output is kept, the pool is shut down,
+the exit status is 128 + the signal's number (:func:`interrupt_exit_status`).  A stop that
+arrives while a pool is starting a worker is raised once the worker is started
+(:func:`stops_held`), so that the pool knows every worker it has to stop.
 """
 from __future__ import annotations
 
@@ -31,11 +33,9 @@ import multiprocessing.forkserver
 import os
 import signal
 import threading
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterator, Sequence
-
-if TYPE_CHECKING:
-    from concurrent.futures import ProcessPoolExecutor
+from typing import Callable, Iterator, Sequence
 
 #: Modules the fork server imports once for all workers (``__main__`` as multiprocessing does).
 #: Not ``torch._dynamo`` (1-2 s): the refinement no longer builds a ``torch.optim.Adam`` object,
@@ -59,13 +59,22 @@ def start_worker_server() -> None:
         multiprocessing.forkserver.ensure_running()
 
 
-def process_pool(workers: int, initializer: Callable | None = None, initargs: Sequence = ()) -> ProcessPoolExecutor:
-    """A pool of ``workers`` processes (:func:`context`) that run ``initializer(*initargs)`` once
-    each, ignore SIGINT and exit when this process dies (:func:`exit_with_parent`)."""
-    from concurrent.futures import ProcessPoolExecutor  # not at import: the command line starts without it
+class WorkerPool(ProcessPoolExecutor):
+    """A :class:`~concurrent.futures.ProcessPoolExecutor` of ``workers`` processes (:func:`context`)
+    that run ``initializer(*initargs)`` once each, ignore SIGINT and exit when this process dies
+    (:func:`exit_with_parent`); :meth:`submit` holds a stop (:func:`stops_held`) while it may be
+    starting a worker."""
 
-    return ProcessPoolExecutor(workers, mp_context=context(), initializer=_start_worker,
-                               initargs=(initializer, tuple(initargs)))
+    def __init__(self, workers: int, initializer: Callable | None = None, initargs: Sequence = ()):
+        super().__init__(workers, mp_context=context(), initializer=_start_worker,
+                         initargs=(initializer, tuple(initargs)))
+
+    def submit(self, fn, /, *args, **kwargs):
+        """``ProcessPoolExecutor.submit``; a stop that arrives meanwhile is raised once it returns.
+        (A stop raised while a worker is being started would leave that worker unknown to the pool:
+        it would start after this process has gone and fail there with a traceback.)"""
+        with stops_held():
+            return super().submit(fn, *args, **kwargs)
 
 
 def _start_worker(initializer: Callable | None, initargs: tuple) -> None:
@@ -99,31 +108,63 @@ def _exit_when_gone(parent) -> None:
 
 
 class Stopped(KeyboardInterrupt):
-    """A stop signal (SIGTERM) received by the main thread, raised where that thread was, as CTRL-C
-    raises :class:`KeyboardInterrupt` (a subclass, so every clean-up written for CTRL-C runs).
-    ``signum``: the signal's number."""
+    """A stop signal (SIGTERM, or SIGINT under :func:`interrupt_on_signals`) received by the main
+    thread, raised where that thread was, as CTRL-C raises :class:`KeyboardInterrupt` (a subclass,
+    so every clean-up written for CTRL-C runs).  ``signum``: the signal's number."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
         self.signum = int(signum)
 
 
+#: Stops held by :func:`stops_held` (main thread only): the depth of nested blocks and the first
+#: signal held.
+_HELD: dict = {"depth": 0, "signum": None}
+
+
 def _raise_stopped(signum, frame) -> None:
+    if _HELD["depth"]:
+        _HELD["signum"] = _HELD["signum"] or signum
+        return
     raise Stopped(signum)
 
 
 @contextlib.contextmanager
-def interrupt_on_signals(signums: Sequence[int] = (signal.SIGTERM,)) -> Iterator[None]:
-    """While the block runs, each of ``signums`` raises :class:`Stopped` in the main thread (as
-    SIGINT raises KeyboardInterrupt); the previous handlers come back afterwards.  A signal whose
-    handler is not the default (ignored, as ``nohup`` does for SIGHUP, or the caller's own) is left
-    alone, as Python leaves an ignored SIGINT.  A no-op outside the main thread (Python delivers
-    signals to it only)."""
+def stops_held() -> Iterator[None]:
+    """In the main thread, a stop that :func:`interrupt_on_signals` would raise during the block is
+    raised when the block ends instead (for steps that must not be cut in the middle); elsewhere,
+    or without those handlers, a no-op."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    _HELD["depth"] += 1
+    try:
+        yield
+    finally:
+        _HELD["depth"] -= 1
+        if not _HELD["depth"] and _HELD["signum"] is not None:
+            signum, _HELD["signum"] = _HELD["signum"], None
+            raise Stopped(signum)
+
+
+#: Signals a command turns into :class:`Stopped` (:func:`interrupt_on_signals`).
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def interrupt_on_signals(signums: Sequence[int] = STOP_SIGNALS) -> Iterator[None]:
+    """While the block runs, each of ``signums`` raises :class:`Stopped` in the main thread, as
+    SIGINT raises KeyboardInterrupt (held meanwhile by :func:`stops_held`); the previous handlers
+    come back afterwards.  A signal whose handler is neither the default nor Python's SIGINT
+    handler (ignored, as ``nohup`` does for SIGHUP or a shell for a background job's SIGINT, or
+    the caller's own) is left alone.  A no-op outside the main thread (Python delivers signals to
+    it only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    defaults = (signal.SIG_DFL, signal.default_int_handler)
     previous = {signum: signal.signal(signum, _raise_stopped) for signum in signums
-                if signal.getsignal(signum) is signal.SIG_DFL}
+                if signal.getsignal(signum) in defaults}
     try:
         yield
     finally:
