@@ -175,8 +175,10 @@ class SegmentEstimator:
     (random texture, nature scenes: real built scenes measure 0.75-0.95 with LSD).
     ``reliability``: the error predictor stage (:mod:`fr_torch.core.reliability`): ``"default"`` (the
     shipped model of this mode, when installed), a model object, a path to a model ``.npz``, or None
-    (off).  When on, every estimate gets ``predicted_error`` and ``reliable = False`` above the
-    thresholds of ``configs/reliability.json``.
+    (off).  When on, every estimate gets ``predicted_error``, ``error_bound`` and ``reliable = False``
+    when a bound exceeds its limit (the promise of ``configs/reliability.json``,
+    :mod:`fr_torch.core.reliability_bounds`; with ``"enforce": false``: a predicted error above its
+    threshold).
     ``profile_gap``: compute the ``focal_profile_gap`` cue (:meth:`_focal_cues`; a quarter of fR's
     time per photo, half of its batch throughput): None (default) when the reliability model uses
     it (fR's shipped model does; with ``reliability=None`` it is skipped), True always (records
@@ -301,7 +303,7 @@ class SegmentEstimator:
             if item.dropped and item.result.ok:
                 item.result.reliable = False
                 item.result.reason = "; ".join(r for r in (item.result.reason, absurd_segments_note(item.dropped)) if r)
-        if self.reliability is not None:  # predicted errors, reliable above thresholds
+        if self.reliability is not None:  # predicted errors, bounds, reliable = the promise
             scope_gap = self.reliability_scope_gap(detected)
             if scope_gap is None:
                 self.reliability.annotate_many(results, mode=self.mode,
