@@ -80,7 +80,10 @@ for step in "${steps[@]}"; do
         .venv/bin/python -m fr_eval.protocols.lodo_reliability table --scale-rule $rule --focal-limit 15 --tilt-limit 5
       done
       .venv/bin/python -m fr_eval.protocols.lodo_reliability table --bounds knn   # issue 35's bounds, for comparison
-      .venv/bin/python -m fr_eval.protocols.lodo_reliability figure ;;            # results/reliability/risk_coverage.png
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability figure             # results/reliability/risk_coverage.png
+      # issue 45: the promise on torch-lines' segments vs LSD's, same photos (the promise's validated_detectors)
+      .venv/bin/python -m fr_eval.protocols.detector_reliability run
+      .venv/bin/python -m fr_eval.protocols.detector_reliability table ;;       # results/reliability/torch_lines.*
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)

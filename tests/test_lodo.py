@@ -126,9 +126,29 @@ def test_lodo_reliability_scales_and_judgement():
     assert out["precision_pct"] > out["good_pct"] and 0 < out["recall_pct"] <= 100
     assert out["aurc_ratio"] >= 1.0 and out["aurc_oracle"] == pytest.approx(aurc(table["focal_err_pct"],
                                                                                 table["focal_err_pct"]))
+    given = evaluate(table, bounds, {"focal_pct": 10.0, "tilt_deg": 3.0}, flagged=np.arange(n) < 10)
+    assert given["reliable_n"] == 10 and given["aurc"] == out["aurc"]  # the flag given, the ranking by the bounds
     # the risk-coverage curve: the mean error of the k photos ranked first, NaN scores last
     kept, risk = risk_coverage([3.0, np.nan, 1.0, 2.0], [30.0, 40.0, 10.0, 20.0])
     np.testing.assert_allclose(kept, [0.25, 0.5, 0.75, 1.0]) and np.testing.assert_allclose(risk, [10, 15, 20, 25])
     assert aurc([3.0, np.nan, 1.0, 2.0], [30.0, 40.0, 10.0, 20.0]) == pytest.approx(17.5)
     assert MODEL_CUE_NAMES == ("min_family_segments", "grid_entropy", "mean_log_likelihood", "focal_prior_share",
                                "focal_spread")
+
+
+def test_detector_reliability_verdict():
+    """The rule of results/decisions/45.md: >= 90 % where LSD is, and within LSD's per-family spread."""
+    import pandas as pd
+    from fr_eval.protocols.detector_reliability import verdict
+
+    def table(other: dict[str, float]) -> pd.DataFrame:
+        lsd = {"YUD family train": 95.0, "ZInD-fR train": 98.0}
+        return pd.DataFrame([{"mode": mode, "rows": family, "split": "train pooled", "detector": detector,
+                              "precision_pct": value}
+                             for mode in ("fr", "fast") for detector, values in (("lsd", lsd), ("torch-lines", other))
+                             for family, value in values.items()])
+
+    holds, lines = verdict(table({"YUD family train": 96.0, "ZInD-fR train": 95.5}))
+    assert holds and len(lines) == 4  # below LSD's 98 % on ZInD-fR, but within LSD's spread (95-98 %)
+    holds, lines = verdict(table({"YUD family train": 94.0, "ZInD-fR train": 99.0}))
+    assert not holds and "FAILS" in lines[0]  # below LSD's lowest family

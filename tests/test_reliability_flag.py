@@ -68,6 +68,13 @@ def test_promise_bounds_violations_and_config(tmp_path):
     loaded = ReliabilityPromise.from_config(path)
     assert loaded.coverage == 0.8 and loaded.limits == {"focal_pct": 5.0} and loaded.scales["fast"]["focal_pct"] == 3.0
     assert loaded.enforce  # the promise is what `reliable` means unless the config says otherwise
+    assert loaded.validated_detectors == ()  # a config that does not say: the models' own detector only
+    path.write_text(json.dumps({"promise": {"scales": {"fr": {"focal_pct": 3}}, "validated_detectors": ["torch-lines"]}}))
+    assert ReliabilityPromise.from_config(path).validated_detectors == ("torch-lines",)
+    for bad in ("torch-lines", [""], [3], 3):
+        path.write_text(json.dumps({"promise": {"validated_detectors": bad}}))
+        with pytest.raises(ValueError, match="validated_detectors"):
+            ReliabilityPromise.from_config(path)
 
 
 def _training(n=300, seed=0):

@@ -162,10 +162,12 @@ def zenith_error_deg(gt_roll, gt_pitch, est_roll, est_pitch) -> np.ndarray:
 
 
 def run_predictions(dataset: str, split: str, method: str, setting: str, config_path: Path | None, cache: Path,
-                    pp_mode: str = "centre", root: str | None = None, stride: int = 1) -> pd.DataFrame:
+                    pp_mode: str = "centre", root: str | None = None, stride: int = 1,
+                    calibrator=None) -> pd.DataFrame:
     """Per-image prediction rows (``fr eval``'s columns + ``zenith_err_deg``) of ``method`` under
     ``setting`` on ``dataset``/``split`` (every ``stride``-th image), cached as
-    ``cache/<setting>/<dataset>_<split>_<method>[_pp].csv``."""
+    ``cache/<setting>/<dataset>_<split>_<method>[_pp].csv``.  ``calibrator``: the method object to
+    run (None: built from ``method`` and ``config_path``, FOV range [30, 120] deg)."""
     from fr_eval.protocols.run_eval import evaluate_method, make_calibrator
 
     from fr_torch.core.fov import FovRange
@@ -176,7 +178,8 @@ def run_predictions(dataset: str, split: str, method: str, setting: str, config_
         return pd.read_csv(path)
     spec = method_spec(method, config_path) if method in TUNED_METHODS else method
     samples = load_dataset(dataset, root=root, split=split)[::stride]
-    calibrator = make_calibrator(spec, "cpu", FovRange.parse(None))
+    if calibrator is None:
+        calibrator = make_calibrator(spec, "cpu", FovRange.parse(None))
     rows = evaluate_method(spec, samples, pp_mode=pp_mode, dataset=dataset, calibrator=calibrator)
     table = pd.DataFrame(rows)
     table["method"] = method

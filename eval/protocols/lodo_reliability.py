@@ -51,7 +51,8 @@ from fr_eval.protocols.lodo import (
     family_of,
     setting_name,
 )
-from fr_eval.scoring.metrics import aurc, risk_coverage
+from fr_eval.scoring.metrics import aurc
+from fr_eval.scoring.plots import risk_coverage_panel, save_figure
 from scipy.stats import spearmanr
 
 from fr_torch.core.reliability import ERROR_COLUMNS, ReliabilityModel, model_cue_names
@@ -76,14 +77,18 @@ MODE_LABEL = {"fr": "fR", "fast": "Fast-fR"}
 METHOD_OF_MODE = {"fr": "fr", "fast": "fast-fr"}
 
 
-def _from_predictions(table: pd.DataFrame, dataset: str, mode: str) -> pd.DataFrame:
-    """``fr eval`` prediction rows -> records: the KNN's cues and the spread cues (by name), the error
-    columns, ``group`` (one per photo: a YUD crop shares its photo's) and ``dataset``."""
+def records_from_predictions(table: pd.DataFrame, dataset: str, mode: str) -> pd.DataFrame:
+    """``fr eval`` prediction rows -> records of the estimates (failures left out): the KNN's cues
+    and the spread cues (by name), the error columns, ``reliable`` (the estimator's flag),
+    ``pred_err_focal_pct`` (the KNN's prediction, NaN without one), ``group`` (one per photo: a YUD
+    crop shares its photo's) and ``dataset``."""
     ok = table[~table["failed"].astype(bool)]
     names = list(dict.fromkeys(model_cue_names(mode) + SIGMA_CUES))
     out = pd.DataFrame({name: pd.to_numeric(ok.get(f"cue_{name}"), errors="coerce") for name in names})
     for column in ERROR_COLUMNS:
         out[column] = pd.to_numeric(ok[column], errors="coerce").to_numpy()
+    out["reliable"] = ok["reliable"].astype(str).str.lower().eq("true").to_numpy()
+    out["pred_err_focal_pct"] = pd.to_numeric(ok["pred_err_focal_pct"], errors="coerce").to_numpy()
     out["group"] = [f"{family_of(dataset)}:{name}" for name in ok["image"]]
     out["dataset"] = dataset
     return out.reset_index(drop=True)
@@ -93,7 +98,7 @@ def _run(cache: Path, setting: str, dataset: str, split: str, mode: str) -> pd.D
     path = cache / setting / f"{dataset}_{split}_{METHOD_OF_MODE[mode]}.csv"
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: run `python -m fr_eval.protocols.lodo run --stage reliability`")
-    return _from_predictions(pd.read_csv(path), dataset, mode)
+    return records_from_predictions(pd.read_csv(path), dataset, mode)
 
 
 def train_records(dataset: str, mode: str, cache: Path) -> pd.DataFrame:
@@ -153,14 +158,18 @@ def family_scales(records: pd.DataFrame, mode: str, coverage: float = DEFAULT_CO
     return scale_of
 
 
-def evaluate(records: pd.DataFrame, bounds: dict[str, np.ndarray], limits: dict) -> dict:
+def evaluate(records: pd.DataFrame, bounds: dict[str, np.ndarray], limits: dict,
+             flagged: np.ndarray | None = None) -> dict:
     """Promise and ranking figures of ``bounds`` (target -> (n,)) for records with actual errors
-    (module docstring)."""
+    (module docstring).  ``flagged`` (n,) bool: the photos called reliable (None: those whose bounds
+    are within the limits)."""
     focal = records["focal_err_pct"].to_numpy(np.float64)
     tilt = records["tilt_err_deg"].to_numpy(np.float64)
     has_tilt = np.isfinite(tilt)  # NYU-VP photos without a known vertical have a focal error only
     bound_f, bound_t = bounds["focal_pct"], bounds["tilt_deg"]
-    flagged = (bound_f <= limits["focal_pct"]) & (bound_t <= limits["tilt_deg"])
+    if flagged is None:
+        flagged = (bound_f <= limits["focal_pct"]) & (bound_t <= limits["tilt_deg"])
+    flagged = np.asarray(flagged, bool)
     good = (focal <= limits["focal_pct"]) & (~has_tilt | (tilt <= limits["tilt_deg"]))
     share = lambda mask: 100 * float(mask.mean()) if mask.size else math.nan  # noqa: E731
     oracle = aurc(focal, focal)
@@ -228,8 +237,6 @@ def risk_coverage_figure(cache: Path, path: Path, coverage: float = DEFAULT_COVE
     """Focal MAE of the photos kept vs the share kept, per mode (rows) and held-out dataset (columns):
     ordered by the spreads' focal bound (shipped), by issue 35's KNN bound, and by the actual error
     (oracle); the dashed line is all photos' MAE."""
-    import matplotlib
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(len(modes), len(REPORTED), figsize=(3.4 * len(REPORTED), 3.0 * len(modes)),
@@ -243,30 +250,19 @@ def risk_coverage_figure(cache: Path, path: Path, coverage: float = DEFAULT_COVE
                 test, bounds, _ = held_out_bounds(cache, mode, dataset, split, coverage, "worst", kind, train)
                 curves[label] = bounds["focal_pct"]
             focal = test["focal_err_pct"].to_numpy(np.float64)
-            oracle = aurc(focal, focal)
-            for (label, score), style in zip(curves.items(), ("C0-", "C1--")):
-                kept, risk = risk_coverage(score, focal)
-                ax.plot(100 * kept, risk, style, label=f"{label} ({aurc(score, focal) / oracle:.2f}x)")
-            kept, risk = risk_coverage(focal, focal)
-            ax.plot(100 * kept, risk, "k:", label="oracle")
             ax.axhline(float(np.nanmean(focal)), color="grey", lw=0.8, ls="--")
-            ax.set_title(f"{MODE_LABEL[mode]}, {dataset} {split}", fontsize=9)
-            ax.set_xlabel("% of photos kept")
-            if j == 0:
-                ax.set_ylabel("focal MAE of kept (%)")
-            ax.legend(fontsize=6, loc="upper left")
-    fig.suptitle("Risk-coverage, held out: photos kept in the order of their predicted focal bound "
-                 "(AURC / oracle in brackets)", fontsize=10)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+            risk_coverage_panel(ax, [(label, score, focal, style) for (label, score), style
+                                     in zip(curves.items(), ("C0-", "C1--"))] + [("oracle", focal, focal, "k:")],
+                                f"{MODE_LABEL[mode]}, {dataset} {split}", j == 0, legend_size=6)
+    return save_figure(fig, path, "Risk-coverage, held out: photos kept in the order of their predicted focal bound "
+                                  "(AURC / oracle in brackets)")
 
 
-def shipped_promise(cache: Path, limits: dict, coverage: float) -> dict:
+def shipped_promise(cache: Path, limits: dict, coverage: float, validated_detectors: Sequence[str] = ()) -> dict:
     """The ``promise`` block for configs/reliability.json: scales per mode from every family's train
-    records (the largest per-family quantile)."""
+    records (the largest per-family quantile); ``validated_detectors`` kept as given (the detectors
+    besides the model's own that the promise was measured on: :mod:`fr_eval.protocols.detector_reliability`,
+    to be rerun after a refit)."""
     scales, detail = {}, {}
     for mode in ("fr", "fast"):
         records = pd.concat([train_records(d, mode, cache) for d in RELIABILITY_TRAIN], ignore_index=True)
@@ -274,12 +270,16 @@ def shipped_promise(cache: Path, limits: dict, coverage: float) -> dict:
         scales[mode] = {t: round(fitted[t][0], 3) for t in PROMISE_TARGETS}
         detail[mode] = {t: {k: round(v, 3) for k, v in fitted[t][1].items()} for t in PROMISE_TARGETS}
     return {"coverage": coverage, "limits": limits, "enforce": True, "scales": scales, "per_family_scales": detail,
+            "validated_detectors": list(validated_detectors),
             "doc": "error_bound = scale x sigma, a 90 % bound; sigma from the estimate's own spreads (focal: "
                    "100 sqrt(focal_profile_spread x focal_resample_spread) %, tilt: hypot(pitch_resample_spread, "
                    "0.5) deg; fr_torch.core.reliability_bounds); reliable = every bound within its limit (enforce "
                    "false: reported only, reliable keeps the thresholds); scales: split-conformal quantiles of "
                    "actual / sigma per dataset family (YUD + crops, ZInD-fR, NYU-VP; train splits), the largest "
-                   "kept (python -m fr_eval.protocols.lodo_reliability promise --write; docs/reliability.md)"}
+                   "kept (python -m fr_eval.protocols.lodo_reliability promise --write; docs/reliability.md); "
+                   "validated_detectors: line detectors besides the models' own (LSD) whose segments the promise "
+                   "was measured to hold for (python -m fr_eval.protocols.detector_reliability table; "
+                   "results/decisions/45.md)"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -316,10 +316,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.action == "figure":
         print(risk_coverage_figure(cache, Path(args.figure), args.coverage))
         return 0
-    block = shipped_promise(cache, limits, args.coverage)
+    path = REPO / "configs" / "reliability.json"
+    config = json.loads(path.read_text())
+    block = shipped_promise(cache, limits, args.coverage, config.get("promise", {}).get("validated_detectors", ()))
     if args.write:
-        path = REPO / "configs" / "reliability.json"
-        config = json.loads(path.read_text())
         config["promise"] = block
         path.write_text(json.dumps(config, indent=1) + "\n")
     print(json.dumps(block, indent=1))

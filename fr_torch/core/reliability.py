@@ -57,8 +57,10 @@ threshold (``thresholds``: roll 2 deg, tilt 3 deg, focal 15 %).
 
 Scope: a model predicts only for the setting it was trained on, ``meta["trained_for"]`` (deviation
 measure, line detector, likelihood config; :data:`DEFAULT_TRAINED_FOR` for a file that does not say,
-the shipped models' setting).  An estimator with another measure, likelihood or detector gets no
-predicted errors (``predicted_error`` None) and ``reliable = False`` with the reason
+the shipped models' setting), and for the detectors its promise was validated on
+(``validated_detectors`` in the ``promise`` block, :attr:`ReliabilityModel.detectors`).  An
+estimator with another measure, likelihood or detector gets no predicted errors
+(``predicted_error`` None) and ``reliable = False`` with the reason
 (:meth:`ReliabilityModel.scope_gap`): a model's predictions say nothing about errors of another
 setting.
 """
@@ -304,6 +306,14 @@ class ReliabilityModel:
         ``configs/likelihood.json``); :data:`DEFAULT_TRAINED_FOR` where the file does not say."""
         return {**DEFAULT_TRAINED_FOR, **self.meta.get("trained_for", {})}
 
+    @property
+    def detectors(self) -> tuple[str, ...]:
+        """Names of the line detectors whose segments the model applies to: the one it was trained
+        on (``trained_for["detector"]``) and those its promise was validated on
+        (:attr:`~fr_torch.core.reliability_bounds.ReliabilityPromise.validated_detectors`)."""
+        validated = self.promise.validated_detectors if self.promise is not None else ()
+        return tuple(dict.fromkeys([self.trained_for["detector"], *validated]))
+
     def scope_gap(self, likelihood_params, likelihood_name: str, detector: str | None = None,
                   mode: str | None = None) -> str | None:
         """Why this model's predictions do not apply to an estimator's results, or None when they do.
@@ -314,19 +324,24 @@ class ReliabilityModel:
         :class:`~fr_torch.core.likelihood.LikelihoodParams` (before its FOV range is applied), compared
         with those of the trained measure and likelihood config in ``mode``; ``likelihood_name``: what
         the message calls them.  ``detector``: the name of the detector that produced the segments,
-        None when they came from the caller (not checked)."""
+        None when they came from the caller (not checked); it must be one of :attr:`detectors`, and
+        the message then names them."""
         trained = self.trained_for
         gaps = []
         if likelihood_params.measure != trained["measure"]:
             gaps.append(f"measure {likelihood_params.measure}")
         elif likelihood_params != _trained_params(trained["measure"], trained["likelihood"], mode):
             gaps.append(f"likelihood {likelihood_name}")
-        if detector is not None and detector != trained["detector"]:
+        valid = self.detectors
+        if detector is not None and detector not in valid:
             gaps.append(f"detector {detector}")
         if not gaps:
             return None
-        return (f"reliability model not trained for {' and '.join(gaps)} (trained for measure {trained['measure']}, "
-                f"detector {trained['detector']}, likelihood {trained['likelihood']}): no predicted error")
+        message = (f"reliability model not trained for {' and '.join(gaps)} (trained for measure {trained['measure']}, "
+                   f"detector {trained['detector']}, likelihood {trained['likelihood']}): no predicted error")
+        if detector is not None and detector not in valid:
+            message += f"; for a trusted `reliable`, detect with {' or '.join(valid)} (--detector)"
+        return message
 
     @property
     def needs_spreads(self) -> bool:

@@ -120,12 +120,16 @@ class ReliabilityPromise:
     ``scales``: mode (``fr`` / ``fast``) -> target -> conformal scale s (bound = s * sigma).
     ``coverage``: the share of images each bound is meant to hold for (0.9).
     ``enforce``: True (default) -> ``reliable`` means the promise; False -> the bounds are reported
-    (``error_bound``) but ``reliable`` keeps the older thresholds on the predicted errors."""
+    (``error_bound``) but ``reliable`` keeps the older thresholds on the predicted errors.
+    ``validated_detectors``: names of line detectors (:mod:`fr_torch.detectors.registry`) whose
+    segments the promise was measured to hold for besides the reliability model's own
+    (:attr:`fr_torch.core.reliability.ReliabilityModel.detectors`; results/decisions/45.md)."""
 
     limits: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_LIMITS))
     scales: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     coverage: float = DEFAULT_COVERAGE
     enforce: bool = True
+    validated_detectors: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not 0.0 < self.coverage < 1.0:
@@ -138,13 +142,18 @@ class ReliabilityPromise:
                 if name not in SIGMAS or not (float(value) > 0):
                     raise ValueError(f"promise scale {mode}.{name}={value!r}: need a target of {list(SIGMAS)} "
                                      "and a number > 0")
+        if not isinstance(self.validated_detectors, (list, tuple)) or not all(
+                isinstance(name, str) and name for name in self.validated_detectors):
+            raise ValueError(f"promise validated_detectors={self.validated_detectors!r}: need a list of detector names")
+        object.__setattr__(self, "validated_detectors", tuple(self.validated_detectors))
 
     @classmethod
     def from_config(cls, path: str | Path | None = None) -> "ReliabilityPromise | None":
         """The ``promise`` block of ``configs/reliability.json`` (None when absent)::
 
             "promise": {"coverage": 0.9, "limits": {"focal_pct": 10, "tilt_deg": 3}, "enforce": true,
-                        "scales": {"fr": {"focal_pct": s, "tilt_deg": s}, "fast": {...}}}
+                        "scales": {"fr": {"focal_pct": s, "tilt_deg": s}, "fast": {...}},
+                        "validated_detectors": ["torch-lines"]}
         """
         path = Path(path) if path is not None else config_dir() / "reliability.json"
         if not path.is_file():
@@ -154,7 +163,8 @@ class ReliabilityPromise:
             return None
         return cls(limits={k: float(v) for k, v in block.get("limits", DEFAULT_LIMITS).items()},
                    scales={m: {k: float(v) for k, v in s.items()} for m, s in block.get("scales", {}).items()},
-                   coverage=float(block.get("coverage", DEFAULT_COVERAGE)), enforce=bool(block.get("enforce", True)))
+                   coverage=float(block.get("coverage", DEFAULT_COVERAGE)), enforce=bool(block.get("enforce", True)),
+                   validated_detectors=block.get("validated_detectors", ()))
 
     def bounds(self, cues: Mapping[str, float], mode: str, focal_known: bool = False) -> dict[str, float] | None:
         """target -> bound (``scale * sigma``, :data:`SIGMAS`) of one estimate from its ``cues`` dict, for the
