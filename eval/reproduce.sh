@@ -74,8 +74,16 @@ for step in "${steps[@]}"; do
            # promise's conformal scales go to configs/reliability.json (before the tables that use it)
       .venv/bin/python -m fr_eval.protocols.lodo run
       .venv/bin/python -m fr_eval.protocols.lodo table
-      .venv/bin/python -m fr_eval.protocols.lodo_reliability table
-      .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write ;;
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write
+      for rule in worst pooled; do
+        .venv/bin/python -m fr_eval.protocols.lodo_reliability table --scale-rule $rule
+        .venv/bin/python -m fr_eval.protocols.lodo_reliability table --scale-rule $rule --focal-limit 15 --tilt-limit 5
+      done
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability table --bounds knn   # issue 35's bounds, for comparison
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability figure             # results/reliability/risk_coverage.png
+      # issue 45: the promise on torch-lines' segments vs LSD's, same photos (the promise's validated_detectors)
+      .venv/bin/python -m fr_eval.protocols.detector_reliability run
+      .venv/bin/python -m fr_eval.protocols.detector_reliability table ;;       # results/reliability/torch_lines.*
     vp)  # Issue 47: vanishing points with CONSAC's metric (results/vp/); CONSAC needs its authors' weights
          # ($FR_CONSAC_WEIGHTS or ../shared/models/consac) and takes ~3 s per photo on one thread
       export OMP_NUM_THREADS=1 FR_THREADS=1

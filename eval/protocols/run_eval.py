@@ -215,17 +215,18 @@ def method_fov_range(spec: str, fov_range: FovRange | None) -> FovRange | None:
     return fov_range
 
 
-def make_calibrator(spec: str, device: str, fov_range: FovRange | None = None):
+def make_calibrator(spec: str, device: str, fov_range: FovRange | None = None, **kwargs):
     """Build a method; offers ``device`` (and, to the focal-searching methods, the table's FOV
     search range as ``range``, :func:`method_fov_range`) to a factory that takes them
-    (``docs/plugins-options.md``)."""
+    (``docs/plugins-options.md``); ``kwargs`` go to the factory as they are (e.g. fR's
+    ``reliability``)."""
     offered: dict[str, Any] = {"device": device}
     method_range = method_fov_range(spec, fov_range)
     if method_range is not None:
         offered["range"] = method_range
     if device not in ("cpu", None) and not CALIBRATORS.takes(spec, "device"):
         print(f"warning: method {spec!r} takes no device argument; it runs on its own default", file=sys.stderr)
-    return get_calibrator(spec, offered=offered)
+    return get_calibrator(spec, offered=offered, **kwargs)
 
 
 def build_meta(sample: Any, pp_mode: str, labelled: bool, known_focal: bool, dataset: str, device: str) -> ImageMeta:

@@ -42,8 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write <image>_fr.png overlays (segments by family, horizon) to DIR")
     output.add_argument("--segments", action="store_true", help="include segments and labels in the JSON")
     output.add_argument("--no-reliability", action="store_true",
-                        help="no predicted errors and reliable = the sanity checks only (fR then skips the "
-                             "focal_profile_gap cue, a quarter of its time per photo)")
+                        help="no predicted errors or error bounds, reliable = the sanity checks only (fR then "
+                             "skips the focal_profile_gap cue, a quarter of its time per photo, and both modes the "
+                             "bounds' spread cues)")
     output.add_argument("--no-progress", action="store_true",
                         help="no progress bar (shown on a terminal's stderr when stdout goes to a file or pipe)")
     add_focal_arguments(parser)

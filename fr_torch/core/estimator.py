@@ -199,13 +199,18 @@ class SegmentEstimator:
     (random texture, nature scenes: real built scenes measure 0.75-0.95 with LSD).
     ``reliability``: the error predictor stage (:mod:`fr_torch.core.reliability`): ``"default"`` (the
     shipped model of this mode, when installed), a model object, a path to a model ``.npz``, or None
-    (off).  When on, every estimate gets ``predicted_error`` and ``reliable = False`` above the
-    thresholds of ``configs/reliability.json``.
+    (off).  When on, every estimate gets ``predicted_error``, ``error_bound`` and ``reliable = False``
+    when a bound exceeds its limit (the promise of ``configs/reliability.json``,
+    :mod:`fr_torch.core.reliability_bounds`; with ``"enforce": false``: a predicted error above its
+    threshold).
     ``profile_gap``: compute the ``focal_profile_gap`` cue (:meth:`_focal_cues`; a quarter of fR's
     time per photo, half of its batch throughput): None (default) when the reliability model uses
     it (fR's shipped model does; with ``reliability=None`` it is skipped), True always (records
     for training a model), False never (a model that uses it is then an error).
-    ``atlanta``: extra horizontal vanishing points at free azimuths after the fit
+    ``spreads``: compute the cues the bounds of ``reliable`` rest on
+    (:data:`fr_torch.core.cues.SPREAD_CUE_NAMES`): None (default) when the reliability stage holds
+    such bounds (the shipped one does), True always (records), False never.
+    ``atlanta``: extra vanishing points beyond the Manhattan three after the fit
     (:class:`fr_torch.core.vanishing.AtlantaConfig` or anything its ``parse`` takes; None = off);
     they join ``ranked_vanishing_points`` and change neither f nor R.
     """
@@ -215,7 +220,8 @@ class SegmentEstimator:
                  likelihood: str | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
                  min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6,
-                 reliability="default", profile_gap: bool | None = None, atlanta=None):
+                 reliability="default", profile_gap: bool | None = None, spreads: bool | None = None,
+                 atlanta=None):
         self.mode = Mode.parse(mode)
         self.atlanta = AtlantaConfig.parse(atlanta)
         self.search = (search_config or SearchConfig.from_config()).resolve(self.mode)
@@ -243,6 +249,8 @@ class SegmentEstimator:
             raise FRInputError("the reliability model uses the focal_profile_gap cue: profile_gap=False "
                                "needs reliability=None or a model without it")
         self.profile_gap = "focal_profile_gap" in model_cues if profile_gap is None else bool(profile_gap)
+        # the spread cues that the bounds of `reliable` rest on (fr_torch.core.reliability_bounds)
+        self.spreads = getattr(reliability, "needs_spreads", False) if spreads is None else bool(spreads)
 
     # ------------------------------------------------------------------ public API
 
@@ -324,7 +332,7 @@ class SegmentEstimator:
             if item.dropped and item.result.ok:
                 item.result.reliable = False
                 item.result.reason = "; ".join(r for r in (item.result.reason, absurd_segments_note(item.dropped)) if r)
-        if self.reliability is not None:  # predicted errors, reliable above thresholds
+        if self.reliability is not None:  # predicted errors, bounds, reliable = the promise
             scope_gap = self.reliability_scope_gap(detected)
             if scope_gap is None:
                 self.reliability.annotate_many(results, mode=self.mode,
@@ -399,7 +407,7 @@ class SegmentEstimator:
         ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta)
         cues = image_cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
-                                self.profile_gap))
+                               self.profile_gap, self.spreads))
         t3 = time.perf_counter()
 
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}

@@ -22,7 +22,10 @@ Every pool keeps a bounded number of tasks in flight (memory does not grow with 
 returns results in input order; a bad file is that file's failure (an ``FRInputError`` message,
 or the exception's one line).  A worker that dies (a native crash in a decoder or detector) fails
 only the image it was on: the chunk it lost is retried one image at a time, each alone in a fresh
-pool, and only an image that kills its worker when alone fails (:func:`ordered_pool_map`).
+pool, and only an image that kills its worker when alone fails (:func:`ordered_pool_map`).  Work
+still in flight when the caller stops reading (CTRL-C, SIGTERM, an early ``close()``) is not
+waited for: its workers are killed.  Workers end with this process however it ends, SIGKILL
+included (:mod:`fr_torch.runtime.workers`).
 
 Workers are forked from a fork server that has loaded the library (:mod:`fr_torch.runtime.workers`;
 ``spawn`` where there is no fork server); each runs with one torch thread and one OpenCV thread.
@@ -53,7 +56,7 @@ from fr_torch.errors import FRInputError
 from fr_torch.images.io import WORKING_LONG_SIDE, read_any, working_image
 from fr_torch.runtime.detection import Detection
 from fr_torch.runtime.device_pipeline import calibrate_on_device, device_path_gap
-from fr_torch.runtime.workers import context as workers_context
+from fr_torch.runtime.workers import WorkerPool
 
 
 def detect_image(image, name: str, detector, segment_filter: SegmentFilter,
@@ -142,7 +145,7 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
         return bool(todo)
 
     def start_pool():
-        return ProcessPoolExecutor(workers, mp_context=workers_context(), initializer=initializer, initargs=initargs)
+        return WorkerPool(workers, initializer, initargs)
 
     def restart(pool):
         nonlocal broken_in_a_row
@@ -150,7 +153,7 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
         if broken_in_a_row > MAX_BROKEN_POOLS:
             raise RuntimeError(f"worker processes died {broken_in_a_row} times in a row without "
                                "finishing a task; run in-process (workers=0) to see why")
-        _shutdown(pool, broken=True)
+        _shutdown(pool, kill=True)
         return start_pool()
 
     pool = start_pool()
@@ -187,22 +190,23 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
             if not broken:
                 broken_in_a_row = 0
             yield from results
-    finally:
-        _shutdown(pool, broken=bool(getattr(pool, "_broken", False)))
+    finally:  # work still in flight is never read (CTRL-C, SIGTERM, a caller that stopped early): kill it
+        _shutdown(pool, kill=bool(pending) or bool(getattr(pool, "_broken", False)))
 
 
-def _shutdown(pool: ProcessPoolExecutor, broken: bool) -> None:
-    """Stop ``pool`` without waiting for its queued work; a broken pool (a worker died) is joined:
-    with ``shutdown(wait=False)`` its manager thread can hang the interpreter's exit on Python <
-    3.14 (CPython gh-132969).  Its workers are killed first (:func:`_kill_workers`), so the join
-    never waits for one of them."""
-    if broken:
+def _shutdown(pool: ProcessPoolExecutor, kill: bool) -> None:
+    """Stop ``pool`` without waiting for its queued work.  With ``kill`` (a broken pool, or tasks
+    still running whose results nobody will read) its workers are killed (:func:`_kill_workers`)
+    and the pool is joined: a broken pool's manager thread can otherwise hang the interpreter's exit
+    on Python < 3.14 (CPython gh-132969), and a running task would delay it by its whole length.
+    Without, idle workers exit on their own as the pool tells them to."""
+    if kill:
         _kill_workers(pool)
-    pool.shutdown(wait=broken, cancel_futures=True)
+    pool.shutdown(wait=kill, cancel_futures=True)
 
 
 def _kill_workers(pool: ProcessPoolExecutor) -> None:
-    """Kill every worker process of a broken ``pool``.
+    """Kill every worker process of ``pool`` (broken, or running work nobody will read).
 
     The pool's manager thread terminates the workers of a broken pool itself, but on Python < 3.14
     a worker that ``submit`` was still starting at that moment escapes: it is neither terminated
@@ -447,6 +451,6 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
                                  (portable,), _calibration_crash))
 
 
-def worker_pool(workers: int) -> ProcessPoolExecutor:
-    """A process pool of ``workers`` single-threaded workers (forkserver / spawn)."""
-    return ProcessPoolExecutor(workers, mp_context=workers_context(), initializer=_init_worker, initargs=(None, None))
+def worker_pool(workers: int) -> WorkerPool:
+    """A process pool of ``workers`` single-threaded workers (:class:`~fr_torch.runtime.workers.WorkerPool`)."""
+    return WorkerPool(workers, _init_worker, (None, None))
