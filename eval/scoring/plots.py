@@ -171,13 +171,16 @@ def vp_recall_figure(errors: dict[str, dict[str, np.ndarray]], path: Path, title
     """Recall curves of pooled VP errors (degrees) up to ``max_deg``: ``errors[setting][method]``, one
     panel per setting (``unknown``: f unknown, ``known``: K known), AUC@10 in each label."""
     settings = list(errors)
+    methods = list(dict.fromkeys(m for by_method in errors.values() for m in by_method))
+    colours = plt.get_cmap("tab20")
     fig, axes = plt.subplots(1, len(settings), figsize=(6.2 * len(settings), 4.4), squeeze=False)
     for ax, setting in zip(axes[0], settings):
         for method, values in errors[setting].items():
             if not len(values):
                 continue
             x, y = recall_curve(values, max_deg)
-            ax.plot(x, y, lw=1.6, label=f"{method} (AUC@10 {auc_table(values, (10.0,))['auc10']:.1f})")
+            ax.plot(x, y, lw=1.6, color=colours(methods.index(method) % 20),
+                    label=f"{method} (AUC@10 {auc_table(values, (10.0,))['auc10']:.1f})")
         ax.axvline(10.0, color="0.6", lw=0.8, ls=":")
         ax.set_xlim(0, max_deg)
         ax.set_ylim(0, 1)
