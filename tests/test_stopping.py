@@ -69,6 +69,13 @@ def session_processes(session: int) -> list[int]:
     return found
 
 
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT's default action.  A test run started in the background
+    (``pytest &``, ``nohup``) ignores SIGINT, its children inherit that, and ``fr`` rightly leaves an
+    ignored SIGINT alone (:func:`fr_torch.runtime.workers.interrupt_on_signals`)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _parts(out: Path) -> list[Path]:
     return list(out.glob("part-*.parquet")) if out.is_dir() else []
 
@@ -82,7 +89,7 @@ def test_stopped_batch_leaves_no_process_and_a_rerun_completes_it(folder, tmp_pa
                "--batch-size", str(BATCH), "--workers", "2", "--no-progress"]
     with open(stderr_path, "w") as stderr:
         process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=stderr,
-                                   start_new_session=True)
+                                   start_new_session=True, preexec_fn=_default_sigint)
     left: list[int] = []
     try:
         deadline = time.monotonic() + 120
