@@ -20,6 +20,7 @@ from dataclasses import dataclass, fields, replace
 from enum import StrEnum
 from pathlib import Path
 
+from fr_torch.core.distortion import DistortionSetting
 from fr_torch.core.fov import FovRange, two_numbers
 from fr_torch.errors import FRInputError
 from fr_torch.resources import config_path
@@ -87,6 +88,17 @@ class SearchConfig:
     ``compile_search``: score the no-gradient hypotheses with one kernel fused by ``torch.compile``
     and compile the refinement step too (``--compile``); the same estimates to float rounding, a
     compilation per process (10-25 s on a 2-core CPU), then faster.  Off by default.
+    ``distortion``: the lens model (:class:`~fr_torch.core.distortion.DistortionSetting`; a mode
+    name or a dict is parsed on construction): pinhole (the default) or the division model's k
+    estimated jointly with f and R (:mod:`fr_torch.core.search_distortion`).
+    ``distortion_grid_points``: the k values stage 1 scores (cell centres of the k range; 1 for a
+    known k), and with ``distortion_plumb_line`` also the k that straightens pieces of lines
+    (:func:`fr_torch.core.search_distortion.plumb_line`); ``distortion_grid_segments``: stage 1 at each k scores only each image's longest this
+    many segments (0 = all); ``distortion_grid_size``: the k of the k^4 angle-and-focal grid at each
+    of them (0 = ``grid_points_per_dim``); ``distortion_refine_starts``: the starts the refinement
+    takes, best first (0 = all); ``distortion_lattice``: the lattice passes step k with the other
+    parameters (``joint``, the 3^5 lattice) or on its own axis (``axis``: the 3^4 lattice at the
+    start's k, and k one step either side).
 
     Invalid values raise :class:`~fr_torch.errors.FRInputError` (one line).
     """
@@ -107,9 +119,23 @@ class SearchConfig:
     refine_patience: int = 10
     max_chunk_elements: int = 1 << 27
     compile_search: bool = False
+    distortion: DistortionSetting = DistortionSetting()
+    distortion_grid_points: int = 2
+    distortion_grid_segments: int = 0
+    distortion_grid_size: int = 6
+    distortion_refine_starts: int = 0
+    distortion_lattice: str = "axis"
+    distortion_plumb_line: bool = True
 
     def __post_init__(self):
         object.__setattr__(self, "fov_range", FovRange.parse(self.fov_range))
+        object.__setattr__(self, "distortion", DistortionSetting.parse(self.distortion))
+        if self.distortion_grid_points + self.distortion_plumb_line < 1 or min(self.distortion_grid_segments, self.distortion_grid_size,
+                                                  self.distortion_refine_starts) < 0:
+            raise FRInputError("distortion_grid_points must be >= 1, distortion_grid_segments, distortion_grid_size "
+                               "and distortion_refine_starts >= 0")
+        if self.distortion_lattice not in ("joint", "axis"):
+            raise FRInputError(f"distortion_lattice must be joint or axis, got {self.distortion_lattice!r}")
         for key in ("pan_range_deg", "pitch_range_deg", "roll_range_deg"):
             low, high = getattr(self, key)
             if not (math.isfinite(low) and math.isfinite(high) and low <= high):
@@ -177,6 +203,14 @@ class SearchConfig:
         if not (math.isfinite(low) and math.isfinite(high) and low < high):
             raise FRInputError(f"{name} range must be finite MIN,MAX with MIN < MAX, got {value!r}")
         return replace(self, **{f"{name}_range_deg": (low, high)})
+
+    def with_distortion(self, mode=None, known_k: float | None = None) -> "SearchConfig":
+        """A copy with the lens model ``mode`` (``pinhole``, ``division``, ``auto``; None keeps the
+        current one) and, when given, a known k (normalised: :mod:`fr_torch.core.distortion`)."""
+        current = self.distortion
+        setting = replace(current, mode=current.mode if mode is None else mode,
+                          known_k=current.known_k if known_k is None else known_k)
+        return replace(self, distortion=setting)
 
     def with_fov_range(self, value) -> "SearchConfig":
         """A copy searching the FOV range ``value`` (anything :meth:`FovRange.parse` accepts)."""
