@@ -57,6 +57,7 @@ from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrato
 from fr_torch.registry import not_supplied
 
 from . import vp_geometry as vg
+from .provenance import sha256
 
 ALLOW_RANDOM_ENV = "FR_CTRLC_ALLOW_RANDOM"  # =1: run a --random-weights export (tests only)
 INPUT_SIZE = 512
@@ -158,8 +159,6 @@ class CTRLC(TimedCalibrator):
         checkpoint recorded by ``fr export-ctrlc`` in the file's metadata (None without weights)."""
         if not self.available:
             return None
-        from .export_ctrlc_onnx import sha256
-
         meta = self.metadata()
         text = f"{self.onnx_path.name} (sha256 {sha256(self.onnx_path)})"
         if meta.get("random_weights") == "true":

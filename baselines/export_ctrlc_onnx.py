@@ -33,7 +33,6 @@ checkpoint's file name and sha256, the config and the CTRL-C source (see :func:`
 from __future__ import annotations
 
 import argparse
-import hashlib
 import importlib
 import json
 import os
@@ -44,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .provenance import sha256
+
 INPUT_NAMES = ["image", "lines", "line_mask"]
 OUTPUT_NAMES = ["pred_zvp", "pred_fovy", "pred_hl"]
 SOURCE_ENV = "FR_CTRLC_SOURCE"
@@ -52,15 +53,6 @@ EXTRA_HINT = "install the ctrlc extra: pip install 'fr-torch[ctrlc]' (torchvisio
 
 class ExportError(ValueError):
     """A user-facing export problem (one line, no traceback)."""
-
-
-def sha256(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def import_torchvision():
@@ -166,7 +158,7 @@ def make_wrapper(model, nested_tensor_cls):
 
 def real_inputs(image: np.ndarray, size: int, num_lines: int, min_line_length: float):
     """The adapter's own preprocessing of one image (see :mod:`fr_baselines.ctrlc`)."""
-    from .ctrlc import ctrlc_segments, preprocess_image, preprocess_lines
+    from .ctrlc import ctrlc_segments, preprocess_image, preprocess_lines  # torch, cv2: only when exporting
 
     height, width = image.shape[:2]
     lines, mask = preprocess_lines(ctrlc_segments(image), width, height, num_lines, min_line_length)

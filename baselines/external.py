@@ -40,6 +40,7 @@ from fr_torch.plugins.interface import CameraEstimate, ImageMeta, Timer
 from fr_torch.registry import NOT_SUPPLIED
 
 from . import vp_geometry as vg
+from .provenance import sha256
 
 VALUE_COLUMNS = ("focal_px", "hfov_deg", "roll_deg", "tilt_deg", "pitch_deg", "pan_deg")
 ROTATION_COLUMNS = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
@@ -102,8 +103,6 @@ class ExternalPredictions:
         """What produced this row, for table captions: the CSV's file name + sha256 (None without)."""
         if self.csv_path is None or not self.csv_path.is_file():
             return None
-        from .export_ctrlc_onnx import sha256
-
         return f"predictions {self.csv_path.name} (sha256 {sha256(self.csv_path)})"
 
     def lookup(self, name: str) -> dict[str, float | None] | None:

@@ -25,11 +25,11 @@ for step in "${steps[@]}"; do
       done ;;
     dataset)  # ZInD-fR: 15 views per panorama, split by room; narrow cameras: YUD crops around the
               # calibrated principal point (33.0 and 39.2 deg HFOV); data_local/, not committed
-      .venv/bin/python -m fr_eval.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
+      .venv/bin/python -m fr_eval.datasets.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
         --yaw-csv "${FR_DATA:-../shared/data}/zind_sample_tour/manhattan_yaw_derived.csv" \
         --out "${FR_CACHE:-data_local}/zind-fr" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 --test-fraction 0.5
       for s in $CROP_SIZES; do
-        .venv/bin/python -m fr_eval.crop_views --dataset yud --size $s --out "${FR_CACHE:-data_local}/yud-crop-$s"
+        .venv/bin/python -m fr_eval.datasets.crop_views --dataset yud --size $s --out "${FR_CACHE:-data_local}/yud-crop-$s"
       done ;;
     yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e.
           # Every table: the library's default FOV range ([30, 120]) with the
@@ -39,7 +39,7 @@ for step in "${steps[@]}"; do
       $FR eval --dataset yud --split test --methods fr,fast-fr,oracle-fr --pp calibrated --out results/yud/calibrated_pp --no-plots
       $FR eval --dataset yud --split test --methods fr --measures a,b,c,d,e --out results/yud/measures --no-plots
       # focal fusion over YUD test (one camera): paper cues vs the shipped reliability model
-      .venv/bin/python -m fr_eval.focal_fusion results/yud/predictions.csv --out results/reliability/focal_fusion.md ;;
+      .venv/bin/python -m fr_eval.protocols.focal_fusion results/yud/predictions.csv --out results/reliability/focal_fusion.md ;;
     zind)  # Issue "panorama datasets": ZInD-fR test, per-FOV table, distribution figure
       $FR eval --dataset zind-fr --split test --out results/zind-fr \
         --methods "fr,fr[range=paper],fast-fr,fast-fr[range=paper]" ;;
@@ -72,14 +72,14 @@ for step in "${steps[@]}"; do
     lodo)  # Issue 35: leave-one-dataset-out protocol over YUD, ZInD-fR, NYU-VP and the YUD crops
            # (results/cross_dataset/; per-image predictions cached in $FR_CACHE/lodo); the reliable
            # promise's conformal scales go to configs/reliability.json (before the tables that use it)
-      .venv/bin/python -m fr_eval.lodo run
-      .venv/bin/python -m fr_eval.lodo table
-      .venv/bin/python -m fr_eval.lodo_reliability table
-      .venv/bin/python -m fr_eval.lodo_reliability promise --write ;;
+      .venv/bin/python -m fr_eval.protocols.lodo run
+      .venv/bin/python -m fr_eval.protocols.lodo table
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability table
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)
-      .venv/bin/python -m fr_eval.folder_bench --copies 1,3 --workers 0,1,2,default --rounds 2 \
+      .venv/bin/python -m fr_eval.bench.folder --copies 1,3 --workers 0,1,2,default --rounds 2 \
         --out results/bench/pipeline.md ;;
     *) echo "unknown step $step" >&2; exit 2 ;;
   esac

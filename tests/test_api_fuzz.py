@@ -287,7 +287,7 @@ def plugin_modules(tmp_path, monkeypatch):
 
 
 def test_options_reach_only_factories_that_take_them(plugin_modules):
-    from fr_eval.run_eval import make_calibrator
+    from fr_eval.protocols.run_eval import make_calibrator
 
     assert make_calibrator("i39_plugins:FixedFov", "cpu").name == "fixed-fov"  # no constructor arguments
     make_calibrator("i39_plugins:WithDevice[hfov=70]", "cpu")

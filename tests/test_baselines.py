@@ -413,7 +413,7 @@ def test_learned_rows_name_their_weights_in_captions(tmp_path, tiny_ctrlc, monke
     """Table captions name each learned row's weights / predictions: file name + sha256."""
     import hashlib
 
-    from fr_eval.run_eval import weights_note
+    from fr_eval.protocols.run_eval import weights_note
 
     _, onnx_path = tiny_ctrlc
     csv = tmp_path / "hg.csv"

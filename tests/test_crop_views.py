@@ -1,9 +1,9 @@
-"""fr_eval.crop_views: crops centred on the principal point keep focal and rotation; the panoviews
+"""fr_eval.datasets.crop_views: crops centred on the principal point keep focal and rotation; the panoviews
 loader reads them back."""
 import cv2
 import numpy as np
 import pytest
-from fr_eval.crop_views import crop_dataset, crop_origin, main
+from fr_eval.datasets.crop_views import crop_dataset, crop_origin, main
 from fr_eval.datasets.panoviews import PanoViews
 from fr_eval.datasets.registry import CalibrationSample
 

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
-from fr_eval import fit_likelihood, run_eval
+from fr_eval.protocols import fit_likelihood, run_eval
 from fr_eval.datasets.registry import CalibrationSample
 
 from fr_torch.core.camera import Camera, rotation_from_angles
@@ -348,7 +348,7 @@ def test_oracle_needs_labelled_segments(fake_images, tmp_path):
 
 
 def test_distributions_figure_handles_missing_estimates(tmp_path):
-    from fr_eval.plots import distributions_figure
+    from fr_eval.scoring.plots import distributions_figure
 
     frame = pd.DataFrame({"method": ["a", "a", "b", "b"], "image": ["x", "y", "x", "y"], "failed": [0, 0, 1, 1],
                           "gt_roll_deg": [1.0, 2.0, 1.0, 2.0], "est_roll_deg": [1.5, 2.5, np.nan, np.nan],

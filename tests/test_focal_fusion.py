@@ -1,11 +1,11 @@
-"""fr_eval.focal_fusion (one camera's focal estimates fused with and without predicted-error weights) and
+"""fr_eval.protocols.focal_fusion (one camera's focal estimates fused with and without predicted-error weights) and
 the cue-set comparison of fr train-reliability."""
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
 import pytest
-from fr_eval import focal_fusion
+from fr_eval.protocols import focal_fusion
 
 from fr_torch.core.reliability import CUE_NAMES, ERROR_COLUMNS
 
@@ -54,7 +54,7 @@ def test_fuse_reads_records_and_checks_one_camera(tmp_path):
 
 
 def test_compare_cue_sets_writes_table_and_figure(tmp_path):
-    from fr_eval.reliability_train import CUE_SETS, compare_cue_sets
+    from fr_eval.protocols.reliability_train import CUE_SETS, compare_cue_sets
 
     train = pd.concat([_records(60, seed=1).assign(source="yud", name=[f"y{i}" for i in range(60)]),
                        _records(80, seed=2).assign(source="zind-fr", name=[f"z{i}" for i in range(80)])],
@@ -72,7 +72,7 @@ def test_compare_cue_sets_writes_table_and_figure(tmp_path):
 def test_fast_records_without_the_profile_gap(tmp_path):
     """Fast-fR does not compute focal_profile_gap: its records leave the column empty; cue sets with
     it are left out of the comparison, and asking for it is a one-line error, not an empty fit."""
-    from fr_eval.reliability_train import CUE_SETS, compare_cue_sets, usable
+    from fr_eval.protocols.reliability_train import CUE_SETS, compare_cue_sets, usable
 
     from fr_torch.core.reliability import MODEL_CUE_NAMES, model_cue_names
 

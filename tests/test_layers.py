@@ -1,5 +1,7 @@
 """One-way layers: the core (``fr_torch/``) names neither the evaluation harness nor the baselines,
-not even in a string; they plug in through entry points (``fr_torch/registry.py``)."""
+not even in a string; they plug in through entry points (``fr_torch/registry.py``).  Within
+fr_torch and within the harness (fr_eval) a module imports only its own layer and those below, and
+no modules of the whole tree import each other, directly or through others."""
 import re
 import subprocess
 import sys
@@ -8,7 +10,7 @@ import tomllib
 from tests.conftest import REPO, checkout_env
 
 # an import of, or a dotted module path into, the harness / baselines under their installed names
-# (fr_eval, fr_baselines) or their folder names (eval, baselines): "fr_eval.run_eval", "baselines"
+# (fr_eval, fr_baselines) or their folder names (eval, baselines): "fr_eval.protocols.run_eval", "baselines"
 PACKAGE = r"(?:fr_)?(?:eval|baselines)"
 FORBIDDEN = re.compile(rf"""(\bimport\s+{PACKAGE}\b|\bfrom\s+{PACKAGE}\b|["']{PACKAGE}(\.\w+)*[\"':])""")
 
@@ -54,6 +56,16 @@ def test_no_generic_top_level_packages():
     assert setuptools["package-dir"]["fr_eval"] == "eval" and setuptools["package-dir"]["fr_baselines"] == "baselines"
 
 
+def test_every_package_folder_is_installed():
+    """Every folder with an ``__init__.py`` under fr_torch/, eval/ and baselines/ is in the wheel's
+    package list (a sub-package missing there imports in a checkout but not once installed)."""
+    setuptools = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    folders = {"fr_torch": REPO / "fr_torch", "fr_eval": REPO / "eval", "fr_baselines": REPO / "baselines"}
+    found = {".".join((name, *init.parent.relative_to(folder).parts))
+             for name, folder in folders.items() for init in folder.rglob("__init__.py")}
+    assert found <= set(setuptools["packages"]), sorted(found - set(setuptools["packages"]))
+
+
 def test_harness_commands_found_from_any_folder(tmp_path):
     """``fr`` (here ``python -m fr_torch.cli``) finds the harness commands from any working
     directory: the (editable) installation declares them as entry points of ``fr_eval``."""
@@ -75,26 +87,47 @@ LAYERS = (
     {"cli"},  # the fr command
 )
 
+#: Layers of the harness fr_eval (folder eval/), lowest first, by sub-package or top-level module.
+HARNESS_LAYERS = (
+    {"paths", "machine"},  # where the data lives, what machine a measurement ran on
+    {"datasets", "scoring"},  # labelled samples (and their builders); errors, tables, figures
+    {"protocols", "bench"},  # fr eval, leave one dataset out, training, studies; fr bench and speed
+    {"commands", "__main__"},  # the harness's fr commands
+)
+
 
 def _module_graph() -> dict[str, set[str]]:
     """``{module: modules it imports}`` for every module of fr_torch, eval (as fr_eval) and baselines
-    (as fr_baselines), from every import statement (function-level ones included)."""
+    (as fr_baselines), from every import statement (function-level and relative ones included).
+    ``from package import name`` counts as an import of ``package.name`` when that is a module."""
     import ast
 
     roots = {"fr_torch": REPO / "fr_torch", "fr_eval": REPO / "eval", "fr_baselines": REPO / "baselines"}
-    graph = {}
+    sources = {}
     for package, folder in roots.items():
         for path in folder.rglob("*.py"):
-            parts = path.relative_to(folder).with_suffix("").parts
-            module = ".".join((package, *parts))[: -len(".__init__")] if parts[-1] == "__init__" else \
-                ".".join((package, *parts))
-            deps = set()
-            for node in ast.walk(ast.parse(path.read_text())):
-                if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                    deps.add(node.module)
-                elif isinstance(node, ast.Import):
-                    deps |= {alias.name for alias in node.names}
-            graph[module] = {d for d in deps if d.split(".")[0] in roots and d != module}
+            parts = (package, *path.relative_to(folder).with_suffix("").parts)
+            is_package = parts[-1] == "__init__"
+            sources[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+
+    def known(name: str) -> str | None:  # the module itself, else the longest module prefix
+        while name and name not in sources:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph = {}
+    for module, (path, is_package) in sources.items():
+        here = module.split(".") if is_package else module.split(".")[:-1]  # the package of the module
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(here[: len(here) - node.level + 1] + ([base] if base else []))
+                deps |= {f"{base}.{alias.name}" for alias in node.names} | {base}
+            elif isinstance(node, ast.Import):
+                deps |= {alias.name for alias in node.names}
+        graph[module] = {known(d) for d in deps if d.split(".")[0] in roots and known(d)} - {module}
     return graph
 
 
@@ -142,14 +175,44 @@ def test_cycle_finder_finds_a_cycle():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
-def test_fr_torch_layers_import_downwards_only():
-    rank = {name: level for level, names in enumerate(LAYERS) for name in names}
+def _upward_imports(package: str, layers) -> list[str]:
+    """Imports from a module of ``package`` into a higher layer of ``package``; every module must
+    belong to a layer (by its first name below ``package``)."""
+    rank = {name: level for level, names in enumerate(layers) for name in names}
+    graph = _module_graph()
+    unplaced = sorted(m for m in graph if m.startswith(package + ".") and m.split(".")[1] not in rank)
+    assert not unplaced, f"place these modules in a layer of tests/test_layers.py: {unplaced}"
     offenders = []
-    for module, deps in _module_graph().items():
-        if not module.startswith("fr_torch.") or module == "fr_torch":
+    for module, deps in graph.items():
+        if not module.startswith(package + "."):
             continue
         here = rank[module.split(".")[1]]
         for dep in deps:
-            if dep.startswith("fr_torch.") and rank[dep.split(".")[1]] > here:
+            if dep.startswith(package + ".") and rank[dep.split(".")[1]] > here:
                 offenders.append(f"{module} imports {dep}")
+    return sorted(offenders)
+
+
+def test_fr_torch_layers_import_downwards_only():
+    offenders = _upward_imports("fr_torch", LAYERS)
+    assert not offenders, "\n".join(offenders)
+
+
+def test_harness_layers_import_downwards_only():
+    offenders = _upward_imports("fr_eval", HARNESS_LAYERS)
+    assert not offenders, "\n".join(offenders)
+
+
+def test_harness_protocols_and_bench_do_not_import_each_other():
+    """Layer 2 of the harness holds two independent applications: the evaluation protocols and the
+    speed benchmarks; what both need sits below them."""
+    offenders = [f"{module} imports {dep}" for module, deps in _module_graph().items() for dep in deps
+                 for a, b in (("protocols", "bench"), ("bench", "protocols"))
+                 if module.startswith(f"fr_eval.{a}.") and dep.startswith(f"fr_eval.{b}")]
     assert not offenders, "\n".join(sorted(offenders))
+
+
+def test_relative_imports_are_in_the_graph():
+    graph = _module_graph()
+    assert "fr_baselines.vp_geometry" in graph["fr_baselines.lee2009"]  # from . import vp_geometry as vg
+    assert "fr_eval.bench.detectors" in graph["fr_eval.bench.report"]  # from fr_eval.bench import detectors

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from fr_eval.datasets import nyu_vp
-from fr_eval.lodo import (
+from fr_eval.protocols.lodo import (
     FAMILIES,
     REPORTED,
     family_of,
@@ -12,7 +12,7 @@ from fr_eval.lodo import (
     setting_name,
     zenith_error_deg,
 )
-from fr_eval.run_eval import build_meta, given_segments
+from fr_eval.protocols.run_eval import build_meta, given_segments
 
 from fr_torch.core.camera import rotation_from_angles
 
@@ -97,7 +97,7 @@ def test_zenith_error_and_families():
 def test_lodo_reliability_scales_and_judgement():
     """Out-of-family conformal scales and the held-out judgement on self-made records."""
     import pandas as pd
-    from fr_eval.lodo_reliability import evaluate, family_scales
+    from fr_eval.protocols.lodo_reliability import evaluate, family_scales
 
     from fr_torch.core.reliability import ERROR_COLUMNS, MODEL_CUE_NAMES
     from fr_torch.core.reliability_bounds import ReliabilityPromise

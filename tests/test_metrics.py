@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 from fr_eval.datasets.registry import CalibrationSample
-from fr_eval.metrics import (
+from fr_eval.scoring.metrics import (
     NOT_SUPPLIED,
     frame_error_deg,
     image_errors,
@@ -16,7 +16,7 @@ from fr_eval.metrics import (
     summarize,
     summarize_groups,
 )
-from fr_eval.tables import (
+from fr_eval.scoring.tables import (
     deviation_measure_summaries,
     display_frame,
     format_mean_se,

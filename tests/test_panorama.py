@@ -1,4 +1,4 @@
-"""Panorama -> pinhole view generator (fr_eval.panorama, fr_eval.make_dataset, fr_eval.datasets.panoviews).
+"""Panorama -> pinhole view generator (fr_eval.datasets.panorama, fr_eval.datasets.make_dataset, fr_eval.datasets.panoviews).
 
 The central check renders views from a synthetic equirectangular panorama whose pixels *encode
 their own viewing direction* (channels = unit ray of the pixel centre in the pano frame).  A view
@@ -16,8 +16,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from fr_eval import make_dataset
-from fr_eval.panorama import (
+from fr_eval.datasets import make_dataset
+from fr_eval.datasets.panorama import (
     cube_face_rotations,
     cubemap_to_equirect,
     direction_from_lonlat,

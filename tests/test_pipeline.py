@@ -222,7 +222,7 @@ def test_shutting_down_a_broken_pool_never_waits_for_a_worker():
     time.sleep(0.5)  # ... and busy
     worker = next(iter(pool._processes.values()))
     stopped = threading.Event()
-    threading.Thread(target=lambda: (_shutdown(pool, broken=True), stopped.set()), daemon=True).start()
+    threading.Thread(target=lambda: (_shutdown(pool, kill=True), stopped.set()), daemon=True).start()
     finished = stopped.wait(60)
     if not finished:
         worker.kill()  # lets the pool's threads end, so that this failure does not hang the interpreter's exit

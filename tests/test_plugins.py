@@ -104,7 +104,7 @@ def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
         from fr_torch.detectors.registry import available_detectors, get_detector
         from fr_torch.synthetic import render_manhattan_room
         assert "horizon-lines" in available_methods() and "long-lsd" in available_detectors()
-        methods, _ = load_object("fr_eval.run_eval:resolve_methods")(["all"], has_segments=False)
+        methods, _ = load_object("fr_eval.protocols.run_eval:resolve_methods")(["all"], has_segments=False)
         assert "horizon-lines" in methods and "fr" in methods, methods
         method = get_calibrator("horizon-lines[hfov_deg=70]")
         image = render_manhattan_room(500.0, rotation_from_angles(20.0, 0.0, 6.0).numpy())

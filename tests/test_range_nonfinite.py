@@ -73,8 +73,8 @@ def test_non_finite_refinement_fails_that_image_only(monkeypatch):
 
 
 def test_metrics_count_non_finite_estimate_as_failure():
-    from fr_eval.metrics import failure_reason, is_failure, summarize
-    from fr_eval.run_eval import prediction_row
+    from fr_eval.scoring.metrics import failure_reason, is_failure, summarize
+    from fr_eval.protocols.run_eval import prediction_row
 
     class Sample:
         name, width, height, split = "img", 640, 480, "test"

@@ -219,7 +219,7 @@ def test_cuda_grid_and_estimate_equal_cpu():
 
 
 def test_bench_quick_smoke(tmp_path):
-    from fr_eval import bench
+    from fr_eval.bench import command as bench
 
     assert bench.main(["--quick", "--out", str(tmp_path), "--device", "cpu"]) == 0
     report = json.loads((tmp_path / "bench.json").read_text())

@@ -203,7 +203,8 @@ def test_cuda_batch_stays_on_device_and_calibrates(room):
     segments, mask = detector.detect_batch(batch)
     assert segments.is_cuda and mask.is_cuda and not mask[2].any()
     single, single_mask = detector.detect_batch(batch[:1])
-    torch.testing.assert_close(segments[0][mask[0]], single[0][single_mask[0]])
+    # the region sums are atomic adds on a GPU, in an order that differs with the batch: float32 rounding
+    torch.testing.assert_close(segments[0][mask[0]], single[0][single_mask[0]], atol=1e-3, rtol=1e-5)
     results = calibrate_decoded(FREstimator(mode="fast", device="cuda"), detector, batch)
     assert results[0].ok and abs(results[0].focal_px - FOCAL) / FOCAL < 0.1 and not results[2].ok
 
@@ -242,7 +243,7 @@ def test_decode_jpeg_batch(room):
 
 def test_bench_detector_rows(room, tmp_path):
     import cv2
-    from fr_eval import bench_detectors
+    from fr_eval.bench import detectors as bench_detectors
 
     class Progress:
         def out_of_time(self, what):

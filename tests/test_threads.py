@@ -192,7 +192,7 @@ def test_estimator_searches_within_the_policy(monkeypatch):
 
 def test_contention_summary_table():
     """fr bench's contention table: medians over rounds per mode, kind and policy."""
-    from fr_eval.contention import summary_lines
+    from fr_eval.bench.contention import summary_lines
 
     rows = [{"mode": "fast", "kind": "segments", "policy": "auto", "idle_s": t, "busy_s": 1.5 * t, "busy_ratio": 1.5,
              "side2_s": 1.2 * t, "side2_throughput": 1.6, "load_before": load}

@@ -71,8 +71,9 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
                    cwd=work, env=env).stdout
     assert "lee2009" in methods  # baselines registered through the fr_torch.calibrators entry point
     found = _run([str(python), "-c", "import importlib.util as u; print([u.find_spec(n) is not None for n in "
-                  "('fr_eval', 'fr_eval.datasets', 'fr_baselines', 'eval', 'baselines')])"], cwd=work, env=env).stdout
-    assert found.strip() == "[True, True, True, False, False]", found
+                  "('fr_eval', 'fr_eval.datasets', 'fr_eval.protocols', 'fr_eval.bench', 'fr_eval.scoring', "
+                  "'fr_baselines', 'eval', 'baselines')])"], cwd=work, env=env).stdout
+    assert found.strip() == "[True, True, True, True, True, True, False, False]", found
     assert "train-reliability" in _run([str(python), "-m", "fr_eval", "--help"], cwd=work, env=env).stdout
     out = _run([str(fr), "calibrate", "--fast", str(REPO / "examples" / "room.png")], cwd=work, env=env)
     record = json.loads(out.stdout.strip().splitlines()[0])

@@ -139,8 +139,8 @@ def test_reproduces_authors_training_samples(data_root, samples):
 
 
 def test_resolution_check_runs_on_upscaled_images(data_root, tmp_path):
-    """`fr_eval.resolution_check` (results/resolution/): upscaled inputs give errors in input pixels."""
-    from fr_eval.resolution_check import main
+    """`fr_eval.protocols.resolution_check` (results/resolution/): upscaled inputs give errors in input pixels."""
+    from fr_eval.protocols.resolution_check import main
 
     assert main(["--scales", "1,2", "--mode", "fast", "--limit", "2", "--data-root", str(data_root),
                  "--out", str(tmp_path)]) == 0
@@ -150,7 +150,7 @@ def test_resolution_check_runs_on_upscaled_images(data_root, tmp_path):
 
 @pytest.mark.parametrize("scales", ["0,2", "1,x", ""])
 def test_resolution_check_rejects_bad_scales(scales, capsys):
-    from fr_eval.resolution_check import main
+    from fr_eval.protocols.resolution_check import main
 
     with pytest.raises(SystemExit) as stop:
         main(["--scales", scales])
@@ -159,7 +159,7 @@ def test_resolution_check_rejects_bad_scales(scales, capsys):
 
 def test_resolution_check_counts_failed_estimates(data_root, tmp_path, monkeypatch):
     """A failed estimate is counted in the `valid` column and named, not silently left out."""
-    import fr_eval.resolution_check as check
+    import fr_eval.protocols.resolution_check as check
 
     from fr_torch import FREstimator
 

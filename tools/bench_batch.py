@@ -111,7 +111,7 @@ def main() -> int:
         ray.shutdown()
     import torch
 
-    machine = {"cpu": load_object("fr_eval.bench:_cpu_model")(), "cores": os.cpu_count(), "torch": torch.__version__,
+    machine = {"cpu": load_object("fr_eval.machine:cpu_model")(), "cores": os.cpu_count(), "torch": torch.__version__,
                "python": platform.python_version(), "device": args.device,
                "load_average_before": load_before, "load_average_after": load_after}
     try:

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from fr_eval.datasets.registry import load_dataset
-from fr_eval.metrics import summarize
-from fr_eval.run_eval import evaluate_method
+from fr_eval.scoring.metrics import summarize
+from fr_eval.protocols.run_eval import evaluate_method
 from fr_torch.plugins.methods import FRCalibrator
 from fr_torch.detectors.registry import get_detector
 

@@ -1,12 +1,12 @@
 """Loader for planar-view datasets generated from panoramas by ``fr make-dataset``.
 
 A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``images/``; see
-:mod:`fr_eval.make_dataset` for the columns.  Registered datasets:
+:mod:`fr_eval.datasets.make_dataset` for the columns.  Registered datasets:
 
 * ``zind-fr``: ``<cache_root>/zind-fr`` (``$FR_CACHE``, default ``<repo>/data_local``), built with
-  the command in :mod:`fr_eval.make_dataset`'s docstring;
+  the command in :mod:`fr_eval.datasets.make_dataset`'s docstring;
 * ``yud-crop-400x300``, ``yud-crop-480x360``: ``<cache_root>/<name>``, YorkUrbanDB crops around the
-  calibrated principal point (narrow cameras, 33.0 and 39.2 deg), built by :mod:`fr_eval.crop_views`
+  calibrated principal point (narrow cameras, 33.0 and 39.2 deg), built by :mod:`fr_eval.datasets.crop_views`
   (``eval/reproduce.sh crops``);
 * ``zind-fr-d``, ``yud-crop-480x360-d``: the same views through a division-model lens of known k
   (``gt.csv`` column ``k``, ``extra["distortion_k"]``), built by ``eval/reproduce.sh distortion``;
@@ -37,7 +37,7 @@ from fr_eval.paths import cache_root
 from fr_torch.core.camera import Camera, image_centre
 
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
-#: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.crop_views``.
+#: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.datasets.crop_views``.
 GT_COLUMNS = ["file", "pano", "group", "split", "width", "height", "focal_px", "hfov_deg", "pan_deg", "tilt_deg",
               "roll_deg", "pitch_deg", *R_COLUMNS, "manhattan_known", "manhattan_yaw_deg"]
 SPLITS = ("train", "test", "all")
@@ -76,7 +76,7 @@ class PanoViews:
         gt_path = self.folder / "gt.csv"
         if not gt_path.is_file():
             raise FileNotFoundError(f"{gt_path} not found: generate it with `fr make-dataset` "
-                                    "(see eval/make_dataset.py)")
+                                    "(see eval/datasets/make_dataset.py)")
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
         table = pd.read_csv(gt_path)
@@ -85,7 +85,7 @@ class PanoViews:
         self.table = table.reset_index(drop=True)
         self.split = split
         info = self.folder / "dataset.json"
-        # A folder cut from another dataset's images (fr_eval.crop_views) names it: its views show
+        # A folder cut from another dataset's images (fr_eval.datasets.crop_views) names it: its views show
         # the same scenes, so grouped cross-validation keeps a crop with its source photo.
         self.scene_source = json.loads(info.read_text()).get("source") if info.is_file() else None
 
@@ -152,7 +152,7 @@ def _cache_folder_loader(name: str):
 #: Generated datasets read from the cache root (module docstring): ZInD-fR and the YUD crops.
 YUD_CROP_SIZES = ("400x300", "480x360")
 #: The same views through a division-model lens of known k (issue 46; ``extra["distortion_k"]``):
-#: ZInD-fR-D (``fr make-dataset --k-range``) and YUD crops warped (``fr_eval.crop_views --k-range``).
+#: ZInD-fR-D (``fr make-dataset --k-range``) and YUD crops warped (``fr_eval.datasets.crop_views --k-range``).
 DISTORTED_DATASETS = ("zind-fr-d", "yud-crop-480x360-d")
 CACHE_DATASETS = ("zind-fr",) + tuple(f"yud-crop-{size}" for size in YUD_CROP_SIZES) + DISTORTED_DATASETS
 for _name in CACHE_DATASETS:

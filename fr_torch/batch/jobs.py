@@ -25,7 +25,9 @@ or ``ray.data.read_parquet(OUT)``.
 Resume: each finished batch is written as its own part file (written to a hidden temporary name
 and renamed, so a part is either complete or absent); a re-run with the same ``--out`` reads the
 ``image`` column of the existing parts and skips those images, so an interrupted job loses at most
-the batches in flight.
+the batches in flight.  CTRL-C and SIGTERM stop taking work, write the finished batches (with
+``rows_per_part``, those gathered so far), drop the batches in flight and stop the worker
+processes; after SIGKILL the workers end by themselves (:mod:`fr_torch.runtime.workers`).
 
 Engines: ``local`` runs :meth:`FREstimator.calibrate_images` on batches on this machine (Ray is
 never imported): on a CPU in single-threaded worker processes, one per core (:func:`_run_local`),
@@ -36,7 +38,8 @@ same columns.
 
 Crash injection (tests only): ``FR_BATCH_CRASH=NAME:MARKER`` makes the worker that is about to
 process an image whose path ends with ``NAME`` exit hard (``os._exit(1)``) once -- the first to
-create the file ``MARKER``.
+create the file ``MARKER``.  ``FR_BATCH_STALL=NAME:SECONDS`` makes it sleep that long first (a
+batch that stays in flight; set before the command starts: the workers read it).
 """
 from __future__ import annotations
 
@@ -131,6 +134,10 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
                 summary["processed"] += table.num_rows
                 summary["failed"] += table.num_rows - sum(table.column("ok").to_pylist())
                 bar.update(table.num_rows)
+    except KeyboardInterrupt as interrupt:  # CTRL-C, SIGTERM: what the command's one-line report adds
+        interrupt.add_note(f"{summary['skipped'] + summary['processed']} of {summary['total']} images are in "
+                           f"{out}; the same command again does the rest")
+        raise
     finally:
         flush()
         bar.close()

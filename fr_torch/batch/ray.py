@@ -20,6 +20,7 @@ import pyarrow as pa
 from fr_torch.batch.shared import calibrate_group
 from fr_torch.batch.worker import CRASH_ENV, BatchWorker, options_device
 from fr_torch.runtime.device import THREADS_ENV, DevicePolicy
+from fr_torch.runtime.workers import keep_signal_handler
 
 
 class RayBatchWorker(BatchWorker):
@@ -44,7 +45,9 @@ class RayGroupWorker(BatchWorker):
 def init_ray(address: str | None, num_cpus: int | None):
     """Join ``address`` (or ``$RAY_ADDRESS``), else start a quiet local cluster with ``num_cpus``;
     ``$FR_THREADS``, when set, goes to every actor.  Returns True when this call started Ray (the
-    caller then shuts it down)."""
+    caller then shuts it down).  A SIGTERM handler set by the caller stays in place (Ray's own
+    would exit at once); either way the caller's ``ray.shutdown()`` or Ray's exit handler stops a
+    local cluster this call started."""
     try:
         import ray
     except ImportError:
@@ -55,10 +58,11 @@ def init_ray(address: str | None, num_cpus: int | None):
     quiet = dict(logging_level=logging.WARNING, configure_logging=True, log_to_driver=True)
     if THREADS_ENV in os.environ:  # the actors' thread policy (DevicePolicy.threads), on every node
         quiet["runtime_env"] = {"env_vars": {THREADS_ENV: os.environ[THREADS_ENV]}}
-    if address:
-        ray.init(address=address, **quiet)
-    else:
-        ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
+    with keep_signal_handler():  # a command's SIGTERM handling (ray.init sets sys.exit)
+        if address:
+            ray.init(address=address, **quiet)
+        else:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, **quiet)
     return True
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import time
 from typing import Any, Sequence
 
 import cv2
@@ -17,6 +18,7 @@ from fr_torch.runtime.pipeline import calibrate_paths
 from fr_torch.runtime.shared_focal import apply_focal_priors
 
 CRASH_ENV = "FR_BATCH_CRASH"
+STALL_ENV = "FR_BATCH_STALL"
 
 
 def options_device(options: dict[str, Any]) -> str:
@@ -50,7 +52,7 @@ class BatchWorker:
     def calibrate_rows(self, rows: Sequence[dict[str, Any]]):
         """Calibrate the images of ``rows`` (dicts with ``image`` and manifest columns) -> Arrow table,
         one output row per input row, in order.  Never raises for a bad image."""
-        self._maybe_crash(rows)
+        self._inject_faults(rows)
         names, focal = self._names_and_focal(rows)
         inputs, failed = self.read_inputs(names)
         try:
@@ -119,7 +121,7 @@ class BatchWorker:
                                       self.options.get("principal_point"), names=names, whole_images=False)
             for chunk, results in batches:
                 batch_rows = rows[done:done + len(chunk)]
-                self._maybe_crash(batch_rows)
+                self._inject_faults(batch_rows)
                 table = self._table(chunk, focal[done:done + len(chunk)], list(results), batch_rows)
                 done += len(chunk)
                 yield table
@@ -134,7 +136,12 @@ class BatchWorker:
         focal = [_finite_or_none(row.get("focal_px")) for row in rows]
         return names, [default_focal if f is None else f for f in focal]
 
-    def _maybe_crash(self, rows) -> None:
+    def _inject_faults(self, rows) -> None:
+        """Tests only (``fr batch``'s module docstring): exit hard (``crash``) or sleep (``$FR_BATCH_STALL``,
+        read here, in the worker) before calibrating ``rows`` when one of them is the chosen image."""
+        stall, _, seconds = os.environ.get(STALL_ENV, "").partition(":")
+        if stall and any(str(row["image"]).endswith(stall) for row in rows):
+            time.sleep(float(seconds or 60))
         if not self.crash or ":" not in self.crash:
             return
         name, marker = self.crash.split(":", 1)

@@ -21,6 +21,7 @@ from fr_torch.core.distortion import colmap_cameras_txt
 from fr_torch.errors import FRInputError
 from fr_torch.images.overlay import write_overlay
 from fr_torch.output import dumps, json_safe, output_folder, write_text_atomic
+from fr_torch.runtime.device_pipeline import device_path_gap
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.pipeline import calibrate_paths
 from fr_torch.runtime.workers import start_worker_server
@@ -33,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_device_arguments(
         parser, batch_help="images searched together (default 16 on a CPU, 256 on a GPU)",
         workers_help="worker processes (0 = in-process). CPU: each decodes, detects and searches its share of "
-                     "the images (default: one per core, up to 8, for 64+ images); GPU: they decode + detect "
-                     "ahead of the search (default: cores - 1, up to 16; 0 on 1-2 cores)")
+                     "the images (default: one per core, up to 8, for 64+ images); GPU with --decode host: they decode + "
+                     "detect ahead of the search (default: cores - 1, up to 16; 0 on 1-2 cores)")
     add_camera_arguments(parser)
     output = parser.add_argument_group("output")
     output.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write a JSON list to OUT")
@@ -69,14 +70,17 @@ def run(args: argparse.Namespace) -> int:
     """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
     paths = [str(p) for p in args.images]
     policy = device_policy(args)
-    workers = policy.default_workers(len(paths)) if args.workers is None else args.workers
-    workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
-    if workers > 0:  # the workers' server loads the library while this process does the same
-        start_worker_server()
     policy.apply_threads()
     focal_px, principal_point = camera_options(args)  # per image: within a 1-179 deg field of view
     batch_size = policy.default_batch_size if args.batch_size is None else args.batch_size
     estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
+    if device_path_gap(estimator) is None:  # decoded and detected on the GPU: no host workers
+        workers = 0
+    else:
+        workers = policy.default_workers(len(paths)) if args.workers is None else args.workers
+        workers = min(workers, max(0, len(paths) - 1))  # a pool does not pay for a single image
+    if workers > 0:
+        start_worker_server()
     if args.overlay:
         output_folder(args.overlay, "--overlay")
     if args.json and args.json.is_dir():

@@ -5,16 +5,23 @@ Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 they share are :mod:`fr_torch.cli.options`.  The core's commands are :data:`SUBCOMMANDS`; the evaluation harness
 adds its own through the ``fr_torch.commands`` entry-point group (:mod:`fr_torch.registry`).  Errors
 in user input print one line and exit non-zero; set ``FR_DEBUG=1`` to see tracebacks.
+
+CTRL-C (SIGINT) and SIGTERM stop every command the same way: the command's clean-up runs (finished
+output kept, worker processes stopped), one line on stderr says so (with what a command adds as a
+note to the exception, e.g. ``fr batch``'s resume hint), and the exit status is 128 + the signal's
+number: 130 and 143 (:func:`fr_torch.runtime.workers.interrupt_on_signals`).
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import os
+import signal
 import sys
 
 from fr_torch.errors import FRInputError
 from fr_torch.registry import entry_points, load_object
+from fr_torch.runtime.workers import interrupt_exit_status, interrupt_on_signals
 
 # name -> (module, one-line help).  The module provides add_arguments(parser) and run(args).
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -71,14 +78,16 @@ def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str
 
     module = importlib.import_module(commands[args.command][0])
     try:
-        return int(module.run(args) or 0)
+        with interrupt_on_signals():
+            return int(module.run(args) or 0)
     except (FRInputError, FileNotFoundError, ValueError) as exc:
         if os.environ.get("FR_DEBUG"):
             raise
         print(f"fr {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        return 130
+    except KeyboardInterrupt as interrupt:
+        print(stopped_line(args.command, interrupt), file=sys.stderr)
+        return interrupt_exit_status(interrupt)
     except BrokenPipeError:  # output piped into `head` & co.: stop quietly, as Unix tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
@@ -87,6 +96,14 @@ def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str
             raise
         print(f"fr {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 2
+
+
+def stopped_line(command: str, interrupt: KeyboardInterrupt) -> str:
+    """The one line a command stopped by ``interrupt`` prints: the signal (SIGINT for CTRL-C), then
+    the notes the command added to it (``BaseException.add_note``)."""
+    name = signal.Signals(getattr(interrupt, "signum", signal.SIGINT)).name
+    notes = "; ".join(note for note in getattr(interrupt, "__notes__", ()) if note)
+    return f"fr {command}: stopped by {name}" + (f"; {notes}" if notes else "")
 
 
 #: Options whose MIN,MAX value may start with a minus sign.

@@ -21,7 +21,7 @@ from fr_torch.core.checks import finite_number, positive_number
 from fr_torch.core.config import Mode, SearchConfig
 from fr_torch.core.distortion import DistortionMode
 from fr_torch.errors import FRInputError
-from fr_torch.runtime.device import DevicePolicy
+from fr_torch.runtime.device import DECODE_CHOICES, DevicePolicy
 
 MEASURE_CHOICES = tuple("abcde")
 
@@ -32,7 +32,8 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
     group = parser.add_argument_group("estimator")
     group.add_argument("--fast", action="store_true", help="Fast-fR: 10 refinement iterations")
     group.add_argument("--measure", choices=MEASURE_CHOICES, default=None, help="deviation measure (default b)")
-    group.add_argument("--detector", default="lsd", help="line segment detector (default lsd)")
+    group.add_argument("--detector", default=None,
+                       help="line segment detector (default: lsd on a CPU, torch-lines on a GPU)")
     group.add_argument("--likelihood", default=None, metavar="NAME|JSON",
                        help="likelihood config: 'paper', 'fitted' or a JSON path (default configs/likelihood.json)")
     add_fov_range_argument(group)
@@ -68,6 +69,10 @@ def add_device_arguments(parser: argparse.ArgumentParser, workers_help: str | No
                          "free), torch or N (docs/cpu-threads.md)")
     if workers_help:
         group.add_argument("--workers", type=int, default=None, metavar="N", help=workers_help)
+        group.add_argument("--decode", choices=DECODE_CHOICES, default="auto",
+                           help="on a GPU, where image files are decoded and detected: auto (default: on the "
+                                "device when the detector detects batches, as torch-lines does, and torchvision "
+                                "loads), device, or host (worker processes)")
     if batch_help:
         group.add_argument("--batch-size", type=int, default=None, metavar="N", help=batch_help)
 
@@ -134,7 +139,8 @@ def search_config(args: argparse.Namespace) -> SearchConfig:
 def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """FREstimator keyword arguments from :func:`add_estimator_arguments`'s options (picklable)."""
     return dict(mode=Mode.FAST if args.fast else Mode.FR, measure=args.measure, detector=args.detector,
-                likelihood=args.likelihood, device=args.device, search_config=search_config(args))
+                likelihood=args.likelihood, device=args.device, decode=getattr(args, "decode", "auto"),
+                search_config=search_config(args))
 
 
 def device_policy(args: argparse.Namespace) -> DevicePolicy:
@@ -146,4 +152,4 @@ def device_policy(args: argparse.Namespace) -> DevicePolicy:
     batch_size = getattr(args, "batch_size", None)
     if batch_size is not None and batch_size < 1:
         raise FRInputError("--batch-size must be at least 1")
-    return DevicePolicy.resolve(args.device)
+    return DevicePolicy.resolve(args.device, decode=getattr(args, "decode", "auto"))

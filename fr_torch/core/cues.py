@@ -286,6 +286,10 @@ ESTIMATE_FIELDS = ("focal_px", "hfov_deg", "principal_point", "rotation", "pan_d
 def _all_finite(value) -> bool:
     if value is None:
         return True
+    if isinstance(value, float):  # Python and NumPy float64 scalars: most fields and every cue
+        return math.isfinite(value)
+    if isinstance(value, int):  # bool and int are finite (NumPy integers take the array route)
+        return True
     try:
         return bool(np.isfinite(np.asarray(value, dtype=np.float64)).all())
     except (TypeError, ValueError, OverflowError):

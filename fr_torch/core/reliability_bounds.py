@@ -16,7 +16,7 @@ the focal error is at most 10 % and that of the tilt error at most 3 deg".
 The scale ``s`` per error and estimator mode is a **split-conformal** quantile of the ratio
 ``actual / max(predicted, floor)`` (:func:`conformal_scale`: the ``ceil((n + 1) coverage)``-th
 smallest of n ratios) over images the model did not train on.  Fitted by
-``fr_eval.lodo_reliability`` across datasets: for each training dataset family the model is refitted
+``fr_eval.protocols.lodo_reliability`` across datasets: for each training dataset family the model is refitted
 without it and the family's images are predicted, the quantile is taken per family, and ``s`` is
 the largest of them (:func:`worst_group_scale`), so the bound held on every family when that family
 was a new camera.  A prediction of NaN (missing cues) gives no bound and ``reliable = False``.

@@ -107,6 +107,11 @@ class TensorLinesDetector:
         self.config = _coerce(config or TensorLinesConfig(), overrides)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
 
+    def to(self, device: str | torch.device) -> "TensorLinesDetector":
+        """This detector's settings on ``device`` (itself when it is there already)."""
+        device = torch.device(device)
+        return self if device == self.device else TensorLinesDetector(device=device, config=self.config)
+
     # ------------------------------------------------------------------ public API
 
     def __call__(self, gray: np.ndarray) -> np.ndarray:

@@ -151,6 +151,47 @@ def _jpeg_size(head: bytes, handle) -> tuple[int, int] | None:
     return None
 
 
+def _exif_orientation(body: bytes) -> int:
+    """EXIF orientation (1-8) of an APP1 segment body, 1 when the body holds none."""
+    if not body.startswith(b"Exif\x00\x00") or len(body) < 14:
+        return 1
+    tiff = body[6:]
+    order = "<" if tiff[:2] == b"II" else ">" if tiff[:2] == b"MM" else None
+    if order is None:
+        return 1
+    try:
+        ifd = struct.unpack(order + "I", tiff[4:8])[0]
+        (entries,) = struct.unpack(order + "H", tiff[ifd:ifd + 2])
+        for k in range(entries):
+            start = ifd + 2 + 12 * k
+            tag, kind = struct.unpack(order + "HH", tiff[start:start + 4])
+            if tag == 0x0112 and kind == 3:  # Orientation, SHORT
+                return struct.unpack(order + "H", tiff[start + 8:start + 10])[0]
+    except struct.error:
+        return 1
+    return 1
+
+
+def jpeg_upright_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) of an in-memory JPEG whose pixels need no EXIF rotation (orientation 1 or
+    none), from its first SOF marker; None for anything else (not a JPEG, no SOF, a rotated photo).
+
+    The images a GPU decoder may take as they are: a rotated photo is decoded where EXIF
+    orientation is applied (:func:`read_image`), so every path sees the same upright picture.
+    """
+    if not data.startswith(b"\xff\xd8"):
+        return None
+    for marker, _, body in jpeg_segments(data, max_offset=16 * 2 ** 20):
+        if marker == 0xE1 and _exif_orientation(body) != 1:
+            return None
+        if marker in _SOF_MARKERS:
+            if len(body) < 5:
+                return None
+            height, width = struct.unpack(">HH", body[1:5])
+            return (width, height) if width > 0 and height > 0 else None
+    return None
+
+
 def _tiff_size(head: bytes, handle) -> tuple[int, int] | None:
     order = "<" if head[:2] == b"II" else ">"
     (offset,) = struct.unpack(order + "I", head[4:8])

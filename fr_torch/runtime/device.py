@@ -49,6 +49,11 @@ MAX_DEFAULT_DETECTION_WORKERS = 16
 #: Default images searched together per device type: a GPU needs large batches to fill it; on a
 #: CPU a batch of 16 already amortises the per-call work and keeps the first results coming early.
 DEFAULT_BATCH_SIZE = {"cpu": 16, "cuda": 256}
+#: :attr:`DevicePolicy.decode` settings.
+DECODE_CHOICES = ("auto", "device", "host")
+#: The line detector of an estimator whose caller names none, per device type: on a GPU,
+#: torch-lines runs on the device beside the search (no host detection workers needed).
+DEFAULT_DETECTOR = {"cpu": "lsd", "cuda": "torch-lines"}
 #: Environment variable holding the default :attr:`DevicePolicy.threads` (``auto``, ``torch`` or N).
 THREADS_ENV = "FR_THREADS"
 AUTO_THREADS = "auto"
@@ -102,31 +107,42 @@ class DevicePolicy:
     :func:`fr_torch.runtime.workers.usable_cores`).
     ``threads``: intra-op threads of a search on a CPU: ``"auto"`` (adapt to the load),
     ``"torch"`` (leave torch's count) or a fixed positive count (module docstring).
+    ``decode``: where image files are decoded and detected on a GPU: ``"auto"`` (on the device
+    when the detector detects batches and torchvision's ``decode_jpeg`` loads,
+    :mod:`fr_torch.runtime.device_pipeline`), ``"device"`` (that, or a one-line error) or
+    ``"host"`` (host worker processes decode and detect, the device searches).
     """
 
     device: torch.device
     cores: int
     threads: ThreadSetting = AUTO_THREADS
+    decode: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.decode not in DECODE_CHOICES:
+            raise FRInputError(f"--decode: expected one of {', '.join(DECODE_CHOICES)}, got {self.decode!r}")
 
     @classmethod
     def resolve(cls, device: "str | torch.device | DevicePolicy" = "cpu",
-                threads: "str | int | None" = None) -> "DevicePolicy":
+                threads: "str | int | None" = None, decode: str = "auto") -> "DevicePolicy":
         """The policy of ``device`` (``"cpu"``, ``"cuda"``, ``"cuda:1"``, a torch.device or a
         policy); :class:`~fr_torch.errors.FRInputError` (one line) when it cannot run fR.
-        ``threads``: see :attr:`threads` (None = ``$FR_THREADS``, else ``auto``; a policy keeps its own)."""
+        ``threads``: see :attr:`threads` (None = ``$FR_THREADS``, else ``auto``; a policy keeps its own);
+        ``decode``: see :attr:`decode`."""
         if isinstance(device, DevicePolicy):
             return device
-        return cls(resolve_device(device), usable_cores(), cls._threads(threads))
+        return cls(resolve_device(device), usable_cores(), cls._threads(threads), decode)
 
     @classmethod
-    def parse(cls, device: "str | torch.device" = "cpu", threads: "str | int | None" = None) -> "DevicePolicy":
+    def parse(cls, device: "str | torch.device" = "cpu", threads: "str | int | None" = None,
+              decode: str = "auto") -> "DevicePolicy":
         """The policy of ``device`` without checking that this machine has it: for planning work
         that runs elsewhere (a Ray cluster's GPU nodes).  A malformed name is an FRInputError."""
         try:
             torch_device = torch.device(device)
         except (RuntimeError, TypeError, ValueError):
             raise FRInputError(f"--device: unknown device {device!r} (use cpu or cuda)") from None
-        return cls(torch_device, usable_cores(), cls._threads(threads))
+        return cls(torch_device, usable_cores(), cls._threads(threads), decode)
 
     @staticmethod
     def _threads(threads: "str | int | None") -> ThreadSetting:
@@ -143,6 +159,11 @@ class DevicePolicy:
         """True when worker processes should calibrate whole images (CPU); False when they only
         decode and detect while this process searches on the device (GPU)."""
         return self.on_cpu
+
+    @property
+    def default_detector(self) -> str:
+        """The detector an estimator uses when its caller names none (:data:`DEFAULT_DETECTOR`)."""
+        return DEFAULT_DETECTOR.get(self.device.type, DEFAULT_DETECTOR["cpu"])
 
     @property
     def default_batch_size(self) -> int:

@@ -54,18 +54,22 @@ class FREstimator(SegmentEstimator):
     """fR / Fast-fR on images: :class:`~fr_torch.core.estimator.SegmentEstimator` plus a line
     detector.
 
-    ``detector``: name of a registered detector (``lsd`` default; :mod:`fr_torch.detectors`) or a
-    detector object.  ``device``: a name (``cpu``, ``cuda``, ``cuda:1``), a torch.device or a
-    :class:`~fr_torch.runtime.device.DevicePolicy` (:attr:`policy` holds the resolved one).  Images are detected at a long side of at most :attr:`working_long_side`
+    ``detector``: name of a registered detector (:mod:`fr_torch.detectors`) or a detector object;
+    None (default) = the device's default, ``lsd`` on a CPU and ``torch-lines`` on a GPU
+    (:attr:`~fr_torch.runtime.device.DevicePolicy.default_detector`), where image files are then
+    decoded and detected on the device (:mod:`fr_torch.runtime.device_pipeline`).  ``device``: a name (``cpu``, ``cuda``, ``cuda:1``), a torch.device or a
+    :class:`~fr_torch.runtime.device.DevicePolicy` (:attr:`policy` holds the resolved one).
+    ``decode``: where a GPU estimator decodes image files, ``"auto"``, ``"device"`` or ``"host"``
+    (:attr:`~fr_torch.runtime.device.DevicePolicy.decode`; a given policy keeps its own).  Images are detected at a long side of at most :attr:`working_long_side`
     pixels; every result is reported in the input image's pixels.  The other arguments are the
     engine's.
     """
 
-    def __init__(self, mode: Mode | str = Mode.FR, measure: str | None = None, detector="lsd",
-                 device: str | torch.device | DevicePolicy = "cpu", **kwargs):
-        self.policy = DevicePolicy.resolve(device)
+    def __init__(self, mode: Mode | str = Mode.FR, measure: str | None = None, detector=None,
+                 device: str | torch.device | DevicePolicy = "cpu", decode: str = "auto", **kwargs):
+        self.policy = DevicePolicy.resolve(device, decode=decode)
         super().__init__(mode=mode, measure=measure, device=self.policy.device, **kwargs)
-        self.detector = get_detector(detector)
+        self.detector = get_detector(self.policy.default_detector if detector is None else detector)
         self.working_long_side = WORKING_LONG_SIDE
 
     def _calibrate(self, items, focal_list, pp_list, **kwargs) -> list[CalibrationResult]:

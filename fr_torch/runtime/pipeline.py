@@ -22,7 +22,10 @@ Every pool keeps a bounded number of tasks in flight (memory does not grow with 
 returns results in input order; a bad file is that file's failure (an ``FRInputError`` message,
 or the exception's one line).  A worker that dies (a native crash in a decoder or detector) fails
 only the image it was on: the chunk it lost is retried one image at a time, each alone in a fresh
-pool, and only an image that kills its worker when alone fails (:func:`ordered_pool_map`).
+pool, and only an image that kills its worker when alone fails (:func:`ordered_pool_map`).  Work
+still in flight when the caller stops reading (CTRL-C, SIGTERM, an early ``close()``) is not
+waited for: its workers are killed.  Workers end with this process however it ends, SIGKILL
+included (:mod:`fr_torch.runtime.workers`).
 
 Workers are forked from a fork server that has loaded the library (:mod:`fr_torch.runtime.workers`;
 ``spawn`` where there is no fork server); each runs with one torch thread and one OpenCV thread.
@@ -38,7 +41,7 @@ from collections import deque
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
-from typing import Iterable, Iterator, NamedTuple, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -51,23 +54,9 @@ from fr_torch.core.segments import SegmentFilter
 from fr_torch.detectors.registry import detect_segments, get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import WORKING_LONG_SIDE, read_any, working_image
-from fr_torch.runtime.workers import context as workers_context
-
-
-class Detection(NamedTuple):
-    """One image decoded and detected at the working resolution (see :func:`detect_image`).
-
-    ``segments``: (N, 4) in working pixels (empty on error); ``size``: working (width, height),
-    (0, 0) on error; ``error``: the image's failure message or None; ``seconds``: decode + detect
-    time; ``scale``: input pixels per working pixel (>= 1); ``input_size``: the input's (width, height).
-    """
-
-    segments: np.ndarray
-    size: tuple[int, int]
-    error: str | None
-    seconds: float
-    scale: float = 1.0
-    input_size: tuple[int, int] = (0, 0)
+from fr_torch.runtime.detection import Detection
+from fr_torch.runtime.device_pipeline import calibrate_on_device, device_path_gap
+from fr_torch.runtime.workers import WorkerPool
 
 
 def detect_image(image, name: str, detector, segment_filter: SegmentFilter,
@@ -156,7 +145,7 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
         return bool(todo)
 
     def start_pool():
-        return ProcessPoolExecutor(workers, mp_context=workers_context(), initializer=initializer, initargs=initargs)
+        return WorkerPool(workers, initializer, initargs)
 
     def restart(pool):
         nonlocal broken_in_a_row
@@ -164,7 +153,7 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
         if broken_in_a_row > MAX_BROKEN_POOLS:
             raise RuntimeError(f"worker processes died {broken_in_a_row} times in a row without "
                                "finishing a task; run in-process (workers=0) to see why")
-        _shutdown(pool, broken=True)
+        _shutdown(pool, kill=True)
         return start_pool()
 
     pool = start_pool()
@@ -201,22 +190,23 @@ def ordered_pool_map(function, items: Iterable, chunk_size: int, workers: int, i
             if not broken:
                 broken_in_a_row = 0
             yield from results
-    finally:
-        _shutdown(pool, broken=bool(getattr(pool, "_broken", False)))
+    finally:  # work still in flight is never read (CTRL-C, SIGTERM, a caller that stopped early): kill it
+        _shutdown(pool, kill=bool(pending) or bool(getattr(pool, "_broken", False)))
 
 
-def _shutdown(pool: ProcessPoolExecutor, broken: bool) -> None:
-    """Stop ``pool`` without waiting for its queued work; a broken pool (a worker died) is joined:
-    with ``shutdown(wait=False)`` its manager thread can hang the interpreter's exit on Python <
-    3.14 (CPython gh-132969).  Its workers are killed first (:func:`_kill_workers`), so the join
-    never waits for one of them."""
-    if broken:
+def _shutdown(pool: ProcessPoolExecutor, kill: bool) -> None:
+    """Stop ``pool`` without waiting for its queued work.  With ``kill`` (a broken pool, or tasks
+    still running whose results nobody will read) its workers are killed (:func:`_kill_workers`)
+    and the pool is joined: a broken pool's manager thread can otherwise hang the interpreter's exit
+    on Python < 3.14 (CPython gh-132969), and a running task would delay it by its whole length.
+    Without, idle workers exit on their own as the pool tells them to."""
+    if kill:
         _kill_workers(pool)
-    pool.shutdown(wait=broken, cancel_futures=True)
+    pool.shutdown(wait=kill, cancel_futures=True)
 
 
 def _kill_workers(pool: ProcessPoolExecutor) -> None:
-    """Kill every worker process of a broken ``pool``.
+    """Kill every worker process of ``pool`` (broken, or running work nobody will read).
 
     The pool's manager thread terminates the workers of a broken pool itself, but on Python < 3.14
     a worker that ``submit`` was still starting at that moment escapes: it is neither terminated
@@ -326,13 +316,14 @@ def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: 
     ``whole_frames`` (the default for a CPU estimator): two chunks of ``batch_size`` frames per
     worker, each calibrated whole in a worker process, as :func:`calibrate_paths` does.  Without
     (always for a GPU estimator): the workers decode and detect up to two batches of frames ahead
-    while this process searches on the device.
+    while this process searches on the device, or, for a detector of batches on a GPU, this process
+    decodes and detects each batch on the device (:mod:`fr_torch.runtime.device_pipeline`).
     """
     if workers > 0 and estimator.policy.whole_image_workers and whole_frames is not False:
         yield from _calibrate_in_workers(estimator, ((image, name, None, None) for image, name in frames),
                                          batch_size, workers)
         return
-    if workers > 0:
+    if workers > 0 and device_path_gap(estimator) is not None:
         names: deque = deque()  # the names of the frames read so far and not yet searched, in order
 
         def named():
@@ -363,7 +354,9 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
     tolerances).  ``workers > 0`` with ``whole_images`` (the default for a CPU estimator): chunks
     of at most ``batch_size`` images are calibrated in that many single-threaded processes (a copy
     of the estimator in each).  Without (always for a GPU estimator): this process searches while
-    the workers decode and detect the next images, up to two batches ahead (module docstring).
+    the workers decode and detect the next images, up to two batches ahead (module docstring);
+    on a GPU whose detector detects batches, this process decodes and detects on the device too
+    (:mod:`fr_torch.runtime.device_pipeline`; ``workers`` is then unused).
     ``focal_px`` / ``principal_point``: as for ``calibrate_images`` (one value or one per image).
     """
     images = list(images)
@@ -371,6 +364,9 @@ def calibrate_paths(estimator, images: Sequence, batch_size: int = 16, workers: 
                                              for i, im in enumerate(images)])
     focal_list = per_image(focal_px, len(images), "focal_px")
     pp_list = per_image(principal_point, len(images), "principal_point", width=2)
+    if device_path_gap(estimator) is None:  # decode, detect and search on the GPU
+        yield from calibrate_on_device(estimator, images, names, focal_list, pp_list, batch_size)
+        return
     if workers > 0 and estimator.policy.whole_image_workers and whole_images is not False:
         # Chunks small enough that every worker gets several (the last ones finish together).
         chunk_size = max(1, min(batch_size, -(-len(images) // (4 * workers))))
@@ -455,6 +451,6 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
                                  (portable,), _calibration_crash))
 
 
-def worker_pool(workers: int) -> ProcessPoolExecutor:
-    """A process pool of ``workers`` single-threaded workers (forkserver / spawn)."""
-    return ProcessPoolExecutor(workers, mp_context=workers_context(), initializer=_init_worker, initargs=(None, None))
+def worker_pool(workers: int) -> WorkerPool:
+    """A process pool of ``workers`` single-threaded workers (:class:`~fr_torch.runtime.workers.WorkerPool`)."""
+    return WorkerPool(workers, _init_worker, (None, None))

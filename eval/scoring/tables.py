@@ -1,4 +1,4 @@
-"""Summary tables (Markdown, CSV, LaTeX) from :class:`fr_eval.metrics.Summary` objects.
+"""Summary tables (Markdown, CSV, LaTeX) from :class:`fr_eval.scoring.metrics.Summary` objects.
 
 Rows are methods (optionally method x group, e.g. the per-FOV breakdown); columns n, valid
 (share of images with a valid result, %), failures, run time, roll MAE, tilt MAE, FOV MAE %, focal
@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Sequence
 
 import pandas as pd
-from fr_eval.metrics import METRICS, NOT_SUPPLIED, Summary
+from fr_eval.scoring.metrics import METRICS, NOT_SUPPLIED, Summary
 
 from fr_torch.registry import parse_method_spec as _parse_method_spec
 
@@ -47,7 +47,7 @@ def display_frame(summaries: Sequence[Summary], label: str = "method", metrics: 
     """Human-readable table (strings) with one row per summary.
 
     ``group_label``: add a column with each summary's ``group`` after the label column.  A summary
-    marked not supplied shows :data:`fr_eval.metrics.NOT_SUPPLIED` in every cell but label and group.
+    marked not supplied shows :data:`fr_eval.scoring.metrics.NOT_SUPPLIED` in every cell but label and group.
     """
     rows = []
     for s in summaries:

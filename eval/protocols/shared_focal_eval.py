@@ -2,12 +2,12 @@
 
 Usage (``FR_DATA`` set; results under ``results/shared_focal/``, caches under ``data_local/shared_focal/``)::
 
-    python -m fr_eval.shared_focal_eval profile --dataset nyu-vp --split train --limit 400
-    python -m fr_eval.shared_focal_eval tune                  # settings from train caches only
-    python -m fr_eval.shared_focal_eval groups --dataset nyu-vp --split val
-    python -m fr_eval.shared_focal_eval rotation --dataset yud --split test --size 10
-    python -m fr_eval.shared_focal_eval prior --dataset yud --split test
-    python -m fr_eval.shared_focal_eval principal-point --dataset nyu-vp --split val --size 10
+    python -m fr_eval.protocols.shared_focal_eval profile --dataset nyu-vp --split train --limit 400
+    python -m fr_eval.protocols.shared_focal_eval tune                  # settings from train caches only
+    python -m fr_eval.protocols.shared_focal_eval groups --dataset nyu-vp --split val
+    python -m fr_eval.protocols.shared_focal_eval rotation --dataset yud --split test --size 10
+    python -m fr_eval.protocols.shared_focal_eval prior --dataset yud --split test
+    python -m fr_eval.protocols.shared_focal_eval principal-point --dataset nyu-vp --split val --size 10
 
 ``profile`` calibrates every photo alone with fR (the library defaults) and caches, per photo, its
 estimate, predicted errors, kept segments and focal profile (:func:`fr_torch.runtime.shared_focal.focal_profiles`),
@@ -449,7 +449,7 @@ def run_principal_point(args) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m fr_eval.shared_focal_eval", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m fr_eval.protocols.shared_focal_eval", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="stage", required=True)
     for name in ("profile", "groups", "rotation", "prior"):
         p = sub.add_parser(name)

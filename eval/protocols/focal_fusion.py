@@ -1,6 +1,6 @@
 """Focal fusion over many photos of one camera: does weighting by predicted errors help?
 
-    python -m fr_eval.focal_fusion results/yud/predictions.csv --out results/reliability/focal_fusion.md
+    python -m fr_eval.protocols.focal_fusion results/yud/predictions.csv --out results/reliability/focal_fusion.md
 
 YorkUrbanDB's photos were all taken with one camera (f = 674.9 px), so fusing their focal estimates
 is what ``fr track`` does for a fixed camera, without the rotations (each photo shows another
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from fr_eval.reliability_train import DEFAULT_RECORDS, fit_model, usable
+from fr_eval.protocols.reliability_train import DEFAULT_RECORDS, fit_model, usable
 
 from fr_torch.core.reliability import PAPER_CUE_NAMES, ReliabilityModel
 from fr_torch.video.fusion import OnlineCalibrator
@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     print(table.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
     if args.out:
         lines = ["# Focal fusion over one camera's photos", "",
-                 f"Command: `python -m fr_eval.focal_fusion {args.predictions}` (module docstring: method).  "
+                 f"Command: `python -m fr_eval.protocols.focal_fusion {args.predictions}` (module docstring: method).  "
                  "Error (%) of the fused focal length (weighted mean of ln f over the frames `fr track` would "
                  "accept) against the camera's true focal length; weights 1/s^2 from the predicted focal error "
                  "(`OnlineCalibrator.frame_sigmas`).", "",

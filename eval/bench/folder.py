@@ -1,6 +1,6 @@
 """Folder end to end: wall time of whole ``fr calibrate`` processes on the YorkUrbanDB photos.
 
-    python -m fr_eval.folder_bench --copies 1,3 --workers 0,1,2,default --rounds 2 \\
+    python -m fr_eval.bench.folder --copies 1,3 --workers 0,1,2,default --rounds 2 \\
         --out results/bench/pipeline.md
 
 For every number of copies of the 102 photos (a folder of 102 x c paths), mode and ``--workers``
@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from fr_eval.bench import machine_description
+from fr_eval.machine import machine_description
 from fr_eval.paths import data_root
 
 from fr_torch.cli.options import add_device_arguments
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     machine = machine_description(args.device)  # the CPU, and the GPU of a CUDA run
     lines = [
         f"# Folder end to end (`fr calibrate --device {args.device}` on YorkUrbanDB photos, {usable_cores()} cores)", "",
-        "Command: `python -m fr_eval.folder_bench " + " ".join(argv if argv is not None else sys.argv[1:]) + "`.",
+        "Command: `python -m fr_eval.bench.folder " + " ".join(argv if argv is not None else sys.argv[1:]) + "`.",
         "Wall time of each whole `fr calibrate [--fast] [--workers W] PATHS...` process (start-up, model loading,",
         "decode, LSD, search, JSON output), 640×480 JPEGs, the 102 photos repeated to make larger folders;",
         f"rounds one after the other, seconds per round, images/s from their mean. Machine: {machine['cpu']},",

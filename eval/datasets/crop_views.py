@@ -1,6 +1,6 @@
 """Narrower cameras from real photos: crops of a calibrated dataset centred on its principal point.
 
-    python -m fr_eval.crop_views --dataset yud --size 400x300 --out data_local/yud-crop-400x300
+    python -m fr_eval.datasets.crop_views --dataset yud --size 400x300 --out data_local/yud-crop-400x300
     fr eval --dataset panoviews --data-root data_local/yud-crop-400x300 --split test ...
 
 A crop of a photo is the photo a camera with the same focal length (pixels) and orientation but a
@@ -11,7 +11,7 @@ crop's centre -- the principal point every method assumes -- is the true one to 
 pixel (YUD: 0.45 px in x and y; the full YUD frames, evaluated with the image centre as in the
 paper, are 17 px off).
 
-Writes the ``fr make-dataset`` layout (:mod:`fr_eval.make_dataset`), which the ``panoviews``
+Writes the ``fr make-dataset`` layout (:mod:`fr_eval.datasets.make_dataset`), which the ``panoviews``
 loader reads: ``images/<name>.png`` (lossless), ``gt.csv`` (one row per image, same columns:
 focal, the crop's FOV, pan / tilt / roll / pitch, R world->camera, ``group`` = image name, the
 dataset's own train / test split), ``dataset.json`` (command, source, offsets).  Images too small
@@ -97,7 +97,7 @@ def crop_dataset(samples, size: tuple[int, int], out: Path, distortion_k=None) -
     columns = GT_COLUMNS + ([] if distortion_k is None else ["k"])
     pd.DataFrame(rows, columns=columns).to_csv(out / "gt.csv", index=False, float_format="%.10g")
     offsets = np.abs(np.asarray(offsets)) if offsets else np.zeros((0, 2))
-    return {"generator": "fr_eval.crop_views", "size": [width, height], "images": len(rows),
+    return {"generator": "fr_eval.datasets.crop_views", "size": [width, height], "images": len(rows),
             "skipped": skipped,
             "principal_point": "the crop centre (w/2, h/2); the true principal point is off by at most "
                                f"{offsets.max(initial=0.0):.2f} px (crops are whole pixels)",
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
         summary["distortion"] = {"model": "division (fr_torch.core.distortion), centre = the crop centre",
                                  "k_range": [low, high], "seed": args.seed}
     command = " ".join(argv if argv is not None else sys.argv[1:])
-    summary = {"command": f"python -m fr_eval.crop_views {command}", "source": args.dataset, **summary}
+    summary = {"command": f"python -m fr_eval.datasets.crop_views {command}", "source": args.dataset, **summary}
     (args.out / "dataset.json").write_text(json.dumps(summary, indent=2))
     print(f"wrote {summary['images']} crops ({args.size[0]}x{args.size[1]}) to {args.out}"
           + (f"; skipped {len(summary['skipped'])}" if summary["skipped"] else ""))

@@ -55,9 +55,9 @@ from typing import Any, Sequence
 
 import numpy as np
 import pandas as pd
-from fr_eval.bench import machine_description
+from fr_eval.machine import machine_description
 from fr_eval.datasets.registry import available_datasets, load_dataset
-from fr_eval.metrics import (
+from fr_eval.scoring.metrics import (
     estimate_quantities,
     failure_reason,
     image_errors,
@@ -66,8 +66,8 @@ from fr_eval.metrics import (
     summarize_groups,
 )
 from fr_eval.paths import REPO
-from fr_eval.plots import distributions_figure, histogram_figure, safe_name
-from fr_eval.tables import (
+from fr_eval.scoring.plots import distributions_figure, histogram_figure, safe_name
+from fr_eval.scoring.tables import (
     deviation_measure_summaries,
     parse_method_spec,
     write_tables,

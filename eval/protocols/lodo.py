@@ -3,8 +3,8 @@
 Usage (``eval/reproduce.sh lodo``; per-image predictions are cached under ``--cache``, so a rerun
 only computes what is missing)::
 
-    python -m fr_eval.lodo run       # predictions of every (dataset, setting, method) the tables need
-    python -m fr_eval.lodo table     # results/cross_dataset/README.md's accuracy table (accuracy.md/.csv)
+    python -m fr_eval.protocols.lodo run       # predictions of every (dataset, setting, method) the tables need
+    python -m fr_eval.protocols.lodo table     # results/cross_dataset/README.md's accuracy table (accuracy.md/.csv)
 
 Datasets and families
 ---------------------
@@ -22,7 +22,7 @@ What is refitted without the reported family (:func:`lodo_settings`)
   of the train images of :data:`PRIOR_SOURCES` outside the family (the shipped value, 81.9 deg,
   pools YUD train and ZInD-fR train); fR's flat-topped prior keeps its offset in ``log f`` from that
   mean (the shipped 75 deg was chosen by a grid around the 82 deg mean).
-* **Reliability model and its conformal bounds**: :mod:`fr_eval.lodo_reliability`.
+* **Reliability model and its conformal bounds**: :mod:`fr_eval.protocols.lodo_reliability`.
 
 Not refitted (chosen by grids on the train splits of YUD, ZInD-fR and the crops; a grid per held-out
 family costs more than it was worth here): the prior's weight, pseudo-length and flat half-width,
@@ -49,7 +49,7 @@ import numpy as np
 import pandas as pd
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import REPO, cache_root
-from fr_eval.plots import safe_name
+from fr_eval.scoring.plots import safe_name
 
 from fr_torch.core.camera import focal_from_hfov, hfov_from_focal, rotation_from_angles
 
@@ -103,7 +103,7 @@ def prior_centre_deg(datasets: Sequence[str], root: str | None = None) -> float:
 
 def fitted_lambdas(datasets: Sequence[str], root: str | None = None) -> dict:
     """``fr fit-likelihood``'s measures (config units) from the labelled train segments of ``datasets``."""
-    from fr_eval.fit_likelihood import fit_measures
+    from fr_eval.protocols.fit_likelihood import fit_measures
     samples = [s for d in datasets for s in _train_samples(d, root)
                if s.rotation is not None and s.segments is not None and len(s.segments)]
     return fit_measures(samples)
@@ -127,7 +127,7 @@ def lodo_settings(left_out: str | None, root: str | None = None) -> dict:
     shipped["fr"]["hfov_deg"] = round(hfov_from_focal(focal_from_hfov(centre, 1.0) * math.exp(fr_offset), 1.0), 2)
     config["lodo"] = {"left_out": left_out, "lambda_from": lam_sets, "prior_centre_from": prior_sets,
                       "prior_centre_deg": centre, "fr_prior_centre_deg": shipped["fr"]["hfov_deg"]}
-    config["source"] = (f"LODO setting {setting_name(left_out)} (fr_eval.lodo): lambdas from the labelled train "
+    config["source"] = (f"LODO setting {setting_name(left_out)} (fr_eval.protocols.lodo): lambdas from the labelled train "
                         f"segments of {', '.join(lam_sets)}; focal prior centre from the train images of "
                         f"{', '.join(prior_sets)}; everything else as configs/likelihood.json")
     return config
@@ -164,7 +164,7 @@ def run_predictions(dataset: str, split: str, method: str, setting: str, config_
     """Per-image prediction rows (``fr eval``'s columns + ``zenith_err_deg``) of ``method`` under
     ``setting`` on ``dataset``/``split`` (every ``stride``-th image), cached as
     ``cache/<setting>/<dataset>_<split>_<method>[_pp].csv``."""
-    from fr_eval.run_eval import evaluate_method, make_calibrator
+    from fr_eval.protocols.run_eval import evaluate_method, make_calibrator
 
     from fr_torch.core.fov import FovRange
 
@@ -325,7 +325,7 @@ def markdown(table: pd.DataFrame) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m fr_eval.lodo", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m fr_eval.protocols.lodo", description=__doc__.split("\n")[0])
     parser.add_argument("action", choices=("run", "table", "configs"))
     parser.add_argument("--cache", default=str(cache_root() / "lodo"), help="prediction cache (default data_local/lodo)")
     parser.add_argument("--data-root", default=None)

@@ -16,7 +16,7 @@ truth and the absolute errors
 
 * ``roll_err_deg`` = ``|roll_est - roll_gt|`` and ``tilt_err_deg`` = ``|tilt_est - tilt_gt|``, both
   angles with the paper's horizon definitions (:func:`fr_torch.core.camera.horizon_angles`; the same
-  numbers as ``eval/metrics.py``);
+  numbers as ``eval/scoring/metrics.py``);
 * ``focal_err_pct`` = ``100 |f_est - f_gt| / f_gt``.
 
 The estimator runs as ``fr calibrate`` does (unknown focal length, principal point at the image
@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from fr_eval.paths import REPO
 
 from fr_torch.core.camera import focal_from_hfov, rotation_angles
 from fr_torch.core.reliability import (
@@ -55,7 +56,6 @@ from fr_torch.core.reliability import (
 )
 from fr_torch.resources import config_dir
 
-REPO = Path(__file__).resolve().parents[1]
 DEFAULT_RECORDS = REPO / "results" / "reliability" / "records"
 
 

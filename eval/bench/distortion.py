@@ -43,10 +43,12 @@ def _estimator(mode: str, distortion: str):
     return FREstimator(mode=mode, distortion=distortion)
 
 
-def distortion_rows(images: list[tuple[str, str]], repeats: int, progress, median_times) -> list[dict]:
+def distortion_rows(images: list[tuple[str, str]], repeats: int, progress) -> list[dict]:
     """Latency per photo (batch 1) and ms per image in batches of :data:`BATCH` (the photo's
     segments repeated) of every :data:`SETTINGS` row on every image, with the ratio to
-    :data:`BASELINE`; ``median_times(fn, repeats)`` is the benchmark's timer."""
+    :data:`BASELINE`."""
+    from fr_eval.bench.timing import median_times
+
     from fr_torch.detectors.registry import get_detector
     from fr_torch.images.convert import to_gray8
     from fr_torch.images.io import load_image
@@ -96,7 +98,7 @@ def markdown_lines(rows: list[dict]) -> list[str]:
              f"Per photo: `calibrate_images` on one photo (decode, LSD, search, cues, reliability), median ms. "
              f"Batch: `calibrate_segments` on {BATCH} copies of the photo's segments, ms per image. Ratio: to "
              "pinhole fR on the same photo. Bent photos: the photo through a barrel lens of "
-             f"k = {BENT_K:g} (division model; `fr_eval.bench_distortion`).", "",
+             f"k = {BENT_K:g} (division model; `fr_eval.bench.distortion`).", "",
              "| image | mode | distortion | model found | k | per photo (ms) | ratio | batch (ms/image) | ratio |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

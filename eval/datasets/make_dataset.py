@@ -12,7 +12,7 @@ of upright (gravity-aligned) equirectangular panoramas (or 6-face cube maps, one
   ground truth stores both the paper's horizon tilt (``tan tilt = tan pitch / cos roll``) and the
   pitch, both computed with :func:`fr_torch.core.camera.horizon_angles` from the final R, exactly as
   the estimator defines them;
-* rendering: :mod:`fr_eval.panorama` (tensor ``grid_sample``, principal point exactly (w/2, h/2)).
+* rendering: :mod:`fr_eval.datasets.panorama` (tensor ``grid_sample``, principal point exactly (w/2, h/2)).
 
 Outputs in ``--out``: ``images/<pano>_vNN.jpg``, ``gt.csv`` (one row per view: file, pano, group,
 split, width, height, focal_px, hfov_deg, pan_deg, tilt_deg, roll_deg, pitch_deg, r00..r22 (the
@@ -41,7 +41,7 @@ ZInD-fR (the build this project reports; 28 Manhattan panoramas of the ZInD samp
         --out data_local/zind-fr --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 \\
         --test-fraction 0.5 --check-yaw
 
-(equivalently ``python -m fr_eval.make_dataset ...``).  The 4 panoramas of ZInD ``partial_room_09``
+(equivalently ``python -m fr_eval.datasets.make_dataset ...``).  The 4 panoramas of ZInD ``partial_room_09``
 (walls at 32-45 deg to the grid) are excluded (``--non-manhattan exclude``, the default).
 The split is by room, so no room has views in both halves; ``--check-yaw`` re-measures each
 annotated Manhattan yaw with LSD and writes the differences to ``yaw_check.csv`` in the output
@@ -65,7 +65,7 @@ import numpy as np
 import pandas as pd
 import torch
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
-from fr_eval.panorama import (
+from fr_eval.datasets.panorama import (
     cubemap_to_equirect,
     load_cubemap,
     load_panorama,
@@ -429,7 +429,7 @@ def run(args: argparse.Namespace) -> int:
         summary[split] = {"panoramas": int(sub["pano"].nunique()), "groups": int(sub["group"].nunique()),
                           "views": int(len(sub))}
     meta = {
-        "generator": "fr_eval.make_dataset (fr make-dataset)",
+        "generator": "fr_eval.datasets.make_dataset (fr make-dataset)",
         "command": " ".join(sys.argv),
         "panoramas_dir": str(args.panoramas), "yaw_csv": str(args.yaw_csv) if args.yaw_csv else None,
         "aligned": bool(args.aligned), "non_manhattan": args.non_manhattan, "excluded_panoramas": excluded,

@@ -3,10 +3,10 @@
 * :func:`detector_rows`: per image, the wall time (ms, median) of LSD and of ``torch-lines`` on the
   CPU, measured in the same loop (the detectors alternate, so machine load hits both alike), and
   their ratio.  Torch runs with the bench's ``--threads`` (default 1; LSD is single-threaded).
-* :func:`device_end_to_end`: on a CUDA device only, images/s from JPEG bytes to results for a batch
-  of 640 x 480 JPEGs: ``torchvision.io.decode_jpeg`` on the device, ``torch-lines`` on the device
-  (:meth:`~fr_torch.detectors.tensor_lines.TensorLinesDetector.detect_batch`), then the search
-  (:func:`fr_torch.runtime.device_pipeline.calibrate_decoded`); rows are skipped on a CPU-only machine.
+* :func:`device_end_to_end`: on a CUDA device only, images/s from JPEG files to results for
+  batches of 640 x 480 JPEGs through the library's GPU path (``decode_jpeg``, ``torch-lines`` and
+  the search on the device: :mod:`fr_torch.runtime.device_pipeline`); rows are skipped on a
+  CPU-only machine.
 """
 from __future__ import annotations
 
@@ -50,49 +50,57 @@ def detector_rows(images: list[tuple[str, str]], repeats: int, progress) -> list
 
 
 def device_end_to_end(paths: list[str], device: str, batch_sizes, repeats: int, progress,
-                      modes=("fast", "fr")) -> list[dict]:
-    """Images/s from JPEG bytes to results on ``device`` (CUDA only; [] elsewhere), per mode and
-    batch size; the batch repeats ``paths`` (same-size images; other formats are JPEG-encoded,
-    quality 95, before timing) to the batch size."""
+                      modes=("fast", "fr"), batches_per_row: int = 4) -> list[dict]:
+    """Images/s from JPEG files to results on ``device`` (CUDA only; [] elsewhere), per mode and
+    batch size, through the path ``calibrate_images``, ``fr calibrate`` and ``fr batch`` take there
+    (:func:`fr_torch.runtime.pipeline.calibrate_paths`: decode_jpeg, torch-lines and the search on
+    the device, a reader thread one batch ahead; :mod:`fr_torch.runtime.device_pipeline`).
+
+    ``paths``: same-size images (other formats are written as JPEGs, quality 95, first); each row
+    calibrates ``batches_per_row`` batches of them (the files repeated), after one warm-up batch;
+    the median of ``repeats`` such runs.  ``path`` says whether the device path was taken."""
+    import tempfile
+
     import torch
 
     if not paths or not str(device).startswith("cuda") or not torch.cuda.is_available():
         return []
-    from fr_torch.detectors.tensor_lines import TensorLinesDetector, decode_jpeg_batch
-    from fr_torch.runtime.device_pipeline import calibrate_decoded
+    from fr_torch.runtime.device_pipeline import device_path_gap
     from fr_torch.runtime.estimator import FREstimator
+    from fr_torch.runtime.pipeline import calibrate_paths
 
-    data = [_jpeg_bytes(p) for p in paths]
-    detector = TensorLinesDetector(device=device)
+    folder = tempfile.TemporaryDirectory()
+    files = []
+    for i, path in enumerate(paths):
+        files.append(str(Path(folder.name) / f"image{i}.jpg"))
+        Path(files[-1]).write_bytes(_jpeg_bytes(path))
     rows = []
     for mode in modes:
         estimator = FREstimator(mode=mode, device=device)
+        gap = device_path_gap(estimator)
         for batch in batch_sizes:
             if progress.out_of_time(f"device end to end {mode} batch {batch}"):
                 continue
-            payload = [data[i % len(data)] for i in range(batch)]
-
-            def once():
-                images = torch.stack(decode_jpeg_batch(payload, device=device))
-                return calibrate_decoded(estimator, detector, images)
-
-            row = {"device": device, "mode": mode, "batch": batch}
+            todo = [files[i % len(files)] for i in range(batches_per_row * batch)]
+            row = {"device": device, "mode": mode, "batch": batch, "images": len(todo),
+                   "path": "device" if gap is None else f"host ({gap})"}
             try:
-                once()  # warm-up
+                list(calibrate_paths(estimator, todo[:batch], batch))  # warm-up at this batch size
                 seconds = []
                 for _ in range(max(1, repeats)):
                     torch.cuda.synchronize()
                     start = time.perf_counter()
-                    results = once()
+                    results = [r for _, chunk in calibrate_paths(estimator, todo, batch) for r in chunk]
                     torch.cuda.synchronize()
                     seconds.append(time.perf_counter() - start)
                 wall = statistics.median(seconds)
-                row.update(seconds=wall, images_per_s=batch / wall,
+                row.update(seconds=wall, images_per_s=len(todo) / wall,
                            ok_share=float(np.mean([r.ok for r in results])))
             except Exception as exc:  # noqa: BLE001 - a failed setting is reported, the bench goes on
                 row["error"] = f"{type(exc).__name__}: {exc}"
             rows.append(row)
             progress.update(1, "device_end_to_end", row)
+    folder.cleanup()
     return rows
 
 
@@ -123,13 +131,15 @@ def markdown_lines(report: dict) -> list[str]:
         lines += ["", f"Median ratio: {statistics.median(r['ratio'] for r in rows):.2f}.", ""]
     rows = report.get("device_end_to_end") or []
     if rows:
-        lines += ["## End to end on the device: JPEG bytes -> decode_jpeg -> torch-lines -> search", "",
-                  "| device | mode | batch | images/s | s per batch | valid share |", "|---|---|---|---|---|---|"]
+        lines += ["## End to end on the device: JPEG files -> decode_jpeg -> torch-lines -> search", "",
+                  "| device | mode | batch | images | images/s | s per row | valid share | decoded on |",
+                  "|---|---|---|---|---|---|---|---|"]
         for r in rows:
             if "error" in r:
-                lines.append(f"| {r['device']} | {r['mode']} | {r['batch']} | failed: {r['error']} | | |")
+                lines.append(f"| {r['device']} | {r['mode']} | {r['batch']} | | failed: {r['error']} | | | |")
             else:
-                lines.append(f"| {r['device']} | {r['mode']} | {r['batch']} | {r['images_per_s']:.0f} | "
-                             f"{r['seconds']:.3f} | {r['ok_share']:.2f} |")
+                lines.append(f"| {r['device']} | {r['mode']} | {r['batch']} | {r.get('images', r['batch'])} | "
+                             f"{r['images_per_s']:.0f} | {r['seconds']:.3f} | {r['ok_share']:.2f} | "
+                             f"{r.get('path', 'device')} |")
         lines.append("")
     return lines

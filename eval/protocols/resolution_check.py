@@ -1,6 +1,6 @@
 """Resolution independence of fR: YUD test images upscaled by 1x, 2x, 4x (bicubic) give the same errors.
 
-    python -m fr_eval.resolution_check --scales 1,2,4 --mode fast --out results/resolution
+    python -m fr_eval.protocols.resolution_check --scales 1,2,4 --mode fast --out results/resolution
 
 For every scale k the test images are upscaled by k (``cv2.INTER_CUBIC``), calibrated from the
 arrays (detection runs at the estimator's working resolution), and compared with the ground truth
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from fr_eval.bench import machine_description
+from fr_eval.machine import machine_description
 from fr_eval.datasets.registry import load_dataset
-from fr_eval.metrics import failure_reason, image_errors, is_failure, mean_se
+from fr_eval.scoring.metrics import failure_reason, image_errors, is_failure, mean_se
 from tqdm import tqdm
 
 from fr_torch import FREstimator
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     low, high = estimator.search.fov_range
     machine = machine_description("cpu")
     command = " ".join(argv if argv is not None else sys.argv[1:])
-    lines += ["", f"Command: `python -m fr_eval.resolution_check {command}` (YUD {args.split}, bicubic upscaling; "
+    lines += ["", f"Command: `python -m fr_eval.protocols.resolution_check {command}` (YUD {args.split}, bicubic upscaling; "
               f"every row with the FOV search range [{low:g}°, {high:g}°] across the long side and the principal "
               f"point at the image centre; means ± standard error over the valid estimates). {machine['cpu']}, "
               f"{machine['usable_cores']} usable cores, torch {machine['torch']}, {machine['threads']} threads; "

@@ -1,13 +1,13 @@
 """Radial distortion (issue 46): fR with and without the division model on distorted and undistorted sets.
 
-    python -m fr_eval.distortion_eval run --datasets zind-fr-d,yud-crop-480x360-d --split test \\
+    python -m fr_eval.protocols.distortion_eval run --datasets zind-fr-d,yud-crop-480x360-d --split test \\
         --methods "fr,fr[distortion=division],fast-fr[distortion=division],fr[distortion=auto]"
-    python -m fr_eval.distortion_eval table --out results/distortion
+    python -m fr_eval.protocols.distortion_eval table --out results/distortion
 
 ``run`` calibrates every image of each dataset with each method (batches of ``--batch-size``) and
 caches one CSV per (dataset, split, method) under ``$FR_CACHE/distortion`` (a method already
 cached is skipped: the command resumes).  Per image: focal / roll / tilt errors
-(:func:`fr_eval.metrics.image_errors`), the true and estimated k and their border bows
+(:func:`fr_eval.scoring.metrics.image_errors`), the true and estimated k and their border bows
 (:func:`fr_torch.core.distortion.border_bow_percent`, % of the width), ``reliable`` and its reason,
 and the "lines bend" cue.  ``table`` writes ``results/distortion/README.md``'s tables from the cache
 and the figure of estimated against true k.
@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from fr_eval.datasets.registry import load_dataset
-from fr_eval.metrics import image_errors, mean_se
-from fr_eval.run_eval import given_segments
 from fr_eval.paths import cache_root
-from fr_eval.tables import parse_method_spec
+from fr_eval.protocols.run_eval import given_segments
+from fr_eval.scoring.metrics import image_errors, mean_se
+from fr_eval.scoring.tables import parse_method_spec
 from tqdm import tqdm
 
 from fr_torch.core.config import SearchConfig

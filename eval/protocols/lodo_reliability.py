@@ -1,16 +1,16 @@
 """The reliability stage under the leave-one-dataset-out protocol, and the promise ``reliable`` ships with.
 
-Usage (after ``python -m fr_eval.lodo run``, whose cached predictions it reads)::
+Usage (after ``python -m fr_eval.protocols.lodo run``, whose cached predictions it reads)::
 
-    python -m fr_eval.lodo_reliability table            # results/cross_dataset/reliability.{md,csv}
-    python -m fr_eval.lodo_reliability promise --write  # the conformal scales -> configs/reliability.json
+    python -m fr_eval.protocols.lodo_reliability table            # results/cross_dataset/reliability.{md,csv}
+    python -m fr_eval.protocols.lodo_reliability promise --write  # the conformal scales -> configs/reliability.json
 
 Training records (cues and absolute errors of the shipped estimator on train splits): YUD, the YUD
 crops and ZInD-fR from ``results/reliability/records/<dataset>_train_<mode>.csv`` (``fr
 train-reliability``), NYU-VP train from the LODO cache (``shipped/nyu-vp_train_<method>.csv``: every
 2nd train photo, 500).
 
-For each reported dataset (its family left out, :mod:`fr_eval.lodo`): the KNN error model
+For each reported dataset (its family left out, :mod:`fr_eval.protocols.lodo`): the KNN error model
 (:class:`fr_torch.core.reliability.ReliabilityModel`, the shipped cue set of the mode) is fitted on the
 other families' train records; its conformal scales (:mod:`fr_torch.core.reliability_bounds`) come from
 predicting each of those families with a model fitted without it (largest per-family quantile); the
@@ -30,7 +30,7 @@ from typing import Sequence
 
 import numpy as np
 import pandas as pd
-from fr_eval.lodo import REPORTED, family_of, setting_name
+from fr_eval.protocols.lodo import REPORTED, family_of, setting_name
 from fr_eval.paths import REPO, cache_root
 from scipy.stats import spearmanr
 
@@ -202,11 +202,11 @@ def shipped_promise(cache: Path, limits: dict, coverage: float) -> dict:
                    "is within its limit (false: reported only, reliable keeps the thresholds); scales: "
                    "split-conformal quantiles of actual / predicted error, each dataset family (YUD + crops, "
                    "ZInD-fR, NYU-VP; train splits) predicted by a model fitted without it, the largest kept "
-                   "(python -m fr_eval.lodo_reliability promise --write; docs/reliability.md)"}
+                   "(python -m fr_eval.protocols.lodo_reliability promise --write; docs/reliability.md)"}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m fr_eval.lodo_reliability", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m fr_eval.protocols.lodo_reliability", description=__doc__.split("\n")[0])
     parser.add_argument("action", choices=("table", "promise"))
     parser.add_argument("--cache", default=str(cache_root() / "lodo"))
     parser.add_argument("--focal-limit", type=float, default=DEFAULT_LIMITS["focal_pct"], help="T_f, percent")

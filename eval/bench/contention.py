@@ -9,7 +9,7 @@ policy from ``FR_THREADS``) in three conditions:
   a subprocess this module starts and stops, bounded to :data:`NEIGHBOUR_MAX_S` seconds);
 * **side by side**: ``k`` such processes calibrating at the same time.
 
-Probes are long-lived subprocesses (``python -m fr_eval.contention probe``) that load the library
+Probes are long-lived subprocesses (``python -m fr_eval.bench.contention probe``) that load the library
 and the photos once, then run one measurement per command read on stdin, so that the side-by-side
 processes start their timed work together and the conditions interleave in the same processes.
 A measurement is ``passes`` passes over the photos, one photo per call; its figure is the median
@@ -21,7 +21,7 @@ search).  ``policy`` is the ``FR_THREADS`` value of the probes (``auto``, ``torc
 
 ``fr bench`` runs :func:`contention_rows` as its ``contention`` section.  For a report::
 
-    python -m fr_eval.contention measure --modes fast,fr --kinds segments,images \\
+    python -m fr_eval.bench.contention measure --modes fast,fr --kinds segments,images \\
         --policies auto,torch --side 2 --command-side 2,4 --rounds 3 --passes 3 --images P1.jpg,P2.jpg,...
 """
 from __future__ import annotations
@@ -120,7 +120,7 @@ class Probe:
 
     def __init__(self, paths: Sequence[str], policy: str):
         env = dict(os.environ, FR_THREADS=str(policy))
-        self.proc = subprocess.Popen([sys.executable, "-m", "fr_eval.contention", "probe", "--images",
+        self.proc = subprocess.Popen([sys.executable, "-m", "fr_eval.bench.contention", "probe", "--images",
                                       ",".join(paths)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      text=True, env=env)
 
@@ -290,7 +290,7 @@ def summary_lines(rows: Sequence[dict], side_counts: Sequence[int]) -> list[str]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m fr_eval.contention", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m fr_eval.bench.contention", description=__doc__.splitlines()[0])
     parser.add_argument("action", choices=("measure", "probe"))
     parser.add_argument("--images", required=True, help="comma-separated photo paths")
     parser.add_argument("--modes", default="fast,fr")

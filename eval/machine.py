@@ -1,0 +1,40 @@
+"""The machine a measurement ran on (CPU model, cores, torch, threads, device, load), recorded beside
+every timing: on a shared machine timings are noisy, so runs compare only on the same machine."""
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+from fr_torch.runtime.workers import usable_cores
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``; the platform's name where it is missing)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_description(device: str) -> dict:
+    """The record of the machine a measurement ran on: CPU model, cores (all and usable), torch
+    version and threads, ``FR_THREADS``, ``device`` (and its GPU's name), Python, platform, load average."""
+    import torch
+
+    info = {"cpu": cpu_model(), "cores": os.cpu_count(), "usable_cores": usable_cores(), "torch": torch.__version__,
+            "threads": torch.get_num_threads(), "fr_threads": os.environ.get("FR_THREADS", "auto"), "device": device, "python": platform.python_version(),
+            "platform": platform.platform()}
+    try:
+        info["load_average"] = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        pass
+    if device.startswith("cuda"):
+        try:
+            info["gpu"] = torch.cuda.get_device_name(device)
+        except (AssertionError, RuntimeError):  # no CUDA here: the record says so instead of failing
+            info["gpu"] = "none available"
+    return info

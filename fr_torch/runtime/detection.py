@@ -1,0 +1,22 @@
+"""One image's line segments at the working resolution, as the pipelines hand them to the search."""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Detection(NamedTuple):
+    """One image decoded and detected at the working resolution (:func:`fr_torch.runtime.pipeline.detect_image`, or the device path of :mod:`fr_torch.runtime.device_pipeline`).
+
+    ``segments``: (N, 4) in working pixels (empty on error); ``size``: working (width, height),
+    (0, 0) on error; ``error``: the image's failure message or None; ``seconds``: decode + detect
+    time; ``scale``: input pixels per working pixel (>= 1); ``input_size``: the input's (width, height).
+    """
+
+    segments: np.ndarray
+    size: tuple[int, int]
+    error: str | None
+    seconds: float
+    scale: float = 1.0
+    input_size: tuple[int, int] = (0, 0)

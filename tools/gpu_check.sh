@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# The prepared GPU run (one call of the lent device, re-runnable as it is): CUDA tests, the device
+# path from JPEG bytes to results stage by stage (tools/gpu_probe.py) and `fr bench --device cuda`.
+#
+#   bash tools/gpu_check.sh OUT [PHASES]     PHASES: comma list of setup,tests,probe,cli,bench (default all)
+#
+# Inputs travel with the working tree: the kornia wheels in .whl/ (the device's image lacks kornia)
+# and data_local/gpu/ (yorkurbandb/P*/P*.jpg and yud_test.txt, copied from $FR_DATA/yorkurbandb). Each phase is
+# time-boxed; everything it writes goes to OUT (the device tool's $OUT comes back).
+set -uo pipefail
+OUT=${1:?usage: gpu_check.sh OUT [PHASES]}
+PHASES=${2:-setup,tests,probe,cli,bench}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 MPLBACKEND=Agg PYTHONPYCACHEPREFIX=/tmp/pyc
+unset PYTHONDONTWRITEBYTECODE   # the lent image sets it: every process would recompile every source
+has() { [[ ",$PHASES," == *",$1,"* ]]; }
+stamp() { echo "== $(date +%T) $*"; }
+
+if has setup; then
+  stamp setup
+  nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm --format=csv 2>&1 | tee "$OUT/nvidia-smi.txt"
+  if [ -d .whl ]; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl || exit 1
+    export PYTHONPATH=/tmp/site
+  fi
+  python3 -m pip install -q --no-index --no-deps --no-build-isolation -e . 2>&1 | tail -2
+  python3 -c "import torch, kornia, fr_torch, fr_eval; print('torch', torch.__version__, 'kornia', kornia.__version__, 'cuda', torch.cuda.is_available())"
+fi
+export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
+
+if has tests; then
+  stamp tests
+  timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_tensor_lines.py tests/test_device_pipeline.py \
+    "tests/test_estimator.py::test_cuda_equals_cpu" "tests/test_speed_paths.py::test_cuda_grid_and_estimate_equal_cpu" \
+    -k "cuda or decode or device or batch" 2>&1 \
+    | tee "$OUT/tests.txt" | tail -15
+fi
+
+if has probe; then
+  stamp probe
+  timeout ${PROBE_TIMEOUT:-300} python3 tools/gpu_probe.py --images data_local/gpu/yorkurbandb --test-list data_local/gpu/yud_test.txt \
+    --out "$OUT" --device cuda --batches ${PROBE_BATCHES:-256,1024} --stages ${PROBE_STAGES:-decode,detect,e2e,profile,accuracy,compiled} \
+    2>&1 | grep -v '^USDT' | cut -c1-600
+fi
+
+if has cli; then  # whole processes on a folder of 1,020 JPEGs (the 102 photos, 10 times)
+  stamp cli
+  rm -rf /tmp/folder && mkdir -p /tmp/folder
+  for k in 0 1 2 3 4 5 6 7 8 9; do for f in data_local/gpu/yorkurbandb/*/*.jpg; do ln -s "$PWD/$f" "/tmp/folder/${k}_$(basename "$f")"; done; done
+  for mode in --fast ""; do
+    start=$(date +%s.%N)
+    timeout 120 python3 -m fr_torch.cli calibrate --device cuda $mode --no-progress /tmp/folder/*.jpg > /tmp/calibrate.jsonl 2>/tmp/calibrate.err
+    end=$(date +%s.%N)
+    python3 -c "import json,sys; r=[json.loads(l) for l in open('/tmp/calibrate.jsonl')]; t=$end-$start; print(f'fr calibrate --device cuda ${mode:-(fR)}: {len(r)} records, ok {sum(x[\"ok\"] for x in r)}, reliable {sum(bool(x[\"reliable\"]) for x in r)}, whole process {t:.1f} s = {len(r)/t:.0f} images/s')" | tee -a "$OUT/cli.txt"
+    tail -2 /tmp/calibrate.err
+    rm -rf /tmp/batch.parquet
+    timeout 120 python3 -m fr_torch.cli batch --device cuda $mode --no-progress /tmp/folder --out /tmp/batch.parquet 2>&1 | tail -2 | tee -a "$OUT/cli.txt"
+  done
+fi
+
+if has bench; then
+  stamp bench
+  timeout ${BENCH_TIMEOUT:-200} python3 -m fr_torch.cli bench --device cuda --sections device,detectors ${BENCH_ARGS:---repeats 3} --out "$OUT/bench" \
+    --data-root data_local/gpu 2>&1 | tail -20
+fi
+stamp done
