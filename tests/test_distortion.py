@@ -78,7 +78,8 @@ def test_features_and_analytic_gradient_of_k():
     pp = torch.tensor([[320.0, 240.0], [300.0, 250.0]], dtype=torch.float64)
     long_side = torch.tensor([640.0, 640.0], dtype=torch.float64)
     features = SegmentFeatures.from_endpoints(endpoints, mask, pp, long_side)
-    geometry = SegmentGeometry(endpoints, mask, pp, torch.tensor([400.0, 400.0], dtype=torch.float64), long_side)
+    geometry = SegmentGeometry(endpoints, mask, pp, torch.tensor([400.0, 400.0], dtype=torch.float64), long_side,
+                               k_prior_weight=2.0)
     at_zero = geometry.features(torch.zeros(batch, 1, dtype=torch.float64))
     assert torch.allclose(at_zero.line_along, features.line_along, atol=1e-9)
     assert torch.equal(at_zero.weight, features.weight)
@@ -92,6 +93,7 @@ def test_features_and_analytic_gradient_of_k():
     virtual = geometry.features(params[..., DISTORTION])
     rows = params[..., :DISTORTION].reshape(batch * starts, 1, DISTORTION)
     value = likelihood.objective(virtual, rotations(rows), rows[..., FOCAL]).view(batch, starts)
+    value = value + geometry.k_log_prior(params[..., DISTORTION])[0]
     (grad_out * value).sum().backward()
     assert torch.allclose(value, objective, atol=1e-9)
     assert torch.allclose(u_auto.grad, grad, atol=1e-8)

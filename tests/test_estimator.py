@@ -5,7 +5,7 @@ import torch
 
 from fr_torch import FREstimator
 from fr_torch.core.camera import focal_from_hfov, horizon_angles, rotation_from_angles
-from fr_torch.core.cues import focal_conditioning
+from fr_torch.core.cues import LINE_BEND_CUES, focal_conditioning
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
 
@@ -38,7 +38,7 @@ def test_recovers_synthetic_cameras(scenes, mode):
         assert result.labels.shape == (result.num_segments,)
         assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood",
                                     "focal_conditioning", "focal_prior_share", "focal_spread"} | (
-                                        {"focal_profile_gap"} if mode == "fr" else set())
+                                        {"focal_profile_gap"} if mode == "fr" else set()) | set(LINE_BEND_CUES)
         if mode == "fr":  # the segments single out the estimate's focal length: by hundreds of nats
             assert result.cues["focal_profile_gap"] > 100.0
         assert 0.0 <= result.cues["focal_prior_share"] < 0.2  # well-constrained views: the segments set f

@@ -2,19 +2,21 @@
 
     python -m fr_eval.protocols.distortion_eval run --datasets zind-fr-d,yud-crop-480x360-d --split test \\
         --methods "fr,fr[distortion=division],fast-fr[distortion=division],fr[distortion=auto]"
-    python -m fr_eval.protocols.distortion_eval table --out results/distortion
+    python -m fr_eval.protocols.distortion_eval report --out results/distortion
 
 ``run`` calibrates every image of each dataset with each method (batches of ``--batch-size``) and
 caches one CSV per (dataset, split, method) under ``$FR_CACHE/distortion`` (a method already
 cached is skipped: the command resumes).  Per image: focal / roll / tilt errors
 (:func:`fr_eval.scoring.metrics.image_errors`), the true and estimated k and their border bows
 (:func:`fr_torch.core.distortion.border_bow_percent`, % of the width), ``reliable`` and its reason,
-and the "lines bend" cue.  ``table`` writes ``results/distortion/README.md``'s tables from the cache
-and the figure of estimated against true k.
+and the "lines bend" cues.  ``table`` prints a summary of cached runs; ``report`` writes
+``results/distortion/tables.md`` (the tables of ``results/distortion/README.md``, the issue's
+targets) and the figure of estimated against true k from the cache.
 
 Method specs: ``fr`` / ``fast-fr`` with options ``distortion=pinhole|division|auto``, ``k=K`` (known)
 and any :class:`fr_torch.core.config.SearchConfig` field of the distortion search
-(``distortion_grid_points``, ``distortion_grid_segments``, ``grid_passes``, ...) for screening on
+(``distortion_grid_size``, ``distortion_lattice``, ``grid_passes``, ...; ``distortion_grid_k`` as
+K1:K2:...) for screening on
 the train splits.
 """
 from __future__ import annotations
@@ -64,6 +66,8 @@ def make_estimator(spec: str) -> FREstimator:
 
 
 def _number_or_text(value: str):
+    if ":" in value:  # a tuple of numbers, K1:K2
+        return tuple(float(v) for v in value.split(":") if v)
     for kind in (int, float):
         try:
             return kind(value)
@@ -131,6 +135,148 @@ def summary(frame: pd.DataFrame) -> dict:
     return out
 
 
+#: The report's methods (rows) and columns: (dataset, split, label).
+REPORT_METHODS = (("fr", "fR, pinhole"), ("fr[distortion=division]", "fR + division"),
+                  ("fast-fr[distortion=division]", "Fast-fR + division"), ("fr[distortion=auto]", "fR, auto"))
+REPORT_COLUMNS = (("zind-fr-d", "test", "ZInD-fR-D test"), ("yud-crop-480x360-d", "test", "YUD-D 480x360 test"),
+                  ("zind-fr", "test", "ZInD-fR test"), ("yud-crop-480x360", "test", "YUD crop 480x360 test"),
+                  ("yud", "test", "YUD test"), ("nyu-vp", "val", "NYU-VP val"))
+#: Each distorted set and the same views undistorted (the focal target's yardstick).
+SAME_VIEWS = {"zind-fr-d": "zind-fr", "yud-crop-480x360-d": "yud-crop-480x360"}
+#: A photo is visibly distorted from this border bow (% of the width; ``k`` = -0.058 in 4:3).
+VISIBLE_BOW_PCT = 1.0
+BEND_REASON = "the lines bend"
+
+
+def _frame(dataset: str, split: str, spec: str) -> pd.DataFrame | None:
+    path = cache_file(dataset, split, spec)
+    return pd.read_csv(path) if path.is_file() else None
+
+
+def _cell(value: tuple[float, float, int], decimals: int = 2) -> str:
+    mean, se, n = value
+    return "n/a" if not n else f"{mean:.{decimals}f} ± {se:.{decimals}f}"
+
+
+def native_k(split: str = "train") -> float:
+    """The YUD camera's own k at the 480x360 crops: the median division estimate on the undistorted
+    crops of ``split`` (YUD is calibrated without distortion; its lens has a little barrel)."""
+    frame = _frame("yud-crop-480x360", split, "fr[distortion=division]")
+    return float(np.nanmedian(frame["k_est"])) if frame is not None else math.nan
+
+
+def report(out: Path) -> str:
+    """``results/distortion/README.md``'s tables (returned and written to ``out``) and the figure
+    ``k_true_vs_estimated.png`` from the cache of :func:`run_method`."""
+    frames = {(d, spec): _frame(d, split, spec) for d, split, _ in REPORT_COLUMNS for spec, _ in REPORT_METHODS}
+    summaries = {key: summary(frame) for key, frame in frames.items() if frame is not None}
+    header = "| method | " + " | ".join(label for _, _, label in REPORT_COLUMNS) + " |"
+    rule = "|---|" + "---|" * len(REPORT_COLUMNS)
+    lines = []
+    for metric, title in (("focal_err_pct", "Focal length: mean absolute error, % of the true focal length"),
+                          ("roll_err_deg", "Roll: mean absolute error, degrees"),
+                          ("tilt_err_deg", "Tilt: mean absolute error, degrees")):
+        lines += [f"### {title}", "", header, rule]
+        for spec, label in REPORT_METHODS:
+            cells = [_cell(summaries[(d, spec)][metric]) if (d, spec) in summaries else "not run"
+                     for d, _, _ in REPORT_COLUMNS]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        lines.append("")
+    offset = native_k()
+    lines += ["### Radial distortion k (division model, normalised by half the diagonal)", "",
+              "Median absolute error of k, and of the border bow it implies (% of the width); YUD-D also "
+              f"against the warp's k plus the YUD lens's own k ({offset:+.4f}, the median division estimate on "
+              "the undistorted YUD crops of the *train* split).", "",
+              "| method | ZInD-fR-D: k | ZInD-fR-D: bow (%) | YUD-D: k vs warp | YUD-D: k vs warp + lens | "
+              "YUD-D: bow (%) |", "|---|---|---|---|---|---|"]
+    for spec, label in REPORT_METHODS[1:]:
+        zind, yud = frames.get(("zind-fr-d", spec)), frames.get(("yud-crop-480x360-d", spec))
+        if zind is None or yud is None:
+            lines.append(f"| {label} | not run | | | | |")
+            continue
+        lens_err = (yud["k_est"] - yud["k_true"] - offset).abs()
+        lines.append(f"| {label} | {np.nanmedian(zind['k_err']):.4f} | {np.nanmedian(zind['bow_err_pct']):.3f} | "
+                     f"{np.nanmedian(yud['k_err']):.4f} | {np.nanmedian(lens_err):.4f} | "
+                     f"{np.nanmedian(yud['bow_err_pct']):.3f} |")
+    lines += ["", "### Can the pinhole estimates be trusted?", "",
+              f"fR, pinhole: estimates flagged `reliable` among the visibly distorted photos (border bow >= "
+              f"{VISIBLE_BOW_PCT:g} % of the width), and the share of photos whose estimate the lines-bend check "
+              "marks unreliable (on the undistorted sets: its false positives). fR, auto: share of photos searched "
+              "with the division model.", "",
+              "| | " + " | ".join(label for _, _, label in REPORT_COLUMNS) + " |", rule]
+    pinhole = [frames.get((d, "fr")) for d, _, _ in REPORT_COLUMNS]
+    auto = [frames.get((d, "fr[distortion=auto]")) for d, _, _ in REPORT_COLUMNS]
+    visible = ["n/a" if f is None or d not in SAME_VIEWS else
+               f"{int((f['reliable'] & (f['bow_true_pct'] >= VISIBLE_BOW_PCT)).sum())} of "
+               f"{int((f['bow_true_pct'] >= VISIBLE_BOW_PCT).sum())}" for f, (d, _, _) in zip(pinhole, REPORT_COLUMNS)]
+    bent = ["n/a" if f is None else f"{100 * f['reason'].fillna('').str.contains(BEND_REASON).mean():.1f} %"
+            for f in pinhole]
+    chosen = ["n/a" if f is None else f"{100 * (f['model'] == 'division').mean():.1f} %" for f in auto]
+    lines += ["| pinhole `reliable` among visibly distorted | " + " | ".join(visible) + " |",
+              "| pinhole flagged \"the lines bend\" | " + " | ".join(bent) + " |",
+              "| auto: division chosen | " + " | ".join(chosen) + " |", ""]
+    lines += _targets(summaries, frames) + [""]
+    _k_figure(frames, out / "k_true_vs_estimated.png")
+    text = "\n".join(lines)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "tables.md").write_text(text + "\n")
+    return text
+
+
+def _targets(summaries: dict, frames: dict) -> list[str]:
+    """The issue's targets, each with the figures it compares."""
+    lines = ["### The issue's targets", "", "| target | figures | met |", "|---|---|---|"]
+    division = "fr[distortion=division]"
+    for bent, straight in SAME_VIEWS.items():
+        if (bent, division) not in summaries or (straight, "fr") not in summaries:
+            continue
+        d, p = summaries[(bent, division)], summaries[(straight, "fr")]
+        ratio = d["focal_err_pct"][0] / p["focal_err_pct"][0]
+        lines.append(f"| {bent}: focal MAE <= 1.25 x the same views undistorted (pinhole fR) | "
+                     f"{d['focal_err_pct'][0]:.2f} vs {p['focal_err_pct'][0]:.2f} ({ratio:.2f} x) | "
+                     f"{'yes' if ratio <= 1.25 else 'no'} |")
+        for metric in ("roll_err_deg", "tilt_err_deg"):
+            gap, se = d[metric][0] - p[metric][0], p[metric][1]
+            lines.append(f"| {bent}: {metric.split('_')[0]} within one SE of the undistorted figure | "
+                         f"{d[metric][0]:.2f} vs {p[metric][0]:.2f} ± {se:.2f} | {'yes' if gap <= se else 'no'} |")
+        lines.append(f"| {bent}: median k error <= 0.01 | {d['k_err_median']:.4f} | "
+                     f"{'yes' if d['k_err_median'] <= 0.01 else 'no'} |")
+    for straight in ("yud", "nyu-vp"):
+        if (straight, "fr") not in summaries:
+            continue
+        base = summaries[(straight, "fr")]["focal_err_pct"][0]
+        for spec in (division, "fr[distortion=auto]"):
+            if (straight, spec) in summaries:
+                value = summaries[(straight, spec)]["focal_err_pct"][0]
+                lines.append(f"| {straight}: {spec} focal MAE <= pinhole + 0.3 points | {value:.2f} vs {base:.2f} | "
+                             f"{'yes' if value <= base + 0.3 else 'no'} |")
+    return lines
+
+
+def _k_figure(frames: dict, path: Path) -> None:
+    """Estimated against true k (fR + division) on the distorted sets."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4.2))
+    for ax, (dataset, label) in zip(axes, (("zind-fr-d", "ZInD-fR-D test"), ("yud-crop-480x360-d", "YUD-D test"))):
+        for spec, name, colour in (("fr[distortion=division]", "fR + division", "C0"),
+                                   ("fast-fr[distortion=division]", "Fast-fR + division", "C1")):
+            frame = frames.get((dataset, spec))
+            if frame is not None:
+                ax.plot(frame["k_true"], frame["k_est"], ".", color=colour, alpha=0.6, label=name)
+        ax.plot([-0.45, 0.05], [-0.45, 0.05], "k-", lw=0.8)
+        ax.set(title=label, xlabel="true k (warp)", ylabel="estimated k", xlim=(-0.45, 0.05), ylim=(-0.65, 0.2))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -145,7 +291,12 @@ def main(argv=None) -> int:
     table.add_argument("--datasets", required=True)
     table.add_argument("--split", default="test")
     table.add_argument("--methods", required=True)
+    write = sub.add_parser("report", help="write the tables (tables.md) and the k figure from the cache")
+    write.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
+    if args.command == "report":
+        print(report(args.out))
+        return 0
     methods = split_specs(args.methods)
     for dataset in args.datasets.split(","):
         for spec in methods:

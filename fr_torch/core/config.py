@@ -91,14 +91,14 @@ class SearchConfig:
     ``distortion``: the lens model (:class:`~fr_torch.core.distortion.DistortionSetting`; a mode
     name or a dict is parsed on construction): pinhole (the default) or the division model's k
     estimated jointly with f and R (:mod:`fr_torch.core.search_distortion`).
-    ``distortion_grid_points``: the k values stage 1 scores (cell centres of the k range; 1 for a
-    known k), and with ``distortion_plumb_line`` also the k that straightens pieces of lines
-    (:func:`fr_torch.core.search_distortion.plumb_line`); ``distortion_grid_segments``: stage 1 at each k scores only each image's longest this
-    many segments (0 = all); ``distortion_grid_size``: the k of the k^4 angle-and-focal grid at each
-    of them (0 = ``grid_points_per_dim``); ``distortion_refine_starts``: the starts the refinement
-    takes, best first (0 = all); ``distortion_lattice``: the lattice passes step k with the other
-    parameters (``joint``, the 3^5 lattice) or on its own axis (``axis``: the 3^4 lattice at the
-    start's k, and k one step either side).
+    ``distortion_grid_k``: the values of k stage 1 scores besides (``distortion_plumb_line``) the
+    k that straightens pieces of lines (:func:`fr_torch.core.search_distortion.plumb_line`); a known
+    k replaces them all; ``distortion_grid_size``: the k of the k^4 angle-and-focal grid at each
+    (0 = ``grid_points_per_dim``); ``distortion_lattice``: the lattice passes step k on its own axis
+    (``axis``: the 3^4 lattice at the start's k, and k one step either side) or with the other
+    parameters (``joint``, the 3^5 lattice); ``distortion_k_spacing``: the k spacing the passes
+    start from (their first k step is a third of it).
+    ``results/decisions/46.md`` says how they were chosen.
 
     Invalid values raise :class:`~fr_torch.errors.FRInputError` (one line).
     """
@@ -120,20 +120,21 @@ class SearchConfig:
     max_chunk_elements: int = 1 << 27
     compile_search: bool = False
     distortion: DistortionSetting = DistortionSetting()
-    distortion_grid_points: int = 2
-    distortion_grid_segments: int = 0
+    distortion_grid_k: tuple[float, ...] = (-0.4, 0.0)
     distortion_grid_size: int = 6
-    distortion_refine_starts: int = 0
-    distortion_lattice: str = "axis"
     distortion_plumb_line: bool = True
+    distortion_lattice: str = "axis"
+    distortion_k_spacing: float = 0.4
 
     def __post_init__(self):
         object.__setattr__(self, "fov_range", FovRange.parse(self.fov_range))
         object.__setattr__(self, "distortion", DistortionSetting.parse(self.distortion))
-        if self.distortion_grid_points + self.distortion_plumb_line < 1 or min(self.distortion_grid_segments, self.distortion_grid_size,
-                                                  self.distortion_refine_starts) < 0:
-            raise FRInputError("distortion_grid_points must be >= 1, distortion_grid_segments, distortion_grid_size "
-                               "and distortion_refine_starts >= 0")
+        object.__setattr__(self, "distortion_grid_k", tuple(float(k) for k in self.distortion_grid_k))
+        if not (self.distortion_grid_k or self.distortion_plumb_line) or self.distortion_grid_size < 0 \
+                or not all(-1.0 < k < 1.0 for k in self.distortion_grid_k) \
+                or not (math.isfinite(self.distortion_k_spacing) and self.distortion_k_spacing >= 0):
+            raise FRInputError("distortion_grid_k must hold values in (-1, 1) (or distortion_plumb_line be on), "
+                               "distortion_grid_size and distortion_k_spacing must be >= 0")
         if self.distortion_lattice not in ("joint", "axis"):
             raise FRInputError(f"distortion_lattice must be joint or axis, got {self.distortion_lattice!r}")
         for key in ("pan_range_deg", "pitch_range_deg", "roll_range_deg"):

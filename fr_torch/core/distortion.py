@@ -67,7 +67,10 @@ class DistortionSetting:
     the search then holds it fixed (``mode`` becomes ``division``); None = estimate it.
     ``k_range``: the search box of k (default [-0.6, 0.2]: from no distortion to a fisheye-like
     barrel whose border lines bow by ~10 % of the width, and a mild pincushion), within
-    :data:`K_LIMITS`.  ``bend_min_gain``, ``bend_min_share``, ``bend_min_pairs``,
+    :data:`K_LIMITS`.  ``k_prior_weight`` (gamma >= 0): a prior on k, ``log p(k) = -(gamma / 2) W k^2``
+    per image (W its total segment length, pixels; nats), which holds k near 0 where the lines say
+    little about it (:meth:`fr_torch.core.search_distortion.SegmentGeometry.k_log_prior`).
+    ``bend_min_gain``, ``bend_min_share``, ``bend_min_pairs``,
     ``bend_min_bow_pct``: when the lines of a pinhole estimate bend
     (:func:`fr_torch.core.cues.lines_bend_reason`; the estimate is then not reliable, and ``auto``
     searches that image with the division model instead).  ``results/decisions/46.md`` says how they
@@ -77,9 +80,10 @@ class DistortionSetting:
     mode: DistortionMode = DistortionMode.PINHOLE
     known_k: float | None = None
     k_range: tuple[float, float] = (-0.6, 0.2)
+    k_prior_weight: float = 3.0
     bend_min_gain: float = 60.0
     bend_min_share: float = 0.15
-    bend_min_pairs: int = 5
+    bend_min_pairs: int = 8
     bend_min_bow_pct: float = 1.0
 
     def __post_init__(self) -> None:
@@ -97,7 +101,7 @@ class DistortionSetting:
             object.__setattr__(self, "known_k", k)
             if self.mode is DistortionMode.PINHOLE:
                 object.__setattr__(self, "mode", DistortionMode.DIVISION)
-        for name in ("bend_min_gain", "bend_min_share", "bend_min_pairs", "bend_min_bow_pct"):
+        for name in ("k_prior_weight", "bend_min_gain", "bend_min_share", "bend_min_pairs", "bend_min_bow_pct"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise FRInputError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -113,7 +117,7 @@ class DistortionSetting:
         if isinstance(value, (str, DistortionMode)):
             return cls(mode=value)
         if isinstance(value, dict):
-            unknown = sorted(set(value) - {"mode", "known_k", "k_range", "bend_min_gain", "bend_min_share",
+            unknown = sorted(set(value) - {"mode", "known_k", "k_range", "k_prior_weight", "bend_min_gain", "bend_min_share",
                                            "bend_min_pairs", "bend_min_bow_pct"})
             if unknown:
                 raise FRInputError(f"distortion setting: unknown field(s) {', '.join(unknown)}")

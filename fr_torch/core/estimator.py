@@ -424,7 +424,8 @@ class SegmentEstimator:
 
         t0 = time.perf_counter()
         long_side = torch.maximum(width, height)  # the FOV range is on the long side (portrait = landscape)
-        geometry = SegmentGeometry.from_features(features, batch.endpoints, batch.image_size)
+        geometry = SegmentGeometry.from_features(features, batch.endpoints, batch.image_size,
+                                                 setting.k_prior_weight if lens == "division" else 0.0)
         k_estimate = None  # (B,) k of the division estimates
         if lens == "division":
             found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal,

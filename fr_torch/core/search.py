@@ -447,7 +447,8 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
             batch, n_hyp = params.shape[:2]
             virtual = geometry.features(params[..., DISTORTION])
             flat = params[..., :DISTORTION].reshape(batch * n_hyp, 1, DISTORTION)
-            return params, likelihood.objective(virtual, rotations(flat), flat[..., FOCAL]).view(batch, n_hyp)
+            value = likelihood.objective(virtual, rotations(flat), flat[..., FOCAL]).view(batch, n_hyp)
+            return params, value + geometry.k_log_prior(params[..., DISTORTION])[0]
         rotation = rotations(params)
         return params, likelihood.objective(features, rotation, params[..., FOCAL])
 
@@ -537,6 +538,10 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
                                                         flat)
         grad_v = grad_flat.view(batch, n_hyp, 3, 3)  # (B, L, coord, VP)
         grad_k = (grad_line_along * d_line_along).sum((-1, -2)).view(batch, n_hyp)
+        if geometry.k_prior_weight:  # the prior on k (SegmentGeometry.k_log_prior)
+            k_prior, d_k_prior = geometry.k_log_prior(params[..., DISTORTION])
+            objective = objective + k_prior
+            grad_k = grad_k + grad_out * d_k_prior
     grad_f = (grad_v[..., :2, :] * rotation[..., :2, :]).sum((-1, -2))
     if likelihood.params.focal_prior_weight:  # the focal prior of MixtureLikelihood.objective
         if geometry is None:

@@ -9,21 +9,24 @@ machinery of :mod:`fr_torch.core.search` unchanged.
 
 The stages (the pinhole search's, with k added):
 
-1. **Grid over k** (:func:`grid_over_k`): the k^4 grid at ``SearchConfig.distortion_grid_points``
-   values of k (cell centres of the k range), on each image's longest
-   ``distortion_grid_segments`` segments; the ``top_l`` best of all (k, grid point) pairs start.
+1. **Grid over k** (:func:`grid_over_k`): the k^4 angle-and-focal grid
+   (``SearchConfig.distortion_grid_size`` per dimension) at the plumb-line k (:func:`plumb_line`:
+   the k that straightens pieces of lines, independent of f and R) and at the values of
+   ``distortion_grid_k``; the ``top_l`` best of all (k, grid point) pairs start.
 2. **Focal sweep** (:func:`sweep_focal_rows`): each start's focal ridge at its k
    (:func:`fr_torch.core.search.sweep_focal`).
-3. **Lattice passes** (:func:`subdivide_rows`): the 3^5 lattice around each start, k included
-   (its step: a third of the stage-1 k spacing, then a third of that ...).
+3. **Lattice passes** (:func:`subdivide_rows`): the 3^4 lattice around each start at its k and k
+   one step either side (``distortion_lattice="axis"``; or the 3^5 lattice, ``"joint"``); the k step
+   a third of ``distortion_k_spacing``, then a third of that.
 4. **Refinement**: Adam on the five box-normalised parameters
    (:func:`fr_torch.core.search.refine` with the geometry: the analytic gradient of measure b
    extends to k through d line / dk).
 
-:func:`bend_test` asks whether a pinhole estimate's lines bend: lattice passes from it with k free,
-and their gain in nats per 1000 px of segment length (:func:`likelihood_gain`): the "lines bend"
-sanity check of pinhole estimates and the criterion by which ``auto`` runs this search on an image
-(:class:`fr_torch.core.distortion.DistortionSetting`).
+:func:`bend_test` asks whether a pinhole estimate's lines bend: the plumb line, and a short
+division search from the estimate (at the plumb-line k: the focal sweep and lattice passes) with
+its gain in nats per 1000 px of segment length (:func:`likelihood_gain`); the "lines bend" sanity
+check of pinhole estimates (:func:`fr_torch.core.cues.lines_bend_reason`) and the criterion by which
+``auto`` runs this search on an image.
 """
 from __future__ import annotations
 
@@ -60,7 +63,9 @@ class SegmentGeometry:
     ``long_side`` (B,).  Under a hypothesis k each endpoint is undistorted
     (:func:`undistort_points`) and the likelihood's line features are those of the undistorted
     segment; its **weight stays the photo's segment length**, so the objectives of different k
-    weigh the same evidence alike.
+    weigh the same evidence alike.  ``k_prior_weight`` (gamma >= 0): the prior on k that every
+    hypothesis' objective carries, ``log p(k) = -(gamma / 2) W k^2`` with W the image's total segment
+    length (:meth:`k_log_prior`; per unit of evidence, like the focal prior).
     """
 
     endpoints: torch.Tensor
@@ -68,14 +73,24 @@ class SegmentGeometry:
     centre: torch.Tensor
     radius: torch.Tensor
     long_side: torch.Tensor
+    k_prior_weight: float = 0.0
 
     @classmethod
-    def from_features(cls, features: SegmentFeatures, endpoints: torch.Tensor, image_size: torch.Tensor):
+    def from_features(cls, features: SegmentFeatures, endpoints: torch.Tensor, image_size: torch.Tensor,
+                      k_prior_weight: float = 0.0):
         """The geometry of the segments behind ``features`` (their endpoints (B, N, 4) and the
         images' (B, 2) [width, height] pixels)."""
         size = image_size.to(endpoints)
         return cls(endpoints, features.mask, features.principal_point, normalising_radius(size[:, 0], size[:, 1]),
-                   features.long_side)
+                   features.long_side, k_prior_weight)
+
+    def k_log_prior(self, k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The log prior on k (class docstring) and its derivative d/dk for ``k`` (B, G): two (B, G)
+        tensors in ``k``'s dtype (zeros without a prior)."""
+        if not self.k_prior_weight:
+            return torch.zeros_like(k), torch.zeros_like(k)
+        slope = -self.k_prior_weight * self.weight.sum(-1).to(k)[:, None] * k
+        return 0.5 * slope * k, slope
 
     @property
     def weight(self) -> torch.Tensor:
@@ -149,12 +164,7 @@ class SegmentGeometry:
     def images(self, start: int, stop: int) -> "SegmentGeometry":
         """Images ``start:stop`` (views)."""
         return SegmentGeometry(self.endpoints[start:stop], self.mask[start:stop], self.centre[start:stop],
-                               self.radius[start:stop], self.long_side[start:stop])
-
-    def take_images(self, index: torch.Tensor) -> "SegmentGeometry":
-        """Images ``index`` (M,) of the batch, repeats allowed (copies)."""
-        return SegmentGeometry(*(x.index_select(0, index) for x in
-                                 (self.endpoints, self.mask, self.centre, self.radius, self.long_side)))
+                               self.radius[start:stop], self.long_side[start:stop], self.k_prior_weight)
 
 
 
@@ -175,7 +185,7 @@ TURN_CAP_DEG = 3.0
 PLUMB_K_STEP = 0.01
 #: Images whose pairs are found together (each costs CHAIN_SEGMENTS^2 pair tests).
 PLUMB_CHUNK_IMAGES = 16
-#: The lattice passes' k spacing when stage 1 tries the plumb-line k alone (first step +-0.1).
+#: The k spacing of :func:`bend_test`'s lattice passes (first step +-0.1).
 PLUMB_K_SPACING = 0.3
 
 
@@ -276,31 +286,23 @@ def angle_grid_config(config: SearchConfig) -> SearchConfig:
 
 def k_values(config: SearchConfig, geometry: SegmentGeometry) -> torch.Tensor:
     """The stage-1 values of k per image, (B, K) float64: the known k; else the plumb-line k
-    (:func:`plumb_line`, with ``distortion_plumb_line``) and the cell centres of the k range
-    (``distortion_grid_points`` cells)."""
+    (:func:`plumb_line`, with ``distortion_plumb_line``) and ``distortion_grid_k``, clamped into the
+    k range."""
     setting = config.distortion
     batch = geometry.endpoints.shape[0]
     if setting.known_k is not None:
         return torch.full((batch, 1), setting.known_k, dtype=torch.float64)
     low, high = setting.k_range
-    count = config.distortion_grid_points
-    values = [(low + (torch.arange(count, dtype=torch.float64) + 0.5) * (high - low) / count).expand(batch, count)]
+    values = [torch.tensor(config.distortion_grid_k, dtype=torch.float64).expand(batch, -1)]
     if config.distortion_plumb_line:
         values.insert(0, plumb_line(geometry, setting.k_range).k.cpu()[:, None])
-    return torch.cat(values, 1)
+    return torch.cat(values, 1).clamp(low, high)
 
 
 def k_step(config: SearchConfig) -> float:
-    """The spacing of k the lattice passes start from (their first k step is a third of it; 0 for
-    a known k): the stage-1 spacing, or :data:`PLUMB_K_SPACING` when stage 1 has only the
-    plumb-line k."""
-    setting = config.distortion
-    if setting.known_k is not None:
-        return 0.0
-    if not config.distortion_grid_points:
-        return PLUMB_K_SPACING
-    low, high = setting.k_range
-    return (high - low) / config.distortion_grid_points
+    """The spacing of k the lattice passes start from (their first k step is a third of it):
+    ``distortion_k_spacing``, 0 for a known k."""
+    return 0.0 if config.distortion.known_k is not None else config.distortion_k_spacing
 
 
 def parameter_box_k(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None):
@@ -322,9 +324,12 @@ def score_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, rows: t
     """Objectives of rows (B, G, P, 5) whose P hypotheses of each group share k (that of the group's
     first row): one virtual image per (image, group).  Returns (B, G * P) in ``rows``' order."""
     batch, groups, points = rows.shape[:3]
-    features = geometry.features(rows[:, :, 0, DISTORTION])
+    k = rows[:, :, 0, DISTORTION]
+    features = geometry.features(k)
     hypotheses = rows[..., :DISTORTION].reshape(batch * groups, points, DISTORTION)
-    scores = score_grid(likelihood, features, hypotheses, max_chunk_elements, vertical_block)
+    scores = score_grid(likelihood, features, hypotheses, max_chunk_elements, vertical_block).view(batch, groups, points)
+    if geometry.k_prior_weight:
+        scores = scores + geometry.k_log_prior(k.to(scores.device, scores.dtype))[0][..., None]
     return scores.view(batch, groups * points)
 
 
@@ -338,20 +343,22 @@ def grid_over_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, config
     ks = k_values(config, geometry).to(geometry.endpoints.device)
     batch, count = ks.shape
     features = geometry.features(ks)  # B * K virtual images
-    grid_features = features.longest(config.distortion_grid_segments) if config.distortion_grid_segments else features
     device = geometry.endpoints.device
     long_rep = long_side.repeat_interleave(count).to(device)
     focal_rep = None if known_focal is None else known_focal.repeat_interleave(count).to(device)
     grid_config = angle_grid_config(config)
     hypotheses = grid_hypotheses(grid_config, long_rep, focal_rep)  # (B * K, G, 4)
-    scores = score_grid(likelihood, grid_features, hypotheses, config.max_chunk_elements,
+    scores = score_grid(likelihood, features, hypotheses, config.max_chunk_elements,
                         vertical_block=grid_config.grid_points_per_dim)
     n_grid = hypotheses.shape[1]
+    if geometry.k_prior_weight:
+        prior = geometry.k_log_prior(ks.to(scores))[0]  # (B, K)
+        scores = (scores.view(batch, count, n_grid) + prior[..., None]).view(batch * count, n_grid)
     rows = with_k(hypotheses.view(batch, count, n_grid, 4), ks.view(batch, count, 1))
     starts, top = select_starts(config, scores.view(batch, count * n_grid), rows.view(batch, count * n_grid, 5))
     best_k = torch.argmin((starts[:, 0, DISTORTION, None] - ks.to(starts)).abs(), -1)  # (B,)
     rows_index = torch.arange(batch, device=device) * count + best_k.to(device)
-    return starts, top, scores[rows_index], grid_features.mask.sum(-1)[rows_index]
+    return starts, top, scores[rows_index], features.mask.sum(-1)[rows_index]
 
 
 def sweep_focal_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, starts: torch.Tensor,
@@ -361,12 +368,13 @@ def sweep_focal_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, s
     batch, n_start = starts.shape[:2]
     features = geometry.features(starts[..., DISTORTION])
     lower4, upper4 = (x[:, :DISTORTION].repeat_interleave(n_start, 0) for x in (lower, upper))
+    prior = geometry.k_log_prior(starts[..., DISTORTION].to(scores))[0]  # the same k all along a start's ridge
     swept, swept_scores = sweep_focal(likelihood, features, starts[..., :DISTORTION].reshape(-1, 1, DISTORTION),
-                                      scores.reshape(-1, 1), config, lower4, upper4)
+                                      (scores - prior).reshape(-1, 1), config, lower4, upper4)
     if swept.shape[1] == 1:  # no sweep (a known focal length, or none configured)
         return starts, scores
     rows = with_k(swept.view(batch, n_start, 2, DISTORTION), starts[..., DISTORTION, None].to(swept))
-    swept_scores = swept_scores.view(batch, n_start, 2)
+    swept_scores = swept_scores.view(batch, n_start, 2) + prior[..., None].to(swept_scores)
     return (torch.cat([rows[:, :, 0], rows[:, :, 1]], 1).to(starts),
             torch.cat([swept_scores[:, :, 0], swept_scores[:, :, 1]], 1))
 
@@ -382,7 +390,7 @@ def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, sta
                    k_spacing: float | None = None):
     """:func:`fr_torch.core.search.subdivide_starts` in five dimensions: ``config.grid_passes`` passes
     of the 3^5 lattice :data:`LATTICE_K` around each start (B, L, 5) (k's step: a third of
-    ``k_spacing``, default the stage-1 k spacing :func:`k_step`, then a third of that; a known k
+    ``k_spacing``, default :func:`k_step`, then a third of that; a known k
     stays fixed), keeping the best point.  Returns (starts, scores) of the same shapes; every score
     is >= its input."""
     if config.grid_passes == 0:
@@ -451,10 +459,6 @@ def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, feat
     starts, top_scores = sweep_focal_rows(likelihood, geometry, starts, top_scores, config, lower, upper)
     starts, top_scores = subdivide_rows(likelihood, geometry, starts, top_scores, config, lower, upper)
     grid_seconds = time.perf_counter() - t0
-    if config.distortion_refine_starts:  # the best ones only
-        order = top_scores.argsort(1, descending=True)[:, :config.distortion_refine_starts]
-        starts = torch.gather(starts, 1, order[..., None].expand(-1, -1, starts.shape[-1]))
-        top_scores = torch.gather(top_scores, 1, order)
     refined, refined_scores = refine(likelihood, features, starts, lower, upper, iterations, fast=fast,
                                      tolerance=config.refine_tolerance, patience=config.refine_patience,
                                      periodic_pan=config.periodic_pan, geometry=geometry)
