@@ -209,7 +209,7 @@ def report(out: Path) -> str:
     visible = ["n/a" if f is None or d not in SAME_VIEWS else
                f"{int((f['reliable'] & (f['bow_true_pct'] >= VISIBLE_BOW_PCT)).sum())} of "
                f"{int((f['bow_true_pct'] >= VISIBLE_BOW_PCT).sum())}" for f, (d, _, _) in zip(pinhole, REPORT_COLUMNS)]
-    bent = ["n/a" if f is None else f"{100 * f['reason'].fillna('').str.contains(BEND_REASON).mean():.1f} %"
+    bent = ["n/a" if f is None else f"{100 * f['reason'].astype(object).fillna('').str.contains(BEND_REASON).mean():.1f} %"
             for f in pinhole]
     chosen = ["n/a" if f is None else f"{100 * (f['model'] == 'division').mean():.1f} %" for f in auto]
     lines += ["| pinhole `reliable` among visibly distorted | " + " | ".join(visible) + " |",
