@@ -27,7 +27,8 @@ reasoning of the paper is not needed for calibration):
    of its supporting segments (the VPs re-fitted to their assigned lines; this refinement is our
    addition for accuracy, the sweep alone is quantised).
 
-Output: focal (pixels), R (vertical in column 1) and the derived roll / tilt / pitch / pan.
+Output: focal (pixels), R (vertical in column 1) and the derived roll / tilt / pitch / pan; the
+three vanishing points ranked by their supporting segments (``ranked_vanishing_points``).
 Failures (flagged, never raised): unusable input, fewer than ``min_segments`` segments, no
 vertical VP, or no horizontal VP with at least ``min_support`` segments.
 """
@@ -106,8 +107,9 @@ class Lee2009(TimedCalibrator):
         horizontal_support = sorted((int(support[0]), int(support[2])), reverse=True)
         if horizontal_support[0] < self.min_support:
             return CameraEstimate.failure(self.name, "no horizontal vanishing point with enough support")
-        return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation), score=float(score),
-                                  support=[int(s) for s in support])
+        camera = Camera(width, height, focal, pp, rotation)
+        return vg.camera_estimate(self.name, camera, score=float(score), support=[int(s) for s in support],
+                                  ranked_vanishing_points=vg.rank_by_support(camera.vanishing_points, support))
 
     def _sweep(self, segments, lengths, zvp, vertical_inliers, pp, width, height):
         """Best (focal, R, score) over the focal sweep and the line-proposed horizontal VPs."""

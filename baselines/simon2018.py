@@ -35,7 +35,8 @@ AGPL; nothing is copied from it).  Steps:
 horizontal family) the method has no focal length and therefore no tilt (tilt needs f), so the
 estimate is a *flagged failure* (``ok=False``, reason "no orthogonal pair of finite horizontal
 VPs"); the roll, which the zenith alone determines, and the detected VPs are kept in ``extra``
-(``extra["roll_deg"]``, ``extra["zenith"]``, ``extra["hvps"]``).  The tables therefore count the
+(``extra["roll_deg"]``, ``extra["zenith"]``, ``extra["hvps"]``).  Every estimate that found a zenith,
+failed or not, ranks it and the hVPs by their supporting segments (``ranked_vanishing_points``).  The tables therefore count the
 share of images with a valid (focal + rotation) result, as the brief requires.  Bad input, too few
 segments and no zenith are flagged failures too.
 
@@ -194,8 +195,10 @@ class Simon2018(TimedCalibrator):
         best = max(scored, key=lambda c: c[0]) if scored else None
         roll = vg.roll_from_zenith(zvp, pp)
         extra = {"zenith": zvp.tolist(), "roll_deg": roll}
+        zenith_support = int(vertical.sum())
         if best is None:
-            return self._failure("no horizontal vanishing point on any horizon candidate", extra)
+            return self._failure("no horizontal vanishing point on any horizon candidate", extra,
+                                 vg.rank_by_support([zvp], [zenith_support]))
         # Second pass on the horizon through the most significant finite hVPs.
         score, offset, hvps = best
         finite = [v for v in hvps if vg.is_finite_vp(v["vp"], pp, self.finite_limit * diag)]
@@ -207,16 +210,20 @@ class Simon2018(TimedCalibrator):
                 offset, hvps = new_offset, again
         extra["horizon_offset_px"] = offset
         extra["hvps"] = [v["vp"].tolist() for v in hvps]
-        pair = self._orthogonal_pair(hvps, zvp, pp, diag, width, height)
+        ranked = vg.rank_by_support([zvp] + [v["vp"] for v in hvps], [zenith_support] + [v["support"] for v in hvps])
+        pair = vg.orthogonal_pair(hvps, zvp, pp, diag, self._focal_range(width, height), self.finite_limit,
+                                  self.zenith_tol_deg)
         if pair is None:
-            return self._failure("no orthogonal pair of finite horizontal VPs", extra)
+            return self._failure("no orthogonal pair of finite horizontal VPs", extra, ranked)
         focal, vi, vj = pair
         rotation = vg.rotation_from_vps(zvp, vi["vp"], focal, pp, vj["vp"])
-        return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation), **extra)
+        return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation),
+                                  ranked_vanishing_points=ranked, **extra)
 
-    def _failure(self, reason: str, extra: dict) -> CameraEstimate:
+    def _failure(self, reason: str, extra: dict, ranked: np.ndarray | None = None) -> CameraEstimate:
         est = CameraEstimate.failure(self.name, reason)
         est.extra.update(extra)
+        est.ranked_vanishing_points = ranked
         return est
 
     # ------------------------------------------------------------------ horizon candidates
@@ -299,26 +306,3 @@ class Simon2018(TimedCalibrator):
             out.append({"vp": vp, "significance": -log10_nfa, "support": support})
         return out or None
 
-    # ------------------------------------------------------------------ focal
-    def _orthogonal_pair(self, hvps, zvp, pp, diag, width, height):
-        f_lo, f_hi = self._focal_range(width, height)
-        zenith_finite = vg.is_finite_vp(zvp, pp, 1e6 * diag)
-        best = None
-        for i in range(len(hvps)):
-            for j in range(i + 1, len(hvps)):
-                vi, vj = hvps[i], hvps[j]
-                if not (vg.is_finite_vp(vi["vp"], pp, self.finite_limit * diag)
-                        and vg.is_finite_vp(vj["vp"], pp, self.finite_limit * diag)):
-                    continue
-                f = vg.focal_from_orthogonal_vps(vi["vp"], vj["vp"], pp)
-                if f is None or not (0.5 * f_lo <= f <= 2.0 * f_hi):
-                    continue
-                if zenith_finite:
-                    dz = vg.direction_from_vp(zvp, f, pp)
-                    tol = math.sin(math.radians(self.zenith_tol_deg))
-                    if any(abs(dz @ vg.direction_from_vp(v["vp"], f, pp)) > tol for v in (vi, vj)):
-                        continue
-                score = vi["significance"] + vj["significance"]
-                if best is None or score > best[0]:
-                    best = (score, f, vi, vj)
-        return None if best is None else best[1:]

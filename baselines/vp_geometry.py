@@ -232,9 +232,70 @@ def rotation_from_vps(vertical_vp: np.ndarray, horizontal_vp: np.ndarray, focal_
     return rotation_from_directions(dv, dh, dh2)
 
 
-def camera_estimate(method: str, camera: Camera, runtime_s: float = float("nan"), **extra) -> CameraEstimate:
-    """A successful CameraEstimate of ``camera``: every angle and the hfov derived by the Camera."""
-    return CameraEstimate(method=method, camera=camera, runtime_s=runtime_s, extra=dict(extra))
+def rank_by_support(points, support) -> np.ndarray:
+    """Homogeneous VPs (M, 3) signed so that ``w >= 0``, sorted by ``support`` (M,), largest first
+    (ties keep the given order): a method's ``ranked_vanishing_points``."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    points = points * np.where(points[:, 2:] < 0, -1.0, 1.0)
+    order = np.argsort(-np.asarray(support, dtype=np.float64).reshape(-1), kind="stable")
+    return points[order]
+
+
+def pick_zenith(points: np.ndarray, pp: np.ndarray, max_angle_deg: float, min_distance_px: float) -> int | None:
+    """Index of the first of ranked VPs (M, 3) that can be the zenith: seen from the principal
+    point within ``max_angle_deg`` of the image vertical, and at infinity or farther than
+    ``min_distance_px`` from it; None when none is."""
+    cos_limit = math.cos(math.radians(max_angle_deg))
+    for i, vp in enumerate(np.asarray(points, dtype=np.float64).reshape(-1, 3)):
+        offset = vp[:2] - pp * vp[2]
+        norm = float(np.linalg.norm(offset))
+        if norm < EPS or abs(offset[1]) < cos_limit * norm:
+            continue
+        if abs(vp[2]) > EPS and norm / abs(vp[2]) <= min_distance_px:
+            continue
+        return i
+    return None
+
+
+def orthogonal_pair(hvps: list[dict], zvp: np.ndarray, pp: np.ndarray, diag: float,
+                    focal_bounds: tuple[float, float], finite_limit: float, zenith_tol_deg: float):
+    """The focal length from the best pair of horizontal VPs: ``(f, vp_i, vp_j)`` or None.
+
+    ``hvps``: candidates ``{"vp": (3,) homogeneous pixels, "significance": score}``.  A pair counts
+    when both VPs lie within ``finite_limit * diag`` of the principal point, their orthogonality
+    gives ``f^2 = -(v_i - p) . (v_j - p) > 0`` with f within half the lower and twice the upper of
+    ``focal_bounds`` (pixels), and, when the zenith ``zvp`` is finite, both directions are within
+    ``zenith_tol_deg`` of perpendicular to it under that f.  The pair with the largest summed
+    significance wins (Simon 2018's rule; CONSAC's f uses it too).
+    """
+    f_lo, f_hi = focal_bounds
+    zenith_finite = is_finite_vp(zvp, pp, 1e6 * diag)
+    tol = math.sin(math.radians(zenith_tol_deg))
+    best = None
+    for i in range(len(hvps)):
+        for j in range(i + 1, len(hvps)):
+            vi, vj = hvps[i], hvps[j]
+            if not (is_finite_vp(vi["vp"], pp, finite_limit * diag) and is_finite_vp(vj["vp"], pp, finite_limit * diag)):
+                continue
+            f = focal_from_orthogonal_vps(vi["vp"], vj["vp"], pp)
+            if f is None or not (0.5 * f_lo <= f <= 2.0 * f_hi):
+                continue
+            if zenith_finite:
+                dz = direction_from_vp(zvp, f, pp)
+                if any(abs(dz @ direction_from_vp(v["vp"], f, pp)) > tol for v in (vi, vj)):
+                    continue
+            score = vi["significance"] + vj["significance"]
+            if best is None or score > best[0]:
+                best = (score, f, vi, vj)
+    return None if best is None else best[1:]
+
+
+def camera_estimate(method: str, camera: Camera, runtime_s: float = float("nan"),
+                    ranked_vanishing_points: np.ndarray | None = None, **extra) -> CameraEstimate:
+    """A successful CameraEstimate of ``camera``: every angle and the hfov derived by the Camera;
+    ``ranked_vanishing_points`` (M, 3) as :func:`rank_by_support` gives them."""
+    return CameraEstimate(method=method, camera=camera, runtime_s=runtime_s, extra=dict(extra),
+                          ranked_vanishing_points=ranked_vanishing_points)
 
 
 def roll_from_zenith(zenith_vp: np.ndarray, pp: np.ndarray) -> float:

@@ -5,7 +5,8 @@ Each is registered in ``pyproject.toml`` under the ``fr_torch.commands`` entry-p
 provides ``add_arguments(parser)`` and ``run(args) -> int``.  This module stays light: ``fr`` reads
 it to list the commands and imports the command's module only when it runs.
 """
-EVAL = ("fr_eval.protocols.run_eval", "evaluate methods on a dataset and write tables and figures")
+EVAL = ("fr_eval.protocols.eval_command", "evaluate methods on a dataset (camera or vanishing-point task): tables "
+        "and figures")
 FIT_LIKELIHOOD = ("fr_eval.protocols.fit_likelihood", "fit the deviation-measure likelihoods from labelled data")
 MAKE_DATASET = ("fr_eval.datasets.make_dataset", "cut planar views with known camera from panoramas")
 TRAIN_RELIABILITY = ("fr_eval.protocols.reliability_train", "train the error predictor (reliability model)")

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors distortion bench
+# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp distortion bench
 # (default: all, in this order: the reliability models are trained before the tables that use them).  Data root: $FR_DATA (default ../shared/data); generated views go
 # to $FR_CACHE (default data_local/).
 set -euo pipefail
@@ -10,7 +10,7 @@ FR=${FR:-.venv/bin/fr}
 CROP_SIZES=$(.venv/bin/python -c "from fr_eval.datasets.panoviews import YUD_CROP_SIZES; print(*YUD_CROP_SIZES)")
 export MPLBACKEND=${MPLBACKEND:-Agg}
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors distortion bench)
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp distortion bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
@@ -74,8 +74,27 @@ for step in "${steps[@]}"; do
            # promise's conformal scales go to configs/reliability.json (before the tables that use it)
       .venv/bin/python -m fr_eval.protocols.lodo run
       .venv/bin/python -m fr_eval.protocols.lodo table
-      .venv/bin/python -m fr_eval.protocols.lodo_reliability table
-      .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write ;;
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write
+      for rule in worst pooled; do
+        .venv/bin/python -m fr_eval.protocols.lodo_reliability table --scale-rule $rule
+        .venv/bin/python -m fr_eval.protocols.lodo_reliability table --scale-rule $rule --focal-limit 15 --tilt-limit 5
+      done
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability table --bounds knn   # issue 35's bounds, for comparison
+      .venv/bin/python -m fr_eval.protocols.lodo_reliability figure             # results/reliability/risk_coverage.png
+      # issue 45: the promise on torch-lines' segments vs LSD's, same photos (the promise's validated_detectors)
+      .venv/bin/python -m fr_eval.protocols.detector_reliability run
+      .venv/bin/python -m fr_eval.protocols.detector_reliability table ;;       # results/reliability/torch_lines.*
+    vp)  # Issue 47: vanishing points with CONSAC's metric (results/vp/); CONSAC needs its authors' weights
+         # ($FR_CONSAC_WEIGHTS or ../shared/models/consac) and takes ~3 s per photo on one thread
+      export OMP_NUM_THREADS=1 FR_THREADS=1
+      M='fr,fast-fr,fr[atlanta=on],lee2009,simon2018,consac,consac-s'
+      $FR eval --task vp --dataset nyu-vp --split val --methods "$M" --out results/vp/nyu-vp-val
+      $FR eval --task vp --dataset yud+ --split test --methods "$M,consac[seed=2]" --out results/vp/yud-plus-test
+      $FR eval --task vp --dataset yud --split test --methods "$M,consac[seed=2]" --out results/vp/yud-test
+      $FR eval --task vp --dataset nyu-vp --split val --intrinsics unknown --out results/vp/consac-seeds-nyu-vp-val \
+        --methods "consac[seed=1],consac[seed=2],consac[seed=3],consac[seed=4],consac[seed=5],consac-s[seed=1],consac-s[seed=2],consac-s[seed=3]"
+      $FR eval --dataset yud --split test --methods "fr,fast-fr,lee2009,simon2018,consac,consac-s" --out results/vp/camera-yud-test
+      $FR eval --dataset nyu-vp --split val --methods "fr,fast-fr,consac,consac-s" --out results/vp/camera-nyu-vp-val ;;
     distortion)  # Issue 46: wide-angle lenses. ZInD-fR-D (the ZInD-fR views through a division-model
                  # lens, k ~ U[-0.4, 0]) and YUD-D (the YUD 480x360 crops warped, k ~ U[-0.3, 0]) into
                  # $FR_CACHE; pinhole fR, fR / Fast-fR + division, auto on them, on the same views

@@ -30,6 +30,20 @@ def data_root() -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def models_root() -> Path:
+    """User-supplied model weights: ``$FR_MODELS`` (default ``../shared/models`` beside the
+    repository, e.g. ``consac/consac_vp.net``).  Treated like the data: the test fails in CI when
+    they are missing and is skipped elsewhere."""
+    root = Path(os.environ.get("FR_MODELS", REPO.parent / "shared" / "models"))
+    if not (root / "consac" / "consac_vp.net").is_file():
+        message = f"model weights not found under {root} (expected consac/consac_vp.net; set FR_MODELS)"
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message)
+        pytest.skip(message)
+    return root
+
+
 def require_dataset(root: Path, name: str) -> Path:
     """Path of dataset folder ``name`` under ``root``; fail in CI / skip elsewhere if absent."""
     path = root / name

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import textwrap
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -377,10 +378,35 @@ def test_reliability_scope_includes_the_detector(room):
     assert own.predicted_error is not None
 
 
+def test_reliability_scope_takes_the_detectors_its_promise_was_validated_on(room):
+    shipped = ReliabilityModel.load_default("fast")
+    params = LikelihoodParams.from_config(mode="fast")
+    lsd_only = replace(shipped, promise=replace(shipped.promise, validated_detectors=()))
+    assert lsd_only.detectors == ("lsd",)
+    gap = lsd_only.scope_gap(params, "default", "torch-lines", "fast")
+    assert "not trained for detector torch-lines" in gap and "detect with lsd (--detector)" in gap
+    declared = replace(shipped, promise=replace(shipped.promise, validated_detectors=("torch-lines",)))
+    assert declared.detectors == ("lsd", "torch-lines")
+    for name in ("lsd", "torch-lines", None):  # None: the caller's segments
+        assert declared.scope_gap(params, "default", name, "fast") is None
+    for name in ("mcmlsd", "torch-lines[grad_threshold=3.0]"):  # unknown, or other settings than measured
+        gap = declared.scope_gap(params, "default", name, "fast")
+        assert f"not trained for detector {name}" in gap and "detect with lsd or torch-lines (--detector)" in gap
+    [result] = FREstimator(mode="fast", detector="torch-lines", reliability=declared).calibrate_images([room])
+    assert result.ok and result.predicted_error is not None and result.error_bound is not None
+    assert "not trained" not in result.reason
+    [result] = FREstimator(mode="fast", detector="torch-lines[grad_threshold=3]",
+                           reliability=declared).calibrate_images([room])
+    assert result.predicted_error is None and not result.reliable
+    assert "not trained for detector torch-lines[grad_threshold=3.0]" in result.reason
+
+
 def test_shipped_models_state_their_training_setting():
     for mode in ("fr", "fast"):
         model = ReliabilityModel.load_default(mode)
         assert model.meta["trained_for"] == {"measure": "b", "detector": "lsd", "likelihood": "default"}
+        # the promise was measured on torch-lines' segments too (results/reliability/torch_lines.md)
+        assert model.detectors == ("lsd", "torch-lines")
         legacy = ReliabilityModel(model.train_cues, model.train_errors, model.feature_mean, model.feature_components,
                                   model.feature_variance, model.k, {k: v for k, v in model.meta.items()
                                                                    if k != "trained_for"})

@@ -37,8 +37,12 @@ def test_recovers_synthetic_cameras(scenes, mode):
         assert np.allclose(result.rotation @ result.rotation.T, np.eye(3), atol=1e-6)
         assert result.labels.shape == (result.num_segments,)
         assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood",
-                                    "focal_conditioning", "focal_prior_share", "focal_spread"} | (
+                                    "focal_conditioning", "focal_prior_share", "focal_spread",
+                                    "focal_profile_spread", "focal_resample_spread", "pitch_resample_spread"} | (
                                         {"focal_profile_gap"} if mode == "fr" else set()) | set(LINE_BEND_CUES)
+        # reliable = the shipped promise: both bounds within their limits, the focal one far within
+        assert result.error_bound["enforced"] and result.error_bound["focal_pct"] < 5.0
+        assert result.error_bound["tilt_deg"] <= 3.0
         if mode == "fr":  # the segments single out the estimate's focal length: by hundreds of nats
             assert result.cues["focal_profile_gap"] > 100.0
         assert 0.0 <= result.cues["focal_prior_share"] < 0.2  # well-constrained views: the segments set f
@@ -200,6 +204,17 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     assert float(focal_prior_share(flat, features, params)[0]) == 0.0
 
 
+def _oblique_and_square():
+    """(f, [R oblique, R square to a wall], their segments): a 70-degree camera panned 30 deg and pitched 15,
+    and one looking square at a wall (its vanishing points at the centre and at infinity)."""
+    focal = focal_from_hfov(70.0, 640)
+    views = [rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0, 3.0).numpy(),
+             rotation_from_angles(torch.tensor(0.0, dtype=torch.float64), 0.0, 0.0).numpy()]
+    segments = [synthetic_segments(focal, R, 640, 480, n_per_family=60, noise_px=0.5, clutter_fraction=0.2,
+                                   seed=3)[0] for R in views]
+    return focal, views, segments
+
+
 def test_focal_profile_gap_sign_and_scale(monkeypatch):
     """``focal_profile_gap``: large at a well-determined estimate, small where the lines say little
     about f (camera square to a wall), negative at an estimate a clearly different focal length
@@ -210,11 +225,7 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
     from fr_torch.core.search import angles_from_search_rotation
     from fr_torch.core.segments import SegmentBatch
 
-    focal = focal_from_hfov(70.0, 640)
-    views = [rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0, 3.0).numpy(),
-             rotation_from_angles(torch.tensor(0.0, dtype=torch.float64), 0.0, 0.0).numpy()]
-    segments = [synthetic_segments(focal, R, 640, 480, n_per_family=60, noise_px=0.5, clutter_fraction=0.2,
-                                   seed=3)[0] for R in views]
+    focal, views, segments = _oblique_and_square()
     est = FREstimator(mode="fr", reliability=None, profile_gap=True)
     oblique, square = est.calibrate_segments(segments, [(640, 480)] * 2)
     assert oblique.cues["focal_profile_gap"] > 300.0 > abs(square.cues["focal_profile_gap"])
@@ -273,3 +284,33 @@ def test_profile_gap_follows_the_reliability_model():
     with pytest.raises(FRInputError, match="focal_profile_gap"):
         FREstimator(mode="fr", profile_gap=False)
     assert FREstimator(mode="fast", profile_gap=False).profile_gap is False
+
+
+def test_spread_cues_measure_how_well_the_segments_fix_the_camera():
+    """The spreads the bounds of `reliable` rest on: small where the segments pin f down, large where
+    they leave it to the prior (a camera square to a wall), at their maximum at an estimate a nearby
+    focal length beats; a given focal length has no focal spread but a pitch spread; computed when
+    the reliability stage holds a promise or when asked, skipped otherwise."""
+    from fr_torch.core.cues import MAX_SPREAD, SPREAD_FOCAL_RATIOS, focal_profile, focal_profile_spread
+    from fr_torch.core.likelihood import SegmentFeatures
+    from fr_torch.core.search import angles_from_search_rotation
+    from fr_torch.core.segments import SegmentBatch
+
+    focal, views, segments = _oblique_and_square()
+    est = FREstimator(mode="fast", reliability=None, spreads=True)
+    oblique, square = est.calibrate_segments(segments, [(640, 480)] * 2)
+    names = ("focal_profile_spread", "focal_resample_spread", "pitch_resample_spread")
+    assert all(0.0 < oblique.cues[n] < 0.05 for n in names[:2]) and 0.0 < oblique.cues[names[2]] < 0.5
+    assert square.cues["focal_profile_spread"] > 5 * oblique.cues["focal_profile_spread"]
+    [given] = est.calibrate_segments(segments[:1], [(640, 480)], focal_px=focal)
+    assert given.cues["focal_profile_spread"] == given.cues["focal_resample_spread"] == 0.0
+    assert 0.0 < given.cues["pitch_resample_spread"] < 0.5
+    [plain] = FREstimator(mode="fast", reliability=None).calibrate_segments(segments[:1], [(640, 480)])
+    assert not set(names) & set(plain.cues) and plain.focal_px == pytest.approx(oblique.focal_px, rel=1e-9)
+    # at an estimate 40 % too long, f x 0.87 explains the segments better: no spread says it is right
+    features = SegmentFeatures.from_batch(SegmentBatch.from_list([segments[0]], [(640, 480)]),
+                                          torch.tensor([[320.0, 240.0]]))
+    wrong = torch.cat([angles_from_search_rotation(torch.as_tensor(views[0])[None]),
+                       torch.tensor([[1.4 * focal]], dtype=torch.float64)], -1)
+    profile = focal_profile(est.likelihood, features, wrong, est.search, 10, SPREAD_FOCAL_RATIOS)
+    assert float(focal_profile_spread(est.likelihood, features, wrong, est.search, profile)[0]) == MAX_SPREAD

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from fr_eval.protocols import focal_fusion
 
-from fr_torch.core.reliability import CUE_NAMES, ERROR_COLUMNS
+from fr_torch.core.reliability import ERROR_COLUMNS, FR_MODEL_CUE_NAMES
 
 
 def test_fused_focal_error_weights_follow_predicted_errors():
@@ -43,7 +43,7 @@ def test_fuse_reads_records_and_checks_one_camera(tmp_path):
     n = 12
     predictions = pd.DataFrame({"method": "fr", "failed": False, "reliable": [True] * (n - 1) + [False],
                                 "gt_focal_px": 675.0, "est_focal_px": 675.0 * (1 + 0.03 * rng.normal(size=n))})
-    for name in CUE_NAMES:
+    for name in FR_MODEL_CUE_NAMES:
         predictions[f"cue_{name}"] = _records(n, seed=2)[name]
     table = focal_fusion.fuse(predictions, tmp_path)
     assert list(table["method"]) == ["fr"] and int(table["frames"].iloc[0]) == n - 1  # unreliable frame left out

@@ -95,36 +95,60 @@ def test_zenith_error_and_families():
 
 
 def test_lodo_reliability_scales_and_judgement():
-    """Out-of-family conformal scales and the held-out judgement on self-made records."""
+    """Per-family conformal scales of the spreads' sigmas and the held-out judgement on self-made records."""
     import pandas as pd
-    from fr_eval.protocols.lodo_reliability import evaluate, family_scales
+    from fr_eval.protocols.lodo_reliability import evaluate, family_scales, sigmas
+    from fr_eval.scoring.metrics import aurc, risk_coverage
 
-    from fr_torch.core.reliability import ERROR_COLUMNS, MODEL_CUE_NAMES
-    from fr_torch.core.reliability_bounds import ReliabilityPromise
+    from fr_torch.core.reliability import MODEL_CUE_NAMES
 
     rng = np.random.default_rng(0)
     n = 120
-    segments = np.round(np.exp(rng.uniform(np.log(3), np.log(80), n)))
-    difficulty = 30.0 / segments * np.exp(0.2 * rng.normal(size=n))
-    table = pd.DataFrame({"min_family_segments": segments, "grid_entropy": np.exp(rng.uniform(-10, 0, n)),
-                          "mean_log_likelihood": rng.normal(0, 0.3, n), "focal_prior_share": rng.uniform(0.01, 0.5, n),
-                          "focal_spread": rng.uniform(0.05, 2.0, n), "roll_err_deg": 0.2 * difficulty, "tilt_err_deg": 0.5 * difficulty,
-                          "focal_err_pct": 3.0 * difficulty})
+    spread = np.tile(np.exp(rng.uniform(np.log(0.005), np.log(0.1), n // 2)), 2)  # log f; the same in both families
+    table = pd.DataFrame({"focal_profile_spread": spread, "focal_resample_spread": spread,
+                          "pitch_resample_spread": rng.uniform(0.05, 1.0, n)})
     table["dataset"] = np.where(np.arange(n) < 60, "yud", "nyu-vp")
-    table["group"] = [f"g{i}" for i in range(n)]
+    noise = np.tile(np.abs(rng.normal(size=n // 2)), 2)
+    table["focal_err_pct"] = 100 * spread * noise * np.where(table["dataset"] == "yud", 1.0, 2.0)
+    table["tilt_err_deg"] = np.hypot(table["pitch_resample_spread"], 0.5) * noise
+    table["roll_err_deg"] = 0.1
     scales = family_scales(table, "fast", 0.9)
-    assert set(scales) == {"roll_deg", "tilt_deg", "focal_pct"}
+    assert set(scales) == {"focal_pct", "tilt_deg"}
     worst, per = scales["focal_pct"]
-    assert set(per) == {"yud", "nyu-vp"} and worst == max(per.values()) and 0 < worst < 10
-    pooled = family_scales(table, "fast", 0.9, rule="pooled")["focal_pct"][0]
-    assert pooled <= worst + 1e-12
-    predicted = table[list(ERROR_COLUMNS)].to_numpy() * 1.0  # a perfect predictor
-    predicted[0, 1] = np.nan  # a missing prediction is never reliable
-    table.loc[1, "tilt_err_deg"] = np.nan  # no known vertical: focal only
-    promise = ReliabilityPromise(limits={"focal_pct": 10.0, "tilt_deg": 3.0},
-                                 scales={"fast": {"focal_pct": 1.0, "tilt_deg": 1.0}})
-    out = evaluate(table, predicted, promise, "fast")
-    assert out["rho_focal"] == pytest.approx(1.0) and out["coverage_both"] == 100.0
-    assert out["top_quarter_ratio"] < 0.5 and 0 < out["reliable_n"] < n
+    assert set(per) == {"yud", "nyu-vp"} and worst == max(per.values()) and per["nyu-vp"] == pytest.approx(2 * per["yud"])
+    assert family_scales(table, "fast", 0.9, rule="pooled")["focal_pct"][0] <= worst + 1e-12
+    sigma = sigmas(table)
+    np.testing.assert_allclose(sigma["focal_pct"], np.maximum(100 * spread, 0.3))
+    bounds = {t: scales[t][0] * sigma[t] for t in sigma}
+    table.loc[1, "tilt_err_deg"] = np.nan  # no known vertical: judged on its focal error alone
+    out = evaluate(table, bounds, {"focal_pct": 10.0, "tilt_deg": 3.0})
+    assert out["bound_holds_focal"] >= 90.0 and 0 < out["reliable_n"] < n
+    assert out["precision_pct"] > out["good_pct"] and 0 < out["recall_pct"] <= 100
+    assert out["aurc_ratio"] >= 1.0 and out["aurc_oracle"] == pytest.approx(aurc(table["focal_err_pct"],
+                                                                                table["focal_err_pct"]))
+    given = evaluate(table, bounds, {"focal_pct": 10.0, "tilt_deg": 3.0}, flagged=np.arange(n) < 10)
+    assert given["reliable_n"] == 10 and given["aurc"] == out["aurc"]  # the flag given, the ranking by the bounds
+    # the risk-coverage curve: the mean error of the k photos ranked first, NaN scores last
+    kept, risk = risk_coverage([3.0, np.nan, 1.0, 2.0], [30.0, 40.0, 10.0, 20.0])
+    np.testing.assert_allclose(kept, [0.25, 0.5, 0.75, 1.0]) and np.testing.assert_allclose(risk, [10, 15, 20, 25])
+    assert aurc([3.0, np.nan, 1.0, 2.0], [30.0, 40.0, 10.0, 20.0]) == pytest.approx(17.5)
     assert MODEL_CUE_NAMES == ("min_family_segments", "grid_entropy", "mean_log_likelihood", "focal_prior_share",
                                "focal_spread")
+
+
+def test_detector_reliability_verdict():
+    """The rule of results/decisions/45.md: >= 90 % where LSD is, and within LSD's per-family spread."""
+    import pandas as pd
+    from fr_eval.protocols.detector_reliability import verdict
+
+    def table(other: dict[str, float]) -> pd.DataFrame:
+        lsd = {"YUD family train": 95.0, "ZInD-fR train": 98.0}
+        return pd.DataFrame([{"mode": mode, "rows": family, "split": "train pooled", "detector": detector,
+                              "precision_pct": value}
+                             for mode in ("fr", "fast") for detector, values in (("lsd", lsd), ("torch-lines", other))
+                             for family, value in values.items()])
+
+    holds, lines = verdict(table({"YUD family train": 96.0, "ZInD-fR train": 95.5}))
+    assert holds and len(lines) == 4  # below LSD's 98 % on ZInD-fR, but within LSD's spread (95-98 %)
+    holds, lines = verdict(table({"YUD family train": 94.0, "ZInD-fR train": 99.0}))
+    assert not holds and "FAILS" in lines[0]  # below LSD's lowest family

@@ -12,6 +12,7 @@ from fr_torch.core.camera import Camera
 from fr_torch.core.estimator import CalibrationResult
 from fr_torch.core.reliability import (
     CUE_NAMES,
+    FR_MODEL_CUE_NAMES,
     MODEL_CUE_NAMES,
     PAPER_CUE_NAMES,
     TARGETS,
@@ -43,7 +44,7 @@ def make_training(n=400, noise=0.3, seed=0, informative=True):
 
 def test_cue_features_documented_transform():
     x = cue_features([[9.0, 0.0, -0.25, 0.0, 0.0, 0.0, 0.0],
-                      [0.0, 1.0, 2.0, 0.5, 0.5, -250.0, 0.3]])  # CUE_NAMES order
+                      [0.0, 1.0, 2.0, 0.5, 0.5, -250.0, 0.3]])  # FR_MODEL_CUE_NAMES order (the default)
     np.testing.assert_allclose(x[0], [np.log(10.0), np.log(1e-6), -0.25, np.log(1e-3), np.log(1e-2), 0.0,
                                       np.log(1e-4)])
     np.testing.assert_allclose(x[1], [0.0, np.log(1.0 + 1e-6), 2.0, np.log(0.5 + 1e-3), np.log(0.5 + 1e-2),
@@ -179,7 +180,7 @@ def test_shipped_models_and_thresholds():
         model = models.models[mode]
         assert model.meta["mode"] == mode and len(model.train_cues) >= 100
         assert model.cue_names == model_cue_names(mode)
-        assert model.cue_names == (CUE_NAMES if mode == "fr" else MODEL_CUE_NAMES)
+        assert model.cue_names == (FR_MODEL_CUE_NAMES if mode == "fr" else MODEL_CUE_NAMES)
         # a clean scene; fR's cues: the estimate's focal length wins by 2,000 nats
         clean = dict(min_family_segments=60.0, grid_entropy=1e-6, mean_log_likelihood=0.3, focal_conditioning=0.3,
                      focal_prior_share=0.02, focal_profile_gap=2000.0, focal_spread=0.15)
@@ -234,7 +235,7 @@ def test_paper_cue_model_and_older_files(tmp_path):
     # a four-cue model asked about a result without the fourth cue: NaN, not a guess
     full = ReliabilityModel.fit(cues, errors, k_grid=[9])
     assert np.isnan(full.predict([dict(zip(PAPER_CUE_NAMES, probe[0, :3]))])).all()
-    assert cues_array({"grid_entropy": 1.0}).shape == (1, len(CUE_NAMES))
+    assert cues_array({"grid_entropy": 1.0}).shape == (1, len(FR_MODEL_CUE_NAMES))
     with pytest.raises(ValueError):  # cue names that do not match the stored columns
         ReliabilityModel(cues, errors, paper.feature_mean, paper.feature_components, paper.feature_variance, 5,
                          {"cue_names": list(PAPER_CUE_NAMES)})

@@ -10,6 +10,7 @@ with ``error``, the next stage still runs):
 * ``pipeline``: files on disk to results through :func:`fr_torch.runtime.pipeline.calibrate_paths`
   (the path of ``calibrate_images``, ``fr calibrate``, ``fr batch``: decode, detect and search on
   the device, a reader thread one batch ahead), 4 batches per row; ``pipeline_profile`` profiles it;
+* ``reliability_cost``: the same path with the reliability stage off and on;
 * ``decode``: ``decode_jpeg_batch`` (torchvision ``decode_jpeg`` on the device) of B JPEGs;
 * ``detect``: ``torch-lines`` ``detect_batch`` on the decoded (B, 1, H, W) batch;
 * ``e2e``: :func:`fr_torch.runtime.device_pipeline.calibrate_decoded` from bytes, per mode, with
@@ -76,7 +77,8 @@ def main(argv=None) -> int:
     parser.add_argument("--modes", default="fast,fr")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--searchers", default="1,2", help="pipeline stage: search threads to compare (eager)")
-    parser.add_argument("--stages", default="pipeline,pipeline_profile,decode,detect,e2e,given,profile,accuracy,compiled")
+    parser.add_argument("--stages", default="pipeline,reliability_cost,pipeline_profile,decode,detect,e2e,given,profile,"
+                                            "accuracy,compiled")
     args = parser.parse_args(argv)
 
     out = Path(args.out)
@@ -289,7 +291,23 @@ def main(argv=None) -> int:
         log("pipeline_profile", batch=batch, images=len(todo), wall_s=wall,
             device_busy_s=sum(getattr(e, "self_device_time_total", 0.0) for e in averages) / 1e6)
 
+    def run_reliability_cost():
+        """The reliability stage's share on the device (issue 44's spreads): the same files with
+        the stage off and on, batch = the largest, 2 batches each, median of ``--repeats``."""
+        from fr_torch.runtime.pipeline import calibrate_paths
+
+        files = [str(p) for p in paths]
+        batch = max(batches)
+        todo = [files[i % len(files)] for i in range(2 * batch)]
+        for mode in modes:
+            for reliability in (None, "default"):
+                est = FREstimator(mode=mode, device=device, reliability=reliability)
+                t, _ = _timed(lambda: list(calibrate_paths(est, todo, batch)), device, args.repeats)
+                log("reliability_cost", mode=mode, reliability=reliability or "off", batch=batch, images=len(todo),
+                    seconds=t, images_per_s=len(todo) / t)
+
     stage("pipeline", lambda: run_pipeline(("fr",)))
+    stage("reliability_cost", run_reliability_cost)
     stage("pipeline_profile", run_pipeline_profile)
     stage("decode", run_decode)
     stage("detect", run_detect)

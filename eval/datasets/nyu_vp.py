@@ -31,6 +31,11 @@ Conventions (decided here, used by every NYU-VP number this project reports)
   labelled vanishing direction within :data:`LABEL_TOLERANCE_DEG` of a column of the rotation,
   labelled with that column; lines of other (non-Manhattan) directions are left out.  The number of
   labelled vanishing points is ``extra["num_labelled_vps"]``.
+* **Vanishing-point labels** (the VP task, :mod:`fr_eval.scoring.vp_metric`): every labelled VP as a unit
+  direction ``K_vp^-1 [X, Y, 1]`` in ``extra["vp_directions"]`` (M, 3), file order, with
+  ``K_vp`` = ``extra["vp_calibration"]`` the dataset's full calibration (``fx``, ``fy`` =
+  519.4696, calibrated principal point, :data:`VP_CALIBRATION`): the matrix CONSAC's evaluation uses, so that the metric
+  is theirs.
 """
 from __future__ import annotations
 
@@ -47,6 +52,9 @@ from fr_torch.core.camera import Camera, rotation_from_angles
 FOLDER = "nyu_vp"
 WIDTH, HEIGHT = 640, 480
 FOCAL_PX = 518.8579
+# The calibration at full precision (fx, fy, cx, cy; NYU Depth v2's toolbox, as CONSAC's code holds it):
+# the VP metric's K (vp_calibration_matrix).
+VP_CALIBRATION = (5.1885790117450188e+02, 5.1946961112127485e+02, 3.2558244941119034e+02, 2.5373616633400465e+02)
 PRINCIPAL_POINT = (325.5824, 253.7362)
 SPLIT_IDS = {"train": range(0, 1000), "val": range(1000, 1224)}
 SPLITS = ("train", "val", "test", "all")
@@ -67,6 +75,20 @@ def nyu_root(root: str | Path | None = None) -> Path:
 def calibration_matrix() -> np.ndarray:
     """The calibrated K (3, 3) of the NYU-VP camera (square pixels, ``fx``)."""
     return np.array([[FOCAL_PX, 0.0, PRINCIPAL_POINT[0]], [0.0, FOCAL_PX, PRINCIPAL_POINT[1]], [0.0, 0.0, 1.0]])
+
+
+def vp_calibration_matrix() -> np.ndarray:
+    """The full calibrated K (3, 3) with ``fx`` and ``fy`` (:data:`VP_CALIBRATION`), as the VP metric
+    (CONSAC's) uses it."""
+    fx, fy, cx, cy = VP_CALIBRATION
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def vp_directions(vps_px: np.ndarray) -> np.ndarray:
+    """Unit directions (M, 3) ``K_vp^-1 [X, Y, 1]`` of labelled VPs (M, 2) in pixels."""
+    dirs = np.c_[np.asarray(vps_px, np.float64).reshape(-1, 2), np.ones(len(vps_px))] @ np.linalg.inv(
+        vp_calibration_matrix()).T
+    return dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
 
 
 def _rows(path: Path) -> list[list[str]]:
@@ -163,7 +185,8 @@ def load_sample(folder: Path, index: int, split: str) -> CalibrationSample:
         camera=Camera(WIDTH, HEIGHT, FOCAL_PX, PRINCIPAL_POINT, rotation, pan_known=pan_known),
         segments=segments, segment_labels=labels, split=split,
         extra={"detected_segments": read_lsd_segments(folder / f"lsd_lines_{tag}.csv"),
-               "num_labelled_vps": int(len(vps)), "num_manhattan_vps": int((columns >= 0).sum())},
+               "num_labelled_vps": int(len(vps)), "num_manhattan_vps": int((columns >= 0).sum()),
+               "vp_directions": vp_directions(vps), "vp_calibration": vp_calibration_matrix()},
     )
 
 

@@ -4,6 +4,7 @@ Usage (``eval/reproduce.sh lodo``; per-image predictions are cached under ``--ca
 only computes what is missing)::
 
     python -m fr_eval.protocols.lodo run       # predictions of every (dataset, setting, method) the tables need
+    python -m fr_eval.protocols.lodo run --stage reliability   # only those of the reliability stage
     python -m fr_eval.protocols.lodo table     # results/cross_dataset/README.md's accuracy table (accuracy.md/.csv)
 
 Datasets and families
@@ -22,7 +23,8 @@ What is refitted without the reported family (:func:`lodo_settings`)
   of the train images of :data:`PRIOR_SOURCES` outside the family (the shipped value, 81.9 deg,
   pools YUD train and ZInD-fR train); fR's flat-topped prior keeps its offset in ``log f`` from that
   mean (the shipped 75 deg was chosen by a grid around the 82 deg mean).
-* **Reliability model and its conformal bounds**: :mod:`fr_eval.protocols.lodo_reliability`.
+* **The conformal scales of ``reliable``'s bounds** (and issue 35's KNN, for comparison):
+  :mod:`fr_eval.protocols.lodo_reliability`, from the train records of :data:`RELIABILITY_TRAIN`.
 
 Not refitted (chosen by grids on the train splits of YUD, ZInD-fR and the crops; a grid per held-out
 family costs more than it was worth here): the prior's weight, pseudo-length and flat half-width,
@@ -160,10 +162,12 @@ def zenith_error_deg(gt_roll, gt_pitch, est_roll, est_pitch) -> np.ndarray:
 
 
 def run_predictions(dataset: str, split: str, method: str, setting: str, config_path: Path | None, cache: Path,
-                    pp_mode: str = "centre", root: str | None = None, stride: int = 1) -> pd.DataFrame:
+                    pp_mode: str = "centre", root: str | None = None, stride: int = 1,
+                    calibrator=None) -> pd.DataFrame:
     """Per-image prediction rows (``fr eval``'s columns + ``zenith_err_deg``) of ``method`` under
     ``setting`` on ``dataset``/``split`` (every ``stride``-th image), cached as
-    ``cache/<setting>/<dataset>_<split>_<method>[_pp].csv``."""
+    ``cache/<setting>/<dataset>_<split>_<method>[_pp].csv``.  ``calibrator``: the method object to
+    run (None: built from ``method`` and ``config_path``, FOV range [30, 120] deg)."""
     from fr_eval.protocols.run_eval import evaluate_method, make_calibrator
 
     from fr_torch.core.fov import FovRange
@@ -174,7 +178,8 @@ def run_predictions(dataset: str, split: str, method: str, setting: str, config_
         return pd.read_csv(path)
     spec = method_spec(method, config_path) if method in TUNED_METHODS else method
     samples = load_dataset(dataset, root=root, split=split)[::stride]
-    calibrator = make_calibrator(spec, "cpu", FovRange.parse(None))
+    if calibrator is None:
+        calibrator = make_calibrator(spec, "cpu", FovRange.parse(None))
     rows = evaluate_method(spec, samples, pp_mode=pp_mode, dataset=dataset, calibrator=calibrator)
     table = pd.DataFrame(rows)
     table["method"] = method
@@ -200,19 +205,29 @@ def setting_configs(cache: Path, root: str | None = None) -> dict[str, Path | No
     return out
 
 
-def jobs(include_train: bool = True) -> list[tuple]:
-    """(dataset, split, method, setting, pp_mode) of every run the tables need, cheapest first."""
+#: The reliability stage's training datasets (:mod:`fr_eval.protocols.lodo_reliability`): their train
+#: splits under the shipped estimator (NYU-VP every :data:`NYU_TRAIN_STRIDE`-th photo).
+RELIABILITY_TRAIN = ("yud", "yud-crop-400x300", "yud-crop-480x360", "zind-fr", "nyu-vp")
+STAGES = ("all", "reliability")
+
+
+def jobs(stage: str = "all") -> list[tuple]:
+    """(dataset, split, method, setting, pp_mode) of every run the tables need, cheapest first;
+    ``stage="reliability"``: only those of the reliability stage (the tuned methods held out on the
+    reported datasets, the shipped ones on :data:`RELIABILITY_TRAIN`)."""
     out = []
     for dataset, split in REPORTED:
         held = setting_name(family_of(dataset))
         out += [(dataset, split, method, held, "centre") for method in TUNED_METHODS]
-        out += [(dataset, split, method, "fixed", "centre") for method in FIXED_METHODS]
-    out.append(("nyu-vp", "val", "fr", setting_name("nyu-vp"), "calibrated"))
-    if include_train:  # the reliability stage's training records on NYU-VP (shipped estimator)
-        out += [("nyu-vp", "train", m, SHIPPED, "centre") for m in TUNED_METHODS]
-    for dataset, split in REPORTED:
-        out += [(dataset, split, method, ALL, "centre") for method in TUNED_METHODS]
-    out.append(("nyu-vp", "val", "fr", ALL, "calibrated"))
+        if stage == "all":
+            out += [(dataset, split, method, "fixed", "centre") for method in FIXED_METHODS]
+    if stage == "all":
+        out.append(("nyu-vp", "val", "fr", setting_name("nyu-vp"), "calibrated"))
+    out += [(dataset, "train", method, SHIPPED, "centre") for dataset in RELIABILITY_TRAIN for method in TUNED_METHODS]
+    if stage == "all":
+        for dataset, split in REPORTED:
+            out += [(dataset, split, method, ALL, "centre") for method in TUNED_METHODS]
+        out.append(("nyu-vp", "val", "fr", ALL, "calibrated"))
     return out
 
 
@@ -220,9 +235,9 @@ def _config_for(setting: str, configs: dict[str, Path | None]) -> Path | None:
     return configs.get(setting) if setting in configs else None
 
 
-def run_all(cache: Path, root: str | None = None, only: Sequence[str] | None = None) -> None:
+def run_all(cache: Path, root: str | None = None, only: Sequence[str] | None = None, stage: str = "all") -> None:
     configs = setting_configs(cache, root)
-    for dataset, split, method, setting, pp in jobs():
+    for dataset, split, method, setting, pp in jobs(stage):
         if only and dataset not in only:
             continue
         print(f"== {dataset} {split} {method} {setting} pp={pp}", file=sys.stderr)
@@ -330,6 +345,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--cache", default=str(cache_root() / "lodo"), help="prediction cache (default data_local/lodo)")
     parser.add_argument("--data-root", default=None)
     parser.add_argument("--only", default=None, help="comma-separated datasets to run (default all)")
+    parser.add_argument("--stage", choices=STAGES, default="all",
+                        help="run: every table's runs (all) or the reliability stage's only")
     parser.add_argument("--out", default=str(REPO / "results" / "cross_dataset"))
     args = parser.parse_args(argv)
     cache = Path(args.cache)
@@ -340,7 +357,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                   config["measures"]["b"])
         return 0
     if args.action == "run":
-        run_all(cache, args.data_root, args.only.split(",") if args.only else None)
+        run_all(cache, args.data_root, args.only.split(",") if args.only else None, args.stage)
         return 0
     table = accuracy_table(cache)
     out = Path(args.out)

@@ -47,8 +47,8 @@ from fr_eval.paths import REPO
 
 from fr_torch.core.camera import focal_from_hfov, rotation_angles
 from fr_torch.core.reliability import (
-    CUE_NAMES,
     ERROR_COLUMNS,
+    FR_MODEL_CUE_NAMES,
     MODEL_CUE_NAMES,
     PAPER_CUE_NAMES,
     ReliabilityModel,
@@ -66,7 +66,7 @@ def _record(result, gt: dict) -> dict:
     row = dict(gt)
     row.update(ok=bool(result.ok), sanity_reliable=bool(result.reliable), num_segments=int(result.num_segments),
                manhattan_fraction=result.manhattan_fraction, reason=result.reason)
-    for name in CUE_NAMES:
+    for name in FR_MODEL_CUE_NAMES:
         row[name] = result.cues.get(name, math.nan) if result.ok else math.nan
     row.update(est_focal_px=result.focal_px, est_roll_deg=result.roll_deg, est_tilt_deg=result.tilt_deg)
     if result.ok:
@@ -392,9 +392,9 @@ def compare_training_sets(variants: dict[str, pd.DataFrame], target: pd.DataFram
 CUE_SETS = {"paper": PAPER_CUE_NAMES, "paper+focal_conditioning": PAPER_CUE_NAMES + ("focal_conditioning",),
             "paper+focal_prior_share": MODEL_CUE_NAMES,
             "paper+focal_conditioning+focal_prior_share": PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share"),
-            "paper+focal_prior_share+focal_profile_gap": MODEL_CUE_NAMES + ("focal_profile_gap",), "all": CUE_NAMES}
+            "paper+focal_prior_share+focal_profile_gap": MODEL_CUE_NAMES + ("focal_profile_gap",), "all": FR_MODEL_CUE_NAMES}
 #: ``--cues`` choices; None: the shipped model's cues of the mode (:func:`model_cue_names`).
-CUE_CHOICES = {"default": None, "paper": PAPER_CUE_NAMES, "all": CUE_NAMES}
+CUE_CHOICES = {"default": None, "paper": PAPER_CUE_NAMES, "all": FR_MODEL_CUE_NAMES}
 
 
 def compare_cue_sets(train: pd.DataFrame, test: pd.DataFrame, out: Path, mode: str, folds: int = 5) -> pd.DataFrame:

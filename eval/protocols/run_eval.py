@@ -170,6 +170,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CTRL-C weights exported by 'fr export-ctrlc' for the ctrlc row (or $FR_CTRLC_ONNX)")
     parser.add_argument("--ctrlc-retrained-onnx", default=None, metavar="ONNX",
                         help="the second CTRL-C training, for the ctrlc-retrained row (or $FR_CTRLC_RETRAINED_ONNX)")
+    parser.add_argument("--consac-weights", default=None, metavar="PATH",
+                        help="CONSAC's weights for the consac rows: a folder holding consac_vp.net / consac-s_vp.net "
+                             "or one .net file (or $FR_CONSAC_WEIGHTS; default ../shared/models/consac)")
     add_device_arguments(parser, device_help="torch device passed to the methods (default cpu)")
     add_fov_range_argument(parser, "FOV search range (degrees, image long side) given to every method that "
                                    f"searches the focal length ({', '.join(FOCAL_SEARCH_METHODS)}) unless its spec "
@@ -212,17 +215,18 @@ def method_fov_range(spec: str, fov_range: FovRange | None) -> FovRange | None:
     return fov_range
 
 
-def make_calibrator(spec: str, device: str, fov_range: FovRange | None = None):
+def make_calibrator(spec: str, device: str, fov_range: FovRange | None = None, **kwargs):
     """Build a method; offers ``device`` (and, to the focal-searching methods, the table's FOV
     search range as ``range``, :func:`method_fov_range`) to a factory that takes them
-    (``docs/plugins-options.md``)."""
+    (``docs/plugins-options.md``); ``kwargs`` go to the factory as they are (e.g. fR's
+    ``reliability``)."""
     offered: dict[str, Any] = {"device": device}
     method_range = method_fov_range(spec, fov_range)
     if method_range is not None:
         offered["range"] = method_range
     if device not in ("cpu", None) and not CALIBRATORS.takes(spec, "device"):
         print(f"warning: method {spec!r} takes no device argument; it runs on its own default", file=sys.stderr)
-    return get_calibrator(spec, offered=offered)
+    return get_calibrator(spec, offered=offered, **kwargs)
 
 
 def build_meta(sample: Any, pp_mode: str, labelled: bool, known_focal: bool, dataset: str, device: str) -> ImageMeta:
@@ -404,20 +408,29 @@ def _group_names(key: str) -> tuple[str, str]:
     return f"by_{safe_name(key)}", key
 
 
+def load_samples(args: argparse.Namespace, loader=load_dataset) -> list | None:
+    """The samples of ``--dataset`` / ``--split`` (``loader(dataset, root=, split=)``), the first
+    ``--limit``; None after printing a one-line error when the dataset cannot be loaded or is empty."""
+    try:
+        samples = loader(args.dataset, root=args.data_root, split=args.split)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+    if args.limit is not None:
+        samples = samples[: max(0, args.limit)]
+    if not samples:
+        print(f"error: dataset {args.dataset!r} split {args.split!r} has no samples", file=sys.stderr)
+        return None
+    return samples
+
+
 def run(args: argparse.Namespace) -> int:
     requested = split_methods(args.methods)
     if not requested:
         print("error: no methods given", file=sys.stderr)
         return 2
-    try:
-        samples = load_dataset(args.dataset, root=args.data_root, split=args.split)
-    except (FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if args.limit is not None:
-        samples = samples[: max(0, args.limit)]
-    if not samples:
-        print(f"error: dataset {args.dataset!r} split {args.split!r} has no samples", file=sys.stderr)
+    samples = load_samples(args)
+    if samples is None:
         return 2
     has_segments = all(getattr(s, "segments", None) is not None for s in samples)
     resolved, skipped = resolve_methods(requested, has_segments)
@@ -435,9 +448,7 @@ def run(args: argparse.Namespace) -> int:
               "(for every image)", file=sys.stderr)
         return 2
     group_key = resolve_group_by(getattr(args, "group_by", "auto"), samples)
-    for option, env in (("ctrlc_onnx", "FR_CTRLC_ONNX"), ("ctrlc_retrained_onnx", "FR_CTRLC_RETRAINED_ONNX")):
-        if getattr(args, option, None):  # the option wins over the environment variable
-            os.environ[env] = str(Path(getattr(args, option)).expanduser().resolve())
+    apply_weight_options(args)
     try:
         fov_range = FovRange.parse(getattr(args, "fov_range", None))
     except ValueError as exc:
@@ -517,6 +528,19 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: ``fr eval`` options naming a learned method's weights -> the environment variable the method reads.
+WEIGHT_OPTIONS = (("ctrlc_onnx", "FR_CTRLC_ONNX"), ("ctrlc_retrained_onnx", "FR_CTRLC_RETRAINED_ONNX"),
+                  ("consac_weights", "FR_CONSAC_WEIGHTS"))
+
+
+def apply_weight_options(args: argparse.Namespace) -> None:
+    """Export the weight options given (:data:`WEIGHT_OPTIONS`) to the environment variables the
+    methods read; an option wins over a variable already set."""
+    for option, env in WEIGHT_OPTIONS:
+        if getattr(args, option, None):
+            os.environ[env] = str(Path(getattr(args, option)).expanduser().resolve())
+
+
 def weights_note(calibrators: dict[str, Any]) -> str:
     """Caption text naming the weights of each learned row (methods with a ``weights`` property:
     file name + sha256), e.g. " Weights: ctrlc = gsv.onnx (sha256 ...)."; "" when there are none."""
@@ -529,13 +553,3 @@ def weights_note(calibrators: dict[str, Any]) -> str:
         if weights:
             parts.append(f"{spec} = {weights}")
     return f" Weights: {'; '.join(parts)}." if parts else ""
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="fr eval", description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

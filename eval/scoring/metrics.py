@@ -270,3 +270,23 @@ def summarize_groups(method: str, rows: Sequence[dict[str, Any]], key: str = "gr
             continue
         groups.setdefault(str(value), []).append(r)
     return [summarize(method, groups[value], group=value) for value in sorted(groups, key=group_sort_key)]
+
+
+def risk_coverage(score: Sequence[float], error: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The risk-coverage curve of ranking images by ``score`` (ascending: kept first): (share kept
+    (n,) in (0, 1], mean ``error`` of the kept images (n,)).  Ties keep their input order; a NaN
+    score ranks last.  Images with a non-finite error are left out."""
+    score = np.asarray(score, np.float64)
+    error = np.asarray(error, np.float64)
+    good = np.isfinite(error)
+    score, error = np.where(np.isfinite(score[good]), score[good], np.inf), error[good]
+    kept = error[np.argsort(score, kind="stable")]
+    count = np.arange(1, kept.size + 1)
+    return count / max(kept.size, 1), np.cumsum(kept) / count
+
+
+def aurc(score: Sequence[float], error: Sequence[float]) -> float:
+    """Area under :func:`risk_coverage` (the mean over k of the mean error of the k images ranked
+    first), in the error's units; the oracle ranks by ``error`` itself.  NaN without images."""
+    _, risk = risk_coverage(score, error)
+    return float(risk.mean()) if risk.size else math.nan

@@ -3,7 +3,9 @@
 * :func:`histogram_figure` (``hist_<method>.png``): one method, GT and estimated histograms overlaid;
 * :func:`distributions_figure` (``distributions.png``): the paper's Fig. 4 style comparison of all
   methods -- top row: GT histogram (grey) with every method's estimated distribution overlaid (step
-  histograms); bottom row: estimate vs GT scatter per method with the identity line.
+  histograms); bottom row: estimate vs GT scatter per method with the identity line;
+* :func:`risk_coverage_panel`: a panel of the reliability stage's risk-coverage figures
+  (``results/reliability/``); :func:`save_figure`: every figure's title and file.
 """
 from __future__ import annotations
 
@@ -16,6 +18,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
+from fr_eval.scoring.metrics import aurc, risk_coverage  # noqa: E402
+from fr_eval.scoring.vp_metric import auc_table, recall_curve  # noqa: E402
 
 QUANTITIES = (("roll_deg", "roll (°)"), ("tilt_deg", "tilt (°)"), ("hfov_deg", "horizontal FOV (°)"))
 
@@ -56,13 +60,8 @@ def histogram_figure(predictions: pd.DataFrame, method: str, path: Path, title: 
         ax.set_ylabel("images")
         if values.size:
             ax.legend(fontsize=7)
-    fig.suptitle(title or f"{method}: estimated vs ground truth" + (f" ({failures} failed)" if failures else ""))
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, title or f"{method}: estimated vs ground truth"
+                       + (f" ({failures} failed)" if failures else ""), fontsize=None)
 
 
 def _values(frame: pd.DataFrame, column: str) -> np.ndarray:
@@ -134,10 +133,64 @@ def distributions_figure(predictions: pd.DataFrame, path: Path, title: str = "",
     head = title or "Estimated vs ground truth"
     if empty:
         head += "\n(no valid estimate: " + ", ".join(empty) + ")"
-    fig.suptitle(head)
+    return save_figure(fig, path, head, fontsize=None, dpi=100)
+
+
+def risk_coverage_panel(ax, curves, title: str, ylabel: bool = True, legend_size: int = 7) -> None:
+    """One risk-coverage panel: for each ``(label, score, error, style)`` of ``curves``, the mean
+    ``error`` of the photos kept in the order of ``score`` (lowest first,
+    :func:`fr_eval.scoring.metrics.risk_coverage`) against the % kept.  A curve whose score is not
+    its error (the oracle) gets its AURC over the oracle's in the label; a None label stays out of
+    the legend."""
+    for label, score, error, style in curves:
+        kept, risk = risk_coverage(score, error)
+        if label is not None and score is not error:
+            label = f"{label} ({aurc(score, error) / aurc(error, error):.2f}x)"
+        ax.plot(100 * kept, risk, style, label=label)
+    ax.set_title(title, fontsize=9)
+    ax.set_xlabel("% of photos kept")
+    if ylabel:
+        ax.set_ylabel("focal MAE of kept (%)")
+    ax.legend(fontsize=legend_size, loc="upper left")
+
+
+def save_figure(fig, path: Path, title: str, fontsize: float | None = 10, dpi: int = 110) -> Path:
+    """Title ``fig`` (``fontsize`` points, None: matplotlib's), write it to ``path`` (PNG at ``dpi``,
+    folders made) and close it."""
+    fig.suptitle(title, **({} if fontsize is None else {"fontsize": fontsize}))
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
+def vp_recall_figure(errors: dict[str, dict[str, np.ndarray]], path: Path, title: str = "",
+                     max_deg: float = 20.0) -> Path:
+    """Recall curves of pooled VP errors (degrees) up to ``max_deg``: ``errors[setting][method]``, one
+    panel per setting (``unknown``: f unknown, ``known``: K known), AUC@10 in each label."""
+    settings = list(errors)
+    methods = list(dict.fromkeys(m for by_method in errors.values() for m in by_method))
+    colours = plt.get_cmap("tab20")
+    fig, axes = plt.subplots(1, len(settings), figsize=(6.2 * len(settings), 4.4), squeeze=False)
+    for ax, setting in zip(axes[0], settings):
+        for method, values in errors[setting].items():
+            if not len(values):
+                continue
+            x, y = recall_curve(values, max_deg)
+            ax.plot(x, y, lw=1.6, color=colours(methods.index(method) % 20),
+                    label=f"{method} (AUC@10 {auc_table(values, (10.0,))['auc10']:.1f})")
+        ax.axvline(10.0, color="0.6", lw=0.8, ls=":")
+        ax.set_xlim(0, max_deg)
+        ax.set_ylim(0, 1)
+        ax.set_xlabel("error threshold (°)")
+        ax.set_ylabel("recall (share of labelled VPs)")
+        ax.set_title("f unknown, image-centre principal point" if setting == "unknown" else "K known")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

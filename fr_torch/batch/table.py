@@ -48,6 +48,8 @@ def result_schema():
         ("rotation", mat3), ("vertical_axis", pa.int8()),
         ("pan_deg", f64), ("tilt_deg", f64), ("roll_deg", f64), ("pitch_deg", f64),
         ("vanishing_points", mat3),
+        ("ranked_vanishing_points", pa.list_(pa.struct([("point", pa.list_(f64)), ("support_px", f64),
+                                                         ("family", pa.int8())]))),
         ("distortion", pa.struct([("model", pa.string()), *[(k, f64) for k in DISTORTION_NUMBERS],
                                   ("centre", pa.list_(f64))])),
         ("log_likelihood", f64), ("num_segments", pa.int32()),
@@ -92,6 +94,21 @@ def _clean_nested(value, shape: tuple[int, ...]):
     return array.tolist()
 
 
+def _clean_ranked(value):
+    """The JSON's ``ranked_vanishing_points`` (list of {point, support_px, family}) with finite
+    3-vector points, else None."""
+    if not value:
+        return None
+    out = []
+    for item in value:
+        point = _clean_nested(item.get("point"), (3,))
+        if point is None:
+            return None
+        out.append({"point": point, "support_px": _clean_float(item.get("support_px")),
+                    "family": int(item.get("family", -1))})
+    return out
+
+
 def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]], extras=()):
     """JSON records (``CalibrationResult.to_json``) + their input rows -> Arrow table of the output
     schema plus the carried manifest columns ``extras`` (from :func:`extra_columns`)."""
@@ -104,6 +121,7 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
             out[key] = _clean_float(out[key])
         for key, shape in NESTED_SHAPES.items():
             out[key] = _clean_nested(out[key], shape)
+        out["ranked_vanishing_points"] = _clean_ranked(out["ranked_vanishing_points"])
         for key, keys in (("cues", ROW_CUES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
             value = out[key]
             out[key] = None if not value else {k: _clean_float(value.get(k)) for k in keys}

@@ -52,8 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="gather batches into part files of at least N rows (default 0: one part per batch)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-reliability", action="store_true",
-                        help="do not add predicted errors (fR then skips the focal_profile_gap cue: about "
-                             "twice the images per second)")
+                        help="do not add predicted errors or error bounds (reliable = the sanity checks only; "
+                             "fR then skips the focal_profile_gap cue: about twice the images per second)")
     add_estimator_arguments(parser, device=False)
     add_device_arguments(
         parser, batch_help="images per batch (= per part file; default 16 on a CPU, 256 on a GPU)",

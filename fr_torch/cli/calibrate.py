@@ -49,8 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "cameras.txt: SIMPLE_PINHOLE / SIMPLE_RADIAL / RADIAL, one camera per image); --json "
                              "still writes the fR records")
     output.add_argument("--no-reliability", action="store_true",
-                        help="no predicted errors and reliable = the sanity checks only (fR then skips the "
-                             "focal_profile_gap cue, a quarter of its time per photo)")
+                        help="no predicted errors or error bounds, reliable = the sanity checks only (fR then "
+                             "skips the focal_profile_gap cue, a quarter of its time per photo, and both modes the "
+                             "bounds' spread cues)")
     output.add_argument("--no-progress", action="store_true",
                         help="no progress bar (shown on a terminal's stderr when stdout goes to a file or pipe)")
     add_focal_arguments(parser)

@@ -3,7 +3,8 @@
 * :func:`add_estimator_arguments` -> :func:`estimator_kwargs`: the method (``--fast``,
   ``--measure``, ``--detector``, ``--likelihood``), the search box (``--fov-range``,
   ``--pitch-range``, ``--roll-range``) and the lens model (``--distortion``, ``--k``) as one
-  :class:`~fr_torch.core.config.SearchConfig`, and ``--compile``.
+  :class:`~fr_torch.core.config.SearchConfig`, ``--compile``, and ``--atlanta`` as one
+  :class:`~fr_torch.core.vanishing.AtlantaConfig`.
 * :func:`add_device_arguments` -> :func:`device_policy`: ``--device`` (and, where the command
   takes them, ``--workers`` / ``--batch-size``) as one
   :class:`~fr_torch.runtime.device.DevicePolicy`.
@@ -20,6 +21,7 @@ from typing import Any
 from fr_torch.core.checks import finite_number, positive_number
 from fr_torch.core.config import Mode, SearchConfig
 from fr_torch.core.distortion import DistortionMode
+from fr_torch.core.vanishing import AtlantaConfig
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.device import DECODE_CHOICES, DevicePolicy
 
@@ -28,7 +30,7 @@ MEASURE_CHOICES = tuple("abcde")
 
 def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True) -> None:
     """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--fov-range``,
-    ``--pitch-range``, ``--roll-range``, ``--compile`` and (``device``) ``--device``."""
+    ``--pitch-range``, ``--roll-range``, ``--compile``, ``--atlanta`` and (``device``) ``--device``."""
     group = parser.add_argument_group("estimator")
     group.add_argument("--fast", action="store_true", help="Fast-fR: 10 refinement iterations")
     group.add_argument("--measure", choices=MEASURE_CHOICES, default=None, help="deviation measure (default b)")
@@ -55,6 +57,11 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
                        help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
                             "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "
                             "jobs and video; falls back with a warning where it cannot compile)")
+    group.add_argument("--atlanta", nargs="?", const="on", default=None, metavar="SETTINGS",
+                       help="also find extra horizontal vanishing points at free azimuths (Atlanta world) and rank "
+                            "them with the Manhattan three in ranked_vanishing_points; f and R do not change. "
+                            "SETTINGS: 'on' (default when the option is given) or key=value pairs joined by ':' "
+                            "(max_extra, prior, min_support, exclusion_deg, step_deg; docs/vp.md)")
     if device:
         add_device_arguments(parser)
 
@@ -140,7 +147,7 @@ def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """FREstimator keyword arguments from :func:`add_estimator_arguments`'s options (picklable)."""
     return dict(mode=Mode.FAST if args.fast else Mode.FR, measure=args.measure, detector=args.detector,
                 likelihood=args.likelihood, device=args.device, decode=getattr(args, "decode", "auto"),
-                search_config=search_config(args))
+                search_config=search_config(args), atlanta=AtlantaConfig.parse(getattr(args, "atlanta", None)))
 
 
 def device_policy(args: argparse.Namespace) -> DevicePolicy:

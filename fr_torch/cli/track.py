@@ -52,8 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--patience", type=int, default=2,
                         help="consecutive disagreeing reliable frames that mean the camera moved")
     parser.add_argument("--no-reliability", action="store_true",
-                        help="ignore the reliability model (constant weights = thresholds; fR then skips the "
-                             "focal_profile_gap cue, a quarter of its time)")
+                        help="ignore the reliability stage: frames kept on the sanity checks alone, not the "
+                             "reliable promise, and weighed the same (fR then skips the focal_profile_gap cue, a "
+                             "quarter of its time)")
 
 
 def run(args: argparse.Namespace) -> int:

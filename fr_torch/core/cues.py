@@ -2,8 +2,10 @@
 
 The cues feed the error model (:mod:`fr_torch.core.reliability`): the paper's three (segments per
 family, grid entropy, mean log-likelihood) and geometric ones of ours (focal conditioning, the focal
-prior's share, the focal profile gap).  The checks flag non-finite estimates and estimates at the
-edge of the search box.
+prior's share, the focal profile gap); the spreads (:data:`SPREAD_CUE_NAMES`: how far f and the pitch
+could move before the segments notice, from the focal profile and a segment resampling) feed the
+bounds of ``reliable`` (:mod:`fr_torch.core.reliability_bounds`).  The checks flag non-finite
+estimates and estimates at the edge of the search box.
 """
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ import torch
 from fr_torch.core.config import FAST_REFINE_ITERATIONS, SearchConfig
 from fr_torch.core.distortion import DistortionSetting, border_bow_percent
 from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
-from fr_torch.core.params import FOCAL, from_log_focal, to_log_focal
+from fr_torch.core.params import FOCAL, from_log_focal, rotations, to_log_focal
 from fr_torch.core.search import (
     LATTICE,
     grid_hypotheses,
@@ -160,52 +162,51 @@ MAX_SPREAD = 1e3
 #: 67 % away on either side, evenly spaced in log f (narrower than the search range's 6.5x, wider
 #: than the basin of a well-determined estimate, ~5 %).
 PROFILE_FOCAL_RATIOS = (0.6, 0.7, 0.8, 0.87, 1.15, 1.25, 1.43, 1.67)
-#: Images profiled together by :func:`focal_profile_gap` (their segments are copied once per ratio:
-#: 256 x 8 copies of 750 segments are about 90 MB); the gaps do not depend on it.
+#: The profile points of :func:`focal_profile_spread`: the nearest on either side of the estimate
+#: (13 % shorter, 15 % longer), just beyond the 10 % a reliable focal length may be off.
+SPREAD_FOCAL_RATIOS = (0.87, 1.15)
+#: Images profiled together by :func:`focal_profile` (their segments are copied once per ratio:
+#: 256 x 8 copies of 750 segments are about 90 MB); the profile does not depend on it.
 PROFILE_CHUNK_IMAGES = 256
 
 
-def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
-                      scores: torch.Tensor, config: SearchConfig, iterations: int) -> torch.Tensor:
-    """How much better the estimate scores than the best hypothesis at a clearly different focal
-    length (a reliability cue): ``scores`` minus the best objective of a known-focal search at each
-    f x :data:`PROFILE_FOCAL_RATIOS` inside the search range.
+def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                  config: SearchConfig, iterations: int,
+                  ratios: Sequence[float] = PROFILE_FOCAL_RATIOS) -> tuple[torch.Tensor, torch.Tensor]:
+    """The objective's profile along f: the best hypothesis of a known-focal search at each
+    f x ``ratios`` inside the search range.
 
     Each known-focal search is Fast-fR's with the focal length fixed: the k^3 angle grid, its
-    ``top_l`` best points refined for ``iterations`` Adam steps.  A large gap (hundreds of nats)
-    means the segments single out the estimate's focal length; a small one, that another focal
-    length explains them almost as well (two basins: the estimate may be the wrong one); a negative
-    one, that the search missed a better basin.  Values are in objective units (nats, weighted by
-    segment length in pixels), like ``scores``.
+    ``top_l`` best points refined for ``iterations`` Adam steps.
 
     Args:
         likelihood: the estimator's model.
         features: the segments of B images.
         params: (B, 4) estimates [pan, pitch, roll (degrees), f (pixels)].
-        scores: (B,) the estimates' objectives.
         config: the search settings (FOV range, grid, top_l).
         iterations: Adam steps per start.
+        ratios: R focal lengths as multiples of the estimate's.
 
     Returns:
-        (B,) float64, finite: 0 (no evidence that the estimate's focal length is singled out) where
-        the gap is not finite (a non-finite estimate, or no ratio's focal length inside the range).
+        ``(best, points)``: (B, R) float64 best objective at each ratio (-inf where f x ratio lies
+        outside the FOV range: not searched) and (B, R, 4) float64 its hypothesis [pan, pitch, roll
+        (degrees), f (pixels)] (the estimate where not searched).
     """
-    batch, count = params.shape[0], len(PROFILE_FOCAL_RATIOS)
+    batch, count = params.shape[0], len(ratios)
     device = features.weight.device
     if batch > PROFILE_CHUNK_IMAGES:  # each image's segments are copied once per ratio searched: bound the copies
-        return torch.cat([focal_profile_gap(likelihood, features.images(b, b + PROFILE_CHUNK_IMAGES),
-                                            params[b:b + PROFILE_CHUNK_IMAGES], scores[b:b + PROFILE_CHUNK_IMAGES],
-                                            config, iterations)
-                          for b in range(0, batch, PROFILE_CHUNK_IMAGES)])
-    if batch == 0:
-        return torch.zeros(0, dtype=torch.float64, device=device)
-    ratios = torch.tensor(PROFILE_FOCAL_RATIOS, dtype=torch.float64)
+        parts = [focal_profile(likelihood, features.images(b, b + PROFILE_CHUNK_IMAGES),
+                               params[b:b + PROFILE_CHUNK_IMAGES], config, iterations, ratios)
+                 for b in range(0, batch, PROFILE_CHUNK_IMAGES)]
+        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+    ratio_t = torch.tensor(tuple(ratios), dtype=torch.float64)
     long_side = features.long_side.to("cpu", torch.float64)
     f_lo, f_hi = config.fov_range.focal_bounds(long_side)
-    focal = params[:, FOCAL].to("cpu", torch.float64)[:, None] * ratios  # (B, R)
+    focal = params[:, FOCAL].to("cpu", torch.float64)[:, None] * ratio_t  # (B, R)
     inside = (focal >= f_lo[:, None]) & (focal <= f_hi[:, None])
     pairs = inside.nonzero()  # (M, 2) [image, ratio]: only focal lengths inside the range are searched
     best = torch.full((batch, count), -math.inf, dtype=torch.float64, device=device)
+    points = params.to(device=device, dtype=torch.float64)[:, None, :].repeat(1, count, 1)
     if len(pairs):
         image, ratio = pairs.unbind(1)
         searched = features.take_images(image.to(device))
@@ -215,11 +216,178 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
                                  vertical_block=config.grid_points_per_dim)
         starts, _ = select_starts(config, grid_scores, hypotheses)
         lower, upper = parameter_box(config, long_rep, focal_rep)
-        _, refined = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations, fast=True,
-                            periodic_pan=config.periodic_pan)
-        best[image.to(device), ratio.to(device)] = refined.to(torch.float64).amax(1)
+        refined, refined_scores = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations,
+                                         fast=True, periodic_pan=config.periodic_pan)
+        value, arg = refined_scores.to(torch.float64).max(1)
+        image, ratio = image.to(device), ratio.to(device)
+        best[image, ratio] = value
+        points[image, ratio] = refined[torch.arange(len(arg), device=device), arg].to(torch.float64)
+    return best, points
+
+
+def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                      scores: torch.Tensor, config: SearchConfig, iterations: int,
+                      profile: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """How much better the estimate scores than the best hypothesis at a clearly different focal
+    length (a reliability cue): ``scores`` minus the best objective of :func:`focal_profile` over
+    :data:`PROFILE_FOCAL_RATIOS` (or ``profile``, its output when already computed).
+
+    A large gap (hundreds of nats) means the segments single out the estimate's focal length; a
+    small one, that another focal length explains them almost as well (two basins: the estimate
+    may be the wrong one); a negative one, that the search missed a better basin.  Values are in
+    objective units (nats, weighted by segment length in pixels), like ``scores``.
+
+    Args:
+        likelihood, features, params, config, iterations: as for :func:`focal_profile`.
+        scores: (B,) the estimates' objectives.
+        profile: :func:`focal_profile`'s output for these arguments, when already computed.
+
+    Returns:
+        (B,) float64, finite: 0 (no evidence that the estimate's focal length is singled out) where
+        the gap is not finite (a non-finite estimate, or no ratio's focal length inside the range).
+    """
+    if params.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.float64, device=features.weight.device)
+    best = (profile if profile is not None else focal_profile(likelihood, features, params, config, iterations))[0]
     gap = scores.to(torch.float64) - best.amax(1)
     return torch.where(torch.isfinite(gap), gap, torch.zeros_like(gap))
+
+
+#: Images whose per-segment objectives :func:`segment_objectives` holds at once (81 lattice points x
+#: 750 segments x 64 images in float64 are about 30 MB); the values do not depend on it.
+SEGMENT_CHUNK_IMAGES = 64
+
+
+def segment_objectives(likelihood: MixtureLikelihood, features: SegmentFeatures, points: torch.Tensor) -> torch.Tensor:
+    """Each segment's term of the objective, ``length_i log p_i``, at each hypothesis.
+
+    Args:
+        likelihood, features: as for :func:`local_quadratic` (B images).
+        points: (B, H, 4) hypotheses [pan, pitch, roll (degrees), f (pixels)].
+
+    Returns:
+        (B, H, N) float64; 0 for padding.  Summed over segments: the objective without the focal prior.
+    """
+    dtype = features.weight.dtype
+    _, log_p = likelihood.posteriors(features, rotations(points.to(dtype)), points[..., FOCAL].to(dtype))
+    terms = log_p.to(torch.float64) * features.weight[:, None, :].to(torch.float64)
+    return torch.where(features.mask[:, None, :], terms, torch.zeros_like(terms))
+
+
+def _resampled_sd(differences: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Standard deviation of ``sum_i d_i`` when the segments are resampled with replacement
+    (``sqrt(n / (n - 1) sum_i (d_i - mean d)^2)``), over the last axis; ``differences`` (..., N),
+    ``mask`` broadcastable to it."""
+    weight = mask.to(differences)
+    n = weight.sum(-1).clamp_min(2.0)
+    mean = (differences * weight).sum(-1) / n
+    return ((((differences - mean[..., None]) * weight) ** 2).sum(-1) * n / (n - 1)).sqrt()
+
+
+def focal_profile_spread(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                         config: SearchConfig, profile: tuple[torch.Tensor, torch.Tensor],
+                         ratios: Sequence[float] = SPREAD_FOCAL_RATIOS) -> torch.Tensor:
+    """How far f could move before the segments notice, from the profile next to the estimate (a
+    reliability cue; the spread of log f).
+
+    For each profile point at f x r (``profile``: :func:`focal_profile`'s output for ``ratios``), the
+    segments' evidence for the estimate over that point is ``D = sum_i d_i``, with ``d_i`` segment
+    i's term of the objective at the estimate minus at the point (:func:`segment_objectives`; the
+    focal prior left out: it is not evidence), and ``S`` its standard deviation when the segments
+    are resampled with replacement: ``z = D / S`` counts in standard errors how much better the
+    estimate explains *these* segments, a self-normalised number (the objective's length weights
+    over-count correlated pixels; ``S`` grows with them).  Were the objective quadratic in log f
+    with spread s, ``z = |log r| / (2 s)``, so each side gives ``s_r = |log r| / (2 z)``; the cue is
+    the larger of the two sides.
+
+    Args:
+        likelihood, features, params, config: as for :func:`focal_profile`.
+        profile: :func:`focal_profile`'s output for these arguments and ``ratios``.
+        ratios: the profile's focal ratios (default :data:`SPREAD_FOCAL_RATIOS`).
+
+    Returns:
+        (B,) float64 spread of log f (0.05 = 5 %).  :data:`MAX_SPREAD` where a point scores at least as
+        well as the estimate (``z <= 0``: a search miss or a flat profile).  A side outside the FOV
+        range is left out (the range rules it out); with both out, the range's own spread
+        (its width in log f over sqrt(12)).
+    """
+    best, points = profile
+    device = features.weight.device
+    count = len(ratios)
+    out = []
+    for b in range(0, params.shape[0], SEGMENT_CHUNK_IMAGES):
+        sub = features.images(b, b + SEGMENT_CHUNK_IMAGES)
+        here = params[b:b + SEGMENT_CHUNK_IMAGES].to(device=device, dtype=torch.float64)
+        terms = segment_objectives(likelihood, sub, torch.cat([here[:, None], points[b:b + SEGMENT_CHUNK_IMAGES]], 1))
+        differences = terms[:, :1] - terms[:, 1:]  # (b, R, N)
+        z = differences.sum(-1) / _resampled_sd(differences, sub.mask[:, None, :]).clamp_min(1e-12)
+        out.append(z)
+    z = torch.cat(out) if out else torch.zeros(0, count, dtype=torch.float64, device=device)
+    log_ratio = torch.tensor([abs(math.log(r)) for r in ratios], dtype=torch.float64, device=device)
+    side = torch.where(z > 0, log_ratio / (2 * z.clamp_min(1e-12)), torch.full_like(z, MAX_SPREAD))
+    inside = torch.isfinite(best)
+    spread = torch.where(inside, side, torch.zeros_like(side)).amax(1)
+    long_side = features.long_side.to("cpu", torch.float64)
+    f_lo, f_hi = config.fov_range.focal_bounds(long_side)
+    range_spread = ((f_hi / f_lo).log() / math.sqrt(12.0)).to(device)
+    spread = torch.where(inside.any(1), spread, range_spread)
+    return torch.where(torch.isfinite(spread), spread, torch.full_like(spread, MAX_SPREAD)).clamp_max(MAX_SPREAD)
+
+
+def resample_spreads(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                     fitted: tuple[torch.Tensor, torch.Tensor], known_focal: bool = False) -> dict[str, torch.Tensor]:
+    """The spread of the estimate when the segments are resampled with replacement (reliability cues),
+    by the infinitesimal jackknife (the "sandwich" ``H^-1 J H^-1``).
+
+    ``H``: the likelihood's Hessian at the estimate in [pan, pitch, roll (deg), log f], from
+    :func:`local_quadratic` (``fitted``) with the focal prior's curvature taken out (the spread of
+    what the *segments* say: where they leave f to the prior, the spread is large).  ``J = sum_i
+    (g_i - mean g)(g_i - mean g)^T`` with ``g_i`` segment i's gradient, from a quadratic fit of its
+    term of the objective (:func:`segment_objectives`) over the same 3^4 lattice: the spread of the
+    summed gradient over resampled segments.  Unlike the Laplace spread (:func:`focal_spread`) it
+    does not take the length-weighted objective at its word: segments that disagree widen it.
+
+    Args:
+        likelihood, features, params: as for :func:`local_quadratic`.
+        fitted: :func:`local_quadratic`'s output for these arguments.
+        known_focal: the focal length was given: the angles alone are free (their 3 x 3 block).
+
+    Returns:
+        ``{"focal_resample_spread": (B,), "pitch_resample_spread": (B,)}`` float64: the spread of log f
+        (0 for a known focal length) and of the pitch in degrees; :data:`MAX_SPREAD` where the
+        likelihood has no maximum there (or the fit is not finite).
+    """
+    device = features.weight.device
+    step = torch.tensor(PRIOR_SHARE_STEP, dtype=torch.float64, device=device)
+    fit = _QUADRATIC_FIT.to(device)[1:5]  # (4, 81): the gradient's rows, lattice units
+    hessian, prior = fitted
+    hessian = hessian.clone()
+    hessian[:, 3, 3] += prior  # the likelihood's Hessian alone
+    free = slice(0, 3) if known_focal else slice(0, 4)
+    blocks = []
+    for b in range(0, params.shape[0], SEGMENT_CHUNK_IMAGES):
+        sub = features.images(b, b + SEGMENT_CHUNK_IMAGES)
+        centre = to_log_focal(params[b:b + SEGMENT_CHUNK_IMAGES].to(device=device, dtype=torch.float64))
+        terms = segment_objectives(likelihood, sub, from_log_focal(centre[:, None, :] + LATTICE.to(device) * step))
+        gradient = torch.einsum("bhn,ch->bnc", terms, fit) / step  # (b, N, 4) per degree / per log f
+        weight = sub.mask.to(gradient)[..., None]
+        n = weight.sum(1).clamp_min(2.0)
+        centred = (gradient - (gradient * weight).sum(1, keepdim=True) / n[:, None]) * weight
+        blocks.append(torch.einsum("bni,bnj->bij", centred, centred) * (n / (n - 1))[..., None])
+    outer = torch.cat(blocks) if blocks else torch.zeros(0, 4, 4, dtype=torch.float64, device=device)
+    h, j = hessian[:, free, free], outer[:, free, free]
+    inverse, info = torch.linalg.inv_ex(h)
+    covariance = inverse @ j @ inverse
+    peak = torch.linalg.eigvalsh(0.5 * (h + h.transpose(-1, -2)))[:, -1] < 0  # a maximum of the likelihood
+    ok = (info == 0) & peak
+
+    def spread(index):
+        variance = covariance[:, index, index]
+        good = ok & torch.isfinite(variance) & (variance >= 0)
+        return torch.where(good, variance.clamp_min(0.0).sqrt(), torch.full_like(variance, MAX_SPREAD)).clamp_max(MAX_SPREAD)
+
+    focal = torch.zeros(params.shape[0], dtype=torch.float64, device=device) if known_focal else spread(3)
+    return {"focal_resample_spread": focal, "pitch_resample_spread": spread(1)}
 
 
 def check_result(result, config: SearchConfig, known_focal: bool = False,
@@ -305,12 +473,17 @@ def finite_record(result) -> None:
     * A non-finite ``manhattan_fraction`` becomes None, a non-finite cue is removed from ``cues``,
       a ``predicted_error`` with a non-finite value becomes None; an estimate that had one is not
       reliable, and ``reason`` names what was removed.  Non-finite ``runtime_s`` entries are removed.
+    * The ranked vanishing points (with their support and families) are removed from a failed
+      estimate and from one where any of them is non-finite.
     """
     if result.ok and not all(_all_finite(getattr(result, key)) for key in ESTIMATE_FIELDS):
         result.camera, result.log_likelihood = None, None
         result.ok, result.reliable, result.reason = False, False, NON_FINITE_REASON
     if not _all_finite(result.log_likelihood):
         result.log_likelihood = None
+    if hasattr(result, "ranked_vanishing_points") and not (
+            result.ok and _all_finite(result.ranked_vanishing_points) and _all_finite(result.vanishing_point_support)):
+        result.ranked_vanishing_points = result.vanishing_point_support = result.vanishing_point_families = None
     removed = []
     if not _all_finite(result.manhattan_fraction):
         result.manhattan_fraction = None
@@ -377,24 +550,49 @@ def image_cues(grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[
             "focal_conditioning": focal_conditioning(rotation).to(torch.float64)}
 
 
+#: The cues :func:`focal_cues` adds with ``spreads`` on (the bounds of ``reliable``,
+#: :mod:`fr_torch.core.reliability_bounds`).
+SPREAD_CUE_NAMES = ("focal_profile_spread", "focal_resample_spread", "pitch_resample_spread")
+
+
 def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: SegmentFeatures,
-               params: torch.Tensor, scores: torch.Tensor, known_focal: bool, profile_gap: bool) -> dict[str, torch.Tensor]:
+               params: torch.Tensor, scores: torch.Tensor, known_focal: bool, profile_gap: bool,
+               spreads: bool = False) -> dict[str, torch.Tensor]:
     """The focal cues of the estimates ``params`` (B, 4) with objectives ``scores`` (B,), each
     float64 (B,): ``focal_prior_share`` and ``focal_spread`` (:func:`focal_prior_share`,
-    :func:`focal_spread`, both from one :func:`local_quadratic` fit) and, when ``profile_gap`` is on
+    :func:`focal_spread`, both from one :func:`local_quadratic` fit); when ``profile_gap`` is on
     (fR's shipped model uses it), ``focal_profile_gap`` (:func:`focal_profile_gap`, each
     known-focal search refined for Fast-fR's number of steps; it costs about a Fast-fR search per
-    photo, so Fast-fR and its model go without it).  0 for a given focal length: the prior plays no
-    part and there is no focal length to single out."""
+    photo, so Fast-fR and its model go without it); when ``spreads`` is on (the bounds of
+    ``reliable`` use them), :data:`SPREAD_CUE_NAMES`: ``focal_profile_spread``
+    (:func:`focal_profile_spread`, from the profile's two points next to the estimate: with
+    ``profile_gap`` off only those two are searched) and the resampling spreads of log f and pitch
+    (:func:`resample_spreads`, from the same lattice as ``focal_prior_share``).  The focal cues
+    are 0 for a given focal length: the prior plays no part and there is no focal length to single
+    out; the pitch's spread is still computed then."""
+    zeros = torch.zeros(params.shape[0], dtype=torch.float64, device=params.device)
     names = ("focal_prior_share", "focal_spread") + (("focal_profile_gap",) if profile_gap else ())
     if known_focal:
-        return {name: torch.zeros(params.shape[0], dtype=torch.float64, device=params.device) for name in names}
+        cues = {name: zeros for name in names}
+        if spreads:
+            fitted = local_quadratic(likelihood, features, params, search.max_chunk_elements)
+            cues.update(focal_profile_spread=zeros, **resample_spreads(likelihood, features, params, fitted,
+                                                                       known_focal=True))
+        return cues
     fitted = local_quadratic(likelihood, features, params, search.max_chunk_elements)
     cues = {"focal_prior_share": focal_prior_share(likelihood, features, params, fitted=fitted),
             "focal_spread": focal_spread(fitted[0], features.weight.sum(-1))}
     if profile_gap:
+        profile = focal_profile(likelihood, features, params, search, FAST_REFINE_ITERATIONS)
         cues["focal_profile_gap"] = focal_profile_gap(likelihood, features, params, scores, search,
-                                                      FAST_REFINE_ITERATIONS)
+                                                      FAST_REFINE_ITERATIONS, profile=profile)
+        near = [PROFILE_FOCAL_RATIOS.index(r) for r in SPREAD_FOCAL_RATIOS]
+        near_profile = (profile[0][:, near], profile[1][:, near])
+    elif spreads:
+        near_profile = focal_profile(likelihood, features, params, search, FAST_REFINE_ITERATIONS, SPREAD_FOCAL_RATIOS)
+    if spreads:
+        cues["focal_profile_spread"] = focal_profile_spread(likelihood, features, params, search, near_profile)
+        cues.update(resample_spreads(likelihood, features, params, fitted))
     return cues
 
 

@@ -70,6 +70,7 @@ from fr_torch.core.search import (
     subdivide_starts,
     sweep_focal,
 )
+from fr_torch.core.vanishing import AtlantaConfig, rank_vanishing_points
 from fr_torch.core.segments import (
     SegmentBatch,
     SegmentFilter,
@@ -116,8 +117,8 @@ SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device m
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
 JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px", "hfov_deg", "principal_point",
              "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
-             "distortion", "log_likelihood", "num_segments", "manhattan_fraction", "cues", "predicted_error",
-             "error_bound", "runtime_s")
+             "ranked_vanishing_points", "distortion", "log_likelihood", "num_segments", "manhattan_fraction", "cues",
+             "predicted_error", "error_bound", "runtime_s")
 
 
 @camera_record
@@ -133,6 +134,12 @@ class CalibrationResult:
     ``reason`` says why).  ``reliable`` is False when the estimate exists but should not be
     trusted (too few segments, a Manhattan family nearly empty, or predicted errors above the
     threshold once a reliability model is loaded); ``reason`` lists why.
+
+    ``ranked_vanishing_points`` (M, 3): every vanishing point of the estimate, rows ``(x, y, w)``
+    (``w >= 0``), ranked by ``vanishing_point_support`` (M,), the length-weighted posterior mass of
+    each family's segments (pixels), most supported first; ``vanishing_point_families`` (M,) says
+    which family each is: 0-2 the column of R (1 = vertical), 3.. an Atlanta family (an extra
+    horizontal direction, ``atlanta`` option; :mod:`fr_torch.core.vanishing`).  M = 3 without it.
     """
 
     image: str
@@ -148,6 +155,9 @@ class CalibrationResult:
     manhattan_fraction: float | None = None  # share of total segment length labelled with a family
     segments: np.ndarray | None = None  # (N, 4) the segments used
     labels: np.ndarray | None = None  # (N,) 0, 1, 2 = Manhattan column (1 = vertical), 3 = background
+    ranked_vanishing_points: np.ndarray | None = None  # (M, 3) rows (x, y, w), most supported first
+    vanishing_point_support: np.ndarray | None = None  # (M,) pixels of segment length
+    vanishing_point_families: np.ndarray | None = None  # (M,) 0-2 Manhattan column, 3.. Atlanta family
     cues: dict[str, float] = field(default_factory=dict)
     predicted_error: dict[str, float] | None = None
     # what `reliable` promises (fr_torch.core.reliability_bounds): {"coverage", "focal_pct", "tilt_deg" (the
@@ -217,7 +227,9 @@ class CalibrationResult:
 
     def to_json(self, include_segments: bool = False) -> dict[str, Any]:
         """JSON-ready dict (the CLI's output schema, keys :data:`JSON_KEYS`; arrays become nested lists)."""
-        out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS}
+        out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS if key != "ranked_vanishing_points"}
+        out["ranked_vanishing_points"] = self.ranked_vanishing_points_json()
+        out = {key: out[key] for key in JSON_KEYS}
         for key in ("rotation", "vanishing_points"):
             if out[key] is not None:
                 out[key] = np.asarray(out[key]).tolist()
@@ -227,6 +239,18 @@ class CalibrationResult:
         if self.labels is not None:
             out["segments_per_family"] = np.bincount(self.labels, minlength=4).tolist()
         return out
+
+    def ranked_vanishing_points_json(self) -> list[dict[str, Any]] | None:
+        """``[{"point": [x, y, w], "support_px": s, "family": k}, ...]`` most supported first (the
+        JSON's ``ranked_vanishing_points``), or None without them."""
+        if self.ranked_vanishing_points is None:
+            return None
+        support = self.vanishing_point_support if self.vanishing_point_support is not None else \
+            np.full(len(self.ranked_vanishing_points), np.nan)
+        families = self.vanishing_point_families if self.vanishing_point_families is not None else \
+            np.full(len(self.ranked_vanishing_points), -1)
+        return [{"point": np.asarray(p, np.float64).tolist(), "support_px": float(s), "family": int(k)}
+                for p, s, k in zip(self.ranked_vanishing_points, support, families)]
 
 
 class SegmentEstimator:
@@ -246,12 +270,20 @@ class SegmentEstimator:
     (random texture, nature scenes: real built scenes measure 0.75-0.95 with LSD).
     ``reliability``: the error predictor stage (:mod:`fr_torch.core.reliability`): ``"default"`` (the
     shipped model of this mode, when installed), a model object, a path to a model ``.npz``, or None
-    (off).  When on, every estimate gets ``predicted_error`` and ``reliable = False`` above the
-    thresholds of ``configs/reliability.json``.
+    (off).  When on, every estimate gets ``predicted_error``, ``error_bound`` and ``reliable = False``
+    when a bound exceeds its limit (the promise of ``configs/reliability.json``,
+    :mod:`fr_torch.core.reliability_bounds`; with ``"enforce": false``: a predicted error above its
+    threshold).
     ``profile_gap``: compute the ``focal_profile_gap`` cue (:meth:`_focal_cues`; a quarter of fR's
     time per photo, half of its batch throughput): None (default) when the reliability model uses
     it (fR's shipped model does; with ``reliability=None`` it is skipped), True always (records
     for training a model), False never (a model that uses it is then an error).
+    ``spreads``: compute the cues the bounds of ``reliable`` rest on
+    (:data:`fr_torch.core.cues.SPREAD_CUE_NAMES`): None (default) when the reliability stage holds
+    such bounds (the shipped one does), True always (records), False never.
+    ``atlanta``: extra vanishing points beyond the Manhattan three after the fit
+    (:class:`fr_torch.core.vanishing.AtlantaConfig` or anything its ``parse`` takes; None = off);
+    they join ``ranked_vanishing_points`` and change neither f nor R.
     ``distortion``: the lens model, ``pinhole`` (default), ``division`` (k of the division model
     estimated with f and R) or ``auto`` (:class:`~fr_torch.core.distortion.DistortionSetting`);
     ``k``: a known k (normalised by half the image diagonal, :mod:`fr_torch.core.distortion`),
@@ -263,9 +295,10 @@ class SegmentEstimator:
                  likelihood: str | None = None,
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
                  min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6,
-                 reliability="default", profile_gap: bool | None = None, distortion: str | None = None,
-                 k: float | None = None):
+                 reliability="default", profile_gap: bool | None = None, spreads: bool | None = None,
+                 atlanta=None, distortion: str | None = None, k: float | None = None):
         self.mode = Mode.parse(mode)
+        self.atlanta = AtlantaConfig.parse(atlanta)
         self.search = (search_config or SearchConfig.from_config()).resolve(self.mode)
         if distortion is not None or k is not None:
             self.search = self.search.with_distortion(distortion, k)
@@ -293,6 +326,8 @@ class SegmentEstimator:
             raise FRInputError("the reliability model uses the focal_profile_gap cue: profile_gap=False "
                                "needs reliability=None or a model without it")
         self.profile_gap = "focal_profile_gap" in model_cues if profile_gap is None else bool(profile_gap)
+        # the spread cues that the bounds of `reliable` rest on (fr_torch.core.reliability_bounds)
+        self.spreads = getattr(reliability, "needs_spreads", False) if spreads is None else bool(spreads)
 
     # ------------------------------------------------------------------ public API
 
@@ -374,7 +409,7 @@ class SegmentEstimator:
             if item.dropped and item.result.ok:
                 item.result.reliable = False
                 item.result.reason = "; ".join(r for r in (item.result.reason, absurd_segments_note(item.dropped)) if r)
-        if self.reliability is not None:  # predicted errors, reliable above thresholds
+        if self.reliability is not None:  # predicted errors, bounds, reliable = the promise
             scope_gap = self.reliability_scope_gap(detected)
             if scope_gap is None:
                 self.reliability.annotate_many(results, mode=self.mode,
@@ -468,9 +503,10 @@ class SegmentEstimator:
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype),
                                                       estimate.focal_px[:, None].to(dtype))
         labels = posterior[:, 0].argmax(-1)
+        ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta)
         cues = image_cues(grid_scores, grid_counts, labels, log_p[:, 0], batch.mask, rotation)
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
-                                self.profile_gap))
+                               self.profile_gap, self.spreads))
         if lens == "pinhole":  # do the lines bend?  (a sanity check of pinhole estimates; auto's criterion)
             cues.update(bend_test(self.likelihood, geometry, features, estimate.data, best_scores, self.search, focal))
         t3 = time.perf_counter()
@@ -484,6 +520,8 @@ class SegmentEstimator:
         params_all = estimate.data.cpu().numpy()
         scores_all = best_scores.to(torch.float64).cpu().numpy()
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
+        ranked_points, ranked_support, ranked_family = (ranked.points.cpu().numpy(), ranked.support.cpu().numpy(),
+                                                        ranked.family.cpu().numpy())
         family = labels_all != BACKGROUND_LABEL
         manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
         cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, FOCAL], pp_np, rotation_all)
@@ -498,6 +536,10 @@ class SegmentEstimator:
             r.num_segments = n
             r.segments = item.segments
             r.labels = labels_all[j, :n]
+            found = ranked_family[j] >= 0
+            r.ranked_vanishing_points = ranked_points[j][found]
+            r.vanishing_point_support = ranked_support[j][found]
+            r.vanishing_point_families = ranked_family[j][found]
             r.manhattan_fraction = float(manhattan[j])
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))

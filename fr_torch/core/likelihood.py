@@ -462,6 +462,30 @@ class MixtureLikelihood:
         background = self._log_background(x, features).expand_as(x[..., :1])
         return torch.cat([family, background], -1)
 
+    def component_log_densities(self, features: SegmentFeatures, rotation: torch.Tensor,
+                                focal: torch.Tensor) -> torch.Tensor:
+        """log(prior * density) of the 3 families and the background for every segment under every
+        hypothesis (rotations (B, H, 3, 3), focal lengths (B, H)), (B, N, H, 4); column 3 = background."""
+        return self._component_log_densities(self._deviations(features, rotation, focal), features)
+
+    def point_deviations(self, features: SegmentFeatures, vps: torch.Tensor, focal: torch.Tensor) -> torch.Tensor:
+        """Deviation of every segment from A homogeneous VPs ``vps`` (B, A, 3) in pixels, (B, N, A),
+        internal units; ``focal`` (B,) pixels (measure e).  For measure e the VPs must be ``K d``
+        with unit directions ``d``, as a column of R gives."""
+        flat = vps.transpose(1, 2).to(features.line.dtype)  # (B, 3, A)
+        s = torch.bmm(features.line, flat)[..., None]  # (B, N, A, 1)
+        t = torch.bmm(features.along, flat)[..., None]
+        v3 = flat[:, None, 2, :, None]  # (B, 1, A, 1)
+        focal = focal.to(flat.dtype)[:, None].expand(-1, flat.shape[-1])
+        return deviations_from_incidence(self.params.measure, s, t, v3, features, focal, self.params.range_px)[..., 0]
+
+    def horizontal_log_density(self, x: torch.Tensor) -> torch.Tensor:
+        """log density (without the prior) of a horizontal family at deviations ``x`` (internal units)."""
+        scale = self.params.scale_horizontal
+        if self.params.measure == "d":
+            return math.log(math.sqrt(2 / math.pi) / scale) - 0.5 * (x / scale) ** 2
+        return -math.log(scale) - x / scale
+
     def segment_log_likelihood(self, features: SegmentFeatures, rotation: torch.Tensor,
                                focal: torch.Tensor) -> torch.Tensor:
         """log p_i of every segment under every hypothesis, (B, N, H).

@@ -45,12 +45,22 @@ fR).
 The shipped models' cue sets (Fast-fR: the paper's three, ``focal_prior_share`` and ``focal_spread``;
 fR: all seven)
 were chosen out of fold on the train splits (``results/DECISIONS.md``; ``focal_spread``: left-one-
-family-out on the train splits, ``results/decisions/35.md``).
+family-out on the train splits, ``results/decisions/35.md``).  The estimator also reports the three
+spread cues of :data:`fr_torch.core.cues.SPREAD_CUE_NAMES` (in :data:`CUE_NAMES`, not in a shipped
+model) when a model holds a promise: its bounds rest on them.
+
+Run-time use: the estimator's last stage calls :meth:`ReliabilityModel.annotate_many`, which sets
+``predicted_error`` (this KNN) and, with a :class:`~fr_torch.core.reliability_bounds.ReliabilityPromise`
+(``configs/reliability.json``'s ``promise`` block), ``error_bound`` and ``reliable`` by the promise;
+without one, or with ``"enforce": false``, ``reliable`` is cleared when a predicted error exceeds its
+threshold (``thresholds``: roll 2 deg, tilt 3 deg, focal 15 %).
 
 Scope: a model predicts only for the setting it was trained on, ``meta["trained_for"]`` (deviation
 measure, line detector, likelihood config; :data:`DEFAULT_TRAINED_FOR` for a file that does not say,
-the shipped models' setting).  An estimator with another measure, likelihood or detector gets no
-predicted errors (``predicted_error`` None) and ``reliable = False`` with the reason
+the shipped models' setting), and for the detectors its promise was validated on
+(``validated_detectors`` in the ``promise`` block, :attr:`ReliabilityModel.detectors`).  An
+estimator with another measure, likelihood or detector gets no predicted errors
+(``predicted_error`` None) and ``reliable = False`` with the reason
 (:meth:`ReliabilityModel.scope_gap`): a model's predictions say nothing about errors of another
 setting.
 """
@@ -67,6 +77,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fr_torch.core.config import Mode
+from fr_torch.core.cues import SPREAD_CUE_NAMES
 from fr_torch.core.likelihood import LikelihoodParams
 from fr_torch.core.reliability_bounds import ReliabilityPromise
 from fr_torch.resources import config_dir
@@ -74,10 +85,12 @@ from fr_torch.resources import config_dir
 _config_dir = config_dir  # load_default has an argument of that name
 
 PAPER_CUE_NAMES = ("min_family_segments", "grid_entropy", "mean_log_likelihood")  # paper §3.4
-# what the estimator reports (focal_profile_gap in fr mode only)
-CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share", "focal_profile_gap", "focal_spread")
+FR_MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share", "focal_profile_gap",
+                                         "focal_spread")  # fR's shipped model: the seven of the module docstring
 MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_prior_share", "focal_spread")  # Fast-fR's shipped model (module docstring)
-FR_MODEL_CUE_NAMES = CUE_NAMES  # fR's shipped model: all seven
+# what the estimator reports: the seven (focal_profile_gap in fr mode only) and, when the promise's
+# bounds need them, the spreads (fr_torch.core.cues.SPREAD_CUE_NAMES, fr_torch.core.reliability_bounds)
+CUE_NAMES = FR_MODEL_CUE_NAMES + SPREAD_CUE_NAMES
 TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
 ERROR_COLUMNS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct")  # training-record column names
 LOG_EPS = np.array([0.1, 0.1, 1.0])  # CV loss: ln(error + eps)
@@ -97,6 +110,11 @@ _CUE_TRANSFORMS = {
     "focal_profile_gap": (lambda c: np.arcsinh(np.asarray(c, np.float64) / PROFILE_GAP_SCALE),
                           "asinh(focal_profile_gap / 100)"),
     "focal_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR), "ln(focal_spread + 1e-4)"),
+    "focal_profile_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR), "ln(focal_profile_spread + 1e-4)"),
+    "focal_resample_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR),
+                              "ln(focal_resample_spread + 1e-4)"),
+    "pitch_resample_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR),
+                              "ln(pitch_resample_spread + 1e-4)"),
 }
 
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
@@ -118,7 +136,7 @@ def model_cue_names(mode: str) -> tuple[str, ...]:
     return FR_MODEL_CUE_NAMES if mode == "fr" else MODEL_CUE_NAMES
 
 
-def feature_version(names: Sequence[str] = CUE_NAMES) -> str:
+def feature_version(names: Sequence[str] = FR_MODEL_CUE_NAMES) -> str:
     """Human-readable description of the features of ``names`` (stored in a model's metadata)."""
     return ", ".join(_CUE_TRANSFORMS[name][1] for name in names) + "; PCA-whitened"
 
@@ -132,7 +150,7 @@ def check_cue_names(names: Sequence[str]) -> tuple[str, ...]:
     return names
 
 
-def cue_features(cues: np.ndarray | Sequence, names: Sequence[str] = CUE_NAMES) -> np.ndarray:
+def cue_features(cues: np.ndarray | Sequence, names: Sequence[str] = FR_MODEL_CUE_NAMES) -> np.ndarray:
     """Raw cues (n, c) in the order of ``names`` -> normalised features (n, c) (module docstring)."""
     names = check_cue_names(names)
     c = np.atleast_2d(np.asarray(cues, dtype=np.float64))
@@ -141,7 +159,7 @@ def cue_features(cues: np.ndarray | Sequence, names: Sequence[str] = CUE_NAMES) 
     return np.stack([_CUE_TRANSFORMS[name][0](c[:, j]) for j, name in enumerate(names)], 1)
 
 
-def cues_array(cues: dict | Sequence[dict], names: Sequence[str] = CUE_NAMES) -> np.ndarray:
+def cues_array(cues: dict | Sequence[dict], names: Sequence[str] = FR_MODEL_CUE_NAMES) -> np.ndarray:
     """A result's ``cues`` dict (or a list of them) -> (n, c) array in the order of ``names`` (NaN
     for a cue the dict lacks, so that its prediction is NaN rather than wrong)."""
     items = [cues] if isinstance(cues, dict) else list(cues)
@@ -178,7 +196,7 @@ class ReliabilityModel:
     k: int
     meta: dict[str, Any] = field(default_factory=dict)
     thresholds: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_THRESHOLDS))
-    # when set (and it has scales for the mode), `reliable` means the promise instead of the thresholds
+    # when set (and it has scales for the mode and enforces), `reliable` means the promise, not the thresholds
     promise: ReliabilityPromise | None = None
 
     def __post_init__(self) -> None:
@@ -288,6 +306,14 @@ class ReliabilityModel:
         ``configs/likelihood.json``); :data:`DEFAULT_TRAINED_FOR` where the file does not say."""
         return {**DEFAULT_TRAINED_FOR, **self.meta.get("trained_for", {})}
 
+    @property
+    def detectors(self) -> tuple[str, ...]:
+        """Names of the line detectors whose segments the model applies to: the one it was trained
+        on (``trained_for["detector"]``) and those its promise was validated on
+        (:attr:`~fr_torch.core.reliability_bounds.ReliabilityPromise.validated_detectors`)."""
+        validated = self.promise.validated_detectors if self.promise is not None else ()
+        return tuple(dict.fromkeys([self.trained_for["detector"], *validated]))
+
     def scope_gap(self, likelihood_params, likelihood_name: str, detector: str | None = None,
                   mode: str | None = None) -> str | None:
         """Why this model's predictions do not apply to an estimator's results, or None when they do.
@@ -298,34 +324,49 @@ class ReliabilityModel:
         :class:`~fr_torch.core.likelihood.LikelihoodParams` (before its FOV range is applied), compared
         with those of the trained measure and likelihood config in ``mode``; ``likelihood_name``: what
         the message calls them.  ``detector``: the name of the detector that produced the segments,
-        None when they came from the caller (not checked)."""
+        None when they came from the caller (not checked); it must be one of :attr:`detectors`, and
+        the message then names them."""
         trained = self.trained_for
         gaps = []
         if likelihood_params.measure != trained["measure"]:
             gaps.append(f"measure {likelihood_params.measure}")
         elif likelihood_params != _trained_params(trained["measure"], trained["likelihood"], mode):
             gaps.append(f"likelihood {likelihood_name}")
-        if detector is not None and detector != trained["detector"]:
+        valid = self.detectors
+        if detector is not None and detector not in valid:
             gaps.append(f"detector {detector}")
         if not gaps:
             return None
-        return (f"reliability model not trained for {' and '.join(gaps)} (trained for measure {trained['measure']}, "
-                f"detector {trained['detector']}, likelihood {trained['likelihood']}): no predicted error")
+        message = (f"reliability model not trained for {' and '.join(gaps)} (trained for measure {trained['measure']}, "
+                   f"detector {trained['detector']}, likelihood {trained['likelihood']}): no predicted error")
+        if detector is not None and detector not in valid:
+            message += f"; for a trusted `reliable`, detect with {' or '.join(valid)} (--detector)"
+        return message
+
+    @property
+    def needs_spreads(self) -> bool:
+        """True when the model holds a promise: its bounds rest on the spread cues
+        (:data:`fr_torch.core.reliability_bounds.SIGMA_CUES`), which the estimator then computes."""
+        return self.promise is not None
 
     def predict_dict(self, cues: dict) -> dict[str, float]:
         return dict(zip(TARGETS, (float(v) for v in self.predict(cues)[0])))
 
     def annotate(self, result, mode: str | None = None):
-        """Set ``result.predicted_error`` and clear ``result.reliable`` above the thresholds."""
+        """:meth:`annotate_many` for one result."""
         self.annotate_many([result], mode)
         return result
 
     def annotate_many(self, results: Sequence, mode: str | None = None,
                       focal_known: Sequence[bool] | None = None) -> None:
         """:meth:`annotate` for many results with one prediction call (results with ``ok`` False are
-        left alone).  ``focal_known`` (one bool per result): the focal length was given, not
-        estimated; its predicted error is then 0 (the estimate's focal length *is* the given one,
-        whatever its own error) and never exceeds the focal threshold."""
+        left alone): ``predicted_error`` from the KNN, ``error_bound`` from the promise's bounds
+        (:meth:`~fr_torch.core.reliability_bounds.ReliabilityPromise.bounds`, from the result's
+        spread cues) and ``reliable = False`` with the reason when a bound exceeds its limit (the
+        promise enforced) or a predicted error its threshold (not enforced, or no promise).
+        ``focal_known`` (one bool per result): the focal length was given, not estimated; its
+        predicted error and bound are then 0 (the estimate's focal length *is* the given one,
+        whatever its own error)."""
         mine = self.meta.get("mode")
         if mode is not None and mine is not None and mode != mine:
             raise ValueError(f"reliability model was trained for mode {mine!r}, result comes from {mode!r}")
@@ -341,10 +382,8 @@ class ReliabilityModel:
             if given:
                 predicted["focal_pct"] = 0.0
             result.predicted_error = predicted
-            bounds = self.promise.bounds(predicted, mode or mine) if self.promise is not None else None
+            bounds = self.promise.bounds(result.cues, mode or mine, given) if self.promise is not None else None
             if bounds is not None:
-                if given and "focal_pct" in bounds:
-                    bounds["focal_pct"] = 0.0
                 result.error_bound = {"coverage": self.promise.coverage,  # None: no bound (missing cues)
                                       **{k: (v if math.isfinite(v) else None) for k, v in bounds.items()},
                                       "limits": dict(self.promise.limits), "enforced": self.promise.enforce}
@@ -358,7 +397,7 @@ class ReliabilityModel:
                         for name, limit in self.thresholds.items()
                         if not (predicted.get(name, math.nan) <= limit)]
             if over:
-                message = ("predicted error above its limit: " if bounds is not None
+                message = ("outside the promise: " if bounds is not None
                            else "predicted error above threshold: ") + ", ".join(over)
                 focal_over = (not bounds.get("focal_pct", 0.0) <= self.promise.limits.get("focal_pct", math.inf)) \
                     if bounds is not None \
@@ -448,6 +487,11 @@ class ReliabilitySet:
 
     def predict(self, cues, mode: str = "fr") -> np.ndarray:
         return self.models[mode].predict(cues)
+
+    @property
+    def needs_spreads(self) -> bool:
+        """True when a model of the set holds a promise (:attr:`ReliabilityModel.needs_spreads`)."""
+        return any(model.needs_spreads for model in self.models.values())
 
     def scope_gap(self, likelihood_params, likelihood_name: str, detector: str | None = None,
                   mode: str = "fr") -> str | None:

@@ -1,25 +1,33 @@
-"""What ``reliable`` promises: calibrated bounds on the predicted errors and the limits they are held to.
+"""What ``reliable`` promises: calibrated bounds on an estimate's focal and tilt errors and the limits
+they are held to.
 
-The reliability model (:mod:`fr_torch.core.reliability`) predicts an image's absolute focal error (%)
-and tilt error (deg) as the mean error of similar training images.  This module turns a prediction
-``p`` into an upper bound ``b = s * p`` that holds for a share ``coverage`` of images (90 % by
-default), and calls an estimate **reliable** when every bound is within its limit:
+Each estimate carries two **spreads** that the estimator measures on its own segments
+(:func:`fr_torch.core.cues.focal_cues` with ``spreads`` on), from which its error scales come:
 
-    reliable  <=>  s_focal * p_focal <= focal_pct  and  s_tilt * p_tilt <= tilt_deg
+* focal, in % of f: ``sigma_f = 100 sqrt(focal_profile_spread x focal_resample_spread)``
+  (:func:`focal_sigma_pct`), the geometric mean of how far f could move before the segments notice
+  at the profile points 13 % / 15 % away (:func:`fr_torch.core.cues.focal_profile_spread`) and of
+  the spread of log f when the segments are resampled (:func:`fr_torch.core.cues.resample_spreads`);
+  both leave the focal prior out, so a focal length that the prior set gets a wide one;
+* tilt, in degrees: ``sigma_t = hypot(pitch_resample_spread, TILT_FLOOR_DEG)`` (:func:`tilt_sigma_deg`):
+  the pitch's resampling spread, and a floor for what no per-photo spread sees -- chiefly the
+  principal point's offset from the image centre, which tilts every estimate of a camera alike
+  (about ``atan(delta_c_y / f)``: 1 deg on YorkUrbanDB, 1.5 deg on NYU-VP).
 
-with the limits of ``configs/reliability.json``'s ``promise`` block (:class:`ReliabilityPromise`;
-default: focal error <= 10 %, tilt error <= 3 deg, 90 % bounds) when the block says ``"enforce":
-true``; with ``false`` (the shipped setting) the bounds are reported in ``error_bound`` and
-``reliable`` keeps the thresholds on the predicted errors (:mod:`fr_torch.core.reliability`).  Read: "the predicted 90 % bound of
-the focal error is at most 10 % and that of the tilt error at most 3 deg".
+A bound is ``b = s x sigma`` (the focal sigma floored at :data:`FOCAL_SIGMA_FLOOR_PCT`), with ``s``
+per error and estimator mode a **split-conformal** quantile of ``actual / sigma`` at ``coverage``
+(90 %) over images of dataset families the bound is not fitted on (:func:`conformal_scale`):
+``fr_eval.protocols.lodo_reliability`` predicts each training family (YUD with its crops, ZInD-fR, NYU-VP)
+and keeps the largest per-family quantile (:func:`worst_group_scale`), so the bound held on every
+family when that family was the new camera.  No model is fitted: the spreads come from the
+estimator, the scales are the only numbers learned from data.
 
-The scale ``s`` per error and estimator mode is a **split-conformal** quantile of the ratio
-``actual / max(predicted, floor)`` (:func:`conformal_scale`: the ``ceil((n + 1) coverage)``-th
-smallest of n ratios) over images the model did not train on.  Fitted by
-``fr_eval.protocols.lodo_reliability`` across datasets: for each training dataset family the model is refitted
-without it and the family's images are predicted, the quantile is taken per family, and ``s`` is
-the largest of them (:func:`worst_group_scale`), so the bound held on every family when that family
-was a new camera.  A prediction of NaN (missing cues) gives no bound and ``reliable = False``.
+An estimate is **reliable** when every bound is within its limit (:class:`ReliabilityPromise`;
+``configs/reliability.json``'s ``promise`` block; default: focal error <= 10 %, tilt error <= 3 deg,
+90 % bounds).  Read: "the 90 % bound of the focal error is at most 10 % and that of the tilt error
+at most 3 deg".  With ``"enforce": false`` the bounds are reported in ``error_bound`` and
+``reliable`` keeps the older thresholds on the KNN's predicted errors (:mod:`fr_torch.core.reliability`).
+Missing spread cues give no bound and ``reliable = False``.
 """
 from __future__ import annotations
 
@@ -31,15 +39,51 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from fr_torch.core.cues import SPREAD_CUE_NAMES
 from fr_torch.resources import config_dir
 
 PROMISE_TARGETS = ("focal_pct", "tilt_deg")
 DEFAULT_LIMITS = {"focal_pct": 10.0, "tilt_deg": 3.0}
 DEFAULT_COVERAGE = 0.9
-#: predictions are floored at this before the ratio (focal %, tilt deg): a near-zero prediction
-#: would make any error an infinite ratio
-PREDICTION_FLOOR = {"focal_pct": 0.5, "tilt_deg": 0.1, "roll_deg": 0.1}
-UNITS = {"focal_pct": "%", "tilt_deg": "deg", "roll_deg": "deg"}
+#: The focal sigma is floored at this (percent) before the ratio and the bound: a near-zero spread
+#: (a synthetic scene) would make any error an infinite ratio.
+FOCAL_SIGMA_FLOOR_PCT = 0.3
+#: The tilt sigma's floor (degrees), added in quadrature to the pitch's resampling spread (module
+#: docstring; chosen on the train splits, results/decisions/44.md).
+TILT_FLOOR_DEG = 0.5
+#: Largest tilt sigma (deg): a pitch spread at its maximum (the likelihood has no peak there) gives a
+#: bound this times the scale.  The focal sigma is not capped: a photo whose profile point scores as
+#: well as the estimate (spread at its maximum) still ranks by its resampling spread.
+TILT_SIGMA_CAP_DEG = 45.0
+#: The cues the bounds are computed from.
+SIGMA_CUES = SPREAD_CUE_NAMES
+UNITS = {"focal_pct": "%", "tilt_deg": "deg"}
+
+
+def _values(cues, name: str) -> np.ndarray:
+    """Cue ``name`` of one ``cues`` dict (a float) or of a table with that column, as float64 (NaN where
+    missing or not finite)."""
+    if isinstance(cues, Mapping):
+        value = cues.get(name, math.nan)
+        return np.asarray(math.nan if value is None else value, np.float64)
+    return np.asarray(cues[name], np.float64) if name in cues else np.full(len(cues), math.nan)
+
+
+def focal_sigma_pct(cues) -> np.ndarray:
+    """The focal error scale in % (module docstring): ``100 sqrt(focal_profile_spread x
+    focal_resample_spread)``, floored at :data:`FOCAL_SIGMA_FLOOR_PCT`.  ``cues``: one result's cues
+    dict (-> a 0-d array) or a table with the cue columns (-> (n,)); NaN where a cue is missing."""
+    spread = np.sqrt(_values(cues, "focal_profile_spread") * _values(cues, "focal_resample_spread"))
+    return np.maximum(100.0 * spread, FOCAL_SIGMA_FLOOR_PCT)
+
+
+def tilt_sigma_deg(cues) -> np.ndarray:
+    """The tilt error scale in degrees (module docstring): ``hypot(pitch_resample_spread,
+    TILT_FLOOR_DEG)``, capped at :data:`TILT_SIGMA_CAP_DEG`.  ``cues`` as for :func:`focal_sigma_pct`."""
+    return np.minimum(np.hypot(_values(cues, "pitch_resample_spread"), TILT_FLOOR_DEG), TILT_SIGMA_CAP_DEG)
+
+
+SIGMAS = {"focal_pct": focal_sigma_pct, "tilt_deg": tilt_sigma_deg}
 
 
 def conformal_scale(predicted: np.ndarray, actual: np.ndarray, coverage: float = DEFAULT_COVERAGE,
@@ -70,37 +114,46 @@ def worst_group_scale(predicted: np.ndarray, actual: np.ndarray, groups: Sequenc
 
 @dataclass(frozen=True)
 class ReliabilityPromise:
-    """Bounds of the predicted errors and the limits ``reliable`` holds them to (module docstring).
+    """Bounds of an estimate's errors and the limits ``reliable`` holds them to (module docstring).
 
     ``limits``: target -> largest allowed bound (``focal_pct`` in %, ``tilt_deg`` in deg).
-    ``scales``: mode (``fr`` / ``fast``) -> target -> conformal scale s (bound = s * prediction).
+    ``scales``: mode (``fr`` / ``fast``) -> target -> conformal scale s (bound = s * sigma).
     ``coverage``: the share of images each bound is meant to hold for (0.9).
-    ``enforce``: True -> ``reliable`` means the promise (the thresholds on the predicted errors are not
-    used); False -> the bounds are reported (``error_bound``) but ``reliable`` keeps the thresholds."""
+    ``enforce``: True (default) -> ``reliable`` means the promise; False -> the bounds are reported
+    (``error_bound``) but ``reliable`` keeps the older thresholds on the predicted errors.
+    ``validated_detectors``: names of line detectors (:mod:`fr_torch.detectors.registry`) whose
+    segments the promise was measured to hold for besides the reliability model's own
+    (:attr:`fr_torch.core.reliability.ReliabilityModel.detectors`; results/decisions/45.md)."""
 
     limits: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_LIMITS))
     scales: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     coverage: float = DEFAULT_COVERAGE
     enforce: bool = True
+    validated_detectors: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not 0.0 < self.coverage < 1.0:
             raise ValueError(f"promise coverage must be in (0, 1), got {self.coverage}")
         for name, value in self.limits.items():
-            if name not in PREDICTION_FLOOR or not (float(value) > 0):
-                raise ValueError(f"promise limit {name}={value!r}: need a target of {list(PREDICTION_FLOOR)} "
-                                 "and a number > 0")
+            if name not in SIGMAS or not (float(value) > 0):
+                raise ValueError(f"promise limit {name}={value!r}: need a target of {list(SIGMAS)} and a number > 0")
         for mode, per_target in self.scales.items():
             for name, value in per_target.items():
-                if not (float(value) > 0):
-                    raise ValueError(f"promise scale {mode}.{name}={value!r} must be > 0")
+                if name not in SIGMAS or not (float(value) > 0):
+                    raise ValueError(f"promise scale {mode}.{name}={value!r}: need a target of {list(SIGMAS)} "
+                                     "and a number > 0")
+        if not isinstance(self.validated_detectors, (list, tuple)) or not all(
+                isinstance(name, str) and name for name in self.validated_detectors):
+            raise ValueError(f"promise validated_detectors={self.validated_detectors!r}: need a list of detector names")
+        object.__setattr__(self, "validated_detectors", tuple(self.validated_detectors))
 
     @classmethod
     def from_config(cls, path: str | Path | None = None) -> "ReliabilityPromise | None":
         """The ``promise`` block of ``configs/reliability.json`` (None when absent)::
 
             "promise": {"coverage": 0.9, "limits": {"focal_pct": 10, "tilt_deg": 3}, "enforce": true,
-                        "scales": {"fr": {"focal_pct": s, "tilt_deg": s}, "fast": {...}}}
+                        "scales": {"fr": {"focal_pct": s, "tilt_deg": s}, "fast": {...}},
+                        "validated_detectors": ["torch-lines"]}
         """
         path = Path(path) if path is not None else config_dir() / "reliability.json"
         if not path.is_file():
@@ -110,33 +163,41 @@ class ReliabilityPromise:
             return None
         return cls(limits={k: float(v) for k, v in block.get("limits", DEFAULT_LIMITS).items()},
                    scales={m: {k: float(v) for k, v in s.items()} for m, s in block.get("scales", {}).items()},
-                   coverage=float(block.get("coverage", DEFAULT_COVERAGE)), enforce=bool(block.get("enforce", True)))
+                   coverage=float(block.get("coverage", DEFAULT_COVERAGE)), enforce=bool(block.get("enforce", True)),
+                   validated_detectors=block.get("validated_detectors", ()))
 
-    def bounds(self, predicted: Mapping[str, float], mode: str) -> dict[str, float] | None:
-        """target -> bound (``scale * max(prediction, floor)``) for the limited targets; None when the
-        mode has no scales."""
+    def bounds(self, cues: Mapping[str, float], mode: str, focal_known: bool = False) -> dict[str, float] | None:
+        """target -> bound (``scale * sigma``, :data:`SIGMAS`) of one estimate from its ``cues`` dict, for the
+        limited targets; NaN where a cue is missing; a given focal length (``focal_known``) has a focal
+        bound of 0.  None when the mode has no scales."""
         scales = self.scales.get(mode)
         if not scales:
             return None
         out = {}
         for name in self.limits:
-            value = float(predicted.get(name, math.nan))
-            out[name] = scales.get(name, math.nan) * max(value, PREDICTION_FLOOR[name]) if math.isfinite(value) \
-                else math.nan
+            if name == "focal_pct" and focal_known:
+                out[name] = 0.0
+                continue
+            sigma = float(SIGMAS[name](cues))
+            out[name] = scales.get(name, math.nan) * sigma if math.isfinite(sigma) else math.nan
         return out
 
     def violations(self, bounds: Mapping[str, float]) -> list[str]:
-        """One text per bound above its limit (or not finite), e.g. ``"90 % bound of focal 14.2 % > 10 %"``."""
+        """One text per bound above its limit (or missing), saying by how much, e.g.
+        ``"90 % bound of focal 14.2 % > 10 % (4.2 % over)"``."""
         out = []
         for name, limit in self.limits.items():
-            value = bounds.get(name, math.nan)
-            if not value <= limit:
-                out.append(f"{round(100 * self.coverage):d} % bound of {name.split('_')[0]} {value:.1f} "
-                           f"{UNITS[name]} > {limit:g} {UNITS[name]}")
+            value, unit, what = bounds.get(name, math.nan), UNITS[name], name.split("_")[0]
+            if not math.isfinite(value):
+                out.append(f"no {round(100 * self.coverage):d} % bound of {what} (its cues are missing)")
+            elif not value <= limit:
+                digits = 1 if value - limit >= 0.05 else 3  # "3.004 deg > 3 deg (0.004 deg over)", not "3.0 > 3"
+                out.append(f"{round(100 * self.coverage):d} % bound of {what} {value:.{digits}f} {unit} > {limit:g} "
+                           f"{unit} ({value - limit:.{digits}f} {unit} over)")
         return out
 
     def describe(self) -> str:
         """The promise in words (for the JSON output and the docs)."""
         parts = [f"{name.split('_')[0]} error <= {limit:g} {UNITS[name]}" for name, limit in self.limits.items()]
-        return (f"reliable = the predicted {round(100 * self.coverage):d} % bounds satisfy " + " and ".join(parts)
-                + " (bounds calibrated across datasets, docs/reliability.md)")
+        return (f"reliable = the {round(100 * self.coverage):d} % bounds satisfy " + " and ".join(parts)
+                + " (bounds from the estimate's own spreads, calibrated across datasets: docs/reliability.md)")

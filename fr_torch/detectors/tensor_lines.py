@@ -97,8 +97,30 @@ def _coerce(config: TensorLinesConfig, overrides: dict) -> TensorLinesConfig:
     return replace(config, **clean)
 
 
+#: Settings that do not change the segments (left out of :func:`spec_name`).
+_RUN_ONLY_SETTINGS = ("cpu_threads",)
+
+
+def _spec_value(value) -> str:
+    """A setting as a spec writes it (``true`` / ``none`` in lower case)."""
+    return str(value).lower() if value is None or isinstance(value, bool) else str(value)
+
+
+def spec_name(config: TensorLinesConfig) -> str:
+    """``torch-lines`` for the default settings, else the spec of the changed ones, e.g.
+    ``torch-lines[grad_threshold=3.0]`` (what :func:`fr_torch.detectors.registry.get_detector`
+    builds the same detector from).  A reliability model's scope is checked against this name: it
+    was measured with the defaults."""
+    default = TensorLinesConfig()
+    changed = [f"{f.name}={_spec_value(getattr(config, f.name))}" for f in fields(config)
+               if f.name not in _RUN_ONLY_SETTINGS and getattr(config, f.name) != getattr(default, f.name)]
+    return f"torch-lines[{','.join(changed)}]" if changed else "torch-lines"
+
+
 class TensorLinesDetector:
-    """Orientation-region line segments from batched tensor operations (see the module doc)."""
+    """Orientation-region line segments from batched tensor operations (see the module doc).
+
+    ``name``: ``torch-lines``, or with settings that change the segments their spec (:func:`spec_name`)."""
 
     name = "torch-lines"
 
@@ -106,6 +128,7 @@ class TensorLinesDetector:
                  **overrides):
         self.config = _coerce(config or TensorLinesConfig(), overrides)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.name = spec_name(self.config)
 
     def to(self, device: str | torch.device) -> "TensorLinesDetector":
         """This detector's settings on ``device`` (itself when it is there already)."""

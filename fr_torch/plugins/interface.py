@@ -55,6 +55,13 @@ class CameraEstimate:
     known), ``roll_deg``, ``tilt_deg``, ``pitch_deg``, ``pan_deg`` are read-only views of it; None
     means "this method does not estimate it".
 
+    ``ranked_vanishing_points``: every vanishing point the method found, (M, 3) float64, row =
+    homogeneous point ``(x, y, w)`` in the image's pixels (``w >= 0``; ``w = 0`` at infinity), ranked
+    by the method's own confidence, most confident first (the VP task scores the first as many as
+    were labelled; ``docs/vp.md``).  None: the method ranks none, and the VP task takes the
+    camera's three Manhattan vanishing points ``K R`` in column order.  A failed estimate may keep
+    the points it found (e.g. VPs without a focal length).
+
     ``ok`` is False when the method failed (no vanishing point found, bad input...); ``reason``
     then says why.  Failed estimates are counted by the tables, never silently dropped.
     """
@@ -67,6 +74,7 @@ class CameraEstimate:
     ok: bool = True
     reason: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    ranked_vanishing_points: np.ndarray | None = None
 
     @classmethod
     def failure(cls, method: str, reason: str, runtime_s: float = float("nan")) -> "CameraEstimate":

@@ -6,8 +6,9 @@ Manhattan-frame geometry (the 24 symmetries, nearest rotation, angles) is in :mo
 Fusion (one *epoch* = the frames since the last restart)
 --------------------------------------------------------
 * A frame is **rejected** when the estimate failed or ``result.reliable`` is False (too few
-  segments, non-Manhattan scene, or a predicted error above the thresholds of
-  ``configs/reliability.json``; the estimator's reliability stage sets both).
+  segments, non-Manhattan scene, or an error bound above its limit: the promise of
+  ``configs/reliability.json``, :mod:`fr_torch.core.reliability_bounds`; the estimator's reliability
+  stage sets both).
 * Each accepted frame carries predicted absolute errors ``e`` (roll, tilt in deg, focal in %; a
   missing prediction counts as the thresholds).  Predicted *mean absolute* errors are turned into
   standard deviations ``s = e * sqrt(pi / 2)`` (Gaussian), floored at ``min_sigma``.
