@@ -41,8 +41,9 @@ Every measurement is written as it is taken: one JSON line per row in ``<out>/be
 ``--budget-s`` bounds the run: settings not started within the budget are skipped and listed
 (default 150 s when a CUDA device is measured, meant to end ``fr bench --device cuda`` in about 3
 minutes without ``--compile``: with it, compiling took 16-39 s per mode on an H100 and two runs
-went past 3 minutes, results/bench/h100/README.md; the CUDA figures are taken first, with batches 1 ... 16384, 3 repeats
-up to 64, 2 up to 4096, then 1).  ``--sections`` picks what to measure (e.g. ``parallel`` alone for
+went past 3 minutes, results/bench/h100/README.md; the CUDA figures are taken first: JPEG files to
+results through the GPU path (section ``detectors``), then the search given segments with batches
+1 ... 4096 (16384 with ``--stress``), 3 repeats up to 64, 2 up to 4096, then 1).  ``--sections`` picks what to measure (e.g. ``parallel`` alone for
 CPU scaling on a large machine); ``--from-jsonl`` writes the report of a run that was cut short from
 its rows.  Throughput is drawn in ``<out>/throughput.png``.
 
@@ -105,7 +106,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data-root", default=None, help="dataset root (default: fr_eval.paths.data_root())")
     parser.add_argument("--no-memory", action="store_true", help="skip the memory subprocesses")
     parser.add_argument("--stress", action="store_true",
-                        help="also run the bounded-memory check: batch 4096 x 1000 segments (k=4; minutes)")
+                        help="also run the bounded-memory checks: batch 4096 x 1000 segments (k=4; minutes) and, on "
+                             "a GPU, batches of 16384")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--batches", default=None, metavar="B,B,...",
                         help="CPU batch sizes for throughput and memory (default 1,8,64,256,1024)")
@@ -177,8 +179,8 @@ def run(args: argparse.Namespace) -> int:
     batches = [1, 4] if quick else [1, 8, 64, 256, 1024]
     if args.batches:
         batches = [int(b) for b in args.batches.split(",")]
-    # CUDA: large batches, capped by the budget; 16384 shows memory stays bounded (issue 14: <= 16 GB).
-    device_batches = [1, 4] if quick else [1, 64, 1024, 4096, 16384]
+    # CUDA: large batches; 16384 (--stress) shows memory stays bounded (issue 14: <= 16 GB).
+    device_batches = [1, 4] if quick else [1, 64, 1024, 4096] + ([16384] if args.stress else [])
     e2e_batches = [1, 4] if quick else list(DEVICE_E2E_BATCHES)
     cores = usable_cores()  # affinity and container quota, as the worker defaults count them
     counts = [1, 2] if quick else sorted({1, 2, min(4, cores), min(8, cores), cores} - {0})
@@ -218,7 +220,11 @@ def run(args: argparse.Namespace) -> int:
     detectors, device_e2e = [], []
     jpegs = [path for label, path in images if label.startswith("YUD")] or [images[0][1]]  # same size
     outside_batch = 16 if quick else 1024
-    # A GPU figure first (the budget may cut the rest), then CPU latency, throughput, scaling.
+    # GPU figures first (the budget may cut the rest): files to results, then the search given
+    # segments; then CPU latency, throughput, scaling.
+    for dev in devices[1:] if "detectors" in sections else ():  # JPEG files to results on the GPU
+        device_e2e += bench_detectors.device_end_to_end(jpegs, dev, e2e_batches, min(repeats, 3), progress,
+                                                        modes)
     for dev in gpu:
         for mode in modes:
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode)
@@ -229,9 +235,6 @@ def run(args: argparse.Namespace) -> int:
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         for mode in modes:
             profiles.append(profile_table(dev, outside_batch, n_seg_tp, out, progress, mode))
-    for dev in devices[1:] if "detectors" in sections else ():  # JPEG bytes to results on the GPU
-        device_e2e += bench_detectors.device_end_to_end(jpegs, dev, e2e_batches, min(repeats, 3), progress,
-                                                        modes)
     if "latency" in sections:
         e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
     if "detectors" in sections:

@@ -58,7 +58,8 @@ def device_end_to_end(paths: list[str], device: str, batch_sizes, repeats: int, 
 
     ``paths``: same-size images (other formats are written as JPEGs, quality 95, first); each row
     calibrates ``batches_per_row`` batches of them (the files repeated), after one warm-up batch;
-    the median of ``repeats`` such runs.  ``path`` says whether the device path was taken."""
+    the median of ``repeats`` such runs (one for batches of 256 and more).  ``path`` says whether the
+    device path was taken."""
     import tempfile
 
     import torch
@@ -87,7 +88,7 @@ def device_end_to_end(paths: list[str], device: str, batch_sizes, repeats: int, 
             try:
                 list(calibrate_paths(estimator, todo[:batch], batch))  # warm-up at this batch size
                 seconds = []
-                for _ in range(max(1, repeats)):
+                for _ in range(max(1, repeats if batch < 256 else 1)):  # a large row: one timed run
                     torch.cuda.synchronize()
                     start = time.perf_counter()
                     results = [r for _, chunk in calibrate_paths(estimator, todo, batch) for r in chunk]

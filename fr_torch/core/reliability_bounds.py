@@ -58,6 +58,9 @@ TILT_SIGMA_CAP_DEG = 45.0
 #: The cues the bounds are computed from.
 SIGMA_CUES = SPREAD_CUE_NAMES
 UNITS = {"focal_pct": "%", "tilt_deg": "deg"}
+#: A bound above this says the photo's lines leave the quantity open (the reason says so in words
+#: rather than quoting a number like 3,763 %): focal off by more than itself, tilt by more than 90 deg.
+NO_INFORMATION = {"focal_pct": 100.0, "tilt_deg": 90.0}
 
 
 def _values(cues, name: str) -> np.ndarray:
@@ -184,12 +187,16 @@ class ReliabilityPromise:
 
     def violations(self, bounds: Mapping[str, float]) -> list[str]:
         """One text per bound above its limit (or missing), saying by how much, e.g.
-        ``"90 % bound of focal 14.2 % > 10 % (4.2 % over)"``."""
+        ``"90 % bound of focal 14.2 % > 10 % (4.2 % over)"``, or for a bound above
+        :data:`NO_INFORMATION` ``"the lines do not bound the focal (90 % bound > 100 %)"``."""
         out = []
         for name, limit in self.limits.items():
             value, unit, what = bounds.get(name, math.nan), UNITS[name], name.split("_")[0]
             if not math.isfinite(value):
                 out.append(f"no {round(100 * self.coverage):d} % bound of {what} (its cues are missing)")
+            elif value > NO_INFORMATION[name]:  # e.g. a focal length the prior set: no number to quote
+                out.append(f"the lines do not bound the {what} ({round(100 * self.coverage):d} % bound > "
+                           f"{NO_INFORMATION[name]:g} {unit})")
             elif not value <= limit:
                 digits = 1 if value - limit >= 0.05 else 3  # "3.004 deg > 3 deg (0.004 deg over)", not "3.0 > 3"
                 out.append(f"{round(100 * self.coverage):d} % bound of {what} {value:.{digits}f} {unit} > {limit:g} "

@@ -47,6 +47,9 @@ from fr_torch.errors import FRInputError
 
 #: Images whose Atlanta candidates are scored at once (bounds memory: N x A deviations each).
 ATLANTA_CHUNK_IMAGES = 4
+#: Without Atlanta families, segments (images x N) ranked at once: a GPU batch in one pass rather
+#: than a few operations per image.
+RANK_CHUNK_SEGMENTS = 1 << 22
 
 
 @dataclass(frozen=True)
@@ -148,9 +151,9 @@ def rank_vanishing_points(likelihood, features, rotation: torch.Tensor, focal: t
     """
     if atlanta is not None and likelihood.params.model != "mixture":
         atlanta = None  # the "no probabilistic model" ablation has no mixture to add a family to
-    parts = [_rank_chunk(likelihood, features.images(b, b + ATLANTA_CHUNK_IMAGES),
-                         rotation[b:b + ATLANTA_CHUNK_IMAGES], focal[b:b + ATLANTA_CHUNK_IMAGES], atlanta)
-             for b in range(0, rotation.shape[0], ATLANTA_CHUNK_IMAGES)]
+    chunk = ATLANTA_CHUNK_IMAGES if atlanta is not None else max(1, RANK_CHUNK_SEGMENTS // max(1, features.weight.shape[1]))
+    parts = [_rank_chunk(likelihood, features.images(b, b + chunk), rotation[b:b + chunk], focal[b:b + chunk], atlanta)
+             for b in range(0, rotation.shape[0], chunk)]
     return RankedVanishingPoints(*(torch.cat([getattr(p, name) for p in parts]) for name in
                                    ("points", "support", "family", "azimuth_deg")))
 

@@ -233,7 +233,8 @@ def calibrate_on_device(estimator, images: Sequence, names: Sequence[str], focal
     """``(images, results)`` per batch of at most ``batch_size`` images, in input order (module
     docstring): a reader thread decodes the next batches while earlier ones are detected and
     searched by ``searchers`` threads (None = :data:`SEARCH_THREADS`, one with a compiled search),
-    each on a CUDA stream of its own, so that one batch's host work overlaps another's device work.
+    each on a CUDA stream of its own, so that one batch's host work overlaps another's device work
+    (the first batch is searched alone).
     ``focal_list`` / ``pp_list``: one focal length / principal point (or None) per image, input pixels."""
     detector = device_detector(estimator)
     device = estimator.device
@@ -282,8 +283,10 @@ def calibrate_on_device(estimator, images: Sequence, names: Sequence[str], focal
                 next_read += 1
 
         for k, start in enumerate(starts):
-            # `searchers` batches detected and searched at once, the next one decoding meanwhile
-            while next_search < min(k + searchers, count):
+            # `searchers` batches detected and searched at once, the next one decoding meanwhile; the
+            # first batch alone, so that what CUDA libraries initialise on first use (torch's lazily
+            # loaded linear algebra is not thread-safe then: pytorch/pytorch#90613) starts in one thread
+            while next_search < min(k + (searchers if k else 1), count):
                 read_up_to(next_search + 1)
                 stream = streams[1 + next_search % searchers] if cuda else None
                 searches[next_search] = searching.submit(search, starts[next_search],
