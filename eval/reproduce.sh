@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp bench
+# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp distortion bench
 # (default: all, in this order: the reliability models are trained before the tables that use them).  Data root: $FR_DATA (default ../shared/data); generated views go
 # to $FR_CACHE (default data_local/).
 set -euo pipefail
@@ -10,7 +10,7 @@ FR=${FR:-.venv/bin/fr}
 CROP_SIZES=$(.venv/bin/python -c "from fr_eval.datasets.panoviews import YUD_CROP_SIZES; print(*YUD_CROP_SIZES)")
 export MPLBACKEND=${MPLBACKEND:-Agg}
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp bench)
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp distortion bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
@@ -95,6 +95,24 @@ for step in "${steps[@]}"; do
         --methods "consac[seed=1],consac[seed=2],consac[seed=3],consac[seed=4],consac[seed=5],consac-s[seed=1],consac-s[seed=2],consac-s[seed=3]"
       $FR eval --dataset yud --split test --methods "fr,fast-fr,lee2009,simon2018,consac,consac-s" --out results/vp/camera-yud-test
       $FR eval --dataset nyu-vp --split val --methods "fr,fast-fr,consac,consac-s" --out results/vp/camera-nyu-vp-val ;;
+    distortion)  # Issue 46: wide-angle lenses. ZInD-fR-D (the ZInD-fR views through a division-model
+                 # lens, k ~ U[-0.4, 0]) and YUD-D (the YUD 480x360 crops warped, k ~ U[-0.3, 0]) into
+                 # $FR_CACHE; pinhole fR, fR / Fast-fR + division, auto on them, on the same views
+                 # undistorted, YUD test and NYU-VP val (results/distortion/); the time: fr bench
+      .venv/bin/python -m fr_eval.datasets.make_dataset --panoramas "${FR_DATA:-../shared/data}/zind_sample_tour/panos" \
+        --yaw-csv "${FR_DATA:-../shared/data}/zind_sample_tour/manhattan_yaw_derived.csv" \
+        --out "${FR_CACHE:-data_local}/zind-fr-d" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 \
+        --test-fraction 0.5 --k-range=-0.4:0
+      .venv/bin/python -m fr_eval.datasets.crop_views --dataset yud --size 480x360 --k-range=-0.3:0 \
+        --out "${FR_CACHE:-data_local}/yud-crop-480x360-d"
+      M="fr;fr[distortion=division];fast-fr[distortion=division];fr[distortion=auto]"
+      .venv/bin/python -m fr_eval.protocols.distortion_eval run --split train --datasets yud-crop-480x360 \
+        --methods "fr[distortion=division]"   # the YUD lens's own k (train split)
+      .venv/bin/python -m fr_eval.protocols.distortion_eval run --split test --methods "$M" \
+        --datasets zind-fr-d,yud-crop-480x360-d,zind-fr,yud-crop-480x360,yud
+      .venv/bin/python -m fr_eval.protocols.distortion_eval run --split val --methods "$M" --datasets nyu-vp
+      .venv/bin/python -m fr_eval.protocols.distortion_eval report --out results/distortion
+      $FR bench --threads 2 --sections distortion --out results/distortion/bench ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from fr_torch.core.camera import Camera, rotation_from_angles
+from fr_torch.core.distortion import distort_points, normalising_radius
 
 
 def camera_matrix(focal_px: float, width: int, height: int, principal_point=None) -> np.ndarray:
@@ -89,6 +90,28 @@ def synthetic_segments(focal_px: float, rotation: np.ndarray, width: int = 640, 
     segments = segments + rng.normal(0, noise_px, segments.shape) * (noise_px > 0)
     order = rng.permutation(len(segments))
     return segments[order], labels[order]
+
+
+def distorted_segments(segments: np.ndarray, labels: np.ndarray, k: float, width: int, height: int,
+                       piece_px: float = 25.0) -> tuple[np.ndarray, np.ndarray]:
+    """The pinhole ``segments`` (N, 4) seen through the division model of ``k`` (normalised by half
+    the image diagonal, centre = image centre; :mod:`fr_torch.core.distortion`), as a line detector
+    sees a bent edge: each segment becomes chords of about ``piece_px`` pixels between points of its
+    bent image (straight pieces tangent to the curve).  Returns (pieces (M, 4), their labels (M,)),
+    pieces whose ends both lie in the image."""
+    centre = np.array([width / 2.0, height / 2.0])
+    radius = normalising_radius(width, height)
+    pieces, piece_labels = [], []
+    for segment, label in zip(np.asarray(segments, np.float64).reshape(-1, 4), labels):
+        a, b = segment[:2], segment[2:]
+        count = max(1, int(np.ceil(np.linalg.norm(b - a) / piece_px)))
+        points = distort_points(a + np.linspace(0.0, 1.0, count + 1)[:, None] * (b - a), k, centre, radius)
+        chords = np.concatenate([points[:-1], points[1:]], 1)
+        inside = np.isfinite(chords).all(1) & (chords[:, 0::2] >= 0).all(1) & (chords[:, 0::2] <= width - 1).all(1) \
+            & (chords[:, 1::2] >= 0).all(1) & (chords[:, 1::2] <= height - 1).all(1)
+        pieces.append(chords[inside])
+        piece_labels.append(np.full(int(inside.sum()), label))
+    return np.concatenate(pieces).reshape(-1, 4), np.concatenate(piece_labels).astype(int)
 
 
 def _clip_float(p: np.ndarray, q: np.ndarray, xmax: float, ymax: float):

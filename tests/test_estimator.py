@@ -5,7 +5,7 @@ import torch
 
 from fr_torch import FREstimator
 from fr_torch.core.camera import focal_from_hfov, horizon_angles, rotation_from_angles
-from fr_torch.core.cues import focal_conditioning
+from fr_torch.core.cues import LINE_BEND_CUES, focal_conditioning
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
 
@@ -39,7 +39,7 @@ def test_recovers_synthetic_cameras(scenes, mode):
         assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood",
                                     "focal_conditioning", "focal_prior_share", "focal_spread",
                                     "focal_profile_spread", "focal_resample_spread", "pitch_resample_spread"} | (
-                                        {"focal_profile_gap"} if mode == "fr" else set())
+                                        {"focal_profile_gap"} if mode == "fr" else set()) | set(LINE_BEND_CUES)
         # reliable = the shipped promise: both bounds within their limits, the focal one far within
         assert result.error_bound["enforced"] and result.error_bound["focal_pct"] < 5.0
         assert result.error_bound["tilt_deg"] <= 3.0

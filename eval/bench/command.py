@@ -74,6 +74,7 @@ from pathlib import Path
 
 import numpy as np
 from fr_eval.bench import detectors as bench_detectors
+from fr_eval.bench import distortion as bench_distortion
 from fr_eval.bench.gpu import grid_kernel
 from fr_eval.bench.parallel import parallel_scaling
 from fr_eval.bench.profiling import memory, memory_probe, profile_table
@@ -89,7 +90,8 @@ from fr_torch.runtime.workers import usable_cores
 DEFAULT_OUT = REPO / "results" / "bench"
 #: Batch sizes of the GPU rows from JPEG files to results (section ``detectors``).
 DEVICE_E2E_BATCHES = (1, 256, 1024)
-SECTIONS = ("device", "latency", "detectors", "parallel", "cpu", "memory", "scaling", "contention")  # --sections, in running order
+SECTIONS = ("device", "latency", "detectors", "parallel", "cpu", "memory", "scaling", "contention",
+            "distortion")  # --sections, in running order
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -121,7 +123,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "torch-lines per photo on the CPU (and JPEG-to-result on a GPU); parallel = CPU "
                              "threads vs worker processes; cpu = CPU throughput, outside-search work and "
                              "profile; memory; scaling = time against segments and grid size; contention = "
-                             "per-photo time idle vs beside a busy neighbour vs 2 processes side by side")
+                             "per-photo time idle vs beside a busy neighbour vs 2 processes side by side; "
+                             "distortion = fR / Fast-fR with --distortion pinhole, division, auto on photos and "
+                             "barrel-bent copies (issue 46)")
     parser.add_argument("--from-jsonl", type=Path, default=None, metavar="JSONL",
                         help="measure nothing: write bench.md / bench.json / the figures to --out from the rows of "
                              "an earlier run's bench.jsonl (one that was cut short, say)")
@@ -201,7 +205,8 @@ def run(args: argparse.Namespace) -> int:
              + len(mem_settings) + ("scaling" in sections) * (len(seg_counts) + len(grid_sizes))
              + ("parallel" in sections) * 2 * len(modes) * len(counts)
              + ("detectors" in sections) * (len(images) + len(devices[1:]) * len(modes) * 3)
-             + ("contention" in sections) * len(modes) * len(contention_kinds))
+             + ("contention" in sections) * len(modes) * len(contention_kinds)
+             + ("distortion" in sections) * 2 * len(images[:2]) * len(bench_distortion.SETTINGS))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     budget = args.budget_s if args.budget_s is not None else (150.0 if device.startswith("cuda") else 0.0)
@@ -257,6 +262,11 @@ def run(args: argparse.Namespace) -> int:
         contention = contention_rows([path for _, path in images], modes, contention_kinds,
                                      (os.environ.get("FR_THREADS") or "auto",), (2,), passes=1 if quick else 3,
                                      progress=progress)
+    distortion = []
+    if "distortion" in sections:
+        photos = images[:2]
+        distortion = bench_distortion.distortion_rows(photos + bench_distortion.bent_copies(photos, Path(tmp.name)),
+                                                      repeats, progress)
     progress.close()
     tmp.cleanup()
 
@@ -265,7 +275,7 @@ def run(args: argparse.Namespace) -> int:
               "parallel": parallel, "outside_search": [r for r in outside if r],
               "grid_kernel": [r for r in kernels if r], "detectors": detectors, "contention": contention, "device_end_to_end": device_e2e,
               "profiles": [p for p in profiles if p], "skipped": progress.skipped,
-              "budget_s": budget, "sections": sorted(sections, key=SECTIONS.index)}
+              "budget_s": budget, "sections": sorted(sections, key=SECTIONS.index), "distortion": distortion}
     write_report(report, out)
     return 0
 

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from fr_eval.bench import detectors as bench_detectors
+from fr_eval.bench import distortion as bench_distortion
 from fr_eval.bench.contention import summary_lines
 from fr_eval.bench.gpu import FLOPS_PER_DEVIATION, GPU_FP32_PEAK
 
@@ -72,6 +73,7 @@ def _markdown(report: dict) -> str:
     if report["end_to_end"]:
         lines += _latency_lines(report)
     lines += bench_detectors.markdown_lines(report)
+    lines += bench_distortion.markdown_lines(report.get("distortion", []))
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
               "| device | mode | search | batch | segments | images/s | ms/image | peak memory (MB) |",
               "|---|---|---|---|---|---|---|---|"]
@@ -215,6 +217,7 @@ def report_from_jsonl(path: Path) -> dict:
             "memory": by.get("memory", []), "scaling": scale if scale["segments"] or scale["grid"] else {},
             "parallel": by.get("parallel", []), "outside_search": by.get("outside_search", []),
             "grid_kernel": by.get("grid_kernel", []), "detectors": by.get("detectors", []), "contention": by.get("contention", []),
+            "distortion": by.get("distortion", []),
             "device_end_to_end": by.get("device_end_to_end", []), "profiles": [], "skipped": [],
             "budget_s": machine.get("budget_s", 0.0), "sections": [], "from_jsonl": str(path)}
 

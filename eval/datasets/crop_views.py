@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import zlib
 from pathlib import Path
 
 import cv2
@@ -33,6 +34,7 @@ from fr_eval.datasets.registry import load_dataset
 
 from fr_torch.core.camera import hfov_from_focal, pan_from_rotation
 from fr_torch.images.io import load_image
+from fr_torch.images.lens import distort_image
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -51,9 +53,14 @@ def crop_origin(principal_point: tuple[float, float], size: tuple[int, int]) -> 
     return int(round(principal_point[0] - size[0] / 2)), int(round(principal_point[1] - size[1] / 2))
 
 
-def crop_dataset(samples, size: tuple[int, int], out: Path) -> dict:
+def crop_dataset(samples, size: tuple[int, int], out: Path, distortion_k=None) -> dict:
     """Write the crops of ``samples`` (harness records with a camera) to ``out``; returns the
-    summary written to ``dataset.json`` (without the command)."""
+    summary written to ``dataset.json`` (without the command).
+
+    ``distortion_k``: None, or a callable name -> k: each crop is then the photo the same camera
+    would take through a division-model lens of that k (:func:`fr_torch.images.lens.distort_image`,
+    centre = the crop's centre; barrel pulls in pixels from beyond the crop, borders replicated),
+    and ``gt.csv`` gains the column ``k``."""
     width, height = size
     (out / "images").mkdir(parents=True, exist_ok=True)
     rows, skipped, offsets = [], [], []
@@ -67,7 +74,12 @@ def crop_dataset(samples, size: tuple[int, int], out: Path) -> dict:
             skipped.append(f"{sample.name}: a {width}x{height} crop around the principal point leaves the "
                            f"{sample.width}x{sample.height} image")
             continue
-        image = load_image(sample.image_path)[y0:y0 + height, x0:x0 + width]
+        k = None if distortion_k is None else float(distortion_k(sample.name))
+        if k is None:
+            image = load_image(sample.image_path)[y0:y0 + height, x0:x0 + width]
+        else:
+            image = distort_image(load_image(sample.image_path), k, size,
+                                  source_centre=(x0 + width / 2, y0 + height / 2))
         file = f"images/{sample.name}.png"
         cv2.imwrite(str(out / file), image)
         rotation = np.asarray(camera.rotation, dtype=np.float64)
@@ -79,8 +91,11 @@ def crop_dataset(samples, size: tuple[int, int], out: Path) -> dict:
                "tilt_deg": float(sample.tilt_deg), "roll_deg": float(sample.roll_deg),
                "pitch_deg": float(sample.pitch_deg), "manhattan_known": True, "manhattan_yaw_deg": 0.0}
         row.update({c: float(v) for c, v in zip(R_COLUMNS, rotation.reshape(-1).tolist())})
+        if k is not None:
+            row["k"] = k
         rows.append(row)
-    pd.DataFrame(rows, columns=GT_COLUMNS).to_csv(out / "gt.csv", index=False, float_format="%.10g")
+    columns = GT_COLUMNS + ([] if distortion_k is None else ["k"])
+    pd.DataFrame(rows, columns=columns).to_csv(out / "gt.csv", index=False, float_format="%.10g")
     offsets = np.abs(np.asarray(offsets)) if offsets else np.zeros((0, 2))
     return {"generator": "fr_eval.datasets.crop_views", "size": [width, height], "images": len(rows),
             "skipped": skipped,
@@ -97,9 +112,20 @@ def main(argv=None) -> int:
     parser.add_argument("--size", type=_size, required=True, help="crop WIDTHxHEIGHT in pixels, e.g. 400x300")
     parser.add_argument("--data-root", default=None)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--k-range", default=None, metavar="MIN:MAX",
+                        help="warp each crop through a division-model lens, k ~ U[MIN, MAX] per image (normalised "
+                             "by half the diagonal; seeded by --seed and the image name)")
+    parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     samples = load_dataset(args.dataset, root=args.data_root, split=args.split)
-    summary = crop_dataset(samples, args.size, args.out)
+    distortion = None
+    if args.k_range:
+        low, high = (float(v) for v in args.k_range.split(":"))
+        distortion = lambda name: np.random.default_rng([args.seed, zlib.crc32(name.encode()), 46]).uniform(low, high)  # noqa: E731
+    summary = crop_dataset(samples, args.size, args.out, distortion)
+    if args.k_range:
+        summary["distortion"] = {"model": "division (fr_torch.core.distortion), centre = the crop centre",
+                                 "k_range": [low, high], "seed": args.seed}
     command = " ".join(argv if argv is not None else sys.argv[1:])
     summary = {"command": f"python -m fr_eval.datasets.crop_views {command}", "source": args.dataset, **summary}
     (args.out / "dataset.json").write_text(json.dumps(summary, indent=2))

@@ -168,6 +168,12 @@ def sample_views(rng: np.random.Generator, n: int, fovs: list[float] | None, uni
             "roll_deg": rng.uniform(*roll, n)}
 
 
+def view_distortions(seed: int, name: str, count: int, k_range: tuple[float, float]) -> np.ndarray:
+    """k ~ U[k_range] for the ``count`` views of panorama ``name``, from a generator of its own
+    (seeded with (seed, crc32(name), 46)), so the views' angles and FOVs stay those drawn without it."""
+    return np.random.default_rng([int(seed), zlib.crc32(name.encode()), 46]).uniform(*k_range, count)
+
+
 def split_groups(groups: list[str], test_fraction: float, seed: int) -> dict[str, str]:
     """group -> 'train' / 'test' for a list with one group entry per panorama.
 
@@ -327,6 +333,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pitch-range", type=_parse_range, default=(-30.0, 30.0), metavar="MIN:MAX")
     parser.add_argument("--roll-range", type=_parse_range, default=(-10.0, 10.0), metavar="MIN:MAX")
     parser.add_argument("--interp", choices=("bilinear", "bicubic"), default="bilinear")
+    parser.add_argument("--k-range", type=_parse_range, default=None, metavar="MIN:MAX",
+                        help="render through a division-model lens, k ~ U[MIN, MAX] per view (normalised by half "
+                             "the diagonal; fr_torch.core.distortion), e.g. -0.4:0 for ZInD-fR-D; the views' angles "
+                             "and FOVs are those of the same seed without it; gt.csv gains a column k")
     parser.add_argument("--format", choices=("jpg", "png"), default="jpg", help="view image format (jpg = quality 95)")
     add_device_arguments(parser)
     parser.add_argument("--check-yaw", action="store_true",
@@ -382,8 +392,9 @@ def run(args: argparse.Namespace) -> int:
         R = rotation_from_angles(torch.as_tensor(ang["pan_deg"]), torch.as_tensor(ang["pitch_deg"]),
                                  torch.as_tensor(ang["roll_deg"]))
         focal = focal_from_hfov(torch.as_tensor(ang["hfov_deg"]), w)
+        distortion_k = None if args.k_range is None else view_distortions(args.seed, name, len(R), args.k_range)
         views = render_views(pano, R, focal, size=(w, h), manhattan_yaw_deg=yaw, device=args.device,
-                             mode=args.interp)
+                             mode=args.interp, distortion_k=distortion_k)
         hz = horizon_angles(R)
         for k in range(len(views)):
             fname = f"images/{name}_v{k:02d}.{args.format}"
@@ -394,6 +405,8 @@ def run(args: argparse.Namespace) -> int:
                    "roll_deg": float(hz["roll_deg"][k]), "pitch_deg": float(hz["pitch_deg"][k]),
                    "manhattan_known": known, "manhattan_yaw_deg": yaw}
             row.update({c: float(v) for c, v in zip(R_COLUMNS, R[k].reshape(-1).tolist())})
+            if distortion_k is not None:
+                row["k"] = float(distortion_k[k])
             rows.append(row)
             if len(sheet_imgs) < args.sheet_views and k % max(1, args.views_per_pano // 5) == 0:
                 sheet_imgs.append(views[k])
@@ -404,7 +417,8 @@ def run(args: argparse.Namespace) -> int:
             yaw_rows.append({"pano": name, "manhattan_yaw_deg": yaw, **res})
 
     gt = pd.DataFrame(rows)
-    gt[GT_COLUMNS].to_csv(out / "gt.csv", index=False, float_format="%.10g")
+    gt[GT_COLUMNS + (["k"] if args.k_range is not None else [])].to_csv(out / "gt.csv", index=False,
+                                                                       float_format="%.10g")
     contact_sheet(sheet_imgs, sheet_caps, out / "contact_sheet.png")
     if yaw_rows:
         pd.DataFrame(yaw_rows).to_csv(out / "yaw_check.csv", index=False, float_format="%.4f")
@@ -421,7 +435,9 @@ def run(args: argparse.Namespace) -> int:
         "aligned": bool(args.aligned), "non_manhattan": args.non_manhattan, "excluded_panoramas": excluded,
         "views_per_pano": args.views_per_pano, "fovs_deg": fovs,
         "uniform_fov_deg": list(args.uniform_fov) if args.uniform_fov else None,
-        "size": [w, h], "seed": args.seed, "test_fraction": args.test_fraction, "group_by": args.group_by,
+        "size": [w, h], "seed": args.seed,
+        "distortion": None if args.k_range is None else {
+            "model": "division (fr_torch.core.distortion), centre (w/2, h/2)", "k_range": list(args.k_range)}, "test_fraction": args.test_fraction, "group_by": args.group_by,
         "pan_range_deg": [-180.0, 180.0], "pitch_range_deg": list(args.pitch_range),
         "roll_range_deg": list(args.roll_range), "interp": args.interp, "format": args.format,
         "principal_point": "(w/2, h/2), pixel (0,0) centre at (0,0)",

@@ -65,6 +65,7 @@ import torch
 import torch.nn.functional as F
 
 from fr_torch.core.camera import image_centre, intrinsics, rotation_from_angles
+from fr_torch.core.distortion import normalising_radius, undistort_points
 
 __all__ = [
     "to_chw_float",
@@ -136,10 +137,12 @@ def equirect_pixel_from_direction(d: torch.Tensor, width: int, height: int) -> t
 
 def view_rays(rotations: torch.Tensor, focal_px: torch.Tensor, size: tuple[int, int],
               manhattan_yaw_deg: float | torch.Tensor = 0.0, device=None,
-              dtype=torch.float64) -> torch.Tensor:
+              dtype=torch.float64, distortion_k=None) -> torch.Tensor:
     """Pano-frame ray directions (V, h, w, 3) (not normalised) of every output pixel centre.
 
     ray(u, v) = Ry(yaw) @ R.T @ K^-1 @ (u, v, 1), with K's principal point (w/2, h/2).
+    ``distortion_k`` (V,) or None: views through the division model of these k
+    (:mod:`fr_torch.core.distortion`, centre (w/2, h/2)): pixel (u, v) is undistorted first.
     """
     w, h = size
     rotations = torch.as_tensor(rotations, dtype=dtype, device=device).reshape(-1, 3, 3)
@@ -151,12 +154,18 @@ def view_rays(rotations: torch.Tensor, focal_px: torch.Tensor, size: tuple[int, 
     vs, us = torch.meshgrid(torch.arange(h, dtype=dtype, device=device),
                             torch.arange(w, dtype=dtype, device=device), indexing="ij")
     pix = torch.stack([us, vs, torch.ones_like(us)], -1)  # (h, w, 3)
-    return torch.einsum("vij,hwj->vhwi", M, pix)
+    if distortion_k is None:
+        return torch.einsum("vij,hwj->vhwi", M, pix)
+    k = torch.as_tensor(distortion_k, dtype=dtype, device=device).reshape(-1, 1, 1, 1).expand(rotations.shape[0], 1, 1, 1)
+    centre = torch.tensor(image_centre(w, h), dtype=dtype, device=device)
+    undistorted = undistort_points(pix[None, ..., :2], k[..., 0], centre, normalising_radius(w, h))
+    pix = torch.cat([undistorted, torch.ones_like(undistorted[..., :1])], -1)  # (V, h, w, 3)
+    return torch.einsum("vij,vhwj->vhwi", M, pix)
 
 
-def view_grid(rotations, focal_px, size, manhattan_yaw_deg=0.0, device=None) -> torch.Tensor:
+def view_grid(rotations, focal_px, size, manhattan_yaw_deg=0.0, device=None, distortion_k=None) -> torch.Tensor:
     """Normalised equirect sampling grid (V, h, w, 2): gx = lon / pi, gy = -lat / (pi / 2)."""
-    d = view_rays(rotations, focal_px, size, manhattan_yaw_deg, device=device)
+    d = view_rays(rotations, focal_px, size, manhattan_yaw_deg, device=device, distortion_k=distortion_k)
     lon, lat = lonlat_from_direction(d)
     return torch.stack([lon / math.pi, -lat / (math.pi / 2)], -1)
 
@@ -194,7 +203,7 @@ def sample_equirect(pano_chw: torch.Tensor, grid: torch.Tensor, mode: str = "bil
 
 def render_views(pano, rotations, focal_px, size: tuple[int, int] = (640, 480),
                  manhattan_yaw_deg: float = 0.0, device=None, mode: str = "bilinear",
-                 chunk: int = 8):
+                 chunk: int = 8, distortion_k=None):
     """Render pinhole views from an equirectangular panorama.
 
     pano: (H, W, 3) uint8 (numpy or tensor) or (C, H, W) float tensor; rotations: (V, 3, 3)
@@ -203,6 +212,7 @@ def render_views(pano, rotations, focal_px, size: tuple[int, int] = (640, 480),
     (V, C, h, w).  ``mode``: ``bilinear`` (default: geometrically exact, it reproduces linear
     ramps) or ``bicubic`` (sharper; results clamped to 0..255; PyTorch's a = -0.75 kernel moves
     linear ramps by up to 0.05 panorama pixels, i.e. < 0.01 deg on a 2048-wide panorama).
+    ``distortion_k`` (V,) or None: render through the division model of these k (:func:`view_rays`).
     """
     device = torch.device(device) if device is not None else torch.device("cpu")
     pano_t, is_u8 = to_chw_float(pano, device)
@@ -211,8 +221,9 @@ def render_views(pano, rotations, focal_px, size: tuple[int, int] = (640, 480),
     focal = torch.as_tensor(focal_px, dtype=torch.float64).reshape(-1).expand(V)
     outs = []
     for s in range(0, V, chunk):
+        k = None if distortion_k is None else torch.as_tensor(distortion_k, dtype=torch.float64).reshape(-1)[s:s + chunk]
         grid = view_grid(rotations[s:s + chunk].to(device), focal[s:s + chunk].to(device), size,
-                         manhattan_yaw_deg, device=device)
+                         manhattan_yaw_deg, device=device, distortion_k=k)
         outs.append(sample_equirect(pano_t, grid, mode=mode))
     out = torch.cat(outs, 0)
     if not is_u8:

@@ -8,6 +8,8 @@ A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``i
 * ``yud-crop-400x300``, ``yud-crop-480x360``: ``<cache_root>/<name>``, YorkUrbanDB crops around the
   calibrated principal point (narrow cameras, 33.0 and 39.2 deg), built by :mod:`fr_eval.datasets.crop_views`
   (``eval/reproduce.sh crops``);
+* ``zind-fr-d``, ``yud-crop-480x360-d``: the same views through a division-model lens of known k
+  (``gt.csv`` column ``k``, ``extra["distortion_k"]``), built by ``eval/reproduce.sh distortion``;
 * ``panoviews``: any generated folder, passed as ``path=`` (or as ``root`` when ``root`` itself holds
   a ``gt.csv``).
 
@@ -59,6 +61,7 @@ class PanoView:
     roll_deg: float
     pitch_deg: float
     manhattan_known: bool
+    distortion_k: float = 0.0  # division model's k (fr_torch.core.distortion); 0 = a pinhole view
 
     @property
     def principal_point(self) -> tuple[float, float]:
@@ -102,6 +105,7 @@ class PanoViews:
             rotation=r[R_COLUMNS].to_numpy(dtype=np.float64).reshape(3, 3),
             pan_deg=float(r["pan_deg"]), tilt_deg=float(r["tilt_deg"]), roll_deg=float(r["roll_deg"]),
             pitch_deg=float(r["pitch_deg"]), manhattan_known=bool(r["manhattan_known"]),
+            distortion_k=float(r["k"]) if "k" in r.index else 0.0,
         )
 
     def samples(self, keep_unknown_manhattan_rotation: bool = False) -> list[CalibrationSample]:
@@ -115,7 +119,7 @@ class PanoViews:
                 name=v.name, image_path=v.image_path, width=v.width, height=v.height, camera=camera,
                 split=v.split,
                 extra={"pano": v.pano, "pan_deg": v.pan_deg, "manhattan_known": v.manhattan_known,
-                       "scene_source": self.scene_source},
+                       "scene_source": self.scene_source, "distortion_k": v.distortion_k},
             ))
         return out
 
@@ -147,6 +151,9 @@ def _cache_folder_loader(name: str):
 
 #: Generated datasets read from the cache root (module docstring): ZInD-fR and the YUD crops.
 YUD_CROP_SIZES = ("400x300", "480x360")
-CACHE_DATASETS = ("zind-fr",) + tuple(f"yud-crop-{size}" for size in YUD_CROP_SIZES)
+#: The same views through a division-model lens of known k (issue 46; ``extra["distortion_k"]``):
+#: ZInD-fR-D (``fr make-dataset --k-range``) and YUD crops warped (``fr_eval.datasets.crop_views --k-range``).
+DISTORTED_DATASETS = ("zind-fr-d", "yud-crop-480x360-d")
+CACHE_DATASETS = ("zind-fr",) + tuple(f"yud-crop-{size}" for size in YUD_CROP_SIZES) + DISTORTED_DATASETS
 for _name in CACHE_DATASETS:
     register_dataset(_name)(_cache_folder_loader(_name))

@@ -13,10 +13,15 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from fr_torch.core.cues import LINE_BEND_CUES
 from fr_torch.core.reliability import CUE_NAMES, TARGETS
 
 # Keys of the dict-valued result fields (struct columns); unknown keys are dropped.
 RUNTIME_KEYS = ("detect", "grid", "refine", "cues", "total")
+#: The cues of a row: the reliability model's and the "lines bend" check's.
+ROW_CUES = CUE_NAMES + LINE_BEND_CUES
+#: Number fields of the ``distortion`` struct (:func:`fr_torch.core.distortion.distortion_record`).
+DISTORTION_NUMBERS = ("k", "radius_px", "bow_pct")
 #: Bounded targets of ``error_bound`` (:mod:`fr_torch.core.reliability_bounds`).
 BOUND_KEYS = ("focal_pct", "tilt_deg")
 
@@ -45,9 +50,11 @@ def result_schema():
         ("vanishing_points", mat3),
         ("ranked_vanishing_points", pa.list_(pa.struct([("point", pa.list_(f64)), ("support_px", f64),
                                                          ("family", pa.int8())]))),
+        ("distortion", pa.struct([("model", pa.string()), *[(k, f64) for k in DISTORTION_NUMBERS],
+                                  ("centre", pa.list_(f64))])),
         ("log_likelihood", f64), ("num_segments", pa.int32()),
         ("manhattan_fraction", f64), ("segments_per_family", pa.list_(pa.int32())),
-        ("cues", pa.struct([(k, f64) for k in CUE_NAMES])),
+        ("cues", pa.struct([(k, f64) for k in ROW_CUES])),
         ("predicted_error", pa.struct([(k, f64) for k in TARGETS])),
         ("error_bound", pa.struct([("coverage", f64), *[(k, f64) for k in BOUND_KEYS],
                                    ("limits", pa.struct([(k, f64) for k in BOUND_KEYS])), ("enforced", pa.bool_())])),
@@ -115,9 +122,13 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
         for key, shape in NESTED_SHAPES.items():
             out[key] = _clean_nested(out[key], shape)
         out["ranked_vanishing_points"] = _clean_ranked(out["ranked_vanishing_points"])
-        for key, keys in (("cues", CUE_NAMES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
+        for key, keys in (("cues", ROW_CUES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
             value = out[key]
             out[key] = None if not value else {k: _clean_float(value.get(k)) for k in keys}
+        lens = out["distortion"]
+        if lens:
+            out["distortion"] = {"model": str(lens.get("model")), **{k: _clean_float(lens.get(k)) for k in DISTORTION_NUMBERS},
+                                 "centre": _clean_nested(lens.get("centre"), (2,))}
         bound = out["error_bound"]
         if bound:
             limits = bound.get("limits") or {}

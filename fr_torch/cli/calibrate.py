@@ -17,6 +17,7 @@ from fr_torch.cli.options import (
     device_policy,
     estimator_kwargs,
 )
+from fr_torch.core.distortion import colmap_cameras_txt
 from fr_torch.errors import FRInputError
 from fr_torch.images.overlay import write_overlay
 from fr_torch.output import dumps, json_safe, output_folder, write_text_atomic
@@ -41,6 +42,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     output.add_argument("--overlay", type=Path, default=None, metavar="DIR",
                         help="write <image>_fr.png overlays (segments by family, horizon) to DIR")
     output.add_argument("--segments", action="store_true", help="include segments and labels in the JSON")
+    output.add_argument("--format", choices=FORMATS, default="json",
+                        help="what stdout holds: json (default: one fR record per image), opencv (one JSON object "
+                             "per image that cv2.FileStorage reads: camera_matrix, distortion_coefficients k1 k2 "
+                             "[k3] fitted to the division model, the fit's residual in pixels) or colmap (a "
+                             "cameras.txt: SIMPLE_PINHOLE / SIMPLE_RADIAL / RADIAL, one camera per image); --json "
+                             "still writes the fR records")
     output.add_argument("--no-reliability", action="store_true",
                         help="no predicted errors or error bounds, reliable = the sanity checks only (fR then "
                              "skips the focal_profile_gap cue, a quarter of its time per photo, and both modes the "
@@ -48,6 +55,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     output.add_argument("--no-progress", action="store_true",
                         help="no progress bar (shown on a terminal's stderr when stdout goes to a file or pipe)")
     add_focal_arguments(parser)
+
+
+FORMATS = ("json", "opencv", "colmap")
+
+
+def opencv_record(path, result) -> dict:
+    """One image's ``--format opencv`` object: the image, whether the estimate is reliable (and
+    why not), then :meth:`~fr_torch.core.estimator.CalibrationResult.opencv`'s nodes."""
+    head = {"image": str(path), "ok": bool(result.ok), "reliable": bool(result.reliable), "reason": result.reason}
+    return dict(head, **result.opencv()) if result.ok else head
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,12 +91,22 @@ def run(args: argparse.Namespace) -> int:
     show_bar = not args.no_progress and len(paths) > 1 and sys.stderr.isatty() and not sys.stdout.isatty()
     bar = tqdm(total=len(paths), unit="img", desc="fr calibrate", disable=not show_bar, file=sys.stderr)
 
+    colmap_lines = []
+
     def emit(path, result, extra=None):
         """Print (and keep) one image's record; report a failure; write its overlay."""
         nonlocal failures
         record = json_safe(dict(result.to_json(include_segments=args.segments), **(extra or {})))
         everything.append(record)
-        print(dumps(record), flush=True)
+        if args.format == "json":
+            print(dumps(record), flush=True)
+        elif args.format == "opencv":
+            print(dumps(json_safe(opencv_record(path, result))), flush=True)
+        elif result.ok:
+            model, params, _ = result.colmap()
+            colmap_lines.append((str(path), result.width, result.height, model, params))
+        else:
+            colmap_lines.append((str(path), result.reason))
         if not result.ok:
             failures += 1
             reason = result.reason  # image reading reasons already start with the path
@@ -102,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
                     emit(path, result)
     finally:  # the JSON holds every result so far, written atomically (never a truncated file)
         bar.close()
+        if args.format == "colmap":
+            sys.stdout.write(colmap_cameras_txt(colmap_lines))
         if args.json:
             write_text_atomic(args.json, dumps(everything, indent=1))
     return 1 if failures else 0

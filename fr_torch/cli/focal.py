@@ -13,10 +13,11 @@ from __future__ import annotations
 import argparse
 import sys
 
+from fr_torch.cli.options import search_config
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.focal_prior import group_prior, image_priors, parse_focal_prior
 from fr_torch.runtime.pipeline import calibrate_paths
-from fr_torch.runtime.shared_focal import apply_focal_priors, shared_from_results
+from fr_torch.runtime.shared_focal import apply_focal_priors, require_pinhole, shared_from_results
 
 
 def add_focal_prior_argument(parser: argparse.ArgumentParser) -> None:
@@ -45,6 +46,8 @@ def focal_options(args: argparse.Namespace):
     if getattr(args, "focal", None) is not None and (getattr(args, "shared_focal", False) or args.focal_prior):
         raise FRInputError("--focal fixes the focal length: it cannot be combined with --shared-focal or "
                            "--focal-prior (use --focal-prior PX,SIGMA% for a soft value)")
+    if getattr(args, "shared_focal", False) or getattr(args, "shared_focal_by", None):
+        require_pinhole(search_config(args).distortion)
     return parse_focal_prior(args.focal_prior) if args.focal_prior else None
 
 

@@ -28,6 +28,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("fr_torch.cli.calibrate", "estimate focal length and rotation of images"),
     "track": ("fr_torch.cli.track", "online recalibration from a video or a folder of frames"),
     "batch": ("fr_torch.cli.batch", "calibrate many images into a resumable Parquet dataset (local or Ray)"),
+    "undistort": ("fr_torch.cli.undistort", "straighten wide-angle photos (radial distortion estimated) and give their K"),
 }
 
 

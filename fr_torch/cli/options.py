@@ -2,8 +2,9 @@
 
 * :func:`add_estimator_arguments` -> :func:`estimator_kwargs`: the method (``--fast``,
   ``--measure``, ``--detector``, ``--likelihood``), the search box (``--fov-range``,
-  ``--pitch-range``, ``--roll-range``) as one :class:`~fr_torch.core.config.SearchConfig`,
-  ``--compile``, and ``--atlanta`` as one :class:`~fr_torch.core.vanishing.AtlantaConfig`.
+  ``--pitch-range``, ``--roll-range``) and the lens model (``--distortion``, ``--k``) as one
+  :class:`~fr_torch.core.config.SearchConfig`, ``--compile``, and ``--atlanta`` as one
+  :class:`~fr_torch.core.vanishing.AtlantaConfig`.
 * :func:`add_device_arguments` -> :func:`device_policy`: ``--device`` (and, where the command
   takes them, ``--workers`` / ``--batch-size``) as one
   :class:`~fr_torch.runtime.device.DevicePolicy`.
@@ -19,6 +20,7 @@ from typing import Any
 
 from fr_torch.core.checks import finite_number, positive_number
 from fr_torch.core.config import Mode, SearchConfig
+from fr_torch.core.distortion import DistortionMode
 from fr_torch.core.vanishing import AtlantaConfig
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.device import DECODE_CHOICES, DevicePolicy
@@ -44,6 +46,13 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
     group.add_argument("--roll-range", default=None, metavar="MIN,MAX",
                        help="search range of the camera's roll, degrees (default -15,15; an estimate at the "
                             "edge is marked unreliable)")
+    group.add_argument("--distortion", choices=tuple(m.value for m in DistortionMode), default=None,
+                       help="lens model: pinhole (default), division (radial distortion k estimated with f and R: "
+                            "wide-angle, CCTV, action cameras; docs/distortion.md) or auto (division where the lines "
+                            "bend, else pinhole)")
+    group.add_argument("--k", type=float, default=None, metavar="K",
+                       help="known radial distortion k of the division model (normalised by half the image diagonal; "
+                            "negative = barrel); implies --distortion division unless auto is given")
     group.add_argument("--compile", action="store_true",
                        help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
                             "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "
@@ -125,6 +134,12 @@ def search_config(args: argparse.Namespace) -> SearchConfig:
                 config = config.with_angle_range(name, value)
             except ValueError as exc:
                 raise FRInputError(f"--{name}-range: {exc}") from None
+    distortion, k = getattr(args, "distortion", None), getattr(args, "k", None)
+    if distortion is not None or k is not None:
+        try:
+            config = config.with_distortion(distortion, k)
+        except ValueError as exc:
+            raise FRInputError(f"--{'k' if k is not None else 'distortion'}: {exc}") from None
     return config
 
 

@@ -5,8 +5,9 @@ Conventions (used everywhere: estimator, datasets, metrics, baselines)
 * Image coordinates: pixels, x right, y down, origin at the top-left corner of the
   top-left pixel's centre (OpenCV / LSD convention).
 * Camera frame: x right, y down, z forward (OpenCV).  K = [[f, 0, cx], [0, f, cy], [0, 0, 1]],
-  square pixels, no skew, no distortion.  The principal point defaults to the image centre
-  (w / 2, h / 2).
+  square pixels, no skew; lens distortion, when estimated, is the division model of
+  :mod:`fr_torch.core.distortion` (K and R then belong to the undistorted image).  The principal
+  point defaults to the image centre (w / 2, h / 2).
 * World (Manhattan) frame: x = first horizontal Manhattan direction, **y = vertical, pointing
   down (gravity)**, z = second horizontal Manhattan direction.  A level camera with pan = 0
   therefore has R = I.

@@ -20,6 +20,7 @@ from dataclasses import dataclass, fields, replace
 from enum import StrEnum
 from pathlib import Path
 
+from fr_torch.core.distortion import DistortionSetting
 from fr_torch.core.fov import FovRange, two_numbers
 from fr_torch.errors import FRInputError
 from fr_torch.resources import config_path
@@ -87,6 +88,17 @@ class SearchConfig:
     ``compile_search``: score the no-gradient hypotheses with one kernel fused by ``torch.compile``
     and compile the refinement step too (``--compile``); the same estimates to float rounding, a
     compilation per process (10-25 s on a 2-core CPU), then faster.  Off by default.
+    ``distortion``: the lens model (:class:`~fr_torch.core.distortion.DistortionSetting`; a mode
+    name or a dict is parsed on construction): pinhole (the default) or the division model's k
+    estimated jointly with f and R (:mod:`fr_torch.core.search_distortion`).
+    ``distortion_grid_k``: the values of k stage 1 scores besides (``distortion_plumb_line``) the
+    k that straightens pieces of lines (:func:`fr_torch.core.search_distortion.plumb_line`); a known
+    k replaces them all; ``distortion_grid_size``: the k of the k^4 angle-and-focal grid at each
+    (0 = ``grid_points_per_dim``); ``distortion_lattice``: the lattice passes step k on its own axis
+    (``axis``: the 3^4 lattice at the start's k, and k one step either side) or with the other
+    parameters (``joint``, the 3^5 lattice); ``distortion_k_spacing``: the k spacing the passes
+    start from (their first k step is a third of it).
+    ``results/decisions/46.md`` says how they were chosen.
 
     Invalid values raise :class:`~fr_torch.errors.FRInputError` (one line).
     """
@@ -107,9 +119,24 @@ class SearchConfig:
     refine_patience: int = 10
     max_chunk_elements: int = 1 << 27
     compile_search: bool = False
+    distortion: DistortionSetting = DistortionSetting()
+    distortion_grid_k: tuple[float, ...] = (-0.4, 0.0)
+    distortion_grid_size: int = 6
+    distortion_plumb_line: bool = True
+    distortion_lattice: str = "axis"
+    distortion_k_spacing: float = 0.4
 
     def __post_init__(self):
         object.__setattr__(self, "fov_range", FovRange.parse(self.fov_range))
+        object.__setattr__(self, "distortion", DistortionSetting.parse(self.distortion))
+        object.__setattr__(self, "distortion_grid_k", tuple(float(k) for k in self.distortion_grid_k))
+        if not (self.distortion_grid_k or self.distortion_plumb_line) or self.distortion_grid_size < 0 \
+                or not all(-1.0 < k < 1.0 for k in self.distortion_grid_k) \
+                or not (math.isfinite(self.distortion_k_spacing) and self.distortion_k_spacing >= 0):
+            raise FRInputError("distortion_grid_k must hold values in (-1, 1) (or distortion_plumb_line be on), "
+                               "distortion_grid_size and distortion_k_spacing must be >= 0")
+        if self.distortion_lattice not in ("joint", "axis"):
+            raise FRInputError(f"distortion_lattice must be joint or axis, got {self.distortion_lattice!r}")
         for key in ("pan_range_deg", "pitch_range_deg", "roll_range_deg"):
             low, high = getattr(self, key)
             if not (math.isfinite(low) and math.isfinite(high) and low <= high):
@@ -177,6 +204,14 @@ class SearchConfig:
         if not (math.isfinite(low) and math.isfinite(high) and low < high):
             raise FRInputError(f"{name} range must be finite MIN,MAX with MIN < MAX, got {value!r}")
         return replace(self, **{f"{name}_range_deg": (low, high)})
+
+    def with_distortion(self, mode=None, known_k: float | None = None) -> "SearchConfig":
+        """A copy with the lens model ``mode`` (``pinhole``, ``division``, ``auto``; None keeps the
+        current one) and, when given, a known k (normalised: :mod:`fr_torch.core.distortion`)."""
+        current = self.distortion
+        setting = replace(current, mode=current.mode if mode is None else mode,
+                          known_k=current.known_k if known_k is None else known_k)
+        return replace(self, distortion=setting)
 
     def with_fov_range(self, value) -> "SearchConfig":
         """A copy searching the FOV range ``value`` (anything :meth:`FovRange.parse` accepts)."""

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from fr_torch.core.config import FAST_REFINE_ITERATIONS, SearchConfig
+from fr_torch.core.distortion import DistortionSetting, border_bow_percent
 from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
 from fr_torch.core.params import FOCAL, from_log_focal, rotations, to_log_focal
 from fr_torch.core.search import (
@@ -28,6 +29,11 @@ from fr_torch.core.search import (
 )
 
 EDGE_REASON = "focal at the edge of the search range"
+#: The cues of the "lines bend" check of pinhole estimates (:func:`lines_bend_reason`,
+#: :func:`fr_torch.core.search_distortion.bend_test`): the likelihood gain of a short division search
+#: over the pinhole estimate (nats per 1000 px of segment length) and its k; the plumb line's k, the
+#: share of the turning of pieces of lines it removes, and how many pairs of pieces there were.
+LINE_BEND_CUES = ("line_bend_gain", "line_bend_k", "line_bend_plumb_k", "line_bend_share", "line_bend_pairs")
 
 
 NON_FINITE_REASON = "non-finite estimate (NaN/inf in the parameters, objective or outputs)"
@@ -588,6 +594,36 @@ def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: Se
         cues["focal_profile_spread"] = focal_profile_spread(likelihood, features, params, search, near_profile)
         cues.update(resample_spreads(likelihood, features, params, fitted))
     return cues
+
+
+def lines_bend_reason(cues: dict, setting: DistortionSetting, width: float, height: float) -> str | None:
+    """The "lines bend" sanity check of a pinhole estimate: the reason it is not reliable, or None.
+
+    ``cues``: the result's cues (:data:`LINE_BEND_CUES`, computed for pinhole estimates only);
+    ``width``, ``height``: the image's size (the bow of a k depends on the aspect ratio).  The lines
+    bend when a division model of a k whose border bow (:func:`fr_torch.core.distortion.border_bow_percent`)
+    reaches ``setting.bend_min_bow_pct`` either explains the segments better by
+    ``setting.bend_min_gain`` nats per 1000 px (``line_bend_gain`` at ``line_bend_k``), or
+    straightens at least ``setting.bend_min_share`` of the turning of ``setting.bend_min_pairs`` or
+    more pairs of pieces of lines (the plumb line, ``line_bend_plumb_k``).  The same test makes
+    ``auto`` search an image with the division model."""
+    def visible(k) -> bool:
+        bow = border_bow_percent(float(k), width, height) if k is not None and math.isfinite(k) else math.nan
+        return abs(bow) >= setting.bend_min_bow_pct
+
+    gain, k = cues.get("line_bend_gain"), cues.get("line_bend_k")
+    plumb_k, share, pairs = cues.get("line_bend_plumb_k"), cues.get("line_bend_share"), cues.get("line_bend_pairs")
+    if gain is not None and gain >= setting.bend_min_gain and visible(k):
+        evidence = f"k ~ {k:+.2f} fits them {gain:.0f} nats/1000 px better than a pinhole camera"
+    elif share is not None and pairs is not None and share >= setting.bend_min_share \
+            and pairs >= setting.bend_min_pairs and visible(plumb_k):
+        k = plumb_k
+        evidence = f"k ~ {k:+.2f} straightens {100 * share:.0f} % of the turning of {int(pairs)} pairs of line pieces"
+    else:
+        return None
+    bow = border_bow_percent(float(k), width, height)
+    return (f"the lines bend (a wide-angle lens: {evidence}; border lines bow ~{bow:.1f} % of the width): "
+            "use --distortion division (Python: distortion='division')")
 
 
 def sanity_check(r, min_segments: int, min_family_segments: int, min_manhattan_fraction: float) -> tuple[bool, str]:

@@ -35,11 +35,22 @@ from fr_torch.core.checks import (
 )
 from fr_torch.core.checks import image_sizes as checked_image_sizes
 from fr_torch.core.config import Mode, SearchConfig
+from fr_torch.core.distortion import (
+    DistortionMode,
+    colmap_camera,
+    distort_points,
+    distortion_record,
+    normalising_radius,
+    opencv_camera,
+    undistort_points,
+)
 from fr_torch.core.cues import (
     check_result,
     finite_record,
     focal_cues,
+    LINE_BEND_CUES,
     image_cues,
+    lines_bend_reason,
     sanity_check,
 )
 from fr_torch.core.likelihood import (
@@ -47,8 +58,9 @@ from fr_torch.core.likelihood import (
     MixtureLikelihood,
     SegmentFeatures,
 )
-from fr_torch.core.params import FOCAL, CameraParams
+from fr_torch.core.params import DISTORTION, FOCAL, CameraParams
 from fr_torch.core.reliability import ReliabilityModel
+from fr_torch.core.search_distortion import SegmentGeometry, bend_test, search_with_k
 from fr_torch.core.search import (
     grid_hypotheses,
     parameter_box,
@@ -105,8 +117,8 @@ SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device m
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
 JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px", "hfov_deg", "principal_point",
              "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
-             "ranked_vanishing_points", "log_likelihood", "num_segments", "manhattan_fraction", "cues", "predicted_error", "error_bound",
-             "runtime_s")
+             "ranked_vanishing_points", "distortion", "log_likelihood", "num_segments", "manhattan_fraction", "cues",
+             "predicted_error", "error_bound", "runtime_s")
 
 
 @camera_record
@@ -153,6 +165,65 @@ class CalibrationResult:
     error_bound: dict[str, Any] | None = None
     # seconds per image: detect, grid (the k^4 grid, the focal sweep and the lattice passes), refine, cues, total
     runtime_s: dict[str, float] = field(default_factory=dict)
+    # the lens model of the estimate: "pinhole" or "division" with its normalised k (fr_torch.core.distortion)
+    distortion_model: str = "pinhole"
+    distortion_k: float = 0.0
+
+    @property
+    def distortion(self) -> dict[str, Any] | None:
+        """The estimate's lens model, ``{"model", "k", "centre": [x, y], "radius_px", "bow_pct"}``
+        (:func:`fr_torch.core.distortion.distortion_record`; ``model`` ``pinhole`` with k = 0 for a
+        pinhole estimate); None without an estimate."""
+        if self.camera is None:
+            return None
+        record = distortion_record(self.distortion_k, self.camera.principal_point, self.width, self.height)
+        return dict(record, model=self.distortion_model)
+
+    def _lens(self):
+        if self.camera is None or self.focal_px is None:
+            raise ValueError(f"{self.image}: no estimate ({self.reason})")
+        return self.distortion_k, self.focal_px, self.camera.principal_point, self.width, self.height
+
+    def undistort_points(self, points) -> np.ndarray:
+        """Photo pixels (..., 2) -> the estimate's undistorted (pinhole) pixels, where ``K`` and
+        ``rotation`` apply (:func:`fr_torch.core.distortion.undistort_points`; unchanged for a
+        pinhole estimate).  ValueError without an estimate."""
+        k, _, centre, width, height = self._lens()
+        return undistort_points(np.asarray(points, np.float64), k, np.asarray(centre), normalising_radius(width, height))
+
+    def distort_points(self, points) -> np.ndarray:
+        """Undistorted pixels (..., 2) -> photo pixels (the inverse of :meth:`undistort_points`)."""
+        k, _, centre, width, height = self._lens()
+        return distort_points(np.asarray(points, np.float64), k, np.asarray(centre), normalising_radius(width, height))
+
+    def opencv(self) -> dict[str, Any]:
+        """The estimate as OpenCV's camera matrix and distortion coefficients (a dict that
+        ``cv2.FileStorage`` reads as JSON; :func:`fr_torch.core.distortion.opencv_camera`: k1, k2
+        (k3 where two terms leave more than a pixel) fitted to the division model, the fit's residual
+        in pixels beside them).  ValueError without an estimate."""
+        return opencv_camera(*self._lens())
+
+    def colmap(self) -> tuple[str, list[float], dict[str, float]]:
+        """COLMAP's camera model, parameters and fit residual
+        (:func:`fr_torch.core.distortion.colmap_camera`).  ValueError without an estimate."""
+        return colmap_camera(*self._lens())
+
+    def to_kornia(self):
+        """The estimate as a ``kornia.geometry.camera.PinholeCamera`` (batch of 1, float64): intrinsics
+        ``K`` and extrinsics ``[R | 0]`` (world -> camera, the Manhattan frame; no translation is
+        known).  Kornia's pinhole camera has no distortion: apply it to :meth:`undistort_points`'
+        pixels, or straighten the photo first (``fr undistort``).  ValueError without an estimate."""
+        import kornia.geometry.camera as kornia_camera  # imported on use: kornia adds ~1 s to start-up
+
+        if self.camera is None or self.focal_px is None or self.rotation is None:
+            raise ValueError(f"{self.image}: no estimate ({self.reason})")
+        intrinsics = torch.eye(4, dtype=torch.float64)
+        intrinsics[:3, :3] = torch.as_tensor(self.camera.K)
+        extrinsics = torch.eye(4, dtype=torch.float64)
+        extrinsics[:3, :3] = torch.as_tensor(self.rotation)
+        height, width = torch.tensor([float(self.height)], dtype=torch.float64), torch.tensor([float(self.width)],
+                                                                                               dtype=torch.float64)
+        return kornia_camera.PinholeCamera(intrinsics[None], extrinsics[None], height, width)
 
     def to_json(self, include_segments: bool = False) -> dict[str, Any]:
         """JSON-ready dict (the CLI's output schema, keys :data:`JSON_KEYS`; arrays become nested lists)."""
@@ -213,6 +284,10 @@ class SegmentEstimator:
     ``atlanta``: extra vanishing points beyond the Manhattan three after the fit
     (:class:`fr_torch.core.vanishing.AtlantaConfig` or anything its ``parse`` takes; None = off);
     they join ``ranked_vanishing_points`` and change neither f nor R.
+    ``distortion``: the lens model, ``pinhole`` (default), ``division`` (k of the division model
+    estimated with f and R) or ``auto`` (:class:`~fr_torch.core.distortion.DistortionSetting`);
+    ``k``: a known k (normalised by half the image diagonal, :mod:`fr_torch.core.distortion`),
+    which implies ``division``.  Both override ``search_config.distortion``.
     """
 
     def __init__(self, mode: Mode | str = Mode.FR, measure: str | None = None, device: str = "cpu",
@@ -221,10 +296,12 @@ class SegmentEstimator:
                  search_config: SearchConfig | None = None, segment_filter: SegmentFilter | None = None,
                  min_segments: int = 10, min_family_segments: int = 2, min_manhattan_fraction: float = 0.6,
                  reliability="default", profile_gap: bool | None = None, spreads: bool | None = None,
-                 atlanta=None):
+                 atlanta=None, distortion: str | None = None, k: float | None = None):
         self.mode = Mode.parse(mode)
         self.atlanta = AtlantaConfig.parse(atlanta)
         self.search = (search_config or SearchConfig.from_config()).resolve(self.mode)
+        if distortion is not None or k is not None:
+            self.search = self.search.with_distortion(distortion, k)
         self.iterations = self.search.refine_iterations
         params = likelihood_params or LikelihoodParams.from_config(measure, likelihood, mode=self.mode)
         # the likelihood as given (the reliability model's scope is checked against it)
@@ -358,7 +435,15 @@ class SegmentEstimator:
         detector_name = None if detector is None else str(getattr(detector, "name", type(detector).__name__))
         return scope_gap(self.likelihood_params, self.likelihood_name, detector_name, mode=self.mode)
 
-    def _search_group(self, group: list[_Image], known_focal: bool):
+    def _search_group(self, group: list[_Image], known_focal: bool, lens: str | None = None):
+        """Search ``group`` (images with segments; all with or all without a known focal length)
+        and fill their results.  ``lens``: ``pinhole`` or ``division``; None = the setting's
+        (``auto``: pinhole, then the division search for the images whose lines bend,
+        :func:`fr_torch.core.cues.lines_bend_reason`'s criterion)."""
+        setting = self.search.distortion
+        auto = lens is None and setting.mode is DistortionMode.AUTO and setting.known_k is None
+        if lens is None:
+            lens = "pinhole" if setting.mode is DistortionMode.PINHOLE or auto else "division"
         start_all = time.perf_counter()
         device, dtype = self.device, self.dtype
         batch = SegmentBatch.from_list([g.segments for g in group], [g.size for g in group], device, dtype)
@@ -374,30 +459,44 @@ class SegmentEstimator:
 
         t0 = time.perf_counter()
         long_side = torch.maximum(width, height)  # the FOV range is on the long side (portrait = landscape)
-        hypotheses = grid_hypotheses(self.search, long_side.to(device), None if focal is None else focal.to(device))
-        # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
-        grid_count = self.search.grid_segments
-        grid_features = features.longest(grid_count) if grid_count else features
-        grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements,
-                                 vertical_block=self.search.grid_points_per_dim)
-        starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
-        lower, upper = parameter_box(self.search, long_side, focal)
-        starts, top_scores = sweep_focal(self.likelihood, features, starts, top_scores, self.search, lower, upper)
-        starts, top_scores = subdivide_starts(self.likelihood, features, starts, top_scores, self.search,
-                                              lower, upper)
-        t1 = time.perf_counter()
+        geometry = SegmentGeometry.from_features(features, batch.endpoints, batch.image_size,
+                                                 setting.k_prior_weight if lens == "division" else 0.0)
+        k_estimate = None  # (B,) k of the division estimates
+        if lens == "division":
+            found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal,
+                                  self.iterations, fast=self.mode == "fast")
+            params, best_scores = found.params, found.scores
+            k_estimate = params[:, DISTORTION]
+            estimate = CameraParams(params[:, :DISTORTION].contiguous())
+            features = geometry.features(params[:, DISTORTION, None])  # the segments as the estimate sees them
+            grid_scores, grid_counts = found.grid_scores, found.grid_counts
+            t1 = t0 + found.grid_seconds
+        else:
+            hypotheses = grid_hypotheses(self.search, long_side.to(device), None if focal is None else focal.to(device))
+            # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
+            grid_count = self.search.grid_segments
+            grid_features = features.longest(grid_count) if grid_count else features
+            grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements,
+                                     vertical_block=self.search.grid_points_per_dim)
+            grid_counts = grid_features.mask.sum(-1)
+            starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
+            lower, upper = parameter_box(self.search, long_side, focal)
+            starts, top_scores = sweep_focal(self.likelihood, features, starts, top_scores, self.search, lower, upper)
+            starts, top_scores = subdivide_starts(self.likelihood, features, starts, top_scores, self.search,
+                                                  lower, upper)
+            t1 = time.perf_counter()
 
-        refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
-                                         fast=self.mode == "fast", tolerance=self.search.refine_tolerance,
-                                         patience=self.search.refine_patience,
-                                         periodic_pan=self.search.periodic_pan)
-        # Keep the best of {best grid point, refined points}.
-        candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
-        candidate_scores = torch.cat([top_scores[:, :1], refined_scores], 1)
-        best = candidate_scores.argmax(1)
-        rows = torch.arange(len(group), device=device)
-        estimate = CameraParams(candidates[rows, best].to(torch.float64))
-        best_scores = candidate_scores[rows, best]
+            refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
+                                             fast=self.mode == "fast", tolerance=self.search.refine_tolerance,
+                                             patience=self.search.refine_patience,
+                                             periodic_pan=self.search.periodic_pan)
+            # Keep the best of {best grid point, refined points}.
+            candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
+            candidate_scores = torch.cat([top_scores[:, :1], refined_scores], 1)
+            best = candidate_scores.argmax(1)
+            rows = torch.arange(len(group), device=device)
+            estimate = CameraParams(candidates[rows, best].to(torch.float64))
+            best_scores = candidate_scores[rows, best]
         t2 = time.perf_counter()
 
         rotation = estimate.rotation()  # float64 (B, 3, 3)
@@ -405,9 +504,11 @@ class SegmentEstimator:
                                                       estimate.focal_px[:, None].to(dtype))
         labels = posterior[:, 0].argmax(-1)
         ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta)
-        cues = image_cues(grid_scores, grid_features.mask.sum(-1), labels, log_p[:, 0], batch.mask, rotation)
+        cues = image_cues(grid_scores, grid_counts, labels, log_p[:, 0], batch.mask, rotation)
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
                                self.profile_gap, self.spreads))
+        if lens == "pinhole":  # do the lines bend?  (a sanity check of pinhole estimates; auto's criterion)
+            cues.update(bend_test(self.likelihood, geometry, features, estimate.data, best_scores, self.search, focal))
         t3 = time.perf_counter()
 
         timing = {"grid": (t1 - t0) / len(group), "refine": (t2 - t1) / len(group), "cues": (t3 - t2) / len(group)}
@@ -424,6 +525,7 @@ class SegmentEstimator:
         family = labels_all != BACKGROUND_LABEL
         manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
         cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, FOCAL], pp_np, rotation_all)
+        k_all = None if k_estimate is None else k_estimate.to(torch.float64).cpu().numpy()
         # Finite parameters, objective and rotation give finite hfov, angles and VPs (f > 0 in the box).
         finite = np.isfinite(params_all).all(-1) & np.isfinite(scores_all) & np.isfinite(rotation_all).all((-1, -2))
         for j, item in enumerate(group):
@@ -441,7 +543,24 @@ class SegmentEstimator:
             r.manhattan_fraction = float(manhattan[j])
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
+            if k_all is not None:
+                r.distortion_model, r.distortion_k = "division", float(k_all[j])
             r.reliable, r.reason = sanity_check(r, self.min_segments, self.min_family_segments,
                                                  self.min_manhattan_fraction)
+            bend = lines_bend_reason(r.cues, setting, r.width, r.height) if lens == "pinhole" else None
+            if bend:
+                r.reliable, r.reason = False, "; ".join(x for x in (r.reason, bend) if x)
             # non-finite -> ok=False; focal or an angle at its range's edge -> unreliable
             check_result(r, self.search, known_focal, finite=bool(finite[j]), search_params=params_all[j])
+        if auto:  # the division search for the images whose lines bend; they keep the check's cues and time
+            bent = [item for item in group if item.result.ok
+                    and lines_bend_reason(item.result.cues, setting, item.result.width, item.result.height)]
+            if bent:
+                first = {id(item): (dict(item.result.runtime_s), {key: item.result.cues[key] for key in LINE_BEND_CUES})
+                         for item in bent}
+                self._search_group(bent, known_focal, lens="division")
+                for item in bent:
+                    runtime, bend_cues = first[id(item)]
+                    item.result.cues.update(bend_cues)
+                    item.result.runtime_s = {key: item.result.runtime_s.get(key, 0.0) + runtime.get(key, 0.0)
+                                             for key in set(runtime) | set(item.result.runtime_s)}

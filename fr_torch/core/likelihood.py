@@ -284,10 +284,12 @@ class SegmentFeatures:
     long_side: torch.Tensor  # (B,) the image's longer side, pixels (the focal prior's scale)
     #: (B, 2N, 3) ``line`` then ``along`` rows: one batched matrix product with the VPs gives s and t
     #: (the measure-b paths; one (2N x 3) product takes about a third of the time of two (N x 3) ones).
-    line_along: torch.Tensor = field(init=False, repr=False)
+    #: Built from ``line`` and ``along`` unless given (then ``line`` and ``along`` are its halves).
+    line_along: torch.Tensor | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        self.line_along = torch.cat([self.line, self.along], 1)
+        if self.line_along is None:
+            self.line_along = torch.cat([self.line, self.along], 1)
 
     @classmethod
     def from_batch(cls, batch: SegmentBatch, principal_point: torch.Tensor) -> "SegmentFeatures":
@@ -749,8 +751,12 @@ def measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, backgro
     return torch.bmm(weight[:, None, :], p.log())[:, 0], (line_along, weight, s, t, e, p, neg_inv_scale)
 
 
-def measure_b_backward(saved, grad_out):
-    """d objective / d flat (B, 3, 3H) for the upstream gradient ``grad_out`` (B, H)."""
+def measure_b_backward(saved, grad_out, flat: torch.Tensor | None = None):
+    """d objective / d flat (B, 3, 3H) for the upstream gradient ``grad_out`` (B, H).
+
+    With ``flat`` (the forward pass's VP-major vanishing points) also d objective / d line_along,
+    (B, 2N, 3): ``d obj / d l_i = sum_v G_is v``, ``d obj / d g_i = sum_v G_it v`` (the distortion
+    parameter's chain, :mod:`fr_torch.core.distortion`).  Returns the one tensor, or the pair."""
     line_along, weight, s, t, e, p, neg_inv_scale = saved
     batch, n_seg, hyp = p.shape
     line, along = line_along[:, :n_seg], line_along[:, n_seg:]
@@ -761,7 +767,15 @@ def measure_b_backward(saved, grad_out):
     r2 = (s * s).addcmul_(t, t).clamp_min_(torch.finfo(s.dtype).tiny)
     q = torch.sign(s * t)
     common = (e * neg_inv_scale).mul_(g[:, :, None, :]).view(batch, n_seg, 3 * hyp).mul_(q).div_(r2)
-    return torch.bmm(line.transpose(1, 2), common * t).sub_(torch.bmm(along.transpose(1, 2), common.mul_(s)))
+    if flat is not None:  # terms below float's normal range (< 1e-38) are 0 to the sums, but subnormal
+        # operands slow the CPU's matrix products several times over: drop them
+        common.masked_fill_(common.abs() < torch.finfo(common.dtype).tiny, 0.0)
+    grad_s = common * t  # d obj / d s
+    grad_flat = torch.bmm(line.transpose(1, 2), grad_s).sub_(torch.bmm(along.transpose(1, 2), common.mul_(s)))
+    if flat is None:
+        return grad_flat
+    columns = flat.transpose(1, 2)  # (B, 3H, 3)
+    return grad_flat, torch.cat([torch.bmm(grad_s, columns), torch.bmm(common, columns).neg_()], 1)
 
 
 class _MeasureBObjective(torch.autograd.Function):

@@ -2,7 +2,8 @@
 
 The search works on tensors of shape (..., 4) holding, per hypothesis, pan, pitch and roll in
 degrees (the angles of :func:`fr_torch.core.camera.rotation_from_angles`) and the focal length in
-pixels.  :class:`CameraParams` names those fields and holds the conversions; the hot loops index
+pixels; with a distortion parameter (:mod:`fr_torch.core.distortion`) rows have a fifth field,
+:data:`DISTORTION`, the division model's normalised k.  :class:`CameraParams` names those fields and holds the conversions; the hot loops index
 the raw tensors with :data:`PAN`, :data:`PITCH`, :data:`ROLL`, :data:`FOCAL` and :data:`ANGLES`.
 The refinement optimises the focal length in log space (:func:`to_log_focal`).
 
@@ -20,6 +21,8 @@ from fr_torch.core.camera import rotation_from_cos_sin
 
 #: Positions of the fields in the last dimension.
 PAN, PITCH, ROLL, FOCAL = 0, 1, 2, 3
+#: Position of the division model's k in rows of 5 (the search with a distortion parameter).
+DISTORTION = 4
 #: The three angles (degrees), in the order of :func:`fr_torch.core.camera.rotation_from_angles`.
 ANGLES = slice(PAN, ROLL + 1)
 #: Field names, in order (the columns of a parameter table).
@@ -33,12 +36,17 @@ def rotations(params: torch.Tensor) -> torch.Tensor:
 
 
 def to_log_focal(params: torch.Tensor) -> torch.Tensor:
-    """Rows (..., 4) with the focal length replaced by its natural log (the refinement's space)."""
+    """Rows (..., 4) or (..., 5) with the focal length replaced by its natural log (the refinement's
+    space); a fifth field (k) is kept as it is."""
+    if params.shape[-1] > FOCAL + 1:
+        return torch.cat([params[..., ANGLES], torch.log(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
     return torch.cat([params[..., ANGLES], torch.log(params[..., FOCAL:])], -1)
 
 
 def from_log_focal(params: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`to_log_focal`."""
+    if params.shape[-1] > FOCAL + 1:
+        return torch.cat([params[..., ANGLES], torch.exp(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
     return torch.cat([params[..., ANGLES], torch.exp(params[..., FOCAL:])], -1)
 
 

@@ -55,6 +55,7 @@ from fr_torch.core.likelihood import (
 )
 from fr_torch.core.params import (
     ANGLES,
+    DISTORTION,
     FOCAL,
     PAN,
     from_log_focal,
@@ -149,11 +150,12 @@ def grid_hypotheses(config: SearchConfig, long_side: torch.Tensor, known_focal: 
 def select_starts(config: SearchConfig, grid_scores: torch.Tensor, hypotheses: torch.Tensor):
     """Stage-2 starting points: the ``top_l`` best grid points, best first.
 
-    ``grid_scores`` (B, G) and ``hypotheses`` (B, G, 4) as from :func:`grid_hypotheses`.
-    Returns (starts (B, L, 4), their scores (B, L)), L = min(top_l, G).
+    ``grid_scores`` (B, G) and ``hypotheses`` (B, G, 4) as from :func:`grid_hypotheses` (or rows of
+    5 with k, :mod:`fr_torch.core.search_distortion`).
+    Returns (starts (B, L, 4 or 5), their scores (B, L)), L = min(top_l, G).
     """
     scores, index = grid_scores.topk(min(config.top_l, grid_scores.shape[1]), dim=1)
-    return torch.gather(hypotheses, 1, index[..., None].expand(-1, -1, 4)), scores
+    return torch.gather(hypotheses, 1, index[..., None].expand(-1, -1, hypotheses.shape[-1])), scores
 
 
 def grid_cell(config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
@@ -343,8 +345,15 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
 def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
            lower: torch.Tensor, upper: torch.Tensor, iterations: int, fast: bool,
            max_chunk_elements: int = 1 << 24, tolerance: float = 0.0,
-           patience: int = 10, periodic_pan: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+           patience: int = 10, periodic_pan: bool = False,
+           geometry=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Refine starts (B, L, 4) inside the box [lower, upper] (B, 4).  Returns (params, objective).
+
+    With ``geometry`` (:class:`~fr_torch.core.search_distortion.SegmentGeometry`, the segments of the same
+    images) the rows have a fifth parameter, the division model's k (:data:`~fr_torch.core.params.DISTORTION`):
+    starts (B, L, 5) inside a box (B, 5) or, per start, (B, L, 5); every hypothesis is scored on its
+    segments undistorted with its own k, and k is refined with the others (``features`` is then
+    not used).
 
     Parameters are optimised as u = (p - lower) / (upper - lower) in [0, 1] (a degenerate box,
     e.g. a known focal length, keeps that parameter fixed); with ``periodic_pan``
@@ -368,10 +377,12 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
     tol = tolerance if not fast else 0.0
     if batch > step:
         parts = [_refine_slice(likelihood, features.images(b, b + step), starts[b:b + step],
-                               lower[b:b + step], upper[b:b + step], iterations, fast, tol, patience, periodic_pan)
+                               lower[b:b + step], upper[b:b + step], iterations, fast, tol, patience, periodic_pan,
+                               None if geometry is None else geometry.images(b, b + step))
                  for b in range(0, batch, step)]
         return torch.cat([p for p, _ in parts]), torch.cat([o for _, o in parts])
-    return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tol, patience, periodic_pan)
+    return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tol, patience, periodic_pan,
+                         geometry)
 
 
 #: Bound on each gradient component of the normalised loss in box units (real ones stay below ~1e4).
@@ -407,12 +418,14 @@ class _FusedAdam:
 
 
 def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10,
-                  periodic_pan=False):
+                  periodic_pan=False, geometry=None):
     dtype, device = features.weight.dtype, features.weight.device
     # The focal length is refined as log f: a step is the same relative change of f (and about the
     # same change of FOV) at every zoom, matching the log-spaced stage-1 grid.
-    lower = to_log_focal(lower.to(device=device, dtype=dtype)[:, None, :])
-    upper = to_log_focal(upper.to(device=device, dtype=dtype)[:, None, :])
+    if lower.dim() == 2:  # one box per image
+        lower, upper = lower[:, None, :], upper[:, None, :]
+    lower = to_log_focal(lower.to(device=device, dtype=dtype))
+    upper = to_log_focal(upper.to(device=device, dtype=dtype))
     starts = to_log_focal(starts.to(device=device, dtype=dtype))
     span = (upper - lower)
     free = span > 0
@@ -430,6 +443,12 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
 
     def evaluate(u_value):
         params = from_log_focal(lower + u_value * span)
+        if geometry is not None:  # one virtual image per hypothesis, its segments undistorted with its k
+            batch, n_hyp = params.shape[:2]
+            virtual = geometry.features(params[..., DISTORTION])
+            flat = params[..., :DISTORTION].reshape(batch * n_hyp, 1, DISTORTION)
+            value = likelihood.objective(virtual, rotations(flat), flat[..., FOCAL]).view(batch, n_hyp)
+            return params, value + geometry.k_log_prior(params[..., DISTORTION])[0]
         rotation = rotations(params)
         return params, likelihood.objective(features, rotation, params[..., FOCAL])
 
@@ -437,7 +456,9 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     grad_out = -1.0 / total_length
     for _ in range(iterations):
         u.grad = None
-        if analytic:  # same gradient in closed form, no autograd graph (see objective_and_grad)
+        if analytic and geometry is not None:
+            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out, geometry)
+        elif analytic:  # same gradient in closed form, no autograd graph (see objective_and_grad)
             result = (compiled_call(objective_and_grad, likelihood, likelihood, features, lower, span, u.detach(),
                                     grad_out) if likelihood.compiled else None)
             objective, grad = result or objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out)
@@ -469,9 +490,15 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
 
 
 def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures, lower: torch.Tensor,
-                       span: torch.Tensor, u: torch.Tensor, grad_out: torch.Tensor):
+                       span: torch.Tensor, u: torch.Tensor, grad_out: torch.Tensor,
+                       geometry=None):
     """Measure-b objective (B, L) at ``params = lower + u * span`` and the gradient of
     ``sum(grad_out * objective)`` with respect to u (B, L, 4), without autograd.
+
+    With ``geometry`` the rows have a fifth parameter, k: each hypothesis is scored on its images'
+    segments undistorted with its k (:meth:`~fr_torch.core.search_distortion.SegmentGeometry.features`, one
+    virtual image per hypothesis), and d obj / dk = sum_i (d obj / d line_along_i) . (d line_along_i / dk)
+    (:func:`fr_torch.core.likelihood.measure_b_backward` with the VPs); u is then (B, L, 5).
 
     ``params`` = [pan, pitch, roll (degrees), log f (f in pixels)], the refinement's coordinates.
 
@@ -490,17 +517,37 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     cos, sin = torch.cos(rad), torch.sin(rad)
     rotation = rotation_from_cos_sin(cos, sin)  # (B, L, 3, 3)
     focal = torch.exp(params[..., FOCAL])
+    if geometry is not None:
+        features, d_line_along = geometry.features(params[..., DISTORTION], derivative=True)  # B * L images
     pp = features.principal_point[:, None, :]  # (B, 1, 2)
+    if geometry is not None:
+        pp = pp.view(batch, n_hyp, 2)
     # V = K R: rows 0, 1 = f R_j + c_j R_2, row 2 = R_2.
     top = focal[..., None, None] * rotation[..., :2, :] + pp[..., None] * rotation[..., 2:, :]
     vps = torch.cat([top, rotation[..., 2:, :]], -2)  # (B, L, 3, 3)
-    objective, saved = measure_b_forward(features.line_along, features.weight, vp_major(vps),
-                                         *likelihood._b_constants(features.weight))
-    grad_flat = measure_b_backward(saved, grad_out.expand(batch, n_hyp).contiguous())
-    grad_v = grad_flat.view(batch, 3, 3, n_hyp).permute(0, 3, 1, 2)  # (B, L, coord, VP)
+    constants = likelihood._b_constants(features.weight)
+    if geometry is None:
+        objective, saved = measure_b_forward(features.line_along, features.weight, vp_major(vps), *constants)
+        grad_flat = measure_b_backward(saved, grad_out.expand(batch, n_hyp).contiguous())
+        grad_v = grad_flat.view(batch, 3, 3, n_hyp).permute(0, 3, 1, 2)  # (B, L, coord, VP)
+    else:
+        flat = vp_major(vps.reshape(batch * n_hyp, 1, 3, 3))  # (B * L, 3, 3): one hypothesis per virtual image
+        objective, saved = measure_b_forward(features.line_along, features.weight, flat, *constants)
+        objective = objective.view(batch, n_hyp)
+        grad_flat, grad_line_along = measure_b_backward(saved, grad_out.expand(batch, n_hyp).reshape(-1, 1).contiguous(),
+                                                        flat)
+        grad_v = grad_flat.view(batch, n_hyp, 3, 3)  # (B, L, coord, VP)
+        grad_k = (grad_line_along * d_line_along).sum((-1, -2)).view(batch, n_hyp)
+        if geometry.k_prior_weight:  # the prior on k (SegmentGeometry.k_log_prior)
+            k_prior, d_k_prior = geometry.k_log_prior(params[..., DISTORTION])
+            objective = objective + k_prior
+            grad_k = grad_k + grad_out * d_k_prior
     grad_f = (grad_v[..., :2, :] * rotation[..., :2, :]).sum((-1, -2))
     if likelihood.params.focal_prior_weight:  # the focal prior of MixtureLikelihood.objective
-        prior, d_prior = likelihood.focal_prior(features, focal)
+        if geometry is None:
+            prior, d_prior = likelihood.focal_prior(features, focal)
+        else:
+            prior, d_prior = (x.view(batch, n_hyp) for x in likelihood.focal_prior(features, focal.reshape(-1, 1)))
         objective = objective + prior
         grad_f = grad_f + grad_out * d_prior
     m = vps.transpose(-1, -2) @ grad_v  # R.T K.T G (B, L, 3, 3)
@@ -510,6 +557,8 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     grad_roll = (rotation[..., 2, :] * axial).sum(-1)  # w = R.T e_z = row 2 of R
     grad_angles = torch.stack([axial[..., 1], grad_pitch, grad_roll], -1) * (-math.pi / 180)  # per degree
     grad_p = torch.cat([grad_angles, (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
+    if geometry is not None:
+        grad_p = torch.cat([grad_p, grad_k[..., None]], -1)
     return objective, grad_p * span
 
 

@@ -1,4 +1,10 @@
-"""Draw an fR result over its image: segments coloured by Manhattan family, and the horizon."""
+"""Draw an fR result over its image: segments coloured by Manhattan family, and the horizon.
+
+A result with radial distortion (``distortion_k != 0``) is drawn twice, side by side: the photo
+with its segments where they were detected and the horizon as the curve the lens makes of it, and
+the straightened image (:func:`fr_torch.images.lens.undistort_image`) with the segments as the
+estimate sees them (undistorted) and the straight horizon.
+"""
 from __future__ import annotations
 
 import os
@@ -12,6 +18,7 @@ from fr_torch.core.camera import VERTICAL_AXIS
 from fr_torch.core.estimator import BACKGROUND_LABEL, CalibrationResult
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import encode_png, read_image
+from fr_torch.images.lens import undistort_image
 from fr_torch.output import write_bytes
 
 # BGR colours: family of column 0 red, vertical (column 1) green, column 2 blue, background grey.
@@ -41,22 +48,71 @@ def horizon_endpoints(result: CalibrationResult):
     return inside[0], inside[-1]
 
 
+def horizon_curve(result: CalibrationResult, samples: int = 400) -> np.ndarray | None:
+    """The horizon of a result with radial distortion as it runs through the photo: (M, 2) photo
+    pixels (the straight horizon of the undistorted image, sampled over 7 image widths around the
+    image and bent by the estimate's lens), the parts inside the image; None when none is."""
+    if result.rotation is None:
+        return None
+    line = np.linalg.inv(result.camera.K).T @ result.rotation[:, VERTICAL_AXIS]
+    w, h = result.width, result.height
+    span = np.linspace(-3.0, 4.0, samples)
+    if abs(line[1]) >= abs(line[0]):  # mostly horizontal: x runs, y follows
+        xs = span * w
+        points = np.stack([xs, -(line[0] * xs + line[2]) / line[1]], -1)
+    else:
+        ys = span * h
+        points = np.stack([-(line[1] * ys + line[2]) / line[0], ys], -1)
+    photo = result.distort_points(points)
+    inside = np.isfinite(photo).all(-1) & (photo[:, 0] >= -0.5) & (photo[:, 0] <= w - 0.5) \
+        & (photo[:, 1] >= -0.5) & (photo[:, 1] <= h - 0.5)
+    return photo[inside] if inside.sum() >= 2 else None
+
+
+def _draw_segments(canvas: np.ndarray, segments: np.ndarray | None, labels: np.ndarray | None) -> None:
+    if segments is None or labels is None:
+        return
+    order = np.argsort(labels == BACKGROUND_LABEL)[::-1]  # background first, families on top
+    for idx in order:
+        x1, y1, x2, y2 = segments[idx]
+        colour = FAMILY_COLOURS[int(labels[idx])]
+        cv2.line(canvas, (int(round(x1)), int(round(y1))), (int(round(x2)), int(round(y2))), colour, 2, cv2.LINE_AA)
+
+
 def draw_overlay(image_bgr: np.ndarray, result: CalibrationResult) -> np.ndarray:
-    """A copy of the image (darkened) with coloured segments, the horizon and a caption."""
+    """A copy of the image (darkened) with coloured segments, the horizon and a caption; with radial
+    distortion, the photo (horizon as a curve) and the straightened image side by side (module
+    docstring)."""
     canvas = (image_bgr.astype(np.float32) * 0.6).astype(np.uint8)
-    if result.segments is not None and result.labels is not None:
-        order = np.argsort(result.labels == BACKGROUND_LABEL)[::-1]  # background first, families on top
-        for idx in order:
-            x1, y1, x2, y2 = result.segments[idx]
-            colour = FAMILY_COLOURS[int(result.labels[idx])]
-            cv2.line(canvas, (int(round(x1)), int(round(y1))), (int(round(x2)), int(round(y2))), colour, 2, cv2.LINE_AA)
-    ends = horizon_endpoints(result)
-    if ends is not None:
-        a, b = (tuple(int(round(v)) for v in p) for p in ends)
-        cv2.line(canvas, a, b, HORIZON_COLOUR, 2, cv2.LINE_AA)
+    _draw_segments(canvas, result.segments, result.labels)
+    bent = result.ok and result.distortion_k != 0.0
+    if bent:
+        curve = horizon_curve(result)
+        if curve is not None:
+            cv2.polylines(canvas, [np.round(curve).astype(np.int32)[:, None, :]], False, HORIZON_COLOUR, 2,
+                          cv2.LINE_AA)
+    else:
+        ends = horizon_endpoints(result)
+        if ends is not None:
+            a, b = (tuple(int(round(v)) for v in p) for p in ends)
+            cv2.line(canvas, a, b, HORIZON_COLOUR, 2, cv2.LINE_AA)
+    if bent:
+        straight = (undistort_image(image_bgr, result.distortion_k, result.camera.principal_point)
+                    .astype(np.float32) * 0.6).astype(np.uint8)
+        if result.segments is not None:
+            ends = result.undistort_points(np.asarray(result.segments, np.float64).reshape(-1, 2, 2))
+            _draw_segments(straight, ends.reshape(-1, 4), result.labels)
+        ends = horizon_endpoints(result)
+        if ends is not None:
+            a, b = (tuple(int(round(v)) for v in p) for p in ends)
+            cv2.line(straight, a, b, HORIZON_COLOUR, 2, cv2.LINE_AA)
+        draw_caption(straight, f"straightened (division model, k = {result.distortion_k:+.3f})", at_bottom=True)
+        canvas = np.concatenate([canvas, straight], 1)
     if result.ok:
         caption = (f"f={result.focal_px:.0f}px hfov={result.hfov_deg:.1f}  roll={result.roll_deg:+.2f}  "
                    f"tilt={result.tilt_deg:+.2f}  pan={result.pan_deg:+.1f} deg")
+        if result.distortion_model != "pinhole":
+            caption += f"  k={result.distortion_k:+.3f}"
         if not result.reliable:
             caption += "  [UNRELIABLE]"
     else:
@@ -65,16 +121,18 @@ def draw_overlay(image_bgr: np.ndarray, result: CalibrationResult) -> np.ndarray
     return canvas
 
 
-def draw_caption(canvas: np.ndarray, text: str, margin: int = 6) -> None:
-    """Light text on a dark box in the top-left corner, drawn once; shrunk to fit the image width."""
+def draw_caption(canvas: np.ndarray, text: str, margin: int = 6, at_bottom: bool = False) -> None:
+    """Light text on a dark box in the top-left (or bottom-left) corner, drawn once; shrunk to fit
+    the image width."""
     font, thickness = cv2.FONT_HERSHEY_SIMPLEX, 1
     scale = 0.5
     (tw, th), base = cv2.getTextSize(text, font, scale, thickness)
     if tw > canvas.shape[1] - 2 * margin:
         scale *= (canvas.shape[1] - 2 * margin) / tw
         (tw, th), base = cv2.getTextSize(text, font, scale, thickness)
-    cv2.rectangle(canvas, (0, 0), (tw + 2 * margin, th + base + 2 * margin), CAPTION_BOX, -1)
-    cv2.putText(canvas, text, (margin, margin + th), font, scale, CAPTION_TEXT, thickness, cv2.LINE_AA)
+    top = canvas.shape[0] - (th + base + 2 * margin) if at_bottom else 0
+    cv2.rectangle(canvas, (0, top), (tw + 2 * margin, top + th + base + 2 * margin), CAPTION_BOX, -1)
+    cv2.putText(canvas, text, (margin, top + margin + th), font, scale, CAPTION_TEXT, thickness, cv2.LINE_AA)
 
 
 def overlay_path(image_path, folder) -> Path:

@@ -12,7 +12,9 @@ probabilistic model" ablation, see :class:`fr_torch.core.likelihood.LikelihoodPa
 ``fr[atlanta=on]`` (extra horizontal vanishing points at free azimuths, ranked with the Manhattan
 three; f and R unchanged; ``atlanta=max_extra=2:prior=0.05`` sets its parameters, see
 :class:`fr_torch.core.vanishing.AtlantaConfig`).  Every estimate carries fR's vanishing points
-ranked by support (``CameraEstimate.ranked_vanishing_points``).
+ranked by support (``CameraEstimate.ranked_vanishing_points``).  ``fr[distortion=division]`` /
+``fr[distortion=auto]`` (radial distortion estimated, see :mod:`fr_torch.core.distortion`) and
+``fr[k=-0.2]`` (a known k).
 """
 from __future__ import annotations
 
@@ -37,7 +39,8 @@ def estimate_from_result(method: str, result: CalibrationResult, runtime_s: floa
         predicted_error=result.predicted_error, reliable=result.reliable, runtime_s=runtime_s, reason=result.reason,
         extra={"cues": result.cues, "num_segments": result.num_segments, "log_likelihood": result.log_likelihood,
                "stage_runtime_s": result.runtime_s, "vanishing_point_support": result.vanishing_point_support,
-               "vanishing_point_families": result.vanishing_point_families},
+               "vanishing_point_families": result.vanishing_point_families,
+               "distortion": result.distortion},
         ranked_vanishing_points=result.ranked_vanishing_points,
     )
 
@@ -52,7 +55,8 @@ class FRCalibrator:
 
     def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
                  likelihood: str | None = None, use_meta_segments: bool = False, name: str | None = None,
-                 range=None, model: str | None = None, atlanta=None, **estimator_kwargs):
+                 range=None, model: str | None = None, atlanta=None, distortion: str | None = None, k=None,
+                 **estimator_kwargs):
         if range is not None:
             base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
             estimator_kwargs["search_config"] = base.with_fov_range(range)
@@ -61,7 +65,8 @@ class FRCalibrator:
                       or LikelihoodParams.from_config(measure, likelihood, mode=mode))
             estimator_kwargs["likelihood_params"] = replace(params, model=model)
         self.estimator = FREstimator(mode=mode, measure=measure, detector=detector, device=device,
-                                     likelihood=likelihood, atlanta=atlanta, **estimator_kwargs)
+                                     likelihood=likelihood, atlanta=atlanta, distortion=distortion,
+                                     k=None if k is None else float(k), **estimator_kwargs)
         self.use_meta_segments = use_meta_segments
         base = name or ("fr" if mode == "fr" else "fast-fr")
         options = [f"measure={measure}"] if measure else []
@@ -70,6 +75,8 @@ class FRCalibrator:
         options += [f"range={range}"] if isinstance(range, str) else []
         options += [f"model={model}"] if model is not None else []
         options += [f"atlanta={atlanta}"] if self.estimator.atlanta is not None else []
+        options += [f"distortion={distortion}"] if distortion is not None else []
+        options += [f"k={k}"] if k is not None else []
         self.name = f"{base}[{','.join(options)}]" if options else base
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:

@@ -479,6 +479,15 @@ def calibrate_shared(estimator, images: Sequence | None = None, *, segments: Seq
                                estimate_principal_point=principal_point is None)
 
 
+def require_pinhole(distortion) -> None:
+    """FRInputError (one line) unless the lens setting ``distortion``
+    (:class:`~fr_torch.core.distortion.DistortionSetting`) is the pinhole camera: the shared focal
+    length's per-photo focal profiles are a pinhole camera's."""
+    if distortion.estimates_k:
+        raise FRInputError("a shared focal length (--shared-focal, --shared-focal-by) works with the pinhole model "
+                           "only: leave out --distortion / --k, or calibrate each photo with them")
+
+
 def shared_from_results(estimator, alone: Sequence, focal_prior=None,
                         settings: SharedFocalSettings | None = None,
                         estimate_principal_point: bool = True) -> SharedFocalResult:
@@ -486,6 +495,7 @@ def shared_from_results(estimator, alone: Sequence, focal_prior=None,
     pixels of its photo); see :func:`calibrate_shared`.  ``estimate_principal_point`` False keeps
     each result's principal point (the caller gave it, or wants the image centre) whatever
     ``settings.principal_point`` says."""
+    require_pinhole(estimator.search.distortion)
     settings = settings or SharedFocalSettings()
     if not estimate_principal_point:
         settings = replace(settings, principal_point=False)

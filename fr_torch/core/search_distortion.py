@@ -1,0 +1,513 @@
+"""The search with a distortion parameter: k of the division model estimated jointly with f and R.
+
+Rows of 5 (:data:`fr_torch.core.params.DISTORTION`): ``[pan, pitch, roll, focal, k]``, k the division
+model's normalised coefficient (:mod:`fr_torch.core.distortion`).  Every hypothesis is scored on
+its image's segments undistorted with its own k (:class:`SegmentGeometry`): hypotheses that share
+a k share the undistorted segments, so each stage builds one **virtual image** per (image, k) --
+the undistorted segments of that image at that k -- and scores its hypotheses with the pinhole
+machinery of :mod:`fr_torch.core.search` unchanged.
+
+The stages (the pinhole search's, with k added):
+
+1. **Grid over k** (:func:`grid_over_k`): the k^4 angle-and-focal grid
+   (``SearchConfig.distortion_grid_size`` per dimension) at the plumb-line k (:func:`plumb_line`:
+   the k that straightens pieces of lines, independent of f and R) and at the values of
+   ``distortion_grid_k``; the ``top_l`` best of all (k, grid point) pairs start.
+2. **Focal sweep** (:func:`sweep_focal_rows`): each start's focal ridge at its k
+   (:func:`fr_torch.core.search.sweep_focal`).
+3. **Lattice passes** (:func:`subdivide_rows`): the 3^4 lattice around each start at its k and k
+   one step either side (``distortion_lattice="axis"``; or the 3^5 lattice, ``"joint"``); the k step
+   a third of ``distortion_k_spacing``, then a third of that.
+4. **Refinement**: Adam on the five box-normalised parameters
+   (:func:`fr_torch.core.search.refine` with the geometry: the analytic gradient of measure b
+   extends to k through d line / dk).
+
+:func:`bend_test` asks whether a pinhole estimate's lines bend: the plumb line, and a short
+division search from the estimate (at the plumb-line k: the focal sweep and lattice passes) with
+its gain in nats per 1000 px of segment length (:func:`likelihood_gain`); the "lines bend" sanity
+check of pinhole estimates (:func:`fr_torch.core.cues.lines_bend_reason`) and the criterion by which
+``auto`` runs this search on an image.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, replace
+
+import torch
+
+from fr_torch.core.config import SearchConfig
+from fr_torch.core.distortion import normalising_radius
+from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
+from fr_torch.core.params import DISTORTION, FOCAL, from_log_focal, to_log_focal
+from fr_torch.core.search import (
+    LATTICE,
+    _keep_best,
+    grid_cell,
+    grid_hypotheses,
+    into_box,
+    parameter_box,
+    refine,
+    score_grid,
+    select_starts,
+    sweep_focal,
+)
+
+
+@dataclass
+class SegmentGeometry:
+    """The photo's segments of B images, from which :class:`SegmentFeatures` follow for any k.
+
+    ``endpoints`` (B, N, 4) photo pixels ``[x1, y1, x2, y2]``; ``mask`` (B, N); ``centre`` (B, 2) the
+    distortion centre (principal point); ``radius`` (B,) the normalising radius;
+    ``long_side`` (B,).  Under a hypothesis k each endpoint is undistorted
+    (:func:`undistort_points`) and the likelihood's line features are those of the undistorted
+    segment; its **weight stays the photo's segment length**, so the objectives of different k
+    weigh the same evidence alike.  ``k_prior_weight`` (gamma >= 0): the prior on k that every
+    hypothesis' objective carries, ``log p(k) = -(gamma / 2) W k^2`` with W the image's total segment
+    length (:meth:`k_log_prior`; per unit of evidence, like the focal prior).
+    """
+
+    endpoints: torch.Tensor
+    mask: torch.Tensor
+    centre: torch.Tensor
+    radius: torch.Tensor
+    long_side: torch.Tensor
+    k_prior_weight: float = 0.0
+
+    @classmethod
+    def from_features(cls, features: SegmentFeatures, endpoints: torch.Tensor, image_size: torch.Tensor,
+                      k_prior_weight: float = 0.0):
+        """The geometry of the segments behind ``features`` (their endpoints (B, N, 4) and the
+        images' (B, 2) [width, height] pixels)."""
+        size = image_size.to(endpoints)
+        return cls(endpoints, features.mask, features.principal_point, normalising_radius(size[:, 0], size[:, 1]),
+                   features.long_side, k_prior_weight)
+
+    def k_log_prior(self, k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The log prior on k (class docstring) and its derivative d/dk for ``k`` (B, G): two (B, G)
+        tensors in ``k``'s dtype (zeros without a prior)."""
+        if not self.k_prior_weight:
+            return torch.zeros_like(k), torch.zeros_like(k)
+        slope = -self.k_prior_weight * self.weight.sum(-1).to(k)[:, None] * k
+        return 0.5 * slope * k, slope
+
+    @property
+    def weight(self) -> torch.Tensor:
+        """(B, N) the photo's segment lengths, 0 for padding."""
+        d = self.endpoints[..., 2:] - self.endpoints[..., :2]
+        return torch.linalg.vector_norm(d, dim=-1) * self.mask
+
+    def features(self, k: torch.Tensor, derivative: bool = False):
+        """Features of every image under G hypotheses of k each: ``k`` (B, G) -> SegmentFeatures of
+        B * G virtual images (image b's hypothesis g at row ``b * G + g``), and with ``derivative``
+        also d line_along / dk, (B * G, 2N, 3)."""
+        batch, groups = k.shape
+        n_seg = self.endpoints.shape[1]
+        dtype = self.endpoints.dtype
+        k = k.to(dtype)[:, :, None]  # (B, G, 1)
+        centre, offset, rho = self._offsets()  # (B, 1, 1, 2), (B, 1, 2N, 2), (B, 1, 2N)
+        factor = 1.0 / (1.0 + k * rho)  # (B, G, 2N): undistorted = centre + factor * offset
+        q = offset * factor[..., None]
+        qa, qb = q[:, :, :n_seg], q[:, :, n_seg:]
+        delta = qb - qa
+        length = torch.linalg.vector_norm(delta, dim=-1)
+        inv_length = 1.0 / length.clamp_min(1e-12)
+        d = delta * inv_length[..., None]
+        m = centre + (qa + qb) * 0.5
+        dx, dy = d[..., 0], d[..., 1]
+        line_along = torch.stack([-dy, dx, dy * m[..., 0] - dx * m[..., 1],
+                                  dx, dy, -(dx * m[..., 0] + dy * m[..., 1])], -1)  # (B, G, N, 6)
+        line_along = line_along.view(batch * groups, n_seg, 2, 3).transpose(1, 2).reshape(batch * groups, 2 * n_seg, 3)
+        weight, mask, principal_point, long_side = self._virtual_constants(groups)
+        features = SegmentFeatures(line_along[:, :n_seg], line_along[:, n_seg:], (length * 0.5).view(batch * groups, -1),
+                                   weight, mask, principal_point, long_side, line_along=line_along)
+        if not derivative:
+            return features
+        d_q = offset * (-rho * factor * factor)[..., None]  # d q / dk
+        d_delta = d_q[:, :, n_seg:] - d_q[:, :, :n_seg]
+        d_d = (d_delta - d * (d * d_delta).sum(-1, keepdim=True)) * inv_length[..., None]
+        d_m = (d_q[:, :, :n_seg] + d_q[:, :, n_seg:]) * 0.5
+        ddx, ddy = d_d[..., 0], d_d[..., 1]
+        d_line_along = torch.stack([-ddy, ddx, ddy * m[..., 0] + dy * d_m[..., 0] - ddx * m[..., 1] - dx * d_m[..., 1],
+                                    ddx, ddy, -(ddx * m[..., 0] + dx * d_m[..., 0] + ddy * m[..., 1]
+                                                + dy * d_m[..., 1])], -1)
+        d_line_along = d_line_along.view(batch * groups, n_seg, 2, 3).transpose(1, 2).reshape(batch * groups,
+                                                                                               2 * n_seg, 3)
+        return features, d_line_along
+
+    def _offsets(self):
+        """(centre (B, 1, 1, 2), endpoint offsets from it (B, 1, 2N, 2): first endpoints then second
+        ones, their r^2 in units of the radius (B, 1, 2N)), computed once."""
+        cached = self.__dict__.get("_offset_cache")
+        if cached is None:
+            dtype = self.endpoints.dtype
+            centre = self.centre.to(dtype)[:, None, None, :]
+            points = torch.cat([self.endpoints[..., :2], self.endpoints[..., 2:]], 1)[:, None]  # (B, 1, 2N, 2)
+            offset = points - centre
+            rho = (offset * offset).sum(-1) / (self.radius.to(dtype) ** 2)[:, None, None]
+            cached = self.__dict__["_offset_cache"] = (centre, offset, rho)
+        return cached
+
+    def _virtual_constants(self, groups: int):
+        """The k-independent fields of :meth:`features` for G = ``groups``: weight, mask,
+        principal point, long side of the B * G virtual images (computed once per G)."""
+        cache = self.__dict__.setdefault("_constants_cache", {})
+        if groups not in cache:
+            weight = self.weight
+            mask = self.mask & (weight > 0)
+            dtype = self.endpoints.dtype
+            cache[groups] = tuple(x.repeat_interleave(groups, 0) for x in
+                                  (weight, mask, self.centre.to(dtype), self.long_side.to(dtype)))
+        return cache[groups]
+
+    def images(self, start: int, stop: int) -> "SegmentGeometry":
+        """Images ``start:stop`` (views)."""
+        return SegmentGeometry(self.endpoints[start:stop], self.mask[start:stop], self.centre[start:stop],
+                               self.radius[start:stop], self.long_side[start:stop], self.k_prior_weight)
+
+
+
+
+# --------------------------------------------------------------------------- plumb lines
+
+#: Pieces of one line: two segments whose nearest endpoints are closer than this share of the long
+#: side, whose directions differ by less than :data:`CHAIN_MAX_ANGLE_DEG`, and each of whose nearer
+#: endpoint lies within :data:`CHAIN_LATERAL` (share of the long side) of the other's line.
+CHAIN_GAP = 0.03
+CHAIN_MAX_ANGLE_DEG = 15.0
+CHAIN_LATERAL = 0.003
+#: The longest segments of each image :func:`plumb_line` pairs up.
+CHAIN_SEGMENTS = 200
+#: Turning angles above this count as this much (pairs of pieces that are not one line).
+TURN_CAP_DEG = 3.0
+#: Spacing of the values of k :func:`plumb_line` tries over the k range.
+PLUMB_K_STEP = 0.01
+#: Images whose pairs are found together (each costs CHAIN_SEGMENTS^2 pair tests).
+PLUMB_CHUNK_IMAGES = 16
+#: The k spacing of :func:`bend_test`'s lattice passes (first step +-0.1).
+PLUMB_K_SPACING = 0.3
+
+
+@dataclass
+class PlumbLine:
+    """What the pieces of straight lines say about k, per image (:func:`plumb_line`): ``k`` (B,)
+    the value that straightens them best; ``share`` (B,) the share of their turning it removes
+    (1 - C(k) / C(0), in [0, 1]); ``pairs`` (B,) how many pairs of pieces were found."""
+
+    k: torch.Tensor
+    share: torch.Tensor
+    pairs: torch.Tensor
+
+
+def chain_pairs(endpoints: torch.Tensor, mask: torch.Tensor, long_side: torch.Tensor):
+    """Pairs of segments that look like consecutive pieces of one line (the constants above).
+
+    ``endpoints`` (B, M, 4) photo pixels, ``mask`` (B, M), ``long_side`` (B,).  Returns
+    (image (P,), i (P,), j (P,), weight (P,)) with i < j and weight = the shorter one's length."""
+    batch, count = endpoints.shape[:2]
+    ends = endpoints.reshape(batch, 2 * count, 2)  # segment m's endpoints at rows 2m, 2m + 1
+    gap = torch.cdist(ends, ends).view(batch, count, 2, count, 2).amin((2, 4))  # (B, M, M)
+    delta = endpoints[..., 2:] - endpoints[..., :2]
+    length = torch.linalg.vector_norm(delta, dim=-1).clamp_min(1e-9)
+    unit = delta / length[..., None]
+    aligned = (unit @ unit.transpose(1, 2)).abs() > math.cos(math.radians(CHAIN_MAX_ANGLE_DEG))
+    # homogeneous unit-normal lines; |line_i . end| = the end's distance from segment i's line
+    lines = torch.stack([-unit[..., 1], unit[..., 0],
+                         unit[..., 1] * endpoints[..., 0] - unit[..., 0] * endpoints[..., 1]], -1)  # (B, M, 3)
+    homogeneous = torch.cat([ends, torch.ones_like(ends[..., :1])], -1)  # (B, 2M, 3)
+    lateral = (lines @ homogeneous.transpose(1, 2)).abs().view(batch, count, count, 2).amin(-1)  # j's nearer end
+    scale = long_side.to(endpoints)[:, None, None]
+    valid = (gap < CHAIN_GAP * scale) & aligned & (lateral < CHAIN_LATERAL * scale) \
+        & (lateral.transpose(1, 2) < CHAIN_LATERAL * scale) & mask[:, :, None] & mask[:, None, :]
+    image, i, j = torch.triu(valid, diagonal=1).nonzero(as_tuple=True)
+    return image, i, j, torch.minimum(length[image, i], length[image, j])
+
+
+def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> PlumbLine:
+    """The plumb-line test: straight lines of the scene are straight in the undistorted image.
+
+    Pairs of consecutive pieces of one line (:func:`chain_pairs`, among each image's
+    :data:`CHAIN_SEGMENTS` longest segments) turn by an angle theta in a bent photo; for every k
+    on a grid over ``k_range`` (spacing :data:`PLUMB_K_STEP`, 0 included) the pieces are undistorted
+    and ``C(k) = sum_pairs w min(theta, cap)^2`` (w the shorter piece's length, cap
+    :data:`TURN_CAP_DEG`).  Independent of f and R: a cheap estimate of k before the search
+    and the evidence of the "lines bend" check.  Returns a :class:`PlumbLine` (k = 0, share 0 where
+    an image has no pairs)."""
+    batch = geometry.endpoints.shape[0]
+    if batch > PLUMB_CHUNK_IMAGES:
+        parts = [plumb_line(geometry.images(b, b + PLUMB_CHUNK_IMAGES), k_range)
+                 for b in range(0, batch, PLUMB_CHUNK_IMAGES)]
+        return PlumbLine(*(torch.cat([getattr(p, name) for p in parts]) for name in ("k", "share", "pairs")))
+    device = geometry.endpoints.device
+    low, high = k_range
+    grid = torch.arange(math.ceil(low / PLUMB_K_STEP - 1e-9), math.floor(high / PLUMB_K_STEP + 1e-9) + 1,
+                        device=device, dtype=torch.float64) * PLUMB_K_STEP
+    if not bool((grid == 0).any()):
+        grid = torch.cat([grid, grid.new_zeros(1)])
+    weight = geometry.weight
+    count = min(CHAIN_SEGMENTS, weight.shape[1])
+    index = weight.topk(count, dim=1).indices
+    endpoints = torch.gather(geometry.endpoints, 1, index[..., None].expand(-1, -1, 4)).to(torch.float64)
+    mask = torch.gather(geometry.mask & (weight > 0), 1, index)
+    image, i, j, pair_weight = chain_pairs(endpoints, mask, geometry.long_side.to(torch.float64))
+    # the paired pieces' directions undistorted at every k of the grid: (P, K, 2) each
+    centre = geometry.centre.to(torch.float64)[image, None, None, :]
+    inv_r2 = (1.0 / geometry.radius.to(torch.float64) ** 2)[image, None, None]
+
+    def directions(pieces):  # (P, 4) -> (P, K, 2) unit directions
+        offset = pieces.view(-1, 1, 2, 2) - centre
+        undistorted = offset / (1.0 + grid.view(1, -1, 1) * (offset * offset).sum(-1) * inv_r2)[..., None]
+        direction = undistorted[:, :, 1] - undistorted[:, :, 0]
+        return direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-12)
+
+    a, b = directions(endpoints[image, i]), directions(endpoints[image, j])
+    turn = torch.asin((a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]).abs().clamp(max=1.0))
+    cost_terms = pair_weight[:, None] * turn.clamp(max=math.radians(TURN_CAP_DEG)) ** 2
+    cost = torch.zeros(batch, len(grid), dtype=torch.float64, device=device).index_add_(0, image, cost_terms)
+    best = cost.argmin(1)
+    at_zero = cost[:, int((grid == 0).nonzero()[0, 0])]
+    best_cost = cost.gather(1, best[:, None])[:, 0]
+    share = torch.where(at_zero > 0, 1.0 - best_cost / at_zero.clamp_min(1e-300), torch.zeros_like(at_zero))
+    pairs = torch.bincount(image, minlength=batch)
+    k = torch.where(pairs > 0, grid[best], torch.zeros_like(at_zero))
+    return PlumbLine(k, share.clamp(0.0, 1.0), pairs)
+
+
+# --------------------------------------------------------------------------- stages
+
+def angle_grid_config(config: SearchConfig) -> SearchConfig:
+    """The configuration of the k^4 grid at each k: ``grid_points_per_dim`` =
+    ``distortion_grid_size`` where set (the lattice passes' first step is a third of its cell)."""
+    if not config.distortion_grid_size:
+        return config
+    return replace(config, grid_points_per_dim=config.distortion_grid_size)
+
+
+def k_values(config: SearchConfig, geometry: SegmentGeometry) -> torch.Tensor:
+    """The stage-1 values of k per image, (B, K) float64: the known k; else the plumb-line k
+    (:func:`plumb_line`, with ``distortion_plumb_line``) and ``distortion_grid_k``, clamped into the
+    k range."""
+    setting = config.distortion
+    batch = geometry.endpoints.shape[0]
+    if setting.known_k is not None:
+        return torch.full((batch, 1), setting.known_k, dtype=torch.float64)
+    low, high = setting.k_range
+    values = [torch.tensor(config.distortion_grid_k, dtype=torch.float64).expand(batch, -1)]
+    if config.distortion_plumb_line:
+        values.insert(0, plumb_line(geometry, setting.k_range).k.cpu()[:, None])
+    return torch.cat(values, 1).clamp(low, high)
+
+
+def k_step(config: SearchConfig) -> float:
+    """The spacing of k the lattice passes start from (their first k step is a third of it):
+    ``distortion_k_spacing``, 0 for a known k."""
+    return 0.0 if config.distortion.known_k is not None else config.distortion_k_spacing
+
+
+def parameter_box_k(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None):
+    """:func:`fr_torch.core.search.parameter_box` with k's box as a fifth column: (B, 5) each."""
+    lower, upper = parameter_box(config, long_side, known_focal)
+    k_low, k_high = config.distortion.k_box()
+    return (torch.cat([lower, torch.full_like(lower[:, :1], k_low)], -1),
+            torch.cat([upper, torch.full_like(upper[:, :1], k_high)], -1))
+
+
+def with_k(rows: torch.Tensor, k) -> torch.Tensor:
+    """Rows (..., 4) with a fifth column k (a number or a tensor broadcastable to ``rows[..., 0]``)."""
+    k = torch.as_tensor(k, dtype=rows.dtype, device=rows.device).expand(rows.shape[:-1])
+    return torch.cat([rows, k[..., None]], -1)
+
+
+def score_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, rows: torch.Tensor,
+               max_chunk_elements: int, vertical_block: int = 1) -> torch.Tensor:
+    """Objectives of rows (B, G, P, 5) whose P hypotheses of each group share k (that of the group's
+    first row): one virtual image per (image, group).  Returns (B, G * P) in ``rows``' order."""
+    batch, groups, points = rows.shape[:3]
+    k = rows[:, :, 0, DISTORTION]
+    features = geometry.features(k)
+    hypotheses = rows[..., :DISTORTION].reshape(batch * groups, points, DISTORTION)
+    scores = score_grid(likelihood, features, hypotheses, max_chunk_elements, vertical_block).view(batch, groups, points)
+    if geometry.k_prior_weight:
+        scores = scores + geometry.k_log_prior(k.to(scores.device, scores.dtype))[0][..., None]
+    return scores.view(batch, groups * points)
+
+
+def grid_over_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, config: SearchConfig,
+                long_side: torch.Tensor, known_focal: torch.Tensor | None):
+    """Stage 1 over k: the k^4 (k^3 with a known focal) grid at each of :func:`k_values`.
+
+    Returns (starts (B, L, 5), their scores (B, L), the grid scores (B, G) at the k of the best
+    start and the segments each image's grid scored (B,)) (the last two for the ``grid_entropy`` cue).
+    """
+    ks = k_values(config, geometry).to(geometry.endpoints.device)
+    batch, count = ks.shape
+    features = geometry.features(ks)  # B * K virtual images
+    device = geometry.endpoints.device
+    long_rep = long_side.repeat_interleave(count).to(device)
+    focal_rep = None if known_focal is None else known_focal.repeat_interleave(count).to(device)
+    grid_config = angle_grid_config(config)
+    hypotheses = grid_hypotheses(grid_config, long_rep, focal_rep)  # (B * K, G, 4)
+    scores = score_grid(likelihood, features, hypotheses, config.max_chunk_elements,
+                        vertical_block=grid_config.grid_points_per_dim)
+    n_grid = hypotheses.shape[1]
+    if geometry.k_prior_weight:
+        prior = geometry.k_log_prior(ks.to(scores))[0]  # (B, K)
+        scores = (scores.view(batch, count, n_grid) + prior[..., None]).view(batch * count, n_grid)
+    rows = with_k(hypotheses.view(batch, count, n_grid, 4), ks.view(batch, count, 1))
+    starts, top = select_starts(config, scores.view(batch, count * n_grid), rows.view(batch, count * n_grid, 5))
+    best_k = torch.argmin((starts[:, 0, DISTORTION, None] - ks.to(starts)).abs(), -1)  # (B,)
+    rows_index = torch.arange(batch, device=device) * count + best_k.to(device)
+    return starts, top, scores[rows_index], features.mask.sum(-1)[rows_index]
+
+
+def sweep_focal_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, starts: torch.Tensor,
+                     scores: torch.Tensor, config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor):
+    """:func:`fr_torch.core.search.sweep_focal` of each start (B, L, 5) at its own k: returns (B, 2L, 5)
+    starts (the inputs, then each one's best swept point or a copy) and their (B, 2L) scores."""
+    batch, n_start = starts.shape[:2]
+    features = geometry.features(starts[..., DISTORTION])
+    lower4, upper4 = (x[:, :DISTORTION].repeat_interleave(n_start, 0) for x in (lower, upper))
+    prior = geometry.k_log_prior(starts[..., DISTORTION].to(scores))[0]  # the same k all along a start's ridge
+    swept, swept_scores = sweep_focal(likelihood, features, starts[..., :DISTORTION].reshape(-1, 1, DISTORTION),
+                                      (scores - prior).reshape(-1, 1), config, lower4, upper4)
+    if swept.shape[1] == 1:  # no sweep (a known focal length, or none configured)
+        return starts, scores
+    rows = with_k(swept.view(batch, n_start, 2, DISTORTION), starts[..., DISTORTION, None].to(swept))
+    swept_scores = swept_scores.view(batch, n_start, 2) + prior[..., None].to(swept_scores)
+    return (torch.cat([rows[:, :, 0], rows[:, :, 1]], 1).to(starts),
+            torch.cat([swept_scores[:, :, 0], swept_scores[:, :, 1]], 1))
+
+
+#: The 3^5 lattice of :func:`subdivide_rows`: k slowest (three blocks of :data:`~fr_torch.core.search.LATTICE`,
+#: the 3^4 lattice, pan fastest), so each block shares k and runs of 3 share the vertical VP.
+LATTICE_K = torch.cat([torch.cat([LATTICE, torch.full((len(LATTICE), 1), offset, dtype=torch.float64)], 1)
+                       for offset in (-1.0, 0.0, 1.0)])
+
+
+def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, starts: torch.Tensor,
+                   scores: torch.Tensor, config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor,
+                   k_spacing: float | None = None):
+    """:func:`fr_torch.core.search.subdivide_starts` in five dimensions: ``config.grid_passes`` passes
+    of the 3^5 lattice :data:`LATTICE_K` around each start (B, L, 5) (k's step: a third of
+    ``k_spacing``, default :func:`k_step`, then a third of that; a known k
+    stays fixed), keeping the best point.  Returns (starts, scores) of the same shapes; every score
+    is >= its input."""
+    if config.grid_passes == 0:
+        return starts, scores
+    device = geometry.endpoints.device
+    lower64, upper64 = lower.to(torch.float64), upper.to(torch.float64)
+    log_lower = to_log_focal(lower64)[:, None, None, :].to(device)
+    log_upper = to_log_focal(upper64)[:, None, None, :].to(device)
+    cell = grid_cell(angle_grid_config(config), lower64[:, :DISTORTION], upper64[:, :DISTORTION])
+    k_spacing = k_step(config) if k_spacing is None else k_spacing
+    step = torch.cat([cell, torch.full_like(cell[:, :1], k_spacing)], -1)[:, None, None, :].to(device)
+    joint = config.distortion_lattice == "joint"
+    lattice = (LATTICE_K if k_spacing > 0 and joint else with_k(LATTICE, 0.0)).to(device)
+    k_offsets = torch.zeros(2, 5, dtype=torch.float64, device=device)
+    k_offsets[:, DISTORTION] = torch.tensor([-1.0, 1.0])
+    batch, n_start = starts.shape[:2]
+    current = to_log_focal(starts.to(device=device, dtype=torch.float64))
+    fraction = 1.0
+    for _ in range(config.grid_passes):
+        fraction /= 3.0
+        points = current[:, :, None, :] + lattice * (step * fraction)  # (B, L, 243 or 81, 5)
+        points = into_box(points, log_lower, log_upper, config.periodic_pan)
+        rows = from_log_focal(points).view(batch, n_start * (len(lattice) // len(LATTICE)), len(LATTICE), 5)
+        point_scores = score_rows(likelihood, geometry, rows, config.max_chunk_elements, vertical_block=3)
+        if not joint and k_spacing > 0:  # k alone, one step either side of each start
+            k_points = into_box(current[:, :, None, :] + k_offsets * (step * fraction), log_lower, log_upper,
+                                config.periodic_pan)  # (B, L, 2, 5)
+            k_scores = score_rows(likelihood, geometry, from_log_focal(k_points).view(batch, 2 * n_start, 1, 5),
+                                  config.max_chunk_elements)
+            points = torch.cat([points, k_points], 2)
+            point_scores = torch.cat([point_scores.view(batch, n_start, -1), k_scores.view(batch, n_start, 2)],
+                                     2).view(batch, -1)
+        current, scores = _keep_best(current, scores, points, point_scores)
+    return from_log_focal(current).to(starts), scores
+
+
+# --------------------------------------------------------------------------- the whole search
+
+@dataclass
+class DistortedSearch:
+    """What :func:`search_with_k` found for B images.
+
+    ``params`` (B, 5) the estimates [pan, pitch, roll, f, k] and ``scores`` (B,) their objectives;
+    ``grid_scores`` (B, G) and ``grid_counts`` (B,) for the ``grid_entropy`` cue;
+    ``grid_seconds``: the time of the stages before the refinement (all images)."""
+
+    params: torch.Tensor
+    scores: torch.Tensor
+    grid_scores: torch.Tensor
+    grid_counts: torch.Tensor
+    grid_seconds: float
+
+
+def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, features: SegmentFeatures,
+                  config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None,
+                  iterations: int, fast: bool) -> DistortedSearch:
+    """The whole search with k (module docstring) for the images of ``geometry``.
+
+    ``features``: the same images' segments as :meth:`SegmentGeometry.features` gives them at any k
+    (the refinement reads their lengths); ``long_side`` (B,) pixels; ``known_focal`` (B,) or None;
+    ``iterations``, ``fast``: the refinement's steps and mode.
+    """
+    t0 = time.perf_counter()
+    starts, top_scores, grid_scores, grid_counts = grid_over_k(likelihood, geometry, config, long_side, known_focal)
+    lower, upper = parameter_box_k(config, long_side, known_focal)
+    starts, top_scores = sweep_focal_rows(likelihood, geometry, starts, top_scores, config, lower, upper)
+    starts, top_scores = subdivide_rows(likelihood, geometry, starts, top_scores, config, lower, upper)
+    grid_seconds = time.perf_counter() - t0
+    refined, refined_scores = refine(likelihood, features, starts, lower, upper, iterations, fast=fast,
+                                     tolerance=config.refine_tolerance, patience=config.refine_patience,
+                                     periodic_pan=config.periodic_pan, geometry=geometry)
+    rows = torch.arange(starts.shape[0], device=refined.device)
+    # Keep the best of {best grid point, refined points}.
+    candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
+    candidate_scores = torch.cat([top_scores[:, :1].to(refined_scores), refined_scores], 1)
+    best = candidate_scores.argmax(1)
+    return DistortedSearch(candidates[rows, best].to(torch.float64), candidate_scores[rows, best], grid_scores,
+                           grid_counts, grid_seconds)
+
+
+def likelihood_gain(scores: torch.Tensor, baseline: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:
+    """How much better ``scores`` explain the segments than ``baseline`` (both (B,) objectives),
+    in nats per 1000 px of segment length (the photo's lengths): (B,) float64, finite (0 where
+    either is not)."""
+    per_kpx = features.weight.sum(-1).to(torch.float64).clamp_min(1e-9) / 1000.0
+    gain = (scores.to(torch.float64) - baseline.to(torch.float64)) / per_kpx
+    return torch.where(torch.isfinite(gain), gain, torch.zeros_like(gain))
+
+
+def bend_test(likelihood: MixtureLikelihood, geometry: SegmentGeometry, features: SegmentFeatures,
+              params: torch.Tensor, scores: torch.Tensor, config: SearchConfig,
+              known_focal: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Do the lines of pinhole estimates bend?  A short division search from each estimate
+    ``params`` (B, 4) with objective ``scores`` (B,): at the plumb-line k (:func:`plumb_line`) the
+    estimate's focal ridge is swept (:func:`sweep_focal_rows`: a barrel photo's pinhole focal
+    length is far from its undistorted one) and lattice passes refine f, R and k together
+    (:func:`subdivide_rows`, k spacing :data:`PLUMB_K_SPACING`; a ``known_focal`` (B,) stays fixed).
+
+    Returns float64 (B,) tensors, the cues of :data:`fr_torch.core.cues.LINE_BEND_CUES`:
+    ``line_bend_gain`` (:func:`likelihood_gain` of the best point over the pinhole estimate, >= 0),
+    ``line_bend_k`` (its k), ``line_bend_plumb_k``, ``line_bend_share`` and ``line_bend_pairs`` (the
+    plumb line's k, share and pairs)."""
+    k_low, k_high = config.distortion.k_range
+    plumb = plumb_line(geometry, config.distortion.k_range)
+    long_side = geometry.long_side.to("cpu", torch.float64)
+    lower, upper = parameter_box(config, long_side, known_focal)
+    start = into_box(params.to(torch.float64).cpu(), lower, upper, config.periodic_pan)
+    lower, upper = with_k(lower, k_low), with_k(upper, k_high)
+    start = with_k(start, plumb.k.to("cpu", torch.float64).clamp(k_low, k_high))[:, None]  # (B, 1, 5)
+    start_scores = score_rows(likelihood, geometry, start[:, :, None], config.max_chunk_elements)
+    starts, start_scores = sweep_focal_rows(likelihood, geometry, start, start_scores.to(torch.float64), config,
+                                            lower, upper)
+    found, found_scores = subdivide_rows(likelihood, geometry, starts, start_scores.to(torch.float64), config,
+                                         lower, upper, k_spacing=PLUMB_K_SPACING)
+    best = found_scores.argmax(1)
+    rows = torch.arange(len(best))
+    gain = likelihood_gain(found_scores[rows, best], scores, features).clamp_min(0.0)
+    return {"line_bend_gain": gain, "line_bend_k": found[rows, best, DISTORTION].to(torch.float64),
+            "line_bend_plumb_k": plumb.k.to(torch.float64), "line_bend_share": plumb.share.to(torch.float64),
+            "line_bend_pairs": plumb.pairs.to(torch.float64)}
