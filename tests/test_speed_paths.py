@@ -240,6 +240,7 @@ def test_bench_quick_smoke(tmp_path):
                                                                      ("workers", 1), ("workers", 2)}
     assert report["profiles"] and (tmp_path / report["profiles"][0]["file"]).read_text()
     assert (tmp_path / "throughput.png").stat().st_size > 0
+    assert {(r["mode"], r["distortion"]) for r in report["distortion"]} == {("fast", "pinhole"), ("fast", "division")}
     # A run cut short leaves its rows: --from-jsonl rebuilds the report from them (same tables).
     rebuilt = tmp_path / "rebuilt"
     assert bench.main(["--from-jsonl", str(tmp_path / "bench.jsonl"), "--out", str(rebuilt)]) == 0

@@ -206,7 +206,8 @@ def run(args: argparse.Namespace) -> int:
              + ("parallel" in sections) * 2 * len(modes) * len(counts)
              + ("detectors" in sections) * (len(images) + len(devices[1:]) * len(modes) * 3)
              + ("contention" in sections) * len(modes) * len(contention_kinds)
-             + ("distortion" in sections) * 2 * len(images[:2]) * len(bench_distortion.SETTINGS))
+             + ("distortion" in sections) * 2 * len(images[:1] if quick else images[:2])
+             * sum(mode in modes for mode, _ in bench_distortion.SETTINGS))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     budget = args.budget_s if args.budget_s is not None else (150.0 if device.startswith("cuda") else 0.0)
@@ -264,9 +265,11 @@ def run(args: argparse.Namespace) -> int:
                                      progress=progress)
     distortion = []
     if "distortion" in sections:
-        photos = images[:2]
+        photos = images[:1] if quick else images[:2]
         distortion = bench_distortion.distortion_rows(photos + bench_distortion.bent_copies(photos, Path(tmp.name)),
-                                                      repeats, progress)
+                                                      repeats, progress,
+                                                      bench_distortion.QUICK_BATCH if quick else bench_distortion.BATCH,
+                                                      modes=modes)
     progress.close()
     tmp.cleanup()
 

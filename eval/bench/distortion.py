@@ -4,7 +4,9 @@ Per photo (batch 1, end to end from the file) and per image in batches of 16 giv
 and Fast-fR with ``--distortion pinhole`` (the default), ``division`` and ``auto``, on the
 benchmark's photos and on the same photos bent through a barrel lens (division model, k = -0.2:
 the straight lines at the border bow by 3.2 % of the width in 4:3; :func:`fr_torch.images.lens.distort_image`).
-Every row gives its ratio to pinhole fR on the same photo (:data:`BASELINE`), the issue's yardstick.
+Every row gives its ratio to pinhole fR on the same photo (:data:`BASELINE`), the issue's yardstick
+(``--quick`` runs Fast-fR only, one photo and its bent copy, batches of :data:`QUICK_BATCH`: its
+yardstick is pinhole Fast-fR).
 """
 from __future__ import annotations
 
@@ -17,8 +19,9 @@ SETTINGS = (("fr", "pinhole"), ("fr", "division"), ("fr", "auto"), ("fast", "pin
 BASELINE = SETTINGS[0]
 #: k of the bent copies of the photos.
 BENT_K = -0.2
-#: Images per batch of the throughput rows.
+#: Images per batch of the throughput rows (``--quick``: :data:`QUICK_BATCH`).
 BATCH = 16
+QUICK_BATCH = 2
 
 
 def bent_copies(images: list[tuple[str, str]], folder: Path) -> list[tuple[str, str]]:
@@ -43,10 +46,11 @@ def _estimator(mode: str, distortion: str):
     return FREstimator(mode=mode, distortion=distortion)
 
 
-def distortion_rows(images: list[tuple[str, str]], repeats: int, progress) -> list[dict]:
-    """Latency per photo (batch 1) and ms per image in batches of :data:`BATCH` (the photo's
-    segments repeated) of every :data:`SETTINGS` row on every image, with the ratio to
-    :data:`BASELINE`."""
+def distortion_rows(images: list[tuple[str, str]], repeats: int, progress, batch: int = BATCH,
+                    modes: tuple[str, ...] = ("fr", "fast")) -> list[dict]:
+    """Latency per photo (batch 1) and ms per image in batches of ``batch`` (the photo's
+    segments repeated) of every :data:`SETTINGS` row of ``modes`` on every image, with the ratio
+    to the image's first row (:data:`BASELINE` when ``modes`` has fR)."""
     from fr_eval.bench.timing import median_times
 
     from fr_torch.detectors.registry import get_detector
@@ -60,7 +64,7 @@ def distortion_rows(images: list[tuple[str, str]], repeats: int, progress) -> li
         segments = detector(gray)
         size = (gray.shape[1], gray.shape[0])
         baseline = {}
-        for mode, distortion in SETTINGS:
+        for mode, distortion in [s for s in SETTINGS if s[0] in modes]:
             if progress.out_of_time(f"distortion {label} {mode} {distortion}"):
                 continue
             est = _estimator(mode, distortion)
@@ -72,15 +76,15 @@ def distortion_rows(images: list[tuple[str, str]], repeats: int, progress) -> li
                 walls.append(time.perf_counter() - start)
                 stages.append(result.runtime_s)
             batch_s = statistics.median(median_times(
-                lambda: est.calibrate_segments([segments] * BATCH, [size] * BATCH), max(1, min(repeats, 3))))
+                lambda: est.calibrate_segments([segments] * batch, [size] * batch), max(1, min(repeats, 3))))
             row = {"image": label, "mode": mode, "distortion": distortion, "segments": result.num_segments,
                    "model": result.distortion_model, "k": result.distortion_k,
                    "latency_ms": 1000 * statistics.median(walls),
                    "grid_ms": 1000 * statistics.median(s.get("grid", 0.0) for s in stages),
                    "refine_ms": 1000 * statistics.median(s.get("refine", 0.0) for s in stages),
                    "cues_ms": 1000 * statistics.median(s.get("cues", 0.0) for s in stages),
-                   "batch_ms_per_image": 1000 * batch_s / BATCH}
-            if (mode, distortion) == BASELINE:
+                   "batch": batch, "batch_ms_per_image": 1000 * batch_s / batch}
+            if not baseline:
                 baseline = row
             if baseline:
                 row["latency_ratio"] = row["latency_ms"] / baseline["latency_ms"]
@@ -96,7 +100,7 @@ def markdown_lines(rows: list[dict]) -> list[str]:
         return []
     lines = ["## Radial distortion: what the division model costs (CPU)", "",
              f"Per photo: `calibrate_images` on one photo (decode, LSD, search, cues, reliability), median ms. "
-             f"Batch: `calibrate_segments` on {BATCH} copies of the photo's segments, ms per image. Ratio: to "
+             f"Batch: `calibrate_segments` on {rows[0].get('batch', BATCH)} copies of the photo's segments, ms per image. Ratio: to "
              "pinhole fR on the same photo. Bent photos: the photo through a barrel lens of "
              f"k = {BENT_K:g} (division model; `fr_eval.bench.distortion`).", "",
              "| image | mode | distortion | model found | k | per photo (ms) | ratio | batch (ms/image) | ratio |",
