@@ -146,3 +146,19 @@ def test_cuda_images_decode_and_detect_on_the_device(files):
     assert abs(results[0].focal_px - FOCAL) / FOCAL < 0.1 and (results[3].width, results[3].height) == (HEIGHT, WIDTH)
     cpu = FREstimator(mode="fast", detector="torch-lines", reliability=None).calibrate_images([str(files / "a.jpg")])
     assert abs(results[0].focal_px - cpu[0].focal_px) / cpu[0].focal_px < 0.02
+
+
+def test_the_lens_setting_travels_the_device_path(room, tmp_path, fake_device_decoder):
+    """``distortion='auto'`` on a photo through a barrel lens: the device path finds the division
+    model and the same k and focal length as the host path."""
+    from fr_torch.images.lens import distort_image
+
+    path = tmp_path / "bent.jpg"
+    cv2.imwrite(str(path), distort_image(room, -0.25, (WIDTH, HEIGHT)), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    estimator = FREstimator(mode="fast", detector="torch-lines", distortion="auto", reliability=None)
+    [host] = [r for _, batch in calibrate_paths(estimator, [str(path)], 1) for r in batch]
+    [ours] = [r for _, batch in calibrate_on_device(estimator, [str(path)], [str(path)], [None], [None], 1, 1)
+              for r in batch]
+    assert ours.distortion_model == host.distortion_model == "division"
+    assert ours.distortion_k == pytest.approx(host.distortion_k, abs=0.01)
+    assert ours.focal_px == pytest.approx(host.focal_px, rel=0.02)
