@@ -176,3 +176,19 @@ def test_cli_formats_and_undistort(tmp_path):
     out = tmp_path / "out"
     assert cli_main(["undistort", str(path), "--out", str(out), "--fast", "--no-reliability"]) == 0
     assert (out / "bent_undistorted.png").is_file() and (out / "bent_undistorted.json").is_file()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("lens", ["pinhole", "division", "auto"])
+def test_cuda_lens_settings_equal_cpu(lens):
+    """Every lens setting (the pinhole estimate's lines-bend check included) runs on a CUDA device
+    and gives the CPU's estimate."""
+    pieces, _, _ = scene(-0.25)
+    config = SearchConfig.from_config(grid_points_per_dim=6, focal_sweep_points=8)
+    results = [SegmentEstimator(mode="fast", reliability=None, search_config=config, distortion=lens,
+                                device=device).calibrate_segments([pieces], [(WIDTH, HEIGHT)])[0]
+               for device in ("cpu", "cuda")]
+    cpu, cuda = results
+    assert cuda.ok and cuda.distortion_model == cpu.distortion_model and cuda.reason == cpu.reason
+    assert cuda.focal_px == pytest.approx(cpu.focal_px, rel=1e-3)
+    assert cuda.distortion_k == pytest.approx(cpu.distortion_k, abs=1e-3)

@@ -1,10 +1,13 @@
-"""Score the per-image records of ``tools/gpu_probe.py``'s accuracy stage against YorkUrbanDB.
+"""Score per-image records against YorkUrbanDB: ``tools/gpu_probe.py``'s accuracy stage (a JSON
+list with ``mode``) or ``fr calibrate``'s JSON lines (``gpu_check.sh``'s distortion phase: the
+photos and their copies through a barrel lens, named ``STEM_bent.jpg``, the same camera undistorted).
 
-    python tools/gpu_accuracy.py OUT/accuracy_cuda.json [OTHER.json ...]
+    python tools/gpu_accuracy.py OUT/accuracy_cuda.json [OUT/distortion_auto.jsonl ...]
 
-Prints one row per file and mode: mean +- standard error of roll, tilt (deg) and focal length
-(% of the calibrated 674.9 px) over the images of the file, and the failure count, with the same
-per-image errors as ``fr eval`` (:func:`fr_eval.scoring.metrics.image_errors`).
+Prints one row per file and mode (JSON lines: per photo / bent copy): mean +- standard error of
+roll, tilt (deg) and focal length (% of the calibrated 674.9 px) over the images of the file, the
+failure count, the median estimated k and the share flagged ``reliable``, with the same per-image
+errors as ``fr eval`` (:func:`fr_eval.scoring.metrics.image_errors`).
 """
 from __future__ import annotations
 
@@ -16,8 +19,22 @@ from fr_eval.datasets.yud import load_yud
 from fr_eval.scoring.metrics import image_errors, mean_se
 
 
+def load_records(path: Path) -> list[dict]:
+    """The records of ``path``, each with ``mode`` and ``image`` (YorkUrbanDB's photo name)."""
+    if path.suffix != ".jsonl":
+        return json.loads(path.read_text())
+    records = []
+    for line in path.read_text().splitlines():
+        record = json.loads(line)
+        stem = Path(record["image"]).stem
+        record["mode"] = "bent copy" if stem.endswith("_bent") else "photo"
+        record["image"] = stem.removesuffix("_bent")
+        records.append(record)
+    return records
+
+
 def score(path: Path) -> list[str]:
-    records = json.loads(path.read_text())
+    records = load_records(path)
     samples = {s.name: s for s in load_yud(split="all")}
     lines = []
     for mode in sorted({r["mode"] for r in records}):
@@ -28,13 +45,17 @@ def score(path: Path) -> list[str]:
             mean, se, n = mean_se(e[key] for e in errors if e[key] is not None)
             cells.append(f"{mean:.2f} +- {se:.2f}")
         failed = sum(e["focal_err_pct"] is None for e in errors)
-        lines.append(f"| {path.name} | {mode} | {len(rows)} | {' | '.join(cells)} | {failed} |")
+        ks = sorted((r.get("distortion") or {}).get("k", 0.0) for r in rows)
+        reliable = sum(bool(r.get("reliable")) for r in rows)
+        lines.append(f"| {path.name} | {mode} | {len(rows)} | {' | '.join(cells)} | {failed} | "
+                     f"{ks[len(ks) // 2]:+.3f} | {reliable} |")
     return lines
 
 
 def main(argv=None) -> int:
     paths = [Path(p) for p in (argv if argv is not None else sys.argv[1:])]
-    print("| file | mode | images | roll deg | tilt deg | focal % | failed |\n|---|---|---|---|---|---|---|")
+    print("| file | mode | images | roll deg | tilt deg | focal % | failed | median k | reliable |\n"
+          "|---|---|---|---|---|---|---|---|---|")
     for path in paths:
         print("\n".join(score(path)))
     return 0

@@ -2,7 +2,7 @@
 # The prepared GPU run (one call of the lent device, re-runnable as it is): CUDA tests, the device
 # path from JPEG bytes to results stage by stage (tools/gpu_probe.py) and `fr bench --device cuda`.
 #
-#   bash tools/gpu_check.sh OUT [PHASES]     PHASES: comma list of setup,tests,probe,cli,bench,vp (default all)
+#   bash tools/gpu_check.sh OUT [PHASES]     PHASES: comma list of setup,tests,probe,cli,bench,vp,distortion (default all)
 #
 # Inputs travel with the working tree: the kornia wheels in .whl/ (the device's image lacks kornia)
 # and data_local/gpu/ (yorkurbandb/P*/P*.jpg of the YUD test photos and yud_test.txt, copied from
@@ -11,7 +11,7 @@
 # time-boxed; everything it writes goes to OUT (the device tool's $OUT comes back).
 set -uo pipefail
 DEST=${1:?usage: gpu_check.sh OUT [PHASES]}
-PHASES=${2:-setup,tests,probe,bench,cli,vp}
+PHASES=${2:-setup,tests,probe,bench,cli,vp,distortion}
 # The phases write to a work folder; after each one everything so far is packed into
 # DEST/gpu_run.tgz (the device tool brings back at most 8 files, and a run cut by its time limit
 # still returns the last pack).
@@ -39,9 +39,9 @@ export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
 
 if has tests; then
   stamp tests
-  timeout ${TESTS_TIMEOUT:-90} python3 -m pytest -q -p no:cacheprovider tests/test_tensor_lines.py tests/test_device_pipeline.py \
+  timeout ${TESTS_TIMEOUT:-90} python3 -m pytest -q -p no:cacheprovider tests/test_tensor_lines.py tests/test_device_pipeline.py tests/test_distortion.py \
     "tests/test_estimator.py::test_cuda_equals_cpu" "tests/test_speed_paths.py::test_cuda_grid_and_estimate_equal_cpu" \
-    -k "cuda or decode or device or batch" 2>&1 \
+    -k "cuda or decode or device or batch or lens" 2>&1 \
     | tee "$OUT/tests.txt" | tail -15
   pack
 fi
@@ -86,6 +86,27 @@ if has vp; then  # CONSAC and fR per photo on this machine's CPU (one thread) an
       --limit 24 --intrinsics unknown --data-root data_local/gpu --methods fr,fast-fr,consac --device $dev --no-plots \
       --out "$OUT/vp_$dev" 2>&1 | tail -3
     cat "$OUT/vp_$dev/vp_summary.md" 2>/dev/null | head -8
+  done
+  pack
+fi
+if has distortion; then  # issue 46 on the device path: the YUD test photos and their bent copies (k = -0.2)
+  stamp distortion
+  rm -rf /tmp/lens && mkdir -p /tmp/lens
+  python3 -c "
+import cv2, glob, os
+from fr_torch.images.lens import distort_image
+for f in sorted(glob.glob('data_local/gpu/yorkurbandb/*/*.jpg')):
+    image = cv2.imread(f); stem = os.path.basename(f)[:-4]
+    cv2.imwrite(f'/tmp/lens/{stem}.jpg', image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    cv2.imwrite(f'/tmp/lens/{stem}_bent.jpg', distort_image(image, -0.2, (image.shape[1], image.shape[0])), [cv2.IMWRITE_JPEG_QUALITY, 95])
+"
+  for lens in pinhole division auto; do
+    start=$(date +%s.%N)
+    timeout ${LENS_TIMEOUT:-60} python3 -m fr_torch.cli calibrate --device cuda --distortion $lens --no-progress /tmp/lens/*.jpg \
+      > "$OUT/distortion_$lens.jsonl" 2> "$OUT/distortion_$lens.err"
+    end=$(date +%s.%N)
+    echo "fr calibrate --device cuda --distortion $lens: $(wc -l < "$OUT/distortion_$lens.jsonl") records in $(python3 -c "print(round($end-$start, 1))") s" | tee -a "$OUT/distortion.txt"
+    tail -1 "$OUT/distortion_$lens.err"
   done
   pack
 fi

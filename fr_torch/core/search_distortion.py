@@ -499,14 +499,15 @@ def bend_test(likelihood: MixtureLikelihood, geometry: SegmentGeometry, features
     lower, upper = parameter_box(config, long_side, known_focal)
     start = into_box(params.to(torch.float64).cpu(), lower, upper, config.periodic_pan)
     lower, upper = with_k(lower, k_low), with_k(upper, k_high)
-    start = with_k(start, plumb.k.to("cpu", torch.float64).clamp(k_low, k_high))[:, None]  # (B, 1, 5)
+    device = geometry.endpoints.device  # the box stays on the host, as in search_with_k; the rows go to the segments
+    start = with_k(start, plumb.k.to("cpu", torch.float64).clamp(k_low, k_high))[:, None].to(device)  # (B, 1, 5)
     start_scores = score_rows(likelihood, geometry, start[:, :, None], config.max_chunk_elements)
     starts, start_scores = sweep_focal_rows(likelihood, geometry, start, start_scores.to(torch.float64), config,
                                             lower, upper)
     found, found_scores = subdivide_rows(likelihood, geometry, starts, start_scores.to(torch.float64), config,
                                          lower, upper, k_spacing=PLUMB_K_SPACING)
     best = found_scores.argmax(1)
-    rows = torch.arange(len(best))
+    rows = torch.arange(len(best), device=best.device)
     gain = likelihood_gain(found_scores[rows, best], scores, features).clamp_min(0.0)
     return {"line_bend_gain": gain, "line_bend_k": found[rows, best, DISTORTION].to(torch.float64),
             "line_bend_plumb_k": plumb.k.to(torch.float64), "line_bend_share": plumb.share.to(torch.float64),
