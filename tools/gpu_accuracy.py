@@ -1,5 +1,5 @@
 """Score per-image records against YorkUrbanDB: ``tools/gpu_probe.py``'s accuracy stage (a JSON
-list with ``mode``) or ``fr calibrate``'s JSON lines (``gpu_check.sh``'s distortion phase: the
+list with ``mode``) or ``fr calibrate``'s JSON lines (``.jsonl``, or gzipped ``.jsonl.gz``) (``gpu_check.sh``'s distortion phase: the
 photos and their copies through a barrel lens, named ``STEM_bent.jpg``, the same camera undistorted).
 
     python tools/gpu_accuracy.py OUT/accuracy_cuda.json [OUT/distortion_auto.jsonl ...]
@@ -11,6 +11,7 @@ errors as ``fr eval`` (:func:`fr_eval.scoring.metrics.image_errors`).
 """
 from __future__ import annotations
 
+import gzip
 import json
 import sys
 from pathlib import Path
@@ -21,10 +22,11 @@ from fr_eval.scoring.metrics import image_errors, mean_se
 
 def load_records(path: Path) -> list[dict]:
     """The records of ``path``, each with ``mode`` and ``image`` (YorkUrbanDB's photo name)."""
-    if path.suffix != ".jsonl":
+    if not path.name.endswith((".jsonl", ".jsonl.gz")):
         return json.loads(path.read_text())
+    text = gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
     records = []
-    for line in path.read_text().splitlines():
+    for line in text.splitlines():
         record = json.loads(line)
         stem = Path(record["image"]).stem
         record["mode"] = "bent copy" if stem.endswith("_bent") else "photo"
