@@ -42,6 +42,26 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
+def _profiled(fn, device: str, out: Path, stem: str, title: str):
+    """Run ``fn`` once under ``torch.profiler`` (CPU, and CUDA on a CUDA device) and write the 30
+    operators with the most self time to ``out/STEM_cpu.txt`` (and ``STEM_cuda.txt``), headed by
+    ``title`` and the wall seconds.  Returns (wall seconds, the profiler's key averages)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = device.startswith("cuda")
+    with profile(activities=[ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])) as prof:
+        _sync(device)
+        start = time.perf_counter()
+        fn()
+        _sync(device)
+        wall = time.perf_counter() - start
+    averages = prof.key_averages()
+    for unit in ("cuda", "cpu") if cuda else ("cpu",):
+        (out / f"{stem}_{unit}.txt").write_text(f"{title}, wall {wall:.3f} s (with profiler)\n\n"
+                                               f"{averages.table(sort_by=f'self_{unit}_time_total', row_limit=30)}\n")
+    return wall, averages
+
+
 def _timed(fn, device: str, repeats: int) -> tuple[float, object]:
     """(median wall seconds of ``repeats`` runs after one warm-up, the last run's value)."""
     value = fn()
@@ -196,26 +216,12 @@ def main(argv=None) -> int:
                     segments_mean=float(np.mean([len(x) for x in lists])))
 
     def run_profile():
-        from torch.profiler import ProfilerActivity, profile
-
         est = estimator("fast")
         batch = max(batches)
         data_b = payload(batch)
         calibrate_decoded(est, detector, decode(data_b))
-        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
-        with profile(activities=activities) as prof:
-            _sync(device)
-            start = time.perf_counter()
-            calibrate_decoded(est, detector, decode(data_b))
-            _sync(device)
-            wall = time.perf_counter() - start
-        averages = prof.key_averages()
-        for sort in ("self_cuda_time_total", "self_cpu_time_total"):
-            if sort == "self_cuda_time_total" and not device.startswith("cuda"):
-                continue
-            text = averages.table(sort_by=sort, row_limit=30)
-            (out / f"profile_e2e_fast_{batch}_{sort.split('_')[1]}.txt").write_text(
-                f"end to end Fast-fR, batch {batch}, {device}, wall {wall:.3f} s (with profiler)\n\n{text}\n")
+        wall, averages = _profiled(lambda: calibrate_decoded(est, detector, decode(data_b)), device, out,
+                                   f"profile_e2e_fast_{batch}", f"end to end Fast-fR, batch {batch}, {device}")
         gpu_total = sum(getattr(e, "self_device_time_total", 0.0) for e in averages) / 1e6
         log("profile", batch=batch, wall_s=wall, device_busy_s=gpu_total)
 
@@ -266,8 +272,6 @@ def main(argv=None) -> int:
                 device_pipeline.SEARCH_THREADS = default_searchers
 
     def run_pipeline_profile():
-        from torch.profiler import ProfilerActivity, profile
-
         from fr_torch.runtime.pipeline import calibrate_paths
 
         est = estimator("fast")
@@ -275,19 +279,9 @@ def main(argv=None) -> int:
         files = [str(p) for p in paths]
         todo = [files[i % len(files)] for i in range(2 * batch)]
         list(calibrate_paths(est, todo[:batch], batch))
-        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.startswith("cuda") else [])
-        with profile(activities=activities) as prof:
-            start = time.perf_counter()
-            list(calibrate_paths(est, todo, batch))
-            _sync(device)
-            wall = time.perf_counter() - start
-        averages = prof.key_averages()
-        for sort in ("self_cuda_time_total", "self_cpu_time_total"):
-            if sort == "self_cuda_time_total" and not device.startswith("cuda"):
-                continue
-            (out / f"profile_pipeline_fast_{batch}_{sort.split('_')[1]}.txt").write_text(
-                f"calibrate_paths Fast-fR, 2 batches of {batch}, {device}, wall {wall:.3f} s (with profiler)\n\n"
-                f"{averages.table(sort_by=sort, row_limit=30)}\n")
+        wall, averages = _profiled(lambda: list(calibrate_paths(est, todo, batch)), device, out,
+                                   f"profile_pipeline_fast_{batch}",
+                                   f"calibrate_paths Fast-fR, 2 batches of {batch}, {device}")
         log("pipeline_profile", batch=batch, images=len(todo), wall_s=wall,
             device_busy_s=sum(getattr(e, "self_device_time_total", 0.0) for e in averages) / 1e6)
 
