@@ -55,14 +55,13 @@ from fr_eval.scoring.metrics import aurc
 from fr_eval.scoring.plots import risk_coverage_panel, save_figure
 from scipy.stats import spearmanr
 
+from fr_torch.core.cues import SPREAD_CUE_NAMES
 from fr_torch.core.reliability import ERROR_COLUMNS, ReliabilityModel, model_cue_names
 from fr_torch.core.reliability_bounds import (
     DEFAULT_COVERAGE,
     DEFAULT_LIMITS,
     PROMISE_TARGETS,
-    SIGMA_CUES,
     SIGMAS,
-    ReliabilityPromise,
     conformal_scale,
     worst_group_scale,
 )
@@ -83,7 +82,7 @@ def records_from_predictions(table: pd.DataFrame, dataset: str, mode: str) -> pd
     ``pred_err_focal_pct`` (the KNN's prediction, NaN without one), ``group`` (one per photo: a YUD
     crop shares its photo's) and ``dataset``."""
     ok = table[~table["failed"].astype(bool)]
-    names = list(dict.fromkeys(model_cue_names(mode) + SIGMA_CUES))
+    names = list(dict.fromkeys(model_cue_names(mode) + SPREAD_CUE_NAMES))
     out = pd.DataFrame({name: pd.to_numeric(ok.get(f"cue_{name}"), errors="coerce") for name in names})
     for column in ERROR_COLUMNS:
         out[column] = pd.to_numeric(ok[column], errors="coerce").to_numpy()

@@ -177,8 +177,12 @@ def vanishing_point_rows(focal_px: torch.Tensor, principal_point: torch.Tensor,
                          rotation: torch.Tensor) -> torch.Tensor:
     """Vanishing points as rows, (..., 3, 3): row i = ``K @ R[:, i]`` (x, y, w) signed so that
     ``w >= 0`` (the record layout of :attr:`Camera.vanishing_points`)."""
-    rows = vanishing_points(focal_px, principal_point, rotation).transpose(-1, -2)
-    return rows * torch.where(rows[..., 2:] < 0, -1.0, 1.0).to(rows.dtype)
+    return signed_rows(vanishing_points(focal_px, principal_point, rotation).transpose(-1, -2))
+
+
+def signed_rows(points: torch.Tensor) -> torch.Tensor:
+    """Homogeneous points as rows (..., 3) (x, y, w), each negated where ``w < 0`` so that ``w >= 0``."""
+    return points * torch.where(points[..., 2:] < 0, -1.0, 1.0).to(points.dtype)
 
 
 def rotation_angle_deg(r_a, r_b):

@@ -27,7 +27,7 @@ least squares over the image, and the fit's residual (pixels) is stated with the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from enum import StrEnum
 from typing import Any
 
@@ -117,8 +117,7 @@ class DistortionSetting:
         if isinstance(value, (str, DistortionMode)):
             return cls(mode=value)
         if isinstance(value, dict):
-            unknown = sorted(set(value) - {"mode", "known_k", "k_range", "k_prior_weight", "bend_min_gain", "bend_min_share",
-                                           "bend_min_pairs", "bend_min_bow_pct"})
+            unknown = sorted(set(value) - {f.name for f in fields(cls)})
             if unknown:
                 raise FRInputError(f"distortion setting: unknown field(s) {', '.join(unknown)}")
             return cls(**{key: tuple(v) if isinstance(v, list) else v for key, v in value.items()})

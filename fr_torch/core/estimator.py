@@ -62,6 +62,7 @@ from fr_torch.core.params import DISTORTION, FOCAL, CameraParams
 from fr_torch.core.reliability import ReliabilityModel
 from fr_torch.core.search_distortion import SegmentGeometry, bend_test, search_with_k
 from fr_torch.core.search import (
+    best_of_start_and_refined,
     grid_hypotheses,
     parameter_box,
     refine,
@@ -490,13 +491,8 @@ class SegmentEstimator:
                                              fast=self.mode == "fast", tolerance=self.search.refine_tolerance,
                                              patience=self.search.refine_patience,
                                              periodic_pan=self.search.periodic_pan)
-            # Keep the best of {best grid point, refined points}.
-            candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
-            candidate_scores = torch.cat([top_scores[:, :1], refined_scores], 1)
-            best = candidate_scores.argmax(1)
-            rows = torch.arange(len(group), device=device)
-            estimate = CameraParams(candidates[rows, best].to(torch.float64))
-            best_scores = candidate_scores[rows, best]
+            params, best_scores = best_of_start_and_refined(starts, top_scores, refined, refined_scores)
+            estimate = CameraParams(params)
         t2 = time.perf_counter()
 
         rotation = estimate.rotation()  # float64 (B, 3, 3)
@@ -528,6 +524,7 @@ class SegmentEstimator:
         k_all = None if k_estimate is None else k_estimate.to(torch.float64).cpu().numpy()
         # Finite parameters, objective and rotation give finite hfov, angles and VPs (f > 0 in the box).
         finite = np.isfinite(params_all).all(-1) & np.isfinite(scores_all) & np.isfinite(rotation_all).all((-1, -2))
+        bent = []  # with auto: the images whose lines bend, searched again with the division model below
         for j, item in enumerate(group):
             n = int(counts_all[j])
             r = item.result
@@ -552,15 +549,14 @@ class SegmentEstimator:
                 r.reliable, r.reason = False, "; ".join(x for x in (r.reason, bend) if x)
             # non-finite -> ok=False; focal or an angle at its range's edge -> unreliable
             check_result(r, self.search, known_focal, finite=bool(finite[j]), search_params=params_all[j])
-        if auto:  # the division search for the images whose lines bend; they keep the check's cues and time
-            bent = [item for item in group if item.result.ok
-                    and lines_bend_reason(item.result.cues, setting, item.result.width, item.result.height)]
-            if bent:
-                first = {id(item): (dict(item.result.runtime_s), {key: item.result.cues[key] for key in LINE_BEND_CUES})
-                         for item in bent}
-                self._search_group(bent, known_focal, lens="division")
-                for item in bent:
-                    runtime, bend_cues = first[id(item)]
-                    item.result.cues.update(bend_cues)
-                    item.result.runtime_s = {key: item.result.runtime_s.get(key, 0.0) + runtime.get(key, 0.0)
-                                             for key in set(runtime) | set(item.result.runtime_s)}
+            if auto and bend and r.ok:
+                bent.append(item)
+        if bent:  # the division search for the images whose lines bend; they keep the check's cues and time
+            first = {id(item): (dict(item.result.runtime_s), {key: item.result.cues[key] for key in LINE_BEND_CUES})
+                     for item in bent}
+            self._search_group(bent, known_focal, lens="division")
+            for item in bent:
+                runtime, bend_cues = first[id(item)]
+                item.result.cues.update(bend_cues)
+                item.result.runtime_s = {key: item.result.runtime_s.get(key, 0.0) + runtime.get(key, 0.0)
+                                         for key in set(runtime) | set(item.result.runtime_s)}

@@ -38,16 +38,12 @@ def rotations(params: torch.Tensor) -> torch.Tensor:
 def to_log_focal(params: torch.Tensor) -> torch.Tensor:
     """Rows (..., 4) or (..., 5) with the focal length replaced by its natural log (the refinement's
     space); a fifth field (k) is kept as it is."""
-    if params.shape[-1] > FOCAL + 1:
-        return torch.cat([params[..., ANGLES], torch.log(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
-    return torch.cat([params[..., ANGLES], torch.log(params[..., FOCAL:])], -1)
+    return torch.cat([params[..., ANGLES], torch.log(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
 
 
 def from_log_focal(params: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`to_log_focal`."""
-    if params.shape[-1] > FOCAL + 1:
-        return torch.cat([params[..., ANGLES], torch.exp(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
-    return torch.cat([params[..., ANGLES], torch.exp(params[..., FOCAL:])], -1)
+    return torch.cat([params[..., ANGLES], torch.exp(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
 
 
 class CameraParams:

@@ -109,12 +109,8 @@ _CUE_TRANSFORMS = {
     "focal_prior_share": (lambda c: np.log(np.clip(c, 0.0, 1.0) + PRIOR_SHARE_FLOOR), "ln(focal_prior_share + 1e-2)"),
     "focal_profile_gap": (lambda c: np.arcsinh(np.asarray(c, np.float64) / PROFILE_GAP_SCALE),
                           "asinh(focal_profile_gap / 100)"),
-    "focal_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR), "ln(focal_spread + 1e-4)"),
-    "focal_profile_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR), "ln(focal_profile_spread + 1e-4)"),
-    "focal_resample_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR),
-                              "ln(focal_resample_spread + 1e-4)"),
-    "pitch_resample_spread": (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR),
-                              "ln(pitch_resample_spread + 1e-4)"),
+    **{name: (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR), f"ln({name} + 1e-4)")
+       for name in ("focal_spread",) + SPREAD_CUE_NAMES},
 }
 
 DEFAULT_THRESHOLDS = {"roll_deg": 2.0, "tilt_deg": 3.0, "focal_pct": 15.0}
@@ -346,7 +342,7 @@ class ReliabilityModel:
     @property
     def needs_spreads(self) -> bool:
         """True when the model holds a promise: its bounds rest on the spread cues
-        (:data:`fr_torch.core.reliability_bounds.SIGMA_CUES`), which the estimator then computes."""
+        (:data:`fr_torch.core.cues.SPREAD_CUE_NAMES`), which the estimator then computes."""
         return self.promise is not None
 
     def predict_dict(self, cues: dict) -> dict[str, float]:

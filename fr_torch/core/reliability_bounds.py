@@ -26,7 +26,7 @@ An estimate is **reliable** when every bound is within its limit (:class:`Reliab
 ``configs/reliability.json``'s ``promise`` block; default: focal error <= 10 %, tilt error <= 3 deg,
 90 % bounds).  Read: "the 90 % bound of the focal error is at most 10 % and that of the tilt error
 at most 3 deg".  With ``"enforce": false`` the bounds are reported in ``error_bound`` and
-``reliable`` keeps the older thresholds on the KNN's predicted errors (:mod:`fr_torch.core.reliability`).
+``reliable`` is the thresholds rule on the KNN's predicted errors (:mod:`fr_torch.core.reliability`).
 Missing spread cues give no bound and ``reliable = False``.
 """
 from __future__ import annotations
@@ -39,7 +39,6 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from fr_torch.core.cues import SPREAD_CUE_NAMES
 from fr_torch.resources import config_dir
 
 PROMISE_TARGETS = ("focal_pct", "tilt_deg")
@@ -55,8 +54,6 @@ TILT_FLOOR_DEG = 0.5
 #: bound this times the scale.  The focal sigma is not capped: a photo whose profile point scores as
 #: well as the estimate (spread at its maximum) still ranks by its resampling spread.
 TILT_SIGMA_CAP_DEG = 45.0
-#: The cues the bounds are computed from.
-SIGMA_CUES = SPREAD_CUE_NAMES
 UNITS = {"focal_pct": "%", "tilt_deg": "deg"}
 #: A bound above this says the photo's lines leave the quantity open (the reason says so in words
 #: rather than quoting a number like 3,763 %): focal off by more than itself, tilt by more than 90 deg.
@@ -123,7 +120,7 @@ class ReliabilityPromise:
     ``scales``: mode (``fr`` / ``fast``) -> target -> conformal scale s (bound = s * sigma).
     ``coverage``: the share of images each bound is meant to hold for (0.9).
     ``enforce``: True (default) -> ``reliable`` means the promise; False -> the bounds are reported
-    (``error_bound``) but ``reliable`` keeps the older thresholds on the predicted errors.
+    (``error_bound``) but ``reliable`` is the thresholds rule on the predicted errors.
     ``validated_detectors``: names of line detectors (:mod:`fr_torch.detectors.registry`) whose
     segments the promise was measured to hold for besides the reliability model's own
     (:attr:`fr_torch.core.reliability.ReliabilityModel.detectors`; results/decisions/45.md)."""

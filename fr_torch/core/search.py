@@ -264,6 +264,20 @@ def _keep_best(starts: torch.Tensor, scores: torch.Tensor, points: torch.Tensor,
     return torch.where(better[..., None], chosen.to(starts), starts), torch.where(better, best_scores, scores)
 
 
+def best_of_start_and_refined(starts: torch.Tensor, start_scores: torch.Tensor, refined: torch.Tensor,
+                              refined_scores: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each image's best of {its best start, its refined points}.
+
+    ``starts`` (B, L, D) with ``start_scores`` (B, L), the first of each image its best; ``refined``
+    (B, R, D) with ``refined_scores`` (B, R).  Returns (params (B, D) float64, scores (B,) in
+    ``refined_scores``' dtype)."""
+    candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
+    candidate_scores = torch.cat([start_scores[:, :1].to(refined_scores), refined_scores], 1)
+    best = candidate_scores.argmax(1)
+    rows = torch.arange(len(best), device=best.device)
+    return candidates[rows, best].to(torch.float64), candidate_scores[rows, best]
+
+
 #: The 3^4 lattice offsets of a subdivision pass, [pan, pitch, roll, log f], pan varying fastest
 #: (runs of 3 share the vertical VP: ``score_grid(..., vertical_block=3)``); the centre is included.
 LATTICE = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0], dtype=torch.float64)] * 4)[:, [3, 1, 2, 0]]
@@ -352,8 +366,8 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
     With ``geometry`` (:class:`~fr_torch.core.search_distortion.SegmentGeometry`, the segments of the same
     images) the rows have a fifth parameter, the division model's k (:data:`~fr_torch.core.params.DISTORTION`):
     starts (B, L, 5) inside a box (B, 5) or, per start, (B, L, 5); every hypothesis is scored on its
-    segments undistorted with its own k, and k is refined with the others (``features`` is then
-    not used).
+    segments undistorted with its own k, and k is refined with the others (``features`` then gives
+    the segments' weights, the normalising length and the chunking, not the scores).
 
     Parameters are optimised as u = (p - lower) / (upper - lower) in [0, 1] (a degenerate box,
     e.g. a known focal length, keeps that parameter fixed); with ``periodic_pan``

@@ -43,6 +43,7 @@ from fr_torch.core.params import DISTORTION, FOCAL, from_log_focal, to_log_focal
 from fr_torch.core.search import (
     LATTICE,
     _keep_best,
+    best_of_start_and_refined,
     grid_cell,
     grid_hypotheses,
     into_box,
@@ -309,8 +310,7 @@ def parameter_box_k(config: SearchConfig, long_side: torch.Tensor, known_focal: 
     """:func:`fr_torch.core.search.parameter_box` with k's box as a fifth column: (B, 5) each."""
     lower, upper = parameter_box(config, long_side, known_focal)
     k_low, k_high = config.distortion.k_box()
-    return (torch.cat([lower, torch.full_like(lower[:, :1], k_low)], -1),
-            torch.cat([upper, torch.full_like(upper[:, :1], k_high)], -1))
+    return with_k(lower, k_low), with_k(upper, k_high)
 
 
 def with_k(rows: torch.Tensor, k) -> torch.Tensor:
@@ -405,7 +405,7 @@ def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, sta
     joint = config.distortion_lattice == "joint"
     lattice = (LATTICE_K if k_spacing > 0 and joint else with_k(LATTICE, 0.0)).to(device)
     k_offsets = torch.zeros(2, 5, dtype=torch.float64, device=device)
-    k_offsets[:, DISTORTION] = torch.tensor([-1.0, 1.0])
+    k_offsets[:, DISTORTION] = k_offsets.new_tensor([-1.0, 1.0])
     batch, n_start = starts.shape[:2]
     current = to_log_focal(starts.to(device=device, dtype=torch.float64))
     fraction = 1.0
@@ -462,13 +462,8 @@ def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, feat
     refined, refined_scores = refine(likelihood, features, starts, lower, upper, iterations, fast=fast,
                                      tolerance=config.refine_tolerance, patience=config.refine_patience,
                                      periodic_pan=config.periodic_pan, geometry=geometry)
-    rows = torch.arange(starts.shape[0], device=refined.device)
-    # Keep the best of {best grid point, refined points}.
-    candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
-    candidate_scores = torch.cat([top_scores[:, :1].to(refined_scores), refined_scores], 1)
-    best = candidate_scores.argmax(1)
-    return DistortedSearch(candidates[rows, best].to(torch.float64), candidate_scores[rows, best], grid_scores,
-                           grid_counts, grid_seconds)
+    params, scores = best_of_start_and_refined(starts, top_scores, refined, refined_scores)
+    return DistortedSearch(params, scores, grid_scores, grid_counts, grid_seconds)
 
 
 def likelihood_gain(scores: torch.Tensor, baseline: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:

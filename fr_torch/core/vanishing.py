@@ -42,7 +42,7 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from fr_torch.core.camera import intrinsics
+from fr_torch.core.camera import intrinsics, signed_rows, vanishing_point_rows
 from fr_torch.errors import FRInputError
 
 #: Images whose Atlanta candidates are scored at once (bounds memory: N x A deviations each).
@@ -136,11 +136,6 @@ class RankedVanishingPoints:
     azimuth_deg: torch.Tensor
 
 
-def _signed_rows(points: torch.Tensor) -> torch.Tensor:
-    """Homogeneous rows (..., 3) signed so that w >= 0."""
-    return points * torch.where(points[..., 2:] < 0, -1.0, 1.0).to(points.dtype)
-
-
 def rank_vanishing_points(likelihood, features, rotation: torch.Tensor, focal: torch.Tensor,
                           atlanta: AtlantaConfig | None = None) -> RankedVanishingPoints:
     """Rank the Manhattan VPs of B estimates by support and add extra families (module docstring).
@@ -192,7 +187,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
     extra = atlanta.max_extra if atlanta is not None else 0
     count = 3 + extra
     points = torch.zeros(batch, count, 3, dtype=dtype, device=device)
-    points[:, :3] = _signed_rows((K @ rotation).transpose(1, 2))
+    points[:, :3] = vanishing_point_rows(focal, feats.principal_point, rotation)
     azimuth = torch.full((batch, count), math.nan, dtype=dtype, device=device)
     azimuth[:, 0], azimuth[:, 2] = 0.0, 90.0
     present = torch.zeros(batch, count, dtype=torch.bool, device=device)
@@ -257,7 +252,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
                 horizontal = horizontal & ~use_free
                 keep = keep | use_free
             slot = 3 + j
-            points[:, slot] = torch.where(keep[:, None], _signed_rows(point), points[:, slot])
+            points[:, slot] = torch.where(keep[:, None], signed_rows(point), points[:, slot])
             azimuth[:, slot] = torch.where(horizontal, torch.rad2deg(grid[best]), azimuth[:, slot])
             present[:, slot] = keep
             extra_density[:, :, j] = torch.where(keep[:, None], chosen, extra_density[:, :, j])
@@ -297,7 +292,7 @@ def refine_points(features, points: torch.Tensor, weights: torch.Tensor) -> torc
     v = vectors[..., 0]  # (B, M, 3) smallest eigenvalue
     pixels = torch.stack([scale[:, None] * v[..., 0] + pp[:, None, 0] * v[..., 2],
                           scale[:, None] * v[..., 1] + pp[:, None, 1] * v[..., 2], v[..., 2]], -1)
-    return _signed_rows(pixels / torch.linalg.vector_norm(pixels, dim=-1, keepdim=True).clamp_min(1e-300))
+    return signed_rows(pixels / torch.linalg.vector_norm(pixels, dim=-1, keepdim=True).clamp_min(1e-300))
 
 
 def _as_dtype(features, dtype):
