@@ -8,6 +8,7 @@ silently.
 from __future__ import annotations
 
 import os
+import struct
 from pathlib import Path
 
 import pytest
@@ -19,14 +20,18 @@ def _data_root() -> Path:
     return Path(os.environ.get("FR_DATA", REPO.parent / "shared" / "data"))
 
 
+def absent(message: str) -> None:
+    """Data or weights a test needs are missing: fail in CI (``CI=true``), skip elsewhere."""
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(message)
+    pytest.skip(message)
+
+
 @pytest.fixture(scope="session")
 def data_root() -> Path:
     root = _data_root()
     if not root.is_dir():
-        message = f"dataset root {root} not found (set FR_DATA)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(message)
-        pytest.skip(message)
+        absent(f"dataset root {root} not found (set FR_DATA)")
     return root
 
 
@@ -37,10 +42,7 @@ def models_root() -> Path:
     they are missing and is skipped elsewhere."""
     root = Path(os.environ.get("FR_MODELS", REPO.parent / "shared" / "models"))
     if not (root / "consac" / "consac_vp.net").is_file():
-        message = f"model weights not found under {root} (expected consac/consac_vp.net; set FR_MODELS)"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(message)
-        pytest.skip(message)
+        absent(f"model weights not found under {root} (expected consac/consac_vp.net; set FR_MODELS)")
     return root
 
 
@@ -48,10 +50,7 @@ def require_dataset(root: Path, name: str) -> Path:
     """Path of dataset folder ``name`` under ``root``; fail in CI / skip elsewhere if absent."""
     path = root / name
     if not path.is_dir():
-        message = f"dataset {name!r} not found under {root}"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(message)
-        pytest.skip(message)
+        absent(f"dataset {name!r} not found under {root}")
     return path
 
 
@@ -80,3 +79,13 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+def with_exif_orientation(jpeg: bytes, orientation: int, big_endian: bool = False) -> bytes:
+    """``jpeg`` (bytes) with an APP1 Exif segment right after SOI whose IFD0 holds only the
+    Orientation tag (0x0112); little-endian TIFF ("II") unless ``big_endian`` ("MM")."""
+    order = ">" if big_endian else "<"
+    tiff = (b"MM" if big_endian else b"II") + struct.pack(order + "HIH", 42, 8, 1)
+    tiff += struct.pack(order + "HHIHHI", 0x0112, 3, 1, orientation, 0, 0)
+    body = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body + jpeg[2:]

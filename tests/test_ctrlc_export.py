@@ -18,24 +18,18 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tests.conftest import REPO, checkout_env, require_dataset
+from tests.conftest import REPO, absent, checkout_env, require_dataset
 
 SMALL = ["MODELS.BACKBONE", "resnet18", "MODELS.TRANSFORMER.ENC_LAYERS", "1", "MODELS.TRANSFORMER.DEC_LAYERS", "1",
          "MODELS.TRANSFORMER.HIDDEN_DIM", "64", "MODELS.TRANSFORMER.DIM_FEEDFORWARD", "128",
          "MODELS.TRANSFORMER.NHEADS", "2"]
 
 
-def _missing(message: str):
-    if os.environ.get("CI", "").lower() == "true":
-        pytest.fail(message)
-    pytest.skip(message)
-
-
 @pytest.fixture(scope="module")
 def ctrlc_source() -> Path:
     source = Path(os.environ.get("FR_CTRLC_SOURCE", REPO.parent / "shared" / "ctrlc_source"))
     if not (source / "models" / "ctrlc.py").is_file():
-        _missing(f"CTRL-C source not found at {source} (set FR_CTRLC_SOURCE)")
+        absent(f"CTRL-C source not found at {source} (set FR_CTRLC_SOURCE)")
     from fr_baselines.export_ctrlc_onnx import ExportError, import_torchvision
 
     try:
@@ -43,7 +37,7 @@ def ctrlc_source() -> Path:
         import onnx  # noqa: F401
         import yacs  # noqa: F401
     except (ExportError, ImportError) as exc:
-        _missing(f"the ctrlc extra is not installed: {exc}")
+        absent(f"the ctrlc extra is not installed: {exc}")
     return source
 
 

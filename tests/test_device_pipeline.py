@@ -2,7 +2,6 @@
 stand-in for torchvision's device decoder; the CUDA tests run it for real."""
 from __future__ import annotations
 
-import struct
 
 import cv2
 import numpy as np
@@ -22,6 +21,7 @@ from fr_torch.runtime.device_pipeline import (
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.pipeline import calibrate_paths
 from fr_torch.synthetic import render_manhattan_room
+from tests.conftest import gpu, with_exif_orientation
 
 FOCAL, WIDTH, HEIGHT = 420.0, 320, 240
 
@@ -30,14 +30,6 @@ FOCAL, WIDTH, HEIGHT = 420.0, 320, 240
 def room() -> np.ndarray:
     rotation = rotation_from_angles(np.float64(15.0), np.float64(-6.0), np.float64(3.0)).numpy()
     return render_manhattan_room(FOCAL, rotation, WIDTH, HEIGHT, seed=5)
-
-
-def with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
-    """``jpeg`` with an APP1 Exif segment (little-endian TIFF, IFD0 holding only Orientation)."""
-    tiff = b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 1) + struct.pack("<HHIHH", 0x0112, 3, 1,
-                                                                                      orientation, 0) + b"\x00" * 4
-    body = b"Exif\x00\x00" + tiff
-    return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body + jpeg[2:]
 
 
 @pytest.fixture()
@@ -136,7 +128,7 @@ def test_calibrate_on_device_equals_the_host_path(files, fake_device_decoder):
         assert "broken.jpg" in ours[1].reason
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@gpu
 def test_cuda_images_decode_and_detect_on_the_device(files):
     estimator = FREstimator(mode="fast", device="cuda", reliability=None)
     assert estimator.detector.name == "torch-lines" and device_path_gap(estimator) is None

@@ -30,6 +30,7 @@ from fr_torch.core.search_distortion import SegmentGeometry
 from fr_torch.errors import FRInputError
 from fr_torch.images.lens import distort_image, undistort_image
 from fr_torch.synthetic import distorted_segments, random_rotation, synthetic_segments
+from tests.conftest import gpu
 
 WIDTH, HEIGHT = 640, 480
 CENTRE = np.array([WIDTH / 2, HEIGHT / 2])
@@ -178,7 +179,7 @@ def test_cli_formats_and_undistort(tmp_path):
     assert (out / "bent_undistorted.png").is_file() and (out / "bent_undistorted.json").is_file()
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@gpu
 @pytest.mark.parametrize("lens", ["pinhole", "division", "auto"])
 def test_cuda_lens_settings_equal_cpu(lens):
     """Every lens setting (the pinhole estimate's lines-bend check included) runs on a CUDA device

@@ -27,7 +27,7 @@ from fr_torch.core.likelihood import LikelihoodParams
 from fr_torch.images.io import load_image, probe_image_size, read_image
 from fr_torch.output import dumps, json_safe
 from fr_torch.synthetic import render_manhattan_room
-from tests.conftest import checkout_env
+from tests.conftest import checkout_env, with_exif_orientation
 
 # --------------------------------------------------------------------------- hostile files
 
@@ -62,13 +62,9 @@ def forged_jpeg(image: np.ndarray, width: int, height: int) -> bytes:
 
 
 def exif_orientation_jpeg(image: np.ndarray, orientation: int) -> bytes:
-    """A JPEG with a hand-written EXIF APP1 segment holding only the Orientation tag (0x0112)."""
-    tiff = b"MM\x00*" + struct.pack(">I", 8) + struct.pack(">H", 1)
-    tiff += struct.pack(">HHIHH", 0x0112, 3, 1, orientation, 0) + struct.pack(">I", 0)
-    payload = b"Exif\x00\x00" + tiff
-    app1 = b"\xff\xe1" + struct.pack(">H", len(payload) + 2) + payload
+    """A JPEG of ``image`` with an EXIF APP1 segment (big-endian) holding only the Orientation tag."""
     data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
-    return data[:2] + app1 + data[2:]
+    return with_exif_orientation(data, orientation, big_endian=True)
 
 
 @pytest.fixture(scope="module")

@@ -2,6 +2,7 @@
 not even in a string; they plug in through entry points (``fr_torch/registry.py``).  Within
 fr_torch and within the harness (fr_eval) a module imports only its own layer and those below, and
 no modules of the whole tree import each other, directly or through others."""
+import functools
 import re
 import subprocess
 import sys
@@ -96,6 +97,7 @@ HARNESS_LAYERS = (
 )
 
 
+@functools.cache
 def _module_graph() -> dict[str, set[str]]:
     """``{module: modules it imports}`` for every module of fr_torch, eval (as fr_eval) and baselines
     (as fr_baselines), from every import statement (function-level and relative ones included).

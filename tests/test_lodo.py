@@ -130,7 +130,8 @@ def test_lodo_reliability_scales_and_judgement():
     assert given["reliable_n"] == 10 and given["aurc"] == out["aurc"]  # the flag given, the ranking by the bounds
     # the risk-coverage curve: the mean error of the k photos ranked first, NaN scores last
     kept, risk = risk_coverage([3.0, np.nan, 1.0, 2.0], [30.0, 40.0, 10.0, 20.0])
-    np.testing.assert_allclose(kept, [0.25, 0.5, 0.75, 1.0]) and np.testing.assert_allclose(risk, [10, 15, 20, 25])
+    np.testing.assert_allclose(kept, [0.25, 0.5, 0.75, 1.0])
+    np.testing.assert_allclose(risk, [10, 15, 20, 25])
     assert aurc([3.0, np.nan, 1.0, 2.0], [30.0, 40.0, 10.0, 20.0]) == pytest.approx(17.5)
     assert MODEL_CUE_NAMES == ("min_family_segments", "grid_entropy", "mean_log_likelihood", "focal_prior_share",
                                "focal_spread")
