@@ -66,7 +66,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from fr_torch.core.camera import Camera, focal_from_hfov
+from fr_torch.core.camera import Camera
 from fr_torch.core.fov import FovRange
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
@@ -272,10 +272,8 @@ class Consac(TimedCalibrator):
                     t.cpu() for t in self.vanishing_points(network, features))
         finally:
             torch.set_num_threads(previous)
-        ranked = to_pixels(refined, width, height)
-        ranked *= np.where(ranked[:, 2:] < 0, -1.0, 1.0)
-        before_em = to_pixels(raw, width, height)
-        before_em *= np.where(before_em[:, 2:] < 0, -1.0, 1.0)
+        ranked = vg.positive_w(to_pixels(refined, width, height))
+        before_em = vg.positive_w(to_pixels(raw, width, height))
         extra = {"vp_variants": {"no EM": before_em}, "vp_support": refined_scores.tolist(),
                  "vp_support_no_em": raw_scores.tolist(), "num_segments": int(len(segments))}
         return self._camera(ranked, refined_scores.numpy(), vg.principal_point(meta, width, height), width, height,
@@ -334,25 +332,17 @@ class Consac(TimedCalibrator):
         """f and R from the ranked VPs (module docstring); a flagged failure that keeps the VPs without."""
         zenith = vg.pick_zenith(ranked, pp, self.vertical_max_deg, height / 2.0)
         if zenith is None:
-            return self._failure("no vertical vanishing point among the VPs", ranked, extra)
+            return vg.failure_estimate(self.name, "no vertical vanishing point among the VPs", extra, ranked)
         others = [{"vp": ranked[i], "significance": float(scores[i])} for i in range(len(ranked)) if i != zenith]
-        long_side = max(width, height)
-        low, high = self.fov_range
-        bounds = (focal_from_hfov(high, long_side), focal_from_hfov(low, long_side))
-        pair = vg.orthogonal_pair(others, ranked[zenith], pp, math.hypot(width, height), bounds, self.finite_limit,
+        pair = vg.orthogonal_pair(others, ranked[zenith], pp, math.hypot(width, height),
+                                  self.fov_range.focal_bounds(max(width, height)), self.finite_limit,
                                   self.zenith_tol_deg)
         if pair is None:
-            return self._failure("no orthogonal pair of finite horizontal VPs", ranked, extra)
+            return vg.failure_estimate(self.name, "no orthogonal pair of finite horizontal VPs", extra, ranked)
         focal, vi, vj = pair
         rotation = vg.rotation_from_vps(ranked[zenith], vi["vp"], focal, pp, vj["vp"])
         return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation),
                                   ranked_vanishing_points=ranked, **extra)
-
-    def _failure(self, reason: str, ranked: np.ndarray, extra: dict) -> CameraEstimate:
-        estimate = CameraEstimate.failure(self.name, reason)
-        estimate.extra.update(extra)
-        estimate.ranked_vanishing_points = ranked
-        return estimate
 
 
 def make_consac_s(**kwargs) -> Consac:

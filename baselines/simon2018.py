@@ -51,7 +51,7 @@ import math
 import numpy as np
 from scipy.stats import binom
 
-from fr_torch.core.camera import Camera, focal_from_hfov
+from fr_torch.core.camera import Camera
 from fr_torch.core.fov import FovRange
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
@@ -197,8 +197,8 @@ class Simon2018(TimedCalibrator):
         extra = {"zenith": zvp.tolist(), "roll_deg": roll}
         zenith_support = int(vertical.sum())
         if best is None:
-            return self._failure("no horizontal vanishing point on any horizon candidate", extra,
-                                 vg.rank_by_support([zvp], [zenith_support]))
+            return vg.failure_estimate(self.name, "no horizontal vanishing point on any horizon candidate", extra,
+                                       vg.rank_by_support([zvp], [zenith_support]))
         # Second pass on the horizon through the most significant finite hVPs.
         score, offset, hvps = best
         finite = [v for v in hvps if vg.is_finite_vp(v["vp"], pp, self.finite_limit * diag)]
@@ -211,27 +211,16 @@ class Simon2018(TimedCalibrator):
         extra["horizon_offset_px"] = offset
         extra["hvps"] = [v["vp"].tolist() for v in hvps]
         ranked = vg.rank_by_support([zvp] + [v["vp"] for v in hvps], [zenith_support] + [v["support"] for v in hvps])
-        pair = vg.orthogonal_pair(hvps, zvp, pp, diag, self._focal_range(width, height), self.finite_limit,
-                                  self.zenith_tol_deg)
+        pair = vg.orthogonal_pair(hvps, zvp, pp, diag, self.fov_range.focal_bounds(max(width, height)),
+                                  self.finite_limit, self.zenith_tol_deg)
         if pair is None:
-            return self._failure("no orthogonal pair of finite horizontal VPs", extra, ranked)
+            return vg.failure_estimate(self.name, "no orthogonal pair of finite horizontal VPs", extra, ranked)
         focal, vi, vj = pair
         rotation = vg.rotation_from_vps(zvp, vi["vp"], focal, pp, vj["vp"])
         return vg.camera_estimate(self.name, Camera(width, height, focal, pp, rotation),
                                   ranked_vanishing_points=ranked, **extra)
 
-    def _failure(self, reason: str, extra: dict, ranked: np.ndarray | None = None) -> CameraEstimate:
-        est = CameraEstimate.failure(self.name, reason)
-        est.extra.update(extra)
-        est.ranked_vanishing_points = ranked
-        return est
-
     # ------------------------------------------------------------------ horizon candidates
-    def _focal_range(self, width, height):
-        long_side = max(width, height)
-        low, high = self.fov_range
-        return focal_from_hfov(high, long_side), focal_from_hfov(low, long_side)
-
     def _hl_candidates(self, seg_h, pp, n, zenith_dist, width, height) -> list[float]:
         mids = vg.segment_midpoints(seg_h) - pp
         offsets = mids @ n
@@ -247,7 +236,7 @@ class Simon2018(TimedCalibrator):
                 if inside.any():
                     cands.append(float(np.median(offsets[inside])))
         # (b) prior: offsets implied by the zenith over a focal sweep, or a uniform grid.
-        f_lo, f_hi = self._focal_range(width, height)
+        f_lo, f_hi = self.fov_range.focal_bounds(max(width, height))
         if math.isfinite(zenith_dist) and abs(zenith_dist) > vg.EPS:
             for f in np.geomspace(f_lo, f_hi, self.n_prior):
                 cands.append(-f * f / zenith_dist)

@@ -232,11 +232,16 @@ def rotation_from_vps(vertical_vp: np.ndarray, horizontal_vp: np.ndarray, focal_
     return rotation_from_directions(dv, dh, dh2)
 
 
+def positive_w(points) -> np.ndarray:
+    """Homogeneous VPs (M, 3) float64, each negated where ``w < 0`` so that ``w >= 0``."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return points * np.where(points[:, 2:] < 0, -1.0, 1.0)
+
+
 def rank_by_support(points, support) -> np.ndarray:
     """Homogeneous VPs (M, 3) signed so that ``w >= 0``, sorted by ``support`` (M,), largest first
     (ties keep the given order): a method's ``ranked_vanishing_points``."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    points = points * np.where(points[:, 2:] < 0, -1.0, 1.0)
+    points = positive_w(points)
     order = np.argsort(-np.asarray(support, dtype=np.float64).reshape(-1), kind="stable")
     return points[order]
 
@@ -296,6 +301,16 @@ def camera_estimate(method: str, camera: Camera, runtime_s: float = float("nan")
     ``ranked_vanishing_points`` (M, 3) as :func:`rank_by_support` gives them."""
     return CameraEstimate(method=method, camera=camera, runtime_s=runtime_s, extra=dict(extra),
                           ranked_vanishing_points=ranked_vanishing_points)
+
+
+def failure_estimate(method: str, reason: str, extra: dict,
+                     ranked_vanishing_points: np.ndarray | None = None) -> CameraEstimate:
+    """A failed CameraEstimate (``reason``) that still carries ``extra`` and the method's ranked
+    vanishing points (M, 3), when it found them but could not turn them into f and R."""
+    estimate = CameraEstimate.failure(method, reason)
+    estimate.extra.update(extra)
+    estimate.ranked_vanishing_points = ranked_vanishing_points
+    return estimate
 
 
 def roll_from_zenith(zenith_vp: np.ndarray, pp: np.ndarray) -> float:

@@ -4,7 +4,7 @@ Per photo (batch 1, end to end from the file) and per image in batches of 16 giv
 and Fast-fR with ``--distortion pinhole`` (the default), ``division`` and ``auto``, on the
 benchmark's photos and on the same photos bent through a barrel lens (division model, k = -0.2:
 the straight lines at the border bow by 3.2 % of the width in 4:3; :func:`fr_torch.images.lens.distort_image`).
-Every row gives its ratio to pinhole fR on the same photo (:data:`BASELINE`), the issue's yardstick
+Every row gives its ratio to pinhole fR on the same photo (the first of :data:`SETTINGS`), the issue's yardstick
 (``--quick`` runs Fast-fR only, one photo and its bent copy, batches of :data:`QUICK_BATCH`: its
 yardstick is pinhole Fast-fR).
 """
@@ -16,7 +16,6 @@ from pathlib import Path
 
 #: (mode, distortion) of the rows; the first is the yardstick of the ratios.
 SETTINGS = (("fr", "pinhole"), ("fr", "division"), ("fr", "auto"), ("fast", "pinhole"), ("fast", "division"))
-BASELINE = SETTINGS[0]
 #: k of the bent copies of the photos.
 BENT_K = -0.2
 #: Images per batch of the throughput rows (``--quick``: :data:`QUICK_BATCH`).
@@ -40,18 +39,12 @@ def bent_copies(images: list[tuple[str, str]], folder: Path) -> list[tuple[str, 
     return out
 
 
-def _estimator(mode: str, distortion: str):
-    from fr_torch import FREstimator
-
-    return FREstimator(mode=mode, distortion=distortion)
-
-
 def distortion_rows(images: list[tuple[str, str]], repeats: int, progress, batch: int = BATCH,
                     modes: tuple[str, ...] = ("fr", "fast")) -> list[dict]:
     """Latency per photo (batch 1) and ms per image in batches of ``batch`` (the photo's
     segments repeated) of every :data:`SETTINGS` row of ``modes`` on every image, with the ratio
-    to the image's first row (:data:`BASELINE` when ``modes`` has fR)."""
-    from fr_eval.bench.timing import median_times
+    to the image's first row (pinhole fR when ``modes`` has fR)."""
+    from fr_eval.bench.timing import bench_estimator, median_times
 
     from fr_torch.detectors.registry import get_detector
     from fr_torch.images.convert import to_gray8
@@ -67,7 +60,7 @@ def distortion_rows(images: list[tuple[str, str]], repeats: int, progress, batch
         for mode, distortion in [s for s in SETTINGS if s[0] in modes]:
             if progress.out_of_time(f"distortion {label} {mode} {distortion}"):
                 continue
-            est = _estimator(mode, distortion)
+            est = bench_estimator(mode, distortion=distortion)
             est.calibrate_images([path])  # warm-up
             walls, stages = [], []
             for _ in range(repeats):
@@ -84,11 +77,9 @@ def distortion_rows(images: list[tuple[str, str]], repeats: int, progress, batch
                    "refine_ms": 1000 * statistics.median(s.get("refine", 0.0) for s in stages),
                    "cues_ms": 1000 * statistics.median(s.get("cues", 0.0) for s in stages),
                    "batch": batch, "batch_ms_per_image": 1000 * batch_s / batch}
-            if not baseline:
-                baseline = row
-            if baseline:
-                row["latency_ratio"] = row["latency_ms"] / baseline["latency_ms"]
-                row["batch_ratio"] = row["batch_ms_per_image"] / baseline["batch_ms_per_image"]
+            baseline = baseline or row
+            row["latency_ratio"] = row["latency_ms"] / baseline["latency_ms"]
+            row["batch_ratio"] = row["batch_ms_per_image"] / baseline["batch_ms_per_image"]
             rows.append(row)
             progress.update(1, "distortion", row)
     return rows

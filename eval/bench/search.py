@@ -99,10 +99,6 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
     return rows
 
 
-#: Arithmetic per deviation of the measure-b grid kernel, in FLOPs (an FMA = 2): s and t (two 3-term
-#: dot products, 10), |s|, |t| (2), atan2 (a division and a degree-9 polynomial with range
-#: reduction, about 20), the exponent's scale, offset and clamp (3), exp (about 10) and the
-
 def outside_search(batch: int, n_segments: int, device: str, repeats: int, progress) -> dict | None:
     """ms per image of everything but the search: ``calibrate_segments`` on ``batch`` images with a
     minimal search (k = 2, one start, no focal sweep, no passes, one step), default reliability

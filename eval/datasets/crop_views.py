@@ -22,13 +22,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import zlib
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pandas as pd
 import torch
+from fr_eval.datasets.make_dataset import parse_range, view_distortions
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.datasets.registry import load_dataset
 
@@ -112,7 +112,7 @@ def main(argv=None) -> int:
     parser.add_argument("--size", type=_size, required=True, help="crop WIDTHxHEIGHT in pixels, e.g. 400x300")
     parser.add_argument("--data-root", default=None)
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--k-range", default=None, metavar="MIN:MAX",
+    parser.add_argument("--k-range", type=parse_range, default=None, metavar="MIN:MAX",
                         help="warp each crop through a division-model lens, k ~ U[MIN, MAX] per image (normalised "
                              "by half the diagonal; seeded by --seed and the image name)")
     parser.add_argument("--seed", type=int, default=0)
@@ -120,12 +120,11 @@ def main(argv=None) -> int:
     samples = load_dataset(args.dataset, root=args.data_root, split=args.split)
     distortion = None
     if args.k_range:
-        low, high = (float(v) for v in args.k_range.split(":"))
-        distortion = lambda name: np.random.default_rng([args.seed, zlib.crc32(name.encode()), 46]).uniform(low, high)  # noqa: E731
+        distortion = lambda name: view_distortions(args.seed, name, 1, args.k_range)[0]  # noqa: E731
     summary = crop_dataset(samples, args.size, args.out, distortion)
     if args.k_range:
         summary["distortion"] = {"model": "division (fr_torch.core.distortion), centre = the crop centre",
-                                 "k_range": [low, high], "seed": args.seed}
+                                 "k_range": list(args.k_range), "seed": args.seed}
     command = " ".join(argv if argv is not None else sys.argv[1:])
     summary = {"command": f"python -m fr_eval.datasets.crop_views {command}", "source": args.dataset, **summary}
     (args.out / "dataset.json").write_text(json.dumps(summary, indent=2))

@@ -303,7 +303,8 @@ def _parse_fovs(text: str) -> list[float]:
     return [float(x) for x in text.split(",") if x.strip()]
 
 
-def _parse_range(text: str) -> tuple[float, float]:
+def parse_range(text: str) -> tuple[float, float]:
+    """``"MIN:MAX"`` -> (MIN, MAX) floats (an argparse type)."""
     a, b = (float(x) for x in text.split(":"))
     return a, b
 
@@ -317,7 +318,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     fov = parser.add_mutually_exclusive_group()
     fov.add_argument("--fovs", type=_parse_fovs, default=None,
                      help="comma-separated horizontal FOVs (deg), equal number of views each (default 60,75,90,105,120)")
-    fov.add_argument("--uniform-fov", type=_parse_range, default=None, metavar="MIN:MAX",
+    fov.add_argument("--uniform-fov", type=parse_range, default=None, metavar="MIN:MAX",
                      help="horizontal FOV ~ U[MIN, MAX] degrees instead of fixed FOVs")
     parser.add_argument("--size", type=_parse_size, default=(640, 480), help="view size WxH (default 640x480)")
     parser.add_argument("--seed", type=int, default=0)
@@ -330,10 +331,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--group-by", choices=("room", "pano"), default="room",
                         help="split unit: the yaw CSV's room group (ZInD partial_room; default; falls back to the panorama) or the panorama")
     parser.add_argument("--test-fraction", type=float, default=0.5)
-    parser.add_argument("--pitch-range", type=_parse_range, default=(-30.0, 30.0), metavar="MIN:MAX")
-    parser.add_argument("--roll-range", type=_parse_range, default=(-10.0, 10.0), metavar="MIN:MAX")
+    parser.add_argument("--pitch-range", type=parse_range, default=(-30.0, 30.0), metavar="MIN:MAX")
+    parser.add_argument("--roll-range", type=parse_range, default=(-10.0, 10.0), metavar="MIN:MAX")
     parser.add_argument("--interp", choices=("bilinear", "bicubic"), default="bilinear")
-    parser.add_argument("--k-range", type=_parse_range, default=None, metavar="MIN:MAX",
+    parser.add_argument("--k-range", type=parse_range, default=None, metavar="MIN:MAX",
                         help="render through a division-model lens, k ~ U[MIN, MAX] per view (normalised by half "
                              "the diagonal; fr_torch.core.distortion), e.g. -0.4:0 for ZInD-fR-D; the views' angles "
                              "and FOVs are those of the same seed without it; gt.csv gains a column k")

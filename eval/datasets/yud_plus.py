@@ -59,12 +59,9 @@ def _load(yud_path: Path, plus_path: Path) -> tuple[CalibrationSample, ...]:
     samples = []
     for index, name in enumerate(names):
         sample = by_name[name]
-        camera = sample.camera
-        K = np.array([[camera.focal_px, 0.0, camera.principal_point[0]],
-                      [0.0, camera.focal_px, camera.principal_point[1]], [0.0, 0.0, 1.0]])
         directions = labelled_directions(plus_path / "vps" / f"{name}GroundTruthVP_CamParams.mat")
         samples.append(replace(sample, split="train" if index < TRAIN_COUNT else "test",
-                               extra=dict(sample.extra, vp_directions=directions, vp_calibration=K,
+                               extra=dict(sample.extra, vp_directions=directions, vp_calibration=sample.camera.K,
                                           num_labelled_vps=len(directions))))
     return tuple(samples)
 

@@ -40,9 +40,9 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 from fr_eval.paths import REPO, cache_root
-from fr_eval.protocols.lodo import SHIPPED, family_of, run_predictions
-from fr_eval.protocols.lodo_reliability import MODE_LABEL, METHOD_OF_MODE, evaluate, records_from_predictions
-from fr_eval.scoring.plots import risk_coverage_panel, safe_name, save_figure
+from fr_eval.protocols.lodo import SHIPPED, family_of, prediction_path, run_predictions
+from fr_eval.protocols.lodo_reliability import ERROR_OF, MODE_LABEL, METHOD_OF_MODE, evaluate, records_from_predictions
+from fr_eval.scoring.plots import risk_coverage_panel, save_figure
 from scipy.stats import spearmanr
 
 from fr_torch.core.reliability import ReliabilityModel
@@ -57,7 +57,6 @@ FAMILY_ROWS = {"YUD family train": (("yud", "train"), ("yud-crop-400x300", "trai
                "ZInD-fR train": (("zind-fr", "train"),)}
 #: The decision rule's floor on precision (%), where LSD's reaches it (results/decisions/45.md).
 PRECISION_FLOOR_PCT = 90.0
-ERROR_OF = {"focal_pct": "focal_err_pct", "tilt_deg": "tilt_err_deg"}
 
 
 def method_name(mode: str, detector: str) -> str:
@@ -93,7 +92,7 @@ def run_all(cache: Path, root: str | None = None, only: Sequence[str] | None = N
         for mode in ("fr", "fast"):
             for detector in DETECTORS:
                 method = method_name(mode, detector)
-                path = cache / SHIPPED / f"{dataset}_{split}_{safe_name(method)}.csv"
+                path = prediction_path(cache, SHIPPED, dataset, split, method)
                 if path.is_file():
                     continue
                 print(f"== {dataset} {split} {method}", file=sys.stderr)
@@ -102,7 +101,7 @@ def run_all(cache: Path, root: str | None = None, only: Sequence[str] | None = N
 
 
 def _predictions(cache: Path, dataset: str, split: str, mode: str, detector: str) -> pd.DataFrame:
-    path = cache / SHIPPED / f"{dataset}_{split}_{safe_name(method_name(mode, detector))}.csv"
+    path = prediction_path(cache, SHIPPED, dataset, split, method_name(mode, detector))
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: run `python -m fr_eval.protocols.detector_reliability run`")
     return pd.read_csv(path)
@@ -137,10 +136,11 @@ def detector_table(cache: Path, promise: ReliabilityPromise | None = None) -> pd
     rows = []
     for mode in ("fr", "fast"):
         for detector in DETECTORS:
-            records = {}
+            records, images = {}, {}
             for dataset, split in DATASETS:
                 table = _predictions(cache, dataset, split, mode, detector)
                 records[dataset, split] = records_from_predictions(table, dataset, mode)
+                images[dataset, split] = len(table)
                 rows.append({"mode": mode, "rows": f"{dataset} {split}", "family": family_of(dataset), "split": split,
                              "detector": detector, "images": len(table),
                              **row_figures(records[dataset, split], mode, promise)})
@@ -148,7 +148,7 @@ def detector_table(cache: Path, promise: ReliabilityPromise | None = None) -> pd
                 pooled = pd.concat([records[p] for p in parts], ignore_index=True)
                 rows.append({"mode": mode, "rows": label, "family": family_of(parts[0][0]), "split": "train pooled",
                              "detector": detector,
-                             "images": sum(len(_predictions(cache, *p, mode, detector)) for p in parts),
+                             "images": sum(images[p] for p in parts),
                              **row_figures(pooled, mode, promise)})
     return pd.DataFrame(rows)
 

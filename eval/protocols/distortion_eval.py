@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -33,18 +32,16 @@ from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import cache_root
 from fr_eval.protocols.run_eval import given_segments
 from fr_eval.scoring.metrics import image_errors, mean_se
-from fr_eval.scoring.tables import parse_method_spec
+from fr_eval.scoring.tables import format_mean_se, parse_method_spec
 from tqdm import tqdm
 
 from fr_torch.core.config import SearchConfig
 from fr_torch.core.cues import LINE_BEND_CUES
 from fr_torch.core.distortion import border_bow_percent
+from fr_torch.registry import split_method_list
 from fr_torch.runtime.estimator import FREstimator
 
 MODES = {"fr": "fr", "fast-fr": "fast"}
-#: Datasets of the issue's table: the distorted sets and the undistorted ones division must not hurt.
-DISTORTED = ("zind-fr-d", "yud-crop-480x360-d")
-UNDISTORTED = ("zind-fr", "yud-crop-480x360", "yud", "nyu-vp")
 
 
 def make_estimator(spec: str) -> FREstimator:
@@ -54,13 +51,7 @@ def make_estimator(spec: str) -> FREstimator:
         raise ValueError(f"{spec}: method must be one of {', '.join(MODES)}")
     options = dict(options)
     distortion, k = options.pop("distortion", None), options.pop("k", None)
-    known = {f.name: f.type for f in fields(SearchConfig)}
-    overrides = {}
-    for key, value in options.items():
-        if key not in known:
-            raise ValueError(f"{spec}: unknown option {key!r}")
-        overrides[key] = _number_or_text(value)
-    config = SearchConfig.from_config(**overrides)
+    config = SearchConfig.from_config(**{key: _number_or_text(value) for key, value in options.items()})
     return FREstimator(mode=MODES[name], search_config=config, distortion=distortion,
                        k=None if k is None else float(k))
 
@@ -153,11 +144,6 @@ def _frame(dataset: str, split: str, spec: str) -> pd.DataFrame | None:
     return pd.read_csv(path) if path.is_file() else None
 
 
-def _cell(value: tuple[float, float, int], decimals: int = 2) -> str:
-    mean, se, n = value
-    return "n/a" if not n else f"{mean:.{decimals}f} ± {se:.{decimals}f}"
-
-
 def native_k(split: str = "train") -> float:
     """The YUD camera's own k at the 480x360 crops: the median division estimate on the undistorted
     crops of ``split`` (YUD is calibrated without distortion; its lens has a little barrel)."""
@@ -178,7 +164,7 @@ def report(out: Path) -> str:
                           ("tilt_err_deg", "Tilt: mean absolute error, degrees")):
         lines += [f"### {title}", "", header, rule]
         for spec, label in REPORT_METHODS:
-            cells = [_cell(summaries[(d, spec)][metric]) if (d, spec) in summaries else "not run"
+            cells = [format_mean_se(*summaries[(d, spec)][metric]) if (d, spec) in summaries else "not run"
                      for d, _, _ in REPORT_COLUMNS]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         lines.append("")
@@ -297,7 +283,7 @@ def main(argv=None) -> int:
     if args.command == "report":
         print(report(args.out))
         return 0
-    methods = split_specs(args.methods)
+    methods = split_method_list(args.methods.replace(";", ","))
     for dataset in args.datasets.split(","):
         for spec in methods:
             if args.command == "run":
@@ -313,24 +299,6 @@ def main(argv=None) -> int:
                       f"{s['tilt_err_deg'][1]:.2f} k med {s['k_err_median']:.4f} mean {s['k_err'][0]:.4f} "
                       f"bow med {s['bow_err_median']:.3f} rel {s['reliable_pct']:.0f}%")
     return 0
-
-
-def split_specs(text: str) -> list[str]:
-    """Method specs separated by ',' outside brackets (or by ';')."""
-    specs, depth, current = [], 0, ""
-    for char in text:
-        if char in "[(":
-            depth += 1
-        elif char in "])":
-            depth -= 1
-        if (char == "," and depth == 0) or char == ";":
-            specs.append(current.strip())
-            current = ""
-        else:
-            current += char
-    if current.strip():
-        specs.append(current.strip())
-    return specs
 
 
 if __name__ == "__main__":

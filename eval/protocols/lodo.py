@@ -161,6 +161,14 @@ def zenith_error_deg(gt_roll, gt_pitch, est_roll, est_pitch) -> np.ndarray:
     return np.degrees(np.arccos(cos))
 
 
+def prediction_path(cache: Path, setting: str, dataset: str, split: str, method: str,
+                    pp_mode: str = "centre") -> Path:
+    """Where :func:`run_predictions` caches ``method``'s rows under ``setting`` on ``dataset``/``split``:
+    ``cache/<setting>/<dataset>_<split>_<method>[_pp-<pp_mode>].csv`` (the method spec file-name-safe)."""
+    suffix = "" if pp_mode == "centre" else f"_pp-{pp_mode}"
+    return cache / setting / f"{dataset}_{split}_{safe_name(method)}{suffix}.csv"
+
+
 def run_predictions(dataset: str, split: str, method: str, setting: str, config_path: Path | None, cache: Path,
                     pp_mode: str = "centre", root: str | None = None, stride: int = 1,
                     calibrator=None) -> pd.DataFrame:
@@ -172,8 +180,7 @@ def run_predictions(dataset: str, split: str, method: str, setting: str, config_
 
     from fr_torch.core.fov import FovRange
 
-    suffix = "" if pp_mode == "centre" else f"_pp-{pp_mode}"
-    path = cache / setting / f"{dataset}_{split}_{safe_name(method)}{suffix}.csv"
+    path = prediction_path(cache, setting, dataset, split, method, pp_mode)
     if path.is_file():
         return pd.read_csv(path)
     spec = method_spec(method, config_path) if method in TUNED_METHODS else method
@@ -284,7 +291,7 @@ def published_rows(dataset: str, split: str, cache: Path) -> list[dict]:
     elif dataset == "nyu-vp":
         for method in TUNED_METHODS + FIXED_METHODS:
             folder = setting_name("nyu-vp") if method in TUNED_METHODS else "fixed"
-            path = cache / folder / f"{dataset}_{split}_{safe_name(method)}.csv"
+            path = prediction_path(cache, folder, dataset, split, method)
             if path.is_file():
                 rows.append({"method": method, "dataset": dataset, "split": split, "column": "shipped",
                              "setting": SHIPPED, **summary_row(pd.read_csv(path))})
@@ -301,13 +308,13 @@ def accuracy_table(cache: Path) -> pd.DataFrame:
             for column, setting in (("in-dataset", ALL), ("held-out", held)):
                 if method in FIXED_METHODS:
                     setting = "fixed"
-                path = cache / setting / f"{dataset}_{split}_{safe_name(method)}.csv"
+                path = prediction_path(cache, setting, dataset, split, method)
                 if not path.is_file():
                     continue
                 rows.append({"method": method, "dataset": dataset, "split": split, "column": column,
                              "setting": setting, **summary_row(pd.read_csv(path))})
         for column, setting in (("in-dataset", ALL), ("held-out", held)):
-            path = cache / setting / f"{dataset}_{split}_fr_pp-calibrated.csv"
+            path = prediction_path(cache, setting, dataset, split, "fr", pp_mode="calibrated")
             if path.is_file():
                 rows.append({"method": "fr (calibrated pp)", "dataset": dataset, "split": split, "column": column,
                              "setting": setting, **summary_row(pd.read_csv(path))})

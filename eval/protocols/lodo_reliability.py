@@ -15,7 +15,7 @@ Bounds (``--bounds``): a bound is ``scale x sigma`` per error (focal %, tilt deg
 
 * ``spreads`` (what ``reliable`` ships with): sigma from the estimate's own spreads
   (:data:`fr_torch.core.reliability_bounds.SIGMAS`); no model is fitted.
-* ``knn`` (issue 35's bounds, for comparison): sigma = the KNN's predicted error
+* ``knn`` (the KNN's bounds, for comparison): sigma = the KNN's predicted error
   (:class:`fr_torch.core.reliability.ReliabilityModel`, the shipped cue set of the mode, floored at
   0.5 % / 0.1 deg), the model fitted on the calibration records (for a family's scale: without
   that family).
@@ -49,6 +49,7 @@ from fr_eval.protocols.lodo import (
     REPORTED,
     SHIPPED,
     family_of,
+    prediction_path,
     setting_name,
 )
 from fr_eval.scoring.metrics import aurc
@@ -70,7 +71,7 @@ TARGET_INDEX = {"roll_deg": 0, "tilt_deg": 1, "focal_pct": 2}
 ERROR_OF = {"focal_pct": "focal_err_pct", "tilt_deg": "tilt_err_deg"}
 SCALE_RULES = ("worst", "pooled")
 BOUND_KINDS = ("spreads", "knn")
-#: issue 35's floors of a KNN prediction before the ratio (focal %, tilt deg)
+#: Floors of a KNN prediction before the ratio (focal %, tilt deg)
 KNN_FLOOR = {"focal_pct": 0.5, "tilt_deg": 0.1}
 MODE_LABEL = {"fr": "fR", "fast": "Fast-fR"}
 METHOD_OF_MODE = {"fr": "fr", "fast": "fast-fr"}
@@ -94,7 +95,7 @@ def records_from_predictions(table: pd.DataFrame, dataset: str, mode: str) -> pd
 
 
 def _run(cache: Path, setting: str, dataset: str, split: str, mode: str) -> pd.DataFrame:
-    path = cache / setting / f"{dataset}_{split}_{METHOD_OF_MODE[mode]}.csv"
+    path = prediction_path(cache, setting, dataset, split, METHOD_OF_MODE[mode])
     if not path.is_file():
         raise FileNotFoundError(f"{path} is missing: run `python -m fr_eval.protocols.lodo run --stage reliability`")
     return records_from_predictions(pd.read_csv(path), dataset, mode)
@@ -234,7 +235,7 @@ def markdown(table: pd.DataFrame, limits: dict, coverage: float) -> str:
 def risk_coverage_figure(cache: Path, path: Path, coverage: float = DEFAULT_COVERAGE,
                          modes: Sequence[str] = ("fr", "fast")) -> Path:
     """Focal MAE of the photos kept vs the share kept, per mode (rows) and held-out dataset (columns):
-    ordered by the spreads' focal bound (shipped), by issue 35's KNN bound, and by the actual error
+    ordered by the spreads' focal bound (shipped), by the KNN's bound, and by the actual error
     (oracle); the dashed line is all photos' MAE."""
     import matplotlib.pyplot as plt
 
@@ -293,7 +294,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="table: conformal scale = the largest per-family quantile (worst, shipped) or one "
                              "quantile over all calibration photos (pooled)")
     parser.add_argument("--bounds", choices=BOUND_KINDS, default="spreads",
-                        help="table: the shipped bounds (spreads) or issue 35's KNN bounds (knn, for comparison)")
+                        help="table: the shipped bounds (spreads) or the KNN's bounds (knn, for comparison)")
     parser.add_argument("--out", default=str(REPO / "results" / "cross_dataset"))
     parser.add_argument("--figure", default=str(REPO / "results" / "reliability" / "risk_coverage.png"))
     parser.add_argument("--write", action="store_true", help="promise: write it into configs/reliability.json")

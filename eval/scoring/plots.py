@@ -189,8 +189,4 @@ def vp_recall_figure(errors: dict[str, dict[str, np.ndarray]], path: Path, title
         ax.set_title("f unknown, image-centre principal point" if setting == "unknown" else "K known")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, title, dpi=120)
