@@ -10,7 +10,7 @@ import torch
 
 from fr_torch.core.camera import rotation_from_angles
 from fr_torch.errors import FRInputError
-from fr_torch.images.io import jpeg_upright_size, working_image
+from fr_torch.images.io import jpeg_header, working_image
 from fr_torch.runtime import device_pipeline
 from fr_torch.runtime.device_pipeline import (
     calibrate_on_device,
@@ -63,12 +63,14 @@ def fake_device_decoder(monkeypatch):
     return calls
 
 
-def test_jpeg_upright_size(room):
+def test_jpeg_header(room):
     jpeg = cv2.imencode(".jpg", room)[1].tobytes()
-    assert jpeg_upright_size(jpeg) == (WIDTH, HEIGHT)
-    assert jpeg_upright_size(with_exif_orientation(jpeg, 1)) == (WIDTH, HEIGHT)
-    assert jpeg_upright_size(with_exif_orientation(jpeg, 6)) is None  # decoded where EXIF is applied
-    assert jpeg_upright_size(b"\x89PNG\r\n") is None and jpeg_upright_size(jpeg[:2]) is None
+    assert jpeg_header(jpeg) == ((WIDTH, HEIGHT), False)
+    assert jpeg_header(with_exif_orientation(jpeg, 1)) == ((WIDTH, HEIGHT), False)
+    assert jpeg_header(with_exif_orientation(jpeg, 6)) == ((WIDTH, HEIGHT), True)  # decoded where EXIF is applied
+    assert jpeg_header(jpeg[:2]) == (None, False)
+    chunks = iter([jpeg[2:100], jpeg[100:]])  # read on demand, only up to the frame header
+    assert jpeg_header(jpeg[:2], lambda n: next(chunks, b"")) == ((WIDTH, HEIGHT), False)
 
 
 def test_decode_batch_routes_and_fails_per_file(files, fake_device_decoder):

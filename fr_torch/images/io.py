@@ -139,16 +139,27 @@ def jpeg_segments(head: bytes, read=None, max_offset: int | None = None):
 _SOF_MARKERS = (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF)
 
 
+def jpeg_header(head: bytes, read=None) -> tuple[tuple[int, int] | None, bool]:
+    """((width, height) from the first SOF marker, or None; whether an EXIF APP1 segment before it
+    asks for a rotation (orientation other than 1)), walking the segments of :func:`jpeg_segments`
+    (``head`` from SOI on, ``read`` for more bytes) only up to that marker (none in the first
+    16 MB: None)."""
+    rotated = False
+    for marker, _, body in jpeg_segments(head, read, max_offset=16 * 2 ** 20):
+        if marker == 0xE1 and _exif_orientation(body) != 1:
+            rotated = True
+        if marker in _SOF_MARKERS:
+            if len(body) < 5:
+                return None, rotated
+            height, width = struct.unpack(">HH", body[1:5])
+            return (width, height), rotated
+    return None, rotated
+
+
 def _jpeg_size(head: bytes, handle) -> tuple[int, int] | None:
     """(width, height) from the first SOF marker, reading segment by segment (no SOF in the first
     16 MB: None)."""
-    for marker, _, body in jpeg_segments(head, handle.read, max_offset=16 * 2 ** 20):
-        if marker in _SOF_MARKERS:
-            if len(body) < 5:
-                return None
-            height, width = struct.unpack(">HH", body[1:5])
-            return width, height
-    return None
+    return jpeg_header(head, handle.read)[0]
 
 
 def _exif_orientation(body: bytes) -> int:
@@ -170,26 +181,6 @@ def _exif_orientation(body: bytes) -> int:
     except struct.error:
         return 1
     return 1
-
-
-def jpeg_upright_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) of an in-memory JPEG whose pixels need no EXIF rotation (orientation 1 or
-    none), from its first SOF marker; None for anything else (not a JPEG, no SOF, a rotated photo).
-
-    The images a GPU decoder may take as they are: a rotated photo is decoded where EXIF
-    orientation is applied (:func:`read_image`), so every path sees the same upright picture.
-    """
-    if not data.startswith(b"\xff\xd8"):
-        return None
-    for marker, _, body in jpeg_segments(data, max_offset=16 * 2 ** 20):
-        if marker == 0xE1 and _exif_orientation(body) != 1:
-            return None
-        if marker in _SOF_MARKERS:
-            if len(body) < 5:
-                return None
-            height, width = struct.unpack(">HH", body[1:5])
-            return (width, height) if width > 0 and height > 0 else None
-    return None
 
 
 def _tiff_size(head: bytes, handle) -> tuple[int, int] | None:
@@ -359,6 +350,27 @@ def _is_jpeg(path) -> bool:
         return False
 
 
+def working_size(size: tuple[int, int], max_long_side: int | None = WORKING_LONG_SIDE) -> tuple[int, int]:
+    """The (width, height) in pixels an input of ``size`` (width, height) is calibrated at: scaled
+    so that its long side is ``max_long_side`` (rounded, at least 1 pixel), or ``size`` itself when
+    that is small enough or ``max_long_side`` is None."""
+    width, height = size
+    long_side = max(width, height)
+    if max_long_side is None or long_side <= max_long_side:
+        return width, height
+    ratio = max_long_side / long_side
+    return max(1, round(width * ratio)), max(1, round(height * ratio))
+
+
+def read_working(image, name: str, max_long_side: int | None = WORKING_LONG_SIDE):
+    """Image ``image`` (a path, read by the bounded decoder, or an array) as grey levels at the
+    working resolution: (working image (H, W) uint8, input pixels per working pixel, the input's
+    (width, height)).  Raises FRInputError (one line) for a bad image."""
+    gray, input_size = read_any(image, name, max_long_side)
+    gray, scale = working_image(gray, input_size, max_long_side)
+    return gray, scale, tuple(input_size)
+
+
 def working_image(gray: np.ndarray, input_size: tuple[int, int] | None = None,
                   max_long_side: int | None = WORKING_LONG_SIDE) -> tuple[np.ndarray, float]:
     """Resize a grey image to the working resolution.
@@ -371,12 +383,7 @@ def working_image(gray: np.ndarray, input_size: tuple[int, int] | None = None,
     """
     h, w = gray.shape[:2]
     in_w, in_h = input_size if input_size is not None else (w, h)
-    long_in = max(in_w, in_h)
-    if max_long_side is None or long_in <= max_long_side:
-        target = (in_w, in_h)
-    else:
-        ratio = max_long_side / long_in
-        target = (max(1, round(in_w * ratio)), max(1, round(in_h * ratio)))
+    target = working_size((in_w, in_h), max_long_side)
     if target[0] > w and (in_w, in_h) != (w, h):  # a reduced decode slightly below the working size: keep it
         target = (w, h)
     if (w, h) != target:

@@ -20,3 +20,15 @@ class Detection(NamedTuple):
     seconds: float
     scale: float = 1.0
     input_size: tuple[int, int] = (0, 0)
+
+    @classmethod
+    def failed(cls, error: str, seconds: float = 0.0) -> "Detection":
+        """An image that could not be decoded or detected: no segments, size (0, 0), ``error`` its
+        one-line reason."""
+        return cls(np.zeros((0, 4)), (0, 0), error, seconds)
+
+
+def failure_reason(name: str, exc: BaseException) -> str:
+    """The one-line reason of image ``name``'s unexpected failure ``exc`` (an FRInputError's own
+    message is already one line and said as it is)."""
+    return f"{name}: {type(exc).__name__}: {exc}".splitlines()[0]

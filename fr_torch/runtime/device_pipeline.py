@@ -11,8 +11,8 @@ host pipeline of decoding + detection worker processes.  Per batch of images:
    :data:`DEVICE_DECODE_MAX_LONG_SIDE` pixels is decoded to grey on the device by torchvision
    (``decode_jpeg`` with a CUDA device, all such files of the batch in one call); any other input
    (PNG, a large photo that the host decodes at a native 1/2-1/8 reduction, a rotated photo, an
-   array) is read on the host by the bounded decoder (:func:`fr_torch.images.io.read_any`) and
-   uploaded.  A batch the device decoder refuses is decoded file by file, and a file it refuses
+   array) is read on the host by the bounded decoder (:func:`fr_torch.images.io.read_working`),
+   several at once in threads, and uploaded.  A batch the device decoder refuses is decoded file by file, and a file it refuses
    alone is read on the host, whose one-line reason a corrupt file then gets.  Images larger than
    the working resolution are reduced on the device by area averaging (as ``cv2.INTER_AREA``).
 2. **Detect** (:func:`detect_decoded`): images of one size are detected together by the detector's
@@ -26,6 +26,7 @@ host pipeline of decoding + detection worker processes.  Per batch of images:
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -42,11 +43,12 @@ from fr_torch.images.io import (
     MAX_IMAGE_PIXELS,
     WORKING_LONG_SIDE,
     check_regular_file,
-    jpeg_upright_size,
-    read_any,
-    working_image,
+    jpeg_header,
+    read_working,
+    working_size,
 )
-from fr_torch.runtime.detection import Detection
+from fr_torch.runtime.detection import Detection, failure_reason
+from fr_torch.runtime.workers import usable_cores
 
 #: Largest long side (pixels) of a JPEG decoded on the device; larger photos are decoded on the
 #: host at a native DCT reduction (1/2 to 1/8), which costs less than a full-size device decode.
@@ -102,50 +104,60 @@ def device_path_gap(estimator) -> str | None:
     return gap
 
 
-def _host_image(image, name: str, device: torch.device, working_long_side: int | None) -> DecodedImage:
-    """``image`` (path or array) read by the bounded host decoder and uploaded, or its failure."""
+def _host_decode(image, name: str, working_long_side: int | None):
+    """``image`` (path or array) read by the bounded host decoder at the working resolution:
+    (grey (H, W) uint8, scale, input size) as :func:`fr_torch.images.io.read_working` gives them,
+    or the one-line reason it failed."""
     try:
-        gray, input_size = read_any(image, name, working_long_side)
-        gray, scale = working_image(gray, input_size, working_long_side)
-        return DecodedImage(torch.from_numpy(np.ascontiguousarray(gray)).to(device), scale, tuple(input_size))
+        return read_working(image, name, working_long_side)
     except FRInputError as exc:
-        error = str(exc)
+        return str(exc)
     except Exception as exc:  # noqa: BLE001 - one image's failure, never the batch's
-        error = f"{name}: {type(exc).__name__}: {exc}".splitlines()[0]
-    return DecodedImage(None, 1.0, (0, 0), error)
+        return failure_reason(name, exc)
+
+
+def _upload(decoded, device: torch.device) -> DecodedImage:
+    """A :func:`_host_decode` result on ``device``."""
+    if isinstance(decoded, str):
+        return DecodedImage(None, 1.0, (0, 0), decoded)
+    gray, scale, input_size = decoded
+    return DecodedImage(torch.from_numpy(np.ascontiguousarray(gray)).to(device), scale, input_size)
 
 
 def _device_jpeg(image, name: str) -> bytes | None:
     """The file's bytes when the device may decode it (an upright JPEG within the size limits),
-    else None (the host reads it, and reports it when it is bad)."""
+    else None (the host reads it, and reports it when it is bad).  Only the header is read to
+    decide.  A photo with an EXIF rotation goes to the host, which applies it
+    (:func:`fr_torch.images.io.read_image`), so that every path sees the same upright picture."""
     if not isinstance(image, (str, os.PathLike)):
         return None
     try:
         check_regular_file(image)
         with open(image, "rb") as handle:
-            if handle.read(2) != b"\xff\xd8":
+            head = handle.read(2)
+            if head != b"\xff\xd8":
                 return None
-            data = b"\xff\xd8" + handle.read()
+            size, rotated = jpeg_header(head, handle.read)  # the header only: most files the host takes are big
+            if rotated or size is None or min(size) <= 0 or max(size) > DEVICE_DECODE_MAX_LONG_SIDE \
+                    or size[0] * size[1] > MAX_IMAGE_PIXELS:
+                return None
+            handle.seek(0)
+            return handle.read()
     except (FRInputError, OSError):
         return None
-    size = jpeg_upright_size(data)
-    if size is None or max(size) > DEVICE_DECODE_MAX_LONG_SIDE or size[0] * size[1] > MAX_IMAGE_PIXELS:
-        return None
-    return data
 
 
 def _decode_jpegs(data: list[bytes], device: torch.device) -> list[torch.Tensor | None]:
     """Grey (H, W) uint8 device tensors of JPEG bytes; None for a file the device decoder refuses."""
-    from torchvision.io import ImageReadMode, decode_jpeg
+    from fr_torch.detectors.tensor_lines import decode_jpeg_batch
 
-    encoded = [torch.frombuffer(bytearray(b), dtype=torch.uint8) for b in data]
     try:
-        return [t[0] for t in decode_jpeg(encoded, mode=ImageReadMode.GRAY, device=device)]
+        return [t[0] for t in decode_jpeg_batch(data, device)]
     except RuntimeError:  # one bad file fails the batched call: decode them one by one
         out: list[torch.Tensor | None] = []
-        for tensor in encoded:
+        for one in data:
             try:
-                out.append(decode_jpeg(tensor, mode=ImageReadMode.GRAY, device=device)[0])
+                out.append(decode_jpeg_batch([one], device)[0][0])
             except RuntimeError:
                 out.append(None)
         return out
@@ -153,16 +165,14 @@ def _decode_jpegs(data: list[bytes], device: torch.device) -> list[torch.Tensor 
 
 def to_working_resolution(pixels: torch.Tensor, working_long_side: int | None) -> tuple[torch.Tensor, float]:
     """``pixels`` (H, W) uint8 on any device brought to a long side of at most ``working_long_side``
-    by area averaging (the target size of :func:`fr_torch.images.io.working_image`); returns
+    by area averaging (the target size of :func:`fr_torch.images.io.working_size`); returns
     (image, input pixels per working pixel)."""
     height, width = pixels.shape
-    long_side = max(width, height)
-    if working_long_side is None or long_side <= working_long_side:
+    target_width, target_height = working_size((width, height), working_long_side)
+    if (target_width, target_height) == (width, height):
         return pixels, 1.0
-    ratio = working_long_side / long_side
-    target = (max(1, round(height * ratio)), max(1, round(width * ratio)))
-    reduced = F.interpolate(pixels[None, None].float(), size=target, mode="area")[0, 0]
-    return reduced.round_().clamp_(0, 255).to(torch.uint8), width / target[1]
+    reduced = F.interpolate(pixels[None, None].float(), size=(target_height, target_width), mode="area")[0, 0]
+    return reduced.round_().clamp_(0, 255).to(torch.uint8), width / target_width
 
 
 def decode_batch(images: Sequence, names: Sequence[str], device: torch.device,
@@ -179,9 +189,11 @@ def decode_batch(images: Sequence, names: Sequence[str], device: torch.device,
             input_size = (int(pixels.shape[1]), int(pixels.shape[0]))
             pixels, scale = to_working_resolution(pixels, working_long_side)
             out[i] = DecodedImage(pixels, scale, input_size)
-    for i, (image, name) in enumerate(zip(images, names)):
-        if out[i] is None:
-            out[i] = _host_image(image, name, device, working_long_side)
+    host = [i for i in range(len(images)) if out[i] is None]
+    # The host decoder (OpenCV, which releases the GIL) on every core: large photos take 50 ms each.
+    with ThreadPoolExecutor(max(1, min(len(host), usable_cores())), thread_name_prefix="fr-host-decode") as pool:
+        for i, decoded in zip(host, pool.map(lambda i: _host_decode(images[i], names[i], working_long_side), host)):
+            out[i] = _upload(decoded, device)  # uploads from this thread, on its stream
     share = (time.perf_counter() - start) / max(1, len(images))
     for decoded in out:
         decoded.seconds = share
@@ -202,7 +214,7 @@ def detect_decoded(detector, decoded: Sequence[DecodedImage], segment_filter=Non
     by_size: dict[tuple[int, int], list[int]] = {}
     for i, d in enumerate(decoded):
         if d.error is not None or d.pixels is None:
-            detections[i] = Detection(np.zeros((0, 4)), (0, 0), d.error or "not decoded", d.seconds)
+            detections[i] = Detection.failed(d.error or "not decoded", d.seconds)
         else:
             by_size.setdefault(tuple(d.pixels.shape), []).append(i)
     for (height, width), members in by_size.items():
@@ -244,29 +256,29 @@ def calibrate_on_device(estimator, images: Sequence, names: Sequence[str], focal
         searchers = 1 if estimator.likelihood.compiled else SEARCH_THREADS
     streams = [torch.cuda.Stream(device) for _ in range(searchers + 1)] if cuda else []
 
+    def on(stream):  # work queued on ``stream`` (a CUDA device), or as it comes (any other)
+        return torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext()
+
     def read(start: int) -> list[DecodedImage]:
-        chunk, chunk_names = images[start:start + batch_size], names[start:start + batch_size]
-        if not cuda:
-            return decode_batch(chunk, chunk_names, device, working)
-        with torch.cuda.stream(streams[0]):
-            decoded = decode_batch(chunk, chunk_names, device, working)
-        streams[0].synchronize()  # the reader waits; the searchers' streams never do
+        stream = streams[0] if cuda else None
+        with on(stream):
+            decoded = decode_batch(images[start:start + batch_size], names[start:start + batch_size], device,
+                                   working)
+        if stream is not None:
+            stream.synchronize()  # the reader waits; the searchers' streams never do
         return decoded
 
     def search(start: int, decoded: list[DecodedImage], stream) -> list:
         stop = start + batch_size
-        if stream is None:
-            detections = detect_decoded(detector, decoded, estimator.segment_filter)
-            return estimator.calibrate_detections(detections, names[start:stop], focal_list[start:stop],
-                                                  pp_list[start:stop])
-        with torch.cuda.stream(stream):
-            for d in decoded:  # made on the reader's stream, used on this one
+        with on(stream):
+            for d in decoded if stream is not None else ():  # made on the reader's stream, used on this one
                 if d.pixels is not None:
                     d.pixels.record_stream(stream)
             detections = detect_decoded(detector, decoded, estimator.segment_filter)
             results = estimator.calibrate_detections(detections, names[start:stop], focal_list[start:stop],
                                                      pp_list[start:stop])
-        stream.synchronize()
+        if stream is not None:
+            stream.synchronize()
         return results
 
     starts = list(range(0, len(images), batch_size))

@@ -53,8 +53,8 @@ from fr_torch.core.estimator import CalibrationResult
 from fr_torch.core.segments import SegmentFilter
 from fr_torch.detectors.registry import detect_segments, get_detector
 from fr_torch.errors import FRInputError
-from fr_torch.images.io import WORKING_LONG_SIDE, read_any, working_image
-from fr_torch.runtime.detection import Detection
+from fr_torch.images.io import WORKING_LONG_SIDE, read_working
+from fr_torch.runtime.detection import Detection, failure_reason
 from fr_torch.runtime.device_pipeline import calibrate_on_device, device_path_gap
 from fr_torch.runtime.workers import WorkerPool
 
@@ -68,16 +68,15 @@ def detect_image(image, name: str, detector, segment_filter: SegmentFilter,
     """
     start = time.perf_counter()
     try:
-        gray, input_size = read_any(image, name, working_long_side)
-        gray, scale = working_image(gray, input_size, working_long_side)
+        gray, scale, input_size = read_working(image, name, working_long_side)
         segments = detect_segments(gray, detector, segment_filter)
         return Detection(segments, (gray.shape[1], gray.shape[0]), None, time.perf_counter() - start, scale,
-                         tuple(input_size))
+                         input_size)
     except FRInputError as exc:
         error = str(exc)
     except Exception as exc:  # a decoder or detector failing on one image must not stop the others
-        error = f"{name}: {type(exc).__name__}: {exc}".splitlines()[0]
-    return Detection(np.zeros((0, 4)), (0, 0), error, time.perf_counter() - start)
+        error = failure_reason(name, exc)
+    return Detection.failed(error, time.perf_counter() - start)
 
 
 # --------------------------------------------------------------------------- worker processes
@@ -232,7 +231,7 @@ def crash_reason(name: str) -> str:
 
 
 def _detection_crash(item) -> Detection:
-    return Detection(np.zeros((0, 4)), (0, 0), crash_reason(item[1]), 0.0)
+    return Detection.failed(crash_reason(item[1]))
 
 
 def iter_detections(images: Sequence, names: Sequence[str], detector, segment_filter: SegmentFilter | None = None,
