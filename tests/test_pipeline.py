@@ -22,6 +22,13 @@ from fr_torch.runtime.pipeline import (
 from fr_torch.synthetic import random_rotation, render_manhattan_room, synthetic_segments
 
 
+@pytest.fixture(autouse=True)
+def _fixed_threads(monkeypatch):
+    """One search thread per process: these tests compare batching and order, and with ``auto``
+    threads (the machine's load decides, per call) two runs may sum floats in different orders."""
+    monkeypatch.setenv("FR_THREADS", "1")
+
+
 def _same(a, b):
     """Equal up to the batched == one-by-one tolerances (padding changes float reductions)."""
     assert a.image == b.image and a.ok == b.ok and a.reason == b.reason
