@@ -80,7 +80,10 @@ def run(args: argparse.Namespace) -> int:
     # Local: a device that cannot run is a one-line error before any work.  Ray: each actor
     # resolves the device on its own node.
     policy = device_policy(args) if local else DevicePolicy.resolve("cpu")
-    if local and (args.workers is None or args.workers > (1 if policy.on_cpu else 0)):
+    # Host workers (started ahead, while this process loads torch) unless a GPU decodes and detects
+    # itself (fr_torch.runtime.device_pipeline; where it cannot after all, the pool starts them then).
+    host_path = policy.on_cpu or policy.decode == "host"
+    if local and host_path and (args.workers is None or args.workers > (1 if policy.on_cpu else 0)):
         start_worker_server()
     options = estimator_options(args)
     policy.apply_threads()  # this process's threads (an explicit local --workers 1 still sets its own)

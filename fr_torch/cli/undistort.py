@@ -33,12 +33,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_estimator_arguments(parser)
     add_camera_arguments(parser)
     parser.add_argument("--no-reliability", action="store_true", help="no predicted errors (faster)")
+    parser.set_defaults(distortion="division")
 
 
 def run(args: argparse.Namespace) -> int:
     """``fr undistort``: one JSON line per image; non-zero exit if any image failed."""
-    if args.distortion is None:
-        args.distortion = "division"
     policy = device_policy(args)
     policy.apply_threads()
     output_folder(args.out, "--out")

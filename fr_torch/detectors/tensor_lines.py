@@ -46,6 +46,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from fr_torch.registry import format_method_spec
+
 
 @dataclass(frozen=True)
 class TensorLinesConfig:
@@ -112,9 +114,9 @@ def spec_name(config: TensorLinesConfig) -> str:
     builds the same detector from).  A reliability model's scope is checked against this name: it
     was measured with the defaults."""
     default = TensorLinesConfig()
-    changed = [f"{f.name}={_spec_value(getattr(config, f.name))}" for f in fields(config)
-               if f.name not in _RUN_ONLY_SETTINGS and getattr(config, f.name) != getattr(default, f.name)]
-    return f"torch-lines[{','.join(changed)}]" if changed else "torch-lines"
+    return format_method_spec("torch-lines", {
+        f.name: _spec_value(getattr(config, f.name)) for f in fields(config)
+        if f.name not in _RUN_ONLY_SETTINGS and getattr(config, f.name) != getattr(default, f.name)})
 
 
 class TensorLinesDetector:

@@ -423,7 +423,7 @@ def result_to_input_pixels(result, scale: float, input_size: tuple[int, int]) ->
         result.camera = result.camera.resized(result.width, result.height, factor=scale)
     if result.segments is not None:
         result.segments = np.asarray(result.segments, dtype=np.float64) * scale
-    if getattr(result, "ranked_vanishing_points", None) is not None:  # homogeneous: x and y scale, w not
+    if result.ranked_vanishing_points is not None:  # homogeneous: x and y scale, w not
         result.ranked_vanishing_points = np.asarray(result.ranked_vanishing_points, np.float64) * [scale, scale, 1.0]
         result.vanishing_point_support = np.asarray(result.vanishing_point_support, np.float64) * scale
 

@@ -27,14 +27,34 @@ HORIZON_COLOUR = (0, 220, 255)
 CAPTION_BOX, CAPTION_TEXT = (20, 20, 20), (245, 245, 245)
 
 
+def _horizon_line(result: CalibrationResult) -> np.ndarray | None:
+    """The horizon's homogeneous line (3,) in the undistorted image, l = K^-T R[:, vertical], or None
+    without a rotation."""
+    if result.rotation is None:
+        return None
+    return np.linalg.inv(result.camera.K).T @ result.rotation[:, VERTICAL_AXIS]
+
+
+def _darkened(image_bgr: np.ndarray) -> np.ndarray:
+    """The image at 60 % brightness (the overlay's background), uint8."""
+    return (image_bgr.astype(np.float32) * 0.6).astype(np.uint8)
+
+
+def _draw_straight_horizon(canvas: np.ndarray, result: CalibrationResult) -> None:
+    ends = horizon_endpoints(result)
+    if ends is not None:
+        a, b = (tuple(int(round(v)) for v in p) for p in ends)
+        cv2.line(canvas, a, b, HORIZON_COLOUR, 2, cv2.LINE_AA)
+
+
 def horizon_endpoints(result: CalibrationResult):
     """The horizon (vanishing line of horizontal planes, l = K^-T R[:, vertical]) clipped to the image.
 
     Returns ((x1, y1), (x2, y2)) in pixels, or None when the horizon is outside the image.
     """
-    if result.rotation is None:
+    line = _horizon_line(result)
+    if line is None:
         return None
-    line = np.linalg.inv(result.camera.K).T @ result.rotation[:, VERTICAL_AXIS]
     w, h = result.width, result.height
     points = []
     if abs(line[1]) > 1e-12:  # intersections with the left and right borders
@@ -52,9 +72,9 @@ def horizon_curve(result: CalibrationResult, samples: int = 400) -> np.ndarray |
     """The horizon of a result with radial distortion as it runs through the photo: (M, 2) photo
     pixels (the straight horizon of the undistorted image, sampled over 7 image widths around the
     image and bent by the estimate's lens), the parts inside the image; None when none is."""
-    if result.rotation is None:
+    line = _horizon_line(result)
+    if line is None:
         return None
-    line = np.linalg.inv(result.camera.K).T @ result.rotation[:, VERTICAL_AXIS]
     w, h = result.width, result.height
     span = np.linspace(-3.0, 4.0, samples)
     if abs(line[1]) >= abs(line[0]):  # mostly horizontal: x runs, y follows
@@ -83,29 +103,20 @@ def draw_overlay(image_bgr: np.ndarray, result: CalibrationResult) -> np.ndarray
     """A copy of the image (darkened) with coloured segments, the horizon and a caption; with radial
     distortion, the photo (horizon as a curve) and the straightened image side by side (module
     docstring)."""
-    canvas = (image_bgr.astype(np.float32) * 0.6).astype(np.uint8)
+    canvas = _darkened(image_bgr)
     _draw_segments(canvas, result.segments, result.labels)
-    bent = result.ok and result.distortion_k != 0.0
-    if bent:
+    if not (result.ok and result.distortion_k != 0.0):
+        _draw_straight_horizon(canvas, result)
+    else:
         curve = horizon_curve(result)
         if curve is not None:
             cv2.polylines(canvas, [np.round(curve).astype(np.int32)[:, None, :]], False, HORIZON_COLOUR, 2,
                           cv2.LINE_AA)
-    else:
-        ends = horizon_endpoints(result)
-        if ends is not None:
-            a, b = (tuple(int(round(v)) for v in p) for p in ends)
-            cv2.line(canvas, a, b, HORIZON_COLOUR, 2, cv2.LINE_AA)
-    if bent:
-        straight = (undistort_image(image_bgr, result.distortion_k, result.camera.principal_point)
-                    .astype(np.float32) * 0.6).astype(np.uint8)
+        straight = _darkened(undistort_image(image_bgr, result.distortion_k, result.camera.principal_point))
         if result.segments is not None:
             ends = result.undistort_points(np.asarray(result.segments, np.float64).reshape(-1, 2, 2))
             _draw_segments(straight, ends.reshape(-1, 4), result.labels)
-        ends = horizon_endpoints(result)
-        if ends is not None:
-            a, b = (tuple(int(round(v)) for v in p) for p in ends)
-            cv2.line(straight, a, b, HORIZON_COLOUR, 2, cv2.LINE_AA)
+        _draw_straight_horizon(straight, result)
         draw_caption(straight, f"straightened (division model, k = {result.distortion_k:+.3f})", at_bottom=True)
         canvas = np.concatenate([canvas, straight], 1)
     if result.ok:

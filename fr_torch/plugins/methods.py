@@ -27,6 +27,7 @@ from fr_torch.core.config import SearchConfig
 from fr_torch.core.estimator import CalibrationResult
 from fr_torch.core.likelihood import LikelihoodParams
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, register
+from fr_torch.registry import format_method_spec
 from fr_torch.runtime.estimator import FREstimator
 
 
@@ -69,15 +70,10 @@ class FRCalibrator:
                                      k=None if k is None else float(k), **estimator_kwargs)
         self.use_meta_segments = use_meta_segments
         base = name or ("fr" if mode == "fr" else "fast-fr")
-        options = [f"measure={measure}"] if measure else []
-        options += [f"detector={detector}"] if detector != "lsd" else []
-        options += [f"likelihood={likelihood}"] if likelihood else []
-        options += [f"range={range}"] if isinstance(range, str) else []
-        options += [f"model={model}"] if model is not None else []
-        options += [f"atlanta={atlanta}"] if self.estimator.atlanta is not None else []
-        options += [f"distortion={distortion}"] if distortion is not None else []
-        options += [f"k={k}"] if k is not None else []
-        self.name = f"{base}[{','.join(options)}]" if options else base
+        self.name = format_method_spec(base, {
+            "measure": measure or None, "detector": detector if detector != "lsd" else None,
+            "likelihood": likelihood or None, "range": range if isinstance(range, str) else None, "model": model,
+            "atlanta": atlanta if self.estimator.atlanta is not None else None, "distortion": distortion, "k": k})
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
         start = time.perf_counter()

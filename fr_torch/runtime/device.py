@@ -134,15 +134,14 @@ class DevicePolicy:
         return cls(resolve_device(device), usable_cores(), cls._threads(threads), decode)
 
     @classmethod
-    def parse(cls, device: "str | torch.device" = "cpu", threads: "str | int | None" = None,
-              decode: str = "auto") -> "DevicePolicy":
+    def parse(cls, device: "str | torch.device" = "cpu", threads: "str | int | None" = None) -> "DevicePolicy":
         """The policy of ``device`` without checking that this machine has it: for planning work
         that runs elsewhere (a Ray cluster's GPU nodes).  A malformed name is an FRInputError."""
         try:
             torch_device = torch.device(device)
         except (RuntimeError, TypeError, ValueError):
             raise FRInputError(f"--device: unknown device {device!r} (use cpu or cuda)") from None
-        return cls(torch_device, usable_cores(), cls._threads(threads), decode)
+        return cls(torch_device, usable_cores(), cls._threads(threads))
 
     @staticmethod
     def _threads(threads: "str | int | None") -> ThreadSetting:
