@@ -193,6 +193,7 @@ def test_shared_principal_point(estimator):
     shared = calibrate_shared(estimator, segments=photos + [clutter], image_sizes=[(640, 480)] * 7)
     assert shared.ok and shared.principal_point is not None
     assert np.hypot(*(np.subtract(shared.principal_point, truth))) < 6.0
+    assert all(0 < s < 10.0 for s in shared.principal_point_sigma_px)  # a clear maximum: a finite 1-sigma (px)
     assert abs(shared.focal_px / TRUE_F - 1) < 0.02
     assert all(r.principal_point == pytest.approx(shared.principal_point) for r in shared.results if r.ok)
     assert json.loads(json.dumps(shared.to_json()))["principal_point"] == pytest.approx(list(shared.principal_point))
@@ -234,3 +235,25 @@ def test_batch_focal_prior(tmp_path):
     row = pd.read_parquet(tmp_path / "out_exif").iloc[0]
     assert pd.isna(row["focal_prior_px"]) and row["focal_prior_reason"] and row["ok"]
     assert main(["batch", str(a), "--out", str(tmp_path / "bad"), "--focal", "500", "--focal-prior", "400"]) == 2
+
+
+def test_a_flat_principal_point_is_the_centre_with_an_open_bound(monkeypatch):
+    """Scores that do not single out a principal point (flat, or curving the wrong way) keep the image
+    centre and say so (an infinite 1-sigma), instead of a point the last bits would pick."""
+    from types import SimpleNamespace
+
+    from fr_torch.runtime import shared_focal
+
+    photos = [SimpleNamespace(width=640, height=480)] * 5
+    settings = shared_focal.SharedFocalSettings()
+    axis = np.asarray(settings.pp_offsets)
+    grid = np.stack(np.meshgrid(axis, axis, indexing="xy"), -1).reshape(-1, 2)
+    for surface in (np.zeros(len(grid)), 1e3 * (grid ** 2).sum(1), -1e-3 * (grid ** 2).sum(1)):
+        monkeypatch.setattr(shared_focal, "principal_point_scores",
+                            lambda *args, s=surface: (np.tile(s, (5, 1)), np.full(5, 1000.0)))
+        fit = shared_focal.shared_principal_point(None, photos, settings)
+        assert fit.flat and fit.offset == (0.0, 0.0) and fit.sigma == (np.inf, np.inf)
+    peaked = -2e4 * ((grid - [0.01, -0.005]) ** 2).sum(1)  # tempered by beta / W = 0.03: within the floor
+    monkeypatch.setattr(shared_focal, "principal_point_scores", lambda *args: (np.tile(peaked, (5, 1)), np.full(5, 1e3)))
+    fit = shared_focal.shared_principal_point(None, photos, settings)
+    assert not fit.flat and fit.offset == pytest.approx((0.01, -0.005), abs=1e-3) and max(fit.sigma) < 0.04

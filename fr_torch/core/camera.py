@@ -39,6 +39,8 @@ from functools import cached_property
 import numpy as np
 import torch
 
+from fr_torch.core.exact import atan2
+
 VERTICAL_AXIS = 1  # column of R holding the (downward) vertical Manhattan direction
 Y_UP = (1.0, -1.0, 1.0)  # diag flipping the camera y axis (y-down <-> y-up frames)
 
@@ -156,7 +158,7 @@ def pan_from_rotation(rotation: torch.Tensor, vertical_axis: int = VERTICAL_AXIS
     horizontal = [i for i in range(3) if i != vertical_axis]
     # Optical axis (camera z) in world coordinates is row 2 of R.
     axis_world = rotation[..., 2, :]
-    heading = torch.atan2(axis_world[..., horizontal[0]], axis_world[..., horizontal[1]])
+    heading = atan2(axis_world[..., horizontal[0]], axis_world[..., horizontal[1]])
     deg = torch.rad2deg(heading)
     return torch.remainder(deg + 45.0, 90.0) - 45.0
 
@@ -169,8 +171,19 @@ def angles_from_rotation(rotation: torch.Tensor, vertical_axis: int = VERTICAL_A
 
 
 def vanishing_points(focal_px: torch.Tensor, principal_point: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
-    """Homogeneous vanishing points K @ R, shape (..., 3, 3): column i is VP i (never dehomogenised)."""
-    return intrinsics(focal_px, principal_point) @ rotation
+    """Homogeneous vanishing points K @ R, shape (..., 3, 3): column i is VP i (never dehomogenised).
+
+    ``focal_px`` (...), ``principal_point`` (..., 2) pixels, broadcastable with ``rotation``'s
+    batch shape.  Written out (rows ``f R_0 + c_x R_2``, ``f R_1 + c_y R_2``, ``R_2``, each product
+    and sum rounded once), not as a matrix product: the same bits in any batch and on any kernel
+    set (:mod:`fr_torch.core.exact`).
+    """
+    focal_px = torch.as_tensor(focal_px, dtype=rotation.dtype, device=rotation.device)[..., None]
+    pp = torch.as_tensor(principal_point, dtype=rotation.dtype, device=rotation.device)
+    last = rotation[..., 2, :]
+    return torch.stack([focal_px * rotation[..., 0, :] + pp[..., 0:1] * last,
+                        focal_px * rotation[..., 1, :] + pp[..., 1:2] * last,
+                        last.expand(torch.broadcast_shapes(last.shape, focal_px.shape))], -2)
 
 
 def vanishing_point_rows(focal_px: torch.Tensor, principal_point: torch.Tensor,

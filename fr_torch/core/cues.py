@@ -17,6 +17,7 @@ import torch
 
 from fr_torch.core.config import FAST_REFINE_ITERATIONS, SearchConfig
 from fr_torch.core.distortion import DistortionSetting, border_bow_percent
+from fr_torch.core.exact import exact_sum, first_argmax, small_sum
 from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
 from fr_torch.core.params import FOCAL, from_log_focal, rotations, to_log_focal
 from fr_torch.core.search import (
@@ -89,15 +90,26 @@ def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, pa
     points = from_log_focal(centre[:, None, :] + LATTICE.to(device) * step)  # (B, 81, 4)
     scores = score_grid(likelihood, features, points, max_chunk_elements, vertical_block=3)
     fit = _QUADRATIC_FIT.to(device).T  # (81, 15)
-    coef = scores.to(torch.float64) @ fit  # (B, 15)
+    coef = lattice_fit(scores, fit)  # (B, 15)
     hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(-1, 4, 4) / (step[:, None] * step[None, :])
     if not likelihood.params.focal_prior_weight:
         return hessian, torch.zeros(params.shape[0], dtype=torch.float64, device=device)
     # The prior's curvature over the same lattice, fitted the same way (exact for the log-normal;
     # a flat-topped prior has none inside its band and part of it at the band's edge).
     prior_values = likelihood.focal_prior(features, points[..., FOCAL].to(features.weight.dtype))[0]
-    prior_hessian = prior_values.to(torch.float64) @ fit[:, _HESSIAN_COLUMNS[15].item()]  # H_33, lattice units
+    prior_hessian = lattice_fit(prior_values, fit[:, _HESSIAN_COLUMNS[15].item(), None])[:, 0]  # H_33, lattice units
     return hessian, (-prior_hessian / step[3] ** 2).clamp_min(0.0)
+
+
+def lattice_fit(values: torch.Tensor, fit: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    """The fit's coefficients from lattice values: ``sum_h values[..., h, ...] fit[h, c]`` for the 81
+    lattice points along ``dim`` of ``values`` and a fit (81, C); returns the other dimensions of
+    ``values`` then C, float64.  Each coefficient is an exact sum over the lattice
+    (:func:`fr_torch.core.exact.exact_sum`; a matrix product's order would depend on the batch)."""
+    values = values.to(torch.float64)
+    shape = [1] * values.dim()
+    shape[dim] = -1
+    return torch.stack([exact_sum(values * fit[:, c].view(shape), dim) for c in range(fit.shape[1])], -1)
 
 
 def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
@@ -128,7 +140,7 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     hessian[:, 3, 3] += prior  # the likelihood's Hessian alone
     angles, focal_row = hessian[:, :3, :3], hessian[:, :3, 3:]
     solved, info = torch.linalg.solve_ex(angles, focal_row)
-    profile = -(hessian[:, 3, 3] - (focal_row * solved).sum((-1, -2)))  # per (log f)^2
+    profile = -(hessian[:, 3, 3] - small_sum((focal_row * solved)[..., 0], -1))  # per (log f)^2
     share = prior / (prior + profile.clamp_min(0.0))
     ok = torch.isfinite(share) & (info == 0)
     return torch.where(ok, share.clamp(0.0, 1.0) + 0.0, torch.ones_like(share))  # + 0.0: no -0.0 in the output
@@ -218,7 +230,8 @@ def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, para
         lower, upper = parameter_box(config, long_rep, focal_rep)
         refined, refined_scores = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations,
                                          fast=True, periodic_pan=config.periodic_pan)
-        value, arg = refined_scores.to(torch.float64).max(1)
+        arg = first_argmax(refined_scores, 1)
+        value = torch.gather(refined_scores.to(torch.float64), 1, arg[:, None])[:, 0]
         image, ratio = image.to(device), ratio.to(device)
         best[image, ratio] = value
         points[image, ratio] = refined[torch.arange(len(arg), device=device), arg].to(torch.float64)
@@ -279,9 +292,10 @@ def _resampled_sd(differences: torch.Tensor, mask: torch.Tensor) -> torch.Tensor
     (``sqrt(n / (n - 1) sum_i (d_i - mean d)^2)``), over the last axis; ``differences`` (..., N),
     ``mask`` broadcastable to it."""
     weight = mask.to(differences)
-    n = weight.sum(-1).clamp_min(2.0)
-    mean = (differences * weight).sum(-1) / n
-    return ((((differences - mean[..., None]) * weight) ** 2).sum(-1) * n / (n - 1)).sqrt()
+    n = weight.sum(-1).clamp_min(2.0)  # a count: exact in any order
+    mean = exact_sum(differences * weight, -1) / n
+    centred = (differences - mean[..., None]) * weight
+    return (exact_sum(centred * centred, -1) * n / (n - 1)).sqrt()
 
 
 def focal_profile_spread(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
@@ -320,7 +334,7 @@ def focal_profile_spread(likelihood: MixtureLikelihood, features: SegmentFeature
         here = params[b:b + SEGMENT_CHUNK_IMAGES].to(device=device, dtype=torch.float64)
         terms = segment_objectives(likelihood, sub, torch.cat([here[:, None], points[b:b + SEGMENT_CHUNK_IMAGES]], 1))
         differences = terms[:, :1] - terms[:, 1:]  # (b, R, N)
-        z = differences.sum(-1) / _resampled_sd(differences, sub.mask[:, None, :]).clamp_min(1e-12)
+        z = exact_sum(differences, -1) / _resampled_sd(differences, sub.mask[:, None, :]).clamp_min(1e-12)
         out.append(z)
     z = torch.cat(out) if out else torch.zeros(0, count, dtype=torch.float64, device=device)
     log_ratio = torch.tensor([abs(math.log(r)) for r in ratios], dtype=torch.float64, device=device)
@@ -369,15 +383,15 @@ def resample_spreads(likelihood: MixtureLikelihood, features: SegmentFeatures, p
         sub = features.images(b, b + SEGMENT_CHUNK_IMAGES)
         centre = to_log_focal(params[b:b + SEGMENT_CHUNK_IMAGES].to(device=device, dtype=torch.float64))
         terms = segment_objectives(likelihood, sub, from_log_focal(centre[:, None, :] + LATTICE.to(device) * step))
-        gradient = torch.einsum("bhn,ch->bnc", terms, fit) / step  # (b, N, 4) per degree / per log f
+        gradient = lattice_fit(terms, fit.T, dim=1) / step  # (b, N, 4) per degree / per log f
         weight = sub.mask.to(gradient)[..., None]
-        n = weight.sum(1).clamp_min(2.0)
-        centred = (gradient - (gradient * weight).sum(1, keepdim=True) / n[:, None]) * weight
-        blocks.append(torch.einsum("bni,bnj->bij", centred, centred) * (n / (n - 1))[..., None])
+        n = weight.sum(1).clamp_min(2.0)  # a count: exact in any order
+        centred = (gradient - exact_sum(gradient * weight, 1, keepdim=True) / n[:, None]) * weight
+        blocks.append(exact_sum(centred[..., :, None] * centred[..., None, :], 1) * (n / (n - 1))[..., None])
     outer = torch.cat(blocks) if blocks else torch.zeros(0, 4, 4, dtype=torch.float64, device=device)
     h, j = hessian[:, free, free], outer[:, free, free]
     inverse, info = torch.linalg.inv_ex(h)
-    covariance = inverse @ j @ inverse
+    covariance = _matmul_small(_matmul_small(inverse, j), inverse)
     peak = torch.linalg.eigvalsh(0.5 * (h + h.transpose(-1, -2)))[:, -1] < 0  # a maximum of the likelihood
     ok = (info == 0) & peak
 
@@ -388,6 +402,12 @@ def resample_spreads(likelihood: MixtureLikelihood, features: SegmentFeatures, p
 
     focal = torch.zeros(params.shape[0], dtype=torch.float64, device=device) if known_focal else spread(3)
     return {"focal_resample_spread": focal, "pitch_resample_spread": spread(1)}
+
+
+def _matmul_small(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` for small batched matrices (..., n, m) x (..., m, k), every entry summed over m from
+    left to right (:func:`fr_torch.core.exact.small_sum`): the same bits in any batch."""
+    return small_sum(a[..., :, :, None] * b[..., None, :, :], -2)
 
 
 def check_result(result, config: SearchConfig, known_focal: bool = False,
@@ -516,10 +536,12 @@ def focal_conditioning(rotation: torch.Tensor) -> torch.Tensor:
         panned square to a wall with level tilt (all three VPs at the centre or at infinity) gives
         0: its focal length is left to the prior.  No f enters (the directions alone decide).
     """
-    columns = rotation / rotation.norm(dim=-2, keepdim=True).clamp_min(1e-12)
-    off_axis = columns[..., :2, :].norm(dim=-2)  # sin(theta_i), (..., 3)
-    along_axis = columns[..., 2, :].abs()  # cos(theta_i)
-    return (off_axis * along_axis).square().sum(-1).sqrt()
+    squares = rotation * rotation
+    norm = torch.sqrt(small_sum(squares, -2)).clamp_min(1e-12)  # (..., 3) column lengths
+    off_axis = torch.sqrt(squares[..., 0, :] + squares[..., 1, :]) / norm  # sin(theta_i)
+    along_axis = rotation[..., 2, :].abs() / norm  # cos(theta_i)
+    product = off_axis * along_axis
+    return torch.sqrt(small_sum(product * product, -1))
 
 
 def image_cues(grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[str, torch.Tensor]:
@@ -541,9 +563,11 @@ def image_cues(grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[
     """
     n = mask.sum(-1).clamp_min(1)
     counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
-    log_q = torch.log_softmax(grid_scores / grid_counts.clamp_min(1)[:, None].to(grid_scores), -1)
-    entropy = -(log_q.exp() * log_q).sum(-1)
-    mean_log = (log_p * mask).sum(-1) / n
+    scaled = grid_scores.to(torch.float64) / grid_counts.clamp_min(1)[:, None].to(torch.float64)
+    largest = scaled.amax(-1, keepdim=True)
+    log_q = scaled - largest - torch.log(exact_sum(torch.exp(scaled - largest), -1, keepdim=True))  # log softmax
+    entropy = -exact_sum(log_q.exp() * log_q, -1)
+    mean_log = exact_sum(log_p * mask, -1) / n
     return {"min_family_segments": counts.min(-1).values.to(torch.float64),
             "grid_entropy": entropy.to(torch.float64),
             "mean_log_likelihood": mean_log.to(torch.float64),
@@ -581,7 +605,7 @@ def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: Se
         return cues
     fitted = local_quadratic(likelihood, features, params, search.max_chunk_elements)
     cues = {"focal_prior_share": focal_prior_share(likelihood, features, params, fitted=fitted),
-            "focal_spread": focal_spread(fitted[0], features.weight.sum(-1))}
+            "focal_spread": focal_spread(fitted[0], features.total_length())}
     if profile_gap:
         profile = focal_profile(likelihood, features, params, search, FAST_REFINE_ITERATIONS)
         cues["focal_profile_gap"] = focal_profile_gap(likelihood, features, params, scores, search,

@@ -35,6 +35,7 @@ from fr_torch.core.checks import (
 )
 from fr_torch.core.checks import image_sizes as checked_image_sizes
 from fr_torch.core.config import Mode, SearchConfig
+from fr_torch.core.exact import first_argmax
 from fr_torch.core.distortion import (
     DistortionMode,
     colmap_camera,
@@ -70,6 +71,7 @@ from fr_torch.core.search import (
     select_starts,
     subdivide_starts,
     sweep_focal,
+    tie_tolerance,
 )
 from fr_torch.core.vanishing import AtlantaConfig, rank_vanishing_points
 from fr_torch.core.segments import (
@@ -81,6 +83,10 @@ from fr_torch.core.segments import (
 from fr_torch.errors import FRInputError
 
 BACKGROUND_LABEL = 3
+#: The reason of an estimate that another, different solution matched within rounding
+#: (:func:`fr_torch.core.search.best_of_start_and_refined`).
+TIE_REASON = ("another solution scores the same to within rounding (the photo has two answers: another machine "
+              "could return the other)")
 
 
 @dataclass
@@ -466,7 +472,7 @@ class SegmentEstimator:
         if lens == "division":
             found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal,
                                   self.iterations, fast=self.mode == "fast")
-            params, best_scores = found.params, found.scores
+            params, best_scores, tied = found.params, found.scores, found.tied
             k_estimate = params[:, DISTORTION]
             estimate = CameraParams(params[:, :DISTORTION].contiguous())
             features = geometry.features(params[:, DISTORTION, None])  # the segments as the estimate sees them
@@ -491,14 +497,15 @@ class SegmentEstimator:
                                              fast=self.mode == "fast", tolerance=self.search.refine_tolerance,
                                              patience=self.search.refine_patience,
                                              periodic_pan=self.search.periodic_pan)
-            params, best_scores = best_of_start_and_refined(starts, top_scores, refined, refined_scores)
+            params, best_scores, tied = best_of_start_and_refined(starts, top_scores, refined, refined_scores,
+                                                                  tie_tolerance(features))
             estimate = CameraParams(params)
         t2 = time.perf_counter()
 
         rotation = estimate.rotation()  # float64 (B, 3, 3)
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype),
                                                       estimate.focal_px[:, None].to(dtype))
-        labels = posterior[:, 0].argmax(-1)
+        labels = first_argmax(posterior[:, 0], -1)
         ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta)
         cues = image_cues(grid_scores, grid_counts, labels, log_p[:, 0], batch.mask, rotation)
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
@@ -515,11 +522,10 @@ class SegmentEstimator:
         rotation_all = rotation.cpu().numpy()
         params_all = estimate.data.cpu().numpy()
         scores_all = best_scores.to(torch.float64).cpu().numpy()
+        tied_all = tied.cpu().numpy()
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
         ranked_points, ranked_support, ranked_family = (ranked.points.cpu().numpy(), ranked.support.cpu().numpy(),
                                                         ranked.family.cpu().numpy())
-        family = labels_all != BACKGROUND_LABEL
-        manhattan = (lengths_all * family).sum(-1) / np.maximum(lengths_all.sum(-1), 1e-12)
         cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, FOCAL], pp_np, rotation_all)
         k_all = None if k_estimate is None else k_estimate.to(torch.float64).cpu().numpy()
         # Finite parameters, objective and rotation give finite hfov, angles and VPs (f > 0 in the box).
@@ -537,7 +543,8 @@ class SegmentEstimator:
             r.ranked_vanishing_points = ranked_points[j][found]
             r.vanishing_point_support = ranked_support[j][found]
             r.vanishing_point_families = ranked_family[j][found]
-            r.manhattan_fraction = float(manhattan[j])
+            lengths = lengths_all[j, :n]  # the image's own segments: the same sums in any batch
+            r.manhattan_fraction = float((lengths * (r.labels != BACKGROUND_LABEL)).sum() / max(lengths.sum(), 1e-12))
             r.cues = {key: float(value[j]) for key, value in cues_all.items()}
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             if k_all is not None:
@@ -547,6 +554,8 @@ class SegmentEstimator:
             bend = lines_bend_reason(r.cues, setting, r.width, r.height) if lens == "pinhole" else None
             if bend:
                 r.reliable, r.reason = False, "; ".join(x for x in (r.reason, bend) if x)
+            if tied_all[j]:
+                r.reliable, r.reason = False, "; ".join(x for x in (r.reason, TIE_REASON) if x)
             # non-finite -> ok=False; focal or an angle at its range's edge -> unreliable
             check_result(r, self.search, known_focal, finite=bool(finite[j]), search_params=params_all[j])
             if auto and bend and r.ok:

@@ -46,6 +46,12 @@ density (>= 0.019 for measure b), which it cannot change in float32 or float64, 
 is unchanged bit for bit whenever the background prior exceeds ~1e-28.  ``atan2(0, 0) = 0`` as in
 the generic path (and the gradient there is 0, as the generic path's guard gives).
 
+One photo, one answer: s and t are written out per entry (:func:`incidence`, no matrix product),
+the angle is ``atan(|s / t|)``, the families are added in one order on every path
+(:func:`_family_sum`) and every sum over segments is exact
+(:func:`fr_torch.core.exact.exact_sum`), so an image's objective (float64) is the same bits in
+any batch, chunk, thread count and CPU kernel set (:mod:`fr_torch.core.exact`).
+
 Compiled search (opt-in, ``MixtureLikelihood(compiled=True)``, ``SearchConfig.compile_search``,
 ``--compile``): the no-gradient measure-b sums are written as broadcast elementwise ops and one
 reduction over segments (:func:`objective_b_elementwise`), which ``torch.compile`` turns into one
@@ -68,9 +74,10 @@ import torch
 from fr_torch.core.camera import (
     VERTICAL_AXIS,
     focal_from_hfov,
-    intrinsics,
+    vanishing_points,
 )
 from fr_torch.core.config import Mode
+from fr_torch.core.exact import angle_of, angle_of_, dot3, exact_sum, small_sum, top_indices
 from fr_torch.core.fov import FOV_LIMITS_DEG, FovRange
 from fr_torch.core.segments import SegmentBatch
 from fr_torch.resources import config_dir
@@ -282,8 +289,8 @@ class SegmentFeatures:
     mask: torch.Tensor  # (B, N) bool
     principal_point: torch.Tensor  # (B, 2) pixels
     long_side: torch.Tensor  # (B,) the image's longer side, pixels (the focal prior's scale)
-    #: (B, 2N, 3) ``line`` then ``along`` rows: one batched matrix product with the VPs gives s and t
-    #: (the measure-b paths; one (2N x 3) product takes about a third of the time of two (N x 3) ones).
+    #: (B, 2N, 3) ``line`` then ``along`` rows: one :func:`incidence` with the VPs gives s and t
+    #: (the measure-b paths).
     #: Built from ``line`` and ``along`` unless given (then ``line`` and ``along`` are its halves).
     line_along: torch.Tensor | None = field(default=None, repr=False)
 
@@ -303,24 +310,29 @@ class SegmentFeatures:
         image size when the principal point is the image centre)."""
         p1, p2 = endpoints[..., :2], endpoints[..., 2:]
         delta = p2 - p1
-        length = torch.linalg.vector_norm(delta, dim=-1)
+        length = torch.sqrt(delta[..., 0] * delta[..., 0] + delta[..., 1] * delta[..., 1])
         if mask is None:
             mask = torch.ones_like(length, dtype=torch.bool)
         mask = mask & (length > 0)
         d = delta / length.clamp_min(1e-12).unsqueeze(-1)
         m = (p1 + p2) / 2
         line = torch.stack([-d[..., 1], d[..., 0], d[..., 1] * m[..., 0] - d[..., 0] * m[..., 1]], -1)
-        along = torch.stack([d[..., 0], d[..., 1], -(d * m).sum(-1)], -1)
+        along = torch.stack([d[..., 0], d[..., 1], -(d[..., 0] * m[..., 0] + d[..., 1] * m[..., 1])], -1)
         pp = principal_point.to(endpoints).expand(endpoints.shape[0], 2)
         long_side = 2 * pp.amax(-1) if long_side is None else long_side.to(endpoints).expand(endpoints.shape[0])
         return cls(line, along, length / 2, length * mask, mask, pp, long_side)
+
+    def total_length(self) -> torch.Tensor:
+        """(B,) float64 total segment length per image, pixels (an exact sum: the same bits in any
+        batch, :func:`fr_torch.core.exact.exact_sum`)."""
+        return exact_sum(self.weight, 1)
 
     def longest(self, count: int) -> "SegmentFeatures":
         """The ``count`` longest segments of each image (B, min(count, N), ...); padding stays last
         (weight 0)."""
         if count >= self.weight.shape[1]:
             return self
-        index = self.weight.topk(count, dim=1).indices  # (B, count)
+        index = top_indices(self.weight, count, dim=1)  # (B, count), equal lengths in segment order
 
         def take(x: torch.Tensor) -> torch.Tensor:
             shaped = index.view(index.shape + (1,) * (x.dim() - 2)).expand(index.shape + x.shape[2:])
@@ -347,17 +359,32 @@ class SegmentFeatures:
                                self.long_side[start:stop])
 
 
+def incidence(rows: torch.Tensor, columns: torch.Tensor, out: torch.Tensor | None = None,
+              tmp: torch.Tensor | None = None) -> torch.Tensor:
+    """``rows @ columns`` for (B, R, 3) segment rows (``line`` or ``along`` coefficients) and (B, 3, M)
+    homogeneous points: (B, R, M), every entry ``r_0 c_0 + r_1 c_1 + r_2 c_2`` with one rounding per
+    product and sum (:func:`fr_torch.core.exact.dot3`'s order), not a matrix product, so a segment's
+    s and t are the same bits in any batch, chunk and kernel set.  ``out`` / ``tmp``: optional
+    buffers of the result's shape (the grid reuses them)."""
+    if out is None:  # functional (differentiable); the same operations in the same order
+        return dot3(rows[:, :, None, :], columns.transpose(1, 2)[:, None, :, :])
+    torch.mul(rows[:, :, 0, None], columns[:, None, 0], out=out)
+    tmp = tmp if tmp is not None else torch.empty_like(out)
+    for c in (1, 2):
+        out.add_(torch.mul(rows[:, :, c, None], columns[:, None, c], out=tmp))
+    return out
+
+
 def _incidence(features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor):
     """s = l . v and t = g . v for the homogeneous VPs v = K R[:, k].
 
-    Returns s, t with shape (B, N, H, 3) (segments before hypotheses: the layout of one batched
-    matrix product, (B, N, 3) x (B, 3, 3H)) and v3 with shape (B, 1, H, 3).
+    Returns s, t with shape (B, N, H, 3) (segments before hypotheses) and v3 with shape (B, 1, H, 3).
     """
-    vps = intrinsics(focal, features.principal_point[:, None, :]) @ rotation  # (B, H, 3, 3)
+    vps = vanishing_points(focal, features.principal_point[:, None, :], rotation)  # (B, H, 3, 3)
     batch, hyp = vps.shape[:2]
     flat = vps.permute(0, 2, 1, 3).reshape(batch, 3, hyp * 3)  # (B, 3 coords, H * 3 VPs)
-    s = torch.bmm(features.line, flat).view(batch, -1, hyp, 3)
-    t = torch.bmm(features.along, flat).view(batch, -1, hyp, 3)
+    s = incidence(features.line, flat).view(batch, -1, hyp, 3)
+    t = incidence(features.along, flat).view(batch, -1, hyp, 3)
     return s, t, vps[:, None, :, 2, :]
 
 
@@ -379,10 +406,10 @@ def deviations_from_incidence(measure: str, s: torch.Tensor, t: torch.Tensor, v3
         # asin(|s| / |n|) written as atan2(|s|, sqrt(|n|^2 - s^2)): the same angle, but finite with a
         # finite gradient in float32 where |s| / |n| rounds to 1 (asin' = inf there -> NaN parameters).
         cos_part = torch.sqrt((normal_sq - abs_s * abs_s).clamp_min(normal_sq * 1e-12))
-        return torch.atan2(abs_s, cos_part)
+        return angle_of(abs_s, cos_part)
     abs_t = t.abs()
     # A midpoint exactly on the VP (s = t = 0) gets angle 0 with a finite gradient.
-    angle = torch.atan2(abs_s, torch.where((abs_s == 0) & (abs_t == 0), torch.ones_like(abs_t), abs_t))
+    angle = angle_of(abs_s, torch.where((abs_s == 0) & (abs_t == 0), torch.ones_like(abs_t), abs_t))
     if measure == "b":
         return angle
     half = features.half_length[:, :, None, None]
@@ -407,9 +434,10 @@ def deviations(measure: str, endpoints: torch.Tensor, vps: torch.Tensor, focal: 
         direction = torch.stack([(vps[:, :, 0] - pp[..., 0, :] * vps[:, :, 2]) / focal[..., None],
                                  (vps[:, :, 1] - pp[..., 1, :] * vps[:, :, 2]) / focal[..., None],
                                  vps[:, :, 2]], -2)
-        vps = vps / torch.linalg.vector_norm(direction, dim=-2)[:, :, None, :]
-    s = torch.einsum("bnc,bhck->bnhk", features.line, vps)
-    t = torch.einsum("bnc,bhck->bnhk", features.along, vps)
+        vps = vps / torch.sqrt(small_sum(direction * direction, -2))[:, :, None, :]
+    columns = vps.transpose(-1, -2)[:, None]  # (B, 1, H, 3 VPs, 3 coordinates)
+    s = dot3(features.line[:, :, None, None, :], columns)
+    t = dot3(features.along[:, :, None, None, :], columns)
     x = deviations_from_incidence(measure, s, t, vps[:, None, :, 2, :], features, focal, range_px)
     return x.transpose(1, 2)
 
@@ -473,8 +501,8 @@ class MixtureLikelihood:
         internal units; ``focal`` (B,) pixels (measure e).  For measure e the VPs must be ``K d``
         with unit directions ``d``, as a column of R gives."""
         flat = vps.transpose(1, 2).to(features.line.dtype)  # (B, 3, A)
-        s = torch.bmm(features.line, flat)[..., None]  # (B, N, A, 1)
-        t = torch.bmm(features.along, flat)[..., None]
+        s = incidence(features.line, flat)[..., None]  # (B, N, A, 1)
+        t = incidence(features.along, flat)[..., None]
         v3 = flat[:, None, 2, :, None]  # (B, 1, A, 1)
         focal = focal.to(flat.dtype)[:, None].expand(-1, flat.shape[-1])
         return deviations_from_incidence(self.params.measure, s, t, v3, features, focal, self.params.range_px)[..., 0]
@@ -500,7 +528,7 @@ class MixtureLikelihood:
         else:
             density = torch.exp(x * (-1.0 / scale)) * (prior / scale)
         background = torch.exp(self._log_background(density, features))[..., 0]
-        return torch.log(density.sum(-1) + background)
+        return torch.log(_family_sum(density, -1) + background)
 
     def objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                   workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
@@ -535,18 +563,20 @@ class MixtureLikelihood:
         without a prior), in objective units per (log f)^2, directly comparable with the curvature
         of the length-weighted likelihood."""
         params = self.params
-        evidence = features.weight.sum(-1) + params.focal_prior_pseudo_length * features.long_side  # W + W0
+        total_length = exact_sum(features.weight, -1).to(features.weight)  # W, the same in any batch
+        evidence = total_length + params.focal_prior_pseudo_length * features.long_side  # W + W0
         return params.focal_prior_weight * evidence
 
     def _data_objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                         workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
-        """Length-weighted log-likelihood sum_i len_i log p_i, (B, H).
+        """Length-weighted log-likelihood sum_i len_i log p_i, (B, H) float64: the sum over segments
+        is exact (:func:`fr_torch.core.exact.exact_sum`), so an image scores the same in any batch.
 
         Measure b in float32/float64 takes the fused path (module docstring); ``workspace`` (a
         dict, reused across calls of the same shape) lets the grid avoid fresh allocations.
         """
         if self._fast_path(features):
-            vps = intrinsics(focal, features.principal_point[:, None, :]) @ rotation  # (B, H, 3, 3)
+            vps = vanishing_points(focal, features.principal_point[:, None, :], rotation)  # (B, H, 3, 3)
             flat = vp_major(vps)
             constants = self._b_constants(features.weight)
             if torch.is_grad_enabled() and vps.requires_grad:
@@ -562,9 +592,9 @@ class MixtureLikelihood:
         if self.params.model == "nomixture":
             x = self._deviations(features, rotation, focal).amin(-1)  # (B, N, H)
             log_x = torch.log(x + self.params.scale_horizontal / 100)
-            return -torch.einsum("bnh,bn->bh", log_x, features.weight)
+            return -exact_sum(log_x, 1, weight=features.weight[:, :, None])
         log_p = self.segment_log_likelihood(features, rotation, focal)
-        return torch.einsum("bnh,bn->bh", log_p, features.weight)
+        return exact_sum(log_p, 1, weight=features.weight[:, :, None])
 
     def _fast_path(self, features: SegmentFeatures) -> bool:
         return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in _EXP_FLOOR
@@ -573,14 +603,19 @@ class MixtureLikelihood:
                 and self.params.prior_background > 1e-20)
 
     def _b_constants(self, like: torch.Tensor):
-        """(-1 / lambda (3, 1), log(prior / lambda) (3, 1), background density, exponent floor)."""
+        """(-1 / lambda (3, 1), log(prior / lambda) (3, 1), background density, exponent floor,
+        bound on |log p_i|) of the fused measure-b path."""
         key = (like.dtype, like.device)
         cached = self.__dict__.setdefault("_constants_cache", {}).get(key)
         if cached is None:
             prior, scale = self._family_constants(like)
             p = self.params
+            background = p.prior_background / (math.pi / 2)
+            # p_i lies between the background density and the background plus every family's peak
+            peak = background + float((prior / scale).sum())
+            log_bound = max(abs(math.log(background)), abs(math.log(peak)))
             cached = ((-1.0 / scale)[:, None].contiguous(), torch.log(prior / scale)[:, None].contiguous(),
-                      p.prior_background / (math.pi / 2), _EXP_FLOOR[like.dtype])
+                      background, _EXP_FLOOR[like.dtype], log_bound)
             self._constants_cache[key] = cached
         return cached
 
@@ -588,7 +623,9 @@ class MixtureLikelihood:
                    max_chunk_elements: int = 1 << 22):
         """(posterior over the 4 components (B, H, N, 4), log p_i (B, H, N)); column 3 = background.
 
-        Images are processed in slices of at most ``max_chunk_elements`` deviations (bounded memory).
+        Images are processed in slices of at most ``max_chunk_elements`` deviations (bounded memory);
+        the log-sum-exp over the 4 components is written out (largest term, then the 4 exponentials
+        added in component order), so every value is the same bits in any batch.
         """
         batch, n_seg = features.weight.shape
         step = max(1, max_chunk_elements // max(1, n_seg * rotation.shape[1] * 3))
@@ -597,8 +634,17 @@ class MixtureLikelihood:
                                      max_chunk_elements) for b in range(0, batch, step)]
             return torch.cat([q for q, _ in parts]), torch.cat([lp for _, lp in parts])
         log_components = self._component_log_densities(self._deviations(features, rotation, focal), features)
-        log_p = torch.logsumexp(log_components, -1)
+        largest = log_components.amax(-1, keepdim=True)
+        log_p = (largest + torch.log(small_sum(torch.exp(log_components - largest), -1)[..., None]))[..., 0]
         return torch.exp(log_components - log_p[..., None]).transpose(1, 2), log_p.transpose(1, 2)
+
+
+def _family_sum(density: torch.Tensor, dim: int) -> torch.Tensor:
+    """The three families' densities summed over ``dim`` (size 3, Manhattan column order) as
+    ``(horizontal + horizontal) + vertical``: the order of the fused paths, which score the vertical
+    VP apart (:func:`objective_b_nograd`), so every path gives the same bits."""
+    first, second = [density.select(dim, k) for k in range(3) if k != VERTICAL_AXIS]
+    return first + second + density.select(dim, VERTICAL_AXIS)
 
 
 # --------------------------------------------------------------------------- fused measure-b path
@@ -624,50 +670,67 @@ def _take(workspace: dict | None, name: str, shape, like: torch.Tensor) -> torch
     return buf[:numel].view(shape)
 
 
-def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, background, floor,
+def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound,
                        workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
-    """Measure-b objective (B, H) for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd.
+    """Measure-b objective (B, H) float64 for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd.
 
-    Every pass is in place on one (B, 2N, 3H) buffer: [s; t] = one bmm; |s|, |t|; x = atan2(|s|, |t|);
-    log(prior/lambda) - x/lambda, clamped at ``floor``; exp; sum over the 3 VPs + background; log;
-    length-weighted sum over segments (bmm).
+    Every pass is in place on reusable buffers: [s; t] (:func:`incidence`); x = atan(|s / t|)
+    (:func:`fr_torch.core.exact.angle_of_`); log(prior/lambda) - x/lambda, clamped at ``floor``;
+    exp; the 3 families and the background added as ``(horizontal + horizontal) + vertical +
+    background`` (:func:`_family_sum`'s order); log; the length-weighted sum over segments, exact
+    (:func:`fr_torch.core.exact.exact_sum`, bounded per image by ``log_bound`` times the longest
+    segment).
 
     ``vertical_block`` = k > 1: runs of k consecutive hypotheses share the vertical VP (column
     ``VERTICAL_AXIS``), so only every k-th one is scored and added to its run: (2 + 1/k) H VP
-    columns instead of 3 H, the same sums.  H must be a multiple of k.
+    columns instead of 3 H, the same sums bit for bit.  H must be a multiple of k.
     """
-    if vertical_block > 1:
-        return _objective_b_shared_vertical(line_along, weight, flat, neg_inv_scale, log_coef, background,
-                                            floor, workspace, vertical_block)
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
-    e = _family_density(line_along, flat, neg_inv_scale, log_coef, floor, workspace, "st", groups=3)
-    e = e.view(batch, n_seg, 3, hyp)
-    p = torch.add(e[:, :, 0], e[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), weight))
-    p.add_(e[:, :, 2]).add_(background).log_()
-    return torch.bmm(weight[:, None, :], p)[:, 0]
+    if vertical_block > 1 and hyp % vertical_block:
+        raise ValueError(f"vertical_block {vertical_block} does not divide the {hyp} hypotheses")
+    block = max(1, vertical_block)
+    columns = flat.view(batch, 3, 3, hyp)
+    h_cols = _without_vertical(columns, 2).reshape(batch, 3, 2 * hyp)
+    v_cols = columns[:, :, VERTICAL_AXIS, ::block]  # (B, 3, H / k): one per run
+    h = _family_density(line_along, h_cols, _without_vertical(neg_inv_scale, 0), _without_vertical(log_coef, 0),
+                        floor, workspace, "h", groups=2).view(batch, n_seg, 2, hyp)
+    v = _family_density(line_along, v_cols, neg_inv_scale[VERTICAL_AXIS], log_coef[VERTICAL_AXIS], floor,
+                        workspace, "v")
+    p = torch.add(h[:, :, 0], h[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), weight))
+    p.view(batch, n_seg, hyp // block, block).add_(v[..., None])
+    p.add_(background).log_()
+    return exact_sum(p, 1, bound=_log_sum_bound(weight, log_bound), weight=weight[:, :, None])
 
 
-def objective_b_elementwise(line_along, weight, flat, neg_inv_scale, log_coef, background, floor) -> torch.Tensor:
+def _log_sum_bound(weight: torch.Tensor, log_bound: float) -> torch.Tensor:
+    """(B, 1, 1) bound on ``|len_i log p_i|`` per image: its longest segment times ``log_bound``
+    (a bound on |log p_i| for any hypothesis), the same whatever the batch."""
+    return (weight.amax(1) * log_bound)[:, None, None] if weight.shape[1] else weight.new_zeros(weight.shape[0], 1, 1)
+
+
+def objective_b_elementwise(line_along, weight, flat, neg_inv_scale, log_coef, background, floor,
+                            log_bound=None) -> torch.Tensor:
     """Measure-b objective (B, H) of :func:`objective_b_nograd` (``vertical_block`` = 1, same
-    arguments and sums), written for a compiler: s and t of each VP as broadcast products
-    (B, N, 1) x (B, 1, H) instead of a matrix product, the mixture elementwise, one weighted
-    reduction over the N segments.  Eager, this materialises more than the buffered path; under
-    ``torch.compile`` (:func:`compiled_call`) it is one kernel reading only the segments and
-    the VPs.  ``flat`` (B, 3, 3H) VP-major and contiguous (:func:`vp_major`).
+    arguments and terms), written for a compiler: s and t of each VP as broadcast products
+    (B, N, 1) x (B, 1, H) instead of buffers, the mixture elementwise, one weighted reduction over
+    the N segments.  Eager, this materialises more than the buffered path; under ``torch.compile``
+    (:func:`compiled_call`) it is one kernel reading only the segments and the VPs, whose sums the
+    compiler orders (equal to :func:`objective_b_nograd` to float rounding, not bit for bit).
+    ``flat`` (B, 3, 3H) VP-major and contiguous (:func:`vp_major`).
     """
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
     line, along = line_along[:, :n_seg, :, None], line_along[:, n_seg:, :, None]  # (B, N, 3, 1)
     vps = flat.view(batch, 1, 3, 3, hyp)  # (B, 1, coordinate, VP, H)
-    mixture = None
+    densities = []
     for k in range(3):
         v = vps[:, :, :, k]  # (B, 1, 3, H)
-        s = (line[:, :, 0] * v[:, :, 0] + line[:, :, 1] * v[:, :, 1] + line[:, :, 2] * v[:, :, 2]).abs()
-        t = (along[:, :, 0] * v[:, :, 0] + along[:, :, 1] * v[:, :, 1] + along[:, :, 2] * v[:, :, 2]).abs()
-        density = torch.exp(torch.clamp_min(torch.atan2(s, t) * neg_inv_scale[k] + log_coef[k], floor))
-        mixture = density if mixture is None else mixture + density
-    return (weight[:, :, None] * torch.log(mixture + background)).sum(1)
+        s = line[:, :, 0] * v[:, :, 0] + line[:, :, 1] * v[:, :, 1] + line[:, :, 2] * v[:, :, 2]
+        t = along[:, :, 0] * v[:, :, 0] + along[:, :, 1] * v[:, :, 1] + along[:, :, 2] * v[:, :, 2]
+        densities.append(torch.exp(torch.clamp_min(angle_of(s, t) * neg_inv_scale[k] + log_coef[k], floor)))
+    mixture = _family_sum(torch.stack(densities, -1), -1)
+    return (weight[:, :, None] * torch.log(mixture + background)).to(torch.float64).sum(1)
 
 
 _COMPILED: dict = {}  # function -> its torch.compile wrapper, one per process
@@ -702,10 +765,10 @@ def _family_density(line_along, columns, neg_inv_scale, log_coef, floor, workspa
     exponents are clamped at ``floor``."""
     batch, n_seg = line_along.shape[0], line_along.shape[1] // 2
     width = columns.shape[2]
-    st = torch.bmm(line_along, columns, out=_take(workspace, name, (batch, 2 * n_seg, width), line_along))
-    st.abs_()
-    s, t = st[:, :n_seg], st[:, n_seg:]  # |s|, |t|
-    torch.atan2(s, t, out=s)
+    shape = (batch, 2 * n_seg, width)
+    st = incidence(line_along, columns, out=_take(workspace, name, shape, line_along),
+                   tmp=_take(workspace, "incidence", shape, line_along))
+    s = angle_of_(st[:, :n_seg], st[:, n_seg:])  # x = atan(|s / t|), in the s half
     s.view(batch, n_seg, groups, width // groups).mul_(neg_inv_scale).add_(log_coef)
     return s.clamp_min_(floor).exp_()
 
@@ -717,77 +780,68 @@ def _without_vertical(x: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.cat([x.narrow(dim, 0, VERTICAL_AXIS), x.narrow(dim, VERTICAL_AXIS + 1, 2 - VERTICAL_AXIS)], dim)
 
 
-def _objective_b_shared_vertical(line_along, weight, flat, neg_inv_scale, log_coef, background, floor,
-                                 workspace, block):
-    batch, n_seg = weight.shape
-    hyp = flat.shape[2] // 3
-    if hyp % block:
-        raise ValueError(f"vertical_block {block} does not divide the {hyp} hypotheses")
-    columns = flat.view(batch, 3, 3, hyp)
-    h_cols = _without_vertical(columns, 2).reshape(batch, 3, 2 * hyp)
-    v_cols = columns[:, :, VERTICAL_AXIS, ::block]  # (B, 3, H / k): one per run
-    h = _family_density(line_along, h_cols, _without_vertical(neg_inv_scale, 0), _without_vertical(log_coef, 0),
-                        floor, workspace, "h", groups=2).view(batch, n_seg, 2, hyp)
-    v = _family_density(line_along, v_cols, neg_inv_scale[VERTICAL_AXIS], log_coef[VERTICAL_AXIS], floor,
-                        workspace, "v")
-    p = torch.add(h[:, :, 0], h[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), weight))
-    p.view(batch, n_seg, hyp // block, block).add_(v[..., None])
-    p.add_(background).log_()
-    return torch.bmm(weight[:, None, :], p)[:, 0]
-
-
-def measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, background, floor):
-    """Measure-b objective (B, H) and what :func:`measure_b_backward` needs (no autograd graph).
+def measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound):
+    """Measure-b objective (B, H) float64 and what :func:`measure_b_backward` needs (no autograd
+    graph); the same terms and sum as :func:`objective_b_nograd`, bit for bit.
 
     ``line_along`` (B, 2N, 3) as in :class:`SegmentFeatures`, ``weight`` (B, N), ``flat`` (B, 3, 3H)
     VP-major vanishing points (:func:`vp_major`)."""
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
-    st = torch.bmm(line_along, flat)
+    st = incidence(line_along, flat)
     s, t = st[:, :n_seg], st[:, n_seg:]
-    theta = torch.atan2(s.abs(), t.abs()).view(batch, n_seg, 3, hyp)
-    e = torch.addcmul(log_coef, theta, neg_inv_scale).clamp_min_(floor).exp_()  # prior/lambda exp(-x/lambda)
-    p = e.sum(2).add_(background)
-    return torch.bmm(weight[:, None, :], p.log())[:, 0], (line_along, weight, s, t, e, p, neg_inv_scale)
+    theta = angle_of(s, t).view(batch, n_seg, 3, hyp)
+    e = (theta * neg_inv_scale).add_(log_coef).clamp_min_(floor).exp_()  # prior/lambda exp(-x/lambda)
+    p = _family_sum(e, 2).add_(background)
+    objective = exact_sum(torch.log(p), 1, bound=_log_sum_bound(weight, log_bound), weight=weight[:, :, None])
+    return objective, (line_along, weight, s, t, e, p, neg_inv_scale)
 
 
 def measure_b_backward(saved, grad_out, flat: torch.Tensor | None = None):
-    """d objective / d flat (B, 3, 3H) for the upstream gradient ``grad_out`` (B, H).
+    """d objective / d flat (B, 3, 3H) float64 for the upstream gradient ``grad_out`` (B, H).
 
     With ``flat`` (the forward pass's VP-major vanishing points) also d objective / d line_along,
     (B, 2N, 3): ``d obj / d l_i = sum_v G_is v``, ``d obj / d g_i = sum_v G_it v`` (the distortion
-    parameter's chain, :mod:`fr_torch.core.distortion`).  Returns the one tensor, or the pair."""
+    parameter's chain, :mod:`fr_torch.core.distortion`).  Returns the one tensor, or the pair.
+    Sums over segments are exact (:func:`fr_torch.core.exact.exact_sum`), those over the VPs
+    written out: the same bits in any batch."""
     line_along, weight, s, t, e, p, neg_inv_scale = saved
     batch, n_seg, hyp = p.shape
     line, along = line_along[:, :n_seg], line_along[:, n_seg:]
     # d obj / d x_ik = w_i / p_i * (-e_ik / lambda_k);  x = atan2(|s|, |t|):
     # dx/ds = sign(s) |t| / r2 = q t / r2, dx/dt = -sign(t) |s| / r2 = -q s / r2, with
     # r2 = s^2 + t^2 and q = sign(s) sign(t) (both 0 at s = 0 or t = 0; r2 > 0 guards 0 / 0).
-    g = (weight[:, :, None] / p).mul_(grad_out[:, None, :])  # (B, N, H)
-    r2 = (s * s).addcmul_(t, t).clamp_min_(torch.finfo(s.dtype).tiny)
+    g = (weight[:, :, None] / p).mul_(grad_out.to(p.dtype)[:, None, :])  # (B, N, H)
+    r2 = (s * s).add_(t * t).clamp_min_(torch.finfo(s.dtype).tiny)
     q = torch.sign(s * t)
     common = (e * neg_inv_scale).mul_(g[:, :, None, :]).view(batch, n_seg, 3 * hyp).mul_(q).div_(r2)
     if flat is not None:  # terms below float's normal range (< 1e-38) are 0 to the sums, but subnormal
-        # operands slow the CPU's matrix products several times over: drop them
+        # operands slow the CPU's products several times over: drop them
         common.masked_fill_(common.abs() < torch.finfo(common.dtype).tiny, 0.0)
     grad_s = common * t  # d obj / d s
-    grad_flat = torch.bmm(line.transpose(1, 2), grad_s).sub_(torch.bmm(along.transpose(1, 2), common.mul_(s)))
+    grad_t = common.mul_(s).neg_()  # d obj / d t
+    # d obj / d flat[c] = sum_i line_ic grad_s_i + along_ic grad_t_i, one exact sum per coordinate
+    grad_flat = torch.stack([exact_sum(line[:, :, c, None] * grad_s + along[:, :, c, None] * grad_t, 1)
+                             for c in range(3)], 1)
     if flat is None:
         return grad_flat
-    columns = flat.transpose(1, 2)  # (B, 3H, 3)
-    return grad_flat, torch.cat([torch.bmm(grad_s, columns), torch.bmm(common, columns).neg_()], 1)
+    columns = flat.to(grad_s.dtype).transpose(1, 2)  # (B, 3H, 3)
+    per_segment = [small_sum(grad[:, :, :, None] * columns[:, None], 2) for grad in (grad_s, grad_t)]
+    return grad_flat, torch.cat(per_segment, 1)
 
 
 class _MeasureBObjective(torch.autograd.Function):
     """Measure-b objective with an analytic gradient w.r.t. the VP-major vanishing points."""
 
     @staticmethod
-    def forward(ctx, line_along, weight, flat, neg_inv_scale, log_coef, background, floor):
-        objective, saved = measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, background, floor)
+    def forward(ctx, line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound):
+        objective, saved = measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, background, floor,
+                                             log_bound)
         ctx.save_for_backward(*saved)
+        ctx.flat_dtype = flat.dtype
         return objective
 
     @staticmethod
     def backward(ctx, grad_out):
         grad_flat = measure_b_backward(ctx.saved_tensors, grad_out)
-        return None, None, grad_flat, None, None, None, None
+        return None, None, grad_flat.to(ctx.flat_dtype), None, None, None, None, None

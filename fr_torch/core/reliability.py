@@ -275,7 +275,8 @@ class ReliabilityModel:
     def whiten(self, cues: np.ndarray) -> np.ndarray:
         """Raw cues (n, c) in the order of :attr:`cue_names` -> whitened features (n, c)."""
         x = cue_features(cues, self.cue_names) - self.feature_mean
-        return (x @ self.feature_components.T) / np.sqrt(self.feature_variance)
+        # per row, a sum over the cues in one order (a matrix product's order would depend on n)
+        return (x[:, None, :] * self.feature_components[None]).sum(-1) / np.sqrt(self.feature_variance)
 
     def predict(self, cues: np.ndarray | dict | Sequence[dict]) -> np.ndarray:
         """Predicted absolute errors (n, 3) [roll deg, tilt deg, focal %] from raw cues (n, c) in the

@@ -34,9 +34,6 @@ from __future__ import annotations
 import math
 
 import torch
-from torch.optim.adam import (
-    adam as adam_update,  # torch.optim's functional Adam (see _FusedAdam)
-)
 
 from fr_torch.core.camera import (
     VERTICAL_AXIS,
@@ -45,6 +42,7 @@ from fr_torch.core.camera import (
     rotation_from_cos_sin,
 )
 from fr_torch.core.config import SearchConfig
+from fr_torch.core.exact import atan2, cross3, dot3, exact_sum, first_argmax, matmul3, small_sum, top_indices
 from fr_torch.core.likelihood import (
     MixtureLikelihood,
     SegmentFeatures,
@@ -152,10 +150,12 @@ def select_starts(config: SearchConfig, grid_scores: torch.Tensor, hypotheses: t
 
     ``grid_scores`` (B, G) and ``hypotheses`` (B, G, 4) as from :func:`grid_hypotheses` (or rows of
     5 with k, :mod:`fr_torch.core.search_distortion`).
-    Returns (starts (B, L, 4 or 5), their scores (B, L)), L = min(top_l, G).
+    Returns (starts (B, L, 4 or 5), their scores (B, L)), L = min(top_l, G); equal scores are
+    taken in grid order (:func:`fr_torch.core.exact.top_indices`).
     """
-    scores, index = grid_scores.topk(min(config.top_l, grid_scores.shape[1]), dim=1)
-    return torch.gather(hypotheses, 1, index[..., None].expand(-1, -1, hypotheses.shape[-1])), scores
+    index = top_indices(grid_scores, min(config.top_l, grid_scores.shape[1]), dim=1)
+    return (torch.gather(hypotheses, 1, index[..., None].expand(-1, -1, hypotheses.shape[-1])),
+            torch.gather(grid_scores, 1, index))
 
 
 def grid_cell(config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
@@ -174,7 +174,7 @@ def angles_from_search_rotation(rotation: torch.Tensor) -> torch.Tensor:
     into [-45, 45) (:func:`fr_torch.core.camera.pan_from_rotation`; the Manhattan frame is symmetric
     under quarter turns about the vertical)."""
     pitch = torch.rad2deg(torch.asin((-rotation[..., 2, 1]).clamp(-1.0, 1.0)))
-    roll = torch.rad2deg(torch.atan2(rotation[..., 0, 1], rotation[..., 1, 1]))
+    roll = torch.rad2deg(atan2(rotation[..., 0, 1], rotation[..., 1, 1]))
     return torch.stack([pan_from_rotation(rotation), pitch, roll], -1)
 
 
@@ -188,20 +188,21 @@ def _focal_ridge_rotations(rotation: torch.Tensor, ratio: torch.Tensor) -> torch
     is rescaled too and made orthogonal to the vertical (it moves as little as the orthogonality
     of the VPs allows); the third column completes a right-handed frame.  Returns (..., m, 3, 3).
     """
+    def unit(d):
+        return d / torch.sqrt(dot3(d, d))[..., None]
+
     def rescaled(direction):  # (..., 3) -> (..., m, 3), unit length
         d = direction[..., None, :].expand(ratio.shape + (3,))
-        d = torch.cat([d[..., :2], d[..., 2:] * ratio[..., None]], -1)
-        return d / d.norm(dim=-1, keepdim=True)
+        return unit(torch.cat([d[..., :2], d[..., 2:] * ratio[..., None]], -1))
 
     first_nearer = rotation[..., 2, 0].abs() >= rotation[..., 2, 2].abs()  # (...)
     horizontal = torch.where(first_nearer[..., None], rotation[..., :, 0], rotation[..., :, 2])
     vertical = rescaled(rotation[..., :, VERTICAL_AXIS])
     horizontal = rescaled(horizontal)
-    horizontal = horizontal - (horizontal * vertical).sum(-1, keepdim=True) * vertical
-    horizontal = horizontal / horizontal.norm(dim=-1, keepdim=True)
+    horizontal = unit(horizontal - dot3(horizontal, vertical)[..., None] * vertical)
     first_nearer = first_nearer[..., None, None]
-    column0 = torch.where(first_nearer, horizontal, torch.cross(vertical, horizontal, dim=-1))
-    column2 = torch.where(first_nearer, torch.cross(horizontal, vertical, dim=-1), horizontal)
+    column0 = torch.where(first_nearer, horizontal, cross3(vertical, horizontal))
+    column2 = torch.where(first_nearer, cross3(horizontal, vertical), horizontal)
     return torch.stack([column0, vertical, column2], -1)
 
 
@@ -247,35 +248,86 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     points = points.view(batch, n_start, -1, 4)
     point_scores = score_grid(likelihood, features, points.view(batch, -1, 4), config.max_chunk_elements,
                               vertical_block=3)
-    swept, swept_scores = _keep_best(starts, scores, points, point_scores)
+    swept, swept_scores = _keep_best(starts, scores, points, point_scores, tie_tolerance(features))
     return torch.cat([starts, swept], 1), torch.cat([scores, swept_scores], 1)
 
 
-def _keep_best(starts: torch.Tensor, scores: torch.Tensor, points: torch.Tensor, point_scores: torch.Tensor):
-    """Each start's best candidate where it scores higher than the start, else the start.
+#: Scores of one image closer than this many nats per pixel of its segment length are ties.  The
+#: objective's float32 terms differ by a few ulps between CPU families and devices (its sums are
+#: exact, :mod:`fr_torch.core.exact`), which moves a score by well under this; a choice between tied
+#: candidates follows their order, not their last bits.
+TIE_NATS_PER_PX = 2.0 ** -20
+#: Two solutions of one image are different answers (not the same basin reached twice) when their
+#: focal lengths differ by more than this share or an angle by more than SOLUTION_ANGLE_DEG.
+SOLUTION_FOCAL = 0.01
+SOLUTION_ANGLE_DEG = 0.5
+
+
+def tie_tolerance(features: SegmentFeatures) -> torch.Tensor:
+    """(B,) float64: the score difference below which two hypotheses of an image are tied, nats
+    (:data:`TIE_NATS_PER_PX` times the image's total segment length)."""
+    return features.total_length() * TIE_NATS_PER_PX
+
+
+def first_near_best(scores: torch.Tensor, tolerance: torch.Tensor) -> torch.Tensor:
+    """Index along the last dimension of ``scores`` (..., C) of the first candidate within
+    ``tolerance`` (broadcastable to ``scores[..., 0]``) of the best: int64 (...).  The choice does
+    not move with the scores' last bits unless a candidate sits right at the tolerance's edge."""
+    best = torch.where(torch.isnan(scores), -math.inf, scores).amax(-1, keepdim=True)
+    near = scores >= best - tolerance.to(best)[..., None]
+    return first_argmax(near.to(torch.int8), -1)
+
+
+def different_solutions(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(...) bool: parameter rows a, b (..., 4 or 5) [pan, pitch, roll (deg), f (px), k] are different
+    answers (:data:`SOLUTION_FOCAL`, :data:`SOLUTION_ANGLE_DEG`; pan compared modulo 90 deg, k by
+    0.02)."""
+    angles = (a[..., ANGLES] - b[..., ANGLES]).abs()
+    pan = torch.remainder(angles[..., 0], 90.0)
+    angles = torch.cat([torch.minimum(pan, 90.0 - pan)[..., None], angles[..., 1:]], -1)
+    apart = (angles > SOLUTION_ANGLE_DEG).any(-1) | ((a[..., FOCAL] / b[..., FOCAL]).log().abs() > SOLUTION_FOCAL)
+    if a.shape[-1] > DISTORTION:
+        apart = apart | ((a[..., DISTORTION] - b[..., DISTORTION]).abs() > 0.02)
+    return apart
+
+
+def _keep_best(starts: torch.Tensor, scores: torch.Tensor, points: torch.Tensor, point_scores: torch.Tensor,
+               tolerance: torch.Tensor):
+    """Each start's best candidate where it scores higher than the start by more than ``tolerance``,
+    else the start.
 
     ``starts`` (B, L, 4) with ``scores`` (B, L); ``points`` (B, L, P, 4) candidates per start with
-    their ``point_scores`` (B, L * P) from :func:`score_grid`.  Returns (starts, scores), same shapes
-    and dtypes as the inputs.
+    their ``point_scores`` (B, L * P) from :func:`score_grid`; ``tolerance`` (B,) nats
+    (:func:`tie_tolerance`): the first candidate within it of the best is taken.  Returns (starts,
+    scores), same shapes and dtypes as the inputs.
     """
-    best_scores, best = point_scores.view(scores.shape + (-1,)).max(-1)
-    better = best_scores > scores
+    candidate_scores = point_scores.view(scores.shape + (-1,))
+    tolerance = tolerance.to(candidate_scores)[:, None]  # (B, 1)
+    best = first_near_best(candidate_scores, tolerance)
+    best_scores = torch.gather(candidate_scores, -1, best[..., None])[..., 0]
+    better = best_scores > scores + tolerance
     chosen = torch.gather(points, 2, best[..., None, None].expand(-1, -1, 1, points.shape[-1]))[:, :, 0]
     return torch.where(better[..., None], chosen.to(starts), starts), torch.where(better, best_scores, scores)
 
 
 def best_of_start_and_refined(starts: torch.Tensor, start_scores: torch.Tensor, refined: torch.Tensor,
-                              refined_scores: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each image's best of {its best start, its refined points}.
+                              refined_scores: torch.Tensor, tolerance: torch.Tensor):
+    """Each image's best of {its best start, its refined points}, ties (:func:`first_near_best`
+    within ``tolerance`` (B,) nats) going to the earlier candidate.
 
     ``starts`` (B, L, D) with ``start_scores`` (B, L), the first of each image its best; ``refined``
     (B, R, D) with ``refined_scores`` (B, R).  Returns (params (B, D) float64, scores (B,) in
-    ``refined_scores``' dtype)."""
-    candidates = torch.cat([starts[:, :1].to(refined), refined], 1)
+    ``refined_scores``' dtype, tied (B,) bool: another candidate within the tolerance is a
+    different answer (:func:`different_solutions`), so rounding could choose it elsewhere)."""
+    candidates = torch.cat([starts[:, :1].to(refined), refined], 1).to(torch.float64)
     candidate_scores = torch.cat([start_scores[:, :1].to(refined_scores), refined_scores], 1)
-    best = candidate_scores.argmax(1)
+    best = first_near_best(candidate_scores.to(torch.float64), tolerance)
     rows = torch.arange(len(best), device=best.device)
-    return candidates[rows, best].to(torch.float64), candidate_scores[rows, best]
+    chosen = candidates[rows, best]
+    top = torch.where(torch.isnan(candidate_scores), -math.inf, candidate_scores).amax(1, keepdim=True)
+    near = candidate_scores.to(torch.float64) >= top.to(torch.float64) - tolerance.to(torch.float64)[:, None]
+    tied = (near & different_solutions(candidates, chosen[:, None])).any(1)
+    return chosen, candidate_scores[rows, best], tied
 
 
 #: The 3^4 lattice offsets of a subdivision pass, [pan, pitch, roll, log f], pan varying fastest
@@ -313,18 +365,20 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
         points = into_box(points, log_lower, log_upper, config.periodic_pan)
         hypotheses = from_log_focal(points).view(batch, n_start * len(lattice), 4)
         point_scores = score_grid(likelihood, features, hypotheses, config.max_chunk_elements, vertical_block=3)
-        current, scores = _keep_best(current, scores, points, point_scores)
+        current, scores = _keep_best(current, scores, points, point_scores, tie_tolerance(features))
     return from_log_focal(current).to(starts), scores
 
 
 def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypotheses: torch.Tensor,
                max_chunk_elements: int, vertical_block: int = 1) -> torch.Tensor:
-    """Length-weighted log-likelihood of every hypothesis, (B, G), in chunks of hypotheses and images.
+    """Length-weighted log-likelihood of every hypothesis, (B, G) float64, in chunks of hypotheses
+    and images.
 
     At most ``max_chunk_elements`` (``CPU_CHUNK_ELEMENTS`` on CPU, if smaller) per-segment
-    deviations exist at once; scores do not depend on the chunking.  ``vertical_block`` = k:
-    runs of k consecutive hypotheses differ only in pan (the grid of :func:`grid_hypotheses`), so
-    their vertical VP is scored once (chunks hold whole runs; same scores to rounding).
+    deviations exist at once; scores do not depend on the chunking, the batch or the thread count,
+    bit for bit (:mod:`fr_torch.core.exact`).  ``vertical_block`` = k: runs of k consecutive
+    hypotheses differ only in pan (the grid of :func:`grid_hypotheses`), so their vertical VP is
+    scored once (chunks hold whole runs; the same scores bit for bit).
     """
     batch, count = hypotheses.shape[:2]
     n_seg = max(1, features.weight.shape[1])
@@ -339,7 +393,7 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
     hyp_chunk = max(1, min(count, budget // per_hypothesis))
     hyp_chunk = max(vertical_block, hyp_chunk - hyp_chunk % vertical_block)  # whole runs
     img_chunk = max(1, min(batch, budget // (per_hypothesis * hyp_chunk)))
-    scores = torch.empty(batch, count, dtype=dtype, device=device)
+    scores = torch.empty(batch, count, dtype=torch.float64, device=device)
     workspace: dict = {}
     with torch.no_grad():
         for b0 in range(0, batch, img_chunk):
@@ -377,8 +431,10 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
     depend on how many segments an image has.  Images are refined in independent slices of at
     most ``max_chunk_elements`` deviations (bounded memory; same result as one big batch).
 
-    Stopping rule (``tolerance > 0``, not in fast mode): stop when no hypothesis of the slice changed
-    its normalised objective by more than ``tolerance`` over the last ``patience`` steps.  Guards: the
+    Stopping rule (``tolerance > 0``, not in fast mode): an image stops (its parameters stay put)
+    once none of its hypotheses changed its normalised objective by more than ``tolerance`` over
+    the last ``patience`` steps; the loop ends when every image has stopped.  Each image's answer
+    is its own, whatever else is in the batch.  Guards: the
     gradient is made finite (NaN, inf -> 0) and bounded by ``_GRAD_BOUND``, so no step makes a
     parameter non-finite, and a non-finite final objective is returned as -inf (never chosen over a
     finite one).
@@ -403,31 +459,40 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
 _GRAD_BOUND = 1e6
 
 
-class _FusedAdam:
-    """torch.optim's Adam (``fused=True``) on one tensor, stepped with an exponentially decaying
-    step size: what ``torch.optim.Adam(fused=True)`` with ``ExponentialLR(gamma)`` does, bit for bit,
-    through torch.optim's functional form ``torch.optim.adam.adam`` (the function ``Adam.step``
-    calls) with the same state (zero moments, a float32 step count) and step sizes
-    ``lr0, lr0 * gamma, ...``.
+class _Adam:
+    """Adam (Kingma & Ba; torch.optim's update: ``p -= lr / (1 - b1^t) * m / (sqrt(v) / sqrt(1 - b2^t)
+    + eps)``) on one tensor, with a step size that decays by ``gamma`` after every step.
 
-    Why not the ``torch.optim.Adam`` object: building the first optimiser object in a process
-    imports ``torch._dynamo`` (its constructor is wrapped to disable the compiler), 1.2-2.2 s on a
-    2-core machine -- a third of a one-photo ``fr calibrate``, paid by every process that refines.
+    Written in single torch operations, each rounded once: the update is the same bits on every
+    kernel set and device (torch's fused Adam kernel takes fused multiply-adds on some and not on
+    others, :mod:`fr_torch.core.exact`), and building no ``torch.optim`` object spares a process
+    the 1-2 s import of ``torch._dynamo`` that its constructor triggers.
     """
 
     def __init__(self, param: torch.Tensor, lr: float, gamma: float, betas: tuple[float, float], eps: float = 1e-8):
         self.param, self.lr, self.gamma, self.betas, self.eps = param, lr, gamma, betas, eps
-        self.exp_avg = torch.zeros_like(param, memory_format=torch.preserve_format)
-        self.exp_avg_sq = torch.zeros_like(param, memory_format=torch.preserve_format)
-        self.step_count = torch.zeros((), dtype=torch.float32, device=param.device)  # as Adam(fused=True) keeps it
+        self.exp_avg = torch.zeros_like(param)
+        self.exp_avg_sq = torch.zeros_like(param)
+        self.step_count = 0
 
-    def step(self, grad: torch.Tensor) -> None:
+    def step(self, grad: torch.Tensor, active: torch.Tensor | None = None) -> None:
         """One Adam update of the parameter (in place) with gradient ``grad`` (same shape), then
-        the step size decays by ``gamma``."""
+        the step size decays by ``gamma``.  ``active``: broadcastable bool mask; entries outside it
+        keep their parameter and moments (converged images)."""
+        beta1, beta2 = self.betas
+        self.step_count += 1
         with torch.no_grad():
-            adam_update([self.param], [grad], [self.exp_avg], [self.exp_avg_sq], [], [self.step_count], fused=True,
-                        amsgrad=False, beta1=self.betas[0], beta2=self.betas[1], lr=self.lr, weight_decay=0.0,
-                        eps=self.eps, maximize=False)
+            exp_avg = self.exp_avg * beta1 + grad * (1.0 - beta1)
+            exp_avg_sq = self.exp_avg_sq * beta2 + (grad * grad) * (1.0 - beta2)
+            denom = exp_avg_sq.sqrt() / math.sqrt(1.0 - beta2 ** self.step_count) + self.eps
+            update = exp_avg / denom * (self.lr / (1.0 - beta1 ** self.step_count))
+            if active is None:
+                self.exp_avg, self.exp_avg_sq = exp_avg, exp_avg_sq
+                self.param.sub_(update)
+            else:
+                self.exp_avg = torch.where(active, exp_avg, self.exp_avg)
+                self.exp_avg_sq = torch.where(active, exp_avg_sq, self.exp_avg_sq)
+                self.param.sub_(torch.where(active, update, torch.zeros_like(update)))
         self.lr = self.lr * self.gamma
 
 
@@ -445,15 +510,16 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     free = span > 0
     span_safe = torch.where(free, span, torch.ones_like(span))
     u = ((starts - lower) / span_safe).clamp(0, 1).detach().requires_grad_(True)
-    total_length = features.weight.sum(-1).clamp_min(1e-9)[:, None]
+    total_length = features.total_length().clamp_min(1e-9)[:, None]  # (B, 1) float64
     # Step sizes in box units: about a quarter of a grid cell at first, decaying geometrically.
     cell = 1.0 / 8
     lr0 = 0.25 * cell
     lr_final = (0.02 if fast else 0.002) * cell
     gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
-    optimiser = _FusedAdam(u, lr0, gamma, betas=(0.5, 0.9))
+    optimiser = _Adam(u, lr0, gamma, betas=(0.5, 0.9))
     all_free = bool(free.all())
     history: list[torch.Tensor] = []
+    active = None  # (B, 1, 1) images still refined under the stopping rule
 
     def evaluate(u_value):
         params = from_log_focal(lower + u_value * span)
@@ -467,7 +533,7 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
         return params, likelihood.objective(features, rotation, params[..., FOCAL])
 
     analytic = likelihood._fast_path(features)
-    grad_out = -1.0 / total_length
+    grad_out = (-1.0 / total_length).to(dtype)
     for _ in range(iterations):
         u.grad = None
         if analytic and geometry is not None:
@@ -482,20 +548,24 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
             loss = -(finite / total_length).sum()
             loss.backward()
             grad = u.grad
+        grad = grad.to(dtype)
         if not all_free:
             grad = torch.where(free, grad, torch.zeros_like(grad))
         # A finite, bounded gradient keeps Adam's moments and so every parameter finite.
-        optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-_GRAD_BOUND, _GRAD_BOUND))
+        optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-_GRAD_BOUND, _GRAD_BOUND),
+                       active)
         with torch.no_grad():
             if periodic_pan:  # u's pan is (pan - lower) / 90 deg: wrap it into [0, 1)
                 u[..., PAN] = torch.remainder(u[..., PAN], 1.0)
             u.clamp_(0.0, 1.0)
-        if tolerance > 0:
+        if tolerance > 0:  # an image stops once none of its hypotheses moves its objective any more
             history.append(objective.detach() / total_length)
             if len(history) > patience:
                 old = history.pop(0)
                 change = (history[-1] - old).abs()
-                if bool(((change <= tolerance) | ~torch.isfinite(change)).all()):
+                moving = ((change > tolerance) & torch.isfinite(change)).any(1)  # (B,)
+                active = moving[:, None, None] if active is None else active & moving[:, None, None]
+                if not bool(active.any()):
                     break
     with torch.no_grad():
         params, objective = evaluate(u)
@@ -551,12 +621,13 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
         grad_flat, grad_line_along = measure_b_backward(saved, grad_out.expand(batch, n_hyp).reshape(-1, 1).contiguous(),
                                                         flat)
         grad_v = grad_flat.view(batch, n_hyp, 3, 3)  # (B, L, coord, VP)
-        grad_k = (grad_line_along * d_line_along).sum((-1, -2)).view(batch, n_hyp)
+        grad_k = exact_sum(small_sum(grad_line_along * d_line_along, -1), 1).view(batch, n_hyp)
         if geometry.k_prior_weight:  # the prior on k (SegmentGeometry.k_log_prior)
             k_prior, d_k_prior = geometry.k_log_prior(params[..., DISTORTION])
             objective = objective + k_prior
             grad_k = grad_k + grad_out * d_k_prior
-    grad_f = (grad_v[..., :2, :] * rotation[..., :2, :]).sum((-1, -2))
+    grad_v = grad_v.to(rotation.dtype)
+    grad_f = small_sum(small_sum(grad_v[..., :2, :] * rotation[..., :2, :], -1), -1)
     if likelihood.params.focal_prior_weight:  # the focal prior of MixtureLikelihood.objective
         if geometry is None:
             prior, d_prior = likelihood.focal_prior(features, focal)
@@ -564,11 +635,11 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
             prior, d_prior = (x.view(batch, n_hyp) for x in likelihood.focal_prior(features, focal.reshape(-1, 1)))
         objective = objective + prior
         grad_f = grad_f + grad_out * d_prior
-    m = vps.transpose(-1, -2) @ grad_v  # R.T K.T G (B, L, 3, 3)
+    m = matmul3(vps.transpose(-1, -2), grad_v)  # R.T K.T G (B, L, 3, 3)
     anti = m - m.transpose(-1, -2)
     axial = torch.stack([anti[..., 2, 1], anti[..., 0, 2], anti[..., 1, 0]], -1)  # (B, L, 3)
     grad_pitch = cos[..., 0] * axial[..., 0] - sin[..., 0] * axial[..., 2]  # w = Ry e_x = (cos pan, 0, -sin pan)
-    grad_roll = (rotation[..., 2, :] * axial).sum(-1)  # w = R.T e_z = row 2 of R
+    grad_roll = dot3(rotation[..., 2, :], axial)  # w = R.T e_z = row 2 of R
     grad_angles = torch.stack([axial[..., 1], grad_pitch, grad_roll], -1) * (-math.pi / 180)  # per degree
     grad_p = torch.cat([grad_angles, (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
     if geometry is not None:

@@ -38,10 +38,12 @@ import torch
 
 from fr_torch.core.config import SearchConfig
 from fr_torch.core.distortion import normalising_radius
+from fr_torch.core.exact import dot3, exact_index_sum, exact_sum, first_argmax, top_indices
 from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
 from fr_torch.core.params import DISTORTION, FOCAL, from_log_focal, to_log_focal
 from fr_torch.core.search import (
     LATTICE,
+    TIE_NATS_PER_PX,
     _keep_best,
     best_of_start_and_refined,
     grid_cell,
@@ -90,14 +92,14 @@ class SegmentGeometry:
         tensors in ``k``'s dtype (zeros without a prior)."""
         if not self.k_prior_weight:
             return torch.zeros_like(k), torch.zeros_like(k)
-        slope = -self.k_prior_weight * self.weight.sum(-1).to(k)[:, None] * k
+        slope = -self.k_prior_weight * exact_sum(self.weight, -1).to(k)[:, None] * k
         return 0.5 * slope * k, slope
 
     @property
     def weight(self) -> torch.Tensor:
         """(B, N) the photo's segment lengths, 0 for padding."""
         d = self.endpoints[..., 2:] - self.endpoints[..., :2]
-        return torch.linalg.vector_norm(d, dim=-1) * self.mask
+        return _norm2(d) * self.mask
 
     def features(self, k: torch.Tensor, derivative: bool = False):
         """Features of every image under G hypotheses of k each: ``k`` (B, G) -> SegmentFeatures of
@@ -112,7 +114,7 @@ class SegmentGeometry:
         q = offset * factor[..., None]
         qa, qb = q[:, :, :n_seg], q[:, :, n_seg:]
         delta = qb - qa
-        length = torch.linalg.vector_norm(delta, dim=-1)
+        length = _norm2(delta)
         inv_length = 1.0 / length.clamp_min(1e-12)
         d = delta * inv_length[..., None]
         m = centre + (qa + qb) * 0.5
@@ -127,7 +129,7 @@ class SegmentGeometry:
             return features
         d_q = offset * (-rho * factor * factor)[..., None]  # d q / dk
         d_delta = d_q[:, :, n_seg:] - d_q[:, :, :n_seg]
-        d_d = (d_delta - d * (d * d_delta).sum(-1, keepdim=True)) * inv_length[..., None]
+        d_d = (d_delta - d * _dot2(d, d_delta)[..., None]) * inv_length[..., None]
         d_m = (d_q[:, :, :n_seg] + d_q[:, :, n_seg:]) * 0.5
         ddx, ddy = d_d[..., 0], d_d[..., 1]
         d_line_along = torch.stack([-ddy, ddx, ddy * m[..., 0] + dy * d_m[..., 0] - ddx * m[..., 1] - dx * d_m[..., 1],
@@ -146,7 +148,7 @@ class SegmentGeometry:
             centre = self.centre.to(dtype)[:, None, None, :]
             points = torch.cat([self.endpoints[..., :2], self.endpoints[..., 2:]], 1)[:, None]  # (B, 1, 2N, 2)
             offset = points - centre
-            rho = (offset * offset).sum(-1) / (self.radius.to(dtype) ** 2)[:, None, None]
+            rho = _dot2(offset, offset) / (self.radius.to(dtype) ** 2)[:, None, None]
             cached = self.__dict__["_offset_cache"] = (centre, offset, rho)
         return cached
 
@@ -162,12 +164,28 @@ class SegmentGeometry:
                                   (weight, mask, self.centre.to(dtype), self.long_side.to(dtype)))
         return cache[groups]
 
+    def tie_tolerance(self) -> torch.Tensor:
+        """(B,) float64 :func:`fr_torch.core.search.tie_tolerance` of the photos' segments (their
+        photo lengths, which every hypothesis of k weighs alike)."""
+        return exact_sum(self.weight, -1) * TIE_NATS_PER_PX
+
     def images(self, start: int, stop: int) -> "SegmentGeometry":
         """Images ``start:stop`` (views)."""
         return SegmentGeometry(self.endpoints[start:stop], self.mask[start:stop], self.centre[start:stop],
                                self.radius[start:stop], self.long_side[start:stop], self.k_prior_weight)
 
 
+
+
+def _dot2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a_x b_x + a_y b_y`` of (..., 2) vectors (inputs broadcast), each product and the sum rounded once."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
+def _norm2(a: torch.Tensor) -> torch.Tensor:
+    """Length of (..., 2) vectors, ``sqrt(a_x^2 + a_y^2)`` rounded as :func:`_dot2` (not
+    ``vector_norm``, whose kernel's order may differ between kernel sets)."""
+    return torch.sqrt(_dot2(a, a))
 
 
 # --------------------------------------------------------------------------- plumb lines
@@ -208,16 +226,16 @@ def chain_pairs(endpoints: torch.Tensor, mask: torch.Tensor, long_side: torch.Te
     (image (P,), i (P,), j (P,), weight (P,)) with i < j and weight = the shorter one's length."""
     batch, count = endpoints.shape[:2]
     ends = endpoints.reshape(batch, 2 * count, 2)  # segment m's endpoints at rows 2m, 2m + 1
-    gap = torch.cdist(ends, ends).view(batch, count, 2, count, 2).amin((2, 4))  # (B, M, M)
+    gap = _norm2(ends[:, :, None, :] - ends[:, None, :, :]).view(batch, count, 2, count, 2).amin((2, 4))  # (B, M, M)
     delta = endpoints[..., 2:] - endpoints[..., :2]
-    length = torch.linalg.vector_norm(delta, dim=-1).clamp_min(1e-9)
+    length = _norm2(delta).clamp_min(1e-9)
     unit = delta / length[..., None]
-    aligned = (unit @ unit.transpose(1, 2)).abs() > math.cos(math.radians(CHAIN_MAX_ANGLE_DEG))
+    aligned = _dot2(unit[:, :, None, :], unit[:, None, :, :]).abs() > math.cos(math.radians(CHAIN_MAX_ANGLE_DEG))
     # homogeneous unit-normal lines; |line_i . end| = the end's distance from segment i's line
     lines = torch.stack([-unit[..., 1], unit[..., 0],
                          unit[..., 1] * endpoints[..., 0] - unit[..., 0] * endpoints[..., 1]], -1)  # (B, M, 3)
     homogeneous = torch.cat([ends, torch.ones_like(ends[..., :1])], -1)  # (B, 2M, 3)
-    lateral = (lines @ homogeneous.transpose(1, 2)).abs().view(batch, count, count, 2).amin(-1)  # j's nearer end
+    lateral = dot3(lines[:, :, None, :], homogeneous[:, None, :, :]).abs().view(batch, count, count, 2).amin(-1)  # j's nearer end
     scale = long_side.to(endpoints)[:, None, None]
     valid = (gap < CHAIN_GAP * scale) & aligned & (lateral < CHAIN_LATERAL * scale) \
         & (lateral.transpose(1, 2) < CHAIN_LATERAL * scale) & mask[:, :, None] & mask[:, None, :]
@@ -248,7 +266,7 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> Plu
         grid = torch.cat([grid, grid.new_zeros(1)])
     weight = geometry.weight
     count = min(CHAIN_SEGMENTS, weight.shape[1])
-    index = weight.topk(count, dim=1).indices
+    index = top_indices(weight, count, dim=1)
     endpoints = torch.gather(geometry.endpoints, 1, index[..., None].expand(-1, -1, 4)).to(torch.float64)
     mask = torch.gather(geometry.mask & (weight > 0), 1, index)
     image, i, j, pair_weight = chain_pairs(endpoints, mask, geometry.long_side.to(torch.float64))
@@ -258,15 +276,16 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> Plu
 
     def directions(pieces):  # (P, 4) -> (P, K, 2) unit directions
         offset = pieces.view(-1, 1, 2, 2) - centre
-        undistorted = offset / (1.0 + grid.view(1, -1, 1) * (offset * offset).sum(-1) * inv_r2)[..., None]
+        undistorted = offset / (1.0 + grid.view(1, -1, 1) * _dot2(offset, offset) * inv_r2)[..., None]
         direction = undistorted[:, :, 1] - undistorted[:, :, 0]
-        return direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-12)
+        return direction / _norm2(direction)[..., None].clamp_min(1e-12)
 
     a, b = directions(endpoints[image, i]), directions(endpoints[image, j])
     turn = torch.asin((a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]).abs().clamp(max=1.0))
     cost_terms = pair_weight[:, None] * turn.clamp(max=math.radians(TURN_CAP_DEG)) ** 2
-    cost = torch.zeros(batch, len(grid), dtype=torch.float64, device=device).index_add_(0, image, cost_terms)
-    best = cost.argmin(1)
+    cap_cost = geometry.long_side.to(torch.float64) * math.radians(TURN_CAP_DEG) ** 2  # a pair's largest term
+    cost = exact_index_sum(cost_terms, image, batch, cap_cost[:, None])
+    best = first_argmax(-cost, 1)
     at_zero = cost[:, int((grid == 0).nonzero()[0, 0])]
     best_cost = cost.gather(1, best[:, None])[:, 0]
     share = torch.where(at_zero > 0, 1.0 - best_cost / at_zero.clamp_min(1e-300), torch.zeros_like(at_zero))
@@ -356,7 +375,7 @@ def grid_over_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, config
         scores = (scores.view(batch, count, n_grid) + prior[..., None]).view(batch * count, n_grid)
     rows = with_k(hypotheses.view(batch, count, n_grid, 4), ks.view(batch, count, 1))
     starts, top = select_starts(config, scores.view(batch, count * n_grid), rows.view(batch, count * n_grid, 5))
-    best_k = torch.argmin((starts[:, 0, DISTORTION, None] - ks.to(starts)).abs(), -1)  # (B,)
+    best_k = first_argmax(-(starts[:, 0, DISTORTION, None] - ks.to(starts)).abs(), -1)  # (B,)
     rows_index = torch.arange(batch, device=device) * count + best_k.to(device)
     return starts, top, scores[rows_index], features.mask.sum(-1)[rows_index]
 
@@ -423,7 +442,7 @@ def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, sta
             points = torch.cat([points, k_points], 2)
             point_scores = torch.cat([point_scores.view(batch, n_start, -1), k_scores.view(batch, n_start, 2)],
                                      2).view(batch, -1)
-        current, scores = _keep_best(current, scores, points, point_scores)
+        current, scores = _keep_best(current, scores, points, point_scores, geometry.tie_tolerance())
     return from_log_focal(current).to(starts), scores
 
 
@@ -435,13 +454,16 @@ class DistortedSearch:
 
     ``params`` (B, 5) the estimates [pan, pitch, roll, f, k] and ``scores`` (B,) their objectives;
     ``grid_scores`` (B, G) and ``grid_counts`` (B,) for the ``grid_entropy`` cue;
-    ``grid_seconds``: the time of the stages before the refinement (all images)."""
+    ``grid_seconds``: the time of the stages before the refinement (all images); ``tied`` (B,) bool:
+    another solution scored within rounding of the estimate
+    (:func:`fr_torch.core.search.best_of_start_and_refined`)."""
 
     params: torch.Tensor
     scores: torch.Tensor
     grid_scores: torch.Tensor
     grid_counts: torch.Tensor
     grid_seconds: float
+    tied: torch.Tensor
 
 
 def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, features: SegmentFeatures,
@@ -462,15 +484,16 @@ def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, feat
     refined, refined_scores = refine(likelihood, features, starts, lower, upper, iterations, fast=fast,
                                      tolerance=config.refine_tolerance, patience=config.refine_patience,
                                      periodic_pan=config.periodic_pan, geometry=geometry)
-    params, scores = best_of_start_and_refined(starts, top_scores, refined, refined_scores)
-    return DistortedSearch(params, scores, grid_scores, grid_counts, grid_seconds)
+    params, scores, tied = best_of_start_and_refined(starts, top_scores, refined, refined_scores,
+                                                     geometry.tie_tolerance())
+    return DistortedSearch(params, scores, grid_scores, grid_counts, grid_seconds, tied)
 
 
 def likelihood_gain(scores: torch.Tensor, baseline: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:
     """How much better ``scores`` explain the segments than ``baseline`` (both (B,) objectives),
     in nats per 1000 px of segment length (the photo's lengths): (B,) float64, finite (0 where
     either is not)."""
-    per_kpx = features.weight.sum(-1).to(torch.float64).clamp_min(1e-9) / 1000.0
+    per_kpx = features.total_length().clamp_min(1e-9) / 1000.0
     gain = (scores.to(torch.float64) - baseline.to(torch.float64)) / per_kpx
     return torch.where(torch.isfinite(gain), gain, torch.zeros_like(gain))
 
@@ -501,7 +524,7 @@ def bend_test(likelihood: MixtureLikelihood, geometry: SegmentGeometry, features
                                             lower, upper)
     found, found_scores = subdivide_rows(likelihood, geometry, starts, start_scores.to(torch.float64), config,
                                          lower, upper, k_spacing=PLUMB_K_SPACING)
-    best = found_scores.argmax(1)
+    best = first_argmax(found_scores, 1)
     rows = torch.arange(len(best), device=best.device)
     gain = likelihood_gain(found_scores[rows, best], scores, features).clamp_min(0.0)
     return {"line_bend_gain": gain, "line_bend_k": found[rows, best, DISTORTION].to(torch.float64),

@@ -42,7 +42,8 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from fr_torch.core.camera import intrinsics, signed_rows, vanishing_point_rows
+from fr_torch.core.camera import signed_rows, vanishing_point_rows
+from fr_torch.core.exact import cross3, dot3, exact_sum, first_argmax, small_sum, top_indices
 from fr_torch.errors import FRInputError
 
 #: Images whose Atlanta candidates are scored at once (bounds memory: N x A deviations each).
@@ -153,23 +154,33 @@ def rank_vanishing_points(likelihood, features, rotation: torch.Tensor, focal: t
                                    ("points", "support", "family", "azimuth_deg")))
 
 
-def _unit_directions(K_inv: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Unit camera directions (B, C, 3) of homogeneous pixel points (B, C, 3); zero rows stay zero."""
-    d = (K_inv[:, None] @ points[..., None])[..., 0]
-    return d / torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp_min(1e-300)
+def _unit_directions(focal: torch.Tensor, pp: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Unit camera directions (B, C, 3) ``K^-1 p`` of homogeneous pixel points p (B, C, 3) for
+    focal lengths (B,) and principal points (B, 2), pixels; zero rows stay zero."""
+    w = points[..., 2]
+    d = torch.stack([(points[..., 0] - pp[:, None, 0] * w) / focal[:, None],
+                     (points[..., 1] - pp[:, None, 1] * w) / focal[:, None], w], -1)
+    return d / torch.sqrt(dot3(d, d))[..., None].clamp_min(1e-300)
 
 
-def _free_candidates(features, unexplained: torch.Tensor, count: int, K: torch.Tensor, K_inv: torch.Tensor):
+def _pixels(focal: torch.Tensor, pp: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Homogeneous pixel points ``K d`` (B, C, 3) of camera directions d (B, C, 3)."""
+    w = dirs[..., 2]
+    return torch.stack([focal[:, None] * dirs[..., 0] + pp[:, None, 0] * w,
+                        focal[:, None] * dirs[..., 1] + pp[:, None, 1] * w, w], -1)
+
+
+def _free_candidates(features, unexplained: torch.Tensor, count: int, focal: torch.Tensor):
     """Candidate VPs ``K d`` (B, C, 3), their unit directions d, and a validity mask (B, C): the
     intersections of every pair of the ``count`` segments with the largest ``unexplained`` weight."""
-    top = unexplained.topk(min(count, unexplained.shape[1]), dim=1).indices  # (B, k)
+    top = top_indices(unexplained, min(count, unexplained.shape[1]), dim=1)  # (B, k)
     lines = torch.gather(features.line, 1, top[..., None].expand(-1, -1, 3))
     first, second = torch.triu_indices(top.shape[1], top.shape[1], 1, device=top.device)
-    points = torch.linalg.cross(lines[:, first], lines[:, second], dim=-1)  # (B, C, 3)
-    usable = (torch.linalg.vector_norm(points, dim=-1) > 1e-12) & (torch.gather(unexplained, 1, top)[:, first] > 0) \
+    points = cross3(lines[:, first], lines[:, second])  # (B, C, 3)
+    usable = (dot3(points, points) > 1e-24) & (torch.gather(unexplained, 1, top)[:, first] > 0) \
         & (torch.gather(unexplained, 1, top)[:, second] > 0)
-    dirs = _unit_directions(K_inv, points)
-    return (K[:, None] @ dirs[..., None])[..., 0], dirs, usable
+    dirs = _unit_directions(focal, features.principal_point, points)
+    return _pixels(focal, features.principal_point, dirs), dirs, usable
 
 
 def _rank_chunk(likelihood, features, rotation, focal, atlanta):
@@ -179,11 +190,10 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
     device = rotation.device
     batch = rotation.shape[0]
     weight = feats.weight  # (B, N), 0 for padding
-    K = intrinsics(focal, feats.principal_point)  # (B, 3, 3)
-    K_inv = torch.linalg.inv(K)
+    pp = feats.principal_point  # (B, 2)
     log_comp = likelihood.component_log_densities(feats, rotation[:, None], focal[:, None])[:, :, 0]  # (B, N, 4)
     comp = torch.exp(log_comp)
-    mix = comp.sum(-1)  # (B, N) p_i
+    mix = small_sum(comp, -1)  # (B, N) p_i
     extra = atlanta.max_extra if atlanta is not None else 0
     count = 3 + extra
     points = torch.zeros(batch, count, 3, dtype=dtype, device=device)
@@ -199,11 +209,11 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
         grid = torch.arange(0.0, math.pi, step, dtype=dtype, device=device)  # (A,)
         grid_dirs = (torch.cos(grid)[None, :, None] * rotation[:, None, :, 0]
                      + torch.sin(grid)[None, :, None] * rotation[:, None, :, 2])  # (B, A, 3)
-        grid_points = (K[:, None] @ grid_dirs[..., None])[..., 0]  # (B, A, 3)
+        grid_points = _pixels(focal, pp, grid_dirs)  # (B, A, 3)
         grid_density = atlanta.prior * torch.exp(likelihood.horizontal_log_density(
             likelihood.point_deviations(feats, grid_points, focal)))  # (B, N, A)
         taken = rotation.transpose(1, 2).clone()  # (B, F, 3) unit directions of the families in the model
-        total = weight.sum(-1).clamp_min(1e-12)
+        total = exact_sum(weight, -1).clamp_min(1e-12)
         active = torch.ones(batch, dtype=torch.bool, device=device)
         rows = torch.arange(batch, device=device)
         cos_window = math.cos(math.radians(atlanta.exclusion_deg))
@@ -212,14 +222,15 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
         def best_of(density, dirs, usable):
             """Index (B,) of the candidate with the largest gain, away from the families taken."""
             mixed = (1.0 - prior) * mix[..., None] + density  # (B, N, C)
-            gain = (weight[..., None] * (torch.log(mixed) - torch.log(mix)[..., None])).sum(1)  # (B, C)
-            near = (dirs @ taken.transpose(1, 2)).abs().gt(cos_window).any(-1)
-            return gain.masked_fill(near | ~usable, -math.inf).argmax(1)
+            gain = exact_sum(torch.log(mixed) - torch.log(mix)[..., None], 1, weight=weight[..., None])  # (B, C)
+            near = dot3(dirs[:, :, None, :], taken[:, None, :, :]).abs().gt(cos_window).any(-1)
+            return first_argmax(gain.masked_fill(near | ~usable, -math.inf), 1)
 
         def score(chosen):
             """(gain (B,), support (B,), new mixture (B, N)) of adding a family of density ``chosen``."""
             mixed = (1.0 - prior) * mix + chosen
-            return (weight * (torch.log(mixed) - torch.log(mix))).sum(-1), (weight * chosen / mixed).sum(-1), mixed
+            return (exact_sum(torch.log(mixed) - torch.log(mix), -1, weight=weight),
+                    exact_sum(chosen / mixed, -1, weight=weight), mixed)
 
         for j in range(extra):
             best = best_of(grid_density, grid_dirs, torch.ones(grid_points.shape[:2], dtype=torch.bool, device=device))
@@ -230,7 +241,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
             if atlanta.free_segments:  # a free direction where no horizontal family passes, or one that gains far more
                 background = comp[..., 3] * manhattan_scale[:, None] / mix
                 free_points, free_dirs, usable = _free_candidates(feats, weight * background, atlanta.free_segments,
-                                                                  K, K_inv)
+                                                                  focal)
                 free_density = prior * torch.exp(likelihood.horizontal_log_density(
                     likelihood.point_deviations(feats, free_points, focal)))
                 pick = best_of(free_density, free_dirs, usable)
@@ -238,12 +249,12 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
                 for _ in range(2):  # a pair of segments only proposes: refit to the segments it explains
                     resp = free_chosen / ((1.0 - prior) * mix + free_chosen)
                     refit = refine_points(feats, free_point[:, None], (weight * resp)[..., None])
-                    free_point = (K @ _unit_directions(K_inv, refit)[:, 0, :, None])[..., 0]
+                    free_point = _pixels(focal, pp, _unit_directions(focal, pp, refit))[:, 0]
                     free_chosen = prior * torch.exp(likelihood.horizontal_log_density(
                         likelihood.point_deviations(feats, free_point[:, None], focal)[..., 0]))
                 free_gain, free_support, free_mixed = score(free_chosen)
-                free_dir = _unit_directions(K_inv, free_point[:, None])[:, 0]
-                apart = (free_dir[:, None] @ taken.transpose(1, 2))[:, 0].abs().le(cos_window).all(-1)
+                free_dir = _unit_directions(focal, pp, free_point[:, None])[:, 0]
+                apart = dot3(free_dir[:, None, :], taken).abs().le(cos_window).all(-1)
                 use_free = active & apart & (free_gain > 0) & (free_support >= atlanta.free_min_support * total) \
                     & (~keep | (free_gain > atlanta.free_gain_ratio * gain))
                 point = torch.where(use_free[:, None], free_point, point)
@@ -258,12 +269,12 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
             extra_density[:, :, j] = torch.where(keep[:, None], chosen, extra_density[:, :, j])
             mix = torch.where(keep[:, None], mixed, mix)
             manhattan_scale = torch.where(keep, manhattan_scale * (1.0 - prior), manhattan_scale)
-            taken = torch.cat([taken, torch.where(keep[:, None, None], _unit_directions(K_inv, point[:, None]),
+            taken = torch.cat([taken, torch.where(keep[:, None, None], _unit_directions(focal, pp, point[:, None]),
                                                   taken[:, :1])], 1)
             active = keep
     # Posterior mass of every family under the final mixture.
     family_density = torch.cat([comp[..., :3] * manhattan_scale[:, None, None], extra_density], -1)  # (B, N, M)
-    support = (weight[..., None] * family_density / mix[..., None].clamp_min(1e-300)).sum(1)  # (B, M)
+    support = exact_sum(family_density / mix[..., None].clamp_min(1e-300), 1, weight=weight[..., None])  # (B, M)
     support = torch.where(present, support, torch.full_like(support, -1.0))
     order = torch.argsort(support, dim=1, descending=True, stable=True)
     family = torch.arange(count, device=device).expand(batch, count)
@@ -286,13 +297,15 @@ def refine_points(features, points: torch.Tensor, weights: torch.Tensor) -> torc
     line = features.line  # (B, N, 3) pixels: x' = (x - c) / s  ->  l' = (s l_x, s l_y, l . (c, 1))
     conditioned = torch.stack([scale[:, None] * line[..., 0], scale[:, None] * line[..., 1],
                                line[..., 0] * pp[:, None, 0] + line[..., 1] * pp[:, None, 1] + line[..., 2]], -1)
-    conditioned = conditioned / torch.linalg.vector_norm(conditioned[..., :2], dim=-1, keepdim=True).clamp_min(1e-12)
-    moments = torch.einsum("bnm,bni,bnj->bmij", weights, conditioned, conditioned)  # (B, M, 3, 3)
+    planar = conditioned[..., 0] * conditioned[..., 0] + conditioned[..., 1] * conditioned[..., 1]
+    conditioned = conditioned / torch.sqrt(planar)[..., None].clamp_min(1e-12)
+    outer = conditioned[..., :, None] * conditioned[..., None, :]  # (B, N, 3, 3)
+    moments = exact_sum(weights[..., None, None] * outer[:, :, None], 1)  # (B, M, 3, 3)
     _, vectors = torch.linalg.eigh(moments)
     v = vectors[..., 0]  # (B, M, 3) smallest eigenvalue
     pixels = torch.stack([scale[:, None] * v[..., 0] + pp[:, None, 0] * v[..., 2],
                           scale[:, None] * v[..., 1] + pp[:, None, 1] * v[..., 2], v[..., 2]], -1)
-    return signed_rows(pixels / torch.linalg.vector_norm(pixels, dim=-1, keepdim=True).clamp_min(1e-300))
+    return signed_rows(pixels / torch.sqrt(dot3(pixels, pixels))[..., None].clamp_min(1e-300))
 
 
 def _as_dtype(features, dtype):

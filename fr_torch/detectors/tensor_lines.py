@@ -46,6 +46,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from fr_torch.core.exact import atan2, exact_index_sum
 from fr_torch.registry import format_method_spec
 
 
@@ -200,7 +201,7 @@ class TensorLinesDetector:
             flat, gx, gy = flat.index_select(0, keep), gx.index_select(0, keep), gy.index_select(0, keep)
             if flat.numel() == 0:
                 return empty
-        angle = torch.atan2(gy, gx)                                         # gradient direction
+        angle = atan2(gy, gx)                                               # gradient direction
         bins_a, bins_b = _orientation_bins(angle, cfg.n_bins)
         labels_a, labels_b = _components(flat, bins_a, bins_b, width)
         return self._segments(flat, labels_a, labels_b, gx, gy, batch, height, width)
@@ -236,17 +237,17 @@ class TensorLinesDetector:
         y = torch.div(within, width, rounding_mode="floor")
         x = (within - y * width).float()
         y = y.float()
-        w = torch.hypot(gx, gy)
+        w = torch.sqrt(gx * gx + gy * gy)
         # gradient-weighted sums -> centroid and mean gradient direction; then central moments
         columns = torch.stack([w, w * x, w * y, gx, gy, torch.ones_like(w)], 1)
-        sums = torch.zeros(n, columns.shape[1], device=dev).index_add_(0, region, columns)
+        sums = exact_index_sum(columns, region, n).float()  # the same bits in any batch and on any device
         weight, count = sums[:, 0], sums[:, 5]
         mx, my = sums[:, 1] / weight, sums[:, 2] / weight
         dx, dy = x - mx[region], y - my[region]
         central = torch.stack([w * dx * dx, w * dy * dy, w * dx * dy], 1)
-        moments = torch.zeros(n, 3, device=dev).index_add_(0, region, central) / weight[:, None]
+        moments = exact_index_sum(central, region, n).float() / weight[:, None]
         sxx, syy, sxy = moments[:, 0], moments[:, 1], moments[:, 2]
-        theta = 0.5 * torch.atan2(2 * sxy, sxx - syy)
+        theta = 0.5 * atan2(2 * sxy, sxx - syy)
         ux, uy = torch.cos(theta), torch.sin(theta)
         # the smaller eigenvalue of the covariance: the weighted mean squared distance from the line
         across_var = (0.5 * (sxx + syy) - torch.sqrt((0.25 * (sxx - syy) ** 2 + sxy * sxy))).clamp_min(0)
@@ -260,7 +261,7 @@ class TensorLinesDetector:
         density = count / (length + 1.0)
         gcos, gsin = sums[:, 3], sums[:, 4]
         # |cos| of the angle between the line direction and the mean gradient direction
-        normal_cos = (ux * gcos + uy * gsin).abs() / torch.hypot(gcos, gsin).clamp_min(1e-12)
+        normal_cos = (ux * gcos + uy * gsin).abs() / torch.sqrt(gcos * gcos + gsin * gsin).clamp_min(1e-12)
         good = ((length >= cfg.min_length) & (across_var <= cfg.max_rms_width ** 2) & (density >= cfg.min_density)
                 & (normal_cos <= math.sin(math.radians(cfg.max_angle_deg))))
         endpoints = torch.stack([mx + t0 * ux, my + t0 * uy, mx + t1 * ux, my + t1 * uy], 1)

@@ -30,7 +30,9 @@ Method (``docs/shared-focal.md``; choices in ``results/decisions/38.md``):
    caller gives none): with at least ``pp_min_images`` photos of one orientation, each photo's
    objective at the shared f is scored over a grid of principal-point offsets (rotation refined
    from step 4's), tempered and floored as in step 3, summed, and the maximum of a quadratic fit
-   is the group's principal point (:func:`shared_principal_point`); steps 2-4 run again at it.
+   is the group's principal point, its curvature the point's 1-sigma (:func:`shared_principal_point`);
+   steps 2-4 run again at it.  Where the sum has no clear maximum the image centre is kept and
+   the 1-sigma is infinite (JSON: null): rounding would otherwise decide the point.
 
 Sizes: the shared quantity is ``f / L``, so resized copies and portrait / landscape shots of one
 camera share it; a group whose usable photos differ in aspect ratio (a crop, another camera) is
@@ -272,7 +274,9 @@ class SharedFocalResult:
     focal length known (a photo that failed alone keeps its failure).  ``focal_prior``: the prior
     that entered (:meth:`fr_torch.runtime.focal_prior.FocalPrior.to_json`) or None.
     ``principal_point``: the group's estimated principal point (x, y) in the first usable photo's
-    pixels, or None where it was not estimated (:attr:`SharedFocalSettings.principal_point`).
+    pixels, or None where it was not estimated (:attr:`SharedFocalSettings.principal_point`);
+    ``principal_point_sigma_px``: its 1-sigma (x, y) in those pixels (:class:`PrincipalPointFit`;
+    inf where the photos leave it open: the principal point is then the image centre).
     """
     focal_px: float | None
     focal_ratio: float | None
@@ -284,6 +288,7 @@ class SharedFocalResult:
     results: list = field(default_factory=list)
     focal_prior: dict | None = None
     principal_point: tuple[float, float] | None = None
+    principal_point_sigma_px: tuple[float, float] | None = None
 
     def to_json(self) -> dict:
         """JSON-ready summary (no per-photo results): the ``shared_focal`` record of the CLI."""
@@ -293,7 +298,9 @@ class SharedFocalResult:
         return {"ok": self.ok, "reason": self.reason, "focal_px": clean(self.focal_px),
                 "focal_ratio": clean(self.focal_ratio), "predicted_error_pct": clean(self.predicted_error_pct),
                 "images": self.images, "images_used": self.images_used,
-                "principal_point": None if self.principal_point is None else [float(v) for v in self.principal_point]}
+                "principal_point": None if self.principal_point is None else [float(v) for v in self.principal_point],
+                "principal_point_sigma_px": None if self.principal_point_sigma_px is None
+                else [clean(v) for v in self.principal_point_sigma_px]}
 
 
 def at_range_edge(log_ratios: np.ndarray, log_ratio: float) -> bool:
@@ -417,15 +424,31 @@ def principal_point_scores(estimator, results, offsets: np.ndarray, settings: Sh
     return np.where(np.isfinite(values), values, -np.inf), features.weight.sum(-1).to("cpu", torch.float64).numpy()
 
 
-def shared_principal_point(estimator, results, settings: SharedFocalSettings) -> tuple[float, float] | None:
-    """One principal-point offset (x, y) from the image centre, fractions of the long side, for a group
-    of photos of one camera searched at their shared focal length, or None (fewer than
+@dataclass(frozen=True)
+class PrincipalPointFit:
+    """The group's principal point from :func:`shared_principal_point`: ``offset`` (x, y) from the
+    image centre in fractions of the long side (0, 0 where ``flat``), ``sigma`` (x, y) its 1-sigma
+    uncertainty in the same units (from the fitted curvature; inf where ``flat``), ``flat``: the
+    photos' summed scores have no clear maximum over the searched offsets (no maximum of the fitted
+    quadratic, or a 1-sigma wider than the grid's half-width), so the image centre is kept rather
+    than an offset that rounding would decide."""
+    offset: tuple[float, float]
+    sigma: tuple[float, float]
+    flat: bool
+
+
+def shared_principal_point(estimator, results, settings: SharedFocalSettings) -> PrincipalPointFit | None:
+    """One principal-point offset from the image centre for a group of photos of one camera searched
+    at their shared focal length (:class:`PrincipalPointFit`), or None (fewer than
     ``settings.pp_min_images`` photos, or photos of different orientations, whose sensor axes differ).
 
     Each photo's scores over the ``pp_offsets`` x ``pp_offsets`` grid (:func:`principal_point_scores`)
     are tempered and floored as the focal profiles are (:func:`tempered_profiles`: one photo moves
-    the sum by at most ``cap``), summed, and a quadratic in (x, y) is fitted to the sum; its maximum,
-    clipped to the grid, is the offset (the best grid point where the fit has no maximum).
+    the sum by at most ``cap``), summed, and a quadratic in (x, y) is fitted to the sum.  Its maximum,
+    clipped to the grid, is the offset, and its curvature the 1-sigma (the sum is a log-likelihood:
+    ``sigma^2 = diag(-H^-1)``).  Where it has no maximum, or the maximum is so flat that a 1-sigma
+    exceeds half the grid, the fit is ``flat`` and the offset is (0, 0): the answer would otherwise
+    move with the last bits of the scores.
     """
     if len(results) < settings.pp_min_images or len({r.width >= r.height for r in results}) > 1:
         return None
@@ -437,11 +460,13 @@ def shared_principal_point(estimator, results, settings: SharedFocalSettings) ->
     design = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], 1)
     c = np.linalg.lstsq(design, total, rcond=None)[0]
     hessian = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
-    best = grid[int(np.argmax(total))]
-    if np.all(np.linalg.eigvalsh(hessian) < 0):
-        best = np.linalg.solve(hessian, -c[1:3])
-    best = np.clip(best, axis[0], axis[-1])
-    return float(best[0]), float(best[1])
+    half_width = 0.5 * (axis[-1] - axis[0])
+    if np.all(np.isfinite(hessian)) and np.all(np.linalg.eigvalsh(hessian) < 0):
+        sigma = np.sqrt(np.diag(np.linalg.inv(-hessian)))
+        if np.all(sigma <= half_width):
+            best = np.clip(np.linalg.solve(hessian, -c[1:3]), axis[0], axis[-1])
+            return PrincipalPointFit((float(best[0]), float(best[1])), (float(sigma[0]), float(sigma[1])), False)
+    return PrincipalPointFit((0.0, 0.0), (math.inf, math.inf), True)
 
 
 def calibrate_shared(estimator, images: Sequence | None = None, *, segments: Sequence | None = None,
@@ -509,14 +534,19 @@ def shared_from_results(estimator, alone: Sequence, focal_prior=None,
     kept = [alone[i] for i in usable]
     check_group_sizes([(r.width, r.height) for r in kept], [r.image for r in kept])
     log_ratios, combined, again = _at_shared_focal(estimator, kept, None, focal_prior, settings)
-    principal_point = None
+    principal_point, pp_sigma = None, None
     if settings.principal_point and all(r.ok for r in again):
-        offset = shared_principal_point(estimator, again, settings)
-        if offset is not None:
-            points = [(r.width / 2 + offset[0] * max(r.width, r.height), r.height / 2 + offset[1] * max(r.width, r.height))
-                      for r in kept]
-            log_ratios, combined, again = _at_shared_focal(estimator, kept, points, focal_prior, settings)
-            principal_point = points[0]
+        fit = shared_principal_point(estimator, again, settings)
+        if fit is not None:
+            long_side = max(kept[0].width, kept[0].height)
+            pp_sigma = (fit.sigma[0] * long_side, fit.sigma[1] * long_side)
+            if not fit.flat:
+                points = [(r.width / 2 + fit.offset[0] * max(r.width, r.height),
+                           r.height / 2 + fit.offset[1] * max(r.width, r.height)) for r in kept]
+                log_ratios, combined, again = _at_shared_focal(estimator, kept, points, focal_prior, settings)
+                principal_point = points[0]
+            else:
+                principal_point = (kept[0].width / 2, kept[0].height / 2)
     ratio = math.exp(combined.log_ratio)
     results = list(alone)
     at_edge = at_range_edge(log_ratios, combined.log_ratio)
@@ -524,7 +554,8 @@ def shared_from_results(estimator, alone: Sequence, focal_prior=None,
         _mark_focal(result, combined.predicted_error_pct, at_edge)
         results[i] = result
     return SharedFocalResult(ratio * max(kept[0].width, kept[0].height), ratio, combined.predicted_error_pct,
-                             len(alone), int(combined.used.sum()), True, "", results, prior_json, principal_point)
+                             len(alone), int(combined.used.sum()), True, "", results, prior_json, principal_point,
+                             pp_sigma)
 
 
 def _at_shared_focal(estimator, kept: Sequence, principal_points: Sequence | None, focal_prior,

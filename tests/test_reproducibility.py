@@ -1,0 +1,174 @@
+"""One photo, one answer: the same bits in any batch, thread count and CPU kernel set, and run after
+run on a GPU (fr_torch.core.exact; results/reproducibility/ measures it on the datasets)."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from fr_torch import FREstimator
+from fr_torch.core import exact
+from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.search import best_of_start_and_refined, different_solutions, first_near_best
+from fr_torch.synthetic import random_rotation, synthetic_segments
+from tests.conftest import checkout_env, gpu
+
+
+def _photos():
+    """Photos of different sizes, segment counts and orientations (portrait among them)."""
+    rng = np.random.default_rng(7)
+    photos = []
+    for i, (width, height, focal, count) in enumerate([(640, 480, 500.0, 40), (480, 640, 420.0, 25),
+                                                       (1024, 768, 900.0, 60), (320, 240, 260.0, 15)]):
+        segments, _ = synthetic_segments(focal, random_rotation(rng, pan=(-30, 30), pitch=(-15, 15), roll=(-8, 8)),
+                                         width, height, n_per_family=count, noise_px=0.5, clutter_fraction=0.2,
+                                         seed=i)
+        photos.append((segments, (width, height)))
+    return photos
+
+
+def _record(result) -> dict:
+    """Every number of a result that must not move (JSON round trip: floats exactly)."""
+    return json.loads(json.dumps({key: value for key, value in result.to_json().items() if key != "runtime_s"}))
+
+
+@pytest.fixture(scope="module")
+def estimator():
+    return FREstimator(mode="fast")
+
+
+@pytest.fixture(scope="module")
+def reference(estimator):
+    photos = _photos()
+    return [_record(r) for r in estimator.calibrate_segments([p[0] for p in photos], [p[1] for p in photos])]
+
+
+@pytest.mark.parametrize("op", [torch.exp, torch.log, torch.atan, torch.sin, torch.cos, torch.sqrt])
+def test_the_functions_the_search_uses_round_alike_everywhere_in_a_tensor(op):
+    """The premise of fr_torch.core.exact: these functions give an element the same bits wherever it
+    sits (vector body or scalar tail of a kernel, any thread's share); torch's atan2 does not."""
+    x = torch.rand(1 << 16, dtype=torch.float32) * 5 + 1e-3
+    whole = op(x)
+    for offset in (1, 3, 17, 1000):
+        assert torch.equal(op(x[offset:]), whole[offset:])
+        assert torch.equal(op(x[offset:offset + 37]), whole[offset:offset + 37])
+    spread = torch.zeros(2 * len(x))
+    spread[::2] = x
+    assert torch.equal(op(spread[::2]), whole)  # strided: the scalar loop
+
+
+def test_exact_sum_is_independent_of_order_padding_and_chunks():
+    torch.manual_seed(0)
+    x = torch.randn(3, 500, 40) * torch.logspace(-3, 3, 40)
+    total = exact.exact_sum(x, 1)
+    assert torch.equal(exact.exact_sum(x[:, torch.randperm(500)], 1), total)
+    assert torch.equal(exact.exact_sum(torch.cat([x, torch.zeros(3, 77, 40)], 1), 1), total)
+    assert torch.equal(exact.exact_sum(x[1:2], 1), total[1:2])
+    assert torch.allclose(total, x.double().sum(1), rtol=1e-6, atol=1e-6)  # float32 terms: their own precision
+    w = torch.rand(3, 500)
+    bound = (w.amax(1) * x.abs().amax((1, 2)))[:, None, None]
+    weighted = exact.exact_sum(x, 1, bound=bound, weight=w[..., None])
+    assert torch.equal(exact.exact_sum(x[:, :250], 1, bound, weight=w[:, :250, None])
+                       + exact.exact_sum(x[:, 250:], 1, bound, weight=w[:, 250:, None]), weighted)
+    x64 = x.double() * (1 + 1e-9 * torch.rand_like(x.double()))
+    assert torch.allclose(exact.exact_sum(x64, 1), x64.sum(1), rtol=1e-14, atol=1e-12)  # float64 precision kept
+    grad_input = x64.clone().requires_grad_(True)
+    (exact.exact_sum(grad_input, 1) * 2).sum().backward()
+    assert torch.equal(grad_input.grad, torch.full_like(x64, 2.0))
+    assert torch.isnan(exact.exact_sum(torch.tensor([1.0, float("nan")]), 0))
+
+
+def test_exact_index_sum_and_the_angle():
+    torch.manual_seed(1)
+    values, index = torch.randn(1000, 3), torch.randint(0, 7, (1000,))
+    total = exact.exact_index_sum(values, index, 7)
+    order = torch.randperm(1000)
+    assert torch.equal(exact.exact_index_sum(values[order], index[order], 7), total)
+    assert torch.allclose(total, torch.zeros(7, 3, dtype=torch.float64).index_add_(0, index, values.double()), atol=1e-5)
+    s, t = torch.randn(10000), torch.randn(10000)
+    assert torch.allclose(exact.angle_of(s, t), torch.atan2(s.abs(), t.abs()), atol=3e-7)
+    assert torch.allclose(exact.atan2(s, t), torch.atan2(s, t), atol=3e-7)
+    assert exact.angle_of(torch.zeros(1), torch.zeros(1)).item() == 0.0
+
+
+def test_ties_go_to_the_earlier_candidate_and_two_answers_are_flagged():
+    scores = torch.tensor([[1.0, 3.0, 3.0 + 1e-9, 2.0]], dtype=torch.float64)
+    assert first_near_best(scores, torch.tensor([1e-6])).item() == 1
+    assert first_near_best(scores, torch.tensor([0.0])).item() == 2
+    a = torch.tensor([10.0, 5.0, 1.0, 500.0], dtype=torch.float64)
+    assert not different_solutions(a, a + torch.tensor([89.9, 0.2, 0.0, 2.0], dtype=torch.float64))  # pan mod 90
+    assert different_solutions(a, a * torch.tensor([1.0, 1.0, 1.0, 1.05], dtype=torch.float64))
+    starts = a.expand(1, 2, 4)
+    refined = torch.stack([a, a * torch.tensor([1.0, 1.0, 1.0, 1.2], dtype=torch.float64)])[None]
+    _, _, tied = best_of_start_and_refined(starts, torch.tensor([[0.0, 0.0]]), refined,
+                                           torch.tensor([[10.0, 10.0 - 1e-9]], dtype=torch.float64),
+                                           torch.tensor([1e-6], dtype=torch.float64))
+    assert tied.tolist() == [True]
+    _, _, tied = best_of_start_and_refined(starts, torch.tensor([[0.0, 0.0]]), refined,
+                                           torch.tensor([[10.0, 9.0]], dtype=torch.float64),
+                                           torch.tensor([1e-6], dtype=torch.float64))
+    assert tied.tolist() == [False]
+
+
+def test_a_photo_gets_one_answer_alone_and_in_any_batch(estimator, reference):
+    """Fuzz-style: each photo alone, twice in one mixed batch, in reverse order, with 1 and 2 threads."""
+    photos = _photos()
+    for i, (segments, size) in enumerate(photos):
+        [alone] = estimator.calibrate_segments([segments], [size], names=[f"image{i}"])
+        assert _record(alone) == reference[i]
+    mixed = [photos[2], photos[0], photos[2], photos[3], photos[1]]
+    got = estimator.calibrate_segments([p[0] for p in mixed], [p[1] for p in mixed])
+    for result, j in zip(got, (2, 0, 2, 3, 1)):
+        record = _record(result)
+        assert dict(record, image=None) == dict(reference[j], image=None)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one_thread = estimator.calibrate_segments([p[0] for p in photos], [p[1] for p in photos])
+    finally:
+        torch.set_num_threads(threads)
+    assert [_record(r) for r in one_thread] == reference
+
+
+def _kernel_sets():
+    """torch CPU kernel sets this machine can run besides its own (the default one always)."""
+    flags = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
+    return ["default"] + (["avx2"] if "avx2" in flags else []) + (["avx512"] if "avx512f" in flags else [])
+
+
+@pytest.mark.parametrize("kernels", _kernel_sets())
+def test_every_cpu_kernel_set_gives_the_same_bits(reference, kernels):
+    """The photos searched in a process with another ATEN_CPU_CAPABILITY: bit for bit the same records
+    (CI machines differ in their CPUs; this is what a new one must reproduce)."""
+    code = ("import json, sys; sys.path.insert(0, 'tests'); from test_reproducibility import _photos, _record; "
+            "from fr_torch import FREstimator; p = _photos(); "
+            "r = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p]); "
+            "print(json.dumps([_record(x) for x in r]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
+                          env=checkout_env(ATEN_CPU_CAPABILITY=kernels, FR_THREADS="1"),
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads(done.stdout.strip().splitlines()[-1]) == reference
+
+
+@gpu
+def test_gpu_runs_repeat_and_match_the_cpu(reference):
+    """On a GPU: two runs give the same bits; the CPU's answers within 1e-4 relative, no other basin."""
+    photos = _photos()
+    device = FREstimator(mode="fast", device="cuda")
+    first = device.calibrate_segments([p[0] for p in photos], [p[1] for p in photos])
+    second = device.calibrate_segments([p[0] for p in photos], [p[1] for p in photos])
+    assert [_record(r) for r in first] == [_record(r) for r in second]
+    for result, cpu in zip(first, reference):
+        assert result.focal_px == pytest.approx(cpu["focal_px"], rel=1e-4)
+        assert np.allclose(result.rotation, cpu["rotation"], atol=1e-4)
+
+
+def test_rotation_builder_is_exact_per_entry():
+    """The VPs and rotations the search builds are the same bits for one hypothesis in any batch."""
+    angles = torch.tensor([[10.0, 5.0, 2.0], [-20.0, 3.0, -1.0], [40.0, -30.0, 14.0]], dtype=torch.float64)
+    whole = rotation_from_angles(angles[:, 0], angles[:, 1], angles[:, 2])
+    assert torch.equal(rotation_from_angles(angles[1:, 0], angles[1:, 1], angles[1:, 2]), whole[1:])
