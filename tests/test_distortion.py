@@ -15,11 +15,9 @@ from fr_torch.core.distortion import (
     DistortionMode,
     DistortionSetting,
     border_bow_percent,
-    colmap_camera,
     distort_points,
     k_for_bow,
     normalising_radius,
-    opencv_coefficients,
     undistort_points,
 )
 from fr_torch.core.estimator import SegmentEstimator
@@ -127,24 +125,6 @@ def test_division_search_recovers_k_and_focal_and_pinhole_is_flagged():
     assert "lines bend" not in clean.reason
 
 
-def test_exports_agree_with_opencv_within_their_residual():
-    for k, focal in ((-0.08, 520.0), (-0.3, 300.0), (0.1, 600.0)):
-        coefficients, residual = opencv_coefficients(k, focal, CENTRE, WIDTH, HEIGHT)
-        rng = np.random.default_rng(1)
-        photo = rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], (300, 2))
-        K = np.array([[focal, 0, CENTRE[0]], [0, focal, CENTRE[1]], [0, 0, 1.0]])
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-        opencv = cv2.undistortPoints(photo.reshape(-1, 1, 2), K, np.asarray(coefficients), None, None, K,
-                                     criteria).reshape(-1, 2)
-        ours = undistort_points(photo, k, CENTRE, RADIUS)
-        assert np.linalg.norm(opencv - ours, axis=1).max() <= residual["max_px"] + 1e-6
-        assert residual["max_px"] < 5.0
-    model, params, residual = colmap_camera(-0.05, 500.0, CENTRE, WIDTH, HEIGHT)
-    assert model == "SIMPLE_RADIAL" and params[1:3] == [320.5, 240.5] and residual["max_px"] <= 1.0
-    assert colmap_camera(0.0, 500.0, CENTRE, WIDTH, HEIGHT)[0] == "SIMPLE_PINHOLE"
-    assert colmap_camera(-0.3, 300.0, CENTRE, WIDTH, HEIGHT)[0] == "RADIAL"
-
-
 def test_image_warps_invert_each_other():
     image = np.zeros((HEIGHT, WIDTH), np.uint8)
     for x in range(40, WIDTH, 60):
@@ -156,7 +136,7 @@ def test_image_warps_invert_each_other():
     assert np.abs(straight[middle].astype(int) - image[middle]).mean() < 6
 
 
-def test_cli_formats_and_undistort(tmp_path):
+def test_cli_formats_and_undistort(tmp_path, capsys):
     pieces, _, _ = scene(-0.2)
     image = np.full((HEIGHT, WIDTH), 90, np.uint8)
     for x1, y1, x2, y2 in pieces:
@@ -174,6 +154,15 @@ def test_cli_formats_and_undistort(tmp_path):
     storage = cv2.FileStorage(str(target), cv2.FILE_STORAGE_READ)
     assert np.allclose(storage.getNode("camera_matrix").mat(), result.camera.K)
     assert storage.getNode("distortion_coefficients").mat().shape == (1, 5)
+    for option, model in ((), "SIMPLE_DIVISION"), (("--colmap-model", "radial"), "RADIAL"):
+        assert cli_main(["calibrate", str(path), "--distortion", "division", "--fast", "--no-reliability",
+                         "--format", "colmap", *option]) == 0
+        line = capsys.readouterr().out.strip().splitlines()[-1].split()
+        assert line[1:4] == [model, str(WIDTH), str(HEIGHT)]
+        expected = result.colmap(model=option[1] if option else "division")[1]
+        assert [float(v) for v in line[4:]] == pytest.approx(expected, rel=1e-3, abs=1e-6)
+    assert cli_main(["calibrate", str(path), "--colmap-model", "radial"]) == 2  # without --format colmap
+    assert "--colmap-model applies to --format colmap" in capsys.readouterr().err
     out = tmp_path / "out"
     assert cli_main(["undistort", str(path), "--out", str(out), "--fast", "--no-reliability"]) == 0
     assert (out / "bent_undistorted.png").is_file() and (out / "bent_undistorted.json").is_file()

@@ -17,7 +17,7 @@ from fr_torch.cli.options import (
     device_policy,
     estimator_kwargs,
 )
-from fr_torch.core.distortion import colmap_cameras_txt
+from fr_torch.core.distortion import ColmapModel, colmap_cameras_txt
 from fr_torch.errors import FRInputError
 from fr_torch.images.overlay import write_overlay
 from fr_torch.output import dumps, json_safe, output_folder, write_text_atomic
@@ -46,8 +46,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="what stdout holds: json (default: one fR record per image), opencv (one JSON object "
                              "per image that cv2.FileStorage reads: camera_matrix, distortion_coefficients k1 k2 "
                              "[k3] fitted to the division model, the fit's residual in pixels) or colmap (a "
-                             "cameras.txt: SIMPLE_PINHOLE / SIMPLE_RADIAL / RADIAL, one camera per image); --json "
-                             "still writes the fR records")
+                             "cameras.txt, one camera per image: SIMPLE_PINHOLE, or for a division estimate "
+                             "--colmap-model's); --json still writes the fR records")
+    output.add_argument("--colmap-model", choices=tuple(m.value for m in ColmapModel), default=None,
+                        help="with --format colmap, a division estimate as: division (default: SIMPLE_DIVISION, "
+                             "the same model exactly; COLMAP >= 4.0) or radial (RADIAL k1 k2 fitted to it, for "
+                             "older COLMAP; the fit's residual in pixels on the camera's comment line)")
     output.add_argument("--no-reliability", action="store_true",
                         help="no predicted errors or error bounds, reliable = the sanity checks only (fR then "
                              "skips the focal_profile_gap cue, a quarter of its time per photo, and both modes the "
@@ -70,6 +74,9 @@ def opencv_record(path, result) -> dict:
 def run(args: argparse.Namespace) -> int:
     """``fr calibrate``: one JSON object per image on stdout; non-zero exit if any image failed."""
     paths = [str(p) for p in args.images]
+    if args.colmap_model is not None and args.format != "colmap":
+        raise FRInputError("--colmap-model applies to --format colmap only")
+    colmap_model = ColmapModel.parse(args.colmap_model or ColmapModel.DIVISION)
     policy = device_policy(args)
     policy.apply_threads()
     focal_px, principal_point = camera_options(args)  # per image: within a 1-179 deg field of view
@@ -103,8 +110,7 @@ def run(args: argparse.Namespace) -> int:
         elif args.format == "opencv":
             print(dumps(json_safe(opencv_record(path, result))), flush=True)
         elif result.ok:
-            model, params, _ = result.colmap()
-            colmap_lines.append((str(path), result.width, result.height, model, params))
+            colmap_lines.append((str(path), result.width, result.height, *result.colmap(colmap_model)))
         else:
             colmap_lines.append((str(path), result.reason))
         if not result.ok:

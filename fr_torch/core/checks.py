@@ -9,6 +9,7 @@ import math
 import numbers
 import reprlib
 from collections.abc import Iterable
+from enum import StrEnum
 
 import numpy as np
 import torch
@@ -20,6 +21,15 @@ from fr_torch.errors import FRInputError
 # How far from an image's centre a point given in its pixels (a principal point, a segment's
 # endpoint) may lie, in image sizes (the long side): beyond, the number is nonsense, not geometry.
 MAX_REACH_IMAGE_SIZES = 10
+
+
+def enum_member(enum: type[StrEnum], value, name: str):
+    """The member of ``enum`` whose value is ``value`` (or ``value`` itself, a member), else
+    FRInputError naming ``name`` and the choices."""
+    try:
+        return enum(value)
+    except ValueError:
+        raise FRInputError(f"{name} must be one of {', '.join(m.value for m in enum)}, got {value!r}") from None
 
 
 def finite_number(value, name: str) -> float:

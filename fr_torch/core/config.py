@@ -20,6 +20,7 @@ from dataclasses import dataclass, fields, replace
 from enum import StrEnum
 from pathlib import Path
 
+from fr_torch.core.checks import enum_member
 from fr_torch.core.distortion import DistortionSetting
 from fr_torch.core.fov import FovRange, two_numbers
 from fr_torch.errors import FRInputError
@@ -37,10 +38,7 @@ class Mode(StrEnum):
     @classmethod
     def parse(cls, value) -> "Mode":
         """A mode from ``"fr"``, ``"fast"`` or a :class:`Mode`; FRInputError (one line) otherwise."""
-        try:
-            return cls(value)
-        except ValueError:
-            raise FRInputError(f"mode must be 'fr' or 'fast', got {value!r}") from None
+        return enum_member(cls, value, "mode")
 
 
 #: Refinement steps of Fast-fR (the paper's definition).

@@ -20,9 +20,24 @@ How strong is k?  :func:`border_bow_percent` gives the bow of a straight line at
 in a 4:3 image, k = -0.1 bends the straight vertical line through the middle of the left border
 by about 1.6 % of the width, k = -0.2 by 3.2 %, k = -0.35 by 5.6 %.
 
-Exports (:func:`opencv_coefficients`, :func:`colmap_camera`): OpenCV's and COLMAP's radial models
-are polynomials in the undistorted radius; their coefficients are fitted to the division model by
-least squares over the image, and the fit's residual (pixels) is stated with them.
+Exports (:func:`colmap_camera`, :func:`opencv_coefficients`)
+--------------------------------------------------------------
+COLMAP (>= 4.0) has the division model itself, ``SIMPLE_DIVISION`` (f, cx, cy, k'): it lifts a
+pixel to ``x = (p - c) / f`` and undistorts it to ``x / (1 + k' |x|^2)``, i.e. its radius is
+normalised by the **focal length**, ours by ``s``.  Since ``|p - c|^2 / s^2 = |x|^2 f^2 / s^2``,
+the two are the same model exactly when
+
+    ``k' = k (f / s)^2``        (and back: ``k = k' (s / f)^2``)
+
+(:func:`colmap_division_k`; checked against pycolmap's ``cam_from_img`` / ``img_from_cam`` in
+``tests/test_exports.py``).  COLMAP's ``DIVISION`` (fx, fy, cx, cy, k') is the same with two
+focal lengths; fR has one.  COLMAP's pixel origin is the image's top-left corner, so its cx, cy
+are ours + 0.5 (the offsets ``p - c``, and with them k', are unchanged).
+
+OpenCV (any version) and COLMAP before 4.0 have no division model: their radial models are
+polynomials in the undistorted radius, ``x_d = x_u (1 + k1 R^2 + k2 R^4 ...)``, whose
+coefficients are fitted to the division model by least squares over the image
+(:func:`fit_radial_polynomial`), and the fit's residual (pixels) is stated with them.
 """
 from __future__ import annotations
 
@@ -34,7 +49,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from fr_torch.core.checks import finite_number
+from fr_torch.core.checks import enum_member, finite_number
 from fr_torch.errors import FRInputError
 
 #: Open interval of k over which the division model is one-to-one on the image (module docstring).
@@ -53,10 +68,7 @@ class DistortionMode(StrEnum):
     @classmethod
     def parse(cls, value) -> "DistortionMode":
         """A mode from its name (or a :class:`DistortionMode`); FRInputError (one line) otherwise."""
-        try:
-            return cls(value)
-        except ValueError:
-            raise FRInputError(f"distortion must be one of {', '.join(m.value for m in cls)}, got {value!r}") from None
+        return enum_member(cls, value, "distortion")
 
 
 @dataclass(frozen=True)
@@ -265,10 +277,14 @@ def fit_radial_polynomial(k: float, focal_px: float, centre, width: float, heigh
     model of ``k`` over the photo, and the fit's residual.
 
     The fit is linear in the coefficients: ``x_d - x_u = x_u (k1 R^2 + ...)`` at the
-    :data:`FIT_GRID`^2 grid of photo pixels (corners included).  Residual: for every grid pixel,
-    the distance (pixels) between its undistorted pixel under the division model and under the
-    fitted polynomial (inverted as OpenCV's ``undistortPoints`` does); ``rms_px`` and ``max_px``
-    over the grid.  Returns (coefficients (terms,), {"rms_px", "max_px"}).
+    :data:`FIT_GRID`^2 grid of photo pixels (corners included).  Residual, pixels, in both
+    directions at every grid pixel: undistorting (the distance between its undistorted pixel under
+    the division model and under the fitted polynomial, inverted as OpenCV's ``undistortPoints``
+    and COLMAP's ``cam_from_img`` do) and distorting (the distance between the grid pixel and the
+    polynomial's image of its division-model undistorted pixel, as ``cv2.projectPoints`` and
+    COLMAP's ``img_from_cam`` compute it); ``rms_px`` and ``max_px`` over both.  The residual in
+    pixels does not depend on ``focal_px`` (the coefficients absorb it).  Returns
+    (coefficients (terms,), {"rms_px", "max_px"}).
     """
     if k == 0:
         return np.zeros(terms), {"rms_px": 0.0, "max_px": 0.0}
@@ -286,8 +302,9 @@ def fit_radial_polynomial(k: float, focal_px: float, centre, width: float, heigh
                                        rcond=None)[0]
         slope = 1.0 + sum((2 * i + 3) * c * r2 ** (i + 1) for i, c in enumerate(coefficients))
         weight = 1.0 / np.maximum(np.abs(slope), 1e-3)
-    back = _polynomial_undistort(x_d, coefficients) * focal_px + centre
-    error = np.linalg.norm(back - undistorted, axis=-1)
+    undistorting = np.linalg.norm(_polynomial_undistort(x_d, coefficients) * focal_px + centre - undistorted, axis=-1)
+    distorting = np.linalg.norm(_polynomial_distort(x_u, coefficients) * focal_px + centre - photo, axis=-1)
+    error = np.concatenate([undistorting, distorting])
     error = np.where(np.isfinite(error), error, np.inf)
     return coefficients, {"rms_px": float(np.sqrt(np.mean(error ** 2))), "max_px": float(error.max())}
 
@@ -300,9 +317,10 @@ def opencv_coefficients(k: float, focal_px: float, centre, width: float, height:
     """OpenCV's distortion coefficients ``[k1, k2, p1, p2, k3]`` for the division model of ``k``
     (:func:`fit_radial_polynomial`): k1, k2 fitted (k3 = 0), or k1, k2, k3 where two terms leave more
     than :data:`EXPORT_TOLERANCE_PX` somewhere in the image (strong barrel); p1 = p2 = 0.  Returns
-    (coefficients, the fit's residual in pixels ``{"rms_px", "max_px"}``): ``cv2.undistortPoints``
-    with them agrees with :func:`undistort_points` to within ``max_px`` over the image (given enough
-    iterations: its default 5 add up to ~0.1 px at strong distortion)."""
+    (coefficients, the fit's residual in pixels ``{"rms_px", "max_px"}``): over the image,
+    ``cv2.undistortPoints`` with them agrees with :func:`undistort_points` and ``cv2.projectPoints``
+    with :func:`distort_points` to within ``max_px`` (``undistortPoints`` given enough iterations:
+    its default 5 add up to ~0.1 px at strong distortion)."""
     coefficients, residual = fit_radial_polynomial(k, focal_px, centre, width, height, terms=2)
     if residual["max_px"] > EXPORT_TOLERANCE_PX:
         three, residual3 = fit_radial_polynomial(k, focal_px, centre, width, height, terms=3)
@@ -325,36 +343,66 @@ def opencv_camera(k: float, focal_px: float, centre, width: int, height: int) ->
             "distortion_fit_residual_px": {"rms": residual["rms_px"], "max": residual["max_px"]}}
 
 
-def colmap_camera(k: float, focal_px: float, centre, width: int, height: int) -> tuple[str, list[float], dict]:
-    """COLMAP's camera model and parameters: ``SIMPLE_PINHOLE`` (f, cx, cy) for k = 0, else
-    ``SIMPLE_RADIAL`` (f, cx, cy, k1), or ``RADIAL`` (f, cx, cy, k1, k2) where one term leaves more
-    than :data:`EXPORT_TOLERANCE_PX` somewhere in the image (:func:`fit_radial_polynomial`).  COLMAP
-    puts the image origin at the top-left *corner* (the first pixel's centre is (0.5, 0.5)), so the
-    principal point moves by half a pixel.  Returns (model, params, residual {"rms_px", "max_px"})."""
+class ColmapModel(StrEnum):
+    """The COLMAP camera model a division estimate is written as: ``division`` (``SIMPLE_DIVISION``,
+    the same model exactly; COLMAP >= 4.0) or ``radial`` (``RADIAL``, k1 k2 fitted to it, with the
+    fit's residual; every COLMAP version).  A pinhole estimate is ``SIMPLE_PINHOLE`` either way."""
+
+    DIVISION = "division"
+    RADIAL = "radial"
+
+    @classmethod
+    def parse(cls, value) -> "ColmapModel":
+        """A model from its name (or a :class:`ColmapModel`); FRInputError (one line) otherwise."""
+        return enum_member(cls, value, "COLMAP model")
+
+
+def colmap_division_k(k: float, focal_px: float, width: float, height: float) -> float:
+    """COLMAP's division parameter (``SIMPLE_DIVISION`` / ``DIVISION``, radius in units of the focal
+    length) of fR's ``k`` (radius in units of :func:`normalising_radius`): ``k (f / s)^2``
+    (module docstring).  Dimensionless, like k."""
+    return float(k) * (float(focal_px) / normalising_radius(width, height)) ** 2
+
+
+def colmap_camera(k: float, focal_px: float, centre, width: int, height: int,
+                  model: ColmapModel | str = ColmapModel.DIVISION) -> tuple[str, list[float], dict]:
+    """COLMAP's camera model and parameters for the division model of ``k``.
+
+    ``SIMPLE_PINHOLE`` (f, cx, cy) for k = 0; else, by ``model`` (:class:`ColmapModel`),
+    ``SIMPLE_DIVISION`` (f, cx, cy, :func:`colmap_division_k`): the same model, residual 0 -- or
+    ``RADIAL`` (f, cx, cy, k1, k2) fitted by :func:`fit_radial_polynomial`.  COLMAP puts the image
+    origin at the top-left *corner* (the first pixel's centre is (0.5, 0.5)), so the principal point
+    moves by half a pixel.  Returns (model name, params, residual {"rms_px", "max_px"}, pixels).
+    """
+    model = ColmapModel.parse(model)
     cx, cy = float(centre[0]) + 0.5, float(centre[1]) + 0.5
     if k == 0:
         return "SIMPLE_PINHOLE", [float(focal_px), cx, cy], {"rms_px": 0.0, "max_px": 0.0}
-    (k1,), residual = fit_radial_polynomial(k, focal_px, centre, width, height, terms=1)
-    if residual["max_px"] > EXPORT_TOLERANCE_PX:
-        two, residual2 = fit_radial_polynomial(k, focal_px, centre, width, height, terms=2)
-        return "RADIAL", [float(focal_px), cx, cy, float(two[0]), float(two[1])], residual2
-    return "SIMPLE_RADIAL", [float(focal_px), cx, cy, float(k1)], residual
+    if model is ColmapModel.DIVISION:
+        return ("SIMPLE_DIVISION", [float(focal_px), cx, cy, colmap_division_k(k, focal_px, width, height)],
+                {"rms_px": 0.0, "max_px": 0.0})
+    (k1, k2), residual = fit_radial_polynomial(k, focal_px, centre, width, height, terms=2)
+    return "RADIAL", [float(focal_px), cx, cy, float(k1), float(k2)], residual
 
 
-def colmap_cameras_txt(cameras: list[tuple[str, int, int, str, list[float]] | tuple[str, str]]) -> str:
-    """COLMAP's ``cameras.txt``: the header, then one line ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS...``
-    per ``(image, width, height, model, params)`` (ids from 1 in order); an ``(image, reason)`` pair
-    (no estimate) becomes a comment line and takes no id."""
+def colmap_cameras_txt(cameras: list[tuple[str, int, int, str, list[float], dict] | tuple[str, str]]) -> str:
+    """COLMAP's ``cameras.txt``: the header, then per ``(image, width, height, model, params,
+    residual)`` (:func:`colmap_camera`; ids from 1 in order) a comment line with the image (and,
+    for a fitted model, its residual in pixels) and the line ``CAMERA_ID MODEL WIDTH HEIGHT
+    PARAMS...`` (each number written so that it reads back to the same float); an ``(image,
+    reason)`` pair (no estimate) becomes a comment line and takes no id."""
     lines = ["# Camera list with one line of data per camera:",
              "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
-             f"# Number of cameras: {sum(len(c) == 5 for c in cameras)}"]
+             f"# Number of cameras: {sum(len(c) == 6 for c in cameras)}"]
     camera_id = 0
     for camera in cameras:
         if len(camera) == 2:
             lines.append(f"# {camera[0]}: no camera ({camera[1]})")
             continue
         camera_id += 1
-        image, width, height, model, params = camera
-        lines.append(f"# {image}")
-        lines.append(f"{camera_id} {model} {width} {height} " + " ".join(f"{p:.10g}" for p in params))
+        image, width, height, model, params, residual = camera
+        fitted = (f" ({model} fitted to fR's division model: residual rms {residual['rms_px']:.3g} px, "
+                  f"max {residual['max_px']:.3g} px)" if residual["max_px"] > 0 else "")
+        lines.append(f"# {image}{fitted}")
+        lines.append(f"{camera_id} {model} {width} {height} " + " ".join(repr(float(p)) for p in params))
     return "\n".join(lines) + "\n"

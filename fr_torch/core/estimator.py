@@ -210,10 +210,13 @@ class CalibrationResult:
         in pixels beside them).  ValueError without an estimate."""
         return opencv_camera(*self._lens())
 
-    def colmap(self) -> tuple[str, list[float], dict[str, float]]:
-        """COLMAP's camera model, parameters and fit residual
-        (:func:`fr_torch.core.distortion.colmap_camera`).  ValueError without an estimate."""
-        return colmap_camera(*self._lens())
+    def colmap(self, model: str = "division") -> tuple[str, list[float], dict[str, float]]:
+        """COLMAP's camera model, parameters and residual in pixels
+        (:func:`fr_torch.core.distortion.colmap_camera`): a division estimate as ``SIMPLE_DIVISION``
+        (exact, COLMAP >= 4.0; ``model="division"``) or ``RADIAL`` (fitted, ``model="radial"``), a
+        pinhole one as ``SIMPLE_PINHOLE``.  ValueError without an estimate, FRInputError for an
+        unknown ``model``."""
+        return colmap_camera(*self._lens(), model=model)
 
     def to_kornia(self):
         """The estimate as a ``kornia.geometry.camera.PinholeCamera`` (batch of 1, float64): intrinsics
