@@ -38,15 +38,20 @@ def dumps(value: Any, **kwargs) -> str:
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file in the same folder and a rename, so the file is
-    never seen truncated.  Errors are FRInputError one-liners."""
+    """Write ``text`` (UTF-8) to ``path`` via a temporary file in the same folder and a rename, so
+    the file is never seen truncated.  Errors are FRInputError one-liners."""
+    write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: Path, data: bytes) -> None:
+    """:func:`write_text_atomic` for bytes (an image)."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         try:
-            with os.fdopen(handle, "w") as out:
-                out.write(text)
+            with os.fdopen(handle, "wb") as out:
+                out.write(data)
             os.replace(tmp, path)
         except BaseException:
             with _suppress():
