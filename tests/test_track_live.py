@@ -232,3 +232,16 @@ def test_sighup_stops_a_live_run_that_a_rerun_appends_to(tmp_path):
     assert summary["segments"][1]["frames_dropped"] >= table["dropped"].iloc[written:].sum()
     assert summary["calibration"]["focal_px"] == pytest.approx(SyntheticCamera(**SMALL).focal_px, rel=0.05)
     assert (out / "track.png").stat().st_size > 0
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGUSR1"), reason="SIGUSR1 asks for the figure")
+def test_sigusr1_asks_for_the_figure_and_its_handler_comes_back():
+    from fr_torch.video.track import plot_requests
+
+    before = signal.getsignal(signal.SIGUSR1)
+    with plot_requests() as requested:
+        assert not requested()
+        os.kill(os.getpid(), signal.SIGUSR1)
+        time.sleep(0.01)  # the handler runs in the main thread between bytecodes
+        assert requested() and not requested()
+    assert signal.getsignal(signal.SIGUSR1) == before

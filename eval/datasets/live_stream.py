@@ -20,6 +20,7 @@ a binary file (a pipe into ``fr track -``).
 Run as a process (a source that can be killed)::
 
     python -m fr_eval.datasets.live_stream --port 8554 --fps 25 [--drift-deg 0.5 --drift-frames 15000]
+    # prints its URL and the Unix time of frame 0
     python -m fr_eval.datasets.live_stream --stdout --fps 25 | fr track - --out track_pipe
 """
 from __future__ import annotations
@@ -189,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         return 0
     server = MJPEGServer(camera, args.fps, args.port, args.drop_after).start()
-    print(server.url, flush=True)
+    print(server.url, time.time() - (time.monotonic() - server.start_time), flush=True)  # URL, Unix time of frame 0
     try:
         while True:
             time.sleep(3600)
