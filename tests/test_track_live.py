@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 import pandas as pd
 import pytest
+from fr_eval.bench.track_live import default_stop_signals
 from fr_eval.datasets.live_stream import MJPEGServer, SyntheticCamera
 from fr_eval.machine import session_processes
 
@@ -194,7 +195,7 @@ def test_sighup_stops_a_live_run_that_a_rerun_appends_to(tmp_path):
         command = [sys.executable, "-m", "fr_torch.cli", "track", server.url, "--out", str(out), "--fast"]
         with open(stderr_path, "w") as stderr:
             process = subprocess.Popen(command, env=checkout_env(), stdout=subprocess.DEVNULL, stderr=stderr,
-                                       start_new_session=True)
+                                       start_new_session=True, preexec_fn=default_stop_signals)
         try:
             deadline = time.monotonic() + 120
             while not (out / "frames.csv").exists() or len((out / "frames.csv").read_text().splitlines()) < 2:

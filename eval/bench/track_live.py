@@ -57,6 +57,14 @@ FR = [sys.executable, "-m", "fr_torch.cli", "track"]
 STOPS = ("SIGTERM", "SIGINT", "SIGHUP", "kill source")
 
 
+def default_stop_signals() -> None:
+    """In a child before exec: SIGINT, SIGTERM and SIGHUP with their default actions.  A measurement
+    started under ``nohup`` or in a shell's background ignores SIGHUP or SIGINT, its children
+    inherit that, and ``fr track`` rightly leaves an ignored signal alone."""
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, signal.SIG_DFL)
+
+
 def _env() -> dict[str, str]:
     paths = [str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
     return {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
@@ -92,7 +100,7 @@ def soak(args) -> None:
     command = FR + [f"http://127.0.0.1:{args.port}/stream.mjpg", "--out", str(folder), "--json", "-", *args.extra]
     started = time.time()
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=_env(),
-                               start_new_session=True)
+                               start_new_session=True, preexec_fn=default_stop_signals)
     records: list[dict] = []
 
     def read_records():
@@ -254,7 +262,7 @@ def stops(args) -> None:
         command = FR + [f"http://127.0.0.1:{args.port}/stream.mjpg", "--out", str(folder), "--reconnect", "3",
                         *args.extra]
         process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                                   env=_env(), start_new_session=True)
+                                   env=_env(), start_new_session=True, preexec_fn=default_stop_signals)
         time.sleep(delay)
         stopped = time.monotonic()
         if kind == "kill source":
@@ -265,6 +273,9 @@ def stops(args) -> None:
         try:
             _, stderr = process.communicate(timeout=120)
             exit_s = time.monotonic() - stopped
+        except subprocess.TimeoutExpired:  # a failed trial: recorded, and the run killed
+            _stop(process)
+            stderr, exit_s = process.stderr.read() + "\n(no exit 120 s after the stop: killed)", float("nan")
         finally:
             _stop(process)
             _stop(server)
@@ -297,7 +308,7 @@ def stops(args) -> None:
     machine = machine_description("cpu")
     text = ["# `fr track`: stops at random moments", "",
             f"Command: `python -m fr_eval.bench.track_live stops --trials {args.trials} --seed {args.seed}` "
-            f"(each trial: `fr track URL --out stop_trials_run --reconnect 3 {' '.join(args.extra)}` on a "
+            f"(each trial: `fr track URL --out stop_trials_run --reconnect 3{''.join(' ' + e for e in args.extra)}` on a "
             f"{args.fps:g} fps synthetic HTTP MJPEG stream served by another process, stopped "
             f"{args.min_delay:g}-{args.max_delay:g} s after its start, uniformly at random; the process starts in "
             f"about 4 s, so a few stops land before the first record). All trials append to one output folder.",
@@ -350,57 +361,70 @@ def pan(args) -> None:
         before, after = table[table["frame"] < args.repeat], table[table["frame"] >= args.repeat]
         restarts = list(after.loc[after["restarted"], "frame"])
         reliable_until = int(after.loc[:after.index[after["restarted"]][0], "reliable"].sum()) if restarts else None
+        reliable_after = int(after["reliable"].sum())
+        first_reliable = after[after["reliable"]].head(1)
         rows.append({"pair": f"{a.name} -> {b.name}", "gt_rotation_change_deg": round(difference, 2),
-                     "reliable_before": int(before["reliable"].sum()), "reliable_after": int(after["reliable"].sum()),
+                     "reliable_before": int(before["reliable"].sum()), "reliable_after": reliable_after,
+                     # the first reliable frame of the new view against the old fusion (units of --change-k;
+                     # above 1 it disagrees)
+                     "disagreement": None if first_reliable.empty else round(float(first_reliable["disagreement"].iloc[0]), 2),
                      "restarts_before_switch": int(before["restarted"].sum()),
                      "restart_at_frame": restarts[0] if restarts else None,
                      "reliable_frames_to_restart": reliable_until,
-                     "within_patience": reliable_until is not None and reliable_until <= args.patience})
+                     "within_patience": None if reliable_after == 0 else
+                     reliable_until is not None and reliable_until <= args.patience})
         print(rows[-1], flush=True)
     table = pd.DataFrame(rows)
     table.to_csv(Path(args.out) / "pan.csv", index=False)
     text = ["# `fr track`: a camera that pans mid-stream (YorkUrbanDB)", "",
             f"Command: `python -m fr_eval.bench.track_live pan --pairs {args.pairs} --repeat {args.repeat} "
-            f"--patience {args.patience} {' '.join(args.extra)}`: consecutive pairs of the {len(usable)} YUD test "
+            f"--patience {args.patience}{''.join(' ' + e for e in args.extra)}`: consecutive pairs of the {len(usable)} YUD test "
             f"photos (of 51; one camera, f = 674.9 px) whose {mode} estimate is reliable (a move can only be seen "
             f"on reliable frames), each photo sent {args.repeat} times with fresh Gaussian noise (sigma 2) as "
             "JPEGs through a pipe into `fr track - --no-realtime`; the switch is at frame "
             f"{args.repeat}. `gt rotation change`: the ground-truth rotation difference, modulo the Manhattan "
             "symmetries.", "",
-            f"**{int(table['within_patience'].sum())} of {len(table)}** pairs restart within --patience "
-            f"({args.patience}) reliable frames of the switch; restarts before the switch: "
-            f"{int(table['restarts_before_switch'].sum())}.", "",
-            "| pair | gt rotation change (deg) | reliable before / after | restart at frame | reliable frames to it "
-            "| within patience |", "| --- | --- | --- | --- | --- | --- |"]
+            f"**{sum(r['within_patience'] is True for r in rows)} of {sum(r['within_patience'] is not None for r in rows)}"
+            f"** pairs with a reliable frame after the switch restart within --patience ({args.patience}) reliable "
+            f"frames of it ({sum(r['within_patience'] is None for r in rows)} without one: n/a); restarts before the "
+            f"switch: {int(table['restarts_before_switch'].sum())}.  `disagreement`: the first reliable frame after "
+            "the switch against the fusion so far, in units of --change-k (above 1 it disagrees; below, the change "
+            "is within the predicted errors and is not a move the fusion can see).", "",
+            "| pair | gt rotation change (deg) | reliable before / after | disagreement | restart at frame "
+            "| reliable frames to it | within patience |", "| --- | --- | --- | --- | --- | --- | --- |"]
+
+    def shown(value) -> str:
+        return "n/a" if value is None else str(value)
+
     for row in rows:
         text.append(f"| {row['pair']} | {row['gt_rotation_change_deg']:.1f} | {row['reliable_before']} / "
-                    f"{row['reliable_after']} | {'' if row['restart_at_frame'] is None else row['restart_at_frame']} | "
-                    f"{'' if row['reliable_frames_to_restart'] is None else row['reliable_frames_to_restart']} | "
-                    f"{row['within_patience']} |")
+                    f"{row['reliable_after']} | {shown(row['disagreement'])} | {shown(row['restart_at_frame'])} | "
+                    f"{shown(row['reliable_frames_to_restart'])} | {shown(row['within_patience'])} |")
     (Path(args.out) / "pan.md").write_text("\n".join(text) + "\n")
     print("\n".join(text))
 
 
 def main(argv: list[str] | None = None) -> int:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--out", default=str(REPO / "results" / "track"))
+    common.add_argument("--port", type=int, default=18554)
+    common.add_argument("--fps", type=float, default=25.0)
+    common.add_argument("--seed", type=int, default=53)
     parser = argparse.ArgumentParser(prog="python -m fr_eval.bench.track_live", description=__doc__.split("\n")[0])
-    parser.add_argument("--out", default=str(REPO / "results" / "track"))
-    parser.add_argument("--port", type=int, default=18554)
-    parser.add_argument("--fps", type=float, default=25.0)
-    parser.add_argument("--seed", type=int, default=53)
     sub = parser.add_subparsers(dest="what", required=True)
-    s = sub.add_parser("soak")
+    s = sub.add_parser("soak", parents=[common])
     s.add_argument("--minutes", type=float, default=10.0)
     s.add_argument("--drift-deg", type=float, default=0.5)
     s.add_argument("--startup-s", type=float, default=5.0, help="seconds added to --minutes for the start-up")
     s.add_argument("extra", nargs="*", help="more fr track options (after --)")
     s.set_defaults(run=soak)
-    t = sub.add_parser("stops")
+    t = sub.add_parser("stops", parents=[common])
     t.add_argument("--trials", type=int, default=20)
     t.add_argument("--min-delay", type=float, default=3.0)
     t.add_argument("--max-delay", type=float, default=15.0)
     t.add_argument("extra", nargs="*")
     t.set_defaults(run=stops)
-    p = sub.add_parser("pan")
+    p = sub.add_parser("pan", parents=[common])
     p.add_argument("--pairs", type=int, default=10)
     p.add_argument("--repeat", type=int, default=6)
     p.add_argument("--patience", type=int, default=2)
