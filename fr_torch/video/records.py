@@ -50,6 +50,8 @@ FIGURE_FILE = "track.png"
 #: Records the figure shows (the latest), and entries kept in calibration.json's lists.
 PLOT_RECORDS = 5000
 KEPT_ENTRIES = 100
+#: Above this many records the figure shows dots without error bars (the bars would hide the track).
+ERROR_BAR_RECORDS = 200
 
 #: Columns of frames.csv and keys of a JSON-lines record, in order.  ``segment``: the run that
 #: wrote it; ``frame``: the frame's index (sources.Frame); ``time``: Unix time when the record was
@@ -314,10 +316,11 @@ def plot_records(records_path: Path, figure_path: Path, title: str = "", live: b
 
 
 def plot_track(records: pd.DataFrame, target, title: str = "", live: bool = False) -> None:
-    """Per-frame estimates with predicted error bars, held and rejected frames, the fused track
-    and its restarts (dashed), against the frame index, or for a live source (``live``) against the
-    time since the first record (s), with the start of each segment (dotted).  ``records``: rows
-    of :data:`RECORD_KEYS`; ``target``: a path or a binary file (PNG)."""
+    """Per-frame estimates with predicted error bars (up to :data:`ERROR_BAR_RECORDS` records;
+    dots beyond), held and rejected frames, the fused track and its restarts (dashed), against the
+    frame index, or for a live source (``live``) against the time since the first record (s), with
+    the start of each segment (dotted).  ``records``: rows of :data:`RECORD_KEYS`; ``target``: a
+    path or a binary file (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -340,19 +343,21 @@ def plot_track(records: pd.DataFrame, target, title: str = "", live: bool = Fals
     restarts = x[records["restarted"].astype(str).str.lower().eq("true").to_numpy()]
     segment = column("segment")
     segment_starts = x[1:][np.diff(segment) != 0]
+    bars = len(records) <= ERROR_BAR_RECORDS
     for ax, (estimate, error, fused, label) in zip(axes, panels):
         y = column(estimate)
-        if error is not None:
+        if error is not None and bars:
             e = np.nan_to_num(column(error) / 100.0 * y if estimate == "focal_px" else column(error), nan=0.0)
             ax.errorbar(x[good], y[good], yerr=e[good], fmt="o", ms=3, color="tab:blue", alpha=0.8,
                         elinewidth=0.8, label="accepted (predicted error)")
             ax.errorbar(x[held], y[held], yerr=e[held], fmt="s", ms=3, color="tab:orange", alpha=0.8,
                         elinewidth=0.8, label="held (disagrees)")
         else:
-            ax.plot(x[good], y[good], "o", ms=3, color="tab:blue")
-            ax.plot(x[held], y[held], "s", ms=3, color="tab:orange")
+            size = 3 if bars else 1.5
+            ax.plot(x[good], y[good], "o", ms=size, color="tab:blue", label="accepted")
+            ax.plot(x[held], y[held], "s", ms=size, color="tab:orange", label="held (disagrees)")
         ax.plot(x[rejected], y[rejected], "x", ms=4, color="grey", label="rejected (unreliable)")
-        ax.plot(x, column(fused), "-", color="tab:red", lw=1.5, label="fused")
+        ax.plot(x, column(fused), "-", color="tab:red", lw=1.5, label="fused", zorder=3)
         for at in restarts:
             ax.axvline(at, color="k", ls="--", lw=0.8)
         for at in segment_starts:
