@@ -1,5 +1,6 @@
 """The machine a measurement ran on (CPU model, cores, torch, threads, device, load), recorded beside
-every timing: on a shared machine timings are noisy, so runs compare only on the same machine."""
+every timing: on a shared machine timings are noisy, so runs compare only on the same machine; and
+what its processes hold (``/proc``: a process's memory, the processes of a session)."""
 from __future__ import annotations
 
 import os
@@ -38,3 +39,33 @@ def machine_description(device: str) -> dict:
         except (AssertionError, RuntimeError):  # no CUDA here: the record says so instead of failing
             info["gpu"] = "none available"
     return info
+
+
+def proc_status_kb(key: str, pid: int | str = "self") -> int | None:
+    """A ``/proc/PID/status`` size field in KiB (``VmRSS``, ``VmHWM``, ...); None where it cannot
+    be read (no /proc, the process gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def session_processes(session: int) -> list[int]:
+    """Live (not zombie) processes of the session ``session`` other than its leader, from /proc: a
+    command started as its own session (``start_new_session``) keeps every process it started in
+    it, orphans included."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == session:
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:  # gone meanwhile
+            continue
+        state, _ppid, _group, sid = stat[stat.rindex(")") + 2:].split()[:4]
+        if int(sid) == session and state not in ("Z", "X"):
+            found.append(int(entry.name))
+    return found

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -38,15 +39,27 @@ def dumps(value: Any, **kwargs) -> str:
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file in the same folder and a rename, so the file is
-    never seen truncated.  Errors are FRInputError one-liners."""
+    """Write ``text`` (UTF-8) to ``path`` via a temporary file in the same folder and a rename, so
+    the file is never seen truncated.  Errors are FRInputError one-liners."""
+    write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_bytes_atomic(path: Path, data: bytes) -> None:
+    """:func:`write_text_atomic` for bytes (an image).  The file gets the permissions a plain
+    ``open(path, "w")`` would give it (those of the file it replaces, else 0666 less the umask),
+    not the temporary file's private 0600."""
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            mode = stat.S_IMODE(os.stat(path).st_mode)
+        except FileNotFoundError:
+            mode = 0o666 & ~_umask()
         handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         try:
-            with os.fdopen(handle, "w") as out:
-                out.write(text)
+            with os.fdopen(handle, "wb") as out:
+                out.write(data)
+            os.chmod(tmp, mode)
             os.replace(tmp, path)
         except BaseException:
             with _suppress():
@@ -76,6 +89,13 @@ def output_folder(path: Path, option: str = "--overlay") -> Path:
     if not os.access(path, os.W_OK | os.X_OK):
         raise FRInputError(f"{option} {path}: folder is not writable")
     return path
+
+
+def _umask() -> int:
+    """This process's umask (read by setting it and back: the one way the standard library has)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 class _suppress:

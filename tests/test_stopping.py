@@ -21,6 +21,7 @@ import pytest
 
 pytest.importorskip("pyarrow.parquet")
 
+from fr_eval.machine import session_processes
 from fr_torch.batch.jobs import run_batch
 from fr_torch.cli.batch import estimator_options
 from fr_torch.cli.main import build_parser, stopped_line
@@ -51,22 +52,6 @@ def folder(tmp_path_factory) -> Path:
                                       160, 120, seed=i)
         cv2.imwrite(str(root / f"room{i}.png"), image)
     return root
-
-
-def session_processes(session: int) -> list[int]:
-    """Live (not zombie) processes of ``session`` other than its leader, from /proc."""
-    found = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == session:
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:  # gone meanwhile
-            continue
-        state, _ppid, _group, sid = stat[stat.rindex(")") + 2:].split()[:4]
-        if int(sid) == session and state not in ("Z", "X"):
-            found.append(int(entry.name))
-    return found
 
 
 def _default_sigint() -> None:

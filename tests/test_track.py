@@ -163,3 +163,32 @@ def test_fr_track_end_to_end(tmp_path):
     assert list(workers["frame"]) == [0, 1, 2] and list(workers["name"]) == list(table["name"])
     assert np.allclose(workers["focal_px"], table["focal_px"], rtol=1e-5)
     assert main(["track", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o3")]) == 2
+
+
+def test_fr_track_resumes_a_file_without_duplicates(tmp_path, capsys):
+    """A second run with the same --out appends a segment that starts after the last recorded
+    frame; a record cut short by a killed process is removed first; another source is refused."""
+    from fr_torch.cli.main import main
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(3):
+        image = render_manhattan_room(focal_from_hfov(75.0, 320), rot(12, 5, 2), 320, 240, seed=0)
+        cv2.imwrite(str(frames / f"frame_{i:03d}.png"), image)
+    out = tmp_path / "out"
+    assert main(["track", str(frames), "--out", str(out), "--fast", "--max-frames", "2"]) == 0
+    with open(out / "frames.csv", "a") as records:
+        records.write("0,2,frame_002.png,17")  # a record cut short
+    assert main(["track", str(frames), "--out", str(out), "--fast"]) == 0
+    assert "removed a last record cut short" in capsys.readouterr().err
+    assert main(["track", str(frames), "--out", str(out), "--fast"]) == 0  # nothing left to do
+    table = pd.read_csv(out / "frames.csv")
+    assert list(table["frame"]) == [0, 1, 2] and list(table["segment"]) == [0, 0, 1]
+    summary = json.loads((out / "calibration.json").read_text())
+    assert summary["frames_processed"] == 3 and summary["segment"] == 2 and summary["run"].startswith("ended")
+    assert table["status"].iloc[2] == "fused"  # the fusion continued from the checkpoint
+    other = tmp_path / "other"
+    other.mkdir()
+    cv2.imwrite(str(other / "a.png"), image)
+    assert main(["track", str(other), "--out", str(out), "--fast"]) == 2
+    assert "holds the records of" in capsys.readouterr().err

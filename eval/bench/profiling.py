@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from fr_eval.bench.timing import bench_estimator, device_sync, scene_segments
+from fr_eval.machine import proc_status_kb
 from fr_eval.paths import REPO
 
 
@@ -76,29 +77,19 @@ def memory_probe(spec: str) -> dict:
     return out
 
 
-def _proc_status_kb(key: str) -> int | None:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(key + ":"):
-                return int(line.split()[1])
-    except (OSError, ValueError):
-        pass
-    return None
-
-
 def _reset_peak_rss() -> float:
     """Reset the peak-RSS mark to the current RSS (Linux); returns the current RSS in KiB."""
     try:
         Path("/proc/self/clear_refs").write_text("5")
     except OSError:
         pass
-    current = _proc_status_kb("VmRSS")
+    current = proc_status_kb("VmRSS")
     return float(current if current is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 
 def _peak_rss() -> float:
     """Peak RSS in KiB since the last reset (VmHWM), or ru_maxrss where /proc is missing."""
-    peak = _proc_status_kb("VmHWM")
+    peak = proc_status_kb("VmHWM")
     return float(peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 
 

@@ -1,13 +1,17 @@
-"""``fr track``: the command-line front end of :mod:`fr_torch.video.track`."""
+"""``fr track``: the command-line front end of :mod:`fr_torch.video.track`.
+
+SIGINT (CTRL-C), SIGTERM and SIGHUP (a closed terminal, a service manager's reload) stop it the
+same way: every processed frame is on disk, calibration.json holds the latest fusion, the figure
+is drawn, one line says so, and the exit status is 128 + the signal's number (130, 143, 129).
+"""
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
-from collections import deque
 from pathlib import Path
 
-import pandas as pd
 from tqdm import tqdm
 
 from fr_torch.cli.options import (
@@ -18,14 +22,18 @@ from fr_torch.cli.options import (
 from fr_torch.core.checks import finite_number, positive_int, positive_number
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.estimator import FREstimator
-from fr_torch.runtime.pipeline import calibrate_stream
-from fr_torch.runtime.workers import start_worker_server
+from fr_torch.runtime.workers import interrupt_on_signals, start_worker_server
 from fr_torch.video.fusion import OnlineCalibrator
-from fr_torch.video.track import frame_row, iter_frames, plot_track
+from fr_torch.video.records import TrackOutput
+from fr_torch.video.sources import Reconnect, Source, open_frames
+from fr_torch.video.track import track
+
+#: Stops of ``fr track`` beyond the SIGINT and SIGTERM of every command.
+TRACK_STOP_SIGNALS = tuple(s for s in (getattr(signal, "SIGHUP", None),) if s is not None)
 
 
 def track_options(args) -> None:
-    """``fr track`` options: memory >= 1 frame, change_k > 0, patience >= 1 (one-line errors)."""
+    """``fr track`` options: memory >= 1 frame, change_k > 0, patience >= 1, timeouts > 0 (one-line errors)."""
     memory = finite_number(args.memory, "--memory")
     if memory < 1:
         raise FRInputError(f"--memory must be at least 1 frame, got {args.memory!r}")
@@ -33,40 +41,66 @@ def track_options(args) -> None:
     positive_int(args.patience, "--patience")
     if args.max_frames is not None:
         positive_int(args.max_frames, "--max-frames")
+    positive_number(args.stream_timeout, "--stream-timeout")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``fr track``."""
-    parser.add_argument("source", type=Path, help="video file or folder of frames (sorted by name)")
-    parser.add_argument("--out", type=Path, default=None, help="output folder (default track_<source name>)")
-    parser.add_argument("--every", type=int, default=1, metavar="N", help="process every N-th frame")
+    parser.add_argument("source", help="video file, folder of frames (sorted by name), stream URL (rtsp://, "
+                                       "http(s):// MJPEG or HLS, anything OpenCV's FFmpeg opens), camera index or "
+                                       "device (0, /dev/video0), or - for images on stdin (ffmpeg -f image2pipe)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="output folder (default track_<source name>); a second run with the same --out "
+                             "appends a new segment (a file continues after its last recorded frame)")
+    parser.add_argument("--json", default=None, metavar="PATH|-",
+                        help="also write each frame's record as one JSON line to PATH as it comes (- = stdout)")
+    parser.add_argument("--every", type=int, default=1, metavar="N", help="process every N-th frame (files)")
     parser.add_argument("--max-frames", type=int, default=None, help="stop after this many processed frames")
-    parser.add_argument("--batch-size", type=int, default=8, help="frames searched together")
+    parser.add_argument("--batch-size", type=int, default=8, help="frames searched together (1 in real time)")
     parser.add_argument("--workers", type=int, default=0, metavar="N",
                         help="CPU: calibrate frames in N single-threaded worker processes, in order; GPU: "
                              "N processes decode and detect frames ahead of the search (default 0: this "
                              "process; worth it for long videos on many cores)")
+    live = parser.add_argument_group("live sources")
+    live.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=None,
+                      help="process the newest frame whenever the search is free and drop the frames that "
+                           "arrived meanwhile (default for live sources); --no-realtime queues every frame")
+    live.add_argument("--reconnect", nargs="?", const="inf", default=None, metavar="SECONDS",
+                      help="reopen a stream or camera that drops, with back-off (0.5 s doubling to 30 s), "
+                           "giving up after SECONDS without a frame (alone: never give up)")
+    live.add_argument("--stream-timeout", type=float, default=5.0, metavar="SECONDS",
+                      help="a stream's connection or next frame taking longer counts as a drop (default 5)")
     add_estimator_arguments(parser)  # the estimator options shared with fr calibrate and fr batch
-    parser.add_argument("--memory", type=float, default=30.0, help="fusion memory in accepted frames (forgetting)")
-    parser.add_argument("--change-k", type=float, default=3.0, help="camera-moved threshold in predicted sigmas")
-    parser.add_argument("--patience", type=int, default=2,
+    fusion = parser.add_argument_group("fusion")
+    fusion.add_argument("--memory", type=float, default=30.0, help="fusion memory in accepted frames (forgetting)")
+    fusion.add_argument("--change-k", type=float, default=3.0, help="camera-moved threshold in predicted sigmas")
+    fusion.add_argument("--patience", type=int, default=2,
                         help="consecutive disagreeing reliable frames that mean the camera moved")
-    parser.add_argument("--no-reliability", action="store_true",
+    fusion.add_argument("--no-reliability", action="store_true",
                         help="ignore the reliability stage: frames kept on the sanity checks alone, not the "
                              "reliable promise, and weighed the same (fR then skips the focal_profile_gap cue, a "
                              "quarter of its time)")
 
 
 def run(args: argparse.Namespace) -> int:
+    with interrupt_on_signals(TRACK_STOP_SIGNALS):
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     if args.every < 1 or args.batch_size < 1:
         raise FRInputError("--every and --batch-size must be at least 1")
     if args.workers < 0:
         raise FRInputError("--workers must be 0 (this process) or more")
+    track_options(args)
+    source = Source.parse(args.source)
+    reconnect = Reconnect.parse(args.reconnect)
+    if reconnect.enabled and not source.live:
+        raise FRInputError(f"--reconnect: {source} is a file, read to its end")
     policy = device_policy(args)
     if args.workers:
         start_worker_server()
     policy.apply_threads()
-    track_options(args)
     estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
     mode = estimator.mode
     scope_gap = estimator.reliability_scope_gap(detected=True) if estimator.reliability is not None else None
@@ -77,44 +111,36 @@ def run(args: argparse.Namespace) -> int:
     if model is None and not args.no_reliability and scope_gap is None:
         print(f"fr track: no reliability model for {mode}: all reliable frames weigh the same", file=sys.stderr)
     tracker = OnlineCalibrator(memory=args.memory, change_k=args.change_k, patience=args.patience)
-    out = args.out or Path(f"track_{args.source.stem or args.source.name}")
-    out.mkdir(parents=True, exist_ok=True)
-
-    rows, indices = [], deque()
-
-    def frames():  # (image, name) for the estimator; the frame indices wait here, in order
-        for index, name, image in iter_frames(args.source, args.every, args.max_frames):
-            indices.append(index)
-            yield image, name
-
+    realtime = source.live and args.realtime is not False
+    settings = {"every": args.every, "memory": args.memory, "change_k": args.change_k, "patience": args.patience,
+                "realtime": realtime, "reconnect_give_up_s": reconnect.give_up_s if reconnect.enabled else None}
+    output = TrackOutput(args.out or Path(f"track_{source.label}"), source, settings, str(mode),
+                         json_target=args.json, reliability_model=model is not None)
+    if output.checkpoint:
+        try:
+            tracker.restore(output.checkpoint)
+        except ValueError as exc:
+            raise FRInputError(f"{output.calibration_path}: {exc}; use another --out") from None
+    if output.resumed:
+        first = f"from frame {output.start_frame}" if not source.live else "frames counted from 0 again"
+        print(f"fr track: {output.folder} holds earlier records: segment {output.segment}, {first}", file=sys.stderr)
     bar = tqdm(desc="fr track", unit="frame", file=sys.stderr)
+    output.log = say = lambda message: bar.write(message, file=sys.stderr)  # lines above the progress bar
+    stream = open_frames(source, args.every, output.start_frame, args.realtime, reconnect, args.stream_timeout, say)
     try:
-        for result in calibrate_stream(estimator, frames(), args.batch_size, args.workers):
-            index = indices.popleft()
-            state = tracker.update(result, index)
-            rows.append(frame_row(index, result.image, result, state))
-            if state.restarted:
-                bar.write(f"fr track: camera moved at frame {index}: fusion restarted", file=sys.stderr)
-            bar.update(1)
+        ended = track(stream, estimator, tracker, output, args.batch_size, args.workers, args.max_frames, bar,
+                      f"fr track {source.label} ({mode})")
+    except KeyboardInterrupt as stop:
+        stop.add_note(f"{output.processed} frames of this run are in {output.records_path}; the same command "
+                      "again appends")
+        raise
     finally:
         bar.close()
-    if not rows:
-        raise FRInputError(f"{args.source}: no frame could be read (all skipped)")
-
-    pd.DataFrame(rows).to_csv(out / "frames.csv", index=False)
-    final = tracker.history[-1] if tracker.history else None
-    summary = {"source": str(args.source), "mode": mode, "frames_processed": len(rows),
-               "frames_accepted": sum(r["status"] in ("fused", "started", "restarted") for r in rows),
-               "frames_rejected": sum(r["status"] == "rejected" for r in rows),
-               "restarts_at_frames": [r["frame"] for r in rows if r["restarted"]],
-               "reliability_model": model is not None,
-               "settings": {"every": args.every, "memory": args.memory, "change_k": args.change_k,
-                            "patience": args.patience},
-               "calibration": final.to_json() if final is not None and final.valid else None}
-    if summary["calibration"] is not None:
-        summary["calibration"]["hfov_deg"] = final.hfov_deg  # of the fused camera (the video's frame width)
-    (out / "calibration.json").write_text(json.dumps(summary, indent=1) + "\n")
-    plot_track(rows, out / "track.png", f"fr track {args.source.name} ({mode})")
-    print(json.dumps({k: summary[k] for k in ("frames_processed", "frames_accepted", "restarts_at_frames")}))
-    print(f"fr track: wrote {out / 'frames.csv'}, {out / 'calibration.json'}, {out / 'track.png'}", file=sys.stderr)
+    if output.processed == 0 and not (output.resumed and not source.live):
+        raise FRInputError(f"{source}: no frame could be read (all skipped)")
+    summary = json.loads(output.calibration_path.read_text())
+    line = {key: summary[key] for key in ("run", "segment", "frames_processed", "frames_accepted", "frames_dropped",
+                                          "dropped_share", "restarts_at_frames")}
+    print(json.dumps(line), file=sys.stderr if args.json == "-" else sys.stdout)
+    print(f"fr track: wrote {output.records_path}, {output.calibration_path}, {output.figure_path}", file=sys.stderr)
     return 0 if summary["calibration"] is not None else 1

@@ -31,6 +31,7 @@ resolution.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import stat
 import struct
@@ -220,31 +221,40 @@ def probe_image_size(path) -> tuple[int, int] | None:
     """
     try:
         with open(path, "rb") as handle:
-            head = handle.read(64)
-            if head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR":
-                return struct.unpack(">II", head[16:24])
-            if head.startswith(b"\xff\xd8"):
-                return _jpeg_size(head, handle)
-            if head.startswith(b"BM") and len(head) >= 26:
-                width, height = struct.unpack("<ii", head[18:26])
-                return abs(width), abs(height)
-            if head[:6] in (b"GIF87a", b"GIF89a"):
-                return struct.unpack("<HH", head[6:10])
-            if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
-                chunk = head[12:16]
-                if chunk == b"VP8X":
-                    return (int.from_bytes(head[24:27], "little") + 1, int.from_bytes(head[27:30], "little") + 1)
-                if chunk == b"VP8L":
-                    bits = int.from_bytes(head[21:25], "little")
-                    return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
-                if chunk == b"VP8 ":
-                    width, height = struct.unpack("<HH", head[26:30])
-                    return width & 0x3FFF, height & 0x3FFF
-                return None
-            if head[:4] in (b"II*\x00", b"MM\x00*"):
-                return _tiff_size(head, handle)
-            if head[:1] == b"P" and head[1:2] in b"123456" and len(head) > 3:
-                return _pnm_size(head + handle.read(960))
+            return header_size(handle)
+    except OSError:
+        return None
+
+
+def header_size(handle) -> tuple[int, int] | None:
+    """:func:`probe_image_size` of an open binary stream positioned at the image's first byte (a
+    file, or ``io.BytesIO`` of an image held in memory)."""
+    try:
+        head = handle.read(64)
+        if head.startswith(b"\x89PNG\r\n\x1a\n") and head[12:16] == b"IHDR":
+            return struct.unpack(">II", head[16:24])
+        if head.startswith(b"\xff\xd8"):
+            return _jpeg_size(head, handle)
+        if head.startswith(b"BM") and len(head) >= 26:
+            width, height = struct.unpack("<ii", head[18:26])
+            return abs(width), abs(height)
+        if head[:6] in (b"GIF87a", b"GIF89a"):
+            return struct.unpack("<HH", head[6:10])
+        if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
+            chunk = head[12:16]
+            if chunk == b"VP8X":
+                return (int.from_bytes(head[24:27], "little") + 1, int.from_bytes(head[27:30], "little") + 1)
+            if chunk == b"VP8L":
+                bits = int.from_bytes(head[21:25], "little")
+                return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+            if chunk == b"VP8 ":
+                width, height = struct.unpack("<HH", head[26:30])
+                return width & 0x3FFF, height & 0x3FFF
+            return None
+        if head[:4] in (b"II*\x00", b"MM\x00*"):
+            return _tiff_size(head, handle)
+        if head[:1] == b"P" and head[1:2] in b"123456" and len(head) > 3:
+            return _pnm_size(head + handle.read(960))
     except (OSError, struct.error, ValueError, KeyError):
         return None
     return None
@@ -295,7 +305,26 @@ def read_image(path, max_long_side: int | None = None) -> tuple[np.ndarray, tupl
     """
     name = display_name(path)
     check_regular_file(path)
-    declared = probe_image_size(path)
+    return _decode(lambda: np.fromfile(path, dtype=np.uint8), name, probe_image_size(path), _is_jpeg(path),
+                   max_long_side)
+
+
+def decode_image_bytes(data: bytes, name: str, max_long_side: int | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+    """:func:`read_image` of an image held in memory (one frame of a stream: JPEG, PNG, PNM, BMP
+    ...), with the same limits and the same one-line FRInputError; ``name`` names it in messages."""
+    if not data:
+        raise _error(f"{name}: empty image")
+    if len(data) > MAX_FILE_BYTES:
+        raise _error(f"{name}: image of {len(data) / 2 ** 20:.0f} MB is above the {MAX_FILE_BYTES / 2 ** 20:.0f} MB "
+                     "limit (FR_MAX_FILE_BYTES)")
+    return _decode(lambda: np.frombuffer(data, dtype=np.uint8), name, header_size(io.BytesIO(data)),
+                   bytes(data[:2]) == b"\xff\xd8", max_long_side)
+
+
+def _decode(load, name: str, declared: tuple[int, int] | None, jpeg: bool,
+            max_long_side: int | None) -> tuple[np.ndarray, tuple[int, int]]:
+    """The bounded decode of :func:`read_image`: ``load()`` gives the encoded bytes (uint8 array),
+    ``declared`` the header's (width, height) or None, ``jpeg`` whether it is a JPEG."""
     gray = False
     if declared is not None:
         width, height = (int(v) for v in declared)
@@ -316,13 +345,13 @@ def read_image(path, max_long_side: int | None = None) -> tuple[np.ndarray, tupl
         # shrink below one pixel (a 5000 x 1 strip): reduce such an image less.
         while factor > 1 and min(width, height) < factor:
             factor //= 2
-        if width * height * 3 > MAX_COLOR_BYTES and not _is_jpeg(path):
+        if width * height * 3 > MAX_COLOR_BYTES and not jpeg:
             gray = True
     else:
         factor = 1
     flags = (_REDUCED_GRAY if gray else _REDUCED_COLOR)[factor]
     try:
-        data = np.fromfile(path, dtype=np.uint8)
+        data = load()
         with quiet_opencv():
             image = cv2.imdecode(data, flags)
     except MemoryError:

@@ -280,11 +280,13 @@ def _calibration_crash(item):
     return CalibrationResult(image=item[1], width=0, height=0, ok=False, reason=crash_reason(item[1]))
 
 
-def _calibrate_in_workers(estimator, items: Iterable, chunk_size: int, workers: int) -> Iterator:
+def _calibrate_in_workers(estimator, items: Iterable, chunk_size: int, workers: int,
+                          queue_size: int | None = None) -> Iterator:
     """Results of (image, name, focal_px, principal_point) ``items``, in order, each chunk decoded,
-    detected and searched by one of ``workers`` single-threaded processes (a copy of ``estimator``)."""
+    detected and searched by one of ``workers`` single-threaded processes (a copy of ``estimator``),
+    at most ``queue_size`` chunks in flight (default :func:`ordered_pool_map`'s)."""
     return ordered_pool_map(_calibrate_chunk, items, chunk_size, workers, _init_calibrate_worker,
-                            (_portable_estimator(estimator),), _calibration_crash)
+                            (_portable_estimator(estimator),), _calibration_crash, queue_size)
 
 
 def _portable_estimator(estimator):
@@ -308,7 +310,7 @@ def _ahead_of_search(workers: int, batch_size: int) -> int:
 
 
 def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: int = 0,
-                     whole_frames: bool | None = None) -> Iterator:
+                     whole_frames: bool | None = None, in_flight: int | None = None) -> Iterator:
     """Calibrate a stream of ``(image, name)`` pairs (a video's frames: arrays or paths), yielding one
     :class:`~fr_torch.core.estimator.CalibrationResult` per frame, in order, without reading the stream
     ahead by more than what is in flight (one batch in-process).  ``workers > 0`` with
@@ -317,10 +319,13 @@ def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: 
     (always for a GPU estimator): the workers decode and detect up to two batches of frames ahead
     while this process searches on the device, or, for a detector of batches on a GPU, this process
     decodes and detects each batch on the device (:mod:`fr_torch.runtime.device_pipeline`).
+    ``in_flight``: with workers, at most this many chunks (whole frames) or frames (detection)
+    read ahead of the results instead of those defaults; ``workers`` with ``batch_size=1`` keeps
+    every worker busy with one frame and none waiting (a live source in real time).
     """
     if workers > 0 and estimator.policy.whole_image_workers and whole_frames is not False:
         yield from _calibrate_in_workers(estimator, ((image, name, None, None) for image, name in frames),
-                                         batch_size, workers)
+                                         batch_size, workers, in_flight)
         return
     if workers > 0 and device_path_gap(estimator) is not None:
         names: deque = deque()  # the names of the frames read so far and not yet searched, in order
@@ -331,7 +336,8 @@ def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: 
                 yield image, name
 
         detections = _detections_of_pairs(named(), estimator.detector, estimator.segment_filter, workers,
-                                          _ahead_of_search(workers, batch_size), estimator.working_long_side)
+                                          in_flight or _ahead_of_search(workers, batch_size),
+                                          estimator.working_long_side)
         try:
             while batch := list(itertools.islice(detections, batch_size)):
                 yield from estimator.calibrate_detections(batch, [names.popleft() for _ in batch])

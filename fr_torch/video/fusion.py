@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -66,6 +67,30 @@ class FrameEstimate:
     camera: Camera | None = None
     predicted_error: dict[str, float] | None = None
     reason: str = ""
+
+
+def camera_json(camera: Camera | None) -> dict[str, Any] | None:
+    """A :class:`Camera` as JSON-ready values (None stays None); :func:`camera_from_json` reads it."""
+    if camera is None:
+        return None
+    return {"width": camera.width, "height": camera.height, "focal_px": camera.focal_px,
+            "principal_point": None if camera.principal_point is None else list(map(float, camera.principal_point)),
+            "rotation": None if camera.rotation is None else np.asarray(camera.rotation).tolist(),
+            "pan_known": camera.pan_known}
+
+
+def camera_from_json(record: dict[str, Any] | None) -> Camera | None:
+    """The :class:`Camera` of :func:`camera_json`'s output; ValueError when it holds no finite
+    focal length and rotation (the only cameras the fusion keeps)."""
+    if record is None:
+        return None
+    rotation = np.asarray(record["rotation"], np.float64).reshape(3, 3)
+    focal = float(record["focal_px"])
+    if not (math.isfinite(focal) and focal > 0 and np.isfinite(rotation).all()):
+        raise ValueError("camera without a finite focal length and rotation")
+    pp = record.get("principal_point")
+    return Camera(int(record["width"]), int(record["height"]), focal, None if pp is None else tuple(map(float, pp)),
+                  rotation, bool(record.get("pan_known", True)))
 
 
 # FusedState.to_json: its keys, in order (``fr track``'s calibration.json)
@@ -106,19 +131,26 @@ class FusedState:
 
 @dataclass
 class OnlineCalibrator:
-    """Fuses per-frame fR estimates into a current calibration; see the module docstring."""
+    """Fuses per-frame fR estimates into a current calibration; see the module docstring.
+
+    ``history`` holds the fused states after the latest ``history_length`` frames (None: every
+    frame), so memory stays bounded however long the stream runs.  :meth:`checkpoint` and
+    :meth:`restore` carry the fusion over to another process (a resumed ``fr track``).
+    """
 
     memory: float = 30.0
     change_k: float = 3.0
     patience: int = 2
     min_sigma: dict[str, float] = field(default_factory=lambda: {"roll_deg": 0.2, "tilt_deg": 0.2, "focal_pct": 1.0})
     default_error: dict[str, float] | None = None  # used when a frame has no predicted error (thresholds)
-    history: list[FusedState] = field(default_factory=list, init=False)
+    history_length: int | None = 1000
+    history: deque[FusedState] = field(init=False)
 
     def __post_init__(self) -> None:
         if self.default_error is None:
 
             self.default_error = load_thresholds()
+        self.history = deque(maxlen=self.history_length)
         self.reset()
         self.epoch = -1
 
@@ -230,6 +262,39 @@ class OnlineCalibrator:
         state.restarted, state.disagreement = restarted, z
         self.history.append(state)
         return state
+
+    # ------------------------------------------------------------------ checkpoint
+
+    def checkpoint(self) -> dict[str, Any]:
+        """The fusion's whole state as JSON-ready values (sums of weights and weighted values,
+        epoch, last frame index, the held-back frames, the last fused frame's camera): feeding
+        :meth:`restore` of a new calibrator with it continues the fusion exactly."""
+        return {"epoch": self.epoch, "frame": self._frame, "n": self._n, "m": self._m.tolist(),
+                "w_rot": self._w_rot, "logf": self._logf, "w_f": self._w_f, "w_roll": self._w_roll,
+                "w_tilt": self._w_tilt, "camera": camera_json(self._camera),
+                "pending": [{"index": p.index, "camera": camera_json(p.camera), "predicted_error": p.predicted_error}
+                            for p in self._pending]}
+
+    def restore(self, checkpoint: dict[str, Any]) -> None:
+        """Continue from :meth:`checkpoint`'s output; ValueError (one line) when it is not one."""
+        try:
+            m = np.asarray(checkpoint["m"], np.float64).reshape(3, 3)
+            numbers = [float(checkpoint[k]) for k in ("w_rot", "logf", "w_f", "w_roll", "w_tilt")]
+            n, epoch, frame = int(checkpoint["n"]), int(checkpoint["epoch"]), int(checkpoint["frame"])
+            camera = camera_from_json(checkpoint["camera"])
+            pending = [FrameEstimate(index=int(p["index"]), ok=True, reliable=True, camera=camera_from_json(p["camera"]),
+                                     predicted_error=p.get("predicted_error")) for p in checkpoint["pending"]]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"not a fusion checkpoint ({type(exc).__name__}: {exc})") from None
+        if not (np.isfinite(m).all() and all(math.isfinite(v) for v in numbers)) or n < 0 or (n and camera is None) \
+                or (n and min(numbers[2:]) <= 0) or any(p.camera is None for p in pending):
+            raise ValueError("not a fusion checkpoint (weights or cameras missing or not finite)")
+        self.reset()
+        self._m, (self._w_rot, self._logf, self._w_f, self._w_roll, self._w_tilt) = m, numbers
+        self._n, self.epoch, self._frame, self._camera, self._pending = n, epoch, frame, camera, pending
+        if n:
+            self.rotation = nearest_rotation(self._m)
+            self.focal_px = math.exp(self._logf / self._w_f)
 
     def state(self, status: str = "fused") -> FusedState:
         if self._n == 0:

@@ -1,153 +1,132 @@
-"""Online recalibration from a stream of frames: ``fr track SOURCE`` and :class:`OnlineCalibrator`.
+"""Online recalibration from a stream of frames: what ``fr track SOURCE`` runs (:func:`track`).
 
-Python use::
+Python use, frame by frame, from wherever the frames come (a camera SDK's callback, a ROS topic,
+a queue)::
 
     from fr_torch import FREstimator
-    from fr_torch.video.track import OnlineCalibrator
+    from fr_torch.video.fusion import OnlineCalibrator
 
     est = FREstimator(mode="fast")              # its reliability stage fills result.predicted_error
     tracker = OnlineCalibrator()
-    for result in est.calibrate_images(frames):
-        state = tracker.update(result)          # FusedState: focal_px, rotation, roll/tilt, ...
+    for image in frames:                        # BGR or grey arrays
+        [result] = est.calibrate_images([image])
+        state = tracker.update(result)          # FusedState: focal_px, rotation, roll/tilt, status, ...
+        if state.valid:
+            use(state.focal_px, state.rotation)
 
-Fusion: :mod:`fr_torch.video.fusion` (rejection of unreliable frames, weighted chordal mean of the
-rotations, log-focal mean, forgetting, camera-moved detection and restart of a fusion *epoch*).
-
-Outputs of ``fr track`` (``--out``, default ``track_<source name>/``): ``frames.csv`` (one row per
-processed frame: estimate, predicted errors, status, fused state after the frame),
-``calibration.json`` (the final fused calibration, restarts and settings) and ``track.png`` (per
-frame estimates with predicted error bars, rejected frames, fused track, restarts).
+The pieces of ``fr track``: frame sources, files and live ones, with real time, dropping and
+reconnection (:mod:`fr_torch.video.sources`); the fusion (:mod:`fr_torch.video.fusion`: rejection
+of unreliable frames, weighted chordal mean of the rotations, log-focal mean, forgetting,
+camera-moved detection and restart of a fusion *epoch*); the outputs written as frames are
+processed, resuming and the figure (:mod:`fr_torch.video.records`).
 """
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-from typing import Any, Iterator, Sequence
+import contextlib
+import signal
+import threading
+from collections import deque
+from typing import Callable, Iterator
 
-import cv2
-import numpy as np
+from fr_torch.runtime.pipeline import calibrate_stream
+from fr_torch.runtime.workers import stops_held
+from fr_torch.video.fusion import OnlineCalibrator
+from fr_torch.video.records import CHANGES_FUSION, TrackOutput, frame_record
+from fr_torch.video.sources import FrameStream, limited
 
-from fr_torch.errors import FRInputError
-from fr_torch.images.io import load_image
-from fr_torch.video.fusion import FusedState
+#: The signal that asks a running ``fr track`` to draw its figure now.
+PLOT_SIGNAL = getattr(signal, "SIGUSR1", None)
 
-IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 
-# ---------------------------------------------------------------------------------- frame sources
+@contextlib.contextmanager
+def plot_requests() -> Iterator[Callable[[], bool]]:
+    """While the block runs, :data:`PLOT_SIGNAL` (SIGUSR1) only raises a flag; yields a function
+    that says whether it came since the last call.  A no-op (never) outside the main thread or
+    where the signal does not exist."""
+    raised = threading.Event()
 
-def iter_frames(source: str | Path, every: int = 1, max_frames: int | None = None) -> Iterator[tuple[int, str, np.ndarray]]:
-    """(frame index, name, BGR/grey image) from a folder of images (sorted names) or a video file."""
+    def requested() -> bool:
+        was = raised.is_set()
+        raised.clear()
+        return was
 
-    source = Path(source)
-    every = max(1, int(every))
-    count = 0
-    if source.is_dir():
-        files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if not files:
-            raise FRInputError(f"{source}: no image files ({', '.join(sorted(IMAGE_SUFFIXES))})")
-        for i, path in enumerate(files):
-            if i % every:
-                continue
-            try:
-                image = load_image(str(path))
-            except FRInputError as exc:
-                print(f"fr track: skipping {path.name}: {exc}", file=sys.stderr)
-                continue
-            yield i, path.name, image
-            count += 1
-            if max_frames and count >= max_frames:
-                return
+    if PLOT_SIGNAL is None or threading.current_thread() is not threading.main_thread():
+        yield requested
         return
-    if not source.is_file():
-        raise FileNotFoundError(f"{source}: no such video file or folder")
-    capture = cv2.VideoCapture(str(source))
-    if not capture.isOpened():
-        raise FRInputError(f"{source}: OpenCV cannot open this video")
+    previous = signal.signal(PLOT_SIGNAL, lambda signum, frame: raised.set())
     try:
-        i = 0
-        while True:
-            ok, image = capture.read()
-            if not ok:
-                break
-            if i % every == 0:
-                yield i, f"{source.stem}_{i:06d}", image
-                count += 1
-                if max_frames and count >= max_frames:
-                    break
-            i += 1
+        yield requested
     finally:
-        capture.release()
-    if count == 0:
-        raise FRInputError(f"{source}: no frames could be read")
+        signal.signal(PLOT_SIGNAL, previous)
 
 
-# ---------------------------------------------------------------------------------- outputs
-
-def frame_row(index: int, name: str, result, state: FusedState) -> dict[str, Any]:
-    pred = result.predicted_error or {}
-    sigma = state.sigma or {}
-    return {"frame": index, "name": name, "width": result.width, "height": result.height, "ok": result.ok, "reliable": bool(result.ok and result.reliable),
-            "status": state.status, "epoch": state.epoch, "restarted": state.restarted,
-            "focal_px": result.focal_px, "hfov_deg": result.hfov_deg, "roll_deg": result.roll_deg,
-            "tilt_deg": result.tilt_deg, "pan_deg": result.pan_deg,
-            "pred_roll_err_deg": pred.get("roll_deg"), "pred_tilt_err_deg": pred.get("tilt_deg"),
-            "pred_focal_err_pct": pred.get("focal_pct"),
-            "fused_focal_px": state.focal_px, "fused_roll_deg": state.roll_deg, "fused_tilt_deg": state.tilt_deg,
-            "fused_pan_deg": state.pan_deg, "fused_sigma_roll_deg": sigma.get("roll_deg"),
-            "fused_sigma_tilt_deg": sigma.get("tilt_deg"), "fused_sigma_focal_pct": sigma.get("focal_pct"),
-            "n_fused": state.n_fused, "disagreement": state.disagreement, "reason": result.reason}
+def stop_reason(stop: KeyboardInterrupt) -> str:
+    """``stopped by SIGTERM`` (the signal of a :class:`fr_torch.runtime.workers.Stopped`; SIGINT
+    for CTRL-C)."""
+    return f"stopped by {signal.Signals(getattr(stop, 'signum', signal.SIGINT)).name}"
 
 
-def plot_track(rows: Sequence[dict], path: Path, title: str = "") -> Path:
-    import matplotlib
+def track(stream: FrameStream, estimator, tracker: OnlineCalibrator, output: TrackOutput, batch_size: int = 8,
+          workers: int = 0, max_frames: int | None = None, progress=None, title: str = "") -> str:
+    """Calibrate, fuse and record the frames of ``stream`` until it ends (or ``max_frames``
+    frames); returns how the run ended (``ended: ...``), as calibration.json's ``run`` says.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Each frame's record is appended and flushed as soon as its result is fused, and
+    calibration.json is rewritten whenever the fusion changes (:mod:`fr_torch.video.records`),
+    both without a stop in between (:func:`fr_torch.runtime.workers.stops_held`).  A live source in
+    real time is searched one frame at a time (``batch_size`` 1; with ``workers``, one frame per
+    worker), so that the frame searched is always the newest.  A stop (``KeyboardInterrupt``:
+    CTRL-C, or SIGTERM / SIGHUP made :class:`~fr_torch.runtime.workers.Stopped`) or an error ends
+    the run the same way -- calibration.json gets the latest fusion and ``run`` says why, the
+    figure is drawn -- and is raised again.  ``progress``: a tqdm-like bar (``update``, ``write``)
+    or None; SIGUSR1 draws the figure after the next frame.
+    """
+    realtime = stream.live and getattr(stream, "realtime", False)
+    if realtime:
+        batch_size = 1
+    waiting: deque = deque()  # frames read and not yet recorded, in order
 
-    fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
-    panels = [("roll_deg", "pred_roll_err_deg", "fused_roll_deg", "roll (deg)", 1.0),
-              ("tilt_deg", "pred_tilt_err_deg", "fused_tilt_deg", "tilt (deg)", 1.0),
-              ("focal_px", "pred_focal_err_pct", "fused_focal_px", "focal (px)", None),
-              ("pan_deg", None, "fused_pan_deg", "pan (deg, folded)", None)]
-    frames = np.array([r["frame"] for r in rows], float)
+    def pairs():
+        for frame in limited(iter(stream), max_frames):
+            waiting.append(frame)
+            yield frame.image, frame.name
 
-    def col(key):
-        return np.array([np.nan if r.get(key) is None else float(r[key]) for r in rows], float)
-
-    good = np.array([r["status"] in ("fused", "started", "restarted") for r in rows])
-    held = np.array([r["status"] == "held" for r in rows])
-    rejected = ~good & ~held
-    for ax, (est, err, fused, label, _) in zip(axes, panels):
-        y = col(est)
-        if err is not None:
-            e = col(err)
-            if est == "focal_px":
-                e = e / 100.0 * y
-            e = np.nan_to_num(e, nan=0.0)
-            ax.errorbar(frames[good], y[good], yerr=e[good], fmt="o", ms=3, color="tab:blue", alpha=0.8,
-                        elinewidth=0.8, label="accepted (predicted error)")
-            ax.errorbar(frames[held], y[held], yerr=e[held], fmt="s", ms=3, color="tab:orange", alpha=0.8,
-                        elinewidth=0.8, label="held (disagrees)")
-        else:
-            ax.plot(frames[good], y[good], "o", ms=3, color="tab:blue")
-            ax.plot(frames[held], y[held], "s", ms=3, color="tab:orange")
-        ax.plot(frames[rejected], y[rejected], "x", ms=4, color="grey", label="rejected (unreliable)")
-        ax.plot(frames, col(fused), "-", color="tab:red", lw=1.5, label="fused")
-        for r in rows:
-            if r["restarted"]:
-                ax.axvline(r["frame"], color="k", ls="--", lw=0.8)
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7, ncol=4, loc="best")
-    axes[-1].set_xlabel("frame (dashed: camera moved, fusion restarted)")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
-
-
-# ---------------------------------------------------------------------------------- CLI
-
-
+    say = progress.write if progress is not None else output.log
+    run = "error"
+    output.write_calibration(None, tracker.checkpoint(), stream)
+    try:
+        with plot_requests() as plot_requested:
+            results = calibrate_stream(estimator, pairs(), batch_size, workers,
+                                       in_flight=workers if realtime and workers else None)
+            try:
+                for result in results:
+                    frame = waiting.popleft()
+                    state = tracker.update(result, frame.index)
+                    record = frame_record(frame, result, state, output.segment, stream)
+                    with stops_held():
+                        output.append(record)
+                        if state.status in CHANGES_FUSION:
+                            output.write_calibration(state, tracker.checkpoint(), stream)
+                    if state.restarted:
+                        say(f"fr track: camera moved at frame {frame.index}: fusion restarted")
+                    if progress is not None:
+                        progress.update(1)
+                    if plot_requested():
+                        output.plot(title)
+            finally:
+                results.close()
+        run = "ended: --max-frames" if max_frames is not None and output.processed >= max_frames \
+            else f"ended: {stream.end_reason or 'end of the source'}"
+    except KeyboardInterrupt as stop:
+        run = stop_reason(stop)
+        raise
+    except BaseException as exc:
+        run = f"error: {type(exc).__name__}: {exc}"
+        raise
+    finally:
+        stream.close()
+        with stops_held():
+            output.write_calibration(None, tracker.checkpoint(), stream, run)
+            output.close()
+        output.plot(title)
+    return run

@@ -1,0 +1,459 @@
+"""Where ``fr track`` reads its frames: video files and folders, and live sources.
+
+:meth:`Source.parse` reads the command line's SOURCE:
+
+=================================  ========  =====================================================
+SOURCE                             kind      read by
+=================================  ========  =====================================================
+``-``                              stdin     :func:`fr_torch.images.stream.split_images`: JPEG,
+                                             PNG, PNM or BMP images back to back, as
+                                             ``ffmpeg ... -f image2pipe -`` writes them
+``scheme://...``                   stream    OpenCV's FFmpeg back end: ``rtsp://``, ``http(s)://``
+                                             (multipart MJPEG, HLS), ``udp://``, ...
+an existing folder                 folder    its images, sorted by name
+an existing file                   file      OpenCV ``VideoCapture``, frame by frame
+``0``, ``1``, ... or a device      camera    OpenCV ``VideoCapture`` (``/dev/video0``)
+=================================  ========  =====================================================
+
+**Files and folders** (:class:`FileFrames`) are read on demand, as the search asks for frames:
+every frame (``every``) is processed, none is dropped, and ``start`` skips the frames before it
+(a resumed run).  Their frame index is the frame's number in the video (the position in the
+sorted folder).
+
+**Live sources** (:class:`LiveFrames`) are read without pause by a thread, so the source never
+waits for the search.  In **real time** (the default for live sources) only the newest frame
+waits: one that arrives while the search is busy replaces it, and the replaced one is *dropped*
+(never processed); the search always takes the newest frame.  Without real time, frames wait in a
+queue of :data:`QUEUE_LENGTH` (when it is full the reader waits: a pipe's writer blocks, a network
+stream's frames are lost upstream).  A live frame's index counts every frame read from the source
+in this run, so the gaps between processed indices are the drops.
+
+A live source that ends or fails (the connection drops, a read times out after
+``read_timeout_s``, the camera is unplugged) is opened again with back-off when
+:class:`Reconnect` allows it, and each drop and reconnection is one line on stderr; standard input
+is never reopened (its end is the end).  A frame that cannot be decoded is skipped with one line.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+import os
+import re
+import stat
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
+from urllib.parse import urlsplit, urlunsplit
+
+import cv2
+import numpy as np
+
+from fr_torch.errors import FRInputError
+from fr_torch.images.io import decode_image_bytes, load_image
+from fr_torch.images.stream import split_images
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
+#: Frames a live source may queue without real time (then the reader waits for the search).
+QUEUE_LENGTH = 64
+_URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
+
+
+def log_line(message: str) -> None:
+    """One line on stderr, flushed (the default ``log`` of the frame sources)."""
+    print(message, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------- what to read
+
+@dataclass(frozen=True)
+class Source:
+    """A frame source as given on the command line: ``kind`` (``file``, ``folder``, ``stream``,
+    ``camera``, ``stdin``) and ``target`` (the path, URL, camera index or device, ``-``)."""
+
+    kind: str
+    target: str
+
+    LIVE_KINDS = ("stream", "camera", "stdin")
+
+    @classmethod
+    def parse(cls, text: str | os.PathLike) -> Source:
+        """The source named by ``text`` (module docstring); FileNotFoundError for a path that is
+        none of them."""
+        text = os.fspath(text)
+        if text == "-":
+            return cls("stdin", "-")
+        if _URL.match(text):
+            return cls("stream", text)
+        path = Path(text)
+        if path.is_dir():
+            return cls("folder", text)
+        if path.is_file():
+            return cls("file", text)
+        try:
+            if stat.S_ISCHR(path.stat().st_mode):
+                return cls("camera", text)
+        except OSError:
+            pass
+        if text.isdigit():
+            return cls("camera", text)
+        raise FileNotFoundError(f"{text}: no such video file or folder (nor a stream URL scheme://..., a camera "
+                                "index or device, or - for frames on stdin)")
+
+    @property
+    def live(self) -> bool:
+        """True for a stream, a camera or stdin: frames come at the source's pace, without end."""
+        return self.kind in self.LIVE_KINDS
+
+    def __str__(self) -> str:
+        """The source for messages and outputs, a URL's password hidden."""
+        if self.kind != "stream":
+            return "stdin" if self.kind == "stdin" else self.target
+        parts = urlsplit(self.target)
+        if parts.password is None:
+            return self.target
+        host = parts.hostname or ""
+        netloc = f"{parts.username}:***@{host}" + (f":{parts.port}" if parts.port else "")
+        return urlunsplit(parts._replace(netloc=netloc))
+
+    @property
+    def label(self) -> str:
+        """A short name: the default output folder is ``track_<label>``, frames are ``<label>_<index>``."""
+        if self.kind == "stdin":
+            return "stdin"
+        if self.kind == "camera":
+            return f"camera{self.target}" if self.target.isdigit() else Path(self.target).name
+        if self.kind == "stream":
+            parts = urlsplit(self.target)
+            name = Path(parts.path).stem or parts.hostname or parts.scheme
+            return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+        path = Path(self.target)
+        return path.stem or path.name
+
+
+@dataclass(frozen=True)
+class Reconnect:
+    """What a live source does when it drops: try again after ``first_wait_s`` seconds, then
+    after waits doubling up to ``max_wait_s``, until no frame has come for ``give_up_s`` seconds
+    (``inf``: never give up; 0: do not reconnect, the drop ends the stream)."""
+
+    give_up_s: float = 0.0
+    first_wait_s: float = 0.5
+    max_wait_s: float = 30.0
+
+    @classmethod
+    def parse(cls, value: str | float | None) -> Reconnect:
+        """``--reconnect [SECONDS]``: None (option absent) -> no reconnection; ``inf`` (the option
+        alone) -> for ever; a number of seconds >= 0 -> give up after it.  FRInputError otherwise."""
+        if value is None:
+            return cls()
+        try:
+            seconds = float(value)
+        except (TypeError, ValueError):
+            seconds = math.nan
+        if math.isnan(seconds) or seconds < 0:
+            raise FRInputError(f"--reconnect: expected seconds >= 0 or inf, got {value!r}")
+        return cls(give_up_s=seconds)
+
+    @property
+    def enabled(self) -> bool:
+        return self.give_up_s > 0
+
+    def waits(self) -> Iterator[float]:
+        """The waits before each try, in seconds: first_wait_s, doubling, capped at max_wait_s."""
+        wait = self.first_wait_s
+        while True:
+            yield wait
+            wait = min(self.max_wait_s, 2 * wait)
+
+
+@dataclass
+class Frame:
+    """One frame to process.
+
+    ``index``: a file's frame number (a folder's position), or a live frame's count of frames
+    read from the source before it in this run; ``image``: BGR or grey array; ``read_at``:
+    ``time.monotonic()`` when it was read from the source (seconds); ``dropped``: live frames read
+    since the previous frame handed out that were never processed (replaced by a newer one)."""
+
+    index: int
+    name: str
+    image: np.ndarray
+    read_at: float
+    dropped: int = 0
+
+
+class FrameStream:
+    """The frames of a source, in order (iterate once), and what became of the others.
+
+    Counters (this run): ``arrived`` frames read from the source, ``dropped`` of them never
+    processed because a newer one replaced them (real time), ``skipped`` that could not be read or
+    decoded, ``reconnects`` successful reconnections.  ``end_reason`` says why the iteration
+    ended.  :meth:`close` stops reading (a live source's thread)."""
+
+    live = False
+
+    def __init__(self, source: Source, log: Callable[[str], None] = log_line):
+        self.source, self.log = source, log
+        self.arrived = self.dropped = self.skipped = self.reconnects = 0
+        self.end_reason = ""
+
+    @property
+    def dropped_share(self) -> float:
+        """Share of the arrived frames that were dropped (0 for files)."""
+        return self.dropped / self.arrived if self.arrived else 0.0
+
+    def __iter__(self) -> Iterator[Frame]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> FrameStream:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class FileFrames(FrameStream):
+    """Every ``every``-th frame of a video file or folder of images from frame ``start`` on,
+    read on demand; an unreadable image of a folder is skipped with one line."""
+
+    def __init__(self, source: Source, every: int = 1, start: int = 0, log: Callable[[str], None] = log_line):
+        super().__init__(source, log)
+        self.every, self.start = max(1, int(every)), max(0, int(start))
+
+    def _wanted(self, index: int) -> bool:
+        return index >= self.start and index % self.every == 0
+
+    def __iter__(self) -> Iterator[Frame]:
+        path = Path(self.source.target)
+        if self.source.kind == "folder":
+            yield from self._folder(path)
+        else:
+            yield from self._video(path)
+        self.end_reason = self.end_reason or "end of the source"
+
+    def _folder(self, path: Path) -> Iterator[Frame]:
+        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not files:
+            raise FRInputError(f"{path}: no image files ({', '.join(sorted(IMAGE_SUFFIXES))})")
+        for index, file in enumerate(files):
+            if not self._wanted(index):
+                continue
+            try:
+                image = load_image(str(file))
+            except FRInputError as exc:
+                self.skipped += 1
+                self.log(f"fr track: skipping {file.name}: {exc}")
+                continue
+            self.arrived += 1
+            yield Frame(index, file.name, image, time.monotonic())
+
+    def _video(self, path: Path) -> Iterator[Frame]:
+        capture = cv2.VideoCapture(str(path))
+        if not capture.isOpened():
+            raise FRInputError(f"{path}: OpenCV cannot open this video")
+        index = 0
+        try:  # frames not wanted are grabbed (decoded, never converted): exact indices, no seeking
+            while capture.grab():
+                if self._wanted(index):
+                    ok, image = capture.retrieve()
+                    if ok:
+                        self.arrived += 1
+                        yield Frame(index, f"{path.stem}_{index:06d}", image, time.monotonic())
+                    else:
+                        self.skipped += 1
+                        self.log(f"fr track: skipping frame {index} of {path.name}: it cannot be decoded")
+                index += 1
+        finally:
+            capture.release()
+        if index == 0:
+            raise FRInputError(f"{path}: no frames could be read")
+
+
+class LiveFrames(FrameStream):
+    """Frames of a live source, read by a thread without pause (module docstring).
+
+    ``realtime``: keep only the newest frame (True) or queue up to ``queue_length``; ``reconnect``:
+    when and how long to reopen a dropped source; ``open_timeout_s`` / ``read_timeout_s``: how long
+    a stream's connection or next frame may take before it counts as dropped.  The thread starts
+    with the iteration."""
+
+    live = True
+
+    def __init__(self, source: Source, realtime: bool = True, reconnect: Reconnect = Reconnect(),
+                 queue_length: int = QUEUE_LENGTH, open_timeout_s: float = 10.0, read_timeout_s: float = 5.0,
+                 log: Callable[[str], None] = log_line, stdin_fd: int | None = None):
+        super().__init__(source, log)
+        self.realtime, self.reconnect = realtime, reconnect
+        self.queue_length = 1 if realtime else max(1, int(queue_length))
+        self.open_timeout_s, self.read_timeout_s = open_timeout_s, read_timeout_s
+        self.stdin_fd = sys.stdin.fileno() if stdin_fd is None and source.kind == "stdin" else stdin_fd
+        self._waiting: deque = deque()  # (index, image or encoded bytes, read_at)
+        self._condition = threading.Condition()
+        self._stop = threading.Event()
+        self._ended = False
+        self._failure: str | None = None  # why the source could not be read at all
+        self._thread = threading.Thread(target=self._read, name="fr-track-reader", daemon=True)
+
+    # ------------------------------------------------------------ the reader thread
+
+    def _connections(self) -> Iterator[Iterator]:
+        """One iterator of frames (arrays, or encoded bytes from stdin) per connection."""
+        if self.source.kind == "stdin":
+            yield split_images(lambda size: os.read(self.stdin_fd, size), on_skip=self._skipped_bytes)
+            return
+        while True:
+            yield self._capture()
+
+    def _capture(self) -> Iterator[np.ndarray]:
+        target = self.source.target
+        if self.source.kind == "stream":
+            params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(self.open_timeout_s * 1000),
+                      cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(self.read_timeout_s * 1000)]
+            capture = cv2.VideoCapture(target, cv2.CAP_FFMPEG, params)
+        else:
+            capture = cv2.VideoCapture(int(target) if target.isdigit() else target)
+        try:
+            if not capture.isOpened():
+                raise FRInputError(f"{self.source}: OpenCV cannot open this {self.source.kind}")
+            while not self._stop.is_set():
+                ok, image = capture.read()
+                if not ok:
+                    return
+                yield image
+        finally:
+            capture.release()
+
+    def _skipped_bytes(self, count: int) -> None:
+        with self._condition:
+            self.skipped += 1
+        self.log(f"fr track: {self.source}: skipping {count} bytes that are no complete image")
+
+    def _read(self) -> None:
+        waits: Iterator[float] | None = None
+        last_frame_at = time.monotonic()
+        end = "the stream ended"
+        try:
+            for connection in self._connections():
+                problem = "the stream ended"
+                try:
+                    for image in connection:
+                        if self._stop.is_set():
+                            return
+                        if waits is not None:
+                            self.reconnects += 1
+                            self.log(f"fr track: {self.source}: reconnected after "
+                                     f"{time.monotonic() - last_frame_at:.1f} s")
+                            waits = None
+                        self._put(image)
+                        last_frame_at = time.monotonic()
+                except FRInputError as exc:
+                    problem = str(exc)
+                except Exception as exc:  # a decoder's or a socket's failure ends this connection only
+                    problem = f"{type(exc).__name__}: {exc}"
+                if self._stop.is_set():
+                    return
+                if self.source.kind == "stdin" or not self.reconnect.enabled:
+                    end = problem
+                    if self.arrived == 0 and problem != "the stream ended":
+                        self._failure = problem
+                    return
+                waits = waits or self.reconnect.waits()
+                wait = next(waits)
+                silent = time.monotonic() - last_frame_at
+                if silent + wait > self.reconnect.give_up_s:
+                    end = f"{problem}; no frame for {silent:.0f} s: gave up reconnecting (--reconnect)"
+                    if self.arrived == 0:
+                        self._failure = end
+                    self.log(f"fr track: {self.source}: {end}")
+                    return
+                self.log(f"fr track: {self.source}: {problem}; reconnecting in {wait:g} s (--reconnect)")
+                if self._stop.wait(wait):
+                    return
+        finally:
+            with self._condition:
+                self.end_reason = self.end_reason or end
+                self._ended = True
+                self._condition.notify_all()
+
+    def _put(self, image) -> None:
+        with self._condition:
+            index = self.arrived
+            self.arrived += 1
+            if self.realtime:
+                self.dropped += len(self._waiting)
+                self._waiting.clear()
+            else:
+                while len(self._waiting) >= self.queue_length and not self._stop.is_set():
+                    self._condition.wait(0.25)
+            self._waiting.append((index, image, time.monotonic()))
+            self._condition.notify_all()
+
+    # ------------------------------------------------------------ the consumer
+
+    def __iter__(self) -> Iterator[Frame]:
+        self._thread.start()
+        yield from self._take()
+
+    def _take(self) -> Iterator[Frame]:
+        """The frames the reader leaves, as they come, until it has ended and none is left."""
+        previous = -1
+        while True:
+            with self._condition:
+                while not self._waiting and not self._ended:
+                    self._condition.wait(0.25)
+                if not self._waiting:
+                    break
+                index, image, read_at = self._waiting.popleft()
+                self._condition.notify_all()
+            name = f"{self.source.label}_{index:06d}"
+            if isinstance(image, (bytes, bytearray)):
+                try:
+                    image = decode_image_bytes(image, name)[0]
+                except FRInputError as exc:
+                    with self._condition:
+                        self.skipped += 1
+                    self.log(f"fr track: skipping frame {index}: {exc}")
+                    previous = index  # skipped, not dropped
+                    continue
+            dropped, previous = index - previous - 1, index
+            yield Frame(index, name, image, read_at, dropped)
+        if self._failure is not None:
+            raise FRInputError(self._failure)
+
+    def close(self) -> None:
+        """Stop the reader and wait for it (a stream's read returns within ``read_timeout_s``)."""
+        self._stop.set()
+        with self._condition:
+            self._condition.notify_all()
+        if self._thread.is_alive():
+            self._thread.join(self.read_timeout_s + 1.0)
+
+
+def open_frames(source: Source, every: int = 1, start: int = 0, realtime: bool | None = None,
+                reconnect: Reconnect = Reconnect(), stream_timeout_s: float = 5.0,
+                log: Callable[[str], None] = log_line) -> FrameStream:
+    """The :class:`FrameStream` of ``source``: :class:`FileFrames` (``every``, ``start``) for a
+    file or folder, :class:`LiveFrames` for a live source (``realtime``: default True;
+    ``reconnect``; a stream's read may take ``stream_timeout_s``, its connection at least 10 s).
+    FRInputError for options that do not fit the source."""
+    if not source.live:
+        if realtime:
+            raise FRInputError(f"--realtime: {source} is a file; its frames are read one after another, none dropped")
+        return FileFrames(source, every, start, log)
+    if every != 1:
+        raise FRInputError("--every applies to files and folders: a live source in real time takes the newest "
+                           "frame whenever the search is free (--no-realtime queues them all)")
+    return LiveFrames(source, True if realtime is None else realtime, reconnect,
+                      open_timeout_s=max(10.0, stream_timeout_s), read_timeout_s=stream_timeout_s, log=log)
+
+
+def limited(frames: Iterator[Frame], max_frames: int | None) -> Iterator[Frame]:
+    """The first ``max_frames`` frames (all with None)."""
+    return frames if max_frames is None else itertools.islice(frames, max_frames)
