@@ -10,6 +10,7 @@ estimates and estimates at the edge of the search box.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -65,40 +66,73 @@ _HESSIAN_COLUMNS = torch.tensor([5 + [(a, b) for a in range(4) for b in range(a,
                                  for i in range(4) for j in range(4)])
 
 
-def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
-                    max_chunk_elements: int = 1 << 24) -> tuple[torch.Tensor, torch.Tensor]:
-    """A local Laplace approximation of the objective around each estimate.
+@dataclass
+class LocalFit:
+    """What the 3^4 lattice of :data:`PRIOR_SHARE_STEP` around each estimate says
+    (:func:`local_quadratic`), [pan, pitch, roll (degrees), log f] throughout.
 
-    The objective (likelihood + focal prior) is scored on the 3^4 lattice of :data:`PRIOR_SHARE_STEP`
-    around each estimate and fitted by a quadratic (the lattice spacing smooths the kinks of the
-    exponential likelihood); the focal prior's values on the lattice are fitted the same way.
+    ``hessian`` (B, 4, 4) float64: second derivatives of the objective (likelihood + focal prior),
+    objective units per unit^2 (negative definite at a clean maximum); ``prior_curvature`` (B,):
+    ``-d^2 prior / d(log f)^2`` (>= 0; 0 without a prior or inside its flat top);
+    ``gradient_spread`` (B, 4, 4): ``J = n / (n - 1) sum_i (g_i - mean g)(g_i - mean g)^T`` over the
+    image's n segments, ``g_i`` segment i's gradient (the spread of the summed gradient when the
+    segments are resampled, :func:`resample_spreads`)."""
+    hessian: torch.Tensor
+    prior_curvature: torch.Tensor
+    gradient_spread: torch.Tensor
+
+
+def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor) -> LocalFit:
+    """A local Laplace approximation of the objective around each estimate, and the segments' spread.
+
+    Every segment's term ``len_i log p_i`` (:meth:`~fr_torch.core.likelihood.MixtureLikelihood.segment_log_p`)
+    is scored once on the 3^4 lattice of :data:`PRIOR_SHARE_STEP` around each estimate.  Their sums
+    (plus the focal prior: the objective, bit for bit) are fitted by a quadratic (the lattice
+    spacing smooths the kinks of the exponential likelihood): the Hessian; the focal prior's values
+    on the lattice are fitted the same way.  Each term alone is fitted the same way: its gradient,
+    whose spread over the segments is ``gradient_spread``.  Images are taken
+    :data:`SEGMENT_CHUNK_IMAGES` at a time (bounded memory; the values do not depend on it).
 
     Args:
         likelihood: the estimator's model (its focal prior included).
         features: the segments of B images.
         params: (B, 4) estimates [pan, pitch, roll (degrees), f (pixels)].
-        max_chunk_elements: as for :func:`score_grid`.
 
     Returns:
-        ``(hessian, prior_curvature)``: (B, 4, 4) float64 second derivatives of the objective in
-        [pan, pitch, roll (degrees), log f] (objective units per unit^2; negative definite at a clean
-        maximum), and (B,) ``-d^2 prior / d(log f)^2`` (>= 0; 0 without a prior or inside its flat top).
+        :class:`LocalFit`.
     """
-    device = features.weight.device
+    device, dtype = features.weight.device, features.weight.dtype
     step = torch.tensor(PRIOR_SHARE_STEP, dtype=torch.float64, device=device)
-    centre = to_log_focal(params.to(device=device, dtype=torch.float64))
-    points = from_log_focal(centre[:, None, :] + LATTICE.to(device) * step)  # (B, 81, 4)
-    scores = score_grid(likelihood, features, points, max_chunk_elements, vertical_block=3)
     fit = _QUADRATIC_FIT.to(device).T  # (81, 15)
-    coef = lattice_fit(scores, fit)  # (B, 15)
-    hessian = coef[:, _HESSIAN_COLUMNS.to(device)].view(-1, 4, 4) / (step[:, None] * step[None, :])
-    if not likelihood.params.focal_prior_weight:
-        return hessian, torch.zeros(params.shape[0], dtype=torch.float64, device=device)
-    # The prior's curvature over the same lattice, fitted the same way (exact for the log-normal;
-    # a flat-topped prior has none inside its band and part of it at the band's edge).
-    prior_values = likelihood.focal_prior(features, points[..., FOCAL].to(features.weight.dtype))[0]
-    prior_hessian = lattice_fit(prior_values, fit[:, _HESSIAN_COLUMNS[15].item(), None])[:, 0]  # H_33, lattice units
-    return hessian, (-prior_hessian / step[3] ** 2).clamp_min(0.0)
+    lattice = LATTICE.to(device)
+    parts = []
+    for b in range(0, params.shape[0], SEGMENT_CHUNK_IMAGES):
+        sub = features.images(b, b + SEGMENT_CHUNK_IMAGES)
+        centre = to_log_focal(params[b:b + SEGMENT_CHUNK_IMAGES].to(device=device, dtype=torch.float64))
+        points = from_log_focal(centre[:, None, :] + lattice * step)  # (b, 81, 4)
+        focal = points[..., FOCAL].to(dtype)
+        log_p = likelihood.segment_log_p(sub, rotations(points.to(dtype)), focal)  # (b, N, 81)
+        scores = likelihood.sum_over_segments(log_p, sub)  # (b, 81): the objective's data part
+        prior_values = likelihood.focal_prior(sub, focal)[0] if likelihood.params.focal_prior_weight else None
+        if prior_values is not None:
+            scores = scores + prior_values
+        hessian = lattice_fit(scores, fit)[:, _HESSIAN_COLUMNS.to(device)].view(-1, 4, 4) / (step[:, None] * step[None, :])
+        if prior_values is None:
+            prior = torch.zeros(len(hessian), dtype=torch.float64, device=device)
+        else:  # exact for the log-normal; a flat-topped prior has none inside its band, part of it at the edge
+            prior_hessian = lattice_fit(prior_values, fit[:, _HESSIAN_COLUMNS[15].item(), None])[:, 0]  # H_33
+            prior = (-prior_hessian / step[3] ** 2).clamp_min(0.0)
+        terms = log_p.to(torch.float64) * sub.weight.to(torch.float64)[:, :, None]  # (b, N, 81); 0 for padding
+        gradient = lattice_fit(terms, fit[:, 1:5], dim=2) / step  # (b, N, 4) per degree / per log f
+        weight = sub.mask.to(gradient)[..., None]
+        n = weight.sum(1).clamp_min(2.0)  # a count: exact in any order
+        centred = (gradient - exact_sum(gradient * weight, 1, keepdim=True) / n[:, None]) * weight
+        spread = exact_sum(centred[..., :, None] * centred[..., None, :], 1) * (n / (n - 1))[..., None]
+        parts.append((hessian, prior, spread))
+    if not parts:
+        empty = torch.zeros(0, 4, 4, dtype=torch.float64, device=device)
+        return LocalFit(empty, torch.zeros(0, dtype=torch.float64, device=device), empty)
+    return LocalFit(*(torch.cat([part[i] for part in parts]) for i in range(3)))
 
 
 def lattice_fit(values: torch.Tensor, fit: torch.Tensor, dim: int = -1) -> torch.Tensor:
@@ -113,8 +147,7 @@ def lattice_fit(values: torch.Tensor, fit: torch.Tensor, dim: int = -1) -> torch
 
 
 def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
-                      max_chunk_elements: int = 1 << 24,
-                      fitted: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+                      fitted: LocalFit | None = None) -> torch.Tensor:
     """How much of the focal length's determination comes from the focal prior (a reliability cue).
 
     From :func:`local_quadratic` (or ``fitted``, its output): the prior's curvature in log f, ``c_p``,
@@ -125,7 +158,7 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     points lie far outside the image, which the prior pulls towards its centre.
 
     Args:
-        likelihood, features, params, max_chunk_elements: as for :func:`local_quadratic`.
+        likelihood, features, params: as for :func:`local_quadratic`.
         fitted: :func:`local_quadratic`'s output for the same arguments, when already computed.
 
     Returns:
@@ -134,9 +167,8 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     """
     if not likelihood.params.focal_prior_weight:
         return torch.zeros(params.shape[0], dtype=torch.float64, device=features.weight.device)
-    hessian, prior = fitted if fitted is not None else local_quadratic(likelihood, features, params,
-                                                                       max_chunk_elements)
-    hessian = hessian.clone()
+    fitted = fitted if fitted is not None else local_quadratic(likelihood, features, params)
+    hessian, prior = fitted.hessian.clone(), fitted.prior_curvature
     hessian[:, 3, 3] += prior  # the likelihood's Hessian alone
     angles, focal_row = hessian[:, :3, :3], hessian[:, :3, 3:]
     solved, info = torch.linalg.solve_ex(angles, focal_row)
@@ -282,8 +314,8 @@ def segment_objectives(likelihood: MixtureLikelihood, features: SegmentFeatures,
         (B, H, N) float64; 0 for padding.  Summed over segments: the objective without the focal prior.
     """
     dtype = features.weight.dtype
-    _, log_p = likelihood.posteriors(features, rotations(points.to(dtype)), points[..., FOCAL].to(dtype))
-    terms = log_p.to(torch.float64) * features.weight[:, None, :].to(torch.float64)
+    log_p = likelihood.segment_log_p(features, rotations(points.to(dtype)), points[..., FOCAL].to(dtype))
+    terms = log_p.transpose(1, 2).to(torch.float64) * features.weight[:, None, :].to(torch.float64)
     return torch.where(features.mask[:, None, :], terms, torch.zeros_like(terms))
 
 
@@ -348,22 +380,19 @@ def focal_profile_spread(likelihood: MixtureLikelihood, features: SegmentFeature
     return torch.where(torch.isfinite(spread), spread, torch.full_like(spread, MAX_SPREAD)).clamp_max(MAX_SPREAD)
 
 
-def resample_spreads(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
-                     fitted: tuple[torch.Tensor, torch.Tensor], known_focal: bool = False) -> dict[str, torch.Tensor]:
+def resample_spreads(fitted: LocalFit, known_focal: bool = False) -> dict[str, torch.Tensor]:
     """The spread of the estimate when the segments are resampled with replacement (reliability cues),
     by the infinitesimal jackknife (the "sandwich" ``H^-1 J H^-1``).
 
     ``H``: the likelihood's Hessian at the estimate in [pan, pitch, roll (deg), log f], from
     :func:`local_quadratic` (``fitted``) with the focal prior's curvature taken out (the spread of
-    what the *segments* say: where they leave f to the prior, the spread is large).  ``J = sum_i
-    (g_i - mean g)(g_i - mean g)^T`` with ``g_i`` segment i's gradient, from a quadratic fit of its
-    term of the objective (:func:`segment_objectives`) over the same 3^4 lattice: the spread of the
+    what the *segments* say: where they leave f to the prior, the spread is large).  ``J``: the
+    spread of the segments' gradients over the same lattice (``fitted.gradient_spread``), i.e. of the
     summed gradient over resampled segments.  Unlike the Laplace spread (:func:`focal_spread`) it
     does not take the length-weighted objective at its word: segments that disagree widen it.
 
     Args:
-        likelihood, features, params: as for :func:`local_quadratic`.
-        fitted: :func:`local_quadratic`'s output for these arguments.
+        fitted: :func:`local_quadratic`'s output for the estimates.
         known_focal: the focal length was given: the angles alone are free (their 3 x 3 block).
 
     Returns:
@@ -371,25 +400,10 @@ def resample_spreads(likelihood: MixtureLikelihood, features: SegmentFeatures, p
         (0 for a known focal length) and of the pitch in degrees; :data:`MAX_SPREAD` where the
         likelihood has no maximum there (or the fit is not finite).
     """
-    device = features.weight.device
-    step = torch.tensor(PRIOR_SHARE_STEP, dtype=torch.float64, device=device)
-    fit = _QUADRATIC_FIT.to(device)[1:5]  # (4, 81): the gradient's rows, lattice units
-    hessian, prior = fitted
-    hessian = hessian.clone()
-    hessian[:, 3, 3] += prior  # the likelihood's Hessian alone
+    hessian = fitted.hessian.clone()
+    hessian[:, 3, 3] += fitted.prior_curvature  # the likelihood's Hessian alone
     free = slice(0, 3) if known_focal else slice(0, 4)
-    blocks = []
-    for b in range(0, params.shape[0], SEGMENT_CHUNK_IMAGES):
-        sub = features.images(b, b + SEGMENT_CHUNK_IMAGES)
-        centre = to_log_focal(params[b:b + SEGMENT_CHUNK_IMAGES].to(device=device, dtype=torch.float64))
-        terms = segment_objectives(likelihood, sub, from_log_focal(centre[:, None, :] + LATTICE.to(device) * step))
-        gradient = lattice_fit(terms, fit.T, dim=1) / step  # (b, N, 4) per degree / per log f
-        weight = sub.mask.to(gradient)[..., None]
-        n = weight.sum(1).clamp_min(2.0)  # a count: exact in any order
-        centred = (gradient - exact_sum(gradient * weight, 1, keepdim=True) / n[:, None]) * weight
-        blocks.append(exact_sum(centred[..., :, None] * centred[..., None, :], 1) * (n / (n - 1))[..., None])
-    outer = torch.cat(blocks) if blocks else torch.zeros(0, 4, 4, dtype=torch.float64, device=device)
-    h, j = hessian[:, free, free], outer[:, free, free]
+    h, j = hessian[:, free, free], fitted.gradient_spread[:, free, free]
     inverse, info = torch.linalg.inv_ex(h)
     covariance = _matmul_small(_matmul_small(inverse, j), inverse)
     peak = torch.linalg.eigvalsh(0.5 * (h + h.transpose(-1, -2)))[:, -1] < 0  # a maximum of the likelihood
@@ -400,7 +414,7 @@ def resample_spreads(likelihood: MixtureLikelihood, features: SegmentFeatures, p
         good = ok & torch.isfinite(variance) & (variance >= 0)
         return torch.where(good, variance.clamp_min(0.0).sqrt(), torch.full_like(variance, MAX_SPREAD)).clamp_max(MAX_SPREAD)
 
-    focal = torch.zeros(params.shape[0], dtype=torch.float64, device=device) if known_focal else spread(3)
+    focal = torch.zeros(hessian.shape[0], dtype=torch.float64, device=hessian.device) if known_focal else spread(3)
     return {"focal_resample_spread": focal, "pitch_resample_spread": spread(1)}
 
 
@@ -599,13 +613,12 @@ def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: Se
     if known_focal:
         cues = {name: zeros for name in names}
         if spreads:
-            fitted = local_quadratic(likelihood, features, params, search.max_chunk_elements)
-            cues.update(focal_profile_spread=zeros, **resample_spreads(likelihood, features, params, fitted,
-                                                                       known_focal=True))
+            cues.update(focal_profile_spread=zeros,
+                        **resample_spreads(local_quadratic(likelihood, features, params), known_focal=True))
         return cues
-    fitted = local_quadratic(likelihood, features, params, search.max_chunk_elements)
+    fitted = local_quadratic(likelihood, features, params)
     cues = {"focal_prior_share": focal_prior_share(likelihood, features, params, fitted=fitted),
-            "focal_spread": focal_spread(fitted[0], features.total_length())}
+            "focal_spread": focal_spread(fitted.hessian, features.total_length())}
     if profile_gap:
         profile = focal_profile(likelihood, features, params, search, FAST_REFINE_ITERATIONS)
         cues["focal_profile_gap"] = focal_profile_gap(likelihood, features, params, scores, search,
@@ -616,7 +629,7 @@ def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: Se
         near_profile = focal_profile(likelihood, features, params, search, FAST_REFINE_ITERATIONS, SPREAD_FOCAL_RATIOS)
     if spreads:
         cues["focal_profile_spread"] = focal_profile_spread(likelihood, features, params, search, near_profile)
-        cues.update(resample_spreads(likelihood, features, params, fitted))
+        cues.update(resample_spreads(fitted))
     return cues
 
 

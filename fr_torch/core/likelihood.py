@@ -596,6 +596,25 @@ class MixtureLikelihood:
         log_p = self.segment_log_likelihood(features, rotation, focal)
         return exact_sum(log_p, 1, weight=features.weight[:, :, None])
 
+    def segment_log_p(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor) -> torch.Tensor:
+        """log p_i of every segment under every hypothesis, (B, N, H) in the segments' dtype, no
+        autograd: the terms whose length-weighted sum (:meth:`sum_over_segments`) is the data part of
+        :meth:`objective`, bit for bit (the fused path for measure b, else
+        :meth:`segment_log_likelihood`)."""
+        with torch.no_grad():
+            if self._fast_path(features):
+                flat = vp_major(vanishing_points(focal, features.principal_point[:, None, :], rotation))
+                return objective_b_nograd(features.line_along, features.weight, flat, *self._b_constants(features.weight),
+                                          per_segment=True)
+            return self.segment_log_likelihood(features, rotation, focal)
+
+    def sum_over_segments(self, log_p: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:
+        """``sum_i len_i log p_i`` of per-segment terms (B, N, H) from :meth:`segment_log_p`: (B, H)
+        float64, the data part of :meth:`objective` bit for bit (the same exact sum and bound)."""
+        bound = _log_sum_bound(features.weight, self._b_constants(features.weight)[-1]) \
+            if self._fast_path(features) else None
+        return exact_sum(log_p, 1, bound=bound, weight=features.weight[:, :, None])
+
     def _fast_path(self, features: SegmentFeatures) -> bool:
         return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in _EXP_FLOOR
                 and not (features.line.requires_grad or features.along.requires_grad
@@ -671,8 +690,10 @@ def _take(workspace: dict | None, name: str, shape, like: torch.Tensor) -> torch
 
 
 def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound,
-                       workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
-    """Measure-b objective (B, H) float64 for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd.
+                       workspace: dict | None = None, vertical_block: int = 1, per_segment: bool = False) -> torch.Tensor:
+    """Measure-b objective (B, H) float64 for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd;
+    with ``per_segment`` each segment's log p_i instead, (B, N, H) in the segments' dtype (a view of
+    the ``workspace`` buffer when one is given).
 
     Every pass is in place on reusable buffers: [s; t] (:func:`incidence`); x = atan(|s / t|)
     (:func:`fr_torch.core.exact.angle_of_`); log(prior/lambda) - x/lambda, clamped at ``floor``;
@@ -700,6 +721,8 @@ def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, backgr
     p = torch.add(h[:, :, 0], h[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), weight))
     p.view(batch, n_seg, hyp // block, block).add_(v[..., None])
     p.add_(background).log_()
+    if per_segment:
+        return p
     return exact_sum(p, 1, bound=_log_sum_bound(weight, log_bound), weight=weight[:, :, None])
 
 
