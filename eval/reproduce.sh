@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp distortion bench
+# Usage: eval/reproduce.sh [--check] [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp distortion reproducibility bench
+# --check: afterwards, compare every regenerated CSV under results/ with the committed one
+# (fr_eval.protocols.check_tables: rtol 1e-6, timings ignored); exit 1 when one differs beyond it.
 # (default: all, in this order: the reliability models are trained before the tables that use them).  Data root: $FR_DATA (default ../shared/data); generated views go
 # to $FR_CACHE (default data_local/).
 set -euo pipefail
@@ -9,8 +11,10 @@ FR=${FR:-.venv/bin/fr}
 # The YUD crop sizes: one list, fr_eval.datasets.panoviews.YUD_CROP_SIZES (datasets yud-crop-<size>).
 CROP_SIZES=$(.venv/bin/python -c "from fr_eval.datasets.panoviews import YUD_CROP_SIZES; print(*YUD_CROP_SIZES)")
 export MPLBACKEND=${MPLBACKEND:-Agg}
+check=0
+if [ "${1:-}" = "--check" ]; then check=1; shift; fi
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp distortion bench)
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp distortion reproducibility bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
@@ -113,6 +117,10 @@ for step in "${steps[@]}"; do
       .venv/bin/python -m fr_eval.protocols.distortion_eval run --split val --methods "$M" --datasets nyu-vp
       .venv/bin/python -m fr_eval.protocols.distortion_eval report --out results/distortion
       $FR bench --threads 2 --sections distortion --out results/distortion/bench ;;
+    reproducibility)  # Issue 52: one photo, one answer -- YUD test and NYU-VP val under batch sizes, workers,
+                      # threads and CPU kernel sets, --shared-focal groups (results/reproducibility/)
+      .venv/bin/python -m fr_eval.protocols.reproducibility run --label current
+      .venv/bin/python -m fr_eval.protocols.reproducibility table --labels current ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
       $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)
@@ -121,3 +129,6 @@ for step in "${steps[@]}"; do
     *) echo "unknown step $step" >&2; exit 2 ;;
   esac
 done
+if [ $check -eq 1 ]; then
+  .venv/bin/python -m fr_eval.protocols.check_tables results
+fi

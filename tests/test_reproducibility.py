@@ -172,3 +172,16 @@ def test_rotation_builder_is_exact_per_entry():
     angles = torch.tensor([[10.0, 5.0, 2.0], [-20.0, 3.0, -1.0], [40.0, -30.0, 14.0]], dtype=torch.float64)
     whole = rotation_from_angles(angles[:, 0], angles[:, 1], angles[:, 2])
     assert torch.equal(rotation_from_angles(angles[1:, 0], angles[1:, 1], angles[1:, 2]), whole[1:])
+
+
+def test_check_tables_holds_a_regenerated_table_to_its_tolerance():
+    """eval/reproduce.sh --check: numbers within rtol pass, beyond it fail; timings are not compared."""
+    import pandas as pd
+
+    from fr_eval.protocols.check_tables import compare
+
+    committed = pd.DataFrame({"method": ["fr", "fr"], "focal_err_pct": [3.25, 4.5], "runtime_s": [0.1, 0.2]})
+    assert compare(committed, committed.assign(runtime_s=[9.0, 9.0]), 1e-6, 1e-9)[0]
+    assert compare(committed, committed.assign(focal_err_pct=[3.25 * (1 + 1e-8), 4.5]), 1e-6, 1e-9)[0]
+    assert not compare(committed, committed.assign(focal_err_pct=[3.26, 4.5]), 1e-6, 1e-9)[0]
+    assert not compare(committed, committed.assign(method=["fr", "fast-fr"]), 1e-6, 1e-9)[0]

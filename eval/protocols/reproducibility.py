@@ -62,10 +62,20 @@ def cpu_has(flag: str) -> bool:
         return False
 
 
+def native_kernels() -> str:
+    """torch's own CPU kernel set on this machine, lower case (``default``, ``avx2``, ``avx512``...)."""
+    import torch
+
+    return torch.backends.cpu.get_cpu_capability().lower()
+
+
 def available_settings() -> dict:
-    """:data:`SETTINGS` without the kernel sets this CPU lacks."""
+    """:data:`SETTINGS` without the kernel sets this CPU lacks and the one it runs natively (the
+    reference's)."""
     lacking = {"avx2": not cpu_has("avx2"), "avx512": not cpu_has("avx512f")}
-    return {name: s for name, s in SETTINGS.items() if not (s[3] and lacking.get(s[3], False))}
+    native = native_kernels()
+    return {name: s for name, s in SETTINGS.items()
+            if not (s[3] and (lacking.get(s[3], False) or s[3] == native))}
 
 
 def prepare_inputs(path: Path, data_root=None, limit: int | None = None) -> dict:
@@ -153,7 +163,7 @@ def run(args) -> int:
     jobs = [(mode, name, s, False) for mode in args.modes.split(",") for name, s in settings.items()]
     jobs += [(mode, f"shared kernels {k or 'native'}", (64, 0, "2", k), True)
              for mode in args.modes.split(",") for k in SHARED_KERNELS if args.shared
-             if k is None or f"kernels {k}" in settings]
+             if k is None or f"kernels {k}" in settings]  # --shared-focal under each kernel set
     env_base = dict(os.environ)
     if args.code:
         env_base["PYTHONPATH"] = os.pathsep.join([str(Path(args.code).resolve()), str(REPO)]
@@ -223,7 +233,7 @@ def table(args) -> int:
                 continue
             reference = _rows(ref_path)
             lines += [f"\n**{label}, {'fR' if mode == 'fr' else 'Fast-fR'}** (against `reference`: batch 64, in "
-                      "process, FR_THREADS=2, the machine's kernel set)\n",
+                      f"process, FR_THREADS=2, the machine's kernel set, {native_kernels()})\n",
                       "| setting | dataset | photos | focal differs | max rel. focal diff. | max rotation diff. (deg) "
                       "| basin changes | reliable flips | cues differ |", "|---|---|---|---|---|---|---|---|---|"]
             for name in SETTINGS:
