@@ -160,6 +160,9 @@ def run(args) -> int:
     if not inputs.is_file():
         print(f"preparing inputs: {prepare_inputs(inputs, args.data_root, args.limit)}", file=sys.stderr)
     settings = available_settings()
+    if args.settings:
+        chosen = {"reference"} | {name.strip() for name in args.settings.split(",")}
+        settings = {name: s for name, s in settings.items() if name in chosen}
     jobs = [(mode, name, s, False) for mode in args.modes.split(",") for name, s in settings.items()]
     jobs += [(mode, f"shared kernels {k or 'native'}", (64, 0, "2", k), True)
              for mode in args.modes.split(",") for k in SHARED_KERNELS if args.shared
@@ -290,6 +293,8 @@ def main(argv: list[str] | None = None) -> int:
     p_run.add_argument("--data-root", default=None)
     p_run.add_argument("--limit", type=int, default=None, help="photos per dataset (default all)")
     p_run.add_argument("--no-shared", dest="shared", action="store_false", help="skip the --shared-focal groups")
+    p_run.add_argument("--settings", default=None, help="only these settings (comma-separated names of SETTINGS; the "
+                                                        "reference always runs)")
     p_run.add_argument("--again", action="store_true", help="rerun settings whose rows exist")
     p_table = sub.add_parser("table", help="compare the settings with the reference")
     p_table.add_argument("--out", default=str(DEFAULT_OUT))
