@@ -112,9 +112,9 @@ def ordered_definitions(names) -> list[str]:
 
 
 def summary_rows(errors: pd.DataFrame, definitions: Sequence[str]) -> pd.DataFrame:
-    """One row per method: AUC (%) per definition; for the first definition the median error (% of
-    the height), the shares within 1 % / 2 % and beyond 10 % / 25 %, the bound's coverage and median;
-    failures, time per photo (s)."""
+    """One row per method: AUC (%) per definition; for the first definition the photos scored, the
+    median error (% of the height), the shares within 1 % / 2 % and beyond 10 % / 25 %; the bound's
+    coverage per definition and its median; failures, time per photo (s)."""
     rows = []
     primary = definitions[0]
     for method in dict.fromkeys(errors["method"]):
@@ -130,12 +130,13 @@ def summary_rows(errors: pd.DataFrame, definitions: Sequence[str]) -> pd.DataFra
                        within_2_pct=100.0 * np.mean(values <= 2.0), beyond_10_pct=100.0 * np.mean(values > 10.0),
                        beyond_25_pct=100.0 * np.mean(values > 100.0 * CUTOFF))
         bound = chosen["bound_pct"].to_numpy(np.float64)
-        scored = chosen[f"error_pct_{primary}"].to_numpy(np.float64)
-        has = np.isfinite(bound) & ~np.isnan(scored)
-        row["bound_n"] = int(has.sum())
-        if has.any():
-            row["bound_coverage_pct"] = 100.0 * float(np.mean(scored[has] <= bound[has]))
-            row["bound_median_pct"] = float(np.median(bound[has]))
+        for name in definitions:
+            scored = chosen[f"error_pct_{name}"].to_numpy(np.float64) if f"error_pct_{name}" in chosen else None
+            has = np.isfinite(bound) & (~np.isnan(scored) if scored is not None else False)
+            if np.any(has):
+                row[f"bound_coverage_pct_{name}"] = 100.0 * float(np.mean(scored[has] <= bound[has]))
+        if np.isfinite(bound).any():
+            row["bound_median_pct"] = float(np.median(bound[np.isfinite(bound)]))
         row["time_s"] = float(chosen["runtime_s"].mean())
         rows.append(row)
     return pd.DataFrame(rows)
@@ -161,9 +162,11 @@ def display_table(summary: pd.DataFrame, definitions: Sequence[str], published: 
         for key, label in (("within_1_pct", "≤ 1 %"), ("within_2_pct", "≤ 2 %"), ("beyond_10_pct", "> 10 %"),
                            ("beyond_25_pct", "> 25 %")):
             out[f"{label} (% of photos)"] = fmt(row.get(key), "{:.0f}")
-        coverage = row.get("bound_coverage_pct")
-        out["90 % bound holds (median bound)"] = (f"{coverage:.0f} % ({row['bound_median_pct']:.1f} % of h)"
-                                                  if coverage is not None and np.isfinite(coverage) else "—")
+        coverage = [f"{row[f'bound_coverage_pct_{name}']:.0f} %" for name in definitions
+                    if np.isfinite(row.get(f"bound_coverage_pct_{name}", math.nan))]
+        out[f"90 % bound holds ({', '.join(definitions)}; median bound)"] = (
+            f"{' / '.join(coverage)} ({row['bound_median_pct']:.1f} % of h)" if coverage else "—")
+        out[f"scored ({primary})"] = f"{int(row['n_scored'])}/{int(row['n'])}"
         out["failures"] = f"{int(row['failures'])}/{int(row['n'])}"
         out["time per photo (s)"] = fmt(row.get("time_s"), "{:.2f}")
         table.append(out)
