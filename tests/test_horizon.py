@@ -112,6 +112,7 @@ def test_truth_and_estimate_horizons():
     sample.camera = camera
     truths = truth_horizons(sample)
     assert set(truths) == {"labelled", FRAME} and truths["labelled"].error(truths[FRAME]) < 1e-12
+    assert np.allclose(truths["labelled"].line, truths[FRAME].line)  # scaled as horizon_line reports it
     estimate = CameraEstimate(method="m", camera=_camera(5, 4, 1), extra={"horizon_bound_pct": 2.5})
     horizon = estimate_horizon(estimate)
     assert horizon.bound_pct == 2.5 and horizon.error(truths[FRAME]) > 0

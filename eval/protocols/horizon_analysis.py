@@ -13,9 +13,9 @@ and splits the error:
 
 * **Oracle substitutions** (YUD): fR with the calibrated principal point, with the known focal
   length, on the hand-labelled segments, and their combinations.
-* **Attribution** (YUD, :func:`attribution`): the border horizon of a pinhole camera is
-  ``y(x) = c_y + f tan(tilt) - (x - c_x) tan(roll)``; each of tilt, roll, f and the principal point
-  is replaced by its ground-truth value in every combination, and each factor's Shapley share of the
+* **Attribution** (YUD, :func:`attribution`): the horizon of a pinhole camera follows from its
+  tilt, roll, f and principal point alone; each of them is replaced by its ground-truth value in
+  every combination, and each factor's Shapley share of the
   error against the ``labelled`` horizon is reported; with all four replaced what is left is the
   gap between the orthogonalised frame's horizon and the labelled VPs' line (``definition``).
 * **Free vanishing points** (:func:`free_horizons`): from fR's own segments and labels, each
@@ -214,13 +214,6 @@ def record_horizon(record: dict) -> Horizon | None:
     return None if camera is None else Horizon.from_camera(camera, record.get("distortion_k", 0.0))
 
 
-def border_y(f: float, tilt_deg: float, roll_deg: float, pp, width: int) -> tuple[float, float]:
-    """The pinhole horizon's y at the borders: ``c_y + f tan(tilt) - (x - c_x) tan(roll)``."""
-    t, r = math.tan(math.radians(tilt_deg)), math.tan(math.radians(roll_deg))
-    left, right = ((pp[1] + f * t - (x - pp[0]) * r) for x in border_columns(width))
-    return left, right
-
-
 def attribution(estimate: Camera, truth: Camera, target: Horizon) -> dict[str, float]:
     """Shapley shares (% of the height) of tilt, roll, f and the principal point in the error of
     ``estimate``'s horizon against ``target``, and ``definition``: the error left with all four from
@@ -231,8 +224,9 @@ def attribution(estimate: Camera, truth: Camera, target: Horizon) -> dict[str, f
 
     def error(replaced) -> float:
         chosen = {k: values[k][1 if k in replaced else 0] for k in FACTORS}
-        left, right = border_y(chosen["f"], chosen["tilt"], chosen["roll"], chosen["pp"], estimate.width)
-        return 100.0 * Horizon((0.0, 1.0, 0.0), left, right, estimate.width, estimate.height).error(target)
+        camera = Camera.from_angles(estimate.width, estimate.height, chosen["f"], roll_deg=chosen["roll"],
+                                    tilt_deg=chosen["tilt"], principal_point=chosen["pp"])
+        return 100.0 * Horizon.from_camera(camera).error(target)
 
     n = len(FACTORS)
     out = {}

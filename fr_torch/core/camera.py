@@ -287,8 +287,16 @@ def horizon_line(K, rotation, vertical_axis: int = VERTICAL_AXIS) -> np.ndarray 
         line = np.linalg.solve(K.T, rotation[:, vertical_axis])
     except np.linalg.LinAlgError:
         return None
+    return normalised_line(line, at_infinity=1e-12)
+
+
+def normalised_line(line, at_infinity: float = 0.0) -> np.ndarray | None:
+    """A line ``(a, b, c)`` (pixels) scaled to ``a^2 + b^2 = 1`` and ``b >= 0`` (``a > 0`` when b = 0),
+    as :func:`horizon_line` reports it; None when it is not finite or is the line at infinity
+    (``hypot(a, b) <= at_infinity |c|``)."""
+    line = np.asarray(line, np.float64).reshape(3)
     norm = math.hypot(line[0], line[1])
-    if not norm > 1e-12 * max(abs(line[2]), 1e-300):
+    if not (np.isfinite(line).all() and norm > at_infinity * abs(line[2]) and norm > 0):
         return None
     line = line / norm
     return -line if line[1] < 0 or (line[1] == 0 and line[0] < 0) else line
@@ -347,12 +355,7 @@ def horizon_border_y(line, width: float, height: float, k: float = 0.0,
 def line_through(p, q) -> np.ndarray | None:
     """The line ``(a, b, c)`` through two points (x, y) in pixels, scaled as :func:`horizon_line`
     (``a^2 + b^2 = 1``, ``b >= 0``); None when they coincide or are not finite."""
-    line = np.cross([p[0], p[1], 1.0], [q[0], q[1], 1.0])
-    norm = math.hypot(line[0], line[1])
-    if not (np.isfinite(line).all() and norm > 0):
-        return None
-    line = line / norm
-    return -line if line[1] < 0 or (line[1] == 0 and line[0] < 0) else line
+    return normalised_line(np.cross([p[0], p[1], 1.0], [q[0], q[1], 1.0]))
 
 
 @dataclass(frozen=True)
@@ -380,11 +383,11 @@ class Horizon:
     @classmethod
     def from_line(cls, line, width: int, height: int, k: float = 0.0, centre=None,
                   bound_pct: float | None = None) -> "Horizon | None":
-        """The horizon whose undistorted line is ``line`` (3,), seen through a division lens ``k``
-        around ``centre`` (:func:`horizon_border_y`); None without a line."""
+        """The horizon whose undistorted line is ``line`` (3,) at any scale, seen through a division lens
+        ``k`` around ``centre`` (:func:`horizon_border_y`); None without a (finite) line."""
+        line = None if line is None else normalised_line(line)
         if line is None:
             return None
-        line = np.asarray(line, np.float64).reshape(3)
         left, right = horizon_border_y(line, width, height, k, centre)
         if k != 0.0 and left is not None and right is not None:
             chord = line_through((border_columns(width)[0], left), (border_columns(width)[1], right))
