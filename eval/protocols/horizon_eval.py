@@ -186,7 +186,8 @@ def caption(dataset: str, split: str, n: int, notes: dict[str, str], settings: s
             "height; AUC (%) of its cumulative curve on [0, 25 %] as Lezama 2014's calc_auc.m computes it (a failure "
             "counts beyond 25 %). Ground truth: " + "; ".join(f"**{name}** = {note}" for name, note in notes.items())
             + f". The detail columns use {next(iter(notes))}. 90 % bound holds: the share of photos whose error is "
-            "within the method's own 90 % bound (fR's horizon.bound_pct), its median in brackets. " + settings)
+            "within the method's own 90 % bound (fR's horizon.bound_pct) against each definition, the bound's median "
+            "in brackets. Scored: the photos that have the first definition. " + settings)
     if published:
         text += " Published rows: " + "; ".join(f"{p.method}: {p.source}" for p in published) + "."
     return text
