@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [--check] [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp distortion reproducibility bench
+# Usage: eval/reproduce.sh [--check] [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp horizon distortion reproducibility bench
 # --check: afterwards, compare every regenerated CSV under results/ with the committed one
 # (fr_eval.protocols.check_tables: rtol 1e-6, timings ignored); exit 1 when one differs beyond it.
 # (default: all, in this order: the reliability models are trained before the tables that use them).  Data root: $FR_DATA (default ../shared/data); generated views go
@@ -14,7 +14,7 @@ export MPLBACKEND=${MPLBACKEND:-Agg}
 check=0
 if [ "${1:-}" = "--check" ]; then check=1; shift; fi
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp distortion reproducibility bench)
+[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp horizon distortion reproducibility bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
@@ -99,6 +99,18 @@ for step in "${steps[@]}"; do
         --methods "consac[seed=1],consac[seed=2],consac[seed=3],consac[seed=4],consac[seed=5],consac-s[seed=1],consac-s[seed=2],consac-s[seed=3]"
       $FR eval --dataset yud --split test --methods "fr,fast-fr,lee2009,simon2018,consac,consac-s" --out results/vp/camera-yud-test
       $FR eval --dataset nyu-vp --split val --methods "fr,fast-fr,consac,consac-s" --out results/vp/camera-nyu-vp-val ;;
+    horizon)  # Issue 54: the horizon benchmark (Lezama 2014's AUC; results/horizon/README.md) on YUD (ECCV test and
+              # all 102 for the published rows), ecd-tune (the 25 tuning photos of the Eurasian Cities benchmark)
+              # and NYU-VP val (fR's horizon bound); CONSAC as for vp (~3 s per YUD photo, ~30 s per ecd-tune photo)
+      export OMP_NUM_THREADS=1 FR_THREADS=1
+      M='fr,fast-fr,lee2009,simon2018,consac'
+      $FR eval --task horizon --dataset ecd-tune --split all --methods "$M" --out results/horizon/ecd-tune-all
+      $FR eval --task horizon --dataset yud --split test --methods "$M,oracle-fr" --out results/horizon/yud-test
+      $FR eval --task horizon --dataset yud --split all --methods "$M,oracle-fr" --out results/horizon/yud-all
+      $FR eval --task horizon --dataset nyu-vp --split val --methods fr,fast-fr --out results/horizon/nyu-vp-val
+      # what fR's error is made of (results/horizon/analysis.md): fR variants cached in $FR_CACHE/horizon_analysis
+      .venv/bin/python -m fr_eval.protocols.horizon_analysis run
+      .venv/bin/python -m fr_eval.protocols.horizon_analysis report ;;
     distortion)  # Issue 46: wide-angle lenses. ZInD-fR-D (the ZInD-fR views through a division-model
                  # lens, k ~ U[-0.4, 0]) and YUD-D (the YUD 480x360 crops warped, k ~ U[-0.3, 0]) into
                  # $FR_CACHE; pinhole fR, fR / Fast-fR + division, auto on them, on the same views

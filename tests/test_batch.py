@@ -208,14 +208,18 @@ def test_records_with_missing_or_malformed_arrays_become_nulls():
     """A record whose arrays are absent, non-finite or of the wrong shape is stored with nulls there
     (never a wrong-shaped row, never a failed part) and reads back."""
     good = {"image": "a.png", "ok": True, "focal_px": 500.0, "principal_point": [320.0, 240.0],
-            "rotation": np.eye(3).tolist(), "vanishing_points": np.eye(3).tolist()}
+            "rotation": np.eye(3).tolist(), "vanishing_points": np.eye(3).tolist(),
+            "horizon": {"line": [0.0, 1.0, -240.0], "left_y": 240.0, "right_y": 240.0, "bound_pct": 2.5}}
     odd = {"image": "b.png", "ok": True, "focal_px": float("nan"), "principal_point": [],
-           "rotation": [[1.0, 0.0], [0.0, 1.0]], "vanishing_points": [[float("inf")] * 3] * 3}
+           "rotation": [[1.0, 0.0], [0.0, 1.0]], "vanishing_points": [[float("inf")] * 3] * 3,
+           "horizon": {"line": [0.0, 1.0], "left_y": None, "right_y": float("nan"), "bound_pct": None}}
     table = records_to_table([good, odd, {"image": "c.png", "ok": False}], [{}, {}, {}])
     rows = table.to_pylist()
     assert rows[0]["principal_point"] == [320.0, 240.0] and rows[0]["rotation"] == np.eye(3).tolist()
     assert all(rows[i][key] is None for i in (1, 2) for key in ("principal_point", "rotation", "vanishing_points"))
     assert rows[1]["focal_px"] is None
+    assert rows[0]["horizon"] == good["horizon"] and rows[2]["horizon"] is None
+    assert rows[1]["horizon"] == {"line": None, "left_y": None, "right_y": None, "bound_pct": None}
 
 
 def test_pipelined_rows_match_per_batch_rows_and_survive_a_search_error(image_set, monkeypatch):

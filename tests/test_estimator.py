@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from fr_torch import FREstimator
-from fr_torch.core.camera import focal_from_hfov, horizon_angles, rotation_from_angles
+from fr_torch.core.camera import Camera, Horizon, focal_from_hfov, horizon_angles, rotation_from_angles
 from fr_torch.core.cues import LINE_BEND_CUES, focal_conditioning
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
@@ -34,6 +34,7 @@ def test_recovers_synthetic_cameras(scenes, mode):
         assert abs(result.focal_px - focal) / focal < 0.02
         assert abs(result.roll_deg - float(truth["roll_deg"])) < 0.3
         assert abs(result.tilt_deg - float(truth["tilt_deg"])) < 0.3
+        assert result.horizon.error(Horizon.from_camera(Camera(640, 480, focal, None, R))) < 0.005
         assert np.allclose(result.rotation @ result.rotation.T, np.eye(3), atol=1e-6)
         assert result.labels.shape == (result.num_segments,)
         assert set(result.cues) == {"min_family_segments", "grid_entropy", "mean_log_likelihood",

@@ -31,6 +31,11 @@ Conventions (decided here, used by every NYU-VP number this project reports)
   labelled vanishing direction within :data:`LABEL_TOLERANCE_DEG` of a column of the rotation,
   labelled with that column; lines of other (non-Manhattan) directions are left out.  The number of
   labelled vanishing points is ``extra["num_labelled_vps"]``.
+* **Horizon** (the horizon task, :mod:`fr_eval.protocols.horizon_eval`): ``extra["horizons"]["labelled"]``,
+  the line through the labelled horizontal vanishing points (those within
+  :data:`HORIZONTAL_TOLERANCE_DEG` of perpendicular to the vertical; the least-squares plane of their
+  directions, which for two is the line through both), where there are at least two; the ``frame``
+  definition is the ground-truth camera's (the labelled vertical's) horizon ``K^-T R[:, 1]``.
 * **Vanishing-point labels** (the VP task, :mod:`fr_eval.scoring.vp_metric`): every labelled VP as a unit
   direction ``K_vp^-1 [X, Y, 1]`` in ``extra["vp_directions"]`` (M, 3), file order, with
   ``K_vp`` = ``extra["vp_calibration"]`` the dataset's full calibration (``fx``, ``fy`` =
@@ -171,6 +176,25 @@ def ground_truth_frame(vps_px: np.ndarray, line_counts: list[int]) -> tuple[np.n
     return rotation, pan_known, columns
 
 
+HORIZON_NOTES = {"labelled": "the line through the labelled horizontal VPs (>= 2 within 10 deg of perpendicular "
+                            "to the labelled vertical)"}
+
+
+def labelled_horizon(vps_px: np.ndarray, rotation: np.ndarray | None) -> np.ndarray | None:
+    """The line (3,) through the labelled horizontal VPs ``vps_px`` (M, 2) pixels (module docstring),
+    or None with fewer than two of them or no vertical."""
+    if rotation is None or len(vps_px) < 2:
+        return None
+    K = calibration_matrix()
+    dirs = np.c_[vps_px, np.ones(len(vps_px))] @ np.linalg.inv(K).T
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    horizontal = dirs[np.abs(dirs @ rotation[:, 1]) <= math.sin(math.radians(HORIZONTAL_TOLERANCE_DEG))]
+    if len(horizontal) < 2:
+        return None
+    normal = np.linalg.eigh(horizontal.T @ horizontal)[1][:, 0]  # the plane the directions span
+    return np.linalg.solve(K.T, normal)
+
+
 def load_sample(folder: Path, index: int, split: str) -> CalibrationSample:
     """One photo ``index`` (0-1223) as a :class:`CalibrationSample` (module docstring)."""
     tag = f"{index:04d}"
@@ -186,8 +210,14 @@ def load_sample(folder: Path, index: int, split: str) -> CalibrationSample:
         segments=segments, segment_labels=labels, split=split,
         extra={"detected_segments": read_lsd_segments(folder / f"lsd_lines_{tag}.csv"),
                "num_labelled_vps": int(len(vps)), "num_manhattan_vps": int((columns >= 0).sum()),
-               "vp_directions": vp_directions(vps), "vp_calibration": vp_calibration_matrix()},
+               "vp_directions": vp_directions(vps), "vp_calibration": vp_calibration_matrix(),
+               **horizon_extra(labelled_horizon(vps, rotation))},
     )
+
+
+def horizon_extra(line: np.ndarray | None) -> dict:
+    """The sample's ``extra`` keys of a labelled horizon (none without one)."""
+    return {} if line is None else {"horizons": {"labelled": line}, "horizon_notes": dict(HORIZON_NOTES)}
 
 
 @lru_cache(maxsize=4)

@@ -22,6 +22,13 @@ Conversions (decided here, used by every YUD number this project reports)
     sign fixed so that det R = +1 (the y flip makes the raw matrix improper).  Horizontal column
     signs carry no information (vanishing points are sign-free); frame error ignores them.
 * **Segment labels**: ``vp_association`` 1..3 -> our column index 0..2 (vertical = 1).
+* **Horizon** (``extra["horizons"]``, the horizon task, :mod:`fr_eval.protocols.horizon_eval`): the
+  line through the two labelled horizontal vanishing points, columns 1 and 3 of
+  ``P*GroundTruthVP_CamParams.mat``'s ``vp`` (fitted to the labelled lines, not orthogonalised), as the
+  horizon benchmark defines YUD's ground truth: ``labelled`` projects them with the calibrated K
+  (``K diag(1,-1,1) vp``), ``lezama-code`` as Lezama et al.'s ``yud_benchmark.m`` does, with a focal
+  length of 1.08 w = 691.2 px instead of 674.918 (same principal point).  The orthogonalised frame's
+  horizon (``K^-T R[:, 1]``) is the third definition, ``frame``, derived from ``camera``.
 * **Split**: the ECCV 2008 51/51 split of ``ECCV_TrainingAndTestImageNumbers.mat`` (1-based
   indices into ``Manhattan_Image_DB_Names``, names stored with a trailing backslash) -- the split
   the authors' ``evaluation_onlinefR.m`` uses.
@@ -44,6 +51,13 @@ FOLDER = "yorkurbandb"
 WIDTH, HEIGHT = 640, 480
 Y_FLIP = np.diag([1.0, -1.0, 1.0])
 SPLITS = ("train", "test", "all")
+#: The focal length (pixels) of Lezama et al.'s ``yud_benchmark.m``: ``focal_ratio`` 1.08 x the width.
+LEZAMA_FOCAL_RATIO = 1.08
+HORIZON_NOTES = {
+    "labelled": "the line through the two labelled horizontal VPs (GroundTruthVP_CamParams.mat), calibrated K",
+    "lezama-code": "the line through the two labelled horizontal VPs projected as Lezama 2014's yud_benchmark.m "
+                   "does (f = 1.08 w)",
+}
 
 
 def yud_root(root: str | Path | None = None) -> Path:
@@ -100,6 +114,18 @@ def rotation_from_vp_orthogonal(vp_orthogonal: np.ndarray) -> np.ndarray:
     return r
 
 
+def labelled_horizons(vp: np.ndarray, focal_px: float, principal_point, width: int) -> dict[str, np.ndarray]:
+    """The horizon definitions of one photo from its labelled VP directions ``vp`` (3 x 3, YUD's y-up
+    camera frame, the vertical in column 2): ``{"labelled", "lezama-code"}`` -> line (3,) in
+    0-based pixels (module docstring)."""
+    out = {}
+    for name, focal in (("labelled", focal_px), ("lezama-code", LEZAMA_FOCAL_RATIO * width)):
+        K = np.array([[focal, 0.0, principal_point[0]], [0.0, focal, principal_point[1]], [0.0, 0.0, 1.0]])
+        points = K @ Y_FLIP @ np.asarray(vp, np.float64)
+        out[name] = np.cross(points[:, 0], points[:, 2])
+    return out
+
+
 def load_segments(folder: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
     """Hand-labelled segments (N, 4) 0-based pixels and labels (N,) in our column indices."""
     mat = _loadmat(folder / f"{name}LinesAndVP.mat")
@@ -123,6 +149,7 @@ def _load_all(root: Path) -> tuple[CalibrationSample, ...]:
     for index, name in enumerate(names):
         folder = root / name
         vp = _loadmat(folder / f"{name}GroundTruthVP_Orthogonal_CamParams.mat")["vp_orthogonal"]
+        horizons = labelled_horizons(_loadmat(folder / f"{name}GroundTruthVP_CamParams.mat")["vp"], focal_px, pp, WIDTH)
         segments, labels = load_segments(folder, name)
         samples.append(CalibrationSample(
             name=name,
@@ -133,7 +160,7 @@ def _load_all(root: Path) -> tuple[CalibrationSample, ...]:
             segments=segments,
             segment_labels=labels,
             split=split_of.get(index, ""),
-            extra={"index_1based": index + 1},
+            extra={"index_1based": index + 1, "horizons": horizons, "horizon_notes": dict(HORIZON_NOTES)},
         ))
     return tuple(samples)
 

@@ -284,8 +284,10 @@ def _na_reason(est: CameraEstimate | None) -> str | None:
 
 
 def evaluate_method(spec: str, samples: Sequence[Any], *, pp_mode: str = "centre", known_focal: bool = False,
-                    dataset: str = "", device: str = "cpu", calibrator=None, progress: bool = True) -> list[dict]:
-    """Per-image prediction rows of one method on ``samples`` (exceptions count as failures).
+                    dataset: str = "", device: str = "cpu", calibrator=None, progress: bool = True,
+                    row_of=None) -> list[dict]:
+    """Per-image prediction rows of one method on ``samples`` (exceptions count as failures);
+    ``row_of(spec, sample, estimate, wall_s) -> dict`` builds a row (default :func:`prediction_row`).
 
     A method whose answers so far are all the same "n/a (...)" failure (weights / predictions not
     supplied) is first asked without the image; the same answer is taken as is (no image decoding),
@@ -315,7 +317,7 @@ def evaluate_method(spec: str, samples: Sequence[Any], *, pp_mode: str = "centre
                 est, wall = _call(method, spec, image, meta)
             reason = _na_reason(est)
             na_streak = reason if i == 0 or (na_streak is not None and reason == na_streak) else None
-        rows.append(prediction_row(spec, sample, est, wall))
+        rows.append((row_of or prediction_row)(spec, sample, est, wall))
     return rows
 
 
@@ -448,19 +450,10 @@ def run(args: argparse.Namespace) -> int:
               "(for every image)", file=sys.stderr)
         return 2
     group_key = resolve_group_by(getattr(args, "group_by", "auto"), samples)
-    apply_weight_options(args)
-    try:
-        fov_range = FovRange.parse(getattr(args, "fov_range", None))
-    except ValueError as exc:
-        print(f"error: --fov-range: {exc}", file=sys.stderr)
+    fov_range = parse_fov_range(args)
+    calibrators = None if fov_range is None else build_calibrators(args, methods, fov_range)
+    if calibrators is None:
         return 2
-    calibrators = {}
-    for spec in methods:  # build every method first: a typo fails before hours of work
-        try:
-            calibrators[spec] = make_calibrator(_strip_labelled(spec)[0], args.device, fov_range)
-        except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
     out_dir = Path(args.out) if args.out else REPO / "results" / safe_name(args.dataset)
     out_dir.mkdir(parents=True, exist_ok=True)
 
@@ -531,6 +524,30 @@ def run(args: argparse.Namespace) -> int:
 #: ``fr eval`` options naming a learned method's weights -> the environment variable the method reads.
 WEIGHT_OPTIONS = (("ctrlc_onnx", "FR_CTRLC_ONNX"), ("ctrlc_retrained_onnx", "FR_CTRLC_RETRAINED_ONNX"),
                   ("consac_weights", "FR_CONSAC_WEIGHTS"))
+
+
+def parse_fov_range(args: argparse.Namespace) -> FovRange | None:
+    """``--fov-range`` as a :class:`FovRange`; None after a one-line error."""
+    try:
+        return FovRange.parse(getattr(args, "fov_range", None))
+    except ValueError as exc:
+        print(f"error: --fov-range: {exc}", file=sys.stderr)
+        return None
+
+
+def build_calibrators(args: argparse.Namespace, methods: Sequence[str], fov_range: FovRange) -> dict[str, Any] | None:
+    """Every method of the table built before any work (a typo fails before hours of work), with the
+    weight options applied (:func:`apply_weight_options`): spec -> calibrator; None after a one-line
+    error."""
+    apply_weight_options(args)
+    calibrators = {}
+    for spec in methods:
+        try:
+            calibrators[spec] = make_calibrator(_strip_labelled(spec)[0], args.device, fov_range)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return None
+    return calibrators
 
 
 def apply_weight_options(args: argparse.Namespace) -> None:

@@ -45,11 +45,10 @@ from fr_eval.paths import REPO
 from fr_eval.protocols.run_eval import (
     _call,
     _na_reason,
-    _strip_labelled,
-    apply_weight_options,
+    build_calibrators,
     build_meta,
     load_samples,
-    make_calibrator,
+    parse_fov_range,
     split_methods,
 )
 from fr_eval.scoring.plots import safe_name, vp_recall_figure
@@ -57,7 +56,6 @@ from fr_eval.scoring.tables import to_latex, to_markdown
 from fr_eval.scoring.vp_metric import AUC_CUTOFFS_DEG, MISSING_VP_DEG, auc_table, directions_from_vps, match_errors
 from tqdm import tqdm
 
-from fr_torch.core.fov import FovRange
 from fr_torch.images.io import load_image
 from fr_torch.plugins.interface import CameraEstimate
 
@@ -182,22 +180,11 @@ def run(args: argparse.Namespace) -> int:
     if not methods or not settings or bad:
         print(f"error: need methods and --intrinsics from {', '.join(INTRINSICS)}", file=sys.stderr)
         return 2
-    try:
-        fov_range = FovRange.parse(getattr(args, "fov_range", None))
-    except ValueError as exc:
-        print(f"error: --fov-range: {exc}", file=sys.stderr)
+    fov_range = parse_fov_range(args)
+    samples = None if fov_range is None else load_samples(args, load_vp_samples)
+    calibrators = None if samples is None else build_calibrators(args, methods, fov_range)
+    if calibrators is None:
         return 2
-    samples = load_samples(args, load_vp_samples)
-    if samples is None:
-        return 2
-    apply_weight_options(args)
-    calibrators = {}
-    for spec in methods:
-        try:
-            calibrators[spec] = make_calibrator(_strip_labelled(spec)[0], args.device, fov_range)
-        except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
     out_dir = Path(args.out) if args.out else REPO / "results" / "vp" / safe_name(f"{args.dataset}-{args.split}")
     out_dir.mkdir(parents=True, exist_ok=True)
     error_rows, times = [], {}

@@ -170,23 +170,34 @@ def vp_recall_figure(errors: dict[str, dict[str, np.ndarray]], path: Path, title
                      max_deg: float = 20.0) -> Path:
     """Recall curves of pooled VP errors (degrees) up to ``max_deg``: ``errors[setting][method]``, one
     panel per setting (``unknown``: f unknown, ``known``: K known), AUC@10 in each label."""
-    settings = list(errors)
+    return recall_figure(
+        errors, path, title, max_deg, label=lambda method, values: f"{method} (AUC@10 {auc_table(values, (10.0,))['auc10']:.1f})",
+        panel_title=lambda setting: "f unknown, image-centre principal point" if setting == "unknown" else "K known",
+        xlabel="error threshold (°)", ylabel="recall (share of labelled VPs)", marker=10.0)
+
+
+def recall_figure(errors: dict[str, dict[str, np.ndarray]], path: Path, title: str, max_error: float, label,
+                  panel_title, xlabel: str, ylabel: str, marker: float | None = None) -> Path:
+    """Recall curves (share of errors <= a threshold, thresholds 0..``max_error``): ``errors[panel][method]``
+    arrays, one panel per key; ``label(method, values)`` and ``panel_title(panel)`` the texts, a dotted
+    line at ``marker``."""
+    panels = list(errors)
     methods = list(dict.fromkeys(m for by_method in errors.values() for m in by_method))
     colours = plt.get_cmap("tab20")
-    fig, axes = plt.subplots(1, len(settings), figsize=(6.2 * len(settings), 4.4), squeeze=False)
-    for ax, setting in zip(axes[0], settings):
-        for method, values in errors[setting].items():
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.4), squeeze=False)
+    for ax, panel in zip(axes[0], panels):
+        for method, values in errors[panel].items():
             if not len(values):
                 continue
-            x, y = recall_curve(values, max_deg)
-            ax.plot(x, y, lw=1.6, color=colours(methods.index(method) % 20),
-                    label=f"{method} (AUC@10 {auc_table(values, (10.0,))['auc10']:.1f})")
-        ax.axvline(10.0, color="0.6", lw=0.8, ls=":")
-        ax.set_xlim(0, max_deg)
+            x, y = recall_curve(values, max_error)
+            ax.plot(x, y, lw=1.6, color=colours(methods.index(method) % 20), label=label(method, values))
+        if marker is not None:
+            ax.axvline(marker, color="0.6", lw=0.8, ls=":")
+        ax.set_xlim(0, max_error)
         ax.set_ylim(0, 1)
-        ax.set_xlabel("error threshold (°)")
-        ax.set_ylabel("recall (share of labelled VPs)")
-        ax.set_title("f unknown, image-centre principal point" if setting == "unknown" else "K known")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_title(panel_title(panel), fontsize=9)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="lower right")
     return save_figure(fig, path, title, dpi=120)

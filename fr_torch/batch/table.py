@@ -24,6 +24,8 @@ ROW_CUES = CUE_NAMES + LINE_BEND_CUES
 DISTORTION_NUMBERS = ("k", "radius_px", "bow_pct")
 #: Bounded targets of ``error_bound`` (:mod:`fr_torch.core.reliability_bounds`).
 BOUND_KEYS = ("focal_pct", "tilt_deg")
+#: Number fields of the ``horizon`` struct (:meth:`fr_torch.core.camera.Horizon.to_json`), besides ``line``.
+HORIZON_NUMBERS = ("left_y", "right_y", "bound_pct")
 
 
 FLOAT_FIELDS = ("focal_px", "hfov_deg", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "log_likelihood",
@@ -50,6 +52,7 @@ def result_schema():
         ("vanishing_points", mat3),
         ("ranked_vanishing_points", pa.list_(pa.struct([("point", pa.list_(f64)), ("support_px", f64),
                                                          ("family", pa.int8())]))),
+        ("horizon", pa.struct([("line", pa.list_(f64)), *[(k, f64) for k in HORIZON_NUMBERS]])),
         ("distortion", pa.struct([("model", pa.string()), *[(k, f64) for k in DISTORTION_NUMBERS],
                                   ("centre", pa.list_(f64))])),
         ("log_likelihood", f64), ("num_segments", pa.int32()),
@@ -125,6 +128,10 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
         for key, keys in (("cues", ROW_CUES), ("predicted_error", TARGETS), ("runtime_s", RUNTIME_KEYS)):
             value = out[key]
             out[key] = None if not value else {k: _clean_float(value.get(k)) for k in keys}
+        horizon = out["horizon"]
+        if horizon:
+            out["horizon"] = {"line": _clean_nested(horizon.get("line"), (3,)),
+                              **{k: _clean_float(horizon.get(k)) for k in HORIZON_NUMBERS}}
         lens = out["distortion"]
         if lens:
             out["distortion"] = {"model": str(lens.get("model")), **{k: _clean_float(lens.get(k)) for k in DISTORTION_NUMBERS},

@@ -23,7 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
-from fr_torch.core.camera import VERTICAL_AXIS, Camera, camera_record, image_centre
+from fr_torch.core.camera import VERTICAL_AXIS, Camera, Horizon, camera_record, image_centre
 from fr_torch.core.checks import (
     MAX_REACH_IMAGE_SIZES,
     check_camera,
@@ -61,6 +61,7 @@ from fr_torch.core.likelihood import (
 )
 from fr_torch.core.params import DISTORTION, FOCAL, CameraParams
 from fr_torch.core.reliability import ReliabilityModel
+from fr_torch.core.reliability_bounds import horizon_bound_pct
 from fr_torch.core.search_distortion import SegmentGeometry, bend_test, search_with_k
 from fr_torch.core.search import (
     best_of_start_and_refined,
@@ -124,7 +125,7 @@ SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device m
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
 JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px", "hfov_deg", "principal_point",
              "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
-             "ranked_vanishing_points", "distortion", "log_likelihood", "num_segments", "manhattan_fraction", "cues",
+             "ranked_vanishing_points", "horizon", "distortion", "log_likelihood", "num_segments", "manhattan_fraction", "cues",
              "predicted_error", "error_bound", "runtime_s")
 
 
@@ -147,6 +148,10 @@ class CalibrationResult:
     each family's segments (pixels), most supported first; ``vanishing_point_families`` (M,) says
     which family each is: 0-2 the column of R (1 = vertical), 3.. an Atlanta family (an extra
     horizontal direction, ``atlanta`` option; :mod:`fr_torch.core.vanishing`).  M = 3 without it.
+
+    ``horizon`` (:class:`fr_torch.core.camera.Horizon`, None without an estimate): the horizon in
+    the input image's pixels, where it crosses the left and right borders, and its 90 % bound in %
+    of the image height (from ``error_bound``; None without one).
     """
 
     image: str
@@ -185,6 +190,20 @@ class CalibrationResult:
             return None
         record = distortion_record(self.distortion_k, self.camera.principal_point, self.width, self.height)
         return dict(record, model=self.distortion_model)
+
+    @property
+    def horizon(self) -> Horizon | None:
+        """The estimate's horizon in the input image's pixels (:meth:`fr_torch.core.camera.Horizon.from_camera`:
+        the line ``K^-T R[:, 1]``, through the estimate's lens when it has one), where it crosses the
+        borders ``x = 0`` and ``x = w - 1``, and the 90 % bound of its error at the borders in % of
+        the image height (:func:`fr_torch.core.reliability_bounds.horizon_bound_pct`, from
+        ``error_bound``; None without one); None without an estimate."""
+        if not self.ok or self.camera is None:
+            return None
+        bound = None
+        if self.focal_px is not None and self.tilt_deg is not None:
+            bound = horizon_bound_pct(self.error_bound, self.focal_px, self.tilt_deg, self.height)
+        return Horizon.from_camera(self.camera, self.distortion_k, bound)
 
     def _lens(self):
         if self.camera is None or self.focal_px is None:
@@ -237,8 +256,11 @@ class CalibrationResult:
 
     def to_json(self, include_segments: bool = False) -> dict[str, Any]:
         """JSON-ready dict (the CLI's output schema, keys :data:`JSON_KEYS`; arrays become nested lists)."""
-        out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS if key != "ranked_vanishing_points"}
+        computed = ("ranked_vanishing_points", "horizon")
+        out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS if key not in computed}
         out["ranked_vanishing_points"] = self.ranked_vanishing_points_json()
+        horizon = self.horizon
+        out["horizon"] = None if horizon is None else horizon.to_json()
         out = {key: out[key] for key in JSON_KEYS}
         for key in ("rotation", "vanishing_points"):
             if out[key] is not None:

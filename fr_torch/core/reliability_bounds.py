@@ -85,6 +85,55 @@ def tilt_sigma_deg(cues) -> np.ndarray:
 
 SIGMAS = {"focal_pct": focal_sigma_pct, "tilt_deg": tilt_sigma_deg}
 
+#: The largest tilt (deg) the horizon bound evaluates ``tan`` at: a tilt bound reaching 90 deg says the
+#: lines leave the horizon open (the bound is then huge, not infinite).
+HORIZON_TILT_LIMIT_DEG = 89.0
+#: The largest horizon bound reported (% of the image height): ten image heights already say that the
+#: lines leave the horizon open (a Fast-fR estimate that stopped away from a peak has a tilt bound
+#: beyond 90 deg, which would read as tens of thousands of percent).
+HORIZON_BOUND_CAP_PCT = 1000.0
+
+
+def horizon_bound_pct(bounds: Mapping[str, float] | None, focal_px: float, tilt_deg: float,
+                      height: float) -> float | None:
+    """A 90 % bound of the horizon benchmark's error (the larger vertical distance at the left and
+    right borders, :meth:`fr_torch.core.camera.Horizon.error`) in % of the image height, from the
+    estimate's tilt and focal bounds (:meth:`ReliabilityPromise.bounds`).
+
+    Derivation: the horizon crosses the image column of the principal point at
+    ``y = c_y + f tan(tilt)`` (:mod:`fr_torch.core.camera`: ``tilt = atan(c_z / c_y)`` of world-up c)
+    and has slope ``-tan(roll)``.  A tilt error within its bound ``b_t`` moves that crossing by at
+    most ``f max_(+-) |tan(tilt +- b_t) - tan(tilt)|``, a focal error within ``b_f`` (%) by
+    ``f |tan(tilt)| b_f / 100``; the bound is their sum (the horizon is off by more only when one of
+    the two errors exceeds its bound, or by the roll: there is no roll bound, and a roll error
+    ``d_r`` adds ``(w / 2) tan(d_r)`` at the borders; results/horizon/README.md measures the
+    coverage, roll included).  A given focal length (focal bound 0) leaves the tilt part.  At most
+    :data:`HORIZON_BOUND_CAP_PCT`.
+
+    Args:
+        bounds: the estimate's ``{"tilt_deg": b_t, "focal_pct": b_f, ...}`` (degrees, percent);
+            None or a missing / non-finite bound -> None.
+        focal_px: the estimated focal length, pixels.
+        tilt_deg: the estimated (paper's) tilt, degrees.
+        height: image height, pixels.
+
+    Returns:
+        The bound in % of the image height, or None.
+    """
+    if not bounds:
+        return None
+    tilt_bound, focal_bound = bounds.get("tilt_deg"), bounds.get("focal_pct")
+    numbers = (tilt_bound, focal_bound, focal_px, tilt_deg, height)
+    if any(v is None or not math.isfinite(float(v)) for v in numbers) or not height > 0:
+        return None
+    limit = math.radians(HORIZON_TILT_LIMIT_DEG)
+    tilt = min(max(math.radians(tilt_deg), -limit), limit)
+    reach = math.radians(min(float(tilt_bound), 2 * HORIZON_TILT_LIMIT_DEG))
+    shift = max(abs(math.tan(min(tilt + reach, limit)) - math.tan(tilt)),
+                abs(math.tan(tilt) - math.tan(max(tilt - reach, -limit))))
+    bound = 100.0 * float(focal_px) * (shift + abs(math.tan(tilt)) * float(focal_bound) / 100.0) / float(height)
+    return min(bound, HORIZON_BOUND_CAP_PCT)
+
 
 def conformal_scale(predicted: np.ndarray, actual: np.ndarray, coverage: float = DEFAULT_COVERAGE,
                     floor: float = 0.0) -> float:

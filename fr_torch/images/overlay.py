@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fr_torch.core.camera import VERTICAL_AXIS
+from fr_torch.core.camera import border_columns, horizon_border_y, horizon_line
 from fr_torch.core.estimator import BACKGROUND_LABEL, CalibrationResult
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import encode_png, read_image
@@ -28,11 +28,11 @@ CAPTION_BOX, CAPTION_TEXT = (20, 20, 20), (245, 245, 245)
 
 
 def _horizon_line(result: CalibrationResult) -> np.ndarray | None:
-    """The horizon's homogeneous line (3,) in the undistorted image, l = K^-T R[:, vertical], or None
-    without a rotation."""
-    if result.rotation is None:
+    """The horizon's line (3,) in the undistorted image (:func:`fr_torch.core.camera.horizon_line`),
+    or None without an estimate or when the horizon is at infinity."""
+    if result.camera is None or result.camera.K is None or result.camera.rotation is None:
         return None
-    return np.linalg.inv(result.camera.K).T @ result.rotation[:, VERTICAL_AXIS]
+    return horizon_line(result.camera.K, result.camera.rotation, result.vertical_axis)
 
 
 def _darkened(image_bgr: np.ndarray) -> np.ndarray:
@@ -48,7 +48,7 @@ def _draw_straight_horizon(canvas: np.ndarray, result: CalibrationResult) -> Non
 
 
 def horizon_endpoints(result: CalibrationResult):
-    """The horizon (vanishing line of horizontal planes, l = K^-T R[:, vertical]) clipped to the image.
+    """The horizon of the undistorted image (:func:`_horizon_line`) clipped to the image.
 
     Returns ((x1, y1), (x2, y2)) in pixels, or None when the horizon is outside the image.
     """
@@ -56,10 +56,9 @@ def horizon_endpoints(result: CalibrationResult):
     if line is None:
         return None
     w, h = result.width, result.height
-    points = []
-    if abs(line[1]) > 1e-12:  # intersections with the left and right borders
-        points += [(x, -(line[0] * x + line[2]) / line[1]) for x in (0.0, w - 1.0)]
-    if abs(line[0]) > 1e-12:  # with the top and bottom borders
+    # intersections with the left and right borders, then with the top and bottom ones
+    points = [(x, y) for x, y in zip(border_columns(w), horizon_border_y(line, w, h)) if y is not None]
+    if abs(line[0]) > 1e-12:
         points += [(-(line[1] * y + line[2]) / line[0], y) for y in (0.0, h - 1.0)]
     inside = [(x, y) for x, y in points if -0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5]
     if len(inside) < 2:
@@ -124,6 +123,9 @@ def draw_overlay(image_bgr: np.ndarray, result: CalibrationResult) -> np.ndarray
                    f"tilt={result.tilt_deg:+.2f}  pan={result.pan_deg:+.1f} deg")
         if result.distortion_model != "pinhole":
             caption += f"  k={result.distortion_k:+.3f}"
+        horizon = result.horizon
+        if horizon is not None and horizon.bound_pct is not None:
+            caption += f"  horizon +-{horizon.bound_pct:.1f}% of h"
         if not result.reliable:
             caption += "  [UNRELIABLE]"
     else:

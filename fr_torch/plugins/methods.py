@@ -35,13 +35,14 @@ def estimate_from_result(method: str, result: CalibrationResult, runtime_s: floa
     """Convert an fR result into the common estimate record."""
     if not result.ok:
         return CameraEstimate.failure(method, result.reason, runtime_s)
+    horizon = result.horizon
     return CameraEstimate(
         method=method, camera=result.camera,
         predicted_error=result.predicted_error, reliable=result.reliable, runtime_s=runtime_s, reason=result.reason,
         extra={"cues": result.cues, "num_segments": result.num_segments, "log_likelihood": result.log_likelihood,
                "stage_runtime_s": result.runtime_s, "vanishing_point_support": result.vanishing_point_support,
                "vanishing_point_families": result.vanishing_point_families,
-               "distortion": result.distortion},
+               "distortion": result.distortion, "horizon_bound_pct": None if horizon is None else horizon.bound_pct},
         ranked_vanishing_points=result.ranked_vanishing_points,
     )
 
