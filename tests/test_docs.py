@@ -66,10 +66,11 @@ def test_relative_links_point_to_existing_files(path: Path):
 
 def test_documented_options_exist():
     """Every ``--option`` in the README and the pages is declared somewhere in the code (as the
-    string literal argparse is given), so a renamed or removed option cannot stay documented."""
+    string literal argparse, or a script such as eval/reproduce.sh, is given), so a renamed or removed
+    option cannot stay documented."""
     declared = set()
     for folder in ("fr_torch", "eval", "baselines"):
-        for source in (REPO / folder).rglob("*.py"):
+        for source in [*(REPO / folder).rglob("*.py"), *(REPO / folder).rglob("*.sh")]:
             declared |= set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["'=]""", source.read_text(encoding="utf-8")))
     missing = {}
     for path in [README, *sorted((REPO / "docs").rglob("*.md"))]:
