@@ -143,7 +143,7 @@ def worker(inputs: Path, out: Path, mode: str, batch: int, workers: int, shared:
                 results = calibrate_segments_sharded(estimator, [c[1] for c in chunk], [c[2] for c in chunk],
                                                      workers, names=[c[0] for c in chunk])
                 for (name, _, _, truth), r in zip(chunk, results):
-                    rows.append({"dataset": dataset, "image": name, "ok": r.ok, "reliable": bool(r.reliable),
+                    rows.append({"dataset": dataset, "image": name, "ok": r.ok, "reliable": bool(r.reliable), "reason": r.reason,
                                  "focal_px": r.focal_px, "truth": truth,
                                  "rotation": None if r.rotation is None else np.asarray(r.rotation).tolist(),
                                  "cues": r.cues})
