@@ -185,7 +185,8 @@ def run(args) -> int:
         if shared:
             command.append("--shared-group")
         start = time.perf_counter()
-        done = subprocess.run(command, env=env, capture_output=True, text=True)
+        # cwd: the checkout whose fr_torch runs (python -m puts the working folder first on sys.path)
+        done = subprocess.run(command, env=env, capture_output=True, text=True, cwd=args.code or REPO)
         if done.returncode:
             print(f"{mode} / {name}: failed\n{done.stderr[-2000:]}", file=sys.stderr)
             continue
