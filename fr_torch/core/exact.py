@@ -94,7 +94,8 @@ def exact_sum(x: torch.Tensor, dim: int, bound: torch.Tensor | None = None, keep
     factor = scale.to(work.dtype) if weight is None else weight.to(work.dtype) * scale.to(work.dtype)
     scaled = work * factor
     high = scaled.round()
-    total = high.sum(dim, keepdim=True, dtype=torch.float64)
+    # integers in float64: any order of addition is exact (and .double().sum is ~10x faster than sum(dtype=))
+    total = high.to(torch.float64).sum(dim, keepdim=True)
     if work.dtype == torch.float64:  # float64 terms keep 2^-LOW_BITS more: their rounded-off parts, summed apart
         low = (scaled - high).mul_(2.0 ** LOW_BITS).round_()  # scaled - high is exact
         total = total + low.sum(dim, keepdim=True) / 2.0 ** LOW_BITS
