@@ -499,11 +499,13 @@ def test_elementwise_objective_equals_buffered(dtype, rtol):
     assert torch.allclose(elementwise, buffered, rtol=rtol)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["fast", "fr"])
 def test_compiled_search_gives_the_eager_estimates(mode):
     """SearchConfig.compile_search (``--compile``): the same estimates as the eager paths (or, where
     this machine cannot compile, the eager paths themselves after one warning).  One compilation
-    per process serves both modes."""
+    per process serves both modes (40-45 s on 2 cores: in the slow set; the fallback is tested
+    below)."""
     segs = [_scene(41), _scene(42, 95.0, -30.0, -15.0, -7.0)]
     eager = FREstimator(mode=mode).calibrate_segments(segs, [(640, 480)] * 2)
     estimator = FREstimator(mode=mode, search_config=SearchConfig.from_config(compile_search=True))
