@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Regenerate every published table and figure under results/ (CPU; timings: results/bench/).
-# Usage: eval/reproduce.sh [--check] [STEP...]   steps: fit dataset reliability lodo yud zind sota crops detectors vp horizon distortion reproducibility bench
+# Usage: eval/reproduce.sh [--check] [STEP...]   steps: dataset fit reliability lodo yud zind sota crops detectors vp horizon distortion reproducibility bench
 # --check: afterwards, compare every regenerated CSV under results/ with the committed one
 # (fr_eval.protocols.check_tables: rtol 1e-6, timings ignored); exit 1 when one differs beyond it.
 # (default: all, in this order: the reliability models are trained before the tables that use them).  Data root: $FR_DATA (default ../shared/data); generated views go
@@ -14,7 +14,7 @@ export MPLBACKEND=${MPLBACKEND:-Agg}
 check=0
 if [ "${1:-}" = "--check" ]; then check=1; shift; fi
 steps=("$@")
-[ ${#steps[@]} -eq 0 ] && steps=(fit dataset reliability lodo yud zind sota crops detectors vp horizon distortion reproducibility bench)
+[ ${#steps[@]} -eq 0 ] && steps=(dataset fit reliability lodo yud zind sota crops detectors vp horizon distortion reproducibility bench)
 
 for step in "${steps[@]}"; do
   echo "== $step"
