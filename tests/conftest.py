@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+ROOM_F = 420.0  # focal length (px) of examples/room.png (examples/make_example.py)
 
 
 def _data_root() -> Path:
@@ -89,3 +90,35 @@ def with_exif_orientation(jpeg: bytes, orientation: int, big_endian: bool = Fals
     tiff += struct.pack(order + "HHIHHI", 0x0112, 3, 1, orientation, 0, 0)
     body = b"Exif\x00\x00" + tiff
     return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body + jpeg[2:]
+
+
+def shared_focal_batch_on_local_engine(tmp_path: Path):
+    """``fr batch --shared-focal-by`` on the local engine over three copies of ``examples/room.png`` and a
+    missing file, checked; returns (manifest, options, output table by image)."""
+    import shutil
+
+    import pandas as pd
+
+    from fr_torch.batch.jobs import run_batch
+
+    room = REPO / "examples" / "room.png"
+    a, b, c = (shutil.copy(room, tmp_path / f"{name}.png") for name in ("a", "b", "c"))
+    manifest = tmp_path / "m.csv"
+    pd.DataFrame({"image": [str(a), str(tmp_path / "missing.png"), str(b), str(c)],
+                  "camera": ["c1", "c1", "c1", ""]}).to_csv(manifest, index=False)
+    options = {"estimator": {"mode": "fast"}, "principal_point": None, "focal_px": None, "reliability": False}
+    with pytest.raises(ValueError, match="no such manifest column"):
+        run_batch([str(manifest)], tmp_path / "bad_out", options, progress=False, shared_focal_by="cam")
+    summary = run_batch([str(manifest)], tmp_path / "out", options, progress=False, shared_focal_by="camera")
+    assert summary["processed"] == 4 and summary["failed"] == 1
+    table = pd.read_parquet(tmp_path / "out").set_index("image")
+    group = table.loc[[str(a), str(b)]]
+    assert group["shared_focal_ok"].all() and (group["shared_focal_images_used"] == 2).all()
+    assert group["focal_px"].iloc[0] == pytest.approx(group["focal_px"].iloc[1])
+    assert abs(group["shared_focal_px"].iloc[0] / ROOM_F - 1) < 0.04
+    missing = table.loc[str(tmp_path / "missing.png")]
+    assert not missing["ok"] and missing["shared_focal_ok"]  # its group has a value; it keeps its failure
+    single = table.loc[str(c)]  # an empty group value: a group of one
+    assert single["ok"] and single["shared_focal_images_used"] == 1
+    assert table["shared_pp_x"].isna().all()  # groups of fewer than 5 photos keep the image centre
+    return manifest, options, table

@@ -24,7 +24,7 @@ from fr_torch.cli.batch import estimator_options
 from fr_torch.cli.main import build_parser
 from fr_torch.core.camera import rotation_from_angles
 from fr_torch.synthetic import render_manhattan_room
-from tests.conftest import checkout_env
+from tests.conftest import checkout_env, shared_focal_batch_on_local_engine
 
 N_GOOD = 30
 
@@ -202,6 +202,18 @@ def test_ray_engine_matches_embedded_despite_worker_crash(image_set, local_outpu
     assert len(frame) == N_GOOD + 3 and frame.image.is_unique
     _assert_same_rows(frame, _read(local_output))
     assert ray_cluster.data.read_parquet(str(out)).count() == N_GOOD + 3  # readable by Ray in one line
+
+
+def test_batch_shared_focal_by_on_ray_equals_local(ray_cluster, tmp_path):
+    """The Ray engine searches each group in one actor and gives the local engine's rows."""
+    manifest, options, local = shared_focal_batch_on_local_engine(tmp_path)
+    summary = run_batch([str(manifest)], tmp_path / "ray_out", options, engine="ray", workers=2,
+                        progress=False, shared_focal_by="camera")
+    assert summary["processed"] == 4 and summary["failed"] == 1
+    remote = pd.read_parquet(tmp_path / "ray_out").set_index("image").loc[local.index]
+    assert list(remote.ok) == list(local.ok) and list(remote.shared_focal_ok) == list(local.shared_focal_ok)
+    assert list(remote.columns) == list(local.columns)
+    assert remote.focal_px.fillna(-1).tolist() == pytest.approx(local.focal_px.fillna(-1).tolist(), rel=1e-6)
 
 
 def test_records_with_missing_or_malformed_arrays_become_nulls():

@@ -14,9 +14,9 @@ from fr_torch.runtime.shared_focal import (
     log_ratio_grid,
 )
 from fr_torch.synthetic import random_rotation, synthetic_segments
+from tests.conftest import ROOM_F, shared_focal_batch_on_local_engine
 
 TRUE_F = 600.0
-ROOM_F = 420.0  # examples/room.png (examples/make_example.py)
 
 
 @pytest.fixture(scope="module")
@@ -121,65 +121,8 @@ def test_cli_shared_focal(tmp_path, capsys):
     assert main(["calibrate", *paths, "--shared-focal", "--focal", "500"]) == 2
 
 
-def _shared_batch_on_local_engine(tmp_path):
-    """fr batch --shared-focal-by on the local engine: (manifest, options, output table by image)."""
-    import shutil
-    from pathlib import Path
-
-    import pandas as pd
-
-    from fr_torch.batch.jobs import run_batch
-
-    room = Path(__file__).resolve().parents[1] / "examples" / "room.png"
-    a, b, c = (shutil.copy(room, tmp_path / f"{name}.png") for name in ("a", "b", "c"))
-    manifest = tmp_path / "m.csv"
-    pd.DataFrame({"image": [str(a), str(tmp_path / "missing.png"), str(b), str(c)],
-                  "camera": ["c1", "c1", "c1", ""]}).to_csv(manifest, index=False)
-    options = {"estimator": {"mode": "fast"}, "principal_point": None, "focal_px": None, "reliability": False}
-    with pytest.raises(ValueError, match="no such manifest column"):
-        run_batch([str(manifest)], tmp_path / "bad_out", options, progress=False, shared_focal_by="cam")
-    summary = run_batch([str(manifest)], tmp_path / "out", options, progress=False, shared_focal_by="camera")
-    assert summary["processed"] == 4 and summary["failed"] == 1
-    table = pd.read_parquet(tmp_path / "out").set_index("image")
-    group = table.loc[[str(a), str(b)]]
-    assert group["shared_focal_ok"].all() and (group["shared_focal_images_used"] == 2).all()
-    assert group["focal_px"].iloc[0] == pytest.approx(group["focal_px"].iloc[1])
-    assert abs(group["shared_focal_px"].iloc[0] / ROOM_F - 1) < 0.04
-    missing = table.loc[str(tmp_path / "missing.png")]
-    assert not missing["ok"] and missing["shared_focal_ok"]  # its group has a value; it keeps its failure
-    single = table.loc[str(c)]  # an empty group value: a group of one
-    assert single["ok"] and single["shared_focal_images_used"] == 1
-    assert table["shared_pp_x"].isna().all()  # groups of fewer than 5 photos keep the image centre
-    return manifest, options, table
-
-
 def test_batch_shared_focal_by(tmp_path):
-    _shared_batch_on_local_engine(tmp_path)
-
-
-def test_batch_shared_focal_by_on_ray_equals_local(tmp_path):
-    """The Ray engine searches each group in one actor and gives the local engine's rows."""
-    ray = pytest.importorskip("ray")
-    pytest.importorskip("ray.data")
-    import pandas as pd
-
-    from fr_torch.batch.jobs import run_batch
-
-    manifest, options, local = _shared_batch_on_local_engine(tmp_path)
-    started = not ray.is_initialized()
-    if started:
-        ray.init(num_cpus=2, include_dashboard=False, logging_level="ERROR")
-    try:
-        summary = run_batch([str(manifest)], tmp_path / "ray_out", options, engine="ray", workers=2,
-                            progress=False, shared_focal_by="camera")
-    finally:
-        if started:
-            ray.shutdown()
-    assert summary["processed"] == 4 and summary["failed"] == 1
-    remote = pd.read_parquet(tmp_path / "ray_out").set_index("image").loc[local.index]
-    assert list(remote.ok) == list(local.ok) and list(remote.shared_focal_ok) == list(local.shared_focal_ok)
-    assert list(remote.columns) == list(local.columns)
-    assert remote.focal_px.fillna(-1).tolist() == pytest.approx(local.focal_px.fillna(-1).tolist(), rel=1e-6)
+    shared_focal_batch_on_local_engine(tmp_path)
 
 
 def test_shared_principal_point(estimator):

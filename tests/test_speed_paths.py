@@ -251,10 +251,10 @@ def test_bench_quick_smoke(tmp_path):
     assert table and all(line in (rebuilt / "bench.md").read_text() for line in table)
     # --sections: only what is asked for
     only = tmp_path / "only"
-    assert bench.main(["--quick", "--out", str(only), "--device", "cpu", "--sections", "parallel",
+    assert bench.main(["--quick", "--out", str(only), "--device", "cpu", "--sections", "scaling",
                        "--no-progress"]) == 0
     part = json.loads((only / "bench.json").read_text())
-    assert part["parallel"] and not part["throughput"] and not part["end_to_end"] and not part["scaling"]
+    assert part["scaling"] and not part["throughput"] and not part["end_to_end"] and not part["parallel"]
     # The accelerator section's code path, run on a second CPU device name (CI has no GPU)
     device = tmp_path / "device"
     assert bench.main(["--quick", "--out", str(device), "--device", "cpu:0", "--sections", "device",

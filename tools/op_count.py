@@ -1,0 +1,60 @@
+"""Operators per image: how many torch operators one ``calibrate_segments`` call runs, divided by the
+batch size (the CPU proxy for a GPU's kernel launches).
+
+``python tools/op_count.py [--modes fast,fr] [--batches 64,256] [--segments 300]``: synthetic
+640x480 scenes (``fr_eval.bench.timing.scene_segments``), reliability stage on (the defaults), one
+thread, after one warm-up call; counts the top-level operator events ``torch.profiler`` records
+(nested ``aten::`` calls inside a composite op are not counted twice) and prints a Markdown table.
+``--chunking device`` lifts the CPU's cache-sized chunks (``fr_torch.core.search.CPU_CHUNK_ELEMENTS``,
+``CPU_REFINE_ELEMENTS``) so the batch is cut as on a GPU (``SearchConfig.max_chunk_elements``): the
+count is then the proxy for a GPU's kernel launches; ``cpu`` (default) counts what a CPU runs.
+Run it with ``PYTHONPATH=<another checkout>`` to count another version of the library.
+"""
+from __future__ import annotations
+
+import argparse
+
+import torch
+
+
+def count_operators(mode: str, batch: int, n_segments: int, chunking: str = "cpu") -> tuple[int, int]:
+    """(top-level operator events, all operator events) of one batch of ``batch`` scenes."""
+    from torch.profiler import ProfilerActivity, profile
+
+    import fr_torch.core.search as search
+    from fr_eval.bench.timing import bench_estimator, scene_segments
+
+    if chunking == "device":
+        search.CPU_CHUNK_ELEMENTS = search.CPU_REFINE_ELEMENTS = 1 << 40
+
+    est = bench_estimator(mode, "cpu")
+    pool = [scene_segments(n_segments, seed=i) for i in range(8)]
+    segs, sizes = [pool[i % len(pool)] for i in range(batch)], [(640, 480)] * batch
+    est.calibrate_segments(segs[:2], sizes[:2])
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        est.calibrate_segments(segs, sizes)
+    events = [e for e in prof.events() if e.name.startswith("aten::")]
+    ids = {e.id for e in events}
+    top = [e for e in events if e.cpu_parent is None or e.cpu_parent.id not in ids]
+    return len(top), len(events)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--modes", default="fast,fr")
+    parser.add_argument("--batches", default="64,256")
+    parser.add_argument("--segments", type=int, default=300)
+    parser.add_argument("--chunking", choices=("cpu", "device"), default="cpu")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    print(f"chunking: {args.chunking}\n")
+    print("| mode | batch | operators per batch (top level) | per image | all aten events per image |")
+    print("| --- | --- | --- | --- | --- |")
+    for mode in args.modes.split(","):
+        for batch in map(int, args.batches.split(",")):
+            top, every = count_operators(mode, batch, args.segments, args.chunking)
+            print(f"| {mode} | {batch} | {top:,} | {top / batch:,.1f} | {every / batch:,.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
