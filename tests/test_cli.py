@@ -29,6 +29,18 @@ def test_calibrate_example_writes_json_and_overlay(tmp_path):
     assert (tmp_path / "ov" / "room_fr.png").stat().st_size > 1000
 
 
+def test_a_reader_that_closes_the_pipe_early_loses_no_overlay(tmp_path):
+    """``fr calibrate ... | head -c 1``: fr stops quietly when its stdout closes, with the overlay written
+    first (the record of an image is printed after its files)."""
+    command = [sys.executable, "-m", "fr_torch.cli", "calibrate", str(EXAMPLE), "--fast", "--overlay", str(tmp_path / "ov")]
+    producer = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    assert producer.stdout.read(1) == b"{"
+    producer.stdout.close()  # the reader is gone before the rest of the record
+    assert producer.wait(timeout=300) in (0, 141)
+    assert b"Traceback" not in producer.stderr.read()
+    assert (tmp_path / "ov" / "room_fr.png").stat().st_size > 1000
+
+
 def test_bad_inputs_give_one_line_errors(tmp_path):
     (tmp_path / "bad.jpg").write_text("nope")
     out = fr("calibrate", tmp_path / "missing.jpg", tmp_path / "bad.jpg", EXAMPLE, "--fast")

@@ -101,8 +101,14 @@ def run(args: argparse.Namespace) -> int:
     colmap_lines = []
 
     def emit(path, result, extra=None):
-        """Print (and keep) one image's record; report a failure; write its overlay."""
+        """Write one image's overlay, then print (and keep) its record and report a failure: the
+        files come first, so a reader that closes the pipe early (``| head``) loses no overlay."""
         nonlocal failures
+        if args.overlay and result.width > 0:
+            try:
+                write_overlay(path, result, args.overlay)
+            except FRInputError as exc:
+                bar.write(f"fr: {exc}", file=sys.stderr)
         record = json_safe(dict(result.to_json(include_segments=args.segments), **(extra or {})))
         everything.append(record)
         if args.format == "json":
@@ -118,11 +124,6 @@ def run(args: argparse.Namespace) -> int:
             reason = result.reason  # image reading reasons already start with the path
             bar.write(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
                       file=sys.stderr)
-        if args.overlay and result.width > 0:
-            try:
-                write_overlay(path, result, args.overlay)
-            except FRInputError as exc:
-                bar.write(f"fr: {exc}", file=sys.stderr)
         bar.update(1)
 
     try:
