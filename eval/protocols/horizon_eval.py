@@ -236,8 +236,8 @@ def run(args: argparse.Namespace) -> int:
     summary.to_csv(out_dir / "horizon_summary.csv", index=False)
     published = published_rows(args.dataset, args.split)
     display = display_table(summary, definitions, published)
-    notes = {name: note for name, note in definition_notes(samples).items() if name in definitions}
-    notes = {name: notes[name] for name in definitions}
+    every_note = definition_notes(samples)
+    notes = {name: every_note[name] for name in definitions}
     settings = (f"Settings: principal point {args.pp}, focal {'known' if args.known_focal else 'estimated'}; "
                 + range_caption(methods, fov_range) + ".")
     title = f"Horizon: {args.dataset} {args.split} ({len(samples)} photos)"

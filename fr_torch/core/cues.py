@@ -18,7 +18,7 @@ import torch
 
 from fr_torch.core.config import FAST_REFINE_ITERATIONS, SearchConfig
 from fr_torch.core.distortion import DistortionSetting, border_bow_percent
-from fr_torch.core.exact import exact_sum, first_argmax, small_sum
+from fr_torch.core.exact import exact_sum, first_argmax, small_matmul, small_sum
 from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
 from fr_torch.core.params import FOCAL, from_log_focal, rotations, to_log_focal
 from fr_torch.core.search import (
@@ -405,7 +405,7 @@ def resample_spreads(fitted: LocalFit, known_focal: bool = False) -> dict[str, t
     free = slice(0, 3) if known_focal else slice(0, 4)
     h, j = hessian[:, free, free], fitted.gradient_spread[:, free, free]
     inverse, info = torch.linalg.inv_ex(h)
-    covariance = _matmul_small(_matmul_small(inverse, j), inverse)
+    covariance = small_matmul(small_matmul(inverse, j), inverse)
     peak = torch.linalg.eigvalsh(0.5 * (h + h.transpose(-1, -2)))[:, -1] < 0  # a maximum of the likelihood
     ok = (info == 0) & peak
 
@@ -416,12 +416,6 @@ def resample_spreads(fitted: LocalFit, known_focal: bool = False) -> dict[str, t
 
     focal = torch.zeros(hessian.shape[0], dtype=torch.float64, device=hessian.device) if known_focal else spread(3)
     return {"focal_resample_spread": focal, "pitch_resample_spread": spread(1)}
-
-
-def _matmul_small(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """``a @ b`` for small batched matrices (..., n, m) x (..., m, k), every entry summed over m from
-    left to right (:func:`fr_torch.core.exact.small_sum`): the same bits in any batch."""
-    return small_sum(a[..., :, :, None] * b[..., None, :, :], -2)
 
 
 def check_result(result, config: SearchConfig, known_focal: bool = False,

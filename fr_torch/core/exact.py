@@ -10,7 +10,7 @@ break that in plain torch, and the search avoids them through this module:
   term to a fixed-point grid set by a bound on the terms (not by the layout) and adds the integers
   in float64, where every partial sum is exact: the result is the same for any order, padding,
   chunking, thread count, kernel set or device.
-* **Products written as BLAS calls.**  :func:`dot3` and :func:`matmul3` spell out 3-term dot
+* **Products written as BLAS calls.**  :func:`dot3` and :func:`small_matmul` spell out dot
   products with single, correctly rounded multiplications and additions (IEEE 754), in a fixed
   order; a fused multiply-add, which some kernels use and others do not, is never asked for.
 * **Functions whose vector and scalar kernels round differently.**  torch's ``atan2`` runs a
@@ -113,9 +113,11 @@ def dot3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
-def matmul3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Batched 3x3 product ``a @ b`` (..., 3, 3), every entry a :func:`dot3` of a row and a column."""
-    return dot3(a[..., :, None, :], b.transpose(-1, -2)[..., None, :, :])
+def small_matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Batched product ``a @ b`` of small matrices (..., n, m) x (..., m, k) -> (..., n, k), every
+    entry ``a_i0 b_0j + a_i1 b_1j + ...`` with one rounding per product and sum, left to right (for
+    m = 3 the order of :func:`dot3`): the same bits in any batch, kernel set and device."""
+    return small_sum(a[..., :, :, None] * b[..., None, :, :], -2)
 
 
 def cross3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -124,11 +126,6 @@ def cross3(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     a0, a1, a2 = a.unbind(-1)
     b0, b1, b2 = b.unbind(-1)
     return torch.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], -1)
-
-
-def matvec3(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Batched ``a @ v`` for (..., 3, 3) matrices and (..., 3) vectors, every entry a :func:`dot3`."""
-    return dot3(a, v[..., None, :])
 
 
 def small_sum(x: torch.Tensor, dim: int) -> torch.Tensor:

@@ -42,7 +42,7 @@ from fr_torch.core.camera import (
     rotation_from_cos_sin,
 )
 from fr_torch.core.config import SearchConfig
-from fr_torch.core.exact import atan2, cross3, dot3, exact_sum, first_argmax, matmul3, small_sum, top_indices
+from fr_torch.core.exact import atan2, cross3, dot3, exact_sum, first_argmax, small_matmul, small_sum, top_indices
 from fr_torch.core.likelihood import (
     MixtureLikelihood,
     SegmentFeatures,
@@ -263,19 +263,26 @@ SOLUTION_FOCAL = 0.01
 SOLUTION_ANGLE_DEG = 0.5
 
 
-def tie_tolerance(features: SegmentFeatures) -> torch.Tensor:
+def tie_tolerance(segments) -> torch.Tensor:
     """(B,) float64: the score difference below which two hypotheses of an image are tied, nats
-    (:data:`TIE_NATS_PER_PX` times the image's total segment length)."""
-    return features.total_length() * TIE_NATS_PER_PX
+    (:data:`TIE_NATS_PER_PX` times the image's total segment length).  ``segments``: a
+    :class:`~fr_torch.core.likelihood.SegmentFeatures` or a
+    :class:`~fr_torch.core.search_distortion.SegmentGeometry` (their (B, N) ``weight``, pixels)."""
+    return exact_sum(segments.weight, 1) * TIE_NATS_PER_PX
+
+
+def near_best(scores: torch.Tensor, tolerance: torch.Tensor) -> torch.Tensor:
+    """(..., C) bool: the candidates of ``scores`` (..., C) within ``tolerance`` (broadcastable to
+    ``scores[..., 0]``) of the best along the last dimension (NaN scores never are)."""
+    best = torch.where(torch.isnan(scores), -math.inf, scores).amax(-1, keepdim=True)
+    return scores >= best - tolerance.to(best)[..., None]
 
 
 def first_near_best(scores: torch.Tensor, tolerance: torch.Tensor) -> torch.Tensor:
     """Index along the last dimension of ``scores`` (..., C) of the first candidate within
     ``tolerance`` (broadcastable to ``scores[..., 0]``) of the best: int64 (...).  The choice does
     not move with the scores' last bits unless a candidate sits right at the tolerance's edge."""
-    best = torch.where(torch.isnan(scores), -math.inf, scores).amax(-1, keepdim=True)
-    near = scores >= best - tolerance.to(best)[..., None]
-    return first_argmax(near.to(torch.int8), -1)
+    return first_argmax(near_best(scores, tolerance).to(torch.int8), -1)
 
 
 def different_solutions(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -321,11 +328,10 @@ def best_of_start_and_refined(starts: torch.Tensor, start_scores: torch.Tensor, 
     different answer (:func:`different_solutions`), so rounding could choose it elsewhere)."""
     candidates = torch.cat([starts[:, :1].to(refined), refined], 1).to(torch.float64)
     candidate_scores = torch.cat([start_scores[:, :1].to(refined_scores), refined_scores], 1)
-    best = first_near_best(candidate_scores.to(torch.float64), tolerance)
+    near = near_best(candidate_scores.to(torch.float64), tolerance)
+    best = first_argmax(near.to(torch.int8), -1)
     rows = torch.arange(len(best), device=best.device)
     chosen = candidates[rows, best]
-    top = torch.where(torch.isnan(candidate_scores), -math.inf, candidate_scores).amax(1, keepdim=True)
-    near = candidate_scores.to(torch.float64) >= top.to(torch.float64) - tolerance.to(torch.float64)[:, None]
     tied = (near & different_solutions(candidates, chosen[:, None])).any(1)
     return chosen, candidate_scores[rows, best], tied
 
@@ -635,7 +641,7 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
             prior, d_prior = (x.view(batch, n_hyp) for x in likelihood.focal_prior(features, focal.reshape(-1, 1)))
         objective = objective + prior
         grad_f = grad_f + grad_out * d_prior
-    m = matmul3(vps.transpose(-1, -2), grad_v)  # R.T K.T G (B, L, 3, 3)
+    m = small_matmul(vps.transpose(-1, -2), grad_v)  # R.T K.T G (B, L, 3, 3)
     anti = m - m.transpose(-1, -2)
     axial = torch.stack([anti[..., 2, 1], anti[..., 0, 2], anti[..., 1, 0]], -1)  # (B, L, 3)
     grad_pitch = cos[..., 0] * axial[..., 0] - sin[..., 0] * axial[..., 2]  # w = Ry e_x = (cos pan, 0, -sin pan)

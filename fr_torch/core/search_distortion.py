@@ -43,7 +43,6 @@ from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
 from fr_torch.core.params import DISTORTION, FOCAL, from_log_focal, to_log_focal
 from fr_torch.core.search import (
     LATTICE,
-    TIE_NATS_PER_PX,
     _keep_best,
     best_of_start_and_refined,
     grid_cell,
@@ -54,6 +53,7 @@ from fr_torch.core.search import (
     score_grid,
     select_starts,
     sweep_focal,
+    tie_tolerance,
 )
 
 
@@ -163,11 +163,6 @@ class SegmentGeometry:
             cache[groups] = tuple(x.repeat_interleave(groups, 0) for x in
                                   (weight, mask, self.centre.to(dtype), self.long_side.to(dtype)))
         return cache[groups]
-
-    def tie_tolerance(self) -> torch.Tensor:
-        """(B,) float64 :func:`fr_torch.core.search.tie_tolerance` of the photos' segments (their
-        photo lengths, which every hypothesis of k weighs alike)."""
-        return exact_sum(self.weight, -1) * TIE_NATS_PER_PX
 
     def images(self, start: int, stop: int) -> "SegmentGeometry":
         """Images ``start:stop`` (views)."""
@@ -442,7 +437,7 @@ def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, sta
             points = torch.cat([points, k_points], 2)
             point_scores = torch.cat([point_scores.view(batch, n_start, -1), k_scores.view(batch, n_start, 2)],
                                      2).view(batch, -1)
-        current, scores = _keep_best(current, scores, points, point_scores, geometry.tie_tolerance())
+        current, scores = _keep_best(current, scores, points, point_scores, tie_tolerance(geometry))
     return from_log_focal(current).to(starts), scores
 
 
@@ -485,7 +480,7 @@ def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, feat
                                      tolerance=config.refine_tolerance, patience=config.refine_patience,
                                      periodic_pan=config.periodic_pan, geometry=geometry)
     params, scores, tied = best_of_start_and_refined(starts, top_scores, refined, refined_scores,
-                                                     geometry.tie_tolerance())
+                                                     tie_tolerance(geometry))
     return DistortedSearch(params, scores, grid_scores, grid_counts, grid_seconds, tied)
 
 
