@@ -42,7 +42,7 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from fr_torch.core.camera import signed_rows, vanishing_point_rows
+from fr_torch.core.camera import signed_rows, vanishing_point_rows, vanishing_points
 from fr_torch.core.exact import cross3, dot3, exact_sum, first_argmax, small_sum, top_indices
 from fr_torch.errors import FRInputError
 
@@ -164,10 +164,10 @@ def _unit_directions(focal: torch.Tensor, pp: torch.Tensor, points: torch.Tensor
 
 
 def _pixels(focal: torch.Tensor, pp: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-    """Homogeneous pixel points ``K d`` (B, C, 3) of camera directions d (B, C, 3)."""
-    w = dirs[..., 2]
-    return torch.stack([focal[:, None] * dirs[..., 0] + pp[:, None, 0] * w,
-                        focal[:, None] * dirs[..., 1] + pp[:, None, 1] * w, w], -1)
+    """Homogeneous pixel points ``K d`` (B, C, 3) of camera directions d (B, C, 3), focal lengths
+    (B,) and principal points (B, 2), pixels: their vanishing points
+    (:func:`fr_torch.core.camera.vanishing_points`, directions as columns)."""
+    return vanishing_points(focal, pp, dirs.transpose(-1, -2)).transpose(-1, -2)
 
 
 def _free_candidates(features, unexplained: torch.Tensor, count: int, focal: torch.Tensor):
