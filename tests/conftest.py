@@ -71,6 +71,22 @@ def rtsp_server(tmp_path_factory):
     assert all(p is None or p.poll() is not None for p in processes), "an RTSP process was left running"
 
 
+@pytest.fixture(scope="module")
+def rtsp_auth_server(rtsp_server):
+    """An RTSP server that checks a password (:class:`fr_eval.datasets.rtsp_stream.AuthRTSPServer`:
+    GStreamer's ``rtsp-server``) serving ``rtsp_server``'s clip to user ``viewer`` with password
+    ``s3cret``; yields it, ended afterwards.  Without GStreamer's RTSP server (``.ci/run`` installs
+    it): fails in CI (``CI=true``), skipped elsewhere."""
+    from fr_eval.datasets import rtsp_stream
+
+    reason = rtsp_stream.auth_missing()
+    if reason:
+        absent(reason)
+    with rtsp_stream.AuthRTSPServer(rtsp_server[1], "viewer", "s3cret") as server:
+        yield server
+    assert server.process.poll() is not None, "the RTSP server was left running"
+
+
 def require_dataset(root: Path, name: str) -> Path:
     """Path of dataset folder ``name`` under ``root``; fail in CI / skip elsewhere if absent."""
     path = root / name

@@ -1,15 +1,18 @@
-"""``fr track`` against a real RTSP server on loopback (the ``rtsp_server`` fixture: Debian's
-``rtsp-server-perl``, fed by ffmpeg with a synthetic clip, :mod:`fr_eval.datasets.rtsp_stream`).
+"""``fr track`` against real RTSP servers on loopback (:mod:`fr_eval.datasets.rtsp_stream`): the
+``rtsp_server`` fixture, Debian's ``rtsp-server-perl`` fed by ffmpeg with a synthetic clip, and
+``rtsp_auth_server``, GStreamer's ``rtsp-server`` serving the clip to user ``viewer`` with password
+``s3cret`` only.
 
-Each test runs ``fr track`` as a process of its own, as a user would, its stderr in a file: what
-the terminal would show.  The password of the URL (``s3cret``) must appear nowhere fR writes; the
-server does no authentication, so the credentials are only carried in the URL (FFmpeg sends them
-only when a server asks).  OpenCV's and FFmpeg's own lines (``[tcp @ 0x...]``, ``[rtsp @ 0x...]``,
-``[ WARN:...] VIDEOIO(FFMPEG)``) must not reach stderr, and each of fR's lines names the source
-once.  No assertion is about time.
+``fr track`` runs as a process of its own, as a user would, its stderr in a file: what the terminal
+would show.  The password of the URL (``s3cret``) must appear nowhere fR writes (rtsp-server-perl
+does no authentication: there the credentials are only carried in the URL; GStreamer's server
+checks them).  OpenCV's and FFmpeg's own lines (``[tcp @ 0x...]``, ``[rtsp @ 0x...]``, ``[
+WARN:...] VIDEOIO(FFMPEG)``) must not reach stderr, and each of fR's lines names the source once.
+No assertion is about time.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import re
 import signal
@@ -19,9 +22,12 @@ import time
 from pathlib import Path
 
 import pandas as pd
+import pytest
 from fr_eval.datasets.rtsp_stream import READER_ENV, free_port
 from fr_eval.machine import session_processes
 
+from fr_torch.errors import FRInputError
+from fr_torch.video.sources import LiveFrames, Source
 from tests.conftest import checkout_env
 
 PASSWORD = "s3cret"
@@ -70,17 +76,19 @@ def _check_no_password(out: Path) -> None:
             assert PASSWORD not in path.read_text(), path
 
 
-def test_failing_rtsp_sources_give_one_line_each_naming_them_once(rtsp_server, tmp_path):
-    """A mount nothing publishes to (the server answers 404) and a port nothing listens on
-    (connection refused): one retry line, then the error line; nothing of OpenCV or FFmpeg."""
+def test_failing_rtsp_sources_give_one_line_each_naming_them_once(rtsp_server, rtsp_auth_server, tmp_path):
+    """A mount nothing publishes to (the server answers 404), a port nothing listens on
+    (connection refused) and a wrong password (401): one retry line, then the error line, each
+    naming the source once, a password hidden; nothing of OpenCV or FFmpeg."""
     server, _ = rtsp_server
     server.stop_publisher()
     urls = {"not_found": server.url("viewer", PASSWORD),
-            "refused": f"rtsp://viewer:{PASSWORD}@127.0.0.1:{free_port()}/cam"}
+            "refused": f"rtsp://viewer:{PASSWORD}@127.0.0.1:{free_port()}/cam",
+            "unauthorized": rtsp_auth_server.url("viewer", "wrong-" + PASSWORD)}
     runs = {case: _start(url, tmp_path / case, "--reconnect", "1.2") for case, url in urls.items()}
     for case, (process, stdout, stderr) in runs.items():
         assert _finish(process) == 2, stderr.read_text()
-        source = urls[case].replace(PASSWORD, "***")
+        source = re.sub(r"(?<=viewer:)[^@]+", "***", urls[case])
         lines = _lines(stderr)
         _check_terminal(lines, source)
         assert f"fr track: {source}: OpenCV cannot open this stream; reconnecting in 0.5 s (--reconnect)" in lines
@@ -138,3 +146,21 @@ def test_rtsp_stream_is_read_and_reconnected_after_the_publisher_goes(rtsp_serve
     summary = json.loads((out / "calibration.json").read_text())
     assert summary["source"] == source and summary["run"] == "stopped by SIGTERM"
     assert summary["calibration"]["focal_px"] > 0
+
+
+def test_rtsp_credentials_are_checked_by_the_server_and_never_shown(rtsp_auth_server, capfd):
+    """The right password reads the stream (FFmpeg answers the server's 401 with it); none is
+    refused by the server with one error naming the source.  No output of this process (OpenCV's
+    and FFmpeg's included) shows the password.  ``fr track`` with a wrong one: the failing
+    sources' test."""
+    server = rtsp_auth_server
+    logs: list[str] = []
+    with LiveFrames(Source.parse(server.url("viewer", PASSWORD)), realtime=False, log=logs.append) as frames:
+        images = [frame.image for frame in itertools.islice(iter(frames), 3)]
+    assert len(images) == 3 and images[0].shape == (240, 320, 3)
+    source = Source.parse(server.url())
+    with pytest.raises(FRInputError) as refused:
+        list(LiveFrames(source, log=logs.append))
+    assert str(refused.value) == f"{source}: OpenCV cannot open this stream"
+    captured = capfd.readouterr()
+    assert all(PASSWORD not in text for text in (captured.out, captured.err, *logs))

@@ -21,6 +21,11 @@ readers must ask for UDP, which OpenCV's FFmpeg does with
 ``OPENCV_FFMPEG_CAPTURE_OPTIONS=rtsp_transport;udp`` in the environment (:data:`READER_ENV`;
 OpenCV's default is TCP).  RTP goes over UDP ports of 127.0.0.1 from a random even base.
 
+:class:`AuthRTSPServer` is the server that checks a password: GStreamer's ``rtsp-server``
+(``rtsp_auth_server.py`` beside this module, run by the system's Python) serving a clip to the
+readers that give the right user and password (Basic authentication; the others get ``401
+Unauthorized``), over TCP or UDP.
+
 Run as a process::
 
     python -m fr_eval.datasets.rtsp_stream --fps 25     # prints its URL; CTRL-C ends it
@@ -35,6 +40,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -44,6 +50,14 @@ from fr_eval.datasets.live_stream import SyntheticCamera
 READER_ENV = {"OPENCV_FFMPEG_CAPTURE_OPTIONS": "rtsp_transport;udp"}
 SERVER = "rtsp-server-perl"
 PACKAGES = ("rtsp-server-perl", "ffmpeg")  # the Debian packages of the server and the publisher
+#: The script of :class:`AuthRTSPServer`, the Python that runs it and the Debian packages it needs.
+AUTH_SERVER = Path(__file__).with_name("rtsp_auth_server.py")
+SYSTEM_PYTHON = "/usr/bin/python3"
+AUTH_PACKAGES = ("python3-gi", "gir1.2-gst-rtsp-server-1.0", "gstreamer1.0-plugins-good", "gstreamer1.0-plugins-bad")
+_AUTH_PROBE = ("import gi; gi.require_version('Gst', '1.0'); gi.require_version('GstRtspServer', '1.0'); "
+               "from gi.repository import Gst, GstRtspServer; Gst.init(None); "
+               "missing = [n for n in ('filesrc', 'qtdemux', 'h264parse', 'rtph264pay') if not Gst.ElementFactory.find(n)]; "
+               "assert not missing, missing")
 
 
 def missing() -> str | None:
@@ -53,6 +67,26 @@ def missing() -> str | None:
         return (f"{' and '.join(absent)} not found: apt-get install {' '.join(PACKAGES)} "
                 "(an RTSP server and FFmpeg, to serve the synthetic camera over RTSP)")
     return None
+
+
+def auth_missing() -> str | None:
+    """Why :class:`AuthRTSPServer` cannot run here (GStreamer's RTSP server or the elements it
+    uses not importable by the system's Python), or None."""
+    try:
+        probe = subprocess.run([SYSTEM_PYTHON, "-c", _AUTH_PROBE], capture_output=True, text=True, timeout=60)
+    except OSError as exc:
+        return f"{SYSTEM_PYTHON}: {exc}"
+    if probe.returncode != 0:
+        last = (probe.stderr.strip().splitlines() or ["?"])[-1]
+        return (f"GStreamer's RTSP server is not usable from {SYSTEM_PYTHON} ({last}): apt-get install "
+                f"{' '.join(AUTH_PACKAGES)}")
+    return None
+
+
+def rtsp_url(port: int, name: str, user: str | None = None, password: str | None = None) -> str:
+    """``rtsp://[user[:password]@]127.0.0.1:port/name``."""
+    credentials = f"{user}:{password}@" if password is not None else f"{user}@" if user else ""
+    return f"rtsp://{credentials}127.0.0.1:{port}/{name}"
 
 
 def write_clip(path: str | Path, camera: SyntheticCamera, frames: int = 25, fps: float = 25.0,
@@ -115,8 +149,7 @@ class RTSPServer:
 
     def url(self, user: str | None = None, password: str | None = None) -> str:
         """The readers' URL, ``rtsp://[user[:password]@]127.0.0.1:PORT/name``."""
-        credentials = f"{user}:{password}@" if password is not None else f"{user}@" if user else ""
-        return f"rtsp://{credentials}127.0.0.1:{self.port}/{self.name}"
+        return rtsp_url(self.port, self.name, user, password)
 
     def start(self, timeout_s: float = 20.0) -> RTSPServer:
         """Start the server and wait until it accepts connections on both ports."""
@@ -178,6 +211,60 @@ class RTSPServer:
             self._log.close()
 
     def __enter__(self) -> RTSPServer:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class AuthRTSPServer:
+    """GStreamer's RTSP server on 127.0.0.1 serving ``clip`` at ``/name`` to the readers that give
+    ``user`` and ``password`` (module docstring); ``port`` once started.  The password goes to the
+    server in a file readable by this user only, removed at :meth:`close`."""
+
+    def __init__(self, clip: str | Path, user: str, password: str, name: str = "cam"):
+        reason = auth_missing()
+        if reason:
+            raise FileNotFoundError(reason)
+        self.clip, self.user, self.name = Path(clip), user, name
+        descriptor, self._password_file = tempfile.mkstemp(prefix="rtsp_password_")
+        with open(descriptor, "w") as file:
+            file.write(password)
+        self.port = 0
+        self.process: subprocess.Popen | None = None
+        self._log = tempfile.TemporaryFile()  # the server's stderr
+
+    def url(self, user: str | None = None, password: str | None = None) -> str:
+        """A reader's URL, ``rtsp://[user[:password]@]127.0.0.1:PORT/name``."""
+        return rtsp_url(self.port, self.name, user, password)
+
+    def start(self, timeout_s: float = 30.0) -> AuthRTSPServer:
+        """Start the server and wait for the port it listens on."""
+        self.process = subprocess.Popen(
+            [SYSTEM_PYTHON, str(AUTH_SERVER), str(self.clip), "--user", self.user, "--password-file",
+             self._password_file, "--mount", self.name],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._log, text=True, start_new_session=True)
+        port: list[str] = []
+        reader = threading.Thread(target=lambda: port.append(self.process.stdout.readline()), daemon=True)
+        reader.start()
+        reader.join(timeout_s)
+        if not port or not port[0].strip().isdigit():
+            self._log.seek(0)
+            said = self._log.read().decode(errors="replace")[-500:]
+            self.close()
+            raise RuntimeError(f"GStreamer's RTSP server did not start: {said}")
+        self.port = int(port[0])
+        return self
+
+    def close(self) -> None:
+        """End the server, wait for it and remove the password file."""
+        _end(self.process)
+        if self.process is not None:
+            self.process.stdout.close()
+        self._log.close()
+        Path(self._password_file).unlink(missing_ok=True)
+
+    def __enter__(self) -> AuthRTSPServer:
         return self.start()
 
     def __exit__(self, *exc) -> None:
