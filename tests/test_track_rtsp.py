@@ -108,7 +108,7 @@ def test_rtsp_stream_is_read_and_reconnected_after_the_publisher_goes(rtsp_serve
     url = server.url("viewer", PASSWORD)
     source = url.replace(PASSWORD, "***")
     out = tmp_path / "out"
-    process, stdout, stderr = _start(url, out, "--reconnect", "60", "--stream-timeout", "1",
+    process, stdout, stderr = _start(url, out, "--reconnect", "60", "--stream-timeout", "0.5",
                                      "--json", str(tmp_path / "records.jsonl"))
     try:
         def wait_for(what, condition, timeout=60.0):
@@ -122,12 +122,11 @@ def test_rtsp_stream_is_read_and_reconnected_after_the_publisher_goes(rtsp_serve
             path = out / "frames.csv"
             return pd.read_csv(path) if path.exists() and len(path.read_text().splitlines()) > 1 else pd.DataFrame()
 
-        wait_for("2 records", lambda: len(records()) >= 2)
+        wait_for("a record", lambda: len(records()) >= 1)
         server.stop_publisher()
         wait_for("a retry", lambda: "reconnecting in" in stderr.read_text())
         server.publish(clip)
-        wait_for("2 records after the reconnection",
-                 lambda: len(records()) > 0 and (records()["reconnects"] >= 1).sum() >= 2)
+        wait_for("a record after the reconnection", lambda: len(records()) > 0 and records()["reconnects"].max() >= 1)
         process.send_signal(signal.SIGTERM)
     finally:
         returncode = _finish(process)
@@ -135,7 +134,7 @@ def test_rtsp_stream_is_read_and_reconnected_after_the_publisher_goes(rtsp_serve
     table = pd.read_csv(out / "frames.csv")
     assert (table["frame"].diff().dropna() > 0).all()  # the count of frames read goes on over the gap
     after = table[table["reconnects"] >= 1]
-    assert len(after) >= 2 and after["ok"].all()
+    assert len(after) >= 1 and after["ok"].all() and after.index[0] >= 1  # records before and after the gap
     lines = _lines(stderr)
     _check_terminal(lines, source)
     assert any(line.startswith(f"fr track: {source}: reconnected after ") for line in lines), lines

@@ -141,7 +141,8 @@ class RTSPServer:
             raise FileNotFoundError(reason)
         self.name = name
         self.port, self.source_port = free_port(), free_port()
-        self.rtp_port = 2 * random.randrange(15000, 29000)  # the server's UDP ports count up from it
+        # the server's UDP ports count up from it, 2 per stream; below Linux's ephemeral ports (32768-)
+        self.rtp_port = 2 * random.randrange(5000, 16000)
         self._log_path = Path(log) if log else Path(tempfile.mkstemp(prefix="rtsp_server_", suffix=".log")[1])
         self._log = open(self._log_path, "ab")
         self.server: subprocess.Popen | None = None
