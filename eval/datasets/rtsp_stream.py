@@ -10,7 +10,7 @@ that joins or rejoins decodes within a fraction of a second) in an MP4 file.
 :class:`RTSPServer` starts ``rtsp-server-perl`` on free ports of 127.0.0.1 (its reader port,
 ``url``, and its publisher port) as a process of its own; :meth:`RTSPServer.publish` starts
 ``ffmpeg -re -stream_loop -1 -i CLIP -c copy -f rtsp`` pushing the clip to it at its frame rate,
-endlessly (ANNOUNCE / RECORD), and :meth:`RTSPServer.stop_publisher` kills it: readers of the mount
+endlessly (ANNOUNCE / RECORD), and :meth:`RTSPServer.stop_publisher` stops it: readers of the mount
 then get no more packets, and a reader that opens the URL meanwhile gets ``404 Not Found``, until
 the next :meth:`~RTSPServer.publish`.  :meth:`RTSPServer.close` (the end of a ``with`` block) ends
 both processes and waits for them; none is left.
@@ -29,10 +29,12 @@ Unauthorized``), over TCP or UDP.
 Run as a process::
 
     python -m fr_eval.datasets.rtsp_stream --fps 25     # prints its URL; CTRL-C ends it
+    OPENCV_FFMPEG_CAPTURE_OPTIONS='rtsp_transport;udp' fr track rtsp://127.0.0.1:PORT/cam
 """
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import shutil
 import signal
@@ -56,8 +58,8 @@ SYSTEM_PYTHON = "/usr/bin/python3"
 AUTH_PACKAGES = ("python3-gi", "gir1.2-gst-rtsp-server-1.0", "gstreamer1.0-plugins-good", "gstreamer1.0-plugins-bad")
 _AUTH_PROBE = ("import gi; gi.require_version('Gst', '1.0'); gi.require_version('GstRtspServer', '1.0'); "
                "from gi.repository import Gst, GstRtspServer; Gst.init(None); "
-               "missing = [n for n in ('filesrc', 'qtdemux', 'h264parse', 'rtph264pay') if not Gst.ElementFactory.find(n)]; "
-               "assert not missing, missing")
+               "missing = [n for n in ('filesrc', 'qtdemux', 'h264parse', 'rtph264pay') "
+               "if not Gst.ElementFactory.find(n)]; assert not missing, missing")
 
 
 def missing() -> str | None:
@@ -132,8 +134,8 @@ class RTSPServer:
     """``rtsp-server-perl`` on 127.0.0.1 and an ffmpeg publisher of a clip (module docstring).
 
     ``name``: the mount (the URL's path); ``log``: a file for both programs' output (default: a
-    temporary file; :meth:`output` reads it).  Use as a context manager, or :meth:`start` and
-    :meth:`close`."""
+    temporary file, removed at :meth:`close`; :meth:`output` reads it).  Use as a context manager,
+    or :meth:`start` and :meth:`close`."""
 
     def __init__(self, name: str = "cam", log: str | Path | None = None):
         reason = missing()
@@ -143,7 +145,11 @@ class RTSPServer:
         self.port, self.source_port = free_port(), free_port()
         # the server's UDP ports count up from it, 2 per stream; below Linux's ephemeral ports (32768-)
         self.rtp_port = 2 * random.randrange(5000, 16000)
-        self._log_path = Path(log) if log else Path(tempfile.mkstemp(prefix="rtsp_server_", suffix=".log")[1])
+        self._temporary_log = log is None
+        if log is None:
+            descriptor, log = tempfile.mkstemp(prefix="rtsp_server_", suffix=".log")
+            os.close(descriptor)
+        self._log_path = Path(log)
         self._log = open(self._log_path, "ab")
         self.server: subprocess.Popen | None = None
         self.publisher: subprocess.Popen | None = None
@@ -153,18 +159,22 @@ class RTSPServer:
         return rtsp_url(self.port, self.name, user, password)
 
     def start(self, timeout_s: float = 20.0) -> RTSPServer:
-        """Start the server and wait until it accepts connections on both ports."""
+        """Start the server and wait until it accepts connections on both ports (ended again if
+        that fails or is interrupted)."""
         self.server = subprocess.Popen(
             [SERVER, "--clientport", str(self.port), "--serverport", str(self.source_port),
              "--client_listen_address", "127.0.0.1", "--source_listen_address", "127.0.0.1",
              "--rtp_start_port", str(self.rtp_port), "--loglevel", "2"],
             stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=True)
-        deadline = time.monotonic() + timeout_s
-        while not (_listening(self.port) and _listening(self.source_port)):
-            if self.server.poll() is not None or time.monotonic() > deadline:
-                self.close()
-                raise RuntimeError(f"{SERVER} did not start: {self.output()[-500:]}")
-            time.sleep(0.05)
+        try:
+            deadline = time.monotonic() + timeout_s
+            while not (_listening(self.port) and _listening(self.source_port)):
+                if self.server.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f"{SERVER} did not start: {self.output()[-500:]}")
+                time.sleep(0.05)
+        except BaseException:
+            self.close()
+            raise
         return self
 
     def publish(self, clip: str | Path, timeout_s: float = 20.0) -> None:
@@ -210,6 +220,8 @@ class RTSPServer:
         self.server = None
         if not self._log.closed:
             self._log.close()
+            if self._temporary_log:
+                self._log_path.unlink(missing_ok=True)
 
     def __enter__(self) -> RTSPServer:
         return self.start()
@@ -240,21 +252,25 @@ class AuthRTSPServer:
         return rtsp_url(self.port, self.name, user, password)
 
     def start(self, timeout_s: float = 30.0) -> AuthRTSPServer:
-        """Start the server and wait for the port it listens on."""
+        """Start the server and wait for the port it listens on (ended again if that fails or is
+        interrupted)."""
         self.process = subprocess.Popen(
             [SYSTEM_PYTHON, str(AUTH_SERVER), str(self.clip), "--user", self.user, "--password-file",
              self._password_file, "--mount", self.name],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=self._log, text=True, start_new_session=True)
-        port: list[str] = []
-        reader = threading.Thread(target=lambda: port.append(self.process.stdout.readline()), daemon=True)
-        reader.start()
-        reader.join(timeout_s)
-        if not port or not port[0].strip().isdigit():
-            self._log.seek(0)
-            said = self._log.read().decode(errors="replace")[-500:]
+        try:
+            port: list[str] = []
+            reader = threading.Thread(target=lambda: port.append(self.process.stdout.readline()), daemon=True)
+            reader.start()
+            reader.join(timeout_s)
+            if not port or not port[0].strip().isdigit():
+                self._log.seek(0)
+                raise RuntimeError(f"GStreamer's RTSP server did not start: "
+                                   f"{self._log.read().decode(errors='replace')[-500:]}")
+            self.port = int(port[0])
+        except BaseException:
             self.close()
-            raise RuntimeError(f"GStreamer's RTSP server did not start: {said}")
-        self.port = int(port[0])
+            raise
         return self
 
     def close(self) -> None:
