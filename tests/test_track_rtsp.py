@@ -77,13 +77,13 @@ def _check_no_password(out: Path) -> None:
 
 
 def test_failing_rtsp_sources_give_one_line_each_naming_them_once(rtsp_server, rtsp_auth_server, tmp_path):
-    """A mount nothing publishes to (the server answers 404), a port nothing listens on
-    (connection refused) and a wrong password (401): one retry line, then the error line, each
-    naming the source once, a password hidden; nothing of OpenCV or FFmpeg."""
+    """A mount nothing publishes to (the server answers 404), a wrong password (401) and, for
+    HTTP, a port nothing listens on (connection refused): one retry line, then the error line,
+    each naming the source once, a password hidden; nothing of OpenCV or FFmpeg."""
     server, _ = rtsp_server
     server.stop_publisher()
     urls = {"not_found": server.url("viewer", PASSWORD),
-            "refused": f"rtsp://viewer:{PASSWORD}@127.0.0.1:{free_port()}/cam",
+            "refused": f"http://viewer:{PASSWORD}@127.0.0.1:{free_port()}/stream.mjpg",
             "unauthorized": rtsp_auth_server.url("viewer", "wrong-" + PASSWORD)}
     runs = {case: _start(url, tmp_path / case, "--reconnect", "1.2") for case, url in urls.items()}
     for case, (process, stdout, stderr) in runs.items():
