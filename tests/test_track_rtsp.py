@@ -45,7 +45,7 @@ def _start(url: str, out: Path, *options: str) -> tuple[subprocess.Popen, Path, 
     return process, stdout, stderr
 
 
-def _finish(process: subprocess.Popen, timeout: float = 90) -> int:
+def _finish(process: subprocess.Popen, timeout: float = 180) -> int:
     try:
         returncode = process.wait(timeout)
     finally:
@@ -111,7 +111,7 @@ def test_rtsp_stream_is_read_and_reconnected_after_the_publisher_goes(rtsp_serve
     process, stdout, stderr = _start(url, out, "--reconnect", "60", "--stream-timeout", "0.5",
                                      "--json", str(tmp_path / "records.jsonl"))
     try:
-        def wait_for(what, condition, timeout=60.0):
+        def wait_for(what, condition, timeout=120.0):
             deadline = time.monotonic() + timeout
             while not condition():
                 assert process.poll() is None, stderr.read_text()
