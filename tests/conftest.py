@@ -47,6 +47,46 @@ def models_root() -> Path:
     return root
 
 
+@pytest.fixture(scope="module")
+def rtsp_server(tmp_path_factory):
+    """A real RTSP server on 127.0.0.1 (:class:`fr_eval.datasets.rtsp_stream.RTSPServer`:
+    Debian's ``rtsp-server-perl``), started with no publisher, and a clip to publish to it (1 s of
+    a 320 x 240 :class:`~fr_eval.datasets.live_stream.SyntheticCamera`, H.264): yields (server,
+    clip).  Ended afterwards, publisher and server, none left.  Without ``rtsp-server-perl`` or
+    ``ffmpeg`` (``.ci/run`` installs them): fails in CI (``CI=true``), skipped elsewhere."""
+    from fr_eval.datasets import rtsp_stream
+    from fr_eval.datasets.live_stream import SyntheticCamera
+
+    reason = rtsp_stream.missing()
+    if reason:
+        absent(reason)
+    clip = rtsp_stream.write_clip(tmp_path_factory.mktemp("rtsp") / "clip.mp4",
+                                  SyntheticCamera(width=320, height=240), frames=25, fps=25)
+    server = rtsp_stream.RTSPServer("cam").start()
+    try:
+        yield server, clip
+    finally:
+        processes = [server.server, server.publisher]
+        server.close()
+    assert all(p is None or p.poll() is not None for p in processes), "an RTSP process was left running"
+
+
+@pytest.fixture(scope="module")
+def rtsp_auth_server(rtsp_server):
+    """An RTSP server that checks a password (:class:`fr_eval.datasets.rtsp_stream.AuthRTSPServer`:
+    GStreamer's ``rtsp-server``) serving ``rtsp_server``'s clip to user ``viewer`` with password
+    ``s3cret``; yields it, ended afterwards.  Without GStreamer's RTSP server (``.ci/run`` installs
+    it): fails in CI (``CI=true``), skipped elsewhere."""
+    from fr_eval.datasets import rtsp_stream
+
+    reason = rtsp_stream.auth_missing()
+    if reason:
+        absent(reason)
+    with rtsp_stream.AuthRTSPServer(rtsp_server[1], "viewer", "s3cret") as server:
+        yield server
+    assert server.process.poll() is not None, "the RTSP server was left running"
+
+
 def require_dataset(root: Path, name: str) -> Path:
     """Path of dataset folder ``name`` under ``root``; fail in CI / skip elsewhere if absent."""
     path = root / name

@@ -32,6 +32,13 @@ A live source that ends or fails (the connection drops, a read times out after
 ``read_timeout_s``, the camera is unplugged) is opened again with back-off when
 :class:`Reconnect` allows it, and each drop and reconnection is one line on stderr; standard input
 is never reopened (its end is the end).  A frame that cannot be decoded is skipped with one line.
+Each line names the source once, a URL's password hidden (:meth:`Source.__str__`).
+
+OpenCV's and FFmpeg's own messages (``[tcp @ 0x...] Connection refused``, ``[ WARN:0@...]
+VIDEOIO(FFMPEG) ...``, a decoder's complaints) are kept off stderr (:func:`quiet_video_logs`):
+they would break the progress line and may name the source again.  To see them, set
+``OPENCV_LOG_LEVEL=INFO`` (OpenCV, on stderr) or ``OPENCV_FFMPEG_LOGLEVEL=24`` (FFmpeg's warnings,
+which OpenCV prints on **stdout**) before the run.
 """
 from __future__ import annotations
 
@@ -65,6 +72,23 @@ _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 def log_line(message: str) -> None:
     """One line on stderr, flushed (the default ``log`` of the frame sources)."""
     print(message, file=sys.stderr, flush=True)
+
+
+def quiet_video_logs() -> None:
+    """Keep OpenCV's and FFmpeg's own messages off stderr, for the whole process: OpenCV's log
+    level becomes ERROR (its warnings, e.g. ``VIDEOIO(FFMPEG): backend is generally available but
+    can't be used to capture by name``, go), and FFmpeg's ``av_log`` is silenced (its
+    ``[tcp @ 0x...] Connection refused``, ``[rtsp @ 0x...] method DESCRIBE failed: 404``, ``[h264 @
+    0x...]`` decoder lines go).  Either is left as it is where the environment sets it
+    (``OPENCV_LOG_LEVEL``; ``OPENCV_FFMPEG_LOGLEVEL`` or ``OPENCV_FFMPEG_DEBUG``).
+
+    FFmpeg's level is ``OPENCV_FFMPEG_LOGLEVEL=-8`` (AV_LOG_QUIET), which OpenCV reads when it
+    first uses FFmpeg in the process: called after that (a capture already opened), FFmpeg keeps
+    OpenCV's default, its errors on stderr."""
+    if "OPENCV_LOG_LEVEL" not in os.environ:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    if "OPENCV_FFMPEG_LOGLEVEL" not in os.environ and "OPENCV_FFMPEG_DEBUG" not in os.environ:
+        os.environ["OPENCV_FFMPEG_LOGLEVEL"] = "-8"
 
 
 # ---------------------------------------------------------------------------------- what to read
@@ -321,7 +345,7 @@ class LiveFrames(FrameStream):
             capture = cv2.VideoCapture(int(target) if target.isdigit() else target)
         try:
             if not capture.isOpened():
-                raise FRInputError(f"{self.source}: OpenCV cannot open this {self.source.kind}")
+                raise FRInputError(f"OpenCV cannot open this {self.source.kind}")
             while not self._stop.is_set():
                 ok, image = capture.read()
                 if not ok:
@@ -362,16 +386,17 @@ class LiveFrames(FrameStream):
                 if self.source.kind == "stdin" or not self.reconnect.enabled:
                     end = problem
                     if self.arrived == 0 and problem != "the stream ended":
-                        self._failure = problem
+                        self._failure = f"{self.source}: {problem}"
                     return
                 waits = waits or self.reconnect.waits()
                 wait = next(waits)
                 silent = time.monotonic() - last_frame_at
                 if silent + wait > self.reconnect.give_up_s:
                     end = f"{problem}; no frame for {silent:.0f} s: gave up reconnecting (--reconnect)"
-                    if self.arrived == 0:
-                        self._failure = end
-                    self.log(f"fr track: {self.source}: {end}")
+                    if self.arrived == 0:  # the iteration raises it: the command's error line
+                        self._failure = f"{self.source}: {end}"
+                    else:
+                        self.log(f"fr track: {self.source}: {end}")
                     return
                 self.log(f"fr track: {self.source}: {problem}; reconnecting in {wait:g} s (--reconnect)")
                 if self._stop.wait(wait):
@@ -442,7 +467,9 @@ def open_frames(source: Source, every: int = 1, start: int = 0, realtime: bool |
     """The :class:`FrameStream` of ``source``: :class:`FileFrames` (``every``, ``start``) for a
     file or folder, :class:`LiveFrames` for a live source (``realtime``: default True;
     ``reconnect``; a stream's read may take ``stream_timeout_s``, its connection at least 10 s).
-    FRInputError for options that do not fit the source."""
+    FRInputError for options that do not fit the source.  OpenCV's and FFmpeg's own messages are
+    silenced from here on (:func:`quiet_video_logs`)."""
+    quiet_video_logs()
     if not source.live:
         if realtime:
             raise FRInputError(f"--realtime: {source} is a file; its frames are read one after another, none dropped")
