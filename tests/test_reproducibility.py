@@ -134,7 +134,6 @@ def test_a_photo_gets_one_answer_alone_and_in_any_batch(estimator, reference):
     assert [_record(r) for r in one_thread] == reference
 
 
-
 def test_the_search_takes_one_path_at_every_thread_count(monkeypatch):
     """``FR_THREADS=auto`` gives every search call the threads the load leaves it, so a command's
     thread count changes with the load, call by call: the search must cut its work into the same

@@ -383,8 +383,8 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
     and images.
 
     At most ``max_chunk_elements`` (``CPU_CHUNK_ELEMENTS`` on CPU, if smaller) per-segment
-    deviations exist at once, at any thread count (the chunks are the same at every thread count);
-    scores do not depend on the chunking, the batch or the thread count,
+    deviations exist at once, in chunks that are the same at every thread count; scores do not
+    depend on the chunking, the batch or the thread count,
     bit for bit (:mod:`fr_torch.core.exact`).  ``vertical_block`` = k: runs of k consecutive
     hypotheses differ only in pan (the grid of :func:`grid_hypotheses`), so their vertical VP is
     scored once (chunks hold whole runs; the same scores bit for bit).
