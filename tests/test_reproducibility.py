@@ -13,6 +13,7 @@ from fr_torch import FREstimator
 from fr_torch.core import exact
 from fr_torch.core.camera import rotation_from_angles
 from fr_torch.core.search import best_of_start_and_refined, different_solutions, first_near_best
+from fr_torch.runtime.device import DevicePolicy
 from fr_torch.synthetic import random_rotation, synthetic_segments
 from tests.conftest import checkout_env, gpu
 
@@ -131,6 +132,37 @@ def test_a_photo_gets_one_answer_alone_and_in_any_batch(estimator, reference):
     finally:
         torch.set_num_threads(threads)
     assert [_record(r) for r in one_thread] == reference
+
+
+def test_the_search_takes_one_path_at_every_thread_count(monkeypatch):
+    """``FR_THREADS=auto`` gives every search call the threads the load leaves it, so a command's
+    thread count changes with the load, call by call: the search must cut its work into the same
+    chunks at 1 and 2 threads (results/decisions/60.md), not only give the same bits."""
+    from fr_torch.core.likelihood import MixtureLikelihood
+
+    chunks = []
+    objective = MixtureLikelihood.objective
+
+    def recording(self, features, rotation, focal, *args, **kwargs):
+        chunks.append((tuple(features.weight.shape), tuple(rotation.shape[:2])))
+        return objective(self, features, rotation, focal, *args, **kwargs)
+
+    monkeypatch.setattr(MixtureLikelihood, "objective", recording)
+    estimator = FREstimator(mode="fast", device=DevicePolicy.resolve("cpu", threads="torch"))  # torch's count
+    photos = _photos()
+    paths, records = {}, {}
+    threads = torch.get_num_threads()
+    try:
+        for count in (1, 2):
+            torch.set_num_threads(count)
+            chunks.clear()
+            results = estimator.calibrate_segments([p[0] for p in photos], [p[1] for p in photos])
+            paths[count], records[count] = list(chunks), [_record(r) for r in results]
+    finally:
+        torch.set_num_threads(threads)
+    assert paths[1], "the grid was not scored through MixtureLikelihood.objective"
+    assert paths[2] == paths[1]
+    assert records[2] == records[1]
 
 
 def _kernel_sets():

@@ -17,11 +17,12 @@ batch gives the same answer as images one by one.
 
 Speed and memory (same math; see also :mod:`fr_torch.core.likelihood`):
 
-* Grid: on CPU the hypotheses are scored in cache-sized chunks (``CPU_CHUNK_ELEMENTS`` deviations
-  per intra-op thread, a few MB of buffers per thread) that reuse the same buffers, instead of ``max_chunk_elements`` (which
+* Grid: on CPU the hypotheses are scored in cache-sized chunks (``CPU_CHUNK_ELEMENTS`` deviations,
+  a few MB of buffers) that reuse the same buffers, instead of ``max_chunk_elements`` (which
   still bounds the chunk on GPU and caps it on CPU); rotations / vanishing points are built once
   per image slice, not per chunk.  Large batches are cut into image slices, so memory stays
-  bounded for any batch size.
+  bounded for any batch size.  No chunk size depends on the thread count: a search takes the same
+  path whatever threads the load leaves it (``FR_THREADS=auto``), in a worker process or not.
 * Refinement: images are refined in independent slices of at most ``max_chunk_elements``
   (``CPU_REFINE_ELEMENTS`` on CPU) deviations per step (identical results: every image's loss and
   Adam update are its own), and the rotation is built in closed form
@@ -61,9 +62,10 @@ from fr_torch.core.params import (
     to_log_focal,
 )
 
-# Grid deviations per chunk and intra-op thread on CPU: float32 buffers of a few MB, sized to the
-# L2 cache (results/DECISIONS.md).  Scores are the same for any chunk size.
-CPU_CHUNK_ELEMENTS = 1 << 19
+# Grid deviations per chunk on CPU, whatever the thread count: float32 buffers of a few MB, 32 of
+# torch's 2^15-element grains (up to 32 threads share every op).  Scores are the same for any chunk
+# size (results/DECISIONS.md, results/decisions/60.md).
+CPU_CHUNK_ELEMENTS = 1 << 20
 CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
 
 
@@ -381,7 +383,8 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
     and images.
 
     At most ``max_chunk_elements`` (``CPU_CHUNK_ELEMENTS`` on CPU, if smaller) per-segment
-    deviations exist at once; scores do not depend on the chunking, the batch or the thread count,
+    deviations exist at once, in chunks that are the same at every thread count; scores do not
+    depend on the chunking, the batch or the thread count,
     bit for bit (:mod:`fr_torch.core.exact`).  ``vertical_block`` = k: runs of k consecutive
     hypotheses differ only in pan (the grid of :func:`grid_hypotheses`), so their vertical VP is
     scored once (chunks hold whole runs; the same scores bit for bit).
@@ -391,10 +394,7 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
     dtype, device = features.weight.dtype, features.weight.device
     if vertical_block < 1 or count % vertical_block:
         vertical_block = 1
-    # CPU: a cache-sized chunk per intra-op thread.  A fixed 2^17 chunk capped every op at 4 threads
-    # (torch's GRAIN_SIZE 2^15 elements per thread), so more cores did not help.
-    cpu_budget = CPU_CHUNK_ELEMENTS * max(1, torch.get_num_threads())
-    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, cpu_budget))
+    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, CPU_CHUNK_ELEMENTS))
     per_hypothesis = n_seg * 3
     hyp_chunk = max(1, min(count, budget // per_hypothesis))
     hyp_chunk = max(vertical_block, hyp_chunk - hyp_chunk % vertical_block)  # whole runs
