@@ -34,6 +34,8 @@ from fr_torch.video.track import Tracking
 from tests.conftest import checkout_env
 
 SMALL = dict(width=320, height=240)
+#: Seconds the fork server and resource tracker of the search workers may take to end after fr track.
+POOL_GONE_S = 10.0
 
 
 # ---------------------------------------------------------------------------------- sources file
@@ -237,6 +239,8 @@ def test_a_fleet_of_two_http_cameras_and_a_folder_then_a_rerun_appends(tmp_path,
 
 
 def test_sigterm_stops_a_fleet_with_every_record_on_disk_and_no_process_left(tmp_path):
+    """Two cameras, searched by worker processes (the default on a CPU): after SIGTERM every record
+    is on disk, every calibration.json says so, and no process of the run is left."""
     out = tmp_path / "out"
     stderr_path = tmp_path / "stderr.txt"
     with MJPEGServer(SyntheticCamera(**SMALL), fps=25) as a, \
@@ -254,8 +258,12 @@ def test_sigterm_stops_a_fleet_with_every_record_on_disk_and_no_process_left(tmp
                 time.sleep(0.05)
             os.kill(process.pid, signal.SIGTERM)
             returncode = process.wait(timeout=60)
-            left = session_processes(process.pid)
+            stopped = time.monotonic()  # the fork server and resource tracker end once the workers are gone
+            while (left := session_processes(process.pid)) and time.monotonic() - stopped < POOL_GONE_S:
+                time.sleep(0.05)
         finally:
+            for pid in session_processes(process.pid):  # never leave a failed test's processes behind
+                os.kill(pid, signal.SIGKILL)
             if process.poll() is None:
                 process.kill()
                 process.wait()

@@ -16,7 +16,8 @@ all served at ``--fps`` by one process.  Every run is Fast-fR with the reliabili
 track --fast``) on the same cores as the servers.
 
 **throughput**: for each N of ``--cameras``, N cameras read by one ``fr track URL1 ... URLN`` (the
-fleet: one batched search per turn) and then by N ``fr track URLi`` processes (one camera per
+fleet: one batched search per turn, split over its worker processes; for the N of ``--in-process``
+also with ``--workers 0``, searched in the fleet's own process) and then by N ``fr track URLi`` processes (one camera per
 process, each searching its newest frame at batch 1).  Once every camera has its first record,
 records are counted for ``--seconds``: frames searched per second in all, searches per camera per
 second (the least served camera's and the median), the age of a frame at its record, and the
@@ -61,6 +62,8 @@ from fr_torch.video.records import CAMERA_KEY, RECORD_KEYS
 FLEET_KEYS = (CAMERA_KEY,) + RECORD_KEYS
 HFOVS = (50.0, 62.0, 74.0, 86.0)
 STOPS = ("SIGTERM", "SIGINT", "SIGHUP", "kill a camera")
+#: Seconds the search workers' fork server and resource tracker may take to end after fr track.
+POOL_GONE_S = 10.0
 
 
 def fleet_camera(i: int) -> SyntheticCamera:
@@ -178,15 +181,18 @@ def throughput(args) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     counts = [int(n) for n in args.cameras.split(",")]
+    in_process = [int(n) for n in args.in_process.split(",") if n]
     server, urls, _ = start_cameras(max(counts), args.port, args.fps)
     rows = []
     try:
         for n in counts:
-            for mode in ("fleet", "separate") if n > 1 else ("separate",):  # one camera: the same command
-                folder = Path(args.work) / f"throughput_{mode}_{n}"
+            modes = ("fleet", "separate") if n > 1 else ("separate",)  # one camera: the same command
+            for mode in modes + (("fleet, --workers 0",) if n in in_process else ()):
+                folder = Path(args.work) / f"throughput_{mode.split(',')[0]}{'_0' if ',' in mode else ''}_{n}"
                 _clean(folder)
-                if mode == "fleet":
-                    runs = [Run(urls[:n] + ["--fast", *args.extra], folder)]
+                if mode.startswith("fleet"):
+                    workers = ["--workers", "0"] if "--workers 0" in mode else []
+                    runs = [Run(urls[:n] + ["--fast", *workers, *args.extra], folder)]
                 else:
                     runs = [Run([url, "--fast", *args.extra], folder / f"camera{i}") for i, url in enumerate(urls[:n])]
                 try:
@@ -206,7 +212,7 @@ def throughput(args) -> None:
                     window = [r for r in run.records if start <= r["time"] < end]
                     ages += [r["age_s"] for r in window]
                     runtimes += [r["runtime_s"] for r in window if r["runtime_s"] is not None]
-                    if mode == "fleet":
+                    if mode.startswith("fleet"):
                         per_camera += [sum(r[CAMERA_KEY] == name for r in window)
                                        for name in sorted({r[CAMERA_KEY] for r in run.records})]
                     else:
@@ -236,8 +242,9 @@ def _throughput_report(table: pd.DataFrame, args, out: Path) -> None:
     text = ["# `fr track` over a fleet: throughput by number of cameras", "",
             f"Command: `python -m fr_eval.bench.track_fleet throughput --cameras {args.cameras} --seconds "
             f"{args.seconds:g} --fps {args.fps:g}`. For each N: `fr track URL1 ... URLN --fast --json -` (one "
-            "process, one batched search per turn), then N processes `fr track URLi --fast --json -` (one camera "
-            f"each, batch 1), both on the same N synthetic cameras (640 x 480, {args.fps:g} frames/s, HTTP MJPEG, "
+            "process, one batched search per turn, split over its worker processes), then N processes `fr track "
+            "URLi --fast --json -` (one camera each, batch 1; `fleet, --workers 0`: the fleet searching in its own "
+            f"process, among its reader threads), both on the same N synthetic cameras (640 x 480, {args.fps:g} frames/s, HTTP MJPEG, "
             "served by one other process on the same cores). Records counted over the window that starts when every "
             "camera has its first record.",
             f"Machine: {machine['cpu']}, {machine['usable_cores']} usable cores, torch {machine['torch']}; "
@@ -478,8 +485,9 @@ def stops(args) -> None:
             finally:
                 _stop(process)
                 _stop(victim)
-            time.sleep(0.2)
-            left = session_processes(process.pid)
+            gone_by = time.monotonic() + POOL_GONE_S  # the workers' fork server and resource tracker end after them
+            while (left := session_processes(process.pid)) and time.monotonic() < gone_by:
+                time.sleep(0.05)
             cameras, problems = _camera_checks(folder, before)
             lines = [line for line in stderr.replace("\r", "\n").splitlines() if line.startswith("fr track")]
             stop_line = next((line for line in lines if "stopped by" in line), "")
@@ -556,6 +564,7 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("throughput", parents=[common])
     t.add_argument("--cameras", default="1,2,4,8,16")
     t.add_argument("--seconds", type=float, default=40.0)
+    t.add_argument("--in-process", default="16", help="N for which the fleet is also run with --workers 0")
     t.add_argument("--startup-s", type=float, default=240.0)
     t.add_argument("extra", nargs="*", help="more fr track options (after --)")
     t.set_defaults(run=throughput)

@@ -22,7 +22,8 @@ from fr_torch.cli.options import (
 from fr_torch.core.checks import finite_number, positive_int, positive_number
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.estimator import FREstimator
-from fr_torch.runtime.workers import interrupt_on_signals, start_worker_server
+from fr_torch.runtime.pipeline import CalibrationPool
+from fr_torch.runtime.workers import interrupt_on_signals, start_worker_server, usable_cores
 from fr_torch.video.fleet import FleetCamera, camera_specs, track_fleet
 from fr_torch.video.fusion import OnlineCalibrator
 from fr_torch.video.records import TrackOutput
@@ -70,10 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-rate", type=float, default=None, metavar="HZ",
                         help="a fleet: frames of each camera searched per second at most (default: as many as "
                              "its turns allow)")
-    parser.add_argument("--workers", type=int, default=0, metavar="N",
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="CPU: calibrate frames in N single-threaded worker processes, in order; GPU: "
                              "N processes decode and detect frames ahead of the search (default 0: this "
-                             "process; worth it for long videos on many cores)")
+                             "process; worth it for long videos on many cores). A fleet on a CPU: each turn's "
+                             "frames are split over N worker processes (default: the usable cores, at most one "
+                             "per camera; 0: searched in this process)")
     live = parser.add_argument_group("live sources")
     live.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=None,
                       help="process the newest frame whenever the search is free and drop the frames that "
@@ -103,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     if args.every < 1 or (args.batch_size is not None and args.batch_size < 1):
         raise FRInputError("--every and --batch-size must be at least 1")
-    if args.workers < 0:
+    if args.workers is not None and args.workers < 0:
         raise FRInputError("--workers must be 0 (this process) or more")
     if args.max_rate is not None:
         positive_number(args.max_rate, "--max-rate")
@@ -112,6 +115,7 @@ def _run(args: argparse.Namespace) -> int:
         raise FRInputError("give a SOURCE (or several), or --sources FILE")
     if len(args.source) > 1 or args.sources is not None:
         return _run_fleet(args)
+    args.workers = args.workers or 0
     if args.max_rate is not None:
         raise FRInputError("--max-rate: for a fleet (several SOURCEs or --sources); one live source in real "
                            "time takes the newest frame whenever the search is free")
@@ -197,10 +201,14 @@ def _restore(tracker: OnlineCalibrator, output: TrackOutput) -> None:
             raise FRInputError(f"{output.calibration_path}: {exc}; use another --out") from None
 
 
+def _close(searches: dict) -> None:
+    for search, _ in searches.values():
+        if isinstance(search, CalibrationPool):
+            search.close()
+
+
 def _run_fleet(args: argparse.Namespace) -> int:
     """``fr track`` over several sources (:mod:`fr_torch.video.fleet`)."""
-    if args.workers:
-        raise FRInputError("--workers: a fleet searches its cameras' frames together in this process")
     if args.every != 1:
         raise FRInputError("--every: give it per camera in the sources file (SOURCE --every N)")
     specs = camera_specs(args.source, args.sources, args.max_rate)
@@ -209,18 +217,29 @@ def _run_fleet(args: argparse.Namespace) -> int:
         if reconnect.enabled and not spec.source.live:
             raise FRInputError(f"--reconnect: {spec.name} ({spec.source}) is a file, read to its end")
     policy = device_policy(args)
+    if args.workers and not policy.whole_image_workers:
+        raise FRInputError(f"--workers: a fleet on {args.device} searches each turn's frames on the device")
+    workers = 0 if not policy.whole_image_workers else \
+        min(usable_cores(), len(specs)) if args.workers is None else args.workers
+    if workers:
+        start_worker_server()
     policy.apply_threads()
     estimators: dict = {}
     for spec in specs:
         if spec.fov_range not in estimators:
             estimators[spec.fov_range] = _estimator(args, spec.fov_range)
+    # Searched in worker processes, not among the cameras' reader threads: those threads, each taking
+    # this process's interpreter lock at every frame of its camera, slow a search in this process
+    # several times over on a busy machine.
+    searches = {key: (CalibrationPool(estimator, workers) if workers else estimator, model)
+                for key, (estimator, model) in estimators.items()}
     folder = args.out or Path("track_fleet")
     bar = tqdm(desc=f"fr track ({len(specs)} cameras)", unit="frame", file=sys.stderr)
     say = lambda message: bar.write(message, file=sys.stderr)  # noqa: E731 (lines above the progress bar)
     cameras = []
     try:
         for spec in specs:
-            estimator, model = estimators[spec.fov_range]
+            estimator, model = searches[spec.fov_range]
             settings = _settings(args, spec.source, reconnect, every=spec.every, fov_range=spec.fov_range,
                                  focal_px=spec.focal_px, max_rate=spec.max_rate)
             output = TrackOutput(folder / spec.name, spec.source, settings, str(estimator.mode), json_target=args.json,
@@ -238,6 +257,7 @@ def _run_fleet(args: argparse.Namespace) -> int:
         for camera in cameras:
             camera.tracking.output.close()
         bar.close()
+        _close(searches)
         raise FRInputError(f"{specs[len(cameras)].name}: {exc}") from None
 
     def plot(camera: FleetCamera) -> None:
@@ -252,6 +272,7 @@ def _run_fleet(args: argparse.Namespace) -> int:
         raise
     finally:
         bar.close()
+        _close(searches)
     calibrated = 0
     for camera in cameras:
         summary = json.loads(camera.tracking.output.calibration_path.read_text())

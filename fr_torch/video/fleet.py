@@ -11,7 +11,8 @@ cameras share is the estimator: :func:`track_fleet` repeats a *turn* --
    camera's newest);
 2. their frames are decoded, detected and searched **as one batch** (one
    ``calibrate_images`` call per distinct search setting, i.e. per ``--fov-range``; a camera's
-   known focal length is per image);
+   known focal length is per image); on a CPU the batch is split over worker processes
+   (:class:`fr_torch.runtime.pipeline.CalibrationPool`), away from the reader threads;
 3. each result is fused and recorded by its own camera.
 
 So no camera waits for more than one turn behind the others however fast another one streams,
@@ -183,7 +184,9 @@ def camera_specs(sources: Sequence[str], sources_file: str | Path | None = None,
 @dataclass
 class FleetCamera:
     """A camera while the fleet runs: its ``spec``, its :class:`Tracking` (stream, fusion,
-    outputs), the ``estimator`` of its search setting, when it was last served (``served_at``,
+    outputs), the ``estimator`` of its search setting (an ``FREstimator``, or a
+    :class:`fr_torch.runtime.pipeline.CalibrationPool` of worker processes: anything with
+    ``calibrate_images(images, names, focal_px)``), when it was last served (``served_at``,
     ``time.monotonic()`` seconds) and, once it has ended, how (``run``)."""
 
     spec: CameraSpec

@@ -4,7 +4,7 @@ Python use, frame by frame, from wherever the frames come (a camera SDK's callba
 a queue)::
 
     from fr_torch import FREstimator
-    from fr_torch.video.fusion import FusedState, OnlineCalibrator
+    from fr_torch.video.fusion import OnlineCalibrator
 
     est = FREstimator(mode="fast")              # its reliability stage fills result.predicted_error
     tracker = OnlineCalibrator()
@@ -18,7 +18,9 @@ The pieces of ``fr track``: frame sources, files and live ones, with real time, 
 reconnection (:mod:`fr_torch.video.sources`); the fusion (:mod:`fr_torch.video.fusion`: rejection
 of unreliable frames, weighted chordal mean of the rotations, log-focal mean, forgetting,
 camera-moved detection and restart of a fusion *epoch*); the outputs written as frames are
-processed, resuming and the figure (:mod:`fr_torch.video.records`).
+processed, resuming and the figure (:mod:`fr_torch.video.records`); many cameras in one process, their
+frames searched together (:mod:`fr_torch.video.fleet`), each fused and recorded by a
+:class:`Tracking` as one source is here.
 """
 from __future__ import annotations
 
