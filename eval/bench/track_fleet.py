@@ -146,7 +146,10 @@ class Run:
         self.stderr = self.process.stderr.read()
 
     def rss_mb(self) -> float:
-        return (proc_status_kb("VmRSS", self.process.pid) or 0) / 1024
+        """Resident memory of the fr track process and of every process it started (its search
+        workers, their fork server), MB."""
+        pids = [self.process.pid] + session_processes(self.process.pid)
+        return sum(proc_status_kb("VmRSS", pid) or 0 for pid in pids) / 1024
 
     def stop(self) -> None:
         if self.process.poll() is None:

@@ -1,4 +1,5 @@
-"""``fr track``: the command-line front end of :mod:`fr_torch.video.track`.
+"""``fr track``: the command-line front end of :mod:`fr_torch.video.track` (one source) and of
+:mod:`fr_torch.video.fleet` (several SOURCEs, or ``--sources FILE``: a fleet of cameras).
 
 SIGINT (CTRL-C), SIGTERM and SIGHUP (a closed terminal, a service manager's reload) stop it the
 same way: every processed frame is on disk, calibration.json holds the latest fusion, the figure
