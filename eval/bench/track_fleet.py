@@ -145,6 +145,18 @@ class Run:
     def _read_stderr(self) -> None:
         self.stderr = self.process.stderr.read()
 
+    def cpu_s(self) -> float:
+        """CPU seconds (user + system) used so far by the fr track process and every live process it
+        started, from /proc (0 for a process gone)."""
+        total = 0
+        for pid in [self.process.pid] + session_processes(self.process.pid):
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+                total += int(fields[11]) + int(fields[12])  # utime, stime (clock ticks)
+            except (OSError, IndexError, ValueError):
+                pass
+        return total / os.sysconf("SC_CLK_TCK")
+
     def rss_mb(self) -> float:
         """Resident memory of the fr track process and of every process it started (its search
         workers, their fork server), MB."""
@@ -200,11 +212,13 @@ def throughput(args) -> None:
                     runs = [Run([url, "--fast", *args.extra], folder / f"camera{i}") for i, url in enumerate(urls[:n])]
                 try:
                     start = _wait_for_records(runs, n, args.startup_s)
+                    cpu_start = sum(run.cpu_s() for run in runs)
                     rss = []
                     while time.time() < start + args.seconds:
                         rss.append(sum(run.rss_mb() for run in runs))
                         time.sleep(1.0)
                     end = time.time()
+                    cpu = sum(run.cpu_s() for run in runs) - cpu_start
                     load = os.getloadavg()[0]
                 finally:
                     for run in runs:
@@ -229,12 +243,17 @@ def throughput(args) -> None:
                              "age_median_s": round(float(np.median(ages)), 3),
                              "age_p95_s": round(float(np.percentile(ages, 95)), 3),
                              "runtime_median_s": round(float(np.median(runtimes)), 3),
+                             "cpu_s_per_frame": round(cpu / max(1, sum(per_camera)), 3),
                              "rss_mb": round(float(np.median(rss)), 0), "load_avg": round(load, 2)})
                 print(rows[-1], flush=True)
                 pd.DataFrame(rows).to_csv(out / "throughput.csv", index=False)
     finally:
         _stop(server)
     _throughput_report(pd.DataFrame(rows), args, out)
+
+
+def _shown(value, digits: int = 3) -> str:
+    return "" if value is None or pd.isna(value) else f"{value:.{digits}f}"
 
 
 def _throughput_report(table: pd.DataFrame, args, out: Path) -> None:
@@ -253,12 +272,14 @@ def _throughput_report(table: pd.DataFrame, args, out: Path) -> None:
             f"Machine: {machine['cpu']}, {machine['usable_cores']} usable cores, torch {machine['torch']}; "
             "shared with other work (`load avg`: 1-minute load average at the end of each window).", "",
             "| cameras | mode | frames searched / s | per camera / s (least served, median) | age at record "
-            "(median, p95) s | detection + search per frame (median) s | RSS of all fr processes (MB) | load avg |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+            "(median, p95) s | detection + search per frame (median) s | CPU s per frame searched | RSS of all fr "
+            "processes (MB) | load avg |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for _, row in table.iterrows():
         text.append(f"| {row['cameras']} | {row['mode']} | {row['frames_per_s']:.2f} | {row['per_camera_min_per_s']:.2f}, "
                     f"{row['per_camera_median_per_s']:.2f} | {row['age_median_s']:.2f}, {row['age_p95_s']:.2f} | "
-                    f"{row['runtime_median_s']:.3f} | {row['rss_mb']:.0f} | {row['load_avg']:.1f} |")
+                    f"{row['runtime_median_s']:.3f} | {_shown(row.get('cpu_s_per_frame'))} | {row['rss_mb']:.0f} | "
+                    f"{row['load_avg']:.1f} |")
     text += ["", "Fleet against one process per camera (frames searched per second, the same N):", ""]
     for n in fleet.index:
         if n in separate.index:
