@@ -226,17 +226,18 @@ def _soak_report(table, memory, summary, camera, args, out: Path, command) -> No
 
 # ---------------------------------------------------------------------------------- stops
 
-def _records_check(path: Path) -> tuple[int, bool, str]:
-    """(records, every line complete and parseable with every column, a problem)."""
+def _records_check(path: Path, keys: tuple[str, ...] = RECORD_KEYS) -> tuple[int, bool, str]:
+    """(records, every line complete and parseable with every column, a problem); ``keys``: the
+    columns (a fleet camera's start with ``camera``)."""
     if not path.exists():
         return 0, True, "no frames.csv"
     data = path.read_bytes()
     if data and not data.endswith(b"\n"):
         return 0, False, "last line cut short"
     rows = list(csv.reader(io.StringIO(data.decode("utf-8"))))
-    if not rows or rows[0] != list(RECORD_KEYS):
+    if not rows or rows[0] != list(keys):
         return 0, False, "header"
-    bad = [i for i, row in enumerate(rows[1:]) if len(row) != len(RECORD_KEYS)]
+    bad = [i for i, row in enumerate(rows[1:]) if len(row) != len(keys)]
     try:
         pd.read_csv(path)
     except Exception as exc:  # noqa: BLE001 (what a reader of the file would meet)

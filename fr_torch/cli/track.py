@@ -1,4 +1,5 @@
-"""``fr track``: the command-line front end of :mod:`fr_torch.video.track`.
+"""``fr track``: the command-line front end of :mod:`fr_torch.video.track` (one source) and of
+:mod:`fr_torch.video.fleet` (several SOURCEs, or ``--sources FILE``: a fleet of cameras).
 
 SIGINT (CTRL-C), SIGTERM and SIGHUP (a closed terminal, a service manager's reload) stop it the
 same way: every processed frame is on disk, calibration.json holds the latest fusion, the figure
@@ -22,11 +23,13 @@ from fr_torch.cli.options import (
 from fr_torch.core.checks import finite_number, positive_int, positive_number
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.estimator import FREstimator
-from fr_torch.runtime.workers import interrupt_on_signals, start_worker_server
+from fr_torch.runtime.pipeline import CalibrationPool
+from fr_torch.runtime.workers import interrupt_on_signals, start_worker_server, usable_cores
+from fr_torch.video.fleet import FleetCamera, camera_specs, track_fleet
 from fr_torch.video.fusion import OnlineCalibrator
 from fr_torch.video.records import TrackOutput
 from fr_torch.video.sources import Reconnect, Source, open_frames
-from fr_torch.video.track import track
+from fr_torch.video.track import Tracking, track
 
 #: Stops of ``fr track`` beyond the SIGINT and SIGTERM of every command.
 TRACK_STOP_SIGNALS = tuple(s for s in (getattr(signal, "SIGHUP", None),) if s is not None)
@@ -46,21 +49,35 @@ def track_options(args) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``fr track``."""
-    parser.add_argument("source", help="video file, folder of frames (sorted by name), stream URL (rtsp://, "
-                                       "http(s):// MJPEG or HLS, anything OpenCV's FFmpeg opens), camera index or "
-                                       "device (0, /dev/video0), or - for images on stdin (ffmpeg -f image2pipe)")
+    parser.add_argument("source", nargs="*",
+                        help="video file, folder of frames (sorted by name), stream URL (rtsp://, http(s):// MJPEG "
+                             "or HLS, anything OpenCV's FFmpeg opens), camera index or device (0, /dev/video0), or - "
+                             "for images on stdin (ffmpeg -f image2pipe); several: a fleet, their frames searched "
+                             "together (docs/track.md)")
+    parser.add_argument("--sources", type=Path, default=None, metavar="FILE",
+                        help="a fleet's cameras, one per line: [NAME] SOURCE [--fov-range MIN,MAX] [--every N] "
+                             "[--focal PX] [--max-rate HZ] (# comments)")
     parser.add_argument("--out", type=Path, default=None,
-                        help="output folder (default track_<source name>); a second run with the same --out "
-                             "appends a new segment (a file continues after its last recorded frame)")
+                        help="output folder (default track_<source name>, for a fleet track_fleet with a folder "
+                             "per camera); a second run with the same --out appends a new segment (a file "
+                             "continues after its last recorded frame)")
     parser.add_argument("--json", default=None, metavar="PATH|-",
                         help="also write each frame's record as one JSON line to PATH as it comes (- = stdout)")
     parser.add_argument("--every", type=int, default=1, metavar="N", help="process every N-th frame (files)")
-    parser.add_argument("--max-frames", type=int, default=None, help="stop after this many processed frames")
-    parser.add_argument("--batch-size", type=int, default=8, help="frames searched together (1 in real time)")
-    parser.add_argument("--workers", type=int, default=0, metavar="N",
+    parser.add_argument("--max-frames", type=int, default=None,
+                        help="stop after this many processed frames (a fleet: each camera)")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="frames searched together (default 8; 1 for one live source in real time; a fleet: "
+                             "one frame per camera, at most this many, default every camera)")
+    parser.add_argument("--max-rate", type=float, default=None, metavar="HZ",
+                        help="a fleet: frames of each camera searched per second at most (default: as many as "
+                             "its turns allow)")
+    parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="CPU: calibrate frames in N single-threaded worker processes, in order; GPU: "
                              "N processes decode and detect frames ahead of the search (default 0: this "
-                             "process; worth it for long videos on many cores)")
+                             "process; worth it for long videos on many cores). A fleet on a CPU: each turn's "
+                             "frames are split over N worker processes (default: the usable cores, at most one "
+                             "per camera; 0: searched in this process)")
     live = parser.add_argument_group("live sources")
     live.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=None,
                       help="process the newest frame whenever the search is free and drop the frames that "
@@ -88,12 +105,22 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    if args.every < 1 or args.batch_size < 1:
+    if args.every < 1 or (args.batch_size is not None and args.batch_size < 1):
         raise FRInputError("--every and --batch-size must be at least 1")
-    if args.workers < 0:
+    if args.workers is not None and args.workers < 0:
         raise FRInputError("--workers must be 0 (this process) or more")
+    if args.max_rate is not None:
+        positive_number(args.max_rate, "--max-rate")
     track_options(args)
-    source = Source.parse(args.source)
+    if not args.source and args.sources is None:
+        raise FRInputError("give a SOURCE (or several), or --sources FILE")
+    if len(args.source) > 1 or args.sources is not None:
+        return _run_fleet(args)
+    args.workers = args.workers or 0
+    if args.max_rate is not None:
+        raise FRInputError("--max-rate: for a fleet (several SOURCEs or --sources); one live source in real "
+                           "time takes the newest frame whenever the search is free")
+    source = Source.parse(args.source[0])
     reconnect = Reconnect.parse(args.reconnect)
     if reconnect.enabled and not source.live:
         raise FRInputError(f"--reconnect: {source} is a file, read to its end")
@@ -101,26 +128,12 @@ def _run(args: argparse.Namespace) -> int:
     if args.workers:
         start_worker_server()
     policy.apply_threads()
-    estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
+    estimator, model = _estimator(args)
     mode = estimator.mode
-    scope_gap = estimator.reliability_scope_gap(detected=True) if estimator.reliability is not None else None
-    if scope_gap is not None:  # its "not reliable" would reject every frame: track without it
-        estimator = FREstimator(**estimator_kwargs(args), reliability=None)
-        print(f"fr track: {scope_gap}: all reliable frames weigh the same", file=sys.stderr)
-    model = estimator.reliability
-    if model is None and not args.no_reliability and scope_gap is None:
-        print(f"fr track: no reliability model for {mode}: all reliable frames weigh the same", file=sys.stderr)
-    tracker = OnlineCalibrator(memory=args.memory, change_k=args.change_k, patience=args.patience)
-    realtime = source.live and args.realtime is not False
-    settings = {"every": args.every, "memory": args.memory, "change_k": args.change_k, "patience": args.patience,
-                "realtime": realtime, "reconnect_give_up_s": reconnect.give_up_s if reconnect.enabled else None}
-    output = TrackOutput(args.out or Path(f"track_{source.label}"), source, settings, str(mode),
-                         json_target=args.json, reliability_model=model is not None)
-    if output.checkpoint:
-        try:
-            tracker.restore(output.checkpoint)
-        except ValueError as exc:
-            raise FRInputError(f"{output.calibration_path}: {exc}; use another --out") from None
+    tracker = _tracker(args)
+    output = TrackOutput(args.out or Path(f"track_{source.label}"), source, _settings(args, source, reconnect),
+                         str(mode), json_target=args.json, reliability_model=model)
+    _restore(tracker, output)
     if output.resumed:
         first = f"from frame {output.start_frame}" if not source.live else "frames counted from 0 again"
         print(f"fr track: {output.folder} holds earlier records: segment {output.segment}, {first}", file=sys.stderr)
@@ -128,7 +141,7 @@ def _run(args: argparse.Namespace) -> int:
     output.log = say = lambda message: bar.write(message, file=sys.stderr)  # lines above the progress bar
     stream = open_frames(source, args.every, output.start_frame, args.realtime, reconnect, args.stream_timeout, say)
     try:
-        ended = track(stream, estimator, tracker, output, args.batch_size, args.workers, args.max_frames, bar,
+        ended = track(stream, estimator, tracker, output, args.batch_size or 8, args.workers, args.max_frames, bar,
                       f"fr track {source.label} ({mode})")
     except KeyboardInterrupt as stop:
         stop.add_note(f"{output.processed} frames of this run are in {output.records_path}; the same command "
@@ -139,8 +152,132 @@ def _run(args: argparse.Namespace) -> int:
     if output.processed == 0 and not (output.resumed and not source.live):
         raise FRInputError(f"{source}: no frame could be read (all skipped)")
     summary = json.loads(output.calibration_path.read_text())
-    line = {key: summary[key] for key in ("run", "segment", "frames_processed", "frames_accepted", "frames_dropped",
-                                          "dropped_share", "restarts_at_frames")}
-    print(json.dumps(line), file=sys.stderr if args.json == "-" else sys.stdout)
+    print(json.dumps(_summary_line(summary)), file=sys.stderr if args.json == "-" else sys.stdout)
     print(f"fr track: wrote {output.records_path}, {output.calibration_path}, {output.figure_path}", file=sys.stderr)
     return 0 if summary["calibration"] is not None else 1
+
+
+SUMMARY_KEYS = ("run", "segment", "frames_processed", "frames_accepted", "frames_dropped", "dropped_share",
+                "restarts_at_frames")
+
+
+def _summary_line(summary: dict) -> dict:
+    """The end-of-run line of a calibration.json (a fleet camera's starts with its name)."""
+    return {key: summary[key] for key in (("camera",) if "camera" in summary else ()) + SUMMARY_KEYS}
+
+
+def _estimator(args: argparse.Namespace, fov_range: str | None = None) -> tuple[FREstimator, bool]:
+    """The estimator of the options (``fov_range``: instead of ``--fov-range``) and whether its
+    reliability model weighs the frames; one line on stderr when there is none."""
+    kwargs = estimator_kwargs(argparse.Namespace(**{**vars(args), "fov_range": fov_range or args.fov_range}))
+    estimator = FREstimator(**kwargs, reliability=None if args.no_reliability else "default")
+    mode = estimator.mode
+    scope_gap = estimator.reliability_scope_gap(detected=True) if estimator.reliability is not None else None
+    if scope_gap is not None:  # its "not reliable" would reject every frame: track without it
+        estimator = FREstimator(**kwargs, reliability=None)
+        print(f"fr track: {scope_gap}: all reliable frames weigh the same", file=sys.stderr)
+    model = estimator.reliability
+    if model is None and not args.no_reliability and scope_gap is None:
+        print(f"fr track: no reliability model for {mode}: all reliable frames weigh the same", file=sys.stderr)
+    return estimator, model is not None
+
+
+def _tracker(args: argparse.Namespace) -> OnlineCalibrator:
+    return OnlineCalibrator(memory=args.memory, change_k=args.change_k, patience=args.patience)
+
+
+def _settings(args: argparse.Namespace, source: Source, reconnect: Reconnect, **more) -> dict:
+    """calibration.json's ``settings``."""
+    realtime = source.live and args.realtime is not False
+    return {"every": args.every, "memory": args.memory, "change_k": args.change_k, "patience": args.patience,
+            "realtime": realtime, "reconnect_give_up_s": reconnect.give_up_s if reconnect.enabled else None, **more}
+
+
+def _restore(tracker: OnlineCalibrator, output: TrackOutput) -> None:
+    """Continue the fusion of a resumed output folder."""
+    if output.checkpoint:
+        try:
+            tracker.restore(output.checkpoint)
+        except ValueError as exc:
+            raise FRInputError(f"{output.calibration_path}: {exc}; use another --out") from None
+
+
+def _close(searches: dict) -> None:
+    for search, _ in searches.values():
+        if isinstance(search, CalibrationPool):
+            search.close()
+
+
+def _run_fleet(args: argparse.Namespace) -> int:
+    """``fr track`` over several sources (:mod:`fr_torch.video.fleet`)."""
+    if args.every != 1:
+        raise FRInputError("--every: give it per camera in the sources file (SOURCE --every N)")
+    specs = camera_specs(args.source, args.sources, args.max_rate)
+    reconnect = Reconnect.parse(args.reconnect)
+    for spec in specs:
+        if reconnect.enabled and not spec.source.live:
+            raise FRInputError(f"--reconnect: {spec.name} ({spec.source}) is a file, read to its end")
+    policy = device_policy(args)
+    if args.workers and not policy.whole_image_workers:
+        raise FRInputError(f"--workers: a fleet on {args.device} searches each turn's frames on the device")
+    workers = 0 if not policy.whole_image_workers else \
+        min(usable_cores(), len(specs)) if args.workers is None else args.workers
+    if workers:
+        start_worker_server()
+    policy.apply_threads()
+    estimators: dict = {}
+    for spec in specs:
+        if spec.fov_range not in estimators:
+            estimators[spec.fov_range] = _estimator(args, spec.fov_range)
+    # Searched in worker processes, not among the cameras' reader threads: those threads, each taking
+    # this process's interpreter lock at every frame of its camera, slow a search in this process
+    # several times over on a busy machine.
+    searches = {key: (CalibrationPool(estimator, workers) if workers else estimator, model)
+                for key, (estimator, model) in estimators.items()}
+    folder = args.out or Path("track_fleet")
+    bar = tqdm(desc=f"fr track ({len(specs)} cameras)", unit="frame", file=sys.stderr)
+    say = lambda message: bar.write(message, file=sys.stderr)  # noqa: E731 (lines above the progress bar)
+    cameras = []
+    try:
+        for spec in specs:
+            estimator, model = searches[spec.fov_range]
+            settings = _settings(args, spec.source, reconnect, every=spec.every, fov_range=spec.fov_range,
+                                 focal_px=spec.focal_px, max_rate=spec.max_rate)
+            output = TrackOutput(folder / spec.name, spec.source, settings, str(estimator.mode), json_target=args.json,
+                                 reliability_model=model, log=say, camera=spec.name)
+            tracker = _tracker(args)
+            _restore(tracker, output)
+            if output.resumed:
+                first = f"from frame {output.start_frame}" if not spec.source.live else "frames counted from 0 again"
+                say(f"fr track: {spec.name}: {output.folder} holds earlier records: segment {output.segment}, {first}")
+            stream = open_frames(spec.source, spec.every, output.start_frame, args.realtime, reconnect,
+                                 args.stream_timeout, say)
+            cameras.append(FleetCamera(spec, Tracking(stream, tracker, output, say, f"fr track: {spec.name}"),
+                                       estimator))
+    except FRInputError as exc:  # named by the camera it is about; nothing was read yet
+        for camera in cameras:
+            camera.tracking.output.close()
+        bar.close()
+        _close(searches)
+        raise FRInputError(f"{specs[len(cameras)].name}: {exc}") from None
+
+    def plot(camera: FleetCamera) -> None:
+        camera.tracking.output.plot(f"fr track {camera.spec.name} ({camera.estimator.mode})")
+
+    try:
+        track_fleet(cameras, args.batch_size or len(cameras), args.max_frames, bar, say, plot=plot)
+    except KeyboardInterrupt as stop:
+        processed = sum(c.tracking.output.processed for c in cameras)
+        stop.add_note(f"{processed} frames of this run are in {folder}/*/frames.csv ({len(cameras)} cameras); "
+                      "the same command again appends")
+        raise
+    finally:
+        bar.close()
+        _close(searches)
+    calibrated = 0
+    for camera in cameras:
+        summary = json.loads(camera.tracking.output.calibration_path.read_text())
+        calibrated += summary["calibration"] is not None
+        print(json.dumps(_summary_line(summary)), file=sys.stderr if args.json == "-" else sys.stdout)
+    print(f"fr track: wrote {folder}/<camera>/: {', '.join(c.spec.name for c in cameras)}", file=sys.stderr)
+    return 0 if calibrated == len(cameras) else 1

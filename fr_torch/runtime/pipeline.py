@@ -302,6 +302,46 @@ def _portable_estimator(estimator):
     return portable
 
 
+class CalibrationPool:
+    """Whole images (arrays or paths) decoded, detected and searched by ``workers`` single-threaded
+    processes that each hold a copy of ``estimator``, kept from one call to the next (the turns of a
+    fleet, :mod:`fr_torch.video.fleet`).  :meth:`calibrate_images` splits its images into one
+    contiguous chunk per worker and returns the results in input order, as the estimator's own
+    ``calibrate_images`` would.  A worker that dies fails only the image it was on: the call is
+    redone with crash isolation (:func:`ordered_pool_map`) and the pool restarted.  A stop or an
+    error while waiting kills the workers; :meth:`close` ends them.
+    """
+
+    def __init__(self, estimator, workers: int):
+        self.workers = max(1, int(workers))
+        self.mode = estimator.mode
+        self._portable = _portable_estimator(estimator)
+        self._pool: WorkerPool | None = None
+
+    def calibrate_images(self, images: Sequence, names: Sequence[str], focal_px=None) -> list:
+        """Results of ``images`` (``names`` one each; ``focal_px``: None, one value or one per image)."""
+        focal_list = per_image(focal_px, len(images), "focal_px")
+        items = [(image, name, focal, None) for image, name, focal in zip(images, names, focal_list)]
+        if self._pool is None:
+            self._pool = WorkerPool(self.workers, _init_calibrate_worker, (self._portable,))
+        bounds = np.linspace(0, len(items), min(self.workers, len(items)) + 1).round().astype(int)
+        try:
+            futures = [self._pool.submit(_calibrate_chunk, items[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+            return [result for future in futures for result in future.result()]
+        except (BrokenProcessPool, OSError):
+            self.close()  # one image killed its worker: find it, each image alone
+            return list(ordered_pool_map(_calibrate_chunk, items, 1, self.workers, _init_calibrate_worker,
+                                         (self._portable,), _calibration_crash))
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        if self._pool is not None:
+            _shutdown(self._pool, kill=True)
+            self._pool = None
+
+
 def _ahead_of_search(workers: int, batch_size: int) -> int:
     """Images in flight in detection workers that feed a search in this process: up to two batches,
     so that the workers detect the whole next batch while this one is searched (a queue shorter

@@ -68,6 +68,9 @@ RECORD_KEYS = ("segment", "frame", "name", "time", "age_s", "dropped", "dropped_
                "fused_sigma_roll_deg", "fused_sigma_tilt_deg", "fused_sigma_focal_pct",
                "n_fused", "disagreement", "runtime_s", "reason")
 
+#: The first column of a fleet camera's records (its name).
+CAMERA_KEY = "camera"
+
 #: Statuses of a frame that change the fusion (calibration.json is rewritten after them).
 CHANGES_FUSION = ("fused", "started", "restarted", "held")
 ACCEPTED = ("fused", "started", "restarted")
@@ -137,14 +140,18 @@ class TrackOutput:
     After opening: ``segment`` (this run's), ``start_frame`` (a file's first frame to process),
     ``checkpoint`` (the fusion to continue from, or None), ``resumed``.  ``settings`` (dict) and
     ``mode`` go into calibration.json as given.  ``json_target``: None, ``-`` (standard output) or
-    a path for the JSON lines.
+    a path for the JSON lines.  ``camera``: the camera's name in a fleet (:mod:`fr_torch.video.fleet`):
+    every record then starts with a ``camera`` column (:data:`CAMERA_KEY`) and calibration.json
+    names it; None (one source): the columns are :data:`RECORD_KEYS`.
     """
 
     def __init__(self, folder: Path, source: Source, settings: dict[str, Any], mode: str,
                  json_target: str | None = None, reliability_model: bool = True,
-                 log: Callable[[str], None] = log_line):
+                 log: Callable[[str], None] = log_line, camera: str | None = None):
         self.folder = output_folder(Path(folder), "--out")
         self.source, self.settings, self.mode, self.log = source, settings, mode, log
+        self.camera = camera
+        self.keys = RECORD_KEYS if camera is None else (CAMERA_KEY,) + RECORD_KEYS
         self.reliability_model = reliability_model
         self.records_path = self.folder / RECORDS_FILE
         self.calibration_path = self.folder / CALIBRATION_FILE
@@ -209,7 +216,7 @@ class TrackOutput:
             header = handle.readline().decode("utf-8", "replace").rstrip("\r\n")
         if not header:
             return None
-        if header.split(",") != list(RECORD_KEYS):
+        if header.split(",") != list(self.keys):
             raise FRInputError(f"{path}: its columns are not those of this fr track ({header[:60]}...); use "
                                "another --out")
         lines = tail.splitlines()
@@ -229,7 +236,7 @@ class TrackOutput:
             raise FRInputError(f"cannot write {self.records_path}: {exc.strerror or exc}") from None
         writer = csv.writer(handle, lineterminator="\n")
         if new:
-            writer.writerow(RECORD_KEYS)
+            writer.writerow(self.keys)
             handle.flush()
         return handle, writer
 
@@ -237,8 +244,10 @@ class TrackOutput:
 
     def append(self, record: dict[str, Any]) -> None:
         """Append one record to frames.csv (and the JSON lines), each flushed at once."""
+        if self.camera is not None:
+            record = {CAMERA_KEY: self.camera, **record}
         handle, writer = self._records
-        writer.writerow([_csv_value(record[key]) for key in RECORD_KEYS])
+        writer.writerow([_csv_value(record[key]) for key in self.keys])
         handle.flush()
         if self._json is not None:
             self._json.write(dumps(record) + "\n")
@@ -263,7 +272,8 @@ class TrackOutput:
                    "dropped_share": round(stream.dropped_share, 4), "reconnects": stream.reconnects, "run": run}
         totals = Totals(self.totals.processed, self.totals.accepted, self.totals.rejected,
                         self.totals.arrived + stream.arrived, self.totals.dropped + stream.dropped)
-        summary = {"source": str(self.source), "live": self.source.live, "mode": self.mode,
+        camera = {} if self.camera is None else {CAMERA_KEY: self.camera}
+        summary = {**camera, "source": str(self.source), "live": self.source.live, "mode": self.mode,
                    "reliability_model": self.reliability_model, "settings": self.settings,
                    "run": run, "updated": _now(), "segment": self.segment,
                    **totals.json(), "restarts_at_frames": self.restarts,

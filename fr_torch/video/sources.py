@@ -233,6 +233,11 @@ class FrameStream:
     def __iter__(self) -> Iterator[Frame]:
         raise NotImplementedError
 
+    def ready(self) -> bool:
+        """True when the next frame (or the end) can be taken without waiting for the source:
+        always for files, which are read on demand."""
+        return True
+
     def close(self) -> None:
         pass
 
@@ -423,8 +428,18 @@ class LiveFrames(FrameStream):
     # ------------------------------------------------------------ the consumer
 
     def __iter__(self) -> Iterator[Frame]:
-        self._thread.start()
-        yield from self._take()
+        self.start()
+        return self._take()
+
+    def start(self) -> None:
+        """Start reading (the iteration does; a second call does nothing)."""
+        if self._thread.ident is None:
+            self._thread.start()
+
+    def ready(self) -> bool:
+        """True when a frame waits or the reader has ended."""
+        with self._condition:
+            return bool(self._waiting) or self._ended
 
     def _take(self) -> Iterator[Frame]:
         """The frames the reader leaves, as they come, until it has ended and none is left."""

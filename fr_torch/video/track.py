@@ -18,7 +18,9 @@ The pieces of ``fr track``: frame sources, files and live ones, with real time, 
 reconnection (:mod:`fr_torch.video.sources`); the fusion (:mod:`fr_torch.video.fusion`: rejection
 of unreliable frames, weighted chordal mean of the rotations, log-focal mean, forgetting,
 camera-moved detection and restart of a fusion *epoch*); the outputs written as frames are
-processed, resuming and the figure (:mod:`fr_torch.video.records`).
+processed, resuming and the figure (:mod:`fr_torch.video.records`); many cameras in one process, their
+frames searched together (:mod:`fr_torch.video.fleet`), each fused and recorded by a
+:class:`Tracking` as one source is here.
 """
 from __future__ import annotations
 
@@ -30,9 +32,9 @@ from typing import Callable, Iterator
 
 from fr_torch.runtime.pipeline import calibrate_stream
 from fr_torch.runtime.workers import stops_held
-from fr_torch.video.fusion import OnlineCalibrator
+from fr_torch.video.fusion import FusedState, OnlineCalibrator
 from fr_torch.video.records import CHANGES_FUSION, TrackOutput, frame_record
-from fr_torch.video.sources import FrameStream, limited
+from fr_torch.video.sources import Frame, FrameStream, limited
 
 #: The signal that asks a running ``fr track`` to draw its figure now.
 PLOT_SIGNAL = getattr(signal, "SIGUSR1", None)
@@ -66,15 +68,53 @@ def stop_reason(stop: KeyboardInterrupt) -> str:
     return f"stopped by {signal.Signals(getattr(stop, 'signum', signal.SIGINT)).name}"
 
 
+class Tracking:
+    """One source's fusion and outputs, frame by frame: what :func:`track` does for its source and
+    :func:`fr_torch.video.fleet.track_fleet` for each camera.
+
+    :meth:`begin` writes calibration.json before the first frame; :meth:`fuse` fuses one frame's
+    result and writes its record (appended and flushed) and, when the fusion changed,
+    calibration.json (atomically), without a stop in between
+    (:func:`fr_torch.runtime.workers.stops_held`); :meth:`finish` writes how the run ended and
+    closes the files.  ``say``: where a restart's line goes; ``prefix``: what starts it (``fr track``,
+    or the camera's name after it).
+    """
+
+    def __init__(self, stream: FrameStream, tracker: OnlineCalibrator, output: TrackOutput,
+                 say: Callable[[str], None], prefix: str = "fr track"):
+        self.stream, self.tracker, self.output, self.say, self.prefix = stream, tracker, output, say, prefix
+
+    def begin(self) -> None:
+        self.output.write_calibration(None, self.tracker.checkpoint(), self.stream)
+
+    def fuse(self, frame: Frame, result) -> FusedState:
+        state = self.tracker.update(result, frame.index)
+        record = frame_record(frame, result, state, self.output.segment, self.stream)
+        with stops_held():
+            self.output.append(record)
+            if state.status in CHANGES_FUSION:
+                self.output.write_calibration(state, self.tracker.checkpoint(), self.stream)
+        if state.restarted:
+            self.say(f"{self.prefix}: camera moved at frame {frame.index}: fusion restarted")
+        return state
+
+    def finish(self, run: str) -> None:
+        """calibration.json with the latest fusion and ``run`` (how the run ended); files closed.
+        The stream is closed first (its counters are final)."""
+        self.stream.close()
+        with stops_held():
+            self.output.write_calibration(None, self.tracker.checkpoint(), self.stream, run)
+            self.output.close()
+
+
 def track(stream: FrameStream, estimator, tracker: OnlineCalibrator, output: TrackOutput, batch_size: int = 8,
           workers: int = 0, max_frames: int | None = None, progress=None, title: str = "") -> str:
     """Calibrate, fuse and record the frames of ``stream`` until it ends (or ``max_frames``
     frames); returns how the run ended (``ended: ...``), as calibration.json's ``run`` says.
 
     Each frame's record is appended and flushed as soon as its result is fused, and
-    calibration.json is rewritten whenever the fusion changes (:mod:`fr_torch.video.records`),
-    both without a stop in between (:func:`fr_torch.runtime.workers.stops_held`).  A live source in
-    real time is searched one frame at a time (``batch_size`` 1; with ``workers``, one frame per
+    calibration.json is rewritten whenever the fusion changes (:class:`Tracking`).  A live source
+    in real time is searched one frame at a time (``batch_size`` 1; with ``workers``, one frame per
     worker), so that the frame searched is always the newest.  A stop (``KeyboardInterrupt``:
     CTRL-C, or SIGTERM / SIGHUP made :class:`~fr_torch.runtime.workers.Stopped`) or an error ends
     the run the same way -- calibration.json gets the latest fusion and ``run`` says why, the
@@ -91,24 +131,16 @@ def track(stream: FrameStream, estimator, tracker: OnlineCalibrator, output: Tra
             waiting.append(frame)
             yield frame.image, frame.name
 
-    say = progress.write if progress is not None else output.log
+    tracking = Tracking(stream, tracker, output, progress.write if progress is not None else output.log)
     run = "error"
-    output.write_calibration(None, tracker.checkpoint(), stream)
+    tracking.begin()
     try:
         with plot_requests() as plot_requested:
             results = calibrate_stream(estimator, pairs(), batch_size, workers,
                                        in_flight=workers if realtime and workers else None)
             try:
                 for result in results:
-                    frame = waiting.popleft()
-                    state = tracker.update(result, frame.index)
-                    record = frame_record(frame, result, state, output.segment, stream)
-                    with stops_held():
-                        output.append(record)
-                        if state.status in CHANGES_FUSION:
-                            output.write_calibration(state, tracker.checkpoint(), stream)
-                    if state.restarted:
-                        say(f"fr track: camera moved at frame {frame.index}: fusion restarted")
+                    tracking.fuse(waiting.popleft(), result)
                     if progress is not None:
                         progress.update(1)
                     if plot_requested():
@@ -124,9 +156,6 @@ def track(stream: FrameStream, estimator, tracker: OnlineCalibrator, output: Tra
         run = f"error: {type(exc).__name__}: {exc}"
         raise
     finally:
-        stream.close()
-        with stops_held():
-            output.write_calibration(None, tracker.checkpoint(), stream, run)
-            output.close()
+        tracking.finish(run)
         output.plot(title)
     return run
