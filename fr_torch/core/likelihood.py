@@ -76,8 +76,9 @@ from fr_torch.core.camera import (
     focal_from_hfov,
     vanishing_points,
 )
+from fr_torch.core import native
 from fr_torch.core.config import Mode
-from fr_torch.core.exact import angle_of, angle_of_, dot3, exact_sum, small_sum, top_indices
+from fr_torch.core.exact import angle_of, angle_of_, dot3, exact_sum, fixed_point_scale, small_sum, top_indices
 from fr_torch.core.fov import FOV_LIMITS_DEG, FovRange
 from fr_torch.core.segments import SegmentBatch
 from fr_torch.resources import config_dir
@@ -324,8 +325,12 @@ class SegmentFeatures:
 
     def total_length(self) -> torch.Tensor:
         """(B,) float64 total segment length per image, pixels (an exact sum: the same bits in any
-        batch, :func:`fr_torch.core.exact.exact_sum`)."""
-        return exact_sum(self.weight, 1)
+        batch, :func:`fr_torch.core.exact.exact_sum`); computed once per object (the search asks
+        for it at every step), so the tensors must not change in place afterwards."""
+        cached = self.__dict__.get("_total_length")
+        if cached is None or cached.device != self.weight.device or cached.shape[0] != self.weight.shape[0]:
+            cached = self.__dict__["_total_length"] = exact_sum(self.weight, 1)
+        return cached
 
     def longest(self, count: int) -> "SegmentFeatures":
         """The ``count`` longest segments of each image (B, min(count, N), ...); padding stays last
@@ -563,7 +568,7 @@ class MixtureLikelihood:
         without a prior), in objective units per (log f)^2, directly comparable with the curvature
         of the length-weighted likelihood."""
         params = self.params
-        total_length = exact_sum(features.weight, -1).to(features.weight)  # W, the same in any batch
+        total_length = features.total_length().to(features.weight)  # W, the same in any batch
         evidence = total_length + params.focal_prior_pseudo_length * features.long_side  # W + W0
         return params.focal_prior_weight * evidence
 
@@ -614,6 +619,11 @@ class MixtureLikelihood:
         bound = _log_sum_bound(features.weight, self._b_constants(features.weight)[-1]) \
             if self._fast_path(features) else None
         return exact_sum(log_p, 1, bound=bound, weight=features.weight[:, :, None])
+
+    def stores_no_deviations(self, features: SegmentFeatures) -> bool:
+        """True when scoring without gradients runs the fused kernel (:mod:`fr_torch.core.native`),
+        which keeps no per-segment deviations: the grid needs no chunking for memory then."""
+        return self._fast_path(features) and not self.compiled and _native_ok(features.weight)
 
     def _fast_path(self, features: SegmentFeatures) -> bool:
         return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in _EXP_FLOOR
@@ -690,7 +700,8 @@ def _take(workspace: dict | None, name: str, shape, like: torch.Tensor) -> torch
 
 
 def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound,
-                       workspace: dict | None = None, vertical_block: int = 1, per_segment: bool = False) -> torch.Tensor:
+                       workspace: dict | None = None, vertical_block: int = 1, per_segment: bool = False,
+                       fused: bool = True) -> torch.Tensor:
     """Measure-b objective (B, H) float64 for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd;
     with ``per_segment`` each segment's log p_i instead, (B, N, H) in the segments' dtype (a view of
     the ``workspace`` buffer when one is given).
@@ -705,11 +716,19 @@ def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, backgr
     ``vertical_block`` = k > 1: runs of k consecutive hypotheses share the vertical VP (column
     ``VERTICAL_AXIS``), so only every k-th one is scored and added to its run: (2 + 1/k) H VP
     columns instead of 3 H, the same sums bit for bit.  H must be a multiple of k.
+
+    ``fused``: the objective of float32 CPU tensors comes from the fused kernel of
+    :mod:`fr_torch.core.native` where it is available (the same bits, the deviations never stored);
+    False always takes the torch path written here, the reference the kernel is checked against.
     """
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
     if vertical_block > 1 and hyp % vertical_block:
         raise ValueError(f"vertical_block {vertical_block} does not divide the {hyp} hypotheses")
+    if fused and not per_segment and vertical_block <= native.TILE and _native_ok(weight):
+        factor, scale = _sum_grid(weight, log_bound)
+        return native.measure_b_scores(line_along, factor, scale, flat, neg_inv_scale, log_coef, background, floor,
+                                       VERTICAL_AXIS, vertical_block)
     block = max(1, vertical_block)
     columns = flat.view(batch, 3, 3, hyp)
     h_cols = _without_vertical(columns, 2).reshape(batch, 3, 2 * hyp)
@@ -724,6 +743,20 @@ def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, backgr
     if per_segment:
         return p
     return exact_sum(p, 1, bound=_log_sum_bound(weight, log_bound), weight=weight[:, :, None])
+
+
+def _native_ok(weight: torch.Tensor) -> bool:
+    """Whether segments of ``weight``'s dtype and device take the fused kernels (:mod:`fr_torch.core.native`)."""
+    return weight.dtype == torch.float32 and weight.device.type == "cpu" and native.available()
+
+
+def _sum_grid(weight: torch.Tensor, log_bound: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fixed-point grid of the objective's exact sum over segments, as
+    :func:`fr_torch.core.exact.exact_sum` forms it from the bound :func:`_log_sum_bound`: each
+    segment's factor ``weight * scale`` (B, N) in ``weight``'s dtype and the scale (B,) float64."""
+    scale = fixed_point_scale(_log_sum_bound(weight, log_bound))  # (B, 1, 1)
+    factor = weight[:, :, None] * scale.to(weight.dtype)
+    return factor[..., 0], scale.view(-1)
 
 
 def _log_sum_bound(weight: torch.Tensor, log_bound: float) -> torch.Tensor:
@@ -818,6 +851,22 @@ def measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, backgro
     p = _family_sum(e, 2).add_(background)
     objective = exact_sum(torch.log(p), 1, bound=_log_sum_bound(weight, log_bound), weight=weight[:, :, None])
     return objective, (line_along, weight, s, t, e, p, neg_inv_scale)
+
+
+def measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out, fused: bool = True):
+    """Measure-b objective (B, H) float64 and its gradient with respect to the VP-major vanishing
+    points ``flat`` (B, 3, 3H), float64, for the upstream gradient ``grad_out`` (broadcastable to
+    (B, H)): :func:`measure_b_forward` then :func:`measure_b_backward`, or for float32 CPU tensors
+    the fused kernel of :mod:`fr_torch.core.native` (the same bits in one pass; ``fused`` = False
+    always takes the torch path).  ``constants``: :meth:`MixtureLikelihood._b_constants`."""
+    batch, hyp = weight.shape[0], flat.shape[2] // 3
+    if fused and _native_ok(weight):
+        neg_inv_scale, log_coef, background, floor, log_bound = constants
+        factor, scale = _sum_grid(weight, log_bound)
+        return native.measure_b_grad(line_along, weight, factor, scale, flat, neg_inv_scale, log_coef, background,
+                                     floor, VERTICAL_AXIS, grad_out.to(weight.dtype))
+    objective, saved = measure_b_forward(line_along, weight, flat, *constants)
+    return objective, measure_b_backward(saved, grad_out.to(weight.dtype).expand(batch, hyp).contiguous())
 
 
 def measure_b_backward(saved, grad_out, flat: torch.Tensor | None = None):

@@ -49,6 +49,7 @@ from fr_torch.core.likelihood import (
     compiled_call,
     measure_b_backward,
     measure_b_forward,
+    measure_b_objective_and_grad,
     vp_major,
 )
 from fr_torch.core.params import (
@@ -394,6 +395,8 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
     # CPU: a cache-sized chunk per intra-op thread.  A fixed 2^17 chunk capped every op at 4 threads
     # (torch's GRAIN_SIZE 2^15 elements per thread), so more cores did not help.
     cpu_budget = CPU_CHUNK_ELEMENTS * max(1, torch.get_num_threads())
+    if likelihood.stores_no_deviations(features):  # the fused kernel: no deviations to bound
+        cpu_budget = max_chunk_elements
     budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, cpu_budget))
     per_hypothesis = n_seg * 3
     hyp_chunk = max(1, min(count, budget // per_hypothesis))
@@ -617,8 +620,8 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     vps = torch.cat([top, rotation[..., 2:, :]], -2)  # (B, L, 3, 3)
     constants = likelihood._b_constants(features.weight)
     if geometry is None:
-        objective, saved = measure_b_forward(features.line_along, features.weight, vp_major(vps), *constants)
-        grad_flat = measure_b_backward(saved, grad_out.expand(batch, n_hyp).contiguous())
+        objective, grad_flat = measure_b_objective_and_grad(features.line_along, features.weight, vp_major(vps),
+                                                            constants, grad_out)
         grad_v = grad_flat.view(batch, 3, 3, n_hyp).permute(0, 3, 1, 2)  # (B, L, coord, VP)
     else:
         flat = vp_major(vps.reshape(batch * n_hyp, 1, 3, 3))  # (B * L, 3, 3): one hypothesis per virtual image

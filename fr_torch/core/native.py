@@ -1,0 +1,250 @@
+"""Fused CPU kernels, built on first use: the measure-b grid score in one pass.
+
+:func:`measure_b_scores` computes :func:`fr_torch.core.likelihood.objective_b_nograd`'s objective
+(B, H) float64 bit for bit, without storing the (B, 2N, 3H) deviations: ``native/measure_b.c``
+scores a tile of hypotheses one segment at a time in buffers that stay in the L1 cache, with
+the same float32 operations in the same order as the torch path, ``atan`` / ``exp`` / ``log`` from
+the same MKL VML routines torch's CPU kernels call, and the exact fixed-point sum over segments
+(:func:`fr_torch.core.exact.exact_sum`: every order of the integer additions gives the same sum).
+
+Building and trusting it:
+
+* The C file is compiled once per machine with the system's C compiler (``cc``, ``-O3
+  -ffp-contract=off``, no fast math: every product and sum rounded once, as torch's) into
+  ``$FR_NATIVE_CACHE`` (default ``~/.cache/fr_torch/native``), named by a hash of the source, the
+  flags and the torch version; about a second.  Later processes load the cached library.
+* Before first use in a process the kernel is checked against the torch path on random segments
+  and vanishing points (VPs at infinity, segments through a VP, both ``vertical_block`` forms);
+  one differing bit and it is not used.
+* Without a C compiler, without MKL in torch (torch's ``atan`` / ``exp`` / ``log`` are then other
+  routines), with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False and the
+  torch path runs: the same bits, slower.  ``tests/test_reproducibility.py`` runs both paths.
+
+Threads: the work items (image, tile of 128 hypotheses) are split into ``torch.get_num_threads()``
+contiguous ranges, each scored by one call from a Python thread (ctypes releases the GIL); every
+item's result is its own, so the split cannot change a bit.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import torch
+
+SOURCE = Path(__file__).with_name("native") / "measure_b.c"
+FLAGS = ("-O3", "-ffp-contract=off", "-fno-fast-math", "-fPIC", "-shared")
+TILE = 256  # at most this many hypotheses per work item: measure_b.c's TILE
+
+_state: dict = {}
+_lock = threading.Lock()
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("FR_NATIVE_CACHE")
+    if root:
+        return Path(root)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "fr_torch" / "native"
+
+
+def _torch_cpu_library() -> ctypes.CDLL | None:
+    """torch's own CPU library (already loaded by ``import torch``), whose MKL VML entry points
+    (``vsAtan``, ``vsExp``, ``vsLn``) torch's float32 ``atan`` / ``exp`` / ``log`` call."""
+    folder = Path(torch.__file__).parent / "lib"
+    for name in ("libtorch_cpu.so", "libtorch_cpu.dylib"):
+        if (folder / name).is_file():
+            try:
+                return ctypes.CDLL(str(folder / name))
+            except OSError:
+                return None
+    return None
+
+
+def _build() -> Path:
+    """The compiled library, built into the cache when not already there."""
+    source = SOURCE.read_bytes()
+    compiler = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        raise RuntimeError("no C compiler")
+    key = hashlib.sha256(source + " ".join(FLAGS).encode() + torch.__version__.encode()
+                         + compiler.encode()).hexdigest()[:16]
+    target = _cache_dir() / f"measure_b-{key}.so"
+    if target.is_file():
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+        built = Path(tmp) / target.name
+        subprocess.run([compiler, *FLAGS, "-o", str(built), str(SOURCE), "-lm"], check=True,
+                       capture_output=True, timeout=120)
+        os.replace(built, target)  # atomic: concurrent builders leave one complete file
+    return target
+
+
+def _load():
+    if not torch.backends.mkl.is_available():
+        raise RuntimeError("torch without MKL: its atan / exp / log are not the routines this kernel calls")
+    torch_cpu = _torch_cpu_library()
+    if torch_cpu is None:
+        raise RuntimeError("torch's CPU library not found")
+    vml = [ctypes.cast(getattr(torch_cpu, name), ctypes.c_void_p).value for name in ("vsAtan", "vsExp", "vsLn")]
+    library = ctypes.CDLL(str(_build()))
+    scores = library.fr_measure_b_scores
+    scores.restype = None
+    scores.argtypes = ([ctypes.c_int64] * 8 + [ctypes.c_void_p] * 5 + [ctypes.c_float] * 2
+                       + [ctypes.c_void_p] * 4)
+    grad = library.fr_measure_b_grad
+    grad.restype = ctypes.c_int
+    grad.argtypes = ([ctypes.c_int64] * 5 + [ctypes.c_void_p] * 6 + [ctypes.c_float] * 2
+                     + [ctypes.c_void_p] * 6)
+    return {"scores": scores, "grad": grad}, vml
+
+
+def available() -> bool:
+    """True when the fused kernel is built, loaded and checked in this process (the first call
+    does that; module docstring).  ``FR_NATIVE=0`` turns it off."""
+    if os.environ.get("FR_NATIVE", "1") == "0":
+        return False
+    if "ok" not in _state:
+        with _lock:
+            if "ok" not in _state:
+                try:
+                    _state["functions"], _state["vml"] = _load()
+                    _state["ok"] = True
+                    _state["ok"] = _self_check()
+                    if not _state["ok"]:
+                        warnings.warn("fR: the fused CPU kernel does not reproduce the torch path here; "
+                                      "running without it", RuntimeWarning, stacklevel=2)
+                except Exception as exc:  # no compiler, no MKL symbols, a failed build: the torch path
+                    _state["ok"] = False
+                    _state["error"] = f"{type(exc).__name__}: {exc}"
+    return _state["ok"]
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    pool = _state.get("pool")
+    if pool is None or _state.get("pool_threads") != threads:
+        if pool is not None:
+            pool.shutdown(wait=False)
+        pool = _state["pool"] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="fr-native")
+        _state["pool_threads"] = threads
+    return pool
+
+
+def measure_b_scores(line_along: torch.Tensor, factor: torch.Tensor, scale: torch.Tensor, flat: torch.Tensor,
+                     neg_inv_scale: torch.Tensor, log_coef: torch.Tensor, background: float, floor: float,
+                     vertical_axis: int, vertical_block: int = 1) -> torch.Tensor:
+    """Measure-b objective (B, H) float64 (:func:`fr_torch.core.likelihood.objective_b_nograd`'s,
+    bit for bit) in one fused pass; call only when :func:`available`.
+
+    ``line_along`` (B, 2N, 3) float32; ``factor`` (B, N) float32 and ``scale`` (B,) float64 the
+    exact sum's weight times scale and scale (:func:`fr_torch.core.exact.exact_sum`); ``flat``
+    (B, 3, 3H) float32 VP-major vanishing points; ``neg_inv_scale``, ``log_coef`` (3, 1) float32;
+    ``background`` the background density and ``floor`` the exponent floor (as float32);
+    ``vertical_block`` as in ``objective_b_nograd`` (must divide H).
+    """
+    function, vml = _state["functions"]["scores"], _state["vml"]
+    batch, n_seg = factor.shape
+    hyp = flat.shape[2] // 3
+    line_along = line_along.contiguous()
+    factor = factor.contiguous()
+    scale = scale.to(torch.float64).contiguous()
+    flat = flat.contiguous()
+    coef = torch.stack([neg_inv_scale.reshape(3), log_coef.reshape(3)], 1).to(torch.float32).contiguous()
+    out = torch.empty(batch, hyp, dtype=torch.float64)
+    if not 1 <= vertical_block <= TILE or hyp % vertical_block:
+        raise ValueError(f"vertical_block {vertical_block} must divide the {hyp} hypotheses (and be <= {TILE})")
+    tile = TILE - TILE % vertical_block  # whole runs of the vertical VP
+    tiles = -(-hyp // tile)
+    items = batch * tiles
+
+    def run(first: int, last: int) -> None:
+        function(first, last, tiles, tile, n_seg, hyp, vertical_block, vertical_axis,
+                 line_along.data_ptr(), factor.data_ptr(), scale.data_ptr(), flat.data_ptr(), coef.data_ptr(),
+                 background, floor, *vml, out.data_ptr())
+
+    _in_threads(run, items)
+    return out
+
+
+def _in_threads(run, items: int) -> None:
+    """``run(first, last)`` over ``items`` work items, split into contiguous ranges over
+    ``torch.get_num_threads()`` threads (ctypes calls release the GIL)."""
+    threads = max(1, min(torch.get_num_threads(), items))
+    if threads == 1:
+        run(0, items)
+        return
+    bounds = [items * k // threads for k in range(threads + 1)]
+    for future in [_pool(threads).submit(run, bounds[k], bounds[k + 1]) for k in range(threads)]:
+        future.result()
+
+
+def measure_b_grad(line_along: torch.Tensor, weight: torch.Tensor, factor: torch.Tensor, scale: torch.Tensor,
+                   flat: torch.Tensor, neg_inv_scale: torch.Tensor, log_coef: torch.Tensor, background: float,
+                   floor: float, vertical_axis: int, grad_out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The refinement's measure-b objective (B, H) float64 and its gradient with respect to the
+    VP-major vanishing points, (B, 3, 3H) float64, for the upstream gradient ``grad_out`` (B, H):
+    :func:`fr_torch.core.likelihood.measure_b_forward` then ``measure_b_backward``, bit for bit, in
+    one pass per image; call only when :func:`available`.  Arguments as for
+    :func:`measure_b_scores`, plus ``weight`` (B, N) float32."""
+    function, vml = _state["functions"]["grad"], _state["vml"]
+    batch, n_seg = weight.shape
+    hyp = flat.shape[2] // 3
+    line_along, weight, factor = line_along.contiguous(), weight.contiguous(), factor.contiguous()
+    scale = scale.to(torch.float64).contiguous()
+    flat = flat.contiguous()
+    grad_out = grad_out.to(torch.float32).expand(batch, hyp).contiguous()
+    coef = torch.stack([neg_inv_scale.reshape(3), log_coef.reshape(3)], 1).to(torch.float32).contiguous()
+    objective = torch.empty(batch, hyp, dtype=torch.float64)
+    grad = torch.empty(batch, 3, 3 * hyp, dtype=torch.float64)
+
+    def run(first: int, last: int) -> None:
+        if function(first, last, n_seg, hyp, vertical_axis, line_along.data_ptr(), weight.data_ptr(),
+                    factor.data_ptr(), scale.data_ptr(), flat.data_ptr(), coef.data_ptr(), background, floor,
+                    grad_out.data_ptr(), *vml, objective.data_ptr(), grad.data_ptr()):
+            raise MemoryError("fr_measure_b_grad: out of memory")
+
+    _in_threads(run, batch)
+    return objective, grad
+
+
+def _self_check() -> bool:
+    """The kernels against the torch path on random scenes (segments through a VP, VPs at
+    infinity, no segments, ``vertical_block`` 1 to 3): True when every score, objective and
+    gradient has the same bits."""
+    from fr_torch.core.camera import vanishing_points
+    from fr_torch.core.likelihood import MixtureLikelihood, measure_b_objective_and_grad, objective_b_nograd, vp_major
+    from fr_torch.core.params import rotations
+
+    generator = torch.Generator().manual_seed(60)
+    constants = MixtureLikelihood()._b_constants(torch.zeros(1))
+    for batch, n_seg, hyp, block in ((2, 37, 130, 1), (1, 5, 9, 3), (3, 64, 261, 3), (2, 0, 4, 2), (4, 50, 8, 1)):
+        line = torch.randn(batch, n_seg, 3, generator=generator)
+        line[..., :2] /= line[..., :2].norm(dim=-1, keepdim=True)
+        along = torch.randn(batch, n_seg, 3, generator=generator) * 300
+        along[:, :3] = 0.0  # t = 0: s / t infinite
+        line[:, 3:4] = 0.0  # with t = 0 too: s / t = 0 / 0
+        along[:, 3:4] = 0.0
+        line_along = torch.cat([line, along], 1)
+        weight = torch.rand(batch, n_seg, generator=generator) * 100
+        angles = torch.rand(batch, hyp, 3, generator=generator) * 90 - 45
+        focal = 300 + 2000 * torch.rand(batch, hyp, 1, generator=generator)
+        params = torch.cat([angles, focal], -1)
+        flat = vp_major(vanishing_points(params[..., 3], torch.full((batch, 1, 2), 320.0), rotations(params)))
+        flat[0, 2, :hyp] = 0.0  # VPs at infinity
+        expected = objective_b_nograd(line_along, weight, flat, *constants, vertical_block=block, fused=False)
+        got = objective_b_nograd(line_along, weight, flat, *constants, vertical_block=block)
+        grad_out = -1.0 / (1.0 + torch.rand(batch, 1, generator=generator) * 1000)
+        expected_pair = measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out, fused=False)
+        got_pair = measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out)
+        for a, b in ((expected, got), *zip(expected_pair, got_pair)):
+            if not torch.equal(a.view(torch.int64), b.view(torch.int64)):
+                return False
+    return True
