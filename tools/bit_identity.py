@@ -2,7 +2,9 @@
 
 ``python tools/bit_identity.py save out.npz`` / ``... compare out.npz``: YUD train photos (LSD
 segments, detected once and cached next to the output) and synthetic scenes, calibrated in one batch
-and one by one, in both modes; ``compare`` prints every field that differs in a single bit (exit 1).
+and one by one, in both modes, and in one batch with the division model's lens search
+(``distortion="division"``); ``compare`` prints every field that differs in a single bit (exit 1).
+Save with one checkout (``PYTHONPATH=<it>``), compare with another.
 ``--photos``, ``--synthetic``: how many of each.
 """
 from __future__ import annotations
@@ -61,6 +63,10 @@ def run(segments, sizes) -> dict:
         for i in range(len(segments)):
             [result] = estimator.calibrate_segments([segments[i]], [sizes[i]])
             flatten(f"{mode}/single/{i}", result, out)
+    for mode in ("fast", "fr"):  # the lens searched too (the division model's k), one batch
+        batched = FREstimator(mode=mode, distortion="division").calibrate_segments(segments, sizes)
+        for i, result in enumerate(batched):
+            flatten(f"{mode}-division/batch/{i}", result, out)
     return out
 
 

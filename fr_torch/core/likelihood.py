@@ -46,6 +46,13 @@ density (>= 0.019 for measure b), which it cannot change in float32 or float64, 
 is unchanged bit for bit whenever the background prior exceeds ~1e-28.  ``atan2(0, 0) = 0`` as in
 the generic path (and the gradient there is 0, as the generic path's guard gives).
 
+Fused CPU kernels (float32 on a CPU, where they build: :mod:`fr_torch.core.native`): the grid's
+scores (:func:`objective_b_nograd`) and the refinement's objective with its gradient
+(:func:`measure_b_objective_and_grad`) run as one C pass each, which never stores the per-segment
+deviations and keeps the exact sums' integers in registers; the same operations in the same
+order as the torch code here, which stays the reference (``fused=False``) and the path of every
+other device, dtype and machine: the same bits either way.
+
 One photo, one answer: s and t are written out per entry (:func:`incidence`, no matrix product),
 the angle is ``atan(|s / t|)``, the families are added in one order on every path
 (:func:`_family_sum`) and every sum over segments is exact
