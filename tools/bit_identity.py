@@ -86,16 +86,17 @@ def main() -> None:
         print(f"saved {len(out)} fields of {len(segments)} images")
         return
     ref = np.load(args.path)
-    bad = [k for k in sorted(set(ref.files) | set(out))
-           if k not in ref.files or k not in out
-           or ref[k].shape != out[k].shape
+    unmatched = sorted(set(ref.files) ^ set(out))
+    if unmatched:
+        print(f"{len(unmatched)} fields only on one side (another version of this script?), e.g. {unmatched[0]}")
+    bad = [k for k in sorted(set(ref.files) & set(out))
+           if ref[k].shape != out[k].shape
            or (ref[k].dtype.kind in "fc" and ref[k].tobytes() != np.asarray(out[k], dtype=ref[k].dtype).tobytes())
            or (ref[k].dtype.kind not in "fc" and not np.array_equal(ref[k], out[k]))]
-    print(f"compared {len(ref.files)} fields of {len(segments)} images x 2 modes x (batch, single): "
-          f"{len(bad)} differ")
+    print(f"compared {len(set(ref.files) & set(out))} fields of {len(segments)} images: {len(bad)} differ")
     for k in bad[:30]:
-        print("  ", k, ref[k] if k in ref.files else None, out.get(k))
-    sys.exit(1 if bad else 0)
+        print("  ", k, ref[k], out[k])
+    sys.exit(1 if bad or unmatched else 0)
 
 
 if __name__ == "__main__":

@@ -21,9 +21,10 @@ Building and trusting it:
   routines), with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False and the
   torch path runs: the same bits, slower.  ``tests/test_reproducibility.py`` runs both paths.
 
-Threads: the work items (image, tile of 128 hypotheses) are split into ``torch.get_num_threads()``
-contiguous ranges, each scored by one call from a Python thread (ctypes releases the GIL); every
-item's result is its own, so the split cannot change a bit.
+Threads: the work items (image, tile of up to 256 hypotheses; an image for the gradient) are split
+into ``torch.get_num_threads()`` contiguous ranges, each scored by one call from a worker thread
+with MKL single-threaded (ctypes releases the GIL); every item's result is its own, so the split
+cannot change a bit.
 """
 from __future__ import annotations
 
@@ -115,6 +116,8 @@ def _load():
     if torch_cpu is None:
         raise RuntimeError("torch's CPU library not found")
     vml = [ctypes.cast(getattr(torch_cpu, name), ctypes.c_void_p).value for name in ("vsAtan", "vsExp", "vsLn")]
+    _state["mkl_threads"] = torch_cpu.MKL_Set_Num_Threads_Local  # MKL's thread count in the calling thread (C API)
+    _state["mkl_threads"].argtypes, _state["mkl_threads"].restype = [ctypes.c_int], ctypes.c_int
     library = ctypes.CDLL(str(_build()))
     scores = library.fr_measure_b_scores
     scores.restype = None
@@ -148,13 +151,17 @@ def available() -> bool:
     return _state["ok"]
 
 
-def _pool(threads: int) -> ThreadPoolExecutor:
+def _pool() -> ThreadPoolExecutor:
+    """The kernels' worker threads (one per core at most, started on demand), each with MKL
+    single-threaded: the kernels' MKL calls are short, and MKL's own threads for each of them (its
+    default outside torch's parallel regions) cost several times the work.  Only these threads get
+    that setting; torch's keep theirs."""
     pool = _state.get("pool")
-    if pool is None or _state.get("pool_threads") != threads:
-        if pool is not None:
-            pool.shutdown(wait=False)
-        pool = _state["pool"] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="fr-native")
-        _state["pool_threads"] = threads
+    if pool is None:
+        set_mkl_threads = _state["mkl_threads"]
+        pool = _state["pool"] = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1),
+                                                   thread_name_prefix="fr-native",
+                                                   initializer=lambda: set_mkl_threads(1))
     return pool
 
 
@@ -196,13 +203,11 @@ def measure_b_scores(line_along: torch.Tensor, factor: torch.Tensor, scale: torc
 
 def _in_threads(run, items: int) -> None:
     """``run(first, last)`` over ``items`` work items, split into contiguous ranges over
-    ``torch.get_num_threads()`` threads (ctypes calls release the GIL)."""
+    ``torch.get_num_threads()`` of the kernels' threads (:func:`_pool`; ctypes calls release the
+    GIL), one range even for one thread (the calling thread's MKL may be multi-threaded)."""
     threads = max(1, min(torch.get_num_threads(), items))
-    if threads == 1:
-        run(0, items)
-        return
     bounds = [items * k // threads for k in range(threads + 1)]
-    for future in [_pool(threads).submit(run, bounds[k], bounds[k + 1]) for k in range(threads)]:
+    for future in [_pool().submit(run, bounds[k], bounds[k + 1]) for k in range(threads)]:
         future.result()
 
 
