@@ -157,11 +157,12 @@ def _pool() -> ThreadPoolExecutor:
     default outside torch's parallel regions) cost several times the work.  Only these threads get
     that setting; torch's keep theirs."""
     pool = _state.get("pool")
-    if pool is None:
+    if pool is None or _state.get("pool_pid") != os.getpid():  # a forked child has none of its parent's threads
         set_mkl_threads = _state["mkl_threads"]
         pool = _state["pool"] = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1),
                                                    thread_name_prefix="fr-native",
                                                    initializer=lambda: set_mkl_threads(1))
+        _state["pool_pid"] = os.getpid()
     return pool
 
 
