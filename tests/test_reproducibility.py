@@ -173,14 +173,14 @@ def test_the_fused_kernels_check_themselves_against_the_torch_path():
     """Where the kernels build (a C compiler, torch with MKL), their first-use check passed; the
     grid's scores and the refinement's gradient equal the torch path's on a scene bit for bit."""
     from fr_torch.core import native
-    from fr_torch.core.likelihood import (MixtureLikelihood, SegmentFeatures, measure_b_objective_and_grad,
-                                          objective_b_nograd, vp_major)
+    from fr_torch.core.likelihood import (MixtureLikelihood, SegmentFeatures, kernels_match_torch,
+                                          measure_b_objective_and_grad, objective_b_nograd, vp_major)
     from fr_torch.core.camera import vanishing_points
     from fr_torch.core.params import rotations
 
     if not native.available():
         pytest.skip(f"fused kernels unavailable here ({native._state.get('error', 'FR_NATIVE=0')})")
-    assert native._self_check()
+    assert kernels_match_torch()
     segments, size = _photos()[0]
     features = SegmentFeatures.from_endpoints(torch.as_tensor(segments, dtype=torch.float32)[None], None,
                                               torch.tensor([[size[0] / 2, size[1] / 2]]))

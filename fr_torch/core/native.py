@@ -14,8 +14,9 @@ Building and trusting it:
   ``-mavx2`` on a CPU with AVX2) into ``$FR_NATIVE_CACHE`` (default ``~/.cache/fr_torch/native``),
   named by a hash of the source, the flags, the compiler and the torch version: about 1 s, once.
   Later processes load the cached library.
-* Before first use in a process the kernel is checked against the torch path on random segments
-  and vanishing points (VPs at infinity, segments through a VP, both ``vertical_block`` forms);
+* Before first use in a process the kernels are checked against the torch path on random segments
+  and vanishing points (:func:`fr_torch.core.likelihood.kernels_match_torch`, registered by that
+  module through :func:`register_check`);
   one differing bit and it is not used.
 * Without a C compiler, without MKL in torch (torch's ``atan`` / ``exp`` / ``log`` are then other
   routines), with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False and the
@@ -130,10 +131,17 @@ def _load():
     return {"scores": scores, "grad": grad}, vml
 
 
+def register_check(check) -> None:
+    """The test every process runs before trusting the kernels: ``check()`` -> True when they give
+    the torch path's bits (:func:`fr_torch.core.likelihood.kernels_match_torch`, registered when
+    that module loads; without one the kernels are not used)."""
+    _state["check"] = check
+
+
 def available() -> bool:
     """True when the fused kernel is built, loaded and checked in this process (the first call
     does that; module docstring).  ``FR_NATIVE=0`` turns it off."""
-    if os.environ.get("FR_NATIVE", "1") == "0":
+    if os.environ.get("FR_NATIVE", "1") == "0" or "check" not in _state:  # the check comes with likelihood.py
         return False
     if "ok" not in _state:
         with _lock:
@@ -141,7 +149,7 @@ def available() -> bool:
                 try:
                     _state["functions"], _state["vml"] = _load()
                     _state["ok"] = True
-                    _state["ok"] = _self_check()
+                    _state["ok"] = bool(_state["check"]())
                     if not _state["ok"]:
                         warnings.warn("fR: the fused CPU kernel does not reproduce the torch path here; "
                                       "running without it", RuntimeWarning, stacklevel=2)
@@ -239,33 +247,3 @@ def measure_b_grad(line_along: torch.Tensor, weight: torch.Tensor, factor: torch
 
     _in_threads(run, batch)
     return objective, grad
-
-
-def _self_check() -> bool:
-    """The kernels against the torch path on random scenes (segments through a VP, VPs at
-    infinity, no segments, several tiles and MKL calls, ``vertical_block`` 1 to 3): True when every
-    score, objective and gradient has the same bits (about 0.1 s, once per process)."""
-    from fr_torch.core.likelihood import MixtureLikelihood, measure_b_objective_and_grad, objective_b_nograd
-
-    generator = torch.Generator().manual_seed(60)
-    constants = MixtureLikelihood()._b_constants(torch.zeros(1))
-    for batch, n_seg, hyp, block in ((2, 37, 10, 1), (1, 5, 9, 3), (2, 300, 6, 3), (1, 12, 300, 3), (2, 0, 4, 2)):
-        line = torch.randn(batch, n_seg, 3, generator=generator)
-        line[..., :2] /= line[..., :2].norm(dim=-1, keepdim=True)
-        along = torch.randn(batch, n_seg, 3, generator=generator) * 300
-        along[:, :3] = 0.0  # t = 0: s / t infinite
-        line[:, 3:4] = 0.0  # with t = 0 too: s / t = 0 / 0
-        along[:, 3:4] = 0.0
-        line_along = torch.cat([line, along], 1)
-        weight = torch.rand(batch, n_seg, generator=generator) * 100
-        flat = torch.randn(batch, 3, 3 * hyp, generator=generator) * torch.tensor([[400.0], [400.0], [1.0]])
-        flat[0, 2, :hyp] = 0.0  # VPs at infinity
-        expected = objective_b_nograd(line_along, weight, flat, *constants, vertical_block=block, fused=False)
-        got = objective_b_nograd(line_along, weight, flat, *constants, vertical_block=block)
-        grad_out = -1.0 / (1.0 + torch.rand(batch, 1, generator=generator) * 1000)
-        expected_pair = measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out, fused=False)
-        got_pair = measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out)
-        for a, b in ((expected, got), *zip(expected_pair, got_pair)):
-            if not torch.equal(a.view(torch.int64), b.view(torch.int64)):
-                return False
-    return True
