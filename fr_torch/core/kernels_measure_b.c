@@ -1,12 +1,14 @@
-/* Fused measure-b scoring: fr_torch/core/native.py builds, checks and calls this file.
+/* Fused measure-b scoring (fr_measure_b_scores) and the refinement's objective with its gradient
+ * (fr_measure_b_grad): fr_torch/core/native.py builds, checks and calls this file.
  *
- * Every value is the torch path's (fr_torch/core/likelihood.py, objective_b_nograd) bit for bit:
+ * Every value is the torch path's (fr_torch/core/likelihood.py: objective_b_nograd,
+ * measure_b_forward / measure_b_backward) bit for bit:
  * the same IEEE float32 operations in the same order (compiled with -ffp-contract=off, no fast
  * math), and atan / exp / log through the same MKL VML routines torch's CPU kernels call (their
  * addresses are passed in by the caller).  Only the sum over segments is done differently: each
  * term is rounded to the image's fixed-point grid (fr_torch/core/exact.py, exact_sum) and the
  * integers are added in double, where every order gives the same sum.  The per-segment deviations
- * are never stored: a tile of hypotheses is scored one segment at a time in small buffers.
+ * are never stored: a tile of hypotheses is scored a few segments at a time in small buffers.
  */
 #include <float.h>
 #include <math.h>

@@ -1,13 +1,15 @@
-"""Fused CPU kernels, built on first use: the measure-b grid score in one pass.
+"""Fused CPU kernels, built on first use: the measure-b grid scores and the refinement's step.
 
 :func:`measure_b_scores` computes :func:`fr_torch.core.likelihood.objective_b_nograd`'s objective
-(B, H) float64 bit for bit, without storing the (B, 2N, 3H) deviations: ``kernels_measure_b.c``
-scores a tile of hypotheses one segment at a time in buffers that stay in the L1 cache, with
+(B, H) float64 and :func:`measure_b_grad` the refinement's objective with its gradient
+(``measure_b_forward`` + ``measure_b_backward``), bit for bit, without storing the (B, 2N, 3H)
+deviations: ``kernels_measure_b.c`` scores a tile of hypotheses a few segments at a time in
+buffers that stay in the L1 cache, with
 the same float32 operations in the same order as the torch path, ``atan`` / ``exp`` / ``log`` from
 the same MKL VML routines torch's CPU kernels call, and the exact fixed-point sum over segments
 (:func:`fr_torch.core.exact.exact_sum`: every order of the integer additions gives the same sum).
 
-Building and trusting it:
+Building and trusting them:
 
 * The C file is compiled once per machine with the system's C compiler (``cc``, :data:`FLAGS`:
   ``-O3 -ffp-contract=off``, no fast math, every product and sum rounded once, as torch's; plus
