@@ -186,6 +186,51 @@ def test_every_cpu_kernel_set_gives_the_same_bits(reference, kernels):
     assert json.loads(done.stdout.strip().splitlines()[-1]) == reference
 
 
+def test_the_torch_path_gives_the_fused_kernels_bits(reference):
+    """FR_NATIVE=0, what a machine without a C compiler (or a torch without MKL) runs: the torch path
+    of every score and gradient, bit for bit the records of this process (whose fused kernels of
+    fr_torch.core.native run when this machine can build them)."""
+    code = ("import json, sys; sys.path.insert(0, 'tests'); from test_reproducibility import _photos, _record; "
+            "from fr_torch import FREstimator; from fr_torch.core import native; assert not native.available(); "
+            "p = _photos(); r = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p]); "
+            "print(json.dumps([_record(x) for x in r]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
+                          env=checkout_env(FR_NATIVE="0", FR_THREADS="1"),
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads(done.stdout.strip().splitlines()[-1]) == reference
+
+
+def test_the_fused_kernels_check_themselves_against_the_torch_path():
+    """Where the kernels build (a C compiler, torch with MKL), their first-use check passed; the
+    grid's scores and the refinement's gradient equal the torch path's on a scene bit for bit."""
+    from fr_torch.core import native
+    from fr_torch.core.likelihood import (MixtureLikelihood, SegmentFeatures, kernels_match_torch,
+                                          measure_b_objective_and_grad, objective_b_nograd, vp_major)
+    from fr_torch.core.camera import vanishing_points
+    from fr_torch.core.params import rotations
+
+    if not native.available():
+        pytest.skip(f"fused kernels unavailable here ({native._state.get('error', 'FR_NATIVE=0')})")
+    assert kernels_match_torch()
+    segments, size = _photos()[0]
+    features = SegmentFeatures.from_endpoints(torch.as_tensor(segments, dtype=torch.float32)[None], None,
+                                              torch.tensor([[size[0] / 2, size[1] / 2]]))
+    generator = torch.Generator().manual_seed(3)
+    params = torch.cat([torch.rand(1, 96, 3, generator=generator) * 90 - 45,
+                        200 + 800 * torch.rand(1, 96, 1, generator=generator)], -1)
+    flat = vp_major(vanishing_points(params[..., 3], features.principal_point[:, None], rotations(params)))
+    constants = MixtureLikelihood()._b_constants(features.weight)
+    args = (features.line_along, features.weight, flat)
+    for block in (1, 3):
+        assert torch.equal(objective_b_nograd(*args, *constants, vertical_block=block),
+                           objective_b_nograd(*args, *constants, vertical_block=block, fused=False))
+    grad_out = torch.tensor([[-1e-3]])
+    for fused, torch_path in zip(measure_b_objective_and_grad(*args, constants, grad_out),
+                                 measure_b_objective_and_grad(*args, constants, grad_out, fused=False)):
+        assert torch.equal(fused, torch_path)
+
+
 @gpu
 def test_gpu_runs_repeat_and_match_the_cpu(reference):
     """On a GPU: two runs give the same bits; the CPU's answers within 1e-4 relative, no other basin."""

@@ -46,6 +46,13 @@ density (>= 0.019 for measure b), which it cannot change in float32 or float64, 
 is unchanged bit for bit whenever the background prior exceeds ~1e-28.  ``atan2(0, 0) = 0`` as in
 the generic path (and the gradient there is 0, as the generic path's guard gives).
 
+Fused CPU kernels (float32 on a CPU, where they build: :mod:`fr_torch.core.native`): the grid's
+scores (:func:`objective_b_nograd`) and the refinement's objective with its gradient
+(:func:`measure_b_objective_and_grad`) run as one C pass each, which never stores the per-segment
+deviations and keeps the exact sums' integers in registers; the same operations in the same
+order as the torch code here, which stays the reference (``fused=False``) and the path of every
+other device, dtype and machine: the same bits either way.
+
 One photo, one answer: s and t are written out per entry (:func:`incidence`, no matrix product),
 the angle is ``atan(|s / t|)``, the families are added in one order on every path
 (:func:`_family_sum`) and every sum over segments is exact
@@ -76,8 +83,9 @@ from fr_torch.core.camera import (
     focal_from_hfov,
     vanishing_points,
 )
+from fr_torch.core import native
 from fr_torch.core.config import Mode
-from fr_torch.core.exact import angle_of, angle_of_, dot3, exact_sum, small_sum, top_indices
+from fr_torch.core.exact import angle_of, angle_of_, dot3, exact_sum, fixed_point_scale, small_sum, top_indices
 from fr_torch.core.fov import FOV_LIMITS_DEG, FovRange
 from fr_torch.core.segments import SegmentBatch
 from fr_torch.resources import config_dir
@@ -324,8 +332,12 @@ class SegmentFeatures:
 
     def total_length(self) -> torch.Tensor:
         """(B,) float64 total segment length per image, pixels (an exact sum: the same bits in any
-        batch, :func:`fr_torch.core.exact.exact_sum`)."""
-        return exact_sum(self.weight, 1)
+        batch, :func:`fr_torch.core.exact.exact_sum`); computed once per object (the search asks
+        for it at every step), so the tensors must not change in place afterwards."""
+        cached = self.__dict__.get("_total_length")
+        if cached is None or cached.device != self.weight.device or cached.shape[0] != self.weight.shape[0]:
+            cached = self.__dict__["_total_length"] = exact_sum(self.weight, 1)
+        return cached
 
     def longest(self, count: int) -> "SegmentFeatures":
         """The ``count`` longest segments of each image (B, min(count, N), ...); padding stays last
@@ -563,7 +575,7 @@ class MixtureLikelihood:
         without a prior), in objective units per (log f)^2, directly comparable with the curvature
         of the length-weighted likelihood."""
         params = self.params
-        total_length = exact_sum(features.weight, -1).to(features.weight)  # W, the same in any batch
+        total_length = features.total_length().to(features.weight)  # W, the same in any batch
         evidence = total_length + params.focal_prior_pseudo_length * features.long_side  # W + W0
         return params.focal_prior_weight * evidence
 
@@ -614,6 +626,11 @@ class MixtureLikelihood:
         bound = _log_sum_bound(features.weight, self._b_constants(features.weight)[-1]) \
             if self._fast_path(features) else None
         return exact_sum(log_p, 1, bound=bound, weight=features.weight[:, :, None])
+
+    def stores_no_deviations(self, features: SegmentFeatures) -> bool:
+        """True when scoring without gradients runs the fused kernel (:mod:`fr_torch.core.native`),
+        which keeps no per-segment deviations: the grid needs no chunking for memory then."""
+        return self._fast_path(features) and not self.compiled and _native_ok(features.weight)
 
     def _fast_path(self, features: SegmentFeatures) -> bool:
         return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in _EXP_FLOOR
@@ -690,7 +707,8 @@ def _take(workspace: dict | None, name: str, shape, like: torch.Tensor) -> torch
 
 
 def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound,
-                       workspace: dict | None = None, vertical_block: int = 1, per_segment: bool = False) -> torch.Tensor:
+                       workspace: dict | None = None, vertical_block: int = 1, per_segment: bool = False,
+                       fused: bool = True) -> torch.Tensor:
     """Measure-b objective (B, H) float64 for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd;
     with ``per_segment`` each segment's log p_i instead, (B, N, H) in the segments' dtype (a view of
     the ``workspace`` buffer when one is given).
@@ -705,11 +723,19 @@ def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, backgr
     ``vertical_block`` = k > 1: runs of k consecutive hypotheses share the vertical VP (column
     ``VERTICAL_AXIS``), so only every k-th one is scored and added to its run: (2 + 1/k) H VP
     columns instead of 3 H, the same sums bit for bit.  H must be a multiple of k.
+
+    ``fused``: the objective of float32 CPU tensors comes from the fused kernel of
+    :mod:`fr_torch.core.native` where it is available (the same bits, the deviations never stored);
+    False always takes the torch path written here, the reference the kernel is checked against.
     """
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
     if vertical_block > 1 and hyp % vertical_block:
         raise ValueError(f"vertical_block {vertical_block} does not divide the {hyp} hypotheses")
+    if fused and not per_segment and vertical_block <= native.TILE and _native_ok(weight):
+        factor, scale = _sum_grid(weight, log_bound)
+        return native.measure_b_scores(line_along, factor, scale, flat, neg_inv_scale, log_coef, background, floor,
+                                       VERTICAL_AXIS, vertical_block)
     block = max(1, vertical_block)
     columns = flat.view(batch, 3, 3, hyp)
     h_cols = _without_vertical(columns, 2).reshape(batch, 3, 2 * hyp)
@@ -724,6 +750,20 @@ def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, backgr
     if per_segment:
         return p
     return exact_sum(p, 1, bound=_log_sum_bound(weight, log_bound), weight=weight[:, :, None])
+
+
+def _native_ok(weight: torch.Tensor) -> bool:
+    """Whether segments of ``weight``'s dtype and device take the fused kernels (:mod:`fr_torch.core.native`)."""
+    return weight.dtype == torch.float32 and weight.device.type == "cpu" and native.available()
+
+
+def _sum_grid(weight: torch.Tensor, log_bound: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fixed-point grid of the objective's exact sum over segments, as
+    :func:`fr_torch.core.exact.exact_sum` forms it from the bound :func:`_log_sum_bound`: each
+    segment's factor ``weight * scale`` (B, N) in ``weight``'s dtype and the scale (B,) float64."""
+    scale = fixed_point_scale(_log_sum_bound(weight, log_bound))  # (B, 1, 1)
+    factor = weight[:, :, None] * scale.to(weight.dtype)
+    return factor[..., 0], scale.view(-1)
 
 
 def _log_sum_bound(weight: torch.Tensor, log_bound: float) -> torch.Tensor:
@@ -820,6 +860,22 @@ def measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, backgro
     return objective, (line_along, weight, s, t, e, p, neg_inv_scale)
 
 
+def measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out, fused: bool = True):
+    """Measure-b objective (B, H) float64 and its gradient with respect to the VP-major vanishing
+    points ``flat`` (B, 3, 3H), float64, for the upstream gradient ``grad_out`` (broadcastable to
+    (B, H)): :func:`measure_b_forward` then :func:`measure_b_backward`, or for float32 CPU tensors
+    the fused kernel of :mod:`fr_torch.core.native` (the same bits in one pass; ``fused`` = False
+    always takes the torch path).  ``constants``: :meth:`MixtureLikelihood._b_constants`."""
+    batch, hyp = weight.shape[0], flat.shape[2] // 3
+    if fused and _native_ok(weight):
+        neg_inv_scale, log_coef, background, floor, log_bound = constants
+        factor, scale = _sum_grid(weight, log_bound)
+        return native.measure_b_grad(line_along, weight, factor, scale, flat, neg_inv_scale, log_coef, background,
+                                     floor, VERTICAL_AXIS, grad_out.to(weight.dtype))
+    objective, saved = measure_b_forward(line_along, weight, flat, *constants)
+    return objective, measure_b_backward(saved, grad_out.to(weight.dtype).expand(batch, hyp).contiguous())
+
+
 def measure_b_backward(saved, grad_out, flat: torch.Tensor | None = None):
     """d objective / d flat (B, 3, 3H) float64 for the upstream gradient ``grad_out`` (B, H).
 
@@ -857,6 +913,37 @@ def measure_b_backward(saved, grad_out, flat: torch.Tensor | None = None):
     columns = flat.to(grad_s.dtype).transpose(1, 2)  # (B, 3H, 3)
     per_segment = [small_sum(grad[:, :, :, None] * columns[:, None], 2) for grad in (grad_s, grad_t)]
     return grad_flat, torch.cat(per_segment, 1)
+
+
+def kernels_match_torch() -> bool:
+    """The fused kernels (:mod:`fr_torch.core.native`) against the torch path on random scenes (segments through a VP, VPs at
+    infinity, no segments, several tiles and MKL calls, ``vertical_block`` 1 to 3): True when every
+    score, objective and gradient has the same bits (about 0.1 s, once per process)."""
+    generator = torch.Generator().manual_seed(60)
+    constants = MixtureLikelihood()._b_constants(torch.zeros(1))
+    for batch, n_seg, hyp, block in ((2, 37, 10, 1), (1, 5, 9, 3), (2, 300, 6, 3), (1, 12, 300, 3), (2, 0, 4, 2)):
+        line = torch.randn(batch, n_seg, 3, generator=generator)
+        line[..., :2] /= line[..., :2].norm(dim=-1, keepdim=True)
+        along = torch.randn(batch, n_seg, 3, generator=generator) * 300
+        along[:, :3] = 0.0  # t = 0: s / t infinite
+        line[:, 3:4] = 0.0  # with t = 0 too: s / t = 0 / 0
+        along[:, 3:4] = 0.0
+        line_along = torch.cat([line, along], 1)
+        weight = torch.rand(batch, n_seg, generator=generator) * 100
+        flat = torch.randn(batch, 3, 3 * hyp, generator=generator) * torch.tensor([[400.0], [400.0], [1.0]])
+        flat[0, 2, :hyp] = 0.0  # VPs at infinity
+        expected = objective_b_nograd(line_along, weight, flat, *constants, vertical_block=block, fused=False)
+        got = objective_b_nograd(line_along, weight, flat, *constants, vertical_block=block)
+        grad_out = -1.0 / (1.0 + torch.rand(batch, 1, generator=generator) * 1000)
+        expected_pair = measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out, fused=False)
+        got_pair = measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out)
+        for a, b in ((expected, got), *zip(expected_pair, got_pair)):
+            if not torch.equal(a.view(torch.int64), b.view(torch.int64)):
+                return False
+    return True
+
+
+native.register_check(kernels_match_torch)
 
 
 class _MeasureBObjective(torch.autograd.Function):

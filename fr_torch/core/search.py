@@ -17,12 +17,14 @@ batch gives the same answer as images one by one.
 
 Speed and memory (same math; see also :mod:`fr_torch.core.likelihood`):
 
-* Grid: on CPU the hypotheses are scored in cache-sized chunks (``CPU_CHUNK_ELEMENTS`` deviations,
-  a few MB of buffers) that reuse the same buffers, instead of ``max_chunk_elements`` (which
-  still bounds the chunk on GPU and caps it on CPU); rotations / vanishing points are built once
-  per image slice, not per chunk.  Large batches are cut into image slices, so memory stays
-  bounded for any batch size.  No chunk size depends on the thread count: a search takes the same
-  path whatever threads the load leaves it (``FR_THREADS=auto``), in a worker process or not.
+* Grid: with the fused CPU kernel (:mod:`fr_torch.core.native`, which stores no deviations) the
+  hypotheses of an image slice are scored in one call; on the torch path on CPU in cache-sized
+  chunks (``CPU_CHUNK_ELEMENTS`` deviations, a few MB of buffers) that reuse the same buffers,
+  instead of ``max_chunk_elements`` (which still bounds the chunk on GPU and caps it on CPU);
+  rotations / vanishing points are built once per image slice, not per chunk.  Large batches are
+  cut into image slices, so memory stays bounded for any batch size.  No chunk size depends on the
+  thread count: a search takes the same path whatever threads the load leaves it
+  (``FR_THREADS=auto``), in a worker process or not.
 * Refinement: images are refined in independent slices of at most ``max_chunk_elements``
   (``CPU_REFINE_ELEMENTS`` on CPU) deviations per step (identical results: every image's loss and
   Adam update are its own), and the rotation is built in closed form
@@ -50,6 +52,7 @@ from fr_torch.core.likelihood import (
     compiled_call,
     measure_b_backward,
     measure_b_forward,
+    measure_b_objective_and_grad,
     vp_major,
 )
 from fr_torch.core.params import (
@@ -358,22 +361,45 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
     """
     if config.grid_passes == 0:
         return starts, scores
-    device = features.weight.device
     lower64, upper64 = lower.to(torch.float64), upper.to(torch.float64)
-    log_lower = to_log_focal(lower64)[:, None, None, :].to(device)
-    log_upper = to_log_focal(upper64)[:, None, None, :].to(device)
-    step = grid_cell(config, lower64, upper64)[:, None, None, :].to(device)  # (B, 1, 1, 4)
-    lattice = LATTICE.to(device)
-    batch, n_start = starts.shape[:2]
+    step = grid_cell(config, lower64, upper64)
+
+    def score_points(current: torch.Tensor, points: torch.Tensor, fraction: float):
+        hypotheses = from_log_focal(points).view(points.shape[0], -1, 4)
+        return points, score_grid(likelihood, features, hypotheses, config.max_chunk_elements, vertical_block=3)
+
+    return lattice_passes(starts, scores, LATTICE, step, lower64, upper64, config, score_points,
+                          tie_tolerance(features), features.weight.device)
+
+
+def lattice_passes(starts: torch.Tensor, scores: torch.Tensor, lattice: torch.Tensor, step: torch.Tensor,
+                   lower: torch.Tensor, upper: torch.Tensor, config: SearchConfig, score_points,
+                   tolerance: torch.Tensor, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The coarse-to-fine pass loop of :func:`subdivide_starts`, for D parameters [pan, pitch, roll,
+    f (, k)]: ``config.grid_passes`` passes; each places ``lattice`` (P, D) float64 offsets, times
+    ``step`` (B, D) (in log f for the focal length) divided by 3 per pass, around every start,
+    moves the points into the box [``lower``, ``upper``] (B, D) (:func:`into_box`), scores them and
+    keeps each start's best point where it beats the start (:func:`_keep_best`, ``tolerance`` (B,)).
+
+    ``score_points(current, points, fraction)``: the starts (B, L, D) and their lattice points
+    (B, L, P, D), both in log f, and the pass's fraction of ``step`` -> (candidates (B, L, P', D),
+    their scores (B, L * P')) (a lens search adds candidates of its own,
+    :func:`fr_torch.core.search_distortion.subdivide_rows`).  ``starts`` (B, L, D) [pan, pitch,
+    roll, f (pixels)(, k)] and ``scores`` (B, L); returns both, the same shapes; the points live on
+    ``device``.
+    """
+    log_lower = to_log_focal(lower.to(torch.float64))[:, None, None, :].to(device)
+    log_upper = to_log_focal(upper.to(torch.float64))[:, None, None, :].to(device)
+    step = step[:, None, None, :].to(device)  # (B, 1, 1, D)
+    lattice = lattice.to(device)
     current = to_log_focal(starts.to(device=device, dtype=torch.float64))
     fraction = 1.0
     for _ in range(config.grid_passes):
         fraction /= 3.0
-        points = current[:, :, None, :] + lattice * (step * fraction)  # (B, L, 81, 4)
+        points = current[:, :, None, :] + lattice * (step * fraction)  # (B, L, P, D)
         points = into_box(points, log_lower, log_upper, config.periodic_pan)
-        hypotheses = from_log_focal(points).view(batch, n_start * len(lattice), 4)
-        point_scores = score_grid(likelihood, features, hypotheses, config.max_chunk_elements, vertical_block=3)
-        current, scores = _keep_best(current, scores, points, point_scores, tie_tolerance(features))
+        points, point_scores = score_points(current, points, fraction)
+        current, scores = _keep_best(current, scores, points, point_scores, tolerance)
     return from_log_focal(current).to(starts), scores
 
 
@@ -394,7 +420,9 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
     dtype, device = features.weight.dtype, features.weight.device
     if vertical_block < 1 or count % vertical_block:
         vertical_block = 1
-    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, CPU_CHUNK_ELEMENTS))
+    # CPU: a fixed cache-sized chunk at any thread count (the fused kernel stores no deviations: no chunk)
+    cpu_budget = max_chunk_elements if likelihood.stores_no_deviations(features) else CPU_CHUNK_ELEMENTS
+    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, cpu_budget))
     per_hypothesis = n_seg * 3
     hyp_chunk = max(1, min(count, budget // per_hypothesis))
     hyp_chunk = max(vertical_block, hyp_chunk - hyp_chunk % vertical_block)  # whole runs
@@ -617,8 +645,8 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     vps = torch.cat([top, rotation[..., 2:, :]], -2)  # (B, L, 3, 3)
     constants = likelihood._b_constants(features.weight)
     if geometry is None:
-        objective, saved = measure_b_forward(features.line_along, features.weight, vp_major(vps), *constants)
-        grad_flat = measure_b_backward(saved, grad_out.expand(batch, n_hyp).contiguous())
+        objective, grad_flat = measure_b_objective_and_grad(features.line_along, features.weight, vp_major(vps),
+                                                            constants, grad_out)
         grad_v = grad_flat.view(batch, 3, 3, n_hyp).permute(0, 3, 1, 2)  # (B, L, coord, VP)
     else:
         flat = vp_major(vps.reshape(batch * n_hyp, 1, 3, 3))  # (B * L, 3, 3): one hypothesis per virtual image

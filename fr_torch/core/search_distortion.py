@@ -43,11 +43,11 @@ from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
 from fr_torch.core.params import DISTORTION, FOCAL, from_log_focal, to_log_focal
 from fr_torch.core.search import (
     LATTICE,
-    _keep_best,
     best_of_start_and_refined,
     grid_cell,
     grid_hypotheses,
     into_box,
+    lattice_passes,
     parameter_box,
     refine,
     score_grid,
@@ -411,34 +411,33 @@ def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, sta
         return starts, scores
     device = geometry.endpoints.device
     lower64, upper64 = lower.to(torch.float64), upper.to(torch.float64)
-    log_lower = to_log_focal(lower64)[:, None, None, :].to(device)
-    log_upper = to_log_focal(upper64)[:, None, None, :].to(device)
     cell = grid_cell(angle_grid_config(config), lower64[:, :DISTORTION], upper64[:, :DISTORTION])
     k_spacing = k_step(config) if k_spacing is None else k_spacing
-    step = torch.cat([cell, torch.full_like(cell[:, :1], k_spacing)], -1)[:, None, None, :].to(device)
+    step = torch.cat([cell, torch.full_like(cell[:, :1], k_spacing)], -1)  # (B, 5)
     joint = config.distortion_lattice == "joint"
-    lattice = (LATTICE_K if k_spacing > 0 and joint else with_k(LATTICE, 0.0)).to(device)
+    lattice = LATTICE_K if k_spacing > 0 and joint else with_k(LATTICE, 0.0)
     k_offsets = torch.zeros(2, 5, dtype=torch.float64, device=device)
     k_offsets[:, DISTORTION] = k_offsets.new_tensor([-1.0, 1.0])
+    log_lower = to_log_focal(lower64)[:, None, None, :].to(device)
+    log_upper = to_log_focal(upper64)[:, None, None, :].to(device)
+    step_here = step[:, None, None, :].to(device)
     batch, n_start = starts.shape[:2]
-    current = to_log_focal(starts.to(device=device, dtype=torch.float64))
-    fraction = 1.0
-    for _ in range(config.grid_passes):
-        fraction /= 3.0
-        points = current[:, :, None, :] + lattice * (step * fraction)  # (B, L, 243 or 81, 5)
-        points = into_box(points, log_lower, log_upper, config.periodic_pan)
+
+    def score_points(current: torch.Tensor, points: torch.Tensor, fraction: float):
         rows = from_log_focal(points).view(batch, n_start * (len(lattice) // len(LATTICE)), len(LATTICE), 5)
         point_scores = score_rows(likelihood, geometry, rows, config.max_chunk_elements, vertical_block=3)
         if not joint and k_spacing > 0:  # k alone, one step either side of each start
-            k_points = into_box(current[:, :, None, :] + k_offsets * (step * fraction), log_lower, log_upper,
+            k_points = into_box(current[:, :, None, :] + k_offsets * (step_here * fraction), log_lower, log_upper,
                                 config.periodic_pan)  # (B, L, 2, 5)
             k_scores = score_rows(likelihood, geometry, from_log_focal(k_points).view(batch, 2 * n_start, 1, 5),
                                   config.max_chunk_elements)
             points = torch.cat([points, k_points], 2)
             point_scores = torch.cat([point_scores.view(batch, n_start, -1), k_scores.view(batch, n_start, 2)],
                                      2).view(batch, -1)
-        current, scores = _keep_best(current, scores, points, point_scores, tie_tolerance(geometry))
-    return from_log_focal(current).to(starts), scores
+        return points, point_scores
+
+    return lattice_passes(starts, scores, lattice, step, lower64, upper64, config, score_points,
+                          tie_tolerance(geometry), device)
 
 
 # --------------------------------------------------------------------------- the whole search

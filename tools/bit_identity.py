@@ -1,0 +1,103 @@
+"""Every field of fR's and Fast-fR's results on a few photos, saved or compared bit for bit.
+
+``python tools/bit_identity.py save out.npz`` / ``... compare out.npz``: YUD train photos (LSD
+segments, detected once and cached next to the output) and synthetic scenes, calibrated in one batch
+and one by one, in both modes, and in one batch with the division model's lens search
+(``distortion="division"``); ``compare`` prints every field that differs in a single bit (exit 1).
+Save with one checkout (``PYTHONPATH=<it>``), compare with another.
+``--photos``, ``--synthetic``: how many of each.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def segment_sets(cache: Path, photos: int, synthetic: int):
+    if cache.is_file():
+        data = np.load(cache, allow_pickle=True)
+        return list(data["segments"]), [tuple(s) for s in data["sizes"]]
+    from fr_eval.datasets.registry import load_dataset
+    from fr_torch.detectors.lsd import LSDDetector
+    from fr_torch.images.io import read_working
+    from fr_torch.synthetic import random_rotation, synthetic_segments
+    detector = LSDDetector()
+    segments, sizes = [], []
+    for sample in load_dataset("yud", split="train")[:photos]:
+        gray, _, _ = read_working(str(sample.image_path), sample.name)
+        segments.append(np.asarray(detector(gray), dtype=np.float32))
+        sizes.append((sample.width, sample.height))
+    rng = np.random.default_rng(60)
+    for _ in range(synthetic):
+        out = synthetic_segments(float(rng.uniform(400, 900)), random_rotation(rng), seed=int(rng.integers(1 << 30)))
+        segments.append(np.asarray(out[0] if isinstance(out, tuple) else out, dtype=np.float32))
+        sizes.append((640, 480))
+    holder = np.empty(len(segments), dtype=object)
+    holder[:] = segments
+    np.savez(cache, segments=holder, sizes=np.array(sizes))
+    return segments, sizes
+
+
+def flatten(prefix: str, result, out: dict) -> None:
+    for name in ("focal_px", "rotation", "log_likelihood", "principal_point", "labels", "ranked_vanishing_points",
+                 "vanishing_point_support", "manhattan_fraction", "ok", "reliable", "reason", "distortion_k"):
+        value = getattr(result, name, None)
+        out[f"{prefix}/{name}"] = np.asarray(value if value is not None else np.nan)
+    for group in ("cues", "predicted_error"):
+        for key, value in sorted((getattr(result, group) or {}).items()):
+            out[f"{prefix}/{group}/{key}"] = np.asarray(value)
+
+
+def run(segments, sizes) -> dict:
+    from fr_torch import FREstimator
+    out = {}
+    for mode in ("fast", "fr"):
+        estimator = FREstimator(mode=mode)
+        batched = estimator.calibrate_segments(segments, sizes)
+        for i, result in enumerate(batched):
+            flatten(f"{mode}/batch/{i}", result, out)
+        for i in range(len(segments)):
+            [result] = estimator.calibrate_segments([segments[i]], [sizes[i]])
+            flatten(f"{mode}/single/{i}", result, out)
+    for mode in ("fast", "fr"):  # the lens searched too (the division model's k), one batch
+        batched = FREstimator(mode=mode, distortion="division").calibrate_segments(segments, sizes)
+        for i, result in enumerate(batched):
+            flatten(f"{mode}-division/batch/{i}", result, out)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("action", choices=("save", "compare"))
+    parser.add_argument("path", type=Path)
+    parser.add_argument("--photos", type=int, default=8)
+    parser.add_argument("--synthetic", type=int, default=4)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    segments, sizes = segment_sets(args.path.with_suffix(".segments.npz"), args.photos, args.synthetic)
+    out = run(segments, sizes)
+    if args.action == "save":
+        np.savez(args.path, **out)
+        print(f"saved {len(out)} fields of {len(segments)} images")
+        return
+    ref = np.load(args.path)
+    unmatched = sorted(set(ref.files) ^ set(out))
+    if unmatched:
+        print(f"{len(unmatched)} fields only on one side (another version of this script?), e.g. {unmatched[0]}")
+    bad = [k for k in sorted(set(ref.files) & set(out))
+           if ref[k].shape != out[k].shape
+           or (ref[k].dtype.kind in "fc" and ref[k].tobytes() != np.asarray(out[k], dtype=ref[k].dtype).tobytes())
+           or (ref[k].dtype.kind not in "fc" and not np.array_equal(ref[k], out[k]))]
+    print(f"compared {len(set(ref.files) & set(out))} fields of {len(segments)} images: {len(bad)} differ")
+    for k in bad[:30]:
+        print("  ", k, ref[k], out[k])
+    sys.exit(1 if bad or unmatched else 0)
+
+
+if __name__ == "__main__":
+    main()
