@@ -557,26 +557,36 @@ class MixtureLikelihood:
         return value
 
     def focal_prior(self, features: SegmentFeatures, focal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The log focal prior (see :class:`LikelihoodParams`) and its derivative d/df (per pixel).
+        """The log focal prior (see :class:`LikelihoodParams`) and its derivative d/df (per pixel)
+        of the images of ``features`` (:meth:`focal_prior_of`).
+
+        ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``features.weight``'s dtype.
+        """
+        return self.focal_prior_of(features.total_length(), features.long_side, focal.to(features.weight.dtype))
+
+    def focal_prior_of(self, total_length: torch.Tensor, long_side: torch.Tensor,
+                       focal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The log focal prior and its derivative d/df (per pixel) of images whose segments add up
+        to ``total_length`` (B,) pixels (float64, :meth:`SegmentFeatures.total_length`: an exact
+        sum, the same in any batch) and whose long side is ``long_side`` (B,) pixels.
 
         ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``focal``'s dtype.
         """
-        focal = focal.to(features.weight.dtype)
-        weight = self.focal_prior_curvature(features)[:, None]  # (B, 1)
-        offset = torch.log(focal / features.long_side[:, None]) - self._prior_centre
+        weight = self.focal_prior_curvature(total_length.to(focal.dtype), long_side)[:, None]  # (B, 1)
+        offset = torch.log(focal / long_side[:, None]) - self._prior_centre
         flat = self.params.focal_prior_flat_halfwidth
         if flat:  # the distance to the flat band |log(f / f0)| <= h, signed
             offset = torch.sign(offset) * (offset.abs() - flat).clamp_min(0.0)
         return -0.5 * weight * offset ** 2, -weight * offset / focal
 
-    def focal_prior_curvature(self, features: SegmentFeatures) -> torch.Tensor:
+    def focal_prior_curvature(self, total_length: torch.Tensor, long_side: torch.Tensor) -> torch.Tensor:
         """``gamma * (W + W0)`` per image, (B,): minus the second derivative of the log focal prior
         with respect to log f outside its flat band (the same at every such f; 0 inside the band and
         without a prior), in objective units per (log f)^2, directly comparable with the curvature
-        of the length-weighted likelihood."""
+        of the length-weighted likelihood.  ``total_length`` W (B,) and ``long_side`` (B,) pixels
+        (W0 = the pseudo-length per pixel of the long side times it)."""
         params = self.params
-        total_length = features.total_length().to(features.weight)  # W, the same in any batch
-        evidence = total_length + params.focal_prior_pseudo_length * features.long_side  # W + W0
+        evidence = total_length + params.focal_prior_pseudo_length * long_side  # W + W0
         return params.focal_prior_weight * evidence
 
     def _data_objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,

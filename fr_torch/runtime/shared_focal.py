@@ -46,13 +46,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from types import SimpleNamespace
 from typing import Sequence
 
 import numpy as np
 import torch
 
 from fr_torch.core.cues import EDGE_REASON
+from fr_torch.core.exact import exact_sum
 from fr_torch.core.fov import FovRange
 from fr_torch.core.likelihood import SegmentFeatures
 from fr_torch.core.params import rotations
@@ -372,10 +372,9 @@ def with_estimator_prior(estimator, log_ratios: np.ndarray, profiles: np.ndarray
         return profiles
 
     long_side = torch.as_tensor(np.asarray(long_side, np.float64))
-    features = SimpleNamespace(weight=torch.as_tensor(np.asarray(total_length, np.float64))[:, None],
-                               long_side=long_side)
+    lengths = exact_sum(torch.as_tensor(np.asarray(total_length, np.float64))[:, None], 1)  # as the search's W
     focal = long_side[:, None] * torch.as_tensor(np.exp(log_ratios))[None, :]
-    prior = likelihood.focal_prior(features, focal)[0].numpy()
+    prior = likelihood.focal_prior_of(lengths, long_side, focal)[0].numpy()
     return profiles + prior
 
 
