@@ -364,7 +364,7 @@ def subdivide_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, s
     lower64, upper64 = lower.to(torch.float64), upper.to(torch.float64)
     step = grid_cell(config, lower64, upper64)
 
-    def score_points(current: torch.Tensor, points: torch.Tensor, fraction: float):
+    def score_points(points: torch.Tensor, place):
         hypotheses = from_log_focal(points).view(points.shape[0], -1, 4)
         return points, score_grid(likelihood, features, hypotheses, config.max_chunk_elements, vertical_block=3)
 
@@ -381,9 +381,10 @@ def lattice_passes(starts: torch.Tensor, scores: torch.Tensor, lattice: torch.Te
     moves the points into the box [``lower``, ``upper``] (B, D) (:func:`into_box`), scores them and
     keeps each start's best point where it beats the start (:func:`_keep_best`, ``tolerance`` (B,)).
 
-    ``score_points(current, points, fraction)``: the starts (B, L, D) and their lattice points
-    (B, L, P, D), both in log f, and the pass's fraction of ``step`` -> (candidates (B, L, P', D),
-    their scores (B, L * P')) (a lens search adds candidates of its own,
+    ``score_points(points, place)``: the pass's lattice points (B, L, P, D) in log f, and
+    ``place(offsets)``, which places other offsets (Q, D) around the starts as the lattice was
+    placed (scaled by the pass's step, moved into the box) -> (candidates (B, L, P', D), their
+    scores (B, L * P')) (a lens search adds candidates of its own that way,
     :func:`fr_torch.core.search_distortion.subdivide_rows`).  ``starts`` (B, L, D) [pan, pitch,
     roll, f (pixels)(, k)] and ``scores`` (B, L); returns both, the same shapes; the points live on
     ``device``.
@@ -396,9 +397,11 @@ def lattice_passes(starts: torch.Tensor, scores: torch.Tensor, lattice: torch.Te
     fraction = 1.0
     for _ in range(config.grid_passes):
         fraction /= 3.0
-        points = current[:, :, None, :] + lattice * (step * fraction)  # (B, L, P, D)
-        points = into_box(points, log_lower, log_upper, config.periodic_pan)
-        points, point_scores = score_points(current, points, fraction)
+
+        def place(offsets: torch.Tensor, around: torch.Tensor = current, scale: torch.Tensor = step * fraction):
+            return into_box(around[:, :, None, :] + offsets * scale, log_lower, log_upper, config.periodic_pan)
+
+        points, point_scores = score_points(place(lattice), place)  # lattice points (B, L, P, D)
         current, scores = _keep_best(current, scores, points, point_scores, tolerance)
     return from_log_focal(current).to(starts), scores
 

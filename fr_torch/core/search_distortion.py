@@ -40,7 +40,7 @@ from fr_torch.core.config import SearchConfig
 from fr_torch.core.distortion import normalising_radius
 from fr_torch.core.exact import dot3, exact_index_sum, exact_sum, first_argmax, top_indices
 from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
-from fr_torch.core.params import DISTORTION, FOCAL, from_log_focal, to_log_focal
+from fr_torch.core.params import DISTORTION, FOCAL, from_log_focal
 from fr_torch.core.search import (
     LATTICE,
     best_of_start_and_refined,
@@ -418,17 +418,13 @@ def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, sta
     lattice = LATTICE_K if k_spacing > 0 and joint else with_k(LATTICE, 0.0)
     k_offsets = torch.zeros(2, 5, dtype=torch.float64, device=device)
     k_offsets[:, DISTORTION] = k_offsets.new_tensor([-1.0, 1.0])
-    log_lower = to_log_focal(lower64)[:, None, None, :].to(device)
-    log_upper = to_log_focal(upper64)[:, None, None, :].to(device)
-    step_here = step[:, None, None, :].to(device)
     batch, n_start = starts.shape[:2]
 
-    def score_points(current: torch.Tensor, points: torch.Tensor, fraction: float):
+    def score_points(points: torch.Tensor, place):
         rows = from_log_focal(points).view(batch, n_start * (len(lattice) // len(LATTICE)), len(LATTICE), 5)
         point_scores = score_rows(likelihood, geometry, rows, config.max_chunk_elements, vertical_block=3)
         if not joint and k_spacing > 0:  # k alone, one step either side of each start
-            k_points = into_box(current[:, :, None, :] + k_offsets * (step_here * fraction), log_lower, log_upper,
-                                config.periodic_pan)  # (B, L, 2, 5)
+            k_points = place(k_offsets)  # (B, L, 2, 5)
             k_scores = score_rows(likelihood, geometry, from_log_focal(k_points).view(batch, 2 * n_start, 1, 5),
                                   config.max_chunk_elements)
             points = torch.cat([points, k_points], 2)
