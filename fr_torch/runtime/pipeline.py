@@ -34,6 +34,7 @@ A pool pays for folders and large batches, not for a few images (:func:`fr_torch
 from __future__ import annotations
 
 import copy
+import functools
 import itertools
 import pickle
 import time
@@ -302,6 +303,15 @@ def _portable_estimator(estimator):
     return portable
 
 
+def in_shards(pool, workers: int, function, items: Sequence) -> list:
+    """``function(shard)`` of ``items`` cut into at most ``workers`` contiguous, non-empty shards of
+    near-equal size, each submitted to ``pool``; the shards' results (one list per shard, one
+    result per item) joined in input order.  A worker's death raises as ``Future.result`` does."""
+    bounds = np.linspace(0, len(items), min(workers, len(items)) + 1).round().astype(int)
+    futures = [pool.submit(function, items[a:b]) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    return [result for future in futures for result in future.result()]
+
+
 class CalibrationPool:
     """Whole images (arrays or paths) decoded, detected and searched by ``workers`` single-threaded
     processes that each hold a copy of ``estimator``, kept from one call to the next (the turns of a
@@ -324,10 +334,8 @@ class CalibrationPool:
         items = [(image, name, focal, None) for image, name, focal in zip(images, names, focal_list)]
         if self._pool is None:
             self._pool = WorkerPool(self.workers, _init_calibrate_worker, (self._portable,))
-        bounds = np.linspace(0, len(items), min(self.workers, len(items)) + 1).round().astype(int)
         try:
-            futures = [self._pool.submit(_calibrate_chunk, items[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
-            return [result for future in futures for result in future.result()]
+            return in_shards(self._pool, self.workers, _calibrate_chunk, items)
         except (BrokenProcessPool, OSError):
             self.close()  # one image killed its worker: find it, each image alone
             return list(ordered_pool_map(_calibrate_chunk, items, 1, self.workers, _init_calibrate_worker,
@@ -486,10 +494,8 @@ def calibrate_segments_sharded(estimator, segments: Sequence, image_sizes: Seque
     items = [(segments[i], names[i], tuple(image_sizes[i]), focal_list[i], pp_list[i], apply_filter)
              for i in range(count)]
     if pool is not None:
-        bounds = np.linspace(0, count, min(workers, count) + 1).round().astype(int)
         try:
-            futures = [pool.submit(_shard_task, portable, items[a:b]) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
-            return [result for future in futures for result in future.result()]
+            return in_shards(pool, workers, functools.partial(_shard_task, portable), items)
         except (BrokenProcessPool, OSError):
             pass  # the caller's pool died under some image: redo the batch with crash isolation
     return list(ordered_pool_map(_segments_chunk, items, -(-count // workers), workers, _init_calibrate_worker,
