@@ -292,11 +292,8 @@ def track_fleet(cameras: Sequence[FleetCamera], batch_size: int, max_frames: int
                     for camera in cameras:
                         plot(camera)
         run = ""
-    except KeyboardInterrupt as stop:
-        run = stop_reason(stop)
-        raise
     except BaseException as exc:
-        run = f"error: {type(exc).__name__}: {exc}"
+        run = stop_reason(exc)
         raise
     finally:
         close_all(running)

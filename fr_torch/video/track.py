@@ -62,10 +62,14 @@ def plot_requests() -> Iterator[Callable[[], bool]]:
         signal.signal(PLOT_SIGNAL, previous)
 
 
-def stop_reason(stop: KeyboardInterrupt) -> str:
-    """``stopped by SIGTERM`` (the signal of a :class:`fr_torch.runtime.workers.Stopped`; SIGINT
-    for CTRL-C)."""
-    return f"stopped by {signal.Signals(getattr(stop, 'signum', signal.SIGINT)).name}"
+def stop_reason(exc: BaseException) -> str:
+    """How a run that ``exc`` ended is recorded (calibration.json's ``run``): a stop
+    (``KeyboardInterrupt``) as ``stopped by SIGTERM`` (the signal of a
+    :class:`fr_torch.runtime.workers.Stopped`; SIGINT for CTRL-C), anything else as
+    ``error: TYPE: message``."""
+    if isinstance(exc, KeyboardInterrupt):
+        return f"stopped by {signal.Signals(getattr(exc, 'signum', signal.SIGINT)).name}"
+    return f"error: {type(exc).__name__}: {exc}"
 
 
 class Tracking:
@@ -149,11 +153,8 @@ def track(stream: FrameStream, estimator, tracker: OnlineCalibrator, output: Tra
                 results.close()
         run = "ended: --max-frames" if max_frames is not None and output.processed >= max_frames \
             else f"ended: {stream.end_reason or 'end of the source'}"
-    except KeyboardInterrupt as stop:
-        run = stop_reason(stop)
-        raise
     except BaseException as exc:
-        run = f"error: {type(exc).__name__}: {exc}"
+        run = stop_reason(exc)
         raise
     finally:
         tracking.finish(run)
