@@ -335,7 +335,7 @@ class SegmentFeatures:
         batch, :func:`fr_torch.core.exact.exact_sum`); computed once per object (the search asks
         for it at every step), so the tensors must not change in place afterwards."""
         cached = self.__dict__.get("_total_length")
-        if cached is None or cached.device != self.weight.device or cached.shape[0] != self.weight.shape[0]:
+        if cached is None:
             cached = self.__dict__["_total_length"] = exact_sum(self.weight, 1)
         return cached
 
