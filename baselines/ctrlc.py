@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 import torch
 
-from fr_torch.core.camera import Camera, hfov_from_focal, horizon_angles, image_centre
+from fr_torch.core.camera import Camera, hfov_from_focal, horizon_angles
 from fr_torch.errors import FRInputError
 from fr_torch.images.convert import to_bgr8
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
@@ -100,7 +100,7 @@ def preprocess_lines(segments: np.ndarray, width: int, height: int, num_lines: i
         segments = segments[rng.choice(len(segments), num_lines, replace=True, p=lengths / lengths.sum())]
     count = len(segments)
     if count:
-        centre = image_centre(width, height)
+        centre = (width / 2.0, height / 2.0)  # CTRL-C's loader's centre (its input normalisation), not image_centre
         lines[:count] = vg.homogeneous_lines(segments, centre=centre, scale=2.0 / min(width, height))
         mask[:count] = 1.0
     return lines[None], mask[None]

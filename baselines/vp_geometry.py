@@ -45,7 +45,7 @@ def image_size(image: np.ndarray | None, meta: ImageMeta) -> tuple[int, int]:
 
 
 def principal_point(meta: ImageMeta, width: int, height: int) -> np.ndarray:
-    """Known principal point from the metadata, else the image centre (w / 2, h / 2)."""
+    """Known principal point from the metadata, else the image centre ((w - 1) / 2, (h - 1) / 2)."""
     return np.array(principal_point_or_centre(meta.principal_point, width, height))
 
 

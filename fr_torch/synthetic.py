@@ -8,7 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from fr_torch.core.camera import Camera, rotation_from_angles
+from fr_torch.core.camera import Camera, image_centre, rotation_from_angles
 from fr_torch.core.distortion import distort_points, normalising_radius
 
 
@@ -95,11 +95,12 @@ def synthetic_segments(focal_px: float, rotation: np.ndarray, width: int = 640, 
 def distorted_segments(segments: np.ndarray, labels: np.ndarray, k: float, width: int, height: int,
                        piece_px: float = 25.0) -> tuple[np.ndarray, np.ndarray]:
     """The pinhole ``segments`` (N, 4) seen through the division model of ``k`` (normalised by half
-    the image diagonal, centre = image centre; :mod:`fr_torch.core.distortion`), as a line detector
-    sees a bent edge: each segment becomes chords of about ``piece_px`` pixels between points of its
-    bent image (straight pieces tangent to the curve).  Returns (pieces (M, 4), their labels (M,)),
-    pieces whose ends both lie in the image."""
-    centre = np.array([width / 2.0, height / 2.0])
+    the image diagonal, centre = the image centre :func:`~fr_torch.core.camera.image_centre`;
+    :mod:`fr_torch.core.distortion`), as a line detector sees a bent edge: each segment becomes
+    chords of about ``piece_px`` pixels between points of its bent image (straight pieces tangent
+    to the curve).  Returns (pieces (M, 4), their labels (M,)), pieces whose ends both lie in the
+    image."""
+    centre = np.array(image_centre(width, height))
     radius = normalising_radius(width, height)
     pieces, piece_labels = [], []
     for segment, label in zip(np.asarray(segments, np.float64).reshape(-1, 4), labels):

@@ -27,7 +27,7 @@ from fr_baselines.lee2009 import Lee2009
 from fr_baselines.prior import Prior
 from fr_baselines.simon2018 import Simon2018, meaningful_modes
 
-from fr_torch.core.camera import focal_from_hfov, horizon_angles, rotation_from_angles
+from fr_torch.core.camera import focal_from_hfov, horizon_angles, image_centre, rotation_from_angles
 from fr_torch.plugins.interface import (
     Calibrator,
     CameraEstimate,
@@ -96,7 +96,7 @@ def test_methods_registered_and_conform():
 
 def test_vp_geometry_recovers_camera_from_exact_vps():
     rng = np.random.default_rng(0)
-    pp = np.array([W / 2, H / 2])
+    pp = np.array(image_centre(W, H))
     for hfov, pitch, roll, pan in CAMERAS:
         focal, rotation, gt = _camera(hfov, pitch, roll, pan)
         vps = camera_matrix(focal, W, H) @ rotation
@@ -350,7 +350,7 @@ def test_ctrlc_end_to_end_with_tiny_onnx(tiny_ctrlc):
     # point is the image centre, so an off-centre one is refused rather than ignored.
     known = method.estimate(image, ImageMeta(name="room", segments=segments, focal_px=321.0))
     assert known.ok and known.focal_px == 321.0
-    centred = ImageMeta(name="room", segments=segments, principal_point=((W - 1) / 2, (H - 1) / 2))
+    centred = ImageMeta(name="room", segments=segments, principal_point=image_centre(W, H))
     assert method.estimate(image, centred).ok
     off = method.estimate(image, ImageMeta(name="room", segments=segments, principal_point=(W / 2 + 20, H / 2)))
     assert not off.ok and "principal point at the image centre" in off.reason

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from fr_torch import FREstimator
-from fr_torch.core.camera import Camera, Horizon, focal_from_hfov, horizon_angles, rotation_from_angles
+from fr_torch.core.camera import Camera, Horizon, focal_from_hfov, horizon_angles, image_centre, rotation_from_angles
 from fr_torch.core.cues import LINE_BEND_CUES, focal_conditioning
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
@@ -192,7 +192,7 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     from fr_torch.core.segments import SegmentBatch
 
     batch = SegmentBatch.from_list([oblique.segments], [(640, 480)])
-    features = SegmentFeatures.from_batch(batch, torch.tensor([[320.0, 240.0]]))
+    features = SegmentFeatures.from_batch(batch, torch.tensor([image_centre(640, 480)]))
     angles = angles_from_search_rotation(torch.as_tensor(oblique.rotation)[None])
     params = torch.cat([angles, torch.tensor([[oblique.focal_px]], dtype=torch.float64)], -1)
     direct = focal_prior_share(est.likelihood, features, params)
@@ -237,7 +237,7 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
 
     # An estimate 40 % too long, scored where it is: the profile at 0.7 x finds the true basin.
     features = SegmentFeatures.from_batch(SegmentBatch.from_list([oblique.segments], [(640, 480)]),
-                                          torch.tensor([[320.0, 240.0]]))
+                                          torch.tensor([image_centre(640, 480)]))
     angles = angles_from_search_rotation(torch.as_tensor(oblique.rotation)[None])
     wrong = torch.cat([angles, torch.tensor([[1.4 * oblique.focal_px]], dtype=torch.float64)], -1)
     wrong_score = est.likelihood.objective(features, hypothesis_rotations(wrong)[:, None].float(),
@@ -249,7 +249,7 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
     assert float(right[0]) == pytest.approx(oblique.cues["focal_profile_gap"], rel=1e-4)
     # profiled in slices of images (bounded copies): the same gaps as one slice
     both = SegmentFeatures.from_batch(SegmentBatch.from_list([oblique.segments] * 2, [(640, 480)] * 2),
-                                      torch.tensor([[320.0, 240.0]] * 2))
+                                      torch.tensor([image_centre(640, 480)] * 2))
     args = (est.likelihood, both, wrong.expand(2, 4), wrong_score.expand(2), est.search, 10)
     together = focal_profile_gap(*args)
     monkeypatch.setattr("fr_torch.core.cues.PROFILE_CHUNK_IMAGES", 1)
@@ -310,7 +310,7 @@ def test_spread_cues_measure_how_well_the_segments_fix_the_camera():
     assert not set(names) & set(plain.cues) and plain.focal_px == pytest.approx(oblique.focal_px, rel=1e-9)
     # at an estimate 40 % too long, f x 0.87 explains the segments better: no spread says it is right
     features = SegmentFeatures.from_batch(SegmentBatch.from_list([segments[0]], [(640, 480)]),
-                                          torch.tensor([[320.0, 240.0]]))
+                                          torch.tensor([image_centre(640, 480)]))
     wrong = torch.cat([angles_from_search_rotation(torch.as_tensor(views[0])[None]),
                        torch.tensor([[1.4 * focal]], dtype=torch.float64)], -1)
     profile = focal_profile(est.likelihood, features, wrong, est.search, 10, SPREAD_FOCAL_RATIOS)

@@ -207,7 +207,7 @@ def test_the_fused_kernels_check_themselves_against_the_torch_path():
     from fr_torch.core import native
     from fr_torch.core.likelihood import (MixtureLikelihood, SegmentFeatures, kernels_match_torch,
                                           measure_b_objective_and_grad, objective_b_nograd, vp_major)
-    from fr_torch.core.camera import vanishing_points
+    from fr_torch.core.camera import image_centre, vanishing_points
     from fr_torch.core.params import rotations
 
     if not native.available():
@@ -215,7 +215,7 @@ def test_the_fused_kernels_check_themselves_against_the_torch_path():
     assert kernels_match_torch()
     segments, size = _photos()[0]
     features = SegmentFeatures.from_endpoints(torch.as_tensor(segments, dtype=torch.float32)[None], None,
-                                              torch.tensor([[size[0] / 2, size[1] / 2]]))
+                                              torch.tensor([image_centre(*size)]))
     generator = torch.Generator().manual_seed(3)
     params = torch.cat([torch.rand(1, 96, 3, generator=generator) * 90 - 45,
                         200 + 800 * torch.rand(1, 96, 1, generator=generator)], -1)

@@ -24,7 +24,7 @@ from fr_eval.scoring.vp_metric import (
     match_errors,
 )
 
-from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.camera import image_centre, rotation_from_angles
 from fr_torch.core.vanishing import AtlantaConfig
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import ImageMeta
@@ -143,7 +143,7 @@ def test_zenith_and_orthogonal_pair_from_ranked_points():
     rotation = rotation_from_angles(20.0, 10.0, 2.0).numpy()
     K = camera_matrix(F_PX, W, H)
     points = (K @ rotation).T
-    pp = np.array([W / 2, H / 2])
+    pp = np.array(image_centre(W, H))
     ranked = vg.rank_by_support(points, [5.0, 9.0, 7.0])  # vertical (column 1) first
     zenith = vg.pick_zenith(ranked, pp, 30.0, H / 2)
     assert zenith == 0

@@ -2,12 +2,13 @@
 
 Conventions (used everywhere: estimator, datasets, metrics, baselines)
 ---------------------------------------------------------------------
-* Image coordinates: pixels, x right, y down, origin at the top-left corner of the
-  top-left pixel's centre (OpenCV / LSD convention).
+* Image coordinates: pixels, x right, y down, origin at the centre of the top-left pixel
+  (OpenCV / LSD convention): pixel centres are at integer coordinates, the image spans
+  ``[-0.5, w - 0.5] x [-0.5, h - 0.5]``.
 * Camera frame: x right, y down, z forward (OpenCV).  K = [[f, 0, cx], [0, f, cy], [0, 0, 1]],
   square pixels, no skew; lens distortion, when estimated, is the division model of
   :mod:`fr_torch.core.distortion` (K and R then belong to the undistorted image).  The principal
-  point defaults to the image centre (w / 2, h / 2).
+  point defaults to the image centre ``((w - 1) / 2, (h - 1) / 2)`` (:func:`image_centre`).
 * World (Manhattan) frame: x = first horizontal Manhattan direction, **y = vertical, pointing
   down (gravity)**, z = second horizontal Manhattan direction.  A level camera with pan = 0
   therefore has R = I.
@@ -212,9 +213,15 @@ def rotation_angle_deg(r_a, r_b):
     return float(angle) if np.ndim(angle) == 0 else angle
 
 
-def image_centre(width: float, height: float) -> tuple[float, float]:
-    """Default principal point (pixels): the exact image centre (w / 2, h / 2)."""
-    return (width / 2.0, height / 2.0)
+def image_centre(width, height):
+    """Default principal point (pixels): the exact centre of a ``width`` x ``height`` image,
+    ``((w - 1) / 2, (h - 1) / 2)`` with pixel centres at integer coordinates -- where OpenCV
+    (``cv2.getDefaultNewCameraMatrix(..., centerPrincipalPoint=True)``) and COLMAP (``(w / 2, h / 2)``
+    in its pixels, whose origin is the top-left pixel's corner) put a centred camera.
+
+    Numbers, arrays or tensors in (broadcast), the same kind out: ``(cx, cy)``.
+    """
+    return ((width - 1) / 2.0, (height - 1) / 2.0)
 
 
 def principal_point_or_centre(principal_point, width: float, height: float) -> tuple[float, float]:
@@ -451,7 +458,8 @@ class Camera:
         focal_px: focal length in pixels (square pixels, no skew); None when unknown (a method
             that estimates only the orientation): ``K``, ``hfov_deg`` and the vanishing points are
             then None.
-        principal_point: (x, y) in pixels; None -> the image centre ``(w / 2, h / 2)``.
+        principal_point: (x, y) in pixels; None -> the image centre ``((w - 1) / 2, (h - 1) / 2)``
+            (:func:`image_centre`).
         rotation: (3, 3) world->camera R (stored as float64 numpy), or None when unknown.
         pan_known: False when only the direction of gravity is known, not the horizontal Manhattan
             directions (a horizon-only method, a view whose Manhattan frame is unknown): ``rotation``

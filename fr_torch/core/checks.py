@@ -14,7 +14,7 @@ from enum import StrEnum
 import numpy as np
 import torch
 
-from fr_torch.core.camera import focal_from_hfov
+from fr_torch.core.camera import focal_from_hfov, image_centre
 from fr_torch.core.fov import FOV_LIMITS_DEG
 from fr_torch.errors import FRInputError
 
@@ -66,7 +66,8 @@ def check_principal_point(pp, width: float, height: float, name: str = "principa
         raise FRInputError(f"{name} must be (x, y) in pixels, got {pp!r}") from None
     x, y = finite_number(x, f"{name} x"), finite_number(y, f"{name} y")
     reach = MAX_REACH_IMAGE_SIZES * max(width, height)
-    if abs(x - width / 2) > reach or abs(y - height / 2) > reach:
+    cx, cy = image_centre(width, height)
+    if abs(x - cx) > reach or abs(y - cy) > reach:
         raise FRInputError(f"{name} ({x:g}, {y:g}) is absurdly far from the {width} x {height} image")
     return x, y
 

@@ -8,8 +8,8 @@ A pixel ``p`` of the photo (distorted) is the image of the undistorted (pinhole)
 
 with ``c`` the distortion centre (= the principal point) and ``s`` the **normalising radius**,
 half the image diagonal ``sqrt(w^2 + h^2) / 2`` (:func:`normalising_radius`), so that ``r = 1`` at
-the corners of an image centred on its principal point.  Resizing an image scales ``p``, ``c``
-and ``s`` alike, so **k means the same at every image size** (a result's k needs no conversion
+the corners of an image centred on its principal point.  Resizing an image scales ``p - c`` and
+``s`` alike, so **k means the same at every image size** (a result's k needs no conversion
 between the working resolution and the input's pixels).  ``k < 0`` is barrel distortion (wide
 angle, CCTV, action cameras), ``k > 0`` pincushion, ``k = 0`` a pinhole camera.  The focal length,
 the rotation, the vanishing points and the horizon are those of the undistorted image: ``u = K R X``
@@ -189,11 +189,12 @@ def distort_points(points, k, centre, radius):
 def border_bow_percent(k: float, width: float, height: float) -> float:
     """How far the straight line through the middle of the photo's left border bends, % of the width.
 
-    The vertical line of the undistorted image that passes through the photo's pixel (0, h/2) (the
-    middle of the left border, principal point at the centre) is drawn in the photo; its horizontal
-    distance from that pixel where it meets the top row (the sagitta of the bowed line) is the bow.
-    Positive for barrel (k < 0: the line bows outwards), negative for pincushion; 0 for k = 0; NaN
-    where the model does not reach the top row.
+    The vertical line of the undistorted image that passes through the middle of the photo's left
+    edge (``w / 2`` left of the principal point, taken at the image centre) is drawn in the photo;
+    its horizontal distance from that point where it meets the top edge (``h / 2`` above the centre;
+    the sagitta of the bowed line) is the bow.  Positive for barrel (k < 0: the line bows
+    outwards), negative for pincushion; 0 for k = 0; NaN where the model does not reach the top
+    edge.
     """
     if k == 0:
         return 0.0
@@ -201,7 +202,7 @@ def border_bow_percent(k: float, width: float, height: float) -> float:
     radius = normalising_radius(width, height)
     centre = np.zeros(2)
     line_x = undistort_points(np.array([-width / 2, 0.0]), k, centre, radius)[0]  # relative to the centre
-    # the undistorted point (line_x, y) whose photo pixel lies on the top row: bisection over y <= 0
+    # the undistorted point (line_x, y) whose photo point lies on the top edge: bisection over y <= 0
     low, high = -10.0 * height, 0.0
     for _ in range(100):
         mid = (low + high) / 2

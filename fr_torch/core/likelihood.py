@@ -314,8 +314,8 @@ class SegmentFeatures:
     @classmethod
     def from_endpoints(cls, endpoints: torch.Tensor, mask: torch.Tensor | None,
                        principal_point: torch.Tensor, long_side: torch.Tensor | None = None) -> "SegmentFeatures":
-        """``long_side`` (B,) pixels; default twice the principal point's larger coordinate (the
-        image size when the principal point is the image centre)."""
+        """``long_side`` (B,) pixels; default ``2 max(pp) + 1`` (the image's long side when the
+        principal point is the image centre, :func:`fr_torch.core.camera.image_centre`)."""
         p1, p2 = endpoints[..., :2], endpoints[..., 2:]
         delta = p2 - p1
         length = torch.sqrt(delta[..., 0] * delta[..., 0] + delta[..., 1] * delta[..., 1])
@@ -327,7 +327,7 @@ class SegmentFeatures:
         line = torch.stack([-d[..., 1], d[..., 0], d[..., 1] * m[..., 0] - d[..., 0] * m[..., 1]], -1)
         along = torch.stack([d[..., 0], d[..., 1], -(d[..., 0] * m[..., 0] + d[..., 1] * m[..., 1])], -1)
         pp = principal_point.to(endpoints).expand(endpoints.shape[0], 2)
-        long_side = 2 * pp.amax(-1) if long_side is None else long_side.to(endpoints).expand(endpoints.shape[0])
+        long_side = 2 * pp.amax(-1) + 1 if long_side is None else long_side.to(endpoints).expand(endpoints.shape[0])
         return cls(line, along, length / 2, length * mask, mask, pp, long_side)
 
     def total_length(self) -> torch.Tensor:

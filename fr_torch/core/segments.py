@@ -12,6 +12,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from fr_torch.core.camera import image_centre
 from fr_torch.core.checks import MAX_REACH_IMAGE_SIZES
 from fr_torch.errors import FRInputError
 
@@ -100,8 +101,8 @@ def drop_absurd_segments(segments: np.ndarray, size: tuple[float, float]) -> tup
     width, height = float(size[0]), float(size[1])
     reach = MAX_REACH_IMAGE_SIZES * max(width, height)
     with np.errstate(invalid="ignore"):
-        keep = ((np.abs(segments[:, 0::2] - width / 2) <= reach) & (np.abs(segments[:, 1::2] - height / 2) <= reach)
-                ).all(1)
+        cx, cy = image_centre(width, height)
+        keep = ((np.abs(segments[:, 0::2] - cx) <= reach) & (np.abs(segments[:, 1::2] - cy) <= reach)).all(1)
     dropped = int(len(segments) - keep.sum())
     return (segments[keep] if dropped else segments), dropped
 

@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fr_torch.core.camera import image_centre
 from fr_torch.core.distortion import distort_points, normalising_radius, undistort_points
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import encode_png, read_image
@@ -48,17 +49,18 @@ def distort_image(source_image: np.ndarray, k: float, size: tuple[int, int], cen
     """A photo of ``size`` (width, height) taken through the division model of ``k`` from the
     pinhole image ``source_image`` (the inverse of :func:`undistort_image`).
 
-    ``centre``: the photo's distortion centre (default its image centre); ``source_centre``: the
-    pixel of ``source_image`` at the same ray (default: its centre when the sizes differ, else
-    ``centre``), so a larger source (e.g. the full frame of a crop) supplies the pixels barrel
-    distortion pulls in from outside the frame.  k is normalised by half the photo's diagonal.
-    Pixels beyond the source follow ``border`` (OpenCV border mode).
+    ``centre``: the photo's distortion centre (x, y) pixels (default its image centre,
+    :func:`fr_torch.core.camera.image_centre`); ``source_centre``: the pixel of ``source_image`` at
+    the same ray (default: its image centre when the sizes differ, else ``centre``), so a larger
+    source (e.g. the full frame of a crop) supplies the pixels barrel distortion pulls in from
+    outside the frame.  k is normalised by half the photo's diagonal.  Pixels beyond the source
+    follow ``border`` (OpenCV border mode).
     """
     width, height = size
-    centre = np.array([width / 2, height / 2] if centre is None else centre, np.float64)
+    centre = np.array(image_centre(width, height) if centre is None else centre, np.float64)
     if source_centre is None:
         same = source_image.shape[1] == width and source_image.shape[0] == height
-        source_centre = centre if same else np.array([source_image.shape[1] / 2, source_image.shape[0] / 2])
+        source_centre = centre if same else np.array(image_centre(source_image.shape[1], source_image.shape[0]))
     undistorted = undistort_points(_pixel_grid(width, height), k, centre, normalising_radius(width, height))
     return _remap(source_image, undistorted - centre + np.asarray(source_centre, np.float64), border)
 

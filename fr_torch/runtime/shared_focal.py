@@ -51,6 +51,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from fr_torch.core.camera import image_centre
 from fr_torch.core.cues import EDGE_REASON
 from fr_torch.core.exact import exact_sum
 from fr_torch.core.fov import FovRange
@@ -406,7 +407,7 @@ def principal_point_scores(estimator, results, offsets: np.ndarray, settings: Sh
     batch = SegmentBatch.from_list([np.asarray(r.segments, np.float64) for r in results],
                                    [(r.width, r.height) for r in results], device, dtype)
     long_side = torch.tensor([float(max(r.width, r.height)) for r in results], dtype=torch.float64)
-    centre = torch.tensor([[r.width / 2, r.height / 2] for r in results], dtype=torch.float64)
+    centre = torch.tensor([image_centre(r.width, r.height) for r in results], dtype=torch.float64)
     features = SegmentFeatures.from_batch(batch, centre.to(device=device, dtype=dtype))
     index = torch.arange(count).repeat_interleave(m)
     moved = centre[index] + torch.as_tensor(offsets, dtype=torch.float64).repeat(count, 1) * long_side[index, None]
@@ -540,12 +541,12 @@ def shared_from_results(estimator, alone: Sequence, focal_prior=None,
             long_side = max(kept[0].width, kept[0].height)
             pp_sigma = (fit.sigma[0] * long_side, fit.sigma[1] * long_side)
             if not fit.flat:
-                points = [(r.width / 2 + fit.offset[0] * max(r.width, r.height),
-                           r.height / 2 + fit.offset[1] * max(r.width, r.height)) for r in kept]
+                points = [tuple(c + o * max(r.width, r.height) for c, o in zip(image_centre(r.width, r.height),
+                                                                                 fit.offset)) for r in kept]
                 log_ratios, combined, again = _at_shared_focal(estimator, kept, points, focal_prior, settings)
                 principal_point = points[0]
             else:
-                principal_point = (kept[0].width / 2, kept[0].height / 2)
+                principal_point = image_centre(kept[0].width, kept[0].height)
     ratio = math.exp(combined.log_ratio)
     results = list(alone)
     at_edge = at_range_edge(log_ratios, combined.log_ratio)
