@@ -90,12 +90,12 @@ def test_horizon_only_and_focal_only_cameras():
     full = Camera.from_angles(640, 480, 500.0, roll_deg=5.0, pitch_deg=3.0, pan_deg=20.0)
     assert full.pan_known and full.angles["pan_deg"] == pytest.approx(20.0)
     focal_only = Camera(640, 480, 500.0)
-    assert focal_only.angles == {} and focal_only.vanishing_points is None and focal_only.K[0, 2] == 320.0
+    assert focal_only.angles == {} and focal_only.vanishing_points is None and focal_only.K[0, 2] == 319.5
     no_focal = Camera(640, 480, None, rotation=np.eye(3))
     assert no_focal.K is None and no_focal.hfov_deg is None and no_focal.angles["roll_deg"] == 0.0
     assert Camera(0, 0, 500.0).hfov_deg is None  # width unknown
     resized = _camera().resized(1280, 960)
-    assert resized.focal_px == 1025.0 and resized.principal_point == (636.0, 487.0)
+    assert resized.focal_px == 1025.0 and resized.principal_point == (636.5, 487.5)  # (x + 0.5) * 2 - 0.5
     assert set(_camera().to_torch()) == {"focal_px", "principal_point", "K", "rotation"}
     assert set(Camera(640, 480).to_torch()) == {"principal_point"}
 
@@ -120,9 +120,9 @@ def test_estimator_and_fusion_build_cameras():
     rotation = rotation_from_angles(15.0, -5.0, 3.0).numpy()
     segments, _ = synthetic_segments(450.0, rotation, seed=3)
     [result] = FREstimator(mode="fast").calibrate_segments([segments], [(640, 480)])
-    assert result.ok and result.camera.width == 640 and result.principal_point == (320.0, 240.0)
+    assert result.ok and result.camera.width == 640 and result.principal_point == (319.5, 239.5)
     assert np.array_equal(result.camera.K, intrinsics(torch.tensor(result.focal_px, dtype=torch.float64),
-                                                      torch.tensor([320.0, 240.0], dtype=torch.float64)).numpy())
+                                                      torch.tensor([319.5, 239.5], dtype=torch.float64)).numpy())
     assert result.roll_deg == result.camera.angles["roll_deg"]
     tracker = OnlineCalibrator()
     state = tracker.update(result)
@@ -136,4 +136,4 @@ def test_estimator_and_fusion_build_cameras():
     result.camera = replace(result.camera, rotation=np.full((3, 3), np.nan))
     check_result(result, SearchConfig.from_config())
     assert not result.ok and result.focal_px is None and result.rotation is None and result.roll_deg is None
-    assert result.to_json()["principal_point"] == (320.0, 240.0)
+    assert result.to_json()["principal_point"] == (319.5, 239.5)

@@ -224,6 +224,40 @@ def image_centre(width, height):
     return ((width - 1) / 2.0, (height - 1) / 2.0)
 
 
+def resize_points(points, size, new_size) -> np.ndarray:
+    """Where points of an image of ``size`` lie once the image is resized to ``new_size``.
+
+    The geometry of ``cv2.resize`` (every interpolation) and of ``torch`` resampling with
+    ``align_corners=False``: pixel centres at integer coordinates, the image's edges ``-0.5`` and
+    ``w - 0.5`` map to the new edges, so ``x' = (x + 0.5) w' / w - 0.5`` and ``y' = (y + 0.5) h' / h
+    - 0.5`` (each axis by its own ratio) and :func:`image_centre` maps to :func:`image_centre`
+    exactly.  Lengths (a focal length) scale by the ratio alone.
+
+    Args:
+        points: (..., 2) ``(x, y)`` pixels of the ``size`` image; (..., 4) segment rows ``[x1, y1,
+            x2, y2]`` are taken as two points each.
+        size, new_size: ``(width, height)`` in pixels, before and after (positive).
+
+    Returns:
+        float64 numpy array of ``points``' shape, pixels of the ``new_size`` image.
+    """
+    points = np.asarray(points, np.float64)
+    old, new = np.asarray(size, np.float64), np.asarray(new_size, np.float64)
+    if points.shape[-1] == 4:
+        old, new = np.tile(old, 2), np.tile(new, 2)
+    return (points + 0.5) * new / old - 0.5
+
+
+def resize_homogeneous(points, size, new_size) -> np.ndarray:
+    """:func:`resize_points` for homogeneous points (..., 3) rows ``(x, y, w)`` (vanishing points,
+    ``w = 0`` at infinity): ``x' = x r + w (r - 1) / 2`` with ``r = w' / w`` per axis; float64 numpy."""
+    points = np.asarray(points, np.float64)
+    ratio = np.asarray(new_size, np.float64) / np.asarray(size, np.float64)
+    out = points.copy()
+    out[..., :2] = points[..., :2] * ratio + points[..., 2:3] * (ratio - 1.0) / 2.0
+    return out
+
+
 def principal_point_or_centre(principal_point, width: float, height: float) -> tuple[float, float]:
     """``principal_point`` as an (x, y) float pair, or the image centre when it is None."""
     if principal_point is None:
@@ -611,12 +645,16 @@ class Camera:
         return cameras
 
     def resized(self, width: int, height: int, factor: float | None = None) -> "Camera":
-        """The same camera for the image resized to ``width`` x ``height`` pixels: focal length and
-        principal point scale by ``factor`` (default ``width / self.width``; aspect ratio kept)."""
+        """The same camera for the image resized to ``width`` x ``height`` pixels: the focal length
+        scales by ``factor`` (default ``width / self.width``), the principal point moves as the
+        resize moves a pixel (:func:`resize_points`, pixel centres at integers: the image centre
+        stays the image centre).  A zero side of this camera's size is taken as ``new / factor``."""
         factor = width / max(self.width, 1) if factor is None else float(factor)
+        size = (self.width if self.width > 0 else width / factor, self.height if self.height > 0 else height / factor)
+        x, y = resize_points(self.principal_point, size, (width, height))
         return replace(self, width=width, height=height,
                        focal_px=None if self.focal_px is None else self.focal_px * factor,
-                       principal_point=tuple(v * factor for v in self.principal_point))
+                       principal_point=(float(x), float(y)))
 
     def to_torch(self, dtype: torch.dtype = torch.float64, device=None) -> dict[str, torch.Tensor]:
         """The camera as tensors for the torch code (the estimator's layout).

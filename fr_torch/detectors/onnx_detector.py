@@ -26,6 +26,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from fr_torch.core.camera import resize_points
+
 
 class OnnxLineDetector:
     """Run a user-supplied ONNX line-segment model as a project detector (see module doc)."""
@@ -111,9 +113,7 @@ class OnnxLineDetector:
         w_in, h_in = self.input_size
         if self.normalized:
             segments = segments * np.array([w_in, h_in, w_in, h_in], np.float64) - 0.5
-        sx, sy = width / w_in, height / h_in
-        scale = np.array([sx, sy, sx, sy])
-        segments = (segments + 0.5) * scale - 0.5
+        segments = resize_points(segments, (w_in, h_in), (width, height))
         order = np.argsort(-scores, kind="stable")
         return segments[order], scores[order]
 

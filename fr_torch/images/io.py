@@ -24,9 +24,10 @@ Policy (what a file may cost before it is refused or reduced):
 Working resolution: the detector runs on a copy whose long side is at most
 :data:`WORKING_LONG_SIDE` pixels (default 640, the resolution of the benchmarks the method was
 designed on; images smaller than that are used as they are).  The estimate is made in working
-pixels and scaled back (``scale`` = input pixels per working pixel), so results are always
-reported in the **input image's pixels**, and the time per image does not grow with the input
-resolution.
+pixels and brought back (``scale`` = input pixels per working pixel; points map as the resize
+maps pixels, :func:`fr_torch.core.camera.resize_points`, pixel centres at integers), so results are
+always reported in the **input image's pixels**, and the time per image does not grow with the
+input resolution.
 """
 from __future__ import annotations
 
@@ -39,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fr_torch.core.camera import resize_homogeneous, resize_points
 from fr_torch.errors import FRInputError
 from fr_torch.images.convert import to_bgr8, to_gray8
 
@@ -430,20 +432,31 @@ def encode_png(image: np.ndarray) -> bytes:
     return buffer.tobytes()
 
 
-def focal_and_pp_to_working(focal, principal_point, scale: float):
-    """The user's focal length / principal point (input pixels) in working pixels (one image)."""
+def focal_and_pp_to_working(focal, principal_point, scale: float, input_size: tuple[int, int],
+                            working_size: tuple[int, int]):
+    """The user's focal length / principal point (input pixels) in working pixels (one image).
+
+    The focal length divides by ``scale`` (input pixels per working pixel); the principal point
+    moves as the resize moves a pixel (:func:`fr_torch.core.camera.resize_points`, pixel centres at
+    integers), so the input's centre is the working image's centre.  ``input_size``,
+    ``working_size``: (width, height) in pixels."""
     focal = None if focal is None else float(focal) / scale
-    pp = None if principal_point is None else (float(principal_point[0]) / scale, float(principal_point[1]) / scale)
-    return focal, pp
+    if principal_point is not None:
+        x, y = resize_points(principal_point, input_size, working_size)
+        principal_point = (float(x), float(y))
+    return focal, principal_point
 
 
 def result_to_input_pixels(result, scale: float, input_size: tuple[int, int]) -> None:
     """Rescale, in place, a result estimated at the working resolution to the input's pixels.
 
-    Lengths (the camera's focal length and principal point, segments) are multiplied by ``scale``;
-    angles, rotation, cues and labels are unchanged; width / height become the input's; the HFOV and
-    the vanishing points follow from the rescaled camera (the same angle up to pixel rounding).
+    The focal length is multiplied by ``scale`` (input pixels per working pixel); points (the
+    principal point, the segments' endpoints, the ranked vanishing points) move as the resize
+    moves a pixel (:func:`fr_torch.core.camera.resize_points`: ``x_in = (x_work + 0.5) w_in / w_work
+    - 0.5``, likewise y); angles, rotation, cues and labels are unchanged; width / height become the
+    input's; the HFOV and the vanishing points follow from the rescaled camera.
     """
+    working = (result.width, result.height)
     if result.width > 0:
         result.width, result.height = int(input_size[0]), int(input_size[1])
     if scale == 1.0 or not result.ok:
@@ -451,9 +464,9 @@ def result_to_input_pixels(result, scale: float, input_size: tuple[int, int]) ->
     if result.camera is not None:
         result.camera = result.camera.resized(result.width, result.height, factor=scale)
     if result.segments is not None:
-        result.segments = np.asarray(result.segments, dtype=np.float64) * scale
-    if result.ranked_vanishing_points is not None:  # homogeneous: x and y scale, w not
-        result.ranked_vanishing_points = np.asarray(result.ranked_vanishing_points, np.float64) * [scale, scale, 1.0]
+        result.segments = resize_points(result.segments, working, input_size)
+    if result.ranked_vanishing_points is not None:
+        result.ranked_vanishing_points = resize_homogeneous(result.ranked_vanishing_points, working, input_size)
         result.vanishing_point_support = np.asarray(result.vanishing_point_support, np.float64) * scale
 
 

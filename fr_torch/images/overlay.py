@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fr_torch.core.camera import border_columns, horizon_border_y, horizon_line
+from fr_torch.core.camera import border_columns, horizon_border_y, horizon_line, resize_points
 from fr_torch.core.estimator import BACKGROUND_LABEL, CalibrationResult
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import encode_png, read_image
@@ -163,11 +163,11 @@ def write_overlay(image_path, result: CalibrationResult, folder) -> Path:
 
     image, size = read_image(image_path)
     image = to_bgr8(image)
-    scale = image.shape[1] / max(result.width, 1)
-    if abs(scale - 1.0) > 1e-9 and result.ok:
-        result = replace(result, width=image.shape[1], height=image.shape[0],
-                         camera=result.camera.resized(image.shape[1], image.shape[0]),
-                         segments=None if result.segments is None else result.segments * scale)
+    size = (image.shape[1], image.shape[0])
+    if size != (result.width, result.height) and result.width > 0 and result.ok:
+        result = replace(result, width=size[0], height=size[1], camera=result.camera.resized(*size),
+                         segments=None if result.segments is None else
+                         resize_points(result.segments, (result.width, result.height), size))
     target = overlay_path(image_path, folder)
     write_bytes(target, encode_png(draw_overlay(image, result)))
     return target

@@ -133,7 +133,7 @@ class FREstimator(SegmentEstimator):
                     segments = validate_segments(d.segments, f"{name} segments", finite=False)
                     item.segments, item.dropped = keep_sane_segments(segments, d.size, name)
                     check_camera(f, pp, d.input_size, name)
-                    f, pp = focal_and_pp_to_working(f, pp, d.scale)
+                    f, pp = focal_and_pp_to_working(f, pp, d.scale, d.input_size, d.size)
                 except FRInputError as exc:
                     item.error, f, pp = str(exc), None, None
             items.append(item)
