@@ -7,7 +7,7 @@ from fr_eval.datasets.crop_views import crop_dataset, crop_origin, main
 from fr_eval.datasets.panoviews import PanoViews
 from fr_eval.datasets.registry import CalibrationSample
 
-from fr_torch.core.camera import Camera, hfov_from_focal, rotation_from_angles
+from fr_torch.core.camera import Camera, hfov_from_focal, image_centre, rotation_from_angles
 from fr_torch.synthetic import render_manhattan_room
 
 
@@ -29,7 +29,8 @@ def test_crop_keeps_the_camera_and_centres_the_principal_point(tmp_path):
     assert view.hfov_deg == pytest.approx(hfov_from_focal(300.0, 200))
     np.testing.assert_allclose(view.rotation, samples[0].camera.rotation, atol=1e-9)
     x0, y0 = crop_origin((153.3, 125.2), (200, 150))
-    assert abs(153.3 - x0 - 100) <= 0.5 and abs(125.2 - y0 - 75) <= 0.5
+    assert abs(153.3 - x0 - 99.5) <= 0.5 and abs(125.2 - y0 - 74.5) <= 0.5  # the crop's centre (99.5, 74.5)
+    assert view.principal_point == image_centre(200, 150)
     source = cv2.imread(str(samples[0].image_path), cv2.IMREAD_GRAYSCALE)
     crop = cv2.imread(str(view.image_path), cv2.IMREAD_GRAYSCALE)
     np.testing.assert_array_equal(crop, source[y0:y0 + 150, x0:x0 + 200])

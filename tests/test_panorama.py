@@ -31,6 +31,7 @@ from fr_eval.datasets.panorama import (
 from fr_torch.core.camera import (
     focal_from_hfov,
     horizon_angles,
+    image_centre,
     intrinsics,
     rotation_from_angles,
 )
@@ -56,7 +57,7 @@ def dpano() -> torch.Tensor:
 def expected_rays(R, f, size, yaw) -> torch.Tensor:
     """Analytic pano-frame unit rays (h, w, 3) of the view pixel centres: Ry(yaw) R^T K^-1 (u, v, 1)."""
     w, h = size
-    K = intrinsics(torch.tensor(f, dtype=torch.float64), torch.tensor([w / 2.0, h / 2.0], dtype=torch.float64))
+    K = intrinsics(torch.tensor(f, dtype=torch.float64), torch.tensor(image_centre(w, h), dtype=torch.float64))
     vs, us = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     pix = torch.stack([us, vs, torch.ones_like(us)], -1)
     M = yaw_rotation(yaw) @ R.T @ torch.linalg.inv(K)
@@ -102,12 +103,13 @@ def test_pole_seam_and_bicubic(dpano):
 
 
 def test_half_pixel_offsets_would_be_detected(dpano):
-    """The check above is sensitive enough: a principal point at ((w-1)/2, (h-1)/2) fails it."""
+    """The check above is sensitive enough: a principal point at (w/2, h/2), half a pixel off the image
+    centre, fails it."""
     w, h = VIEW
     f = focal_from_hfov(60.0, w)
     R = rotation_from_angles(20.0, 10.0, 5.0)
     got = rendered_rays(dpano, R, f, VIEW, 0.0)
-    K = intrinsics(torch.tensor(f, dtype=torch.float64), torch.tensor([(w - 1) / 2.0, (h - 1) / 2.0], dtype=torch.float64))
+    K = intrinsics(torch.tensor(f, dtype=torch.float64), torch.tensor([w / 2.0, h / 2.0], dtype=torch.float64))
     vs, us = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     d = torch.stack([us, vs, torch.ones_like(us)], -1) @ (R.T @ torch.linalg.inv(K)).T
     wrong = d / d.norm(dim=-1, keepdim=True)
@@ -150,7 +152,7 @@ def _locate_vp(d_room: torch.Tensor, axis: int, guess: torch.Tensor) -> torch.Te
 def test_horizon_and_vanishing_points_match_K_R(dpano, hfov):
     w, h = 320, 240
     f = focal_from_hfov(hfov, w)
-    K = intrinsics(torch.tensor(f, dtype=torch.float64), torch.tensor([w / 2.0, h / 2.0], dtype=torch.float64))
+    K = intrinsics(torch.tensor(f, dtype=torch.float64), torch.tensor(image_centre(w, h), dtype=torch.float64))
     yaw = 31.0
     # pan 12: the room z axis' VP is inside the image; pitch -6 / roll 8 keep the horizon inside
     R = rotation_from_angles(12.0, -6.0, 8.0)
@@ -177,7 +179,7 @@ def test_horizon_and_vanishing_points_match_K_R(dpano, hfov):
 def test_vertical_vanishing_point_for_steep_pitch(dpano):
     w, h = 320, 240
     f = focal_from_hfov(120.0, w)
-    K = intrinsics(torch.tensor(f, dtype=torch.float64), torch.tensor([w / 2.0, h / 2.0], dtype=torch.float64))
+    K = intrinsics(torch.tensor(f, dtype=torch.float64), torch.tensor(image_centre(w, h), dtype=torch.float64))
     R = rotation_from_angles(-40.0, -62.0, -7.0)  # looking steeply down: nadir VP inside the image
     d_room = rendered_rays(dpano, R, f, (w, h), -15.0) @ yaw_rotation(-15.0)
     vp = K @ R[:, 1]
@@ -301,6 +303,10 @@ def test_generated_dataset_split_and_reproducibility(tmp_path):
     assert len(PanoViews(tmp_path / "a", "all")) == len(a)
     s = test[0]
     row = a[a["file"].str.contains(s.name)].iloc[0]
-    assert s.image_path.is_file() and s.principal_point == (24.0, 16.0)
+    assert s.image_path.is_file() and s.principal_point == (23.5, 15.5) == image_centre(48, 32)
+    assert (a["cx"] == 23.5).all() and (a["cy"] == 15.5).all()
     assert np.allclose(s.rotation, row[make_dataset.R_COLUMNS].to_numpy(float).reshape(3, 3))
     assert s.tilt_deg == pytest.approx(row["tilt_deg"]) and s.split == "test"
+    # a gt.csv without the principal point's columns: the views were rendered at (w / 2, h / 2)
+    a.drop(columns=["cx", "cy"]).to_csv(tmp_path / "a" / "gt.csv", index=False)
+    assert PanoViews(tmp_path / "a", "all")[0].principal_point == (24.0, 16.0)

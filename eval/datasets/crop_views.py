@@ -7,15 +7,16 @@ A crop of a photo is the photo a camera with the same focal length (pixels) and 
 smaller sensor would have taken: the field of view narrows (YUD's 674.9 px over 400 px: 33.0°
 instead of 50.7° over 640 px) while the scene, the lines and the ground truth stay real.  Each
 crop is centred on the image's *calibrated* principal point, rounded to whole pixels, so the
-crop's centre -- the principal point every method assumes -- is the true one to within half a
-pixel (YUD: 0.45 px in x and y; the full YUD frames, evaluated with the image centre as in the
-paper, are 17 px off).
+crop's centre (:func:`fr_torch.core.camera.image_centre`) -- the principal point every method
+assumes -- is the true one to within half a pixel (YUD: 0.05 px in x and y; the full YUD frames,
+evaluated with the image centre as in the paper, are 17 px off).
 
 Writes the ``fr make-dataset`` layout (:mod:`fr_eval.datasets.make_dataset`), which the ``panoviews``
 loader reads: ``images/<name>.png`` (lossless), ``gt.csv`` (one row per image, same columns:
-focal, the crop's FOV, pan / tilt / roll / pitch, R world->camera, ``group`` = image name, the
-dataset's own train / test split), ``dataset.json`` (command, source, offsets).  Images too small
-for the crop, or without a known focal length and rotation, are skipped and listed there.
+the crop's centre as principal point, focal, the crop's FOV, pan / tilt / roll / pitch, R
+world->camera, ``group`` = image name, the dataset's own train / test split), ``dataset.json``
+(command, source, offsets).  Images too small for the crop, or without a known focal length and
+rotation, are skipped and listed there.
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ from fr_eval.datasets.make_dataset import parse_range, view_distortions
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.datasets.registry import load_dataset
 
-from fr_torch.core.camera import hfov_from_focal, pan_from_rotation
+from fr_torch.core.camera import hfov_from_focal, image_centre, pan_from_rotation
 from fr_torch.images.io import load_image
 from fr_torch.images.lens import distort_image
 
@@ -48,9 +49,11 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def crop_origin(principal_point: tuple[float, float], size: tuple[int, int]) -> tuple[int, int]:
-    """Top-left pixel (x0, y0) of the ``size`` = (width, height) crop whose centre (w/2, h/2) lies
-    nearest to ``principal_point`` (pixels, the convention of :func:`fr_torch.core.camera.image_centre`)."""
-    return int(round(principal_point[0] - size[0] / 2)), int(round(principal_point[1] - size[1] / 2))
+    """Top-left pixel (x0, y0) of the ``size`` = (width, height) crop whose centre
+    (:func:`fr_torch.core.camera.image_centre`, ``((w - 1) / 2, (h - 1) / 2)`` in the crop) lies
+    nearest to ``principal_point`` (pixels)."""
+    cx, cy = image_centre(*size)
+    return int(round(principal_point[0] - cx)), int(round(principal_point[1] - cy))
 
 
 def crop_dataset(samples, size: tuple[int, int], out: Path, distortion_k=None) -> dict:
@@ -62,6 +65,7 @@ def crop_dataset(samples, size: tuple[int, int], out: Path, distortion_k=None) -
     centre = the crop's centre; barrel pulls in pixels from beyond the crop, borders replicated),
     and ``gt.csv`` gains the column ``k``."""
     width, height = size
+    cx, cy = image_centre(width, height)  # the crops' principal point (gt.csv cx, cy)
     (out / "images").mkdir(parents=True, exist_ok=True)
     rows, skipped, offsets = [], [], []
     for sample in samples:
@@ -78,14 +82,13 @@ def crop_dataset(samples, size: tuple[int, int], out: Path, distortion_k=None) -
         if k is None:
             image = load_image(sample.image_path)[y0:y0 + height, x0:x0 + width]
         else:
-            image = distort_image(load_image(sample.image_path), k, size,
-                                  source_centre=(x0 + width / 2, y0 + height / 2))
+            image = distort_image(load_image(sample.image_path), k, size, source_centre=(x0 + cx, y0 + cy))
         file = f"images/{sample.name}.png"
         cv2.imwrite(str(out / file), image)
         rotation = np.asarray(camera.rotation, dtype=np.float64)
-        offsets.append((camera.principal_point[0] - x0 - width / 2, camera.principal_point[1] - y0 - height / 2))
+        offsets.append((camera.principal_point[0] - x0 - cx, camera.principal_point[1] - y0 - cy))
         row = {"file": file, "pano": sample.name, "group": sample.name, "split": sample.split or "all",
-               "width": width, "height": height, "focal_px": float(camera.focal_px),
+               "width": width, "height": height, "cx": cx, "cy": cy, "focal_px": float(camera.focal_px),
                "hfov_deg": hfov_from_focal(float(camera.focal_px), width),
                "pan_deg": float(pan_from_rotation(torch.as_tensor(rotation))),
                "tilt_deg": float(sample.tilt_deg), "roll_deg": float(sample.roll_deg),
@@ -99,7 +102,8 @@ def crop_dataset(samples, size: tuple[int, int], out: Path, distortion_k=None) -
     offsets = np.abs(np.asarray(offsets)) if offsets else np.zeros((0, 2))
     return {"generator": "fr_eval.datasets.crop_views", "size": [width, height], "images": len(rows),
             "skipped": skipped,
-            "principal_point": "the crop centre (w/2, h/2); the true principal point is off by at most "
+            "principal_point": "the crop centre ((w-1)/2, (h-1)/2) (gt.csv cx, cy); the true principal point is off "
+                               "by at most "
                                f"{offsets.max(initial=0.0):.2f} px (crops are whole pixels)",
             "rotation": "world->camera of the source image (a crop does not rotate the camera)",
             "splits": {s: int(sum(r["split"] == s for r in rows)) for s in ("train", "test")}}

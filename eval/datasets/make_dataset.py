@@ -12,13 +12,14 @@ of upright (gravity-aligned) equirectangular panoramas (or 6-face cube maps, one
   ground truth stores both the paper's horizon tilt (``tan tilt = tan pitch / cos roll``) and the
   pitch, both computed with :func:`fr_torch.core.camera.horizon_angles` from the final R, exactly as
   the estimator defines them;
-* rendering: :mod:`fr_eval.datasets.panorama` (tensor ``grid_sample``, principal point exactly (w/2, h/2)).
+* rendering: :mod:`fr_eval.datasets.panorama` (tensor ``grid_sample``, principal point exactly the image
+  centre ``((w - 1) / 2, (h - 1) / 2)``, :func:`fr_torch.core.camera.image_centre`).
 
 Outputs in ``--out``: ``images/<pano>_vNN.jpg``, ``gt.csv`` (one row per view: file, pano, group,
-split, width, height, focal_px, hfov_deg, pan_deg, tilt_deg, roll_deg, pitch_deg, r00..r22 (the
-world->camera R, row-major), manhattan_known, manhattan_yaw_deg), ``dataset.json`` (the
-parameters), ``contact_sheet.png`` (sample views with FOV / tilt / roll captions) and, with
-``--check-yaw``, ``yaw_check.csv``.
+split, width, height, cx, cy (the principal point), focal_px, hfov_deg, pan_deg, tilt_deg,
+roll_deg, pitch_deg, r00..r22 (the world->camera R, row-major), manhattan_known,
+manhattan_yaw_deg), ``dataset.json`` (the parameters), ``contact_sheet.png`` (sample views with
+FOV / tilt / roll captions) and, with ``--check-yaw``, ``yaw_check.csv``.
 
 Rotation frame: when the room's Manhattan yaw is known (``--yaw-csv``, or ``--aligned`` for
 panoramas whose Manhattan axes are the panorama axes) R is expressed in the room's Manhattan frame
@@ -282,8 +283,9 @@ def contact_sheet(images: list[np.ndarray], captions: list[str], path: Path, col
     for ax, img, cap in zip(axes.ravel(), images, captions):
         ax.imshow(img)
         ax.set_title(cap, fontsize=7)
-        # mark the principal point (w/2, h/2)
-        ax.plot([img.shape[1] / 2], [img.shape[0] / 2], "+", color="yellow", ms=6)
+        # mark the principal point (imshow puts pixel centres at integers, as fR does)
+        cx, cy = image_centre(img.shape[1], img.shape[0])
+        ax.plot([cx], [cy], "+", color="yellow", ms=6)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -384,6 +386,7 @@ def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     (out / "images").mkdir(parents=True, exist_ok=True)
     w, h = args.size
+    cx, cy = image_centre(w, h)  # the renderer's principal point (fr_eval.datasets.panorama)
     rows, sheet_imgs, sheet_caps, yaw_rows = [], [], [], []
     for name, path, yaw, known, group in tqdm(records, desc="panoramas", disable=args.quiet):
         pano = load_any_panorama(path, args.device)
@@ -401,7 +404,7 @@ def run(args: argparse.Namespace) -> int:
             fname = f"images/{name}_v{k:02d}.{args.format}"
             save_rgb(out / fname, views[k])
             row = {"file": fname, "pano": name, "group": group, "split": split_of[group], "width": w, "height": h,
-                   "focal_px": float(focal[k]), "hfov_deg": float(ang["hfov_deg"][k]),
+                   "cx": cx, "cy": cy, "focal_px": float(focal[k]), "hfov_deg": float(ang["hfov_deg"][k]),
                    "pan_deg": float(ang["pan_deg"][k]), "tilt_deg": float(hz["tilt_deg"][k]),
                    "roll_deg": float(hz["roll_deg"][k]), "pitch_deg": float(hz["pitch_deg"][k]),
                    "manhattan_known": known, "manhattan_yaw_deg": yaw}
@@ -438,10 +441,10 @@ def run(args: argparse.Namespace) -> int:
         "uniform_fov_deg": list(args.uniform_fov) if args.uniform_fov else None,
         "size": [w, h], "seed": args.seed,
         "distortion": None if args.k_range is None else {
-            "model": "division (fr_torch.core.distortion), centre (w/2, h/2)", "k_range": list(args.k_range)}, "test_fraction": args.test_fraction, "group_by": args.group_by,
+            "model": "division (fr_torch.core.distortion), centre the principal point", "k_range": list(args.k_range)}, "test_fraction": args.test_fraction, "group_by": args.group_by,
         "pan_range_deg": [-180.0, 180.0], "pitch_range_deg": list(args.pitch_range),
         "roll_range_deg": list(args.roll_range), "interp": args.interp, "format": args.format,
-        "principal_point": "(w/2, h/2), pixel (0,0) centre at (0,0)",
+        "principal_point": "the image centre ((w-1)/2, (h-1)/2) (gt.csv cx, cy), pixel (0,0) centre at (0,0)",
         "rotation": "world->camera, room Manhattan frame when manhattan_known else panorama frame; "
                     "R.T = Ry(pan) Rx(pitch) Rz(roll); vertical (down) in column 1",
         "angles": "the sampled range applies to the pitch; tilt/roll/pitch in gt.csv from fr_torch.core.camera.horizon_angles",

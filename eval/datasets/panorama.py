@@ -38,9 +38,9 @@ renderer uses ``R_pano = R @ Ry(yaw).T``.  With yaw = 0 the room frame is the pa
 
 Pinhole views
 -------------
-``K = [[f, 0, w/2], [0, f, h/2], [0, 0, 1]]`` in the project's pixel convention (pixel (0, 0)'s
-centre at (0, 0)), i.e. the principal point is (w/2, h/2) exactly, half a pixel right of / below
-the centre of the pixel grid ((w-1)/2, (h-1)/2).  The colour of output pixel (u, v) is the
+``K = [[f, 0, (w-1)/2], [0, f, (h-1)/2], [0, 0, 1]]`` in the project's pixel convention (pixel
+(0, 0)'s centre at (0, 0)), i.e. the principal point is exactly the image centre
+(:func:`fr_torch.core.camera.image_centre`).  The colour of output pixel (u, v) is the
 panorama sampled along the ray ``R_pano.T @ K^-1 @ (u, v, 1)``; so ``K @ R[:, i]`` is exactly
 the vanishing point of room axis i, with no half-pixel bias.
 
@@ -140,9 +140,10 @@ def view_rays(rotations: torch.Tensor, focal_px: torch.Tensor, size: tuple[int, 
               dtype=torch.float64, distortion_k=None) -> torch.Tensor:
     """Pano-frame ray directions (V, h, w, 3) (not normalised) of every output pixel centre.
 
-    ray(u, v) = Ry(yaw) @ R.T @ K^-1 @ (u, v, 1), with K's principal point (w/2, h/2).
+    ray(u, v) = Ry(yaw) @ R.T @ K^-1 @ (u, v, 1), with K's principal point the image centre
+    ((w-1)/2, (h-1)/2) (:func:`fr_torch.core.camera.image_centre`).
     ``distortion_k`` (V,) or None: views through the division model of these k
-    (:mod:`fr_torch.core.distortion`, centre (w/2, h/2)): pixel (u, v) is undistorted first.
+    (:mod:`fr_torch.core.distortion`, centre the principal point): pixel (u, v) is undistorted first.
     """
     w, h = size
     rotations = torch.as_tensor(rotations, dtype=dtype, device=device).reshape(-1, 3, 3)

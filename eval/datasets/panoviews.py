@@ -14,10 +14,13 @@ A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``i
   a ``gt.csv``).
 
 Each view becomes a :class:`fr_eval.datasets.registry.CalibrationSample` with the exact ground truth
-(focal, principal point (w/2, h/2), R world->camera, tilt / roll / pitch from
-:func:`fr_torch.core.camera.horizon_angles`).  When the panorama's Manhattan yaw was unknown
-(``manhattan_known`` False) ``rotation`` is still the exact camera orientation but in the
-panorama frame, so its columns 0 and 2 are not vanishing directions: the sample's
+(focal, principal point, R world->camera, tilt / roll / pitch from
+:func:`fr_torch.core.camera.horizon_angles`).  The principal point is ``gt.csv``'s ``cx``, ``cy``
+(pixels; the generators write the image centre :func:`fr_torch.core.camera.image_centre`); a
+``gt.csv`` without those columns was rendered with the principal point at ``(w / 2, h / 2)``
+(:func:`unrecorded_principal_point`), which the loader then uses.  When the panorama's Manhattan
+yaw was unknown (``manhattan_known`` False) ``rotation`` is still the exact camera orientation but
+in the panorama frame, so its columns 0 and 2 are not vanishing directions: the sample's
 ``extra["manhattan_known"]`` says so, and ``rotation`` is set to ``None`` unless
 ``keep_unknown_manhattan_rotation=True`` (gravity-based numbers -- tilt, roll, pitch, focal -- are
 always ground truth).
@@ -37,9 +40,16 @@ from fr_eval.paths import cache_root
 from fr_torch.core.camera import Camera, image_centre
 
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
-#: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.datasets.crop_views``.
-GT_COLUMNS = ["file", "pano", "group", "split", "width", "height", "focal_px", "hfov_deg", "pan_deg", "tilt_deg",
-              "roll_deg", "pitch_deg", *R_COLUMNS, "manhattan_known", "manhattan_yaw_deg"]
+#: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.datasets.crop_views``
+#: (``cx``, ``cy``: the principal point, pixels).
+GT_COLUMNS = ["file", "pano", "group", "split", "width", "height", "cx", "cy", "focal_px", "hfov_deg", "pan_deg",
+              "tilt_deg", "roll_deg", "pitch_deg", *R_COLUMNS, "manhattan_known", "manhattan_yaw_deg"]
+
+
+def unrecorded_principal_point(width: int, height: int) -> tuple[float, float]:
+    """The principal point (pixels) of a view whose ``gt.csv`` has no ``cx``, ``cy`` columns:
+    ``(w / 2, h / 2)``, the centre those folders were rendered with."""
+    return (width / 2.0, height / 2.0)
 SPLITS = ("train", "test", "all")
 
 
@@ -62,10 +72,11 @@ class PanoView:
     pitch_deg: float
     manhattan_known: bool
     distortion_k: float = 0.0  # division model's k (fr_torch.core.distortion); 0 = a pinhole view
+    principal_point: tuple[float, float] | None = None  # (x, y) pixels; None = image_centre(width, height)
 
-    @property
-    def principal_point(self) -> tuple[float, float]:
-        return image_centre(self.width, self.height)
+    def __post_init__(self) -> None:
+        if self.principal_point is None:
+            self.principal_point = image_centre(self.width, self.height)
 
 
 class PanoViews:
@@ -98,14 +109,17 @@ class PanoViews:
 
     def __getitem__(self, i: int) -> PanoView:
         r = self.table.iloc[i]
+        width, height = int(r["width"]), int(r["height"])
+        recorded = "cx" in r.index and "cy" in r.index
+        principal_point = (float(r["cx"]), float(r["cy"])) if recorded else unrecorded_principal_point(width, height)
         return PanoView(
             name=Path(r["file"]).stem, image_path=self.folder / r["file"], pano=str(r["pano"]),
-            split=str(r["split"]), width=int(r["width"]), height=int(r["height"]),
+            split=str(r["split"]), width=width, height=height,
             focal_px=float(r["focal_px"]), hfov_deg=float(r["hfov_deg"]),
             rotation=r[R_COLUMNS].to_numpy(dtype=np.float64).reshape(3, 3),
             pan_deg=float(r["pan_deg"]), tilt_deg=float(r["tilt_deg"]), roll_deg=float(r["roll_deg"]),
             pitch_deg=float(r["pitch_deg"]), manhattan_known=bool(r["manhattan_known"]),
-            distortion_k=float(r["k"]) if "k" in r.index else 0.0,
+            distortion_k=float(r["k"]) if "k" in r.index else 0.0, principal_point=principal_point,
         )
 
     def samples(self, keep_unknown_manhattan_rotation: bool = False) -> list[CalibrationSample]:

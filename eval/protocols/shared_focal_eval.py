@@ -392,6 +392,7 @@ def run_principal_point(args) -> None:
     from tqdm import tqdm
 
     from fr_torch import FREstimator
+    from fr_torch.core.camera import image_centre
     from fr_torch.runtime.shared_focal import SharedFocalSettings, shared_from_results
 
     torch.set_num_threads(1)
@@ -431,6 +432,7 @@ def run_principal_point(args) -> None:
         rows.append(f"| shared focal, {name} | {np.median(err):.2f} | {np.percentile(err, 90):.2f} | "
                     f"{np.nanmean(roll_err[name]):.2f} | {np.nanmean(tilt_err[name]):.2f} |")
     offsets = np.array(pp_err).reshape(-1, 2)
+    centre = image_centre(samples[0].width, samples[0].height)
     text = (f"### {args.dataset} {args.split}: groups of {args.size} ({len(groups)} groups, {args.repeats} random "
             f"partitions), the principal point not given\n\n"
             "| estimate | focal error median % | p90 % | roll MAE (deg) | tilt MAE (deg) |\n|---|---|---|---|---|\n"
@@ -438,7 +440,7 @@ def run_principal_point(args) -> None:
             f"Shared principal point minus the calibrated one ({len(offsets)} groups): mean "
             f"({offsets[:, 0].mean():+.1f}, {offsets[:, 1].mean():+.1f}) px, SD ({offsets[:, 0].std():.1f}, "
             f"{offsets[:, 1].std():.1f}) px; the image centre is "
-            f"({samples[0].width / 2 - gt_pp[0, 0]:+.1f}, {samples[0].height / 2 - gt_pp[0, 1]:+.1f}) px from it.\n")
+            f"({centre[0] - gt_pp[0, 0]:+.1f}, {centre[1] - gt_pp[0, 1]:+.1f}) px from it.\n")
     print(text)
     OUT_DIR.mkdir(parents=True, exist_ok=True)
     stem = f"principal_point_{args.dataset}_{args.split}_{args.size}"
