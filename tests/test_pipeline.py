@@ -139,7 +139,7 @@ def test_calibrate_detections_works_in_input_pixels():
                                        principal_point=[None, (650.0, 470.0), None, None])
     known, pp, empty, absurd = results
     assert (known.width, known.height) == (1280, 960) and known.focal_px == pytest.approx(1000.0)
-    assert known.principal_point == pytest.approx((640.0, 480.0))
+    assert known.principal_point == (639.5, 479.5)  # the input's centre, exactly
     assert pp.ok and pp.principal_point == pytest.approx((650.0, 470.0))
     assert pp.focal_px == pytest.approx(1000.0, rel=0.1)
     assert not empty.ok and empty.reason
