@@ -10,6 +10,7 @@ import torch
 
 from fr_torch import FREstimator
 from fr_torch.cli.main import main as cli_main
+from fr_torch.core.camera import image_centre
 from fr_torch.core.config import SearchConfig
 from fr_torch.core.distortion import (
     DistortionMode,
@@ -31,7 +32,7 @@ from fr_torch.synthetic import distorted_segments, random_rotation, synthetic_se
 from tests.conftest import gpu
 
 WIDTH, HEIGHT = 640, 480
-CENTRE = np.array([WIDTH / 2, HEIGHT / 2])
+CENTRE = np.array(image_centre(WIDTH, HEIGHT))
 RADIUS = normalising_radius(WIDTH, HEIGHT)
 
 
