@@ -442,15 +442,15 @@ def test_refinement_stays_finite_and_in_the_box_under_a_bad_gradient(monkeypatch
 
 
 def test_refinement_adam_is_torch_adam_and_the_same_bits_in_any_layout():
-    """search._Adam = torch.optim.Adam stepped by ExponentialLR (to float rounding), and an entry's
+    """search.Adam = torch.optim.Adam stepped by ExponentialLR (to float rounding), and an entry's
     update does not depend on where it sits (torch's fused kernel rounds body and tail differently)."""
     torch.manual_seed(0)
     grads = [torch.randn(3, 8, 4) * 10 ** torch.randint(-3, 3, ()).item() for _ in range(30)]
     ours = torch.rand(3, 8, 4)
     shifted = torch.cat([torch.rand(1, 8, 4), ours.clone()])  # the same entries one image further on
     theirs = ours.clone().requires_grad_(True)
-    adam = search._Adam(ours, 0.03, 0.8, betas=(0.5, 0.9))
-    adam_shifted = search._Adam(shifted, 0.03, 0.8, betas=(0.5, 0.9))
+    adam = search.Adam(ours, 0.03, 0.8, betas=(0.5, 0.9))
+    adam_shifted = search.Adam(shifted, 0.03, 0.8, betas=(0.5, 0.9))
     reference = torch.optim.Adam([theirs], lr=0.03, betas=(0.5, 0.9), foreach=False)
     schedule = torch.optim.lr_scheduler.ExponentialLR(reference, 0.8)
     for grad in grads:

@@ -102,7 +102,7 @@ def into_box(points: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, per
     return torch.cat([pan_low + torch.remainder(points[..., :1] - pan_low, pan_span), boxed[..., 1:]], -1)
 
 
-def _log_spaced_focals(f_lo: torch.Tensor, f_hi: torch.Tensor, count: int) -> torch.Tensor:
+def log_spaced_focals(f_lo: torch.Tensor, f_hi: torch.Tensor, count: int) -> torch.Tensor:
     """``count`` focal lengths per image, (B, count) float64 pixels, at the centres of ``count``
     equal cells in log f between ``f_lo`` and ``f_hi`` ((B,) float64 pixels)."""
     fraction = (torch.arange(count, dtype=torch.float64, device=f_lo.device) + 0.5) / count
@@ -121,7 +121,7 @@ def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:
         return focal_from_hfov(fov[None, :], long_side[:, None])
     f_lo, f_hi = config.fov_range.focal_bounds(long_side)
     if config.focal_grid == "log_f":
-        return _log_spaced_focals(f_lo, f_hi, k)
+        return log_spaced_focals(f_lo, f_hi, k)
     return f_lo[:, None] + frac * (f_hi - f_lo)[:, None]
 
 
@@ -242,7 +242,7 @@ def sweep_focal(likelihood: MixtureLikelihood, features: SegmentFeatures, starts
     start64 = starts.to(device=device, dtype=torch.float64)
     lower64 = lower.to(device=device, dtype=torch.float64)
     upper64 = upper.to(device=device, dtype=torch.float64)
-    focal = _log_spaced_focals(lower64[:, FOCAL], upper64[:, FOCAL], count)[:, None, :].expand(batch, n_start, count)
+    focal = log_spaced_focals(lower64[:, FOCAL], upper64[:, FOCAL], count)[:, None, :].expand(batch, n_start, count)
     rotation = _focal_ridge_rotations(rotations(start64), focal / start64[..., FOCAL:])  # (B, L, m, 3, 3)
     angles = angles_from_search_rotation(rotation)  # (B, L, m, 3)
     pan_step = (upper64[:, PAN] - lower64[:, PAN]) / (3 * config.grid_points_per_dim)  # 1/3 of a grid cell
@@ -496,7 +496,7 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
 _GRAD_BOUND = 1e6
 
 
-class _Adam:
+class Adam:
     """Adam (Kingma & Ba; torch.optim's update: ``p -= lr / (1 - b1^t) * m / (sqrt(v) / sqrt(1 - b2^t)
     + eps)``) on one tensor, with a step size that decays by ``gamma`` after every step.
 
@@ -553,7 +553,7 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     lr0 = 0.25 * cell
     lr_final = (0.02 if fast else 0.002) * cell
     gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
-    optimiser = _Adam(u, lr0, gamma, betas=(0.5, 0.9))
+    optimiser = Adam(u, lr0, gamma, betas=(0.5, 0.9))
     all_free = bool(free.all())
     history: list[torch.Tensor] = []
     active = None  # (B, 1, 1) images still refined under the stopping rule
@@ -643,9 +643,7 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     pp = features.principal_point[:, None, :]  # (B, 1, 2)
     if geometry is not None:
         pp = pp.view(batch, n_hyp, 2)
-    # V = K R: rows 0, 1 = f R_j + c_j R_2, row 2 = R_2.
-    top = focal[..., None, None] * rotation[..., :2, :] + pp[..., None] * rotation[..., 2:, :]
-    vps = torch.cat([top, rotation[..., 2:, :]], -2)  # (B, L, 3, 3)
+    vps = camera_vps(rotation, focal, pp)  # (B, L, 3, 3)
     constants = likelihood._b_constants(features.weight)
     if geometry is None:
         objective, grad_flat = measure_b_objective_and_grad(features.line_along, features.weight, vp_major(vps),
@@ -663,24 +661,50 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
             k_prior, d_k_prior = geometry.k_log_prior(params[..., DISTORTION])
             objective = objective + k_prior
             grad_k = grad_k + grad_out * d_k_prior
-    grad_v = grad_v.to(rotation.dtype)
-    grad_f = small_sum(small_sum(grad_v[..., :2, :] * rotation[..., :2, :], -1), -1)
+    focal_prior_grad = None
     if likelihood.params.focal_prior_weight:  # the focal prior of MixtureLikelihood.objective
         if geometry is None:
             prior, d_prior = likelihood.focal_prior(features, focal)
         else:
             prior, d_prior = (x.view(batch, n_hyp) for x in likelihood.focal_prior(features, focal.reshape(-1, 1)))
         objective = objective + prior
-        grad_f = grad_f + grad_out * d_prior
-    m = small_matmul(vps.transpose(-1, -2), grad_v)  # R.T K.T G (B, L, 3, 3)
-    anti = m - m.transpose(-1, -2)
-    axial = torch.stack([anti[..., 2, 1], anti[..., 0, 2], anti[..., 1, 0]], -1)  # (B, L, 3)
-    grad_pitch = cos[..., 0] * axial[..., 0] - sin[..., 0] * axial[..., 2]  # w = Ry e_x = (cos pan, 0, -sin pan)
-    grad_roll = dot3(rotation[..., 2, :], axial)  # w = R.T e_z = row 2 of R
-    grad_angles = torch.stack([axial[..., 1], grad_pitch, grad_roll], -1) * (-math.pi / 180)  # per degree
-    grad_p = torch.cat([grad_angles, (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
+        focal_prior_grad = grad_out * d_prior
+    grad_p = chain_to_params(vps, rotation, cos, sin, focal, grad_v, focal_prior_grad)
     if geometry is not None:
         grad_p = torch.cat([grad_p, grad_k[..., None]], -1)
     return objective, grad_p * span
 
 
+
+
+def camera_vps(rotation: torch.Tensor, focal: torch.Tensor, principal_point: torch.Tensor) -> torch.Tensor:
+    """The vanishing points ``V = K R`` (..., 3, 3) (rows x, y, w in pixels; column j the VP of
+    world axis j) of rotations (..., 3, 3), focal lengths (...) and principal points broadcastable
+    to (..., 2), pixels: rows 0, 1 = ``f R_j + c R_2``, row 2 = ``R_2``, each product rounded once."""
+    top = focal[..., None, None] * rotation[..., :2, :] + principal_point[..., None] * rotation[..., 2:, :]
+    return torch.cat([top, rotation[..., 2:, :]], -2)
+
+
+def chain_to_params(vps: torch.Tensor, rotation: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor,
+                    focal: torch.Tensor, grad_v: torch.Tensor, grad_f_extra: torch.Tensor | None = None) -> torch.Tensor:
+    """The gradient (..., 4) with respect to [pan, pitch, roll (per degree), log f] of a function of
+    the vanishing points ``V = K R`` whose gradient with respect to V is ``grad_v`` (..., coord, VP).
+
+    ``vps`` (..., 3, 3) = K R (rows x, y, w; columns the VPs), ``rotation`` (..., 3, 3) world->camera
+    with ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (:func:`fr_torch.core.params.rotations`), ``cos`` /
+    ``sin`` (..., 3) of the angles, ``focal`` (...) pixels; ``grad_f_extra`` (...) is added to the
+    derivative with respect to f (a prior on f).  ``dV/df = [R_0; R_1; 0]`` and
+    ``dR/d angle = -R [w]_x`` for the axis ``w`` = e_y (pan), ``Ry(pan) e_x`` (pitch) and ``R.T e_z``
+    (roll), so ``d / d angle = -w . axial(V.T G)`` (axial(M) = (M21 - M12, M02 - M20, M10 - M01));
+    every product written out (:mod:`fr_torch.core.exact`)."""
+    grad_v = grad_v.to(rotation.dtype)
+    grad_f = small_sum(small_sum(grad_v[..., :2, :] * rotation[..., :2, :], -1), -1)
+    if grad_f_extra is not None:
+        grad_f = grad_f + grad_f_extra
+    m = small_matmul(vps.transpose(-1, -2), grad_v)  # R.T K.T G (..., 3, 3)
+    anti = m - m.transpose(-1, -2)
+    axial = torch.stack([anti[..., 2, 1], anti[..., 0, 2], anti[..., 1, 0]], -1)  # (..., 3)
+    grad_pitch = cos[..., 0] * axial[..., 0] - sin[..., 0] * axial[..., 2]  # w = Ry e_x = (cos pan, 0, -sin pan)
+    grad_roll = dot3(rotation[..., 2, :], axial)  # w = R.T e_z = row 2 of R
+    grad_angles = torch.stack([axial[..., 1], grad_pitch, grad_roll], -1) * (-math.pi / 180)  # per degree
+    return torch.cat([grad_angles, (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
