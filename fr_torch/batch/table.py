@@ -45,7 +45,7 @@ def result_schema():
     mat3 = pa.list_(pa.list_(f64))
     return pa.schema([
         ("image", pa.string()), ("width", pa.int32()), ("height", pa.int32()),
-        ("ok", pa.bool_()), ("reliable", pa.bool_()), ("reason", pa.string()),
+        ("ok", pa.bool_()), ("reliable", pa.bool_()), ("reason", pa.string()), ("model", pa.string()),
         ("focal_px", f64), ("hfov_deg", f64), ("principal_point", pa.list_(f64)),
         ("rotation", mat3), ("vertical_axis", pa.int8()),
         ("pan_deg", f64), ("tilt_deg", f64), ("roll_deg", f64), ("pitch_deg", f64),

@@ -19,7 +19,7 @@ import argparse
 from typing import Any
 
 from fr_torch.core.checks import finite_number, positive_number
-from fr_torch.core.config import Mode, SearchConfig
+from fr_torch.core.config import FITS, Mode, SearchConfig
 from fr_torch.core.distortion import DistortionMode
 from fr_torch.core.vanishing import AtlantaConfig
 from fr_torch.errors import FRInputError
@@ -53,6 +53,11 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
     group.add_argument("--k", type=float, default=None, metavar="K",
                        help="known radial distortion k of the division model (normalised by half the image diagonal; "
                             "negative = barrel); implies --distortion division unless auto is given")
+    group.add_argument("--fit", choices=FITS, default=None,
+                       help="what the search returns: manhattan (fR's mixture fit; the default of configs/search.json), "
+                            "horizon (the horizon fit: the vertical first, then f and the horizontal directions on "
+                            "its horizon, with a truncated vote; docs/horizon.md) or choose (per photo, the one the "
+                            "segments' vote supports more); the JSON's model says which fit an estimate comes from")
     group.add_argument("--compile", action="store_true",
                        help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
                             "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "
@@ -118,7 +123,7 @@ def camera_options(args: argparse.Namespace) -> tuple[float | None, tuple[float,
 
 
 def search_config(args: argparse.Namespace) -> SearchConfig:
-    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range`` and
+    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range``, ``--fit`` and
     ``--compile`` over the shipped defaults; FRInputError (one line) naming a malformed option."""
     overrides = {"compile_search": True} if getattr(args, "compile", False) else {}
     config = SearchConfig.from_config(**overrides)
@@ -134,6 +139,8 @@ def search_config(args: argparse.Namespace) -> SearchConfig:
                 config = config.with_angle_range(name, value)
             except ValueError as exc:
                 raise FRInputError(f"--{name}-range: {exc}") from None
+    if getattr(args, "fit", None):
+        config = config.with_fit(args.fit)
     distortion, k = getattr(args, "distortion", None), getattr(args, "k", None)
     if distortion is not None or k is not None:
         try:

@@ -59,6 +59,7 @@ from fr_torch.core.likelihood import (
     MixtureLikelihood,
     SegmentFeatures,
 )
+from fr_torch.core.horizon_fit import HorizonChooser, choose_fit
 from fr_torch.core.params import DISTORTION, FOCAL, CameraParams
 from fr_torch.core.reliability import ReliabilityModel
 from fr_torch.core.reliability_bounds import horizon_bound_pct
@@ -123,7 +124,7 @@ def keep_sane_segments(segments: np.ndarray, size: tuple, name: str) -> tuple[np
 SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device memory for any batch)
 
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
-JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "focal_px", "hfov_deg", "principal_point",
+JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "model", "focal_px", "hfov_deg", "principal_point",
              "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
              "ranked_vanishing_points", "horizon", "distortion", "log_likelihood", "num_segments", "manhattan_fraction", "cues",
              "predicted_error", "error_bound", "runtime_s")
@@ -148,6 +149,10 @@ class CalibrationResult:
     each family's segments (pixels), most supported first; ``vanishing_point_families`` (M,) says
     which family each is: 0-2 the column of R (1 = vertical), 3.. an Atlanta family (an extra
     horizontal direction, ``atlanta`` option; :mod:`fr_torch.core.vanishing`).  M = 3 without it.
+
+    ``model``: the fit the estimate comes from, ``manhattan`` (fR's mixture fit) or ``horizon``
+    (:mod:`fr_torch.core.horizon_fit`, chosen by :attr:`fr_torch.core.config.SearchConfig.fit`);
+    None without an estimate.
 
     ``horizon`` (:class:`fr_torch.core.camera.Horizon`, None without an estimate): the horizon in
     the input image's pixels, where it crosses the left and right borders, and its 90 % bound in %
@@ -180,6 +185,9 @@ class CalibrationResult:
     # the lens model of the estimate: "pinhole" or "division" with its normalised k (fr_torch.core.distortion)
     distortion_model: str = "pinhole"
     distortion_k: float = 0.0
+    # the fit the estimate comes from: "manhattan" (fR's mixture fit) or "horizon"
+    # (fr_torch.core.horizon_fit; SearchConfig.fit); None without an estimate
+    model: str | None = None
 
     @property
     def distortion(self) -> dict[str, Any] | None:
@@ -360,6 +368,8 @@ class SegmentEstimator:
         self.profile_gap = "focal_profile_gap" in model_cues if profile_gap is None else bool(profile_gap)
         # the spread cues that the bounds of `reliable` rest on (fr_torch.core.reliability_bounds)
         self.spreads = getattr(reliability, "needs_spreads", False) if spreads is None else bool(spreads)
+        # the per-photo choice between the Manhattan and the horizon fit (SearchConfig.fit = choose)
+        self.horizon_chooser = HorizonChooser.load() if self.search.fit == "choose" else None
 
     # ------------------------------------------------------------------ public API
 
@@ -494,6 +504,8 @@ class SegmentEstimator:
         geometry = SegmentGeometry.from_features(features, batch.endpoints, batch.image_size,
                                                  setting.k_prior_weight if lens == "division" else 0.0)
         k_estimate = None  # (B,) k of the division estimates
+        horizon_fit = torch.zeros(len(group), dtype=torch.bool)  # (B,) the horizon fit chosen (choose_fit)
+        choice_evidence = {}  # the choice's evidence (fr_torch.core.horizon_fit.CHOICE_FEATURES), cues choice_*
         if lens == "division":
             found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal,
                                   self.iterations, fast=self.mode == "fast")
@@ -524,6 +536,12 @@ class SegmentEstimator:
                                              periodic_pan=self.search.periodic_pan)
             params, best_scores, tied = best_of_start_and_refined(starts, top_scores, refined, refined_scores,
                                                                   tie_tolerance(features))
+            choice = choose_fit(self.likelihood, features, params, best_scores, lower, upper, batch.image_size,
+                                self.search, self.horizon_chooser)
+            horizon_fit, choice_evidence = choice.horizon, choice.evidence
+            params = torch.where(horizon_fit[:, None], choice.params.to(params.dtype), params)
+            best_scores = torch.where(horizon_fit, choice.scores.to(best_scores.dtype), best_scores)
+            tied = torch.where(horizon_fit, torch.zeros_like(tied), tied) | choice.tied
             estimate = CameraParams(params)
         t2 = time.perf_counter()
 
@@ -533,6 +551,7 @@ class SegmentEstimator:
         labels = first_argmax(posterior[:, 0], -1)
         ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta)
         cues = image_cues(grid_scores, grid_counts, labels, log_p[:, 0], batch.mask, rotation)
+        cues.update({f"choice_{name}": value for name, value in choice_evidence.items()})
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
                                self.profile_gap, self.spreads))
         if lens == "pinhole":  # do the lines bend?  (a sanity check of pinhole estimates; auto's criterion)
@@ -548,6 +567,7 @@ class SegmentEstimator:
         params_all = estimate.data.cpu().numpy()
         scores_all = best_scores.to(torch.float64).cpu().numpy()
         tied_all = tied.cpu().numpy()
+        horizon_all = horizon_fit.cpu().numpy()
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
         ranked_points, ranked_support, ranked_family = (ranked.points.cpu().numpy(), ranked.support.cpu().numpy(),
                                                         ranked.family.cpu().numpy())
@@ -574,6 +594,7 @@ class SegmentEstimator:
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             if k_all is not None:
                 r.distortion_model, r.distortion_k = "division", float(k_all[j])
+            r.model = "horizon" if horizon_all[j] else "manhattan"
             r.reliable, r.reason = sanity_check(r, self.min_segments, self.min_family_segments,
                                                  self.min_manhattan_fraction)
             bend = lines_bend_reason(r.cues, setting, r.width, r.height) if lens == "pinhole" else None

@@ -14,7 +14,8 @@ three; f and R unchanged; ``atlanta=max_extra=2:prior=0.05`` sets its parameters
 :class:`fr_torch.core.vanishing.AtlantaConfig`).  Every estimate carries fR's vanishing points
 ranked by support (``CameraEstimate.ranked_vanishing_points``).  ``fr[distortion=division]`` /
 ``fr[distortion=auto]`` (radial distortion estimated, see :mod:`fr_torch.core.distortion`) and
-``fr[k=-0.2]`` (a known k).
+``fr[k=-0.2]`` (a known k); ``fr[fit=choose]`` / ``fr[fit=horizon]`` (what the search returns,
+:attr:`fr_torch.core.config.SearchConfig.fit`).
 """
 from __future__ import annotations
 
@@ -42,7 +43,8 @@ def estimate_from_result(method: str, result: CalibrationResult, runtime_s: floa
         extra={"cues": result.cues, "num_segments": result.num_segments, "log_likelihood": result.log_likelihood,
                "stage_runtime_s": result.runtime_s, "vanishing_point_support": result.vanishing_point_support,
                "vanishing_point_families": result.vanishing_point_families,
-               "distortion": result.distortion, "horizon_bound_pct": None if horizon is None else horizon.bound_pct},
+               "distortion": result.distortion, "horizon_bound_pct": None if horizon is None else horizon.bound_pct,
+               "model": result.model},
         ranked_vanishing_points=result.ranked_vanishing_points,
     )
 
@@ -58,10 +60,13 @@ class FRCalibrator:
     def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
                  likelihood: str | None = None, use_meta_segments: bool = False, name: str | None = None,
                  range=None, model: str | None = None, atlanta=None, distortion: str | None = None, k=None,
-                 **estimator_kwargs):
+                 fit: str | None = None, **estimator_kwargs):
         if range is not None:
             base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
             estimator_kwargs["search_config"] = base.with_fov_range(range)
+        if fit is not None:
+            base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
+            estimator_kwargs["search_config"] = base.with_fit(fit)
         if model is not None:
             params = (estimator_kwargs.get("likelihood_params")
                       or LikelihoodParams.from_config(measure, likelihood, mode=mode))
@@ -74,7 +79,8 @@ class FRCalibrator:
         self.name = format_method_spec(base, {
             "measure": measure or None, "detector": detector if detector != "lsd" else None,
             "likelihood": likelihood or None, "range": range if isinstance(range, str) else None, "model": model,
-            "atlanta": atlanta if self.estimator.atlanta is not None else None, "distortion": distortion, "k": k})
+            "atlanta": atlanta if self.estimator.atlanta is not None else None, "distortion": distortion, "k": k,
+            "fit": fit})
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
         start = time.perf_counter()

@@ -1,0 +1,518 @@
+"""The horizon fit: the vertical first, then f and the horizontal directions on its horizon.
+
+A second estimator of f and R beside fR's Manhattan mixture (:mod:`fr_torch.core.search`), built
+for the horizon's height on street photos, after the front end of Lee, Hebert & Kanade (CVPR
+2009) and on the same segments, batch, devices and exact sums:
+
+1. **Vertical vanishing point** (an image point; f is not needed): every pair of the
+   ``vertical_proposers`` longest near-vertical segments (within ``vertical_max_deg`` of the image
+   vertical) proposes the point where their lines meet; a point scores the truncated vote of the
+   near-vertical segments (below), the best is refined by weighted least squares on its inliers
+   (``vertical_rounds`` rounds).
+2. **Focal sweep on the horizon**: for each of ``focal_steps`` focal lengths, log-spaced over the
+   search box, the vertical fixes the vertical direction and so the horizon; every one of the
+   ``proposers`` longest other segments meets the horizon in a candidate first horizontal vanishing
+   point, orthogonality gives the second; the orthogonal triplet scores the truncated vote of the
+   ``voters`` longest segments for any of its three points.  The best (f, triplet) wins.
+3. **Refinement** of pan, pitch, roll and log f inside the search box (Adam, ``refine_iterations``
+   steps) on the smooth form of the vote, ``sum_i l_i max_j exp(-sin^2(e_ij) / (2 sin^2(kernel)))``.
+
+The **truncated vote** of a segment for a vanishing point is ``max(0, 1 - sin^2(e) / sin^2(inlier))``
+with ``e`` the angle between the segment and the line from its midpoint to the point (deviation
+measure b): a segment further than ``inlier_deg`` from every point votes nothing, so a family that
+does not meet the horizon (an inclined street, a sloped roof) is left out instead of pulling the
+horizon towards it, as it does through the mixture's smooth shares.
+
+Conventions: :mod:`fr_torch.core.camera` (pixels, x right / y down; R world->camera with the
+vertical, pointing down, in column 1).  The stages work in normalised coordinates
+``(p - principal point) / long side``, where the vanishing point of a direction ``d`` is
+``(phi d_x, phi d_y, d_z)`` with ``phi = f / long side``.  Sums over segments are
+:func:`fr_torch.core.exact.exact_sum`, ties go to the lowest index: an image's fit is the same bits
+in any batch, on any thread count and kernel set.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from fr_torch.core.camera import horizon_angles, rotation_from_cos_sin
+from fr_torch.core.config import HorizonFitConfig, SearchConfig
+from fr_torch.core.exact import atan2, cross3, dot3, exact_sum, first_argmax, top_indices
+from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
+from fr_torch.core.params import FOCAL, PITCH, ROLL, from_log_focal, rotations, to_log_focal
+from fr_torch.core.search import (
+    Adam,
+    angles_from_search_rotation,
+    camera_vps,
+    chain_to_params,
+    into_box,
+    log_spaced_focals,
+)
+
+
+@dataclass
+class HorizonFit:
+    """The horizon fit of a batch: ``params`` (B, 4) [pan, pitch, roll (degrees), f (pixels)] float64;
+    ``vote`` (B,) float64, the truncated vote of the fit's triplet (pixels of segment length);
+    ``found`` (B,) bool, False where no vertical vanishing point could be proposed (fewer than two
+    near-vertical segments): ``params`` is then the box's centre and ``vote`` 0."""
+
+    params: torch.Tensor
+    vote: torch.Tensor
+    found: torch.Tensor
+
+
+def normalised_lines(features: SegmentFeatures) -> tuple[torch.Tensor, torch.Tensor]:
+    """The segments' ``line`` and ``along`` (B, N, 3) in normalised coordinates
+    ``(p - principal point) / long side``, float64 (first two entries unchanged)."""
+    pp = features.principal_point.to(torch.float64)[:, None, :]  # (B, 1, 2)
+    scale = features.long_side.to(torch.float64)[:, None]  # (B, 1)
+
+    def convert(rows: torch.Tensor) -> torch.Tensor:
+        rows = rows.to(torch.float64)
+        offset = (rows[..., 0] * pp[..., 0] + rows[..., 1] * pp[..., 1] + rows[..., 2]) / scale
+        return torch.stack([rows[..., 0], rows[..., 1], offset], -1)
+
+    return convert(features.line), convert(features.along)
+
+
+def truncated_vote(s: torch.Tensor, t: torch.Tensor, sin2_inlier: float) -> torch.Tensor:
+    """``max(0, 1 - sin^2(e) / sin^2(inlier))`` with ``sin^2(e) = s^2 / (s^2 + t^2)`` (s, t: the
+    incidences of a segment's ``line`` and ``along`` with a vanishing point); 0 where s = t = 0."""
+    s2 = s * s
+    total = s2 + t * t
+    sin2 = torch.where(total > 0, s2 / torch.where(total > 0, total, torch.ones_like(total)), torch.ones_like(total))
+    return (1.0 - sin2 / sin2_inlier).clamp_min(0.0)
+
+
+def _gather(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Rows ``index`` (B, M) of x (B, N, ...) -> (B, M, ...)."""
+    shaped = index.view(index.shape + (1,) * (x.dim() - 2)).expand(index.shape + x.shape[2:])
+    return torch.gather(x, 1, shaped)
+
+
+def _unit(x: torch.Tensor) -> torch.Tensor:
+    return x / torch.sqrt(dot3(x, x)).clamp_min(1e-300)[..., None]
+
+
+def in_box(point: torch.Tensor, phi: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+    """Whether normalised vertical points (B, Q, 3) are the vertical of a camera in the box at the
+    normalised focal length ``phi`` (B, 1): roll (the angle of the point's direction from the
+    principal point to the image's y axis; no f needed) and pitch (it grows with f) within the box
+    ``lower`` / ``upper`` (B, 4), 1 degree of slack.  (B, Q) bool."""
+    down = _vertical_direction_at(point, phi)
+    roll = torch.rad2deg(atan2(down[..., 0], down[..., 1]))
+    pitch = torch.rad2deg(torch.asin((-down[..., 2]).clamp(-1.0, 1.0)))
+    lower, upper = lower[:, None] - 1.0, upper[:, None] + 1.0
+    return (roll >= lower[..., ROLL]) & (roll <= upper[..., ROLL]) & (pitch >= lower[..., PITCH]) \
+        & (pitch <= upper[..., PITCH])
+
+
+def vertical_point(line: torch.Tensor, along: torch.Tensor, weight: torch.Tensor, mask: torch.Tensor,
+                   lower: torch.Tensor, upper: torch.Tensor, long_side: torch.Tensor,
+                   config: HorizonFitConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stage 1: the vertical vanishing point of each image, normalised homogeneous (B, 3) unit,
+    the vote of every segment for it (B, N) and whether one was found (B,) bool.
+
+    ``line``, ``along``: (B, N, 3) normalised (:func:`normalised_lines`); ``weight`` (B, N) pixels;
+    ``lower`` / ``upper`` (B, 4) the search box (a proposed point must be the vertical of a camera
+    in it at the box's shortest focal length, :func:`in_box`), ``long_side`` (B,) pixels."""
+    weight = weight.to(torch.float64)
+    near = mask & (along[..., 0].abs() <= math.sin(math.radians(config.vertical_max_deg)))
+    sin2_inlier = math.sin(math.radians(config.inlier_deg)) ** 2
+    count = min(config.vertical_proposers, line.shape[1])
+    index = top_indices(torch.where(near, weight, torch.full_like(weight, -1.0)), count, dim=1)  # (B, P)
+    proposer_ok = _gather(near, index)
+    first, second = torch.triu_indices(count, count, 1, device=line.device)
+    lines = _gather(line, index)
+    points = cross3(lines[:, first], lines[:, second])  # (B, Q, 3)
+    size = torch.sqrt(dot3(points, points))
+    pair_ok = proposer_ok[:, first] & proposer_ok[:, second] & (size > 1e-12)
+    points = points / torch.where(pair_ok, size, torch.ones_like(size))[..., None]
+    phi_min = (lower[:, FOCAL] / long_side)[:, None]
+    pair_ok &= in_box(points, phi_min, lower, upper)
+    near_weight = weight * near
+    bound = weight.amax(1)[:, None, None]  # (B, 1, 1): each image's longest segment
+    voters = top_indices(torch.where(near, weight, torch.full_like(weight, -1.0)), min(config.voters, line.shape[1]),
+                         dim=1)  # the longest near-vertical segments vote for the proposals
+    voter_line, voter_along = _gather(line, voters)[:, None], _gather(along, voters)[:, None]
+    votes = truncated_vote(dot3(voter_line, points[:, :, None]), dot3(voter_along, points[:, :, None]),
+                           sin2_inlier)  # (B, Q, V)
+    scores = exact_sum(votes, -1, bound=bound, weight=_gather(near_weight, voters)[:, None])
+    scores = torch.where(pair_ok, scores, torch.full_like(scores, -math.inf))
+    best = first_argmax(scores, 1)
+    point = points.gather(1, best[:, None, None].expand(-1, 1, 3))[:, 0]  # (B, 3)
+    found = pair_ok.any(1)
+    for _ in range(config.vertical_rounds):  # least squares on the inliers: min sum w (line . v)^2, |v| = 1
+        vote = truncated_vote(dot3(line, point[:, None]), dot3(along, point[:, None]), sin2_inlier)
+        inlier_weight = near_weight * (vote > 0)
+        outer = line[..., :, None] * line[..., None, :]  # (B, N, 3, 3)
+        moment = exact_sum(outer, 1, bound=bound[..., None], weight=inlier_weight[..., None, None])  # (B, 3, 3)
+        # the smallest eigenvector of the moment: power iteration on its adjugate (rows = cross products)
+        adjugate = torch.stack([cross3(moment[:, 1], moment[:, 2]), cross3(moment[:, 2], moment[:, 0]),
+                                cross3(moment[:, 0], moment[:, 1])], 1)
+        candidate = point
+        for _ in range(8):
+            candidate = _unit(torch.stack([dot3(adjugate[:, i], candidate) for i in range(3)], -1))
+        usable = (inlier_weight > 0).sum(1) >= 2
+        usable &= torch.isfinite(candidate).all(-1) & (dot3(candidate, candidate) > 0.5)
+        point = torch.where(usable[:, None], candidate, point)
+    vote = truncated_vote(dot3(line, point[:, None]), dot3(along, point[:, None]), sin2_inlier) * near
+    return point, vote, found
+
+
+def _vertical_direction_at(point: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """Unit vertical directions, pointing down (y >= 0), of normalised vertical points (B, Q, 3) at
+    normalised focal lengths ``phi`` (B, 1) (-> (B, Q, 3)) or of points (B, 1, 3) at ``phi`` (B, F)
+    (-> (B, F, 3))."""
+    x, y = point[..., 0] / phi, point[..., 1] / phi
+    d = _unit(torch.stack([x, y, point[..., 2].expand_as(x)], -1))
+    return torch.where(d[..., 1:2] < 0, -d, d)
+
+
+def _vertical_direction(point: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """Unit vertical direction (B, F, 3), pointing down (y >= 0), of the normalised vertical point
+    (B, 3) at normalised focal lengths ``phi`` (B, F)."""
+    return _vertical_direction_at(point[:, None], phi)
+
+
+def _triplets(vertical: torch.Tensor, phi: torch.Tensor, proposer_lines: torch.Tensor):
+    """The orthogonal triplets proposed on each focal's horizon: (first, second) horizontal unit
+    directions (B, F, P, 3).  ``vertical`` (B, F, 3), ``phi`` (B, F), ``proposer_lines`` (B, P, 3)
+    normalised."""
+    x_axis = torch.zeros_like(vertical)
+    x_axis[..., 0] = 1.0
+    e1 = _unit(x_axis - vertical[..., 0:1] * vertical)
+    e2 = cross3(vertical, e1)
+    horizon = torch.stack([vertical[..., 0] / phi, vertical[..., 1] / phi, vertical[..., 2]], -1)  # (B, F, 3)
+    meet = cross3(proposer_lines[:, None], horizon[:, :, None])  # (B, F, P, 3)
+    direction = torch.stack([meet[..., 0] / phi[..., None], meet[..., 1] / phi[..., None], meet[..., 2]], -1)
+    theta = torch.remainder(atan2(dot3(direction, e2[:, :, None]), dot3(direction, e1[:, :, None])), math.pi / 2)
+    cos, sin = torch.cos(theta)[..., None], torch.sin(theta)[..., None]
+    first = cos * e1[:, :, None] + sin * e2[:, :, None]
+    second = cos * e2[:, :, None] - sin * e1[:, :, None]  # vertical x first
+    return first, second
+
+
+def _point_of(direction: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """Normalised vanishing point (..., 3) of unit directions (B, F, P, 3) at ``phi`` (B, F)."""
+    phi = phi[..., None]
+    return torch.stack([direction[..., 0] * phi, direction[..., 1] * phi, direction[..., 2]], -1)
+
+
+def fit_horizon(features: SegmentFeatures, lower: torch.Tensor, upper: torch.Tensor,
+                config: HorizonFitConfig = HorizonFitConfig(), periodic_pan: bool = False) -> HorizonFit:
+    """The horizon fit (module docstring) of every image of ``features`` inside the search box
+    ``lower`` / ``upper`` (B, 4) [pan, pitch, roll (degrees), f (pixels)] (a known focal length:
+    equal bounds)."""
+    line, along = normalised_lines(features)
+    weight = features.weight.to(torch.float64)
+    long_side = features.long_side.to(torch.float64)
+    mask = features.mask & (weight >= config.min_length * long_side[:, None])
+    weight = weight * mask
+    batch = line.shape[0]
+    lower64, upper64 = lower.to(line), upper.to(line)
+    point, vertical_vote, found = vertical_point(line, along, weight, mask, lower64, upper64, long_side, config)
+    focal = log_spaced_focals(lower64[:, FOCAL], upper64[:, FOCAL], config.focal_steps)  # (B, F)
+    phi = focal / long_side[:, None]
+    vertical = _vertical_direction(point, phi)
+    focal_ok = in_box(point[:, None], phi, lower64, upper64)  # (B, F): the vertical's pitch in the box
+
+    others = mask & (vertical_vote <= 0)
+    proposer_count = min(config.proposers, line.shape[1])
+    proposers = top_indices(torch.where(others, weight, torch.full_like(weight, -1.0)), proposer_count, dim=1)
+    proposer_ok = _gather(others, proposers)  # (B, P)
+    voter_count = min(config.voters, line.shape[1])
+    voters = top_indices(weight, voter_count, dim=1)
+    voter_line, voter_along = _gather(line, voters), _gather(along, voters)
+    voter_weight, voter_vertical = _gather(weight, voters), _gather(vertical_vote, voters)
+    bound = weight.amax(1)
+    sweep_dtype = features.weight.dtype
+    sin2_inlier = math.sin(math.radians(config.inlier_deg)) ** 2
+
+    per_image = max(1, config.focal_steps * proposer_count * voter_count)
+    step = max(1, config.chunk_elements // per_image)
+    best_focal = torch.zeros(batch, dtype=torch.long, device=line.device)
+    best_first = torch.zeros(batch, 3, dtype=torch.float64, device=line.device)
+    best_vote = torch.zeros(batch, dtype=torch.float64, device=line.device)
+    for b0 in range(0, batch, step):
+        b1 = min(batch, b0 + step)
+        first, second = _triplets(vertical[b0:b1], phi[b0:b1], _gather(line, proposers)[b0:b1])
+        # the votes in the features' dtype (float32 by default: half the memory traffic of float64)
+        rows_l = voter_line[b0:b1, None, None].to(sweep_dtype)  # (b, 1, 1, V, 3)
+        rows_a = voter_along[b0:b1, None, None].to(sweep_dtype)
+        votes = voter_vertical[b0:b1, None, None].to(sweep_dtype).expand(first.shape[:3] + (voter_count,))
+        for direction in (first, second):
+            p = _point_of(direction, phi[b0:b1])[..., None, :].to(sweep_dtype)  # (b, F, P, 1, 3)
+            votes = torch.maximum(votes, truncated_vote(dot3(rows_l, p), dot3(rows_a, p), sin2_inlier))
+        scores = exact_sum(votes, -1, bound=bound[b0:b1, None, None, None],
+                           weight=voter_weight[b0:b1, None, None].to(sweep_dtype))
+        usable = proposer_ok[b0:b1, None] & focal_ok[b0:b1, :, None]  # (b, F, P)
+        scores = torch.where(usable, scores, torch.full_like(scores, -math.inf))
+        flat = first_argmax(scores.flatten(1), 1)
+        f_index, p_index = flat // proposer_count, flat % proposer_count
+        rows = torch.arange(b1 - b0, device=line.device)
+        best_focal[b0:b1] = f_index
+        best_first[b0:b1] = first[rows, f_index, p_index]
+        best_vote[b0:b1] = scores.flatten(1)[rows, flat]
+    rows = torch.arange(batch, device=line.device)
+    down = vertical[rows, best_focal]
+    rotation = torch.stack([best_first, down, cross3(best_first, down)], -1)  # columns: first, vertical, second
+    params = torch.cat([angles_from_search_rotation(rotation), focal[rows, best_focal][:, None]], -1)
+    found = found & torch.isfinite(best_vote) & proposer_ok.any(1)
+    centre = (lower64 + upper64) / 2
+    params = torch.where(found[:, None], into_box(params, lower64, upper64, periodic_pan), centre)
+    if config.refine_iterations:
+        params = refine_horizon(features, params, lower64, upper64, config, periodic_pan)
+    vote = torch.where(found, horizon_vote(features, params[:, None], config)[:, 0], torch.zeros_like(best_vote))
+    return HorizonFit(params, vote, found)
+
+
+def _vps(params: torch.Tensor, features: SegmentFeatures):
+    """Pixel vanishing points (B, L, 3 (VP), 3 (x, y, w)) of rows (B, L, 4), with the rotation and
+    the angles' cosines and sines (the refinement's chain rule, :func:`fr_torch.core.search.chain_to_params`)."""
+    rad = torch.deg2rad(params[..., :3])
+    cos, sin = torch.cos(rad), torch.sin(rad)
+    rotation = rotation_from_cos_sin(cos, sin)
+    focal = params[..., FOCAL]
+    vps = camera_vps(rotation, focal, features.principal_point.to(params)[:, None, :])  # (B, L, coord, VP)
+    return vps, rotation, cos, sin, focal
+
+
+def _kernel_terms(features: SegmentFeatures, vps: torch.Tensor, config: HorizonFitConfig, gradient: bool):
+    """Smooth vote ``sum_i l_i max_j exp(-sin^2 e_ij / (2 sin^2 kernel))`` (B, L) float64 and, with
+    ``gradient``, its derivative with respect to the VPs (B, L, coord, VP)."""
+    line = features.line.to(vps.dtype)[:, None, None]  # (B, 1, 1, N, 3)
+    along = features.along.to(vps.dtype)[:, None, None]
+    points = vps.transpose(-1, -2)[..., None, :]  # (B, L, VP, 1, 3)
+    s, t = dot3(line, points), dot3(along, points)  # (B, L, VP, N)
+    total = s * s + t * t
+    safe = torch.where(total > 0, total, torch.ones_like(total))
+    sin2 = torch.where(total > 0, s * s / safe, torch.ones_like(total))
+    width = 2.0 * math.sin(math.radians(config.kernel_deg)) ** 2
+    kernel = torch.exp(-sin2 / width)
+    best = first_argmax(kernel, 2)  # (B, L, N)
+    chosen = kernel.gather(2, best[:, :, None]).squeeze(2)
+    weight = features.weight.to(vps.dtype)[:, None]
+    bound = features.weight.to(torch.float64).amax(1)[:, None, None]  # (B, 1, 1)
+    value = exact_sum(chosen, -1, bound=bound, weight=weight)
+    if not gradient:
+        return value, None
+    # d sin^2 / d v = 2 s t (t line - s along) / total^2; the chosen VP of each segment only
+    owner = torch.nn.functional.one_hot(best, 3).permute(0, 1, 3, 2).to(vps.dtype)  # (B, L, VP, N)
+    factor = kernel * (-1.0 / width) * 2.0 * s * t / (safe * safe) * owner * (total > 0)
+    terms = factor[..., None] * (t[..., None] * line - s[..., None] * along)  # (B, L, VP, N, 3)
+    grad = exact_sum(terms, 3, bound=(bound / math.sin(math.radians(config.kernel_deg)) ** 2)[..., None, None],
+                     weight=weight[:, :, None, :, None])  # (B, L, VP, coord)
+    return value, grad.transpose(-1, -2)
+
+
+def horizon_vote(features: SegmentFeatures, params: torch.Tensor, config: HorizonFitConfig = HorizonFitConfig()):
+    """The refinement's smooth vote (:func:`_kernel_terms`) of rows ``params`` (B, L, 4), (B, L)
+    float64, pixels of segment length."""
+    vps = _vps(params.to(torch.float64), features)[0]
+    return _kernel_terms(features, vps, config, gradient=False)[0]
+
+
+def refine_horizon(features: SegmentFeatures, params: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor,
+                   config: HorizonFitConfig, periodic_pan: bool) -> torch.Tensor:
+    """Adam on the smooth vote from ``params`` (B, 4) inside the box (B, 4); float64 (B, 4)."""
+    low, high = to_log_focal(lower)[:, None], to_log_focal(upper)[:, None]
+    span = high - low
+    free = span > 0
+    span_safe = torch.where(free, span, torch.ones_like(span))
+    u = ((to_log_focal(params)[:, None] - low) / span_safe).clamp(0, 1)
+    total = features.total_length().clamp_min(1e-9)[:, None]
+    cell = 1.0 / 8
+    lr0, lr_final = 0.1 * cell, 0.005 * cell
+    gamma = (lr_final / lr0) ** (1.0 / max(1, config.refine_iterations - 1))
+    optimiser = Adam(u, lr0, gamma, betas=(0.5, 0.9))
+    for _ in range(config.refine_iterations):
+        current = from_log_focal(low + u * span)
+        vps, rotation, cos, sin, focal = _vps(current, features)
+        _, grad_v = _kernel_terms(features, vps, config, gradient=True)
+        grad = chain_to_params(vps, rotation, cos, sin, focal, grad_v * (-1.0 / total)[..., None, None]) * span
+        grad = torch.where(free, grad, torch.zeros_like(grad))
+        optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0))
+        if periodic_pan:
+            u[..., 0] = torch.remainder(u[..., 0], 1.0)
+        u.clamp_(0.0, 1.0)
+    return from_log_focal(low + u * span)[:, 0]
+
+
+#: The evidence the choice weighs (:func:`choice_features`), in the order of the chooser's weights.
+CHOICE_FEATURES = ("vote_gain", "manhattan_vote", "horizon_vote", "mixture_loss", "horizon_shift", "focal_ratio",
+                   "tilt_change", "manhattan_tilt")
+#: Where the chooser's weights are shipped (``configs/``; ``eval/protocols/horizon_choice.py`` writes it).
+CHOOSER_CONFIG = "horizon_choice.json"
+
+
+@dataclass(frozen=True)
+class HorizonChooser:
+    """A linear rule on :data:`CHOICE_FEATURES`: the horizon is taken where
+    ``sum_k coef_k (x_k - mean_k) / scale_k + intercept > 0`` (a logistic regression's decision,
+    learned on a train split by ``eval/protocols/horizon_choice.py``; ``trained_on`` says which).
+    Features are clipped to [-10, 10] first."""
+
+    mean: tuple[float, ...]
+    scale: tuple[float, ...]
+    coef: tuple[float, ...]
+    intercept: float
+    trained_on: str = ""
+
+    @classmethod
+    def load(cls, path=None) -> "HorizonChooser":
+        """The chooser of ``path`` (JSON; default the shipped ``configs/horizon_choice.json``);
+        FRInputError (one line) when it is missing or malformed."""
+        import json
+
+        from fr_torch.errors import FRInputError
+        from fr_torch.resources import config_path
+
+        path = config_path(CHOOSER_CONFIG) if path is None else path
+        try:
+            values = json.loads(open(path).read())
+            if list(values["features"]) != list(CHOICE_FEATURES):
+                raise ValueError(f"features {values['features']} are not {list(CHOICE_FEATURES)}")
+            chooser = cls(tuple(map(float, values["mean"])), tuple(map(float, values["scale"])),
+                          tuple(map(float, values["coef"])), float(values["intercept"]), str(values.get("trained_on", "")))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise FRInputError(f"horizon chooser {path}: not a usable chooser ({exc})") from None
+        if not (len(chooser.mean) == len(chooser.scale) == len(chooser.coef) == len(CHOICE_FEATURES)):
+            raise FRInputError(f"horizon chooser {path}: needs one mean, scale and coef per feature")
+        return chooser
+
+    def score(self, evidence: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The rule's score (B,) float64 of :func:`choice_features`' ``evidence``; > 0 takes the horizon.
+        The terms are added in the features' order (the same bits everywhere)."""
+        total = torch.full_like(evidence[CHOICE_FEATURES[0]], self.intercept, dtype=torch.float64)
+        for name, mean, scale, coef in zip(CHOICE_FEATURES, self.mean, self.scale, self.coef):
+            x = evidence[name].to(torch.float64).nan_to_num(nan=0.0, posinf=10.0, neginf=-10.0).clamp(-10.0, 10.0)
+            total = total + (x - mean) / scale * coef
+        return total
+
+
+@dataclass
+class FitChoice:
+    """What :func:`choose_fit` returns: ``params`` (B, 4) float64 the chosen rows and ``scores`` (B,)
+    float64 their mixture objective (NaN where the Manhattan fit was kept: its own score stands),
+    ``horizon`` (B,) bool where the horizon was chosen, ``tied`` (B,) bool where the choice's score
+    is zero to within rounding (another machine could choose the other), ``evidence`` the
+    :data:`CHOICE_FEATURES` (B,) float64 each (empty when the horizon fit did not run)."""
+
+    params: torch.Tensor
+    scores: torch.Tensor
+    horizon: torch.Tensor
+    tied: torch.Tensor
+    evidence: dict
+
+
+def border_heights(params: torch.Tensor, principal_point: torch.Tensor, image_size: torch.Tensor) -> torch.Tensor:
+    """Where the horizons of rows (B, 4) cross the borders ``x = 0`` and ``x = w - 1``: y (B, 2)
+    float64 pixels (``principal_point`` (B, 2), ``image_size`` (B, 2) [width, height] pixels)."""
+    params = params.to(torch.float64)
+    down = rotations(params)[..., :, 1]
+    pp = principal_point.to(torch.float64)
+    focal = params[:, FOCAL]
+    # l = K^-T d: (d_x / f, d_y / f, d_z - (c_x d_x + c_y d_y) / f)
+    a, b = down[:, 0] / focal, down[:, 1] / focal
+    c = down[:, 2] - (pp[:, 0] * down[:, 0] + pp[:, 1] * down[:, 1]) / focal
+    columns = torch.stack([torch.zeros_like(a), image_size[:, 0].to(torch.float64) - 1.0], -1)
+    return -(a[:, None] * columns + c[:, None]) / b[:, None]
+
+
+def choice_features(features: SegmentFeatures, manhattan: torch.Tensor, manhattan_scores: torch.Tensor,
+                    fit: "HorizonFit", held: torch.Tensor, held_scores: torch.Tensor, votes: torch.Tensor,
+                    image_size: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The evidence of the choice (:data:`CHOICE_FEATURES`, (B,) float64 each): ``vote_gain`` the
+    horizon fit's smooth vote minus the Manhattan fit's, ``manhattan_vote`` / ``horizon_vote`` the
+    two votes (all per unit segment length); ``mixture_loss`` ``log(1 + |L_m - L_h| / total length)``
+    of the mixture objective of the Manhattan fit and of the camera on the horizon (10 where that
+    camera leaves the box); ``horizon_shift`` the larger border distance between the two horizons
+    (share of the height); ``focal_ratio`` ``log(f_sweep / f_manhattan)``; ``tilt_change`` and
+    ``manhattan_tilt`` in degrees."""
+    total = features.total_length().clamp_min(1e-9)
+    loss = torch.log1p((manhattan_scores.to(torch.float64) - held_scores).abs() / total)
+    shift = (border_heights(held, features.principal_point, image_size)
+             - border_heights(manhattan, features.principal_point, image_size)).abs().amax(-1)
+    tilt_m = horizon_angles(rotations(manhattan))["tilt_deg"]
+    tilt_h = horizon_angles(rotations(held))["tilt_deg"]
+    return {"vote_gain": (votes[:, 1] - votes[:, 0]) / total, "manhattan_vote": votes[:, 0] / total,
+            "horizon_vote": votes[:, 1] / total,
+            "mixture_loss": torch.where(torch.isfinite(held_scores), loss, torch.full_like(loss, 10.0)),
+            "horizon_shift": shift / image_size[:, 1].to(torch.float64),
+            "focal_ratio": torch.log(fit.params[:, FOCAL] / manhattan[:, FOCAL]),
+            "tilt_change": (tilt_h - tilt_m).abs(), "manhattan_tilt": tilt_m.abs()}
+
+
+def choose_fit(likelihood: MixtureLikelihood, features: SegmentFeatures, manhattan: torch.Tensor,
+               manhattan_scores: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, image_size: torch.Tensor,
+               search: SearchConfig, chooser: HorizonChooser | None = None) -> FitChoice:
+    """The fit ``search.fit`` asks for, per image of ``features``: ``manhattan`` (B, 4) the Manhattan
+    fit's rows and ``manhattan_scores`` (B,) their mixture objective, ``lower`` / ``upper`` (B, 4)
+    the search box, ``image_size`` (B, 2) [width, height] pixels.
+
+    ``horizon``: wherever the horizon fit finds a vertical, its horizon with the Manhattan fit's
+    focal length and horizontal directions (:func:`fit_on_horizon`); ``choose``: the same where,
+    besides, ``chooser`` (default the shipped one, :meth:`HorizonChooser.load`) scores the
+    evidence (:func:`choice_features`) above 0; ``manhattan``: the Manhattan fit (the horizon fit
+    does not run).  A camera on the horizon that leaves the box keeps the Manhattan fit."""
+    manhattan = manhattan.to(torch.float64)
+    batch = manhattan.shape[0]
+    none = torch.zeros(batch, dtype=torch.bool, device=manhattan.device)
+    kept = torch.full((batch,), math.nan, dtype=torch.float64, device=manhattan.device)
+    if search.fit == "manhattan":
+        return FitChoice(manhattan, kept, none, none, {})
+    fit = fit_horizon(features, lower, upper, search.horizon, search.periodic_pan)
+    votes = horizon_vote(features, torch.stack([manhattan, fit.params], 1), search.horizon)
+    held, scores = fit_on_horizon(likelihood, features, fit.params, manhattan, lower, upper)
+    evidence = choice_features(features, manhattan, manhattan_scores, fit, held, scores, votes, image_size)
+    use = fit.found & torch.isfinite(scores)  # a horizon no camera in the box has: the Manhattan fit stays
+    tied = none
+    if search.fit == "choose":
+        score = (chooser or HorizonChooser.load()).score(evidence)
+        tied = use & (score.abs() <= 1e-9)
+        use = use & (score > 0)
+    return FitChoice(torch.where(use[:, None], held, manhattan), torch.where(use, scores, kept), use, tied, evidence)
+
+
+def horizon_of(params: torch.Tensor, long_side: torch.Tensor) -> torch.Tensor:
+    """The horizon lines (B, 3) float64 of rows (B, 4), in normalised coordinates (module docstring):
+    ``K^-T R[:, 1]`` with ``K = diag(phi, phi, 1)``."""
+    params = params.to(torch.float64)
+    down = rotations(params)[..., :, 1]
+    phi = params[:, FOCAL] / long_side.to(torch.float64)
+    return torch.stack([down[:, 0] / phi, down[:, 1] / phi, down[:, 2]], -1)
+
+
+def fit_on_horizon(likelihood: MixtureLikelihood, features: SegmentFeatures, horizon_params: torch.Tensor,
+                   manhattan: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor):
+    """The camera with the horizon of ``horizon_params`` (B, 4) and the focal length of
+    ``manhattan`` (B, 4), the Manhattan fit (its f is the more accurate, the horizon fit's horizon
+    the more precise): the vertical is the horizon's pole ``K^T h`` at that f, the first horizontal
+    direction the Manhattan fit's projected on the plane normal to it (the least rotation of the
+    Manhattan fit's frame that puts its horizon on the horizon fit's).  Returns (params (B, 4)
+    float64; their mixture objective (:meth:`MixtureLikelihood.objective`, B,) float64, -inf where
+    pitch or roll leaves the box ``lower`` / ``upper`` (B, 4))."""
+    long_side = features.long_side.to(torch.float64)
+    horizon = horizon_of(horizon_params, long_side)
+    manhattan = manhattan.to(torch.float64)
+    focal = manhattan[:, FOCAL]
+    phi = (focal / long_side)[:, None]
+    down = _unit(torch.cat([phi * horizon[:, :2], horizon[:, 2:]], -1))  # K^T h: the vertical
+    down = torch.where(down[..., 1:2] < 0, -down, down)
+    frame = rotations(manhattan)
+    first = frame[..., 0] - dot3(frame[..., 0], down)[:, None] * down
+    other = frame[..., 2] - dot3(frame[..., 2], down)[:, None] * down
+    first = _unit(torch.where((dot3(first, first) >= dot3(other, other))[:, None], first, cross3(other, down)))
+    rotation = torch.stack([first, down, cross3(first, down)], -1)
+    angles = angles_from_search_rotation(rotation)
+    params = torch.cat([angles, focal[:, None]], -1)
+    lower64, upper64 = lower.to(torch.float64), upper.to(torch.float64)
+    inside = ((angles[:, PITCH] >= lower64[:, PITCH]) & (angles[:, PITCH] <= upper64[:, PITCH])
+              & (angles[:, ROLL] >= lower64[:, ROLL]) & (angles[:, ROLL] <= upper64[:, ROLL]))
+    dtype = features.weight.dtype
+    value = likelihood.objective(features, rotations(params)[:, None].to(dtype), focal[:, None].to(dtype))[:, 0]
+    return params, torch.where(inside, value.double(), torch.full_like(focal, -math.inf))
