@@ -307,7 +307,7 @@ def test_same_scene_at_two_resolutions_gives_the_same_camera():
     small = render_manhattan_room(500.0, rotation, 640, 480, seed=5)
     large = cv2.resize(small, (2560, 1920), interpolation=cv2.INTER_CUBIC)
     a, b = FREstimator(mode="fast").calibrate_images([small, large])
-    assert (b.width, b.height) == (2560, 1920) and b.principal_point == (1280.0, 960.0)
+    assert (b.width, b.height) == (2560, 1920) and b.principal_point == (1279.5, 959.5)  # the exact centre
     assert abs(a.roll_deg - b.roll_deg) < 0.3 and abs(a.tilt_deg - b.tilt_deg) < 0.5
     assert abs(a.hfov_deg - b.hfov_deg) < 0.02 * a.hfov_deg
     assert b.focal_px == pytest.approx(4 * a.focal_px, rel=0.02)
