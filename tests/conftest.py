@@ -8,7 +8,9 @@ silently.
 from __future__ import annotations
 
 import os
+import signal
 import struct
+import time
 from pathlib import Path
 
 import pytest
@@ -93,6 +95,32 @@ def require_dataset(root: Path, name: str) -> Path:
     if not path.is_dir():
         absent(f"dataset {name!r} not found under {root}")
     return path
+
+
+#: Seconds a stopped command's worker pool (fork server, resource tracker, workers) has to end.
+POOL_GONE_S = 10.0
+
+
+def session_left(pid: int, since: float) -> list[int]:
+    """The processes of the session led by ``pid`` still running :data:`POOL_GONE_S` seconds after
+    ``since`` (``time.monotonic()``), or as soon as none is (returns [])."""
+    from fr_eval.machine import session_processes
+
+    while (left := session_processes(pid)) and time.monotonic() - since < POOL_GONE_S:
+        time.sleep(0.05)
+    return left
+
+
+def reap_session(process) -> None:
+    """Kill every process of ``process``'s session and ``process`` itself (a Popen): a failed test
+    leaves nothing behind."""
+    from fr_eval.machine import session_processes
+
+    for pid in session_processes(process.pid):
+        os.kill(pid, signal.SIGKILL)
+    if process.poll() is None:
+        process.kill()
+        process.wait()
 
 
 def checkout_env(**extra: str) -> dict[str, str]:

@@ -21,7 +21,6 @@ import pandas as pd
 import pytest
 from fr_eval.bench.track_live import default_stop_signals
 from fr_eval.datasets.live_stream import MJPEGServer, SyntheticCamera
-from fr_eval.machine import session_processes
 
 from fr_torch.cli.main import main
 from fr_torch.core.estimator import CalibrationResult
@@ -31,11 +30,10 @@ from fr_torch.video.fusion import OnlineCalibrator
 from fr_torch.video.records import CAMERA_KEY, RECORD_KEYS, TrackOutput
 from fr_torch.video.sources import Frame, FrameStream, Source
 from fr_torch.video.track import Tracking
-from tests.conftest import checkout_env
+from tests.conftest import checkout_env, reap_session, session_left
 
 SMALL = dict(width=320, height=240)
 #: Seconds the fork server and resource tracker of the search workers may take to end after fr track.
-POOL_GONE_S = 10.0
 
 
 # ---------------------------------------------------------------------------------- sources file
@@ -258,15 +256,10 @@ def test_sigterm_stops_a_fleet_with_every_record_on_disk_and_no_process_left(tmp
                 time.sleep(0.05)
             os.kill(process.pid, signal.SIGTERM)
             returncode = process.wait(timeout=60)
-            stopped = time.monotonic()  # the fork server and resource tracker end once the workers are gone
-            while (left := session_processes(process.pid)) and time.monotonic() - stopped < POOL_GONE_S:
-                time.sleep(0.05)
+            # the fork server and resource tracker end once the workers are gone
+            left = session_left(process.pid, time.monotonic())
         finally:
-            for pid in session_processes(process.pid):  # never leave a failed test's processes behind
-                os.kill(pid, signal.SIGKILL)
-            if process.poll() is None:
-                process.kill()
-                process.wait()
+            reap_session(process)
     assert returncode == 128 + signal.SIGTERM and not left
     last = stderr_path.read_text().replace("\r", "\n").splitlines()[-1]
     assert last.startswith("fr track: stopped by SIGTERM; ") and "(2 cameras)" in last

@@ -33,14 +33,13 @@ from fr_torch.runtime.workers import (
     stops_held,
 )
 from fr_torch.synthetic import random_rotation, render_manhattan_room
-from tests.conftest import checkout_env
+from tests.conftest import POOL_GONE_S, checkout_env, reap_session, session_left
 
 pytestmark = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds processes in /proc (Linux)")
 
 N_IMAGES = 8
 BATCH = 2
 STALLED = 4  # the first image of the third batch: two parts are written, then the run waits on it
-POOL_GONE_S = 10.0
 
 
 @pytest.fixture(scope="module")
@@ -85,16 +84,10 @@ def test_stopped_batch_leaves_no_process_and_a_rerun_completes_it(folder, tmp_pa
         pool = session_processes(process.pid)
         assert len(pool) >= 3, pool  # fork server, resource tracker, the workers
         os.kill(process.pid, signum)
-        stopped = time.monotonic()
-        while (left := session_processes(process.pid)) and time.monotonic() - stopped < POOL_GONE_S:
-            time.sleep(0.05)
+        left = session_left(process.pid, time.monotonic())
         returncode = process.wait(timeout=60)
     finally:
-        for pid in session_processes(process.pid):  # never leave a failed test's processes behind
-            os.kill(pid, signal.SIGKILL)
-        if process.poll() is None:
-            process.kill()
-            process.wait()
+        reap_session(process)
     assert not left, f"{len(left)} process(es) of the pool still running {POOL_GONE_S:.0f} s after {signum.name}"
     if signum == signal.SIGKILL:
         assert returncode == -signal.SIGKILL
