@@ -21,18 +21,19 @@ trained on NYU-VP train, and the horizon tables report ecd-tune, YUD and NYU-VP 
 from __future__ import annotations
 
 import argparse
-import os
 import json
+import os
 import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import torch
 
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.scoring.horizon_metric import lezama_auc, truth_horizons
 from fr_torch.core.config import SearchConfig
-from fr_torch.core.horizon_fit import CHOICE_FEATURES, CHOOSER_CONFIG
+from fr_torch.core.horizon_fit import CHOICE_FEATURES, CHOOSER_CONFIG, clean_evidence
 from fr_torch.resources import config_path
 
 CUTOFF = 0.25
@@ -76,9 +77,8 @@ def _segments(sample):
 
 
 def design(table: pd.DataFrame) -> np.ndarray:
-    """The evidence as :meth:`HorizonChooser.score` sees it: NaN -> 0, clipped to [-10, 10]."""
-    x = table[list(CHOICE_FEATURES)].to_numpy(np.float64)
-    return np.clip(np.nan_to_num(x, nan=0.0, posinf=10.0, neginf=-10.0), -10.0, 10.0)
+    """The evidence as :meth:`HorizonChooser.score` sees it (:func:`clean_evidence`)."""
+    return clean_evidence(torch.from_numpy(table[list(CHOICE_FEATURES)].to_numpy(np.float64))).numpy()
 
 
 def fit_rule(x: np.ndarray, gain: np.ndarray, c: float):

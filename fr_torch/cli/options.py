@@ -56,8 +56,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
     group.add_argument("--fit", choices=FITS, default=None,
                        help="what the search returns: manhattan (fR's mixture fit; the default of configs/search.json), "
                             "horizon (the horizon fit: the vertical first, then f and the horizontal directions on "
-                            "its horizon, with a truncated vote; docs/horizon.md) or choose (per photo, the one the "
-                            "segments' vote supports more); the JSON's model says which fit an estimate comes from")
+                            "its horizon, with a truncated vote, reported with fR's focal length; docs/horizon.md) or choose "
+                            "(per photo, by a rule learned on NYU-VP train from the photo's evidence); the JSON's "
+                            "model says which fit an estimate comes from")
     group.add_argument("--compile", action="store_true",
                        help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
                             "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "

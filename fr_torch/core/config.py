@@ -163,8 +163,8 @@ class SearchConfig:
     ``results/decisions/46.md`` says how they were chosen.
     ``fit``: what the pinhole search returns (:data:`FITS`): ``manhattan`` (fR's mixture fit),
     ``horizon`` (the horizon fit, :mod:`fr_torch.core.horizon_fit`, where it finds a vertical) or
-    ``choose`` (per photo, the one of the two whose triplet the segments' truncated vote supports
-    more, :func:`fr_torch.core.horizon_fit.choose_fit`); ``horizon``: the horizon fit's settings
+    ``choose`` (per photo, by a rule learned on a train split from the photo's evidence,
+    :func:`fr_torch.core.horizon_fit.choose_fit`); ``horizon``: the horizon fit's settings
     (:class:`HorizonFitConfig`, a dict is parsed on construction).  The division-lens search is
     always the Manhattan fit.
 

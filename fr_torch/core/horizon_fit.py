@@ -62,12 +62,11 @@ from fr_torch.core.search import (
 @dataclass
 class HorizonFit:
     """The horizon fit of a batch: ``params`` (B, 4) [pan, pitch, roll (degrees), f (pixels)] float64;
-    ``vote`` (B,) float64, the truncated vote of the fit's triplet (pixels of segment length);
     ``found`` (B,) bool, False where no vertical vanishing point could be proposed (fewer than two
-    near-vertical segments): ``params`` is then the box's centre and ``vote`` 0."""
+    near-vertical segments): ``params`` is then the box's centre.  Its smooth vote:
+    :func:`horizon_vote`."""
 
     params: torch.Tensor
-    vote: torch.Tensor
     found: torch.Tensor
 
 
@@ -112,7 +111,14 @@ def in_box(point: torch.Tensor, phi: torch.Tensor, lower: torch.Tensor, upper: t
     down = _vertical_direction_at(point, phi)
     roll = torch.rad2deg(atan2(down[..., 0], down[..., 1]))
     pitch = torch.rad2deg(torch.asin((-down[..., 2]).clamp(-1.0, 1.0)))
-    lower, upper = lower[:, None] - 1.0, upper[:, None] + 1.0
+    return pitch_roll_in_box(pitch, roll, lower[:, None], upper[:, None], slack=1.0)
+
+
+def pitch_roll_in_box(pitch: torch.Tensor, roll: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor,
+                      slack: float = 0.0) -> torch.Tensor:
+    """Whether pitch and roll (degrees, any shape) lie in the box ``lower`` / ``upper`` (rows
+    [pan, pitch, roll, f] broadcastable to them), widened by ``slack`` degrees either side."""
+    lower, upper = lower - slack, upper + slack
     return (roll >= lower[..., ROLL]) & (roll <= upper[..., ROLL]) & (pitch >= lower[..., PITCH]) \
         & (pitch <= upper[..., PITCH])
 
@@ -273,8 +279,7 @@ def fit_horizon(features: SegmentFeatures, lower: torch.Tensor, upper: torch.Ten
     params = torch.where(found[:, None], into_box(params, lower64, upper64, periodic_pan), centre)
     if config.refine_iterations:
         params = refine_horizon(features, params, lower64, upper64, config, periodic_pan)
-    vote = torch.where(found, horizon_vote(features, params[:, None], config)[:, 0], torch.zeros_like(best_vote))
-    return HorizonFit(params, vote, found)
+    return HorizonFit(params, found)
 
 
 def _vps(params: torch.Tensor, features: SegmentFeatures):
@@ -289,8 +294,9 @@ def _vps(params: torch.Tensor, features: SegmentFeatures):
 
 
 def _kernel_terms(features: SegmentFeatures, vps: torch.Tensor, config: HorizonFitConfig, gradient: bool):
-    """Smooth vote ``sum_i l_i max_j exp(-sin^2 e_ij / (2 sin^2 kernel))`` (B, L) float64 and, with
-    ``gradient``, its derivative with respect to the VPs (B, L, coord, VP)."""
+    """Smooth vote ``sum_i l_i max_j exp(-sin^2 e_ij / (2 sin^2 kernel))`` (B, L) float64, or, with
+    ``gradient``, its derivative with respect to the VPs (B, L, coord, VP) instead (the refinement
+    needs only that)."""
     line = features.line.to(vps.dtype)[:, None, None]  # (B, 1, 1, N, 3)
     along = features.along.to(vps.dtype)[:, None, None]
     points = vps.transpose(-1, -2)[..., None, :]  # (B, L, VP, 1, 3)
@@ -301,26 +307,24 @@ def _kernel_terms(features: SegmentFeatures, vps: torch.Tensor, config: HorizonF
     width = 2.0 * math.sin(math.radians(config.kernel_deg)) ** 2
     kernel = torch.exp(-sin2 / width)
     best = first_argmax(kernel, 2)  # (B, L, N)
-    chosen = kernel.gather(2, best[:, :, None]).squeeze(2)
     weight = features.weight.to(vps.dtype)[:, None]
     bound = features.weight.to(torch.float64).amax(1)[:, None, None]  # (B, 1, 1)
-    value = exact_sum(chosen, -1, bound=bound, weight=weight)
     if not gradient:
-        return value, None
+        return exact_sum(kernel.gather(2, best[:, :, None]).squeeze(2), -1, bound=bound, weight=weight)
     # d sin^2 / d v = 2 s t (t line - s along) / total^2; the chosen VP of each segment only
     owner = torch.nn.functional.one_hot(best, 3).permute(0, 1, 3, 2).to(vps.dtype)  # (B, L, VP, N)
     factor = kernel * (-1.0 / width) * 2.0 * s * t / (safe * safe) * owner * (total > 0)
     terms = factor[..., None] * (t[..., None] * line - s[..., None] * along)  # (B, L, VP, N, 3)
     grad = exact_sum(terms, 3, bound=(bound / math.sin(math.radians(config.kernel_deg)) ** 2)[..., None, None],
                      weight=weight[:, :, None, :, None])  # (B, L, VP, coord)
-    return value, grad.transpose(-1, -2)
+    return grad.transpose(-1, -2)
 
 
 def horizon_vote(features: SegmentFeatures, params: torch.Tensor, config: HorizonFitConfig = HorizonFitConfig()):
     """The refinement's smooth vote (:func:`_kernel_terms`) of rows ``params`` (B, L, 4), (B, L)
     float64, pixels of segment length."""
     vps = _vps(params.to(torch.float64), features)[0]
-    return _kernel_terms(features, vps, config, gradient=False)[0]
+    return _kernel_terms(features, vps, config, gradient=False)
 
 
 def refine_horizon(features: SegmentFeatures, params: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor,
@@ -339,7 +343,7 @@ def refine_horizon(features: SegmentFeatures, params: torch.Tensor, lower: torch
     for _ in range(config.refine_iterations):
         current = from_log_focal(low + u * span)
         vps, rotation, cos, sin, focal = _vps(current, features)
-        _, grad_v = _kernel_terms(features, vps, config, gradient=True)
+        grad_v = _kernel_terms(features, vps, config, gradient=True)
         grad = chain_to_params(vps, rotation, cos, sin, focal, grad_v * (-1.0 / total)[..., None, None]) * span
         grad = torch.where(free, grad, torch.zeros_like(grad))
         optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0))
@@ -352,6 +356,8 @@ def refine_horizon(features: SegmentFeatures, params: torch.Tensor, lower: torch
 #: The evidence the choice weighs (:func:`choice_features`), in the order of the chooser's weights.
 CHOICE_FEATURES = ("vote_gain", "manhattan_vote", "horizon_vote", "mixture_loss", "horizon_shift", "focal_ratio",
                    "tilt_change", "manhattan_tilt")
+#: The chooser reads each piece of evidence clipped to [-EVIDENCE_CLIP, EVIDENCE_CLIP] (:func:`clean_evidence`).
+EVIDENCE_CLIP = 10.0
 #: Where the chooser's weights are shipped (``configs/``; ``eval/protocols/horizon_choice.py`` writes it).
 CHOOSER_CONFIG = "horizon_choice.json"
 
@@ -361,7 +367,7 @@ class HorizonChooser:
     """A linear rule on :data:`CHOICE_FEATURES`: the horizon is taken where
     ``sum_k coef_k (x_k - mean_k) / scale_k + intercept > 0`` (a logistic regression's decision,
     learned on a train split by ``eval/protocols/horizon_choice.py``; ``trained_on`` says which).
-    Features are clipped to [-10, 10] first."""
+    Features are cleaned first (:func:`clean_evidence`)."""
 
     mean: tuple[float, ...]
     scale: tuple[float, ...]
@@ -396,9 +402,15 @@ class HorizonChooser:
         The terms are added in the features' order (the same bits everywhere)."""
         total = torch.full_like(evidence[CHOICE_FEATURES[0]], self.intercept, dtype=torch.float64)
         for name, mean, scale, coef in zip(CHOICE_FEATURES, self.mean, self.scale, self.coef):
-            x = evidence[name].to(torch.float64).nan_to_num(nan=0.0, posinf=10.0, neginf=-10.0).clamp(-10.0, 10.0)
-            total = total + (x - mean) / scale * coef
+            total = total + (clean_evidence(evidence[name]) - mean) / scale * coef
         return total
+
+
+def clean_evidence(x: torch.Tensor) -> torch.Tensor:
+    """Evidence (any shape) as :class:`HorizonChooser` reads it: float64, NaN -> 0, clipped to
+    [-:data:`EVIDENCE_CLIP`, :data:`EVIDENCE_CLIP`]."""
+    return x.to(torch.float64).nan_to_num(nan=0.0, posinf=EVIDENCE_CLIP, neginf=-EVIDENCE_CLIP).clamp(
+        -EVIDENCE_CLIP, EVIDENCE_CLIP)
 
 
 @dataclass
@@ -518,8 +530,7 @@ def fit_on_horizon(likelihood: MixtureLikelihood, features: SegmentFeatures, hor
     angles = angles_from_search_rotation(rotation)
     params = torch.cat([angles, focal[:, None]], -1)
     lower64, upper64 = lower.to(torch.float64), upper.to(torch.float64)
-    inside = ((angles[:, PITCH] >= lower64[:, PITCH]) & (angles[:, PITCH] <= upper64[:, PITCH])
-              & (angles[:, ROLL] >= lower64[:, ROLL]) & (angles[:, ROLL] <= upper64[:, ROLL]))
+    inside = pitch_roll_in_box(angles[:, PITCH], angles[:, ROLL], lower64, upper64)
     dtype = features.weight.dtype
     value = likelihood.objective(features, rotations(params)[:, None].to(dtype), focal[:, None].to(dtype))[:, 0]
     return params, torch.where(inside, value.double(), torch.full_like(focal, -math.inf))
