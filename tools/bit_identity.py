@@ -2,8 +2,10 @@
 
 ``python tools/bit_identity.py save out.npz`` / ``... compare out.npz``: YUD train photos (LSD
 segments, detected once and cached next to the output) and synthetic scenes, calibrated in one batch
-and one by one, in both modes, and in one batch with the division model's lens search
-(``distortion="division"``); ``compare`` prints every field that differs in a single bit (exit 1).
+and one by one, in both modes, in one batch with the division model's lens search
+(``distortion="division"``), and with the horizon fit and the per-photo choice of fit
+(``fit="horizon"`` / ``"choose"``, batched and one by one); ``compare`` prints every field that
+differs in a single bit (exit 1).
 Save with one checkout (``PYTHONPATH=<it>``), compare with another.
 ``--photos``, ``--synthetic``: how many of each.
 """
@@ -44,7 +46,7 @@ def segment_sets(cache: Path, photos: int, synthetic: int):
 
 def flatten(prefix: str, result, out: dict) -> None:
     for name in ("focal_px", "rotation", "log_likelihood", "principal_point", "labels", "ranked_vanishing_points",
-                 "vanishing_point_support", "manhattan_fraction", "ok", "reliable", "reason", "distortion_k"):
+                 "vanishing_point_support", "manhattan_fraction", "ok", "reliable", "reason", "distortion_k", "model"):
         value = getattr(result, name, None)
         out[f"{prefix}/{name}"] = np.asarray(value if value is not None else np.nan)
     for group in ("cues", "predicted_error"):
@@ -53,7 +55,7 @@ def flatten(prefix: str, result, out: dict) -> None:
 
 
 def run(segments, sizes) -> dict:
-    from fr_torch import FREstimator
+    from fr_torch import FREstimator, SearchConfig
     out = {}
     for mode in ("fast", "fr"):
         estimator = FREstimator(mode=mode)
@@ -67,6 +69,14 @@ def run(segments, sizes) -> dict:
         batched = FREstimator(mode=mode, distortion="division").calibrate_segments(segments, sizes)
         for i, result in enumerate(batched):
             flatten(f"{mode}-division/batch/{i}", result, out)
+    for mode in ("fast", "fr"):  # the horizon fit and the per-photo choice, batched and one by one
+        for fit in ("horizon", "choose"):
+            estimator = FREstimator(mode=mode, search_config=SearchConfig.from_config(fit=fit))
+            for i, result in enumerate(estimator.calibrate_segments(segments, sizes)):
+                flatten(f"{mode}-{fit}/batch/{i}", result, out)
+            for i in range(len(segments)):
+                [result] = estimator.calibrate_segments([segments[i]], [sizes[i]])
+                flatten(f"{mode}-{fit}/single/{i}", result, out)
     return out
 
 
