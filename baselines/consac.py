@@ -66,8 +66,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from fr_torch.core.camera import Camera
-from fr_torch.core.fov import FovRange
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.settings.fov import FovRange
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.registry import not_supplied

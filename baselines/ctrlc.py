@@ -36,7 +36,7 @@ the vertical field of view.)  The vertical direction in the camera frame (x righ
 z forward) is ``(x_z, y_z, f_n w_z)`` for ``pred_zvp = (x_z, y_z, w_z)``; its sign is not
 predicted, so we take the one pointing *up* (negative camera-y component), which is world-up
 without needing ground truth.  Roll, tilt and pitch follow from it with the project's horizon
-definitions (:func:`fr_torch.core.camera.horizon_angles`).  CTRL-C estimates no pan, so ``rotation``
+definitions (:func:`fr_torch.core.geometry.conventions.horizon_angles`).  CTRL-C estimates no pan, so ``rotation``
 and ``pan_deg`` are None (an upright-consistent rotation with pan 0 is in
 ``extra["rotation_pan0"]``); roll / tilt are reported directly.
 """
@@ -50,7 +50,8 @@ import cv2
 import numpy as np
 import torch
 
-from fr_torch.core.camera import Camera, hfov_from_focal, horizon_angles
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import hfov_from_focal, horizon_angles
 from fr_torch.errors import FRInputError
 from fr_torch.images.convert import to_bgr8
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator

@@ -11,12 +11,12 @@ CSV format (header row required, any column order, extra columns ignored, empty 
     focal length in pixels and/or horizontal field of view in degrees (the missing one is derived
     from the image width).
 ``roll_deg``, ``tilt_deg``, ``pitch_deg``, ``pan_deg``
-    angles in degrees with the conventions of :mod:`fr_torch.core.camera` (paper roll / tilt).
+    angles in degrees with the conventions of :mod:`fr_torch.core.geometry.conventions` (paper roll / tilt).
 ``r00`` ... ``r22``
     the world->camera rotation (row-major, vertical Manhattan direction in column 1); when all
     nine are given, the angles not given explicitly are derived from it.
 
-The prediction becomes one :class:`fr_torch.core.camera.Camera`: from the rotation when all nine
+The prediction becomes one :class:`fr_torch.core.geometry.camera.Camera`: from the rotation when all nine
 entries are given (the angle columns are then ignored: every angle is derived from it), else from
 roll and pitch or tilt (``tan(tilt) = tan(pitch) / cos(roll)``), with pan when given (otherwise a
 horizon-only camera, ``pan_known=False``).  Angles without roll and tilt or pitch are an
@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fr_torch.core.camera import Camera, focal_from_hfov
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import focal_from_hfov
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, Timer
 from fr_torch.registry import NOT_SUPPLIED

@@ -13,7 +13,7 @@ reasoning of the paper is not needed for calibration):
    length of segments within ``inlier_deg`` wins and is refined by least squares
    (:func:`fr_baselines.vp_geometry.vertical_vp`).
 3. Focal sweep: ``n_focal`` focal lengths, log-spaced so that the horizontal field of view of the
-   image's *long side* spans ``range`` (a :class:`~fr_torch.core.fov.FovRange` or anything its ``parse`` takes) (so the sweep scales with the image size; default:
+   image's *long side* spans ``range`` (a :class:`~fr_torch.core.settings.fov.FovRange` or anything its ``parse`` takes) (so the sweep scales with the image size; default:
    fR's library default range, ``configs/search.json``; option ``lee2009[range=paper]`` or
    ``range=MIN:MAX``, and ``fr eval --hfov-range`` sets it for every method of a table).  For
    each focal the vertical VP fixes the horizon; every other segment's line meets the horizon in
@@ -40,8 +40,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from fr_torch.core.camera import Camera, focal_from_hfov
-from fr_torch.core.fov import FovRange
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import focal_from_hfov
+from fr_torch.core.settings.fov import FovRange
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 
@@ -72,7 +73,7 @@ class Lee2009(TimedCalibrator):
 
     # ------------------------------------------------------------------ steps
     def focal_sweep(self, width: int, height: int) -> np.ndarray:
-        """Focal lengths (pixels) of the sweep: long-side hfov over ``range`` (a :class:`~fr_torch.core.fov.FovRange` or anything its ``parse`` takes), log-spaced."""
+        """Focal lengths (pixels) of the sweep: long-side hfov over ``range`` (a :class:`~fr_torch.core.settings.fov.FovRange` or anything its ``parse`` takes), log-spaced."""
         long_side = max(width, height)
         low, high = self.fov_range
         return np.geomspace(focal_from_hfov(high, long_side), focal_from_hfov(low, long_side), self.n_focal)

@@ -1,7 +1,7 @@
 """``prior``: the "no information" row of the tables.
 
 Principal point at the image centre, a fixed 60 deg horizontal field of view and an upright
-camera: roll = tilt = pitch = 0 and ``R = I`` (the level camera of :mod:`fr_torch.core.camera`, whose
+camera: roll = tilt = pitch = 0 and ``R = I`` (the level camera of :mod:`fr_torch.core.geometry.conventions`, whose
 pan 0 stands for the unknown heading).  It needs only the image width (from ``meta.width``
 or the image); without either it is a flagged failure.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fr_torch.core.camera import Camera
+from fr_torch.core.geometry.camera import Camera
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, Timer
 
 from . import vp_geometry as vg

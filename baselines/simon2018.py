@@ -40,7 +40,7 @@ failed or not, ranks it and the hVPs by their supporting segments (``ranked_vani
 share of images with a valid (focal + rotation) result, as the brief requires.  Bad input, too few
 segments and no zenith are flagged failures too.
 
-**Focal range.**  Long-side FOV in ``range`` (a :class:`~fr_torch.core.fov.FovRange` or anything its ``parse`` takes) (default: fR's library default range,
+**Focal range.**  Long-side FOV in ``range`` (a :class:`~fr_torch.core.settings.fov.FovRange` or anything its ``parse`` takes) (default: fR's library default range,
 ``configs/search.json``; option ``simon2018[range=paper]`` or ``range=MIN:MAX``; ``fr eval
 --hfov-range`` sets it for every method of a table).
 """
@@ -51,8 +51,8 @@ import math
 import numpy as np
 from scipy.stats import binom
 
-from fr_torch.core.camera import Camera
-from fr_torch.core.fov import FovRange
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.settings.fov import FovRange
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 

@@ -1,14 +1,14 @@
 """Vanishing-point geometry shared by the baselines (Lee 2009, Simon 2018, CTRL-C adapter).
 
-Conventions are those of :mod:`fr_torch.core.camera`: pixels x right / y down, camera x right / y down /
+Conventions are those of :mod:`fr_torch.core.geometry.conventions`: pixels x right / y down, camera x right / y down /
 z forward, ``R`` world->camera with the (downward) vertical Manhattan direction in column 1 and
 ``det R = +1``.  Vanishing points (VPs) are homogeneous 3-vectors in *pixel* coordinates, never
 dehomogenised (a VP at infinity has a zero third coordinate); lines are homogeneous 3-vectors
 ``l`` with ``l . x = 0`` for the points ``x`` on them.
 
-Everything here is numpy float64; an estimate is reported as one :class:`fr_torch.core.camera.Camera`
+Everything here is numpy float64; an estimate is reported as one :class:`fr_torch.core.geometry.camera.Camera`
 (:func:`camera_estimate`), whose angles come from the project's torch helpers
-(:func:`fr_torch.core.camera.angles_from_rotation`), so that every method reports roll, tilt, pitch and
+(:func:`fr_torch.core.geometry.conventions.angles_from_rotation`), so that every method reports roll, tilt, pitch and
 pan with exactly the same definitions.
 """
 from __future__ import annotations
@@ -17,14 +17,14 @@ import math
 
 import numpy as np
 
-from fr_torch.core.camera import (  # noqa: F401
-    Camera,
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import (
     hfov_from_focal,
     nearest_rotation,
     principal_point_or_centre,
     rotation_angles,
 )
-from fr_torch.core.segments import SegmentFilter, validate_segments
+from fr_torch.core.likelihood.segments import SegmentFilter, validate_segments
 from fr_torch.detectors.registry import detect_segments
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta

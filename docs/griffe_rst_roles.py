@@ -1,6 +1,6 @@
 """Griffe extension for the docs build: renders the reST markup of the docstrings as Markdown.
 
-The docstrings cross-reference with Sphinx roles (``:class:`~fr_torch.core.camera.Camera```) and open
+The docstrings cross-reference with Sphinx roles (``:class:`~fr_torch.core.geometry.camera.Camera```) and open
 literal blocks with ``::``.  MkDocs renders Markdown, so each role becomes inline code (``~`` keeps
 the last dotted component, as Sphinx does) and a paragraph-ending ``::`` becomes ``:`` (the
 indented block after it is already a Markdown code block).  Only the rendered text changes; the

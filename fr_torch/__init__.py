@@ -23,12 +23,13 @@ import importlib
 
 # public name -> module that defines it
 _EXPORTS = {
-    "VERTICAL_AXIS": "core.camera", "Camera": "core.camera", "angles_from_rotation": "core.camera",
-    "focal_from_hfov": "core.camera", "hfov_from_focal": "core.camera", "rotation_from_angles": "core.camera",
-    "FovRange": "core.fov", "Mode": "core.config", "SearchConfig": "core.config",
-    "CalibrationResult": "core.estimator", "SegmentEstimator": "core.estimator",
+    "VERTICAL_AXIS": "core.geometry.conventions", "Camera": "core.geometry.camera",
+    "angles_from_rotation": "core.geometry.conventions", "focal_from_hfov": "core.geometry.conventions",
+    "hfov_from_focal": "core.geometry.conventions", "rotation_from_angles": "core.geometry.conventions",
+    "FovRange": "core.settings.fov", "Mode": "core.settings.config", "SearchConfig": "core.settings.config",
+    "CalibrationResult": "core.result", "SegmentEstimator": "core.estimator",
     "FREstimator": "runtime.estimator", "calibrate": "runtime.estimator", "DevicePolicy": "runtime.device",
-    "FRInputError": "errors", "SegmentFilter": "core.segments", "detect_segments": "detectors.registry",
+    "FRInputError": "errors", "SegmentFilter": "core.likelihood.segments", "detect_segments": "detectors.registry",
     "calibrate_shared": "runtime.shared_focal", "FocalPrior": "runtime.focal_prior",
 }
 __all__ = sorted(_EXPORTS)

@@ -1,15 +1,16 @@
 """Synthetic Manhattan scenes with exactly known camera: segment sets and rendered images.
 
 Used by the tests, the bundled example image and the benchmarks.  Conventions are those of
-:mod:`fr_torch.core.camera` (R world->camera, world y = down, pixels x right / y down).
+:mod:`fr_torch.core.geometry.conventions` (R world->camera, world y = down, pixels x right / y down).
 """
 from __future__ import annotations
 
 import cv2
 import numpy as np
 
-from fr_torch.core.camera import Camera, image_centre, rotation_from_angles
-from fr_torch.core.distortion import distort_points, normalising_radius
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import image_centre, rotation_from_angles
+from fr_torch.core.geometry.lens import distort_points, normalising_radius
 
 
 def camera_matrix(focal_px: float, width: int, height: int, principal_point=None) -> np.ndarray:
@@ -95,8 +96,8 @@ def synthetic_segments(focal_px: float, rotation: np.ndarray, width: int = 640, 
 def distorted_segments(segments: np.ndarray, labels: np.ndarray, k: float, width: int, height: int,
                        piece_px: float = 25.0) -> tuple[np.ndarray, np.ndarray]:
     """The pinhole ``segments`` (N, 4) seen through the division model of ``k`` (normalised by half
-    the image diagonal, centre = the image centre :func:`~fr_torch.core.camera.image_centre`;
-    :mod:`fr_torch.core.distortion`), as a line detector sees a bent edge: each segment becomes
+    the image diagonal, centre = the image centre :func:`~fr_torch.core.geometry.conventions.image_centre`;
+    :mod:`fr_torch.core.geometry.lens`), as a line detector sees a bent edge: each segment becomes
     chords of about ``piece_px`` pixels between points of its bent image (straight pieces tangent
     to the curve).  Returns (pieces (M, 4), their labels (M,)), pieces whose ends both lie in the
     image."""

@@ -18,11 +18,12 @@ import torch
 
 from fr_torch import FREstimator, FRInputError
 from fr_torch.cli.main import main
-from fr_torch.core.camera import Camera, rotation_from_angles
-from fr_torch.core.cues import finite_record
-from fr_torch.core.estimator import CalibrationResult
-from fr_torch.core.likelihood import LikelihoodParams
-from fr_torch.core.reliability import ReliabilityModel
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import rotation_from_angles
+from fr_torch.core.reliability.sanity import finite_record
+from fr_torch.core.result import CalibrationResult
+from fr_torch.core.likelihood.mixture import LikelihoodParams
+from fr_torch.core.reliability.model import ReliabilityModel
 from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.detectors.registry import get_detector
 from fr_torch.plugins.interface import get_calibrator
@@ -229,7 +230,8 @@ def test_import_paths_call_nothing_undeclared(tmp_path, spec):
 def plugin_modules(tmp_path, monkeypatch):
     """A module of plug-ins written the simplest ways, and a one-image dataset, importable."""
     (tmp_path / "i39_plugins.py").write_text(textwrap.dedent('''
-        from fr_torch.core.camera import Camera, focal_from_hfov
+        from fr_torch.core.geometry.camera import Camera
+        from fr_torch.core.geometry.conventions import focal_from_hfov
         from fr_torch.plugins.interface import CameraEstimate
         from fr_torch.registry import plugin
 
@@ -267,7 +269,8 @@ def plugin_modules(tmp_path, monkeypatch):
     (tmp_path / "i39_data.py").write_text(textwrap.dedent(f'''
         from pathlib import Path
         from fr_eval.datasets.registry import CalibrationSample
-        from fr_torch.core.camera import Camera, rotation_from_angles
+        from fr_torch.core.geometry.camera import Camera
+        from fr_torch.core.geometry.conventions import rotation_from_angles
         from fr_torch.registry import plugin
 
         @plugin("dataset")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fr_torch import FREstimator, FRInputError
-from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import load_image
 from fr_torch.synthetic import render_manhattan_room

@@ -22,7 +22,7 @@ from fr_torch.batch.table import records_to_table
 from fr_torch.batch.worker import BatchWorker
 from fr_torch.cli.batch import estimator_options
 from fr_torch.cli.main import build_parser
-from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.synthetic import render_manhattan_room
 from tests.conftest import checkout_env, shared_focal_batch_on_local_engine
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
-from fr_torch.core.camera import (
+from fr_torch.core.geometry.conventions import (
     angles_from_rotation,
     focal_from_hfov,
     hfov_from_focal,

@@ -1,5 +1,5 @@
 """One camera value type: every camera record (CalibrationResult, CameraEstimate, FrameEstimate,
-FusedState, CalibrationSample) holds a :class:`fr_torch.core.camera.Camera` and reads K, hfov, angles,
+FusedState, CalibrationSample) holds a :class:`fr_torch.core.geometry.camera.Camera` and reads K, hfov, angles,
 rotation and vanishing points from it; the JSON schemas stay the same."""
 from dataclasses import replace
 
@@ -8,15 +8,9 @@ import pytest
 import torch
 from fr_eval.datasets.registry import CalibrationSample
 
-from fr_torch.core.camera import (
-    Camera,
-    angles_from_rotation,
-    hfov_from_focal,
-    intrinsics,
-    pitch_from_tilt,
-    rotation_from_angles,
-)
-from fr_torch.core.estimator import JSON_KEYS, CalibrationResult
+from fr_torch.core.geometry.camera import Camera, pitch_from_tilt
+from fr_torch.core.geometry.conventions import angles_from_rotation, hfov_from_focal, intrinsics, rotation_from_angles
+from fr_torch.core.result import JSON_KEYS, CalibrationResult
 from fr_torch.plugins.interface import CameraEstimate
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.synthetic import synthetic_segments
@@ -130,8 +124,8 @@ def test_estimator_and_fusion_build_cameras():
     assert state.hfov_deg == pytest.approx(result.hfov_deg)
     assert state.to_json()["rotation"] == np.asarray(state.rotation).tolist()
     # the non-finite check clears focal and rotation, keeps the principal point (as before)
-    from fr_torch.core.config import SearchConfig
-    from fr_torch.core.cues import check_result
+    from fr_torch.core.settings.config import SearchConfig
+    from fr_torch.core.reliability.sanity import check_result
 
     result.camera = replace(result.camera, rotation=np.full((3, 3), np.nan))
     check_result(result, SearchConfig.from_config())

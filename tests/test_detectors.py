@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.detectors.mcmlsd import (
     PARAMS_PATH,
     MCMLSDDetector,

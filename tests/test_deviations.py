@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from fr_torch.core.likelihood import deviations
+from fr_torch.core.likelihood.measures import deviations
 
 # One horizontal segment from (0, 0) to (10, 0): midpoint (5, 0), half length 5, line y = 0.
 # Principal point (0, 0), f = 100 px.

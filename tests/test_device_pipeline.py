@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import jpeg_header, working_image
 from fr_torch.runtime import device_pipeline

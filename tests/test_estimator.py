@@ -4,8 +4,11 @@ import pytest
 import torch
 
 from fr_torch import FREstimator
-from fr_torch.core.camera import Camera, Horizon, focal_from_hfov, horizon_angles, image_centre, rotation_from_angles
-from fr_torch.core.cues import LINE_BEND_CUES, focal_conditioning
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.horizon import Horizon
+from fr_torch.core.geometry.conventions import focal_from_hfov, horizon_angles, image_centre, rotation_from_angles
+from fr_torch.core.reliability.sanity import LINE_BEND_CUES
+from fr_torch.core.reliability.cues import focal_conditioning
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
 
@@ -68,7 +71,7 @@ def test_hfov_search_range_is_configurable():
     """A zoomed-in camera (hfov 30 deg) lies outside the paper's [50, 130] range: that search stops at
     its edge (flagged unreliable); a user-given range recovers it.  The option works through the
     method spec."""
-    from fr_torch.core.config import SearchConfig
+    from fr_torch.core.settings.config import SearchConfig
     from fr_torch.plugins.interface import get_calibrator
 
     segments, focal, R = _scene(7, 30.0, 10.0, 6.0, 3.0)
@@ -96,7 +99,7 @@ def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
     by default in both modes' presets); the other stages always get every segment; negative counts
     are refused."""
     import fr_torch.core.estimator as estimator_module
-    from fr_torch.core.config import SearchConfig
+    from fr_torch.core.settings.config import SearchConfig
 
     seen = []
     original = estimator_module.score_grid
@@ -167,11 +170,11 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     """A view with finite, well-spread VPs has its f set by the segments (share near 0); a camera
     square to a wall (one horizontal VP on the principal point, the others at infinity) leaves f to
     the prior (share near 1); without a prior, or with the focal length given, the share is 0.
-    The cue matches a direct evaluation of :func:`fr_torch.core.cues.focal_prior_share`."""
+    The cue matches a direct evaluation of :func:`fr_torch.core.reliability.cues.focal_prior_share`."""
     from dataclasses import replace
 
-    from fr_torch.core.cues import focal_prior_share
-    from fr_torch.core.likelihood import MixtureLikelihood
+    from fr_torch.core.reliability.cues import focal_prior_share
+    from fr_torch.core.likelihood.mixture import MixtureLikelihood
 
     focal = focal_from_hfov(70.0, 640)
     views = {"oblique": rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0, 3.0).numpy(),
@@ -187,9 +190,9 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     [given] = est.calibrate_segments(segments[:1], [(640, 480)], focal_px=focal)
     assert given.cues["focal_prior_share"] == 0.0 and given.cues["focal_spread"] == 0.0
 
-    from fr_torch.core.likelihood import SegmentFeatures
-    from fr_torch.core.search import angles_from_search_rotation
-    from fr_torch.core.segments import SegmentBatch
+    from fr_torch.core.likelihood.measures import SegmentFeatures
+    from fr_torch.core.geometry.params import angles_from_search_rotation
+    from fr_torch.core.likelihood.segments import SegmentBatch
 
     batch = SegmentBatch.from_list([oblique.segments], [(640, 480)])
     features = SegmentFeatures.from_batch(batch, torch.tensor([image_centre(640, 480)]))
@@ -220,11 +223,11 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
     """``focal_profile_gap``: large at a well-determined estimate, small where the lines say little
     about f (camera square to a wall), negative at an estimate a clearly different focal length
     beats, 0 for a given focal length (fR only; Fast-fR does not compute it)."""
-    from fr_torch.core.cues import focal_profile_gap
-    from fr_torch.core.likelihood import SegmentFeatures
-    from fr_torch.core.params import rotations as hypothesis_rotations
-    from fr_torch.core.search import angles_from_search_rotation
-    from fr_torch.core.segments import SegmentBatch
+    from fr_torch.core.reliability.cues import focal_profile_gap
+    from fr_torch.core.likelihood.measures import SegmentFeatures
+    from fr_torch.core.geometry.params import rotations as hypothesis_rotations
+    from fr_torch.core.geometry.params import angles_from_search_rotation
+    from fr_torch.core.likelihood.segments import SegmentBatch
 
     focal, views, segments = _oblique_and_square()
     est = FREstimator(mode="fr", reliability=None, profile_gap=True)
@@ -252,7 +255,7 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
                                       torch.tensor([image_centre(640, 480)] * 2))
     args = (est.likelihood, both, wrong.expand(2, 4), wrong_score.expand(2), est.search, 10)
     together = focal_profile_gap(*args)
-    monkeypatch.setattr("fr_torch.core.cues.PROFILE_CHUNK_IMAGES", 1)
+    monkeypatch.setattr("fr_torch.core.reliability.cues.PROFILE_CHUNK_IMAGES", 1)
     torch.testing.assert_close(focal_profile_gap(*args), together)
     assert float(together[0]) == pytest.approx(float(gap[0]), rel=1e-4)
     # only focal lengths inside the range are searched: an estimate at the wide edge (ratios < 1 out)
@@ -292,10 +295,10 @@ def test_spread_cues_measure_how_well_the_segments_fix_the_camera():
     they leave it to the prior (a camera square to a wall), at their maximum at an estimate a nearby
     focal length beats; a given focal length has no focal spread but a pitch spread; computed when
     the reliability stage holds a promise or when asked, skipped otherwise."""
-    from fr_torch.core.cues import MAX_SPREAD, SPREAD_FOCAL_RATIOS, focal_profile, focal_profile_spread
-    from fr_torch.core.likelihood import SegmentFeatures
-    from fr_torch.core.search import angles_from_search_rotation
-    from fr_torch.core.segments import SegmentBatch
+    from fr_torch.core.reliability.cues import MAX_SPREAD, SPREAD_FOCAL_RATIOS, focal_profile, focal_profile_spread
+    from fr_torch.core.likelihood.measures import SegmentFeatures
+    from fr_torch.core.geometry.params import angles_from_search_rotation
+    from fr_torch.core.likelihood.segments import SegmentBatch
 
     focal, views, segments = _oblique_and_square()
     est = FREstimator(mode="fast", reliability=None, spreads=True)

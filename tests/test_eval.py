@@ -15,7 +15,8 @@ import pytest
 from fr_eval.protocols import fit_likelihood, run_eval
 from fr_eval.datasets.registry import CalibrationSample
 
-from fr_torch.core.camera import Camera, rotation_from_angles
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta
 from fr_torch.registry import not_supplied, plugin
 from fr_torch.resources import config_dir
@@ -376,8 +377,8 @@ def test_em_recovers_mixing_weights():
 
 def test_fit_on_yud_train(data_root, tmp_path):
     require_dataset(data_root, "yorkurbandb")
-    pytest.importorskip("fr_torch.core.likelihood")
-    from fr_torch.core.likelihood import LikelihoodParams
+    pytest.importorskip("fr_torch.core.likelihood.mixture")
+    from fr_torch.core.likelihood.mixture import LikelihoodParams
 
     out, report = tmp_path / "fitted.json", tmp_path / "fit.md"
     parser = argparse.ArgumentParser()

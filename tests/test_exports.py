@@ -7,13 +7,8 @@ import pycolmap
 import pytest
 from fr_eval.protocols.distortion_exports import export_errors
 
-from fr_torch.core.distortion import (
-    ColmapModel,
-    colmap_camera,
-    colmap_cameras_txt,
-    colmap_division_k,
-    normalising_radius,
-)
+from fr_torch.core.exports import ColmapModel, colmap_camera, colmap_cameras_txt, colmap_division_k
+from fr_torch.core.geometry.lens import normalising_radius
 from fr_torch.errors import FRInputError
 
 # (width, height, focal_px, principal point off the centre): landscape and portrait, small and large

@@ -23,7 +23,7 @@ from fr_eval.bench.track_live import default_stop_signals
 from fr_eval.datasets.live_stream import MJPEGServer, SyntheticCamera
 
 from fr_torch.cli.main import main
-from fr_torch.core.estimator import CalibrationResult
+from fr_torch.core.result import CalibrationResult
 from fr_torch.errors import FRInputError
 from fr_torch.video.fleet import CameraSpec, FleetCamera, camera_line, camera_specs, track_fleet
 from fr_torch.video.fusion import OnlineCalibrator

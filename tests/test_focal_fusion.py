@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from fr_eval.protocols import focal_fusion
 
-from fr_torch.core.reliability import ERROR_COLUMNS, FR_MODEL_CUE_NAMES
+from fr_torch.core.reliability.model import ERROR_COLUMNS, FR_MODEL_CUE_NAMES
 
 
 def test_fused_focal_error_weights_follow_predicted_errors():
@@ -35,7 +35,7 @@ def _records(n, seed):
 
 
 def test_fuse_reads_records_and_checks_one_camera(tmp_path):
-    from fr_torch.core.reliability import ReliabilityModel
+    from fr_torch.core.reliability.model import ReliabilityModel
 
     for source in ReliabilityModel.load_default("fr").meta["training_data"]:  # the shipped model's sources
         _records(60, seed=len(source)).to_csv(tmp_path / f"{source}_train_fr.csv", index=False)
@@ -74,7 +74,7 @@ def test_fast_records_without_the_profile_gap(tmp_path):
     it are left out of the comparison, and asking for it is a one-line error, not an empty fit."""
     from fr_eval.protocols.reliability_train import CUE_SETS, compare_cue_sets, usable
 
-    from fr_torch.core.reliability import MODEL_CUE_NAMES, model_cue_names
+    from fr_torch.core.reliability.model import MODEL_CUE_NAMES, model_cue_names
 
     train = pd.concat([_records(60, seed=1).assign(source="yud", name=[f"y{i}" for i in range(60)]),
                        _records(80, seed=2).assign(source="zind-fr", name=[f"z{i}" for i in range(80)])],

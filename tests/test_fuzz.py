@@ -22,8 +22,8 @@ import pytest
 
 from fr_torch import FREstimator, FRInputError
 from fr_torch.cli.main import main
-from fr_torch.core.camera import rotation_from_angles
-from fr_torch.core.likelihood import LikelihoodParams
+from fr_torch.core.geometry.conventions import rotation_from_angles
+from fr_torch.core.likelihood.mixture import LikelihoodParams
 from fr_torch.images.io import load_image, probe_image_size, read_image
 from fr_torch.output import dumps, json_safe
 from fr_torch.synthetic import render_manhattan_room

@@ -1,4 +1,4 @@
-"""The horizon fit (fr_torch.core.horizon_fit) and the per-photo choice of fit (SearchConfig.fit)."""
+"""The horizon fit (fr_torch.core.search.horizon) and the per-photo choice of fit (SearchConfig.fit)."""
 import json
 import os
 import subprocess
@@ -9,20 +9,17 @@ import pytest
 import torch
 
 from fr_torch import FREstimator
-from fr_torch.core.camera import Camera, Horizon, rotation_from_angles
-from fr_torch.core.config import HorizonFitConfig, SearchConfig
-from fr_torch.core.horizon_fit import (
-    CHOICE_FEATURES,
-    HorizonChooser,
-    fit_horizon,
-    fit_on_horizon,
-    horizon_of,
-    horizon_vote,
-)
-from fr_torch.core.likelihood import LikelihoodParams, MixtureLikelihood, SegmentFeatures
-from fr_torch.core.params import CameraParams
-from fr_torch.core.search import parameter_box
-from fr_torch.core.segments import SegmentBatch
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.horizon import Horizon
+from fr_torch.core.geometry.conventions import rotation_from_angles
+from fr_torch.core.settings.config import HorizonFitConfig, SearchConfig
+from fr_torch.core.search.choice import CHOICE_FEATURES, HorizonChooser, fit_on_horizon, horizon_of
+from fr_torch.core.search.horizon import fit_horizon, horizon_vote
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.geometry.params import CameraParams
+from fr_torch.core.search.grid import parameter_box
+from fr_torch.core.likelihood.segments import SegmentBatch
 from fr_torch.errors import FRInputError
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import checkout_env
@@ -148,7 +145,7 @@ def _kernel_sets():
 @pytest.mark.parametrize("kernels", _kernel_sets())
 def test_the_horizon_fit_gives_the_same_bits_under_every_kernel_set(kernels):
     code = ("import json, sys; sys.path.insert(0, '.'); from tests.test_horizon_fit import _street; "
-            "from fr_torch import FREstimator; from fr_torch.core.config import SearchConfig; "
+            "from fr_torch import FREstimator; from fr_torch.core.settings.config import SearchConfig; "
             "p = [_street(seed=1), _street(focal=500.0, size=(640, 480), seed=2, inclined=40)]; "
             "e = FREstimator(mode='fast', search_config=SearchConfig.from_config(fit='horizon')); "
             "r = e.calibrate_segments([x[0] for x in p], [x[1] for x in p]); "

@@ -6,14 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from fr_torch.core.camera import VERTICAL_AXIS, rotation_from_angles
-from fr_torch.core.fov import FovRange
-from fr_torch.core.likelihood import (
-    LikelihoodParams,
-    MixtureLikelihood,
-    SegmentFeatures,
-)
-from fr_torch.core.segments import SegmentBatch
+from fr_torch.core.geometry.conventions import VERTICAL_AXIS, rotation_from_angles
+from fr_torch.core.settings.fov import FovRange
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.segments import SegmentBatch
 
 
 def _direct_objective(segments, R, f, pp, params):

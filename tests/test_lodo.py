@@ -14,7 +14,7 @@ from fr_eval.protocols.lodo import (
 )
 from fr_eval.protocols.run_eval import build_meta, given_segments
 
-from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.geometry.conventions import rotation_from_angles
 
 
 def _write_photo(folder, index, rotation, extra_vp=None):
@@ -100,7 +100,7 @@ def test_lodo_reliability_scales_and_judgement():
     from fr_eval.protocols.lodo_reliability import evaluate, family_scales, sigmas
     from fr_eval.scoring.metrics import aurc, risk_coverage
 
-    from fr_torch.core.reliability import MODEL_CUE_NAMES
+    from fr_torch.core.reliability.model import MODEL_CUE_NAMES
 
     rng = np.random.default_rng(0)
     n = 120

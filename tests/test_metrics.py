@@ -25,12 +25,8 @@ from fr_eval.scoring.tables import (
     to_markdown,
 )
 
-from fr_torch.core.camera import (
-    Camera,
-    hfov_from_focal,
-    horizon_angles,
-    rotation_from_angles,
-)
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import hfov_from_focal, horizon_angles, rotation_from_angles
 from fr_torch.plugins.interface import CameraEstimate
 from fr_torch.registry import not_supplied, with_option
 

@@ -28,7 +28,7 @@ from fr_eval.datasets.panorama import (
     yaw_rotation,
 )
 
-from fr_torch.core.camera import (
+from fr_torch.core.geometry.conventions import (
     focal_from_hfov,
     horizon_angles,
     image_centre,

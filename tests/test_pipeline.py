@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fr_torch import FREstimator
-from fr_torch.core.segments import SegmentFilter
+from fr_torch.core.likelihood.segments import SegmentFilter
 from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.errors import FRInputError
 from fr_torch.runtime import workers as workers_module

@@ -98,7 +98,7 @@ def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
     """After installation (and only then) ``horizon-lines`` is a method and ``long-lsd`` a detector:
     in ``fr eval --methods all``, by name, with options, and estimating a synthetic room's roll."""
     code = textwrap.dedent("""
-        from fr_torch.core.camera import rotation_from_angles
+        from fr_torch.core.geometry.conventions import rotation_from_angles
         from fr_torch.plugins.interface import ImageMeta, available_methods, get_calibrator
         from fr_torch.registry import load_object  # finds fr_eval also in a checkout that is not installed
         from fr_torch.detectors.registry import available_detectors, get_detector
@@ -121,7 +121,7 @@ def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
 
 def test_installed_plugin_in_fr_eval(installed_plugin, tmp_path):
     """``fr eval --methods horizon-lines,prior`` on a two-image synthetic dataset given by import path."""
-    from fr_torch.core.camera import rotation_from_angles
+    from fr_torch.core.geometry.conventions import rotation_from_angles
     from fr_torch.synthetic import render_manhattan_room
 
     for i, roll in enumerate((4.0, -7.0)):
@@ -130,7 +130,8 @@ def test_installed_plugin_in_fr_eval(installed_plugin, tmp_path):
     (tmp_path / "rooms_ds.py").write_text(textwrap.dedent(f"""
         from pathlib import Path
         from fr_eval.datasets.registry import CalibrationSample
-        from fr_torch.core.camera import Camera, rotation_from_angles
+        from fr_torch.core.geometry.camera import Camera
+        from fr_torch.core.geometry.conventions import rotation_from_angles
         from fr_torch.registry import plugin
 
         @plugin("dataset")

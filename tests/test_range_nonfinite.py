@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from fr_torch.core.camera import Camera
-from fr_torch.core.config import SearchConfig
-from fr_torch.core.cues import check_result
-from fr_torch.core.fov import FovRange
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core.reliability.sanity import check_result
+from fr_torch.core.settings.fov import FovRange
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate
 from fr_torch.runtime.estimator import FREstimator

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from fr_torch.core.camera import Camera
-from fr_torch.core.estimator import CalibrationResult
-from fr_torch.core.reliability import (
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.result import CalibrationResult
+from fr_torch.core.reliability.model import (
     CUE_NAMES,
     FR_MODEL_CUE_NAMES,
     MODEL_CUE_NAMES,

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from fr_torch.core.camera import Camera
-from fr_torch.core.estimator import CalibrationResult
-from fr_torch.core.reliability import MODEL_CUE_NAMES, ReliabilityModel
-from fr_torch.core.reliability_bounds import (
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.result import CalibrationResult
+from fr_torch.core.reliability.model import MODEL_CUE_NAMES, ReliabilityModel
+from fr_torch.core.reliability.bounds import (
     FOCAL_SIGMA_FLOOR_PCT,
     ReliabilityPromise,
     conformal_scale,

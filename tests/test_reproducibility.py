@@ -11,8 +11,8 @@ import torch
 
 from fr_torch import FREstimator
 from fr_torch.core import exact
-from fr_torch.core.camera import rotation_from_angles
-from fr_torch.core.search import best_of_start_and_refined, different_solutions, first_near_best
+from fr_torch.core.geometry.conventions import rotation_from_angles
+from fr_torch.core.search.passes import best_of_start_and_refined, different_solutions, first_near_best
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.synthetic import random_rotation, synthetic_segments
 from tests.conftest import checkout_env, gpu
@@ -138,7 +138,7 @@ def test_the_search_takes_one_path_at_every_thread_count(monkeypatch):
     """``FR_THREADS=auto`` gives every search call the threads the load leaves it, so a command's
     thread count changes with the load, call by call: the search must cut its work into the same
     chunks at 1 and 2 threads (results/decisions/60.md), not only give the same bits."""
-    from fr_torch.core.likelihood import MixtureLikelihood
+    from fr_torch.core.likelihood.mixture import MixtureLikelihood
 
     chunks = []
     objective = MixtureLikelihood.objective
@@ -189,9 +189,9 @@ def test_every_cpu_kernel_set_gives_the_same_bits(reference, kernels):
 def test_the_torch_path_gives_the_fused_kernels_bits(reference):
     """FR_NATIVE=0, what a machine without a C compiler (or a torch without MKL) runs: the torch path
     of every score and gradient, bit for bit the records of this process (whose fused kernels of
-    fr_torch.core.native run when this machine can build them)."""
+    fr_torch.core.likelihood.native run when this machine can build them)."""
     code = ("import json, sys; sys.path.insert(0, 'tests'); from test_reproducibility import _photos, _record; "
-            "from fr_torch import FREstimator; from fr_torch.core import native; assert not native.available(); "
+            "from fr_torch import FREstimator; from fr_torch.core.likelihood import native; assert not native.available(); "
             "p = _photos(); r = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p]); "
             "print(json.dumps([_record(x) for x in r]))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
@@ -204,11 +204,12 @@ def test_the_torch_path_gives_the_fused_kernels_bits(reference):
 def test_the_fused_kernels_check_themselves_against_the_torch_path():
     """Where the kernels build (a C compiler, torch with MKL), their first-use check passed; the
     grid's scores and the refinement's gradient equal the torch path's on a scene bit for bit."""
-    from fr_torch.core import native
-    from fr_torch.core.likelihood import (MixtureLikelihood, SegmentFeatures, kernels_match_torch,
-                                          measure_b_objective_and_grad, objective_b_nograd, vp_major)
-    from fr_torch.core.camera import image_centre, vanishing_points
-    from fr_torch.core.params import rotations
+    from fr_torch.core.likelihood import native
+    from fr_torch.core.likelihood.mixture import MixtureLikelihood, kernels_match_torch
+    from fr_torch.core.likelihood.measures import SegmentFeatures
+    from fr_torch.core.likelihood.objective import measure_b_objective_and_grad, objective_b_nograd, vp_major
+    from fr_torch.core.geometry.conventions import image_centre, vanishing_points
+    from fr_torch.core.geometry.params import rotations
 
     if not native.available():
         pytest.skip(f"fused kernels unavailable here ({native._state.get('error', 'FR_NATIVE=0')})")

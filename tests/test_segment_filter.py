@@ -3,7 +3,7 @@ the longest max_segments with ties in input order)."""
 import numpy as np
 import pytest
 
-from fr_torch.core.segments import SegmentFilter
+from fr_torch.core.likelihood.segments import SegmentFilter
 
 
 def _reference(f: SegmentFilter, segments: np.ndarray, width: float, height: float) -> np.ndarray:

@@ -8,18 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-import fr_torch.core.search as search
+import fr_torch.core.search.passes as search
 from fr_torch import FREstimator
-from fr_torch.core.camera import focal_from_hfov, rotation_from_angles
-from fr_torch.core.config import SearchConfig
-from fr_torch.core.likelihood import (
-    LikelihoodParams,
-    MixtureLikelihood,
-    SegmentFeatures,
-)
-from fr_torch.core.params import rotations as fast_rotations
-from fr_torch.core.search import grid_hypotheses, refine, score_grid
-from fr_torch.core.segments import SegmentBatch
+from fr_torch.core.geometry.conventions import focal_from_hfov, rotation_from_angles
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.geometry.params import rotations as fast_rotations
+from fr_torch.core.search.grid import grid_hypotheses, score_grid
+from fr_torch.core.search.refine import refine
+from fr_torch.core.likelihood.segments import SegmentBatch
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
 
@@ -267,7 +265,7 @@ def test_bench_quick_smoke(tmp_path):
 
 
 def test_refinement_closed_form_gradient_matches_autograd():
-    from fr_torch.core.search import objective_and_grad
+    from fr_torch.core.search.refine import objective_and_grad
     features = _features([_scene(0), _scene(1, hfov=90.0, n_per_family=40)], torch.float64)
     model = MixtureLikelihood()
     batch = features.weight.shape[0]
@@ -286,7 +284,7 @@ def test_refinement_closed_form_gradient_matches_autograd():
 def test_closed_form_refinement_gradient_matches_autograd_with_focal_prior():
     """search.objective_and_grad (the refinement's gradient, no autograd) = autograd of the full
     objective, focal prior included."""
-    from fr_torch.core.search import objective_and_grad
+    from fr_torch.core.search.refine import objective_and_grad
 
     rng = np.random.default_rng(5)
     features = _features([_scene(3), _scene(4, n_per_family=20)], torch.float64)
@@ -469,7 +467,7 @@ def test_calibrating_does_not_import_the_compiler():
     import sys
 
     code = ("import sys; from fr_torch import FREstimator; from fr_torch.synthetic import synthetic_segments; "
-            "from fr_torch.core.camera import rotation_from_angles; "
+            "from fr_torch.core.geometry.conventions import rotation_from_angles; "
             "s, _ = synthetic_segments(500.0, rotation_from_angles(10.0, 5.0, 2.0).numpy(), 640, 480, n_per_family=30, seed=0); "
             "[r] = FREstimator(mode='fr').calibrate_segments([s], [(640, 480)]); assert r.ok, r.reason; "
             "print('torch._dynamo' in sys.modules)")
@@ -478,73 +476,14 @@ def test_calibrating_does_not_import_the_compiler():
     assert done.stdout.strip() == "False"
 
 
-@pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
-def test_elementwise_objective_equals_buffered(dtype, rtol):
-    """objective_b_elementwise (the form torch.compile fuses) gives objective_b_nograd's sums."""
-    from fr_torch.core.camera import intrinsics
-    from fr_torch.core.likelihood import (
-        objective_b_elementwise,
-        objective_b_nograd,
-        vp_major,
-    )
+def test_compile_was_removed_with_a_one_line_reason(capsys):
+    """``--compile`` / ``compile_search`` are gone (the fused CPU kernels replaced them, with the
+    default search's bits): both fail with one line that says so, for a release's time."""
+    from fr_torch.cli.main import main
+    from fr_torch.errors import FRInputError
 
-    config = SearchConfig.from_config(grid_points_per_dim=3)
-    features = _features([_scene(31, n_per_family=25), _scene(32, 95.0, -10.0, 20.0, 2.0, 20)], dtype)
-    hyp = grid_hypotheses(config, torch.tensor([640.0, 640.0], dtype=torch.float64)).to(dtype)
-    vps = intrinsics(hyp[..., 3], features.principal_point[:, None, :]) @ fast_rotations(hyp)
-    flat = vp_major(vps).contiguous()
-    constants = MixtureLikelihood(LikelihoodParams.from_config("b"))._b_constants(features.weight)
-    buffered = objective_b_nograd(features.line_along, features.weight, flat, *constants, workspace={})
-    elementwise = objective_b_elementwise(features.line_along, features.weight, flat, *constants)
-    assert torch.allclose(elementwise, buffered, rtol=rtol)
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("mode", ["fast", "fr"])
-def test_compiled_search_gives_the_eager_estimates(mode):
-    """SearchConfig.compile_search (``--compile``): the same estimates as the eager paths (or, where
-    this machine cannot compile, the eager paths themselves after one warning).  One compilation
-    per process serves both modes (40-45 s on 2 cores: in the slow set; the fallback is tested
-    below)."""
-    segs = [_scene(41), _scene(42, 95.0, -30.0, -15.0, -7.0)]
-    eager = FREstimator(mode=mode).calibrate_segments(segs, [(640, 480)] * 2)
-    estimator = FREstimator(mode=mode, search_config=SearchConfig.from_config(compile_search=True))
-    compiled = estimator.calibrate_segments(segs, [(640, 480)] * 2)
-    # Float rounding differs (fused sums); fR's 100 Adam steps on a flat optimum can carry that to
-    # the tolerances of test_estimator_float32_matches_float64 (measured: focal 2.7e-4 apart).
-    focal_rel, objective_rel, angle_deg = (1e-4, 1e-5, 1e-3) if mode == "fast" else (1e-3, 5e-4, 0.02)
-    for a, b in zip(eager, compiled):
-        assert b.ok and b.focal_px == pytest.approx(a.focal_px, rel=focal_rel)
-        assert b.log_likelihood == pytest.approx(a.log_likelihood, rel=objective_rel)
-        for key in ("pan_deg", "pitch_deg", "roll_deg"):
-            assert abs(getattr(a, key) - getattr(b, key)) < angle_deg, key
-
-
-def test_compiled_search_falls_back_with_one_warning(monkeypatch):
-    """Where compilation fails (no C++ compiler, no Triton) the estimator warns once and runs the
-    eager paths: the same results as without --compile."""
-    import fr_torch.core.likelihood as likelihood_module
-
-    def cannot_compile(*args, **kwargs):
-        raise RuntimeError("InvalidCxxCompiler: No working C compiler detected\nmore detail")
-
-    for fn in (likelihood_module.objective_b_elementwise, search.objective_and_grad):
-        monkeypatch.setitem(likelihood_module._COMPILED, fn, cannot_compile)
-    segs = [_scene(43)]
-    estimator = FREstimator(mode="fr", search_config=SearchConfig.from_config(compile_search=True))
-    with pytest.warns(RuntimeWarning, match="compiled search unavailable .*No working C compiler") as caught:
-        [fallback] = estimator.calibrate_segments(segs, [(640, 480)])
-    assert len([w for w in caught if "compiled search" in str(w.message)]) == 1
-    assert estimator.likelihood.compiled is False
-    [eager] = FREstimator(mode="fr").calibrate_segments(segs, [(640, 480)])
-    assert fallback.focal_px == eager.focal_px and fallback.log_likelihood == eager.log_likelihood
-
-
-@gpu
-def test_cuda_compiled_search_equals_cpu():
-    segs = [_scene(0), _scene(2, 95.0, -30.0, -15.0, -7.0)]
-    config = SearchConfig.from_config(compile_search=True)
-    a = FREstimator(mode="fast").calibrate_segments(segs, [(640, 480)] * 2)
-    b = FREstimator(mode="fast", device="cuda", search_config=config).calibrate_segments(segs, [(640, 480)] * 2)
-    for x, y in zip(a, b):
-        assert x.focal_px == pytest.approx(y.focal_px, rel=1e-4)
+    with pytest.raises(FRInputError, match="fused CPU kernels"):
+        SearchConfig.from_config(compile_search=True)
+    assert main(["calibrate", "--compile", "examples/room.png"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--compile" in err[0] and "fused CPU kernels" in err[0], err

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.detectors.registry import available_detectors, get_detector
 from fr_torch.detectors.tensor_lines import (
     TensorLinesConfig,

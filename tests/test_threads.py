@@ -170,7 +170,7 @@ def test_apply_threads_fixed_count():
 
 def test_estimator_searches_within_the_policy(monkeypatch):
     """FREstimator runs its search inside the policy's thread scope (and restores torch's count)."""
-    from fr_torch.core.camera import rotation_from_angles
+    from fr_torch.core.geometry.conventions import rotation_from_angles
     from fr_torch.runtime.estimator import FREstimator
     from fr_torch.synthetic import synthetic_segments
 

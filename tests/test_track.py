@@ -11,16 +11,16 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fr_torch.core.camera import MANHATTAN_SYMMETRIES as SYMMETRIES
-from fr_torch.core.camera import (
-    Camera,
+from fr_torch.core.geometry.conventions import MANHATTAN_SYMMETRIES as SYMMETRIES
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import (
     align_to,
     focal_from_hfov,
     nearest_rotation,
     rotation_angle_deg,
     rotation_from_angles,
 )
-from fr_torch.core.reliability import ReliabilityModel
+from fr_torch.core.reliability.model import ReliabilityModel
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.synthetic import render_manhattan_room, synthetic_segments
 from fr_torch.video.fusion import FrameEstimate, OnlineCalibrator

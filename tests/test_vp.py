@@ -24,8 +24,8 @@ from fr_eval.scoring.vp_metric import (
     match_errors,
 )
 
-from fr_torch.core.camera import image_centre, rotation_from_angles
-from fr_torch.core.vanishing import AtlantaConfig
+from fr_torch.core.geometry.conventions import image_centre, rotation_from_angles
+from fr_torch.core.geometry.vanishing import AtlantaConfig
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import ImageMeta
 from fr_torch.runtime.estimator import FREstimator

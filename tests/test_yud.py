@@ -11,7 +11,7 @@ import torch
 from fr_eval.datasets.registry import get_dataset_loader, load_dataset
 from fr_eval.datasets.yud import load_yud, rotation_from_vp_orthogonal
 
-from fr_torch.core.camera import vanishing_points
+from fr_torch.core.geometry.conventions import vanishing_points
 from tests.conftest import require_dataset
 
 

@@ -30,7 +30,7 @@ import numpy as np
 from fr_torch.batch.inputs import collect_inputs
 from fr_torch.batch.jobs import _run_local
 from fr_torch.cli.options import add_device_arguments
-from fr_torch.core.camera import rotation_from_angles
+from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.registry import load_object
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.synthetic import render_manhattan_room

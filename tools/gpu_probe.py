@@ -18,8 +18,7 @@ with ``error``, the next stage still runs):
 * ``given``: the search alone, given the same segments (``calibrate_segments``);
 * ``profile``: ``torch.profiler`` over one end-to-end Fast-fR batch (tables in OUT);
 * ``accuracy``: the images named in ``--test-list`` through the device path, one JSON record per
-  image and mode in ``OUT/accuracy_<device>.json`` (scored against ground truth elsewhere);
-* ``compiled``: the end-to-end and given-segment rows again with the compiled search.
+  image and mode in ``OUT/accuracy_<device>.json`` (scored against ground truth elsewhere).
 
 Images/s are batch / median wall seconds of ``--repeats`` timed runs after one warm-up, with the
 device synchronised around each run.
@@ -98,7 +97,7 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--searchers", default="1,2", help="pipeline stage: search threads to compare (eager)")
     parser.add_argument("--stages", default="pipeline,reliability_cost,pipeline_profile,decode,detect,e2e,given,profile,"
-                                            "accuracy,compiled")
+                                            "accuracy")
     args = parser.parse_args(argv)
 
     out = Path(args.out)
@@ -110,7 +109,6 @@ def main(argv=None) -> int:
     modes = args.modes.split(",")
     searcher_counts = [int(n) for n in args.searchers.split(",")]
 
-    from fr_torch.core.config import SearchConfig
     from fr_torch.detectors.tensor_lines import TensorLinesDetector, decode_jpeg_batch
     from fr_torch.runtime.device_pipeline import as_numpy_lists, calibrate_decoded
     from fr_torch.runtime.estimator import FREstimator
@@ -175,20 +173,18 @@ def main(argv=None) -> int:
 
     estimators = {}
 
-    def estimator(mode: str, compiled: bool = False):
-        key = (mode, compiled)
-        if key not in estimators:
-            config = SearchConfig.from_config(compile_search=True) if compiled else None
-            estimators[key] = FREstimator(mode=mode, device=device, search_config=config)
-        return estimators[key]
+    def estimator(mode: str):
+        if mode not in estimators:
+            estimators[mode] = FREstimator(mode=mode, device=device)
+        return estimators[mode]
 
-    def e2e_rows(compiled: bool):
+    def e2e_rows():
         for mode in modes:
-            est = estimator(mode, compiled)
+            est = estimator(mode)
             start = time.perf_counter()
-            calibrate_decoded(est, detector, decode(payload(64)))  # warm-up (compiles when compiled)
+            calibrate_decoded(est, detector, decode(payload(64)))  # warm-up
             _sync(device)
-            log("warmup", mode=mode, compiled=compiled, seconds=time.perf_counter() - start)
+            log("warmup", mode=mode, seconds=time.perf_counter() - start)
             for batch in batches:
                 data_b = payload(batch)
                 t, results = _timed(lambda: calibrate_decoded(est, detector, decode(data_b)), device, args.repeats)
@@ -206,13 +202,13 @@ def main(argv=None) -> int:
                 est.calibrate_segments(lists, [(images.shape[-1], images.shape[-2])] * batch)
                 _sync(device)
                 t4 = time.perf_counter()
-                log("e2e", mode=mode, compiled=compiled, batch=batch, seconds=t, images_per_s=batch / t,
+                log("e2e", mode=mode, batch=batch, seconds=t, images_per_s=batch / t,
                     ok_share=float(np.mean([r.ok for r in results])),
                     reliable_share=float(np.mean([bool(r.reliable) for r in results])),
                     split_s={"decode": t1 - t0, "detect": t2 - t1, "to_host": t3 - t2, "search_call": t4 - t3})
                 sizes = [(images.shape[-1], images.shape[-2])] * batch
                 tg, _ = _timed(lambda: est.calibrate_segments(lists, sizes), device, args.repeats)
-                log("given", mode=mode, compiled=compiled, batch=batch, seconds=tg, images_per_s=batch / tg,
+                log("given", mode=mode, batch=batch, seconds=tg, images_per_s=batch / tg,
                     segments_mean=float(np.mean([len(x) for x in lists])))
 
     def run_profile():
@@ -242,7 +238,7 @@ def main(argv=None) -> int:
         path.write_text(json.dumps(records))
         log("accuracy", images=len(names), file=path.name)
 
-    def run_pipeline(compiled_modes=()):
+    def run_pipeline():
         """Files on disk to results through calibrate_paths (the path of calibrate_images, fr
         calibrate and fr batch on a GPU), over 4 batches of the largest size."""
         from fr_torch.runtime import device_pipeline
@@ -250,12 +246,10 @@ def main(argv=None) -> int:
 
         files = [str(p) for p in paths]
         default_searchers = device_pipeline.SEARCH_THREADS
-        settings = [(mode, False, n) for mode in modes for n in searcher_counts]
-        settings += [(mode, True, 1) for mode in compiled_modes]
-        for mode, compiled, searchers in settings:
+        for mode, searchers in [(mode, n) for mode in modes for n in searcher_counts]:
             device_pipeline.SEARCH_THREADS = searchers
             try:
-                est = estimator(mode, compiled)
+                est = estimator(mode)
                 for batch in batches:
                     todo = [files[i % len(files)] for i in range(4 * batch)]
                     list(calibrate_paths(est, todo[:batch], batch))  # warm-up at this batch size
@@ -264,7 +258,7 @@ def main(argv=None) -> int:
                     results = [r for _, chunk in calibrate_paths(est, todo, batch) for r in chunk]
                     _sync(device)
                     wall = time.perf_counter() - start
-                    log("pipeline", mode=mode, compiled=compiled, searchers=searchers, batch=batch, images=len(todo),
+                    log("pipeline", mode=mode, searchers=searchers, batch=batch, images=len(todo),
                         seconds=wall, images_per_s=len(todo) / wall, ok_share=float(np.mean([r.ok for r in results])),
                         reliable_share=float(np.mean([bool(r.reliable) for r in results])),
                         detect_ms=1000 * float(np.median([r.runtime_s.get("detect", 0.0) for r in results])))
@@ -300,15 +294,14 @@ def main(argv=None) -> int:
                 log("reliability_cost", mode=mode, reliability=reliability or "off", batch=batch, images=len(todo),
                     seconds=t, images_per_s=len(todo) / t)
 
-    stage("pipeline", lambda: run_pipeline(("fr",)))
+    stage("pipeline", run_pipeline)
     stage("reliability_cost", run_reliability_cost)
     stage("pipeline_profile", run_pipeline_profile)
     stage("decode", run_decode)
     stage("detect", run_detect)
-    stage("e2e", lambda: e2e_rows(False))
+    stage("e2e", e2e_rows)
     stage("profile", run_profile)
     stage("accuracy", run_accuracy)
-    stage("compiled", lambda: e2e_rows(True))
     return 0
 
 

@@ -5,7 +5,7 @@ batch size (the CPU proxy for a GPU's kernel launches).
 640x480 scenes (``fr_eval.bench.timing.scene_segments``), reliability stage on (the defaults), one
 thread, after one warm-up call; counts the top-level operator events ``torch.profiler`` records
 (nested ``aten::`` calls inside a composite op are not counted twice) and prints a Markdown table.
-``--chunking device`` lifts the CPU's cache-sized chunks (``fr_torch.core.search.CPU_CHUNK_ELEMENTS``,
+``--chunking device`` lifts the CPU's cache-sized chunks (``fr_torch.core.search.grid.CPU_CHUNK_ELEMENTS``,
 ``CPU_REFINE_ELEMENTS``) so the batch is cut as on a GPU (``SearchConfig.max_chunk_elements``): the
 count is then the proxy for a GPU's kernel launches; ``cpu`` (default) counts what a CPU runs.
 Run it with ``PYTHONPATH=<another checkout>`` to count another version of the library.
@@ -21,7 +21,7 @@ def count_operators(mode: str, batch: int, n_segments: int, chunking: str = "cpu
     """(top-level operator events, all operator events) of one batch of ``batch`` scenes."""
     from torch.profiler import ProfilerActivity, profile
 
-    import fr_torch.core.search as search
+    import fr_torch.core.search.passes as search
     from fr_eval.bench.timing import bench_estimator, scene_segments
 
     if chunking == "device":

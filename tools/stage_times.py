@@ -24,7 +24,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    import fr_torch.core.cues as cues
+    import fr_torch.core.reliability.cues as cues
     import fr_torch.core.estimator as estimator_module
     from fr_eval.datasets.registry import load_dataset
     from fr_torch import FREstimator

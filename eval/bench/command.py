@@ -32,16 +32,14 @@ and ``<out>/scaling.png`` (default ``results/bench``):
    a busy neighbour (a pure-Python spin loop in a subprocess started and stopped here), as a ratio
    to idle, and two processes side by side (their photos/s together over one alone's)
    (:mod:`fr_eval.bench.contention`; docs/cpu-threads.md).
-9. **The grid kernel alone** (on a GPU): stage 1 of 1024 images, eager and with ``--compile``
-   compiled, as deviations per second and the fraction of the card's FP32 peak they amount to
+9. **The grid kernel alone** (on a GPU): stage 1 of 1024 images, as deviations per second and the fraction of the card's FP32 peak they amount to
    (:data:`fr_eval.bench.gpu.FLOPS_PER_DEVIATION`, :data:`fr_eval.bench.gpu.GPU_FP32_PEAK`).
 
 Every measurement is written as it is taken: one JSON line per row in ``<out>/bench.jsonl``
 (flushed) and one progress line on stderr; bench.json / bench.md / scaling.png at the end.
 ``--budget-s`` bounds the run: settings not started within the budget are skipped and listed
 (default 150 s when a CUDA device is measured, meant to end ``fr bench --device cuda`` in about 3
-minutes without ``--compile``: with it, compiling took 16-39 s per mode on an H100 and two runs
-went past 3 minutes, results/bench/h100/README.md; the CUDA figures are taken first: JPEG files to
+minutes; the CUDA figures are taken first: JPEG files to
 results through the GPU path (section ``detectors``), then the search given segments with batches
 1 ... 4096 (16384 with ``--stress``), 3 repeats up to 64, 2 up to 4096, then 1).  ``--sections`` picks what to measure (e.g. ``parallel`` alone for
 CPU scaling on a large machine); ``--from-jsonl`` writes the report of a run that was cut short from
@@ -114,9 +112,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budget-s", type=float, default=None,
                         help="time budget in seconds: settings not started by then are skipped and listed "
                              "(default 150 with a CUDA device, else none; 0 = none)")
-    parser.add_argument("--compile", action="store_true",
-                        help="also measure throughput given segments with the search compiled by torch.compile "
-                             "(SearchConfig.compile_search; its compilation time is reported beside)")
     parser.add_argument("--sections", default=",".join(SECTIONS), metavar="S,S,...",
                         help="what to measure (default all): device = throughput, outside-search work and "
                              "profile on the --device GPU; latency = end to end per photo; detectors = LSD vs "
@@ -156,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
 
     import cv2
 
-    from fr_torch.core.camera import focal_from_hfov, rotation_from_angles
+    from fr_torch.core.geometry.conventions import focal_from_hfov, rotation_from_angles
     from fr_torch.synthetic import render_manhattan_room
 
     tmp = tempfile.TemporaryDirectory()
@@ -198,10 +193,9 @@ def run(args: argparse.Namespace) -> int:
         mem_settings = []
     modes = ("fast",) if quick else ("fast", "fr")
     contention_kinds = ("segments",) if quick else ("segments", "images")
-    tp_runs = 2 if args.compile else 1  # eager, and compiled with --compile
-    steps = (("latency" in sections) * tp_runs * len(modes) * len(images)
-             + len(gpu) * (tp_runs * len(modes) * len(device_batches) + tp_runs + 1 + len(modes))
-             + ("cpu" in sections) * (tp_runs * len(modes) * len(batches) + ("fr" in modes) * len(batches) + 2)
+    steps = (("latency" in sections) * len(modes) * len(images)
+             + len(gpu) * (len(modes) * len(device_batches) + 2 + len(modes))
+             + ("cpu" in sections) * (len(modes) * len(batches) + ("fr" in modes) * len(batches) + 2)
              + len(mem_settings) + ("scaling" in sections) * (len(seg_counts) + len(grid_sizes))
              + ("parallel" in sections) * 2 * len(modes) * len(counts)
              + ("detectors" in sections) * (len(images) + len(devices[1:]) * len(modes) * 3)
@@ -231,15 +225,12 @@ def run(args: argparse.Namespace) -> int:
     for dev in gpu:
         for mode in modes:
             tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode)
-        for mode in modes if args.compile else ():
-            tp += throughput(device_batches, n_seg_tp, dev, min(repeats, 3), progress, mode, compile_search=True)
-        kernels += [grid_kernel(dev, outside_batch, n_seg_tp, min(repeats, 3), progress, compiled)
-                    for compiled in ((False, True) if args.compile else (False,))]
+        kernels.append(grid_kernel(dev, outside_batch, n_seg_tp, min(repeats, 3), progress))
         outside.append(outside_search(outside_batch, n_seg_tp, dev, min(repeats, 3), progress))
         for mode in modes:
             profiles.append(profile_table(dev, outside_batch, n_seg_tp, out, progress, mode))
     if "latency" in sections:
-        e2e = end_to_end(images, repeats, progress, modes, compile_search=args.compile)
+        e2e = end_to_end(images, repeats, progress, modes)
     if "detectors" in sections:
         detectors = bench_detectors.detector_rows(images, repeats, progress)
     for row in e2e:
@@ -252,8 +243,6 @@ def run(args: argparse.Namespace) -> int:
             tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode)
         if "fr" in modes:  # fR without the reliability stage, hence without its focal_profile_gap cue
             tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, "fr", reliability=False)
-        for mode in modes if args.compile else ():
-            tp += throughput(batches, n_seg_tp, "cpu", repeats, progress, mode, compile_search=True)
         outside.insert(0, outside_search(outside_batch, n_seg_tp, "cpu", min(repeats, 3), progress))
     mem = memory(mem_settings, args.threads, progress)
     if "scaling" in sections:

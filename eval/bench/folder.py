@@ -10,7 +10,7 @@ and reports seconds per round and images/s from their mean.  ``default`` leaves 
 unset (:meth:`fr_torch.runtime.device.DevicePolicy.default_workers`).  Also checks that every setting gives the same
 focal lengths as in-process (``--workers 0``).  ``--device cuda`` times ``fr calibrate --device
 cuda`` (workers then decode and detect while the process searches on the GPU; results/bench/h100);
-``--extra`` passes more options (``--compile``).  Run it on an idle machine.
+``--extra`` passes more options (``--fast``).  Run it on an idle machine.
 """
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--data-root", default=None)
     add_device_arguments(parser, device_help="fr calibrate's --device (cpu or cuda)")
-    parser.add_argument("--extra", default="", help="more fr calibrate options, e.g. '--compile'")
+    parser.add_argument("--extra", default="", help="more fr calibrate options, e.g. '--fast'")
     parser.add_argument("--out", type=Path, default=None, help="write the Markdown table here")
     args = parser.parse_args(argv)
     photos = sorted(str(p) for p in (data_root(args.data_root) / "yorkurbandb").glob("*/*.jpg"))

@@ -16,23 +16,22 @@ FLOPS_PER_DEVIATION = 46
 GPU_FP32_PEAK = {"H100": 66.9e12, "H200": 66.9e12}
 
 
-def grid_kernel(device: str, batch: int, n_segments: int, repeats: int, progress,
-                compile_search: bool = False) -> dict | None:
+def grid_kernel(device: str, batch: int, n_segments: int, repeats: int, progress) -> dict | None:
     """Stage 1 alone: the 8^4 grid of ``batch`` images x ``n_segments`` segments scored by
-    :func:`fr_torch.core.search.score_grid`, eager or compiled.  Reports deviations per second
+    :func:`fr_torch.core.search.grid.score_grid`.  Reports deviations per second
     (B x G x N x 3, the nominal count) and, on a GPU of :data:`GPU_FP32_PEAK`, the fraction of its
     FP32 peak that :data:`FLOPS_PER_DEVIATION` per deviation amounts to."""
     import torch
 
-    from fr_torch.core.camera import image_centre
-    from fr_torch.core.likelihood import SegmentFeatures
-    from fr_torch.core.search import grid_hypotheses, score_grid
-    from fr_torch.core.segments import SegmentBatch
+    from fr_torch.core.geometry.conventions import image_centre
+    from fr_torch.core.likelihood.measures import SegmentFeatures
+    from fr_torch.core.search.grid import grid_hypotheses, score_grid
+    from fr_torch.core.likelihood.segments import SegmentBatch
 
-    label = f"grid kernel {device} {'compiled' if compile_search else 'eager'}"
+    label = f"grid kernel {device}"
     if progress.out_of_time(label):
         return None
-    est = bench_estimator("fast", device, compile_search=compile_search)
+    est = bench_estimator("fast", device)
     pool = [scene_segments(n_segments, seed=i) for i in range(8)]
     sizes = [(640, 480)] * batch
     segments = SegmentBatch.from_list([pool[i % len(pool)] for i in range(batch)], sizes, device, torch.float32)
@@ -42,10 +41,10 @@ def grid_kernel(device: str, batch: int, n_segments: int, repeats: int, progress
     k = est.search.grid_points_per_dim
     fn = lambda: score_grid(est.likelihood, features, hypotheses, est.search.max_chunk_elements,  # noqa: E731
                             vertical_block=k)
-    fn()  # warm-up (compiles, the first time in this process)
+    fn()  # warm-up
     t = statistics.median(median_times(fn, repeats, warmup=1, sync=device_sync(device)))
     deviations = batch * hypotheses.shape[1] * n_segments * 3
-    row = {"device": device, "search": "compiled" if est.likelihood.compiled else "eager", "batch": batch,
+    row = {"device": device, "batch": batch,
            "segments": n_segments, "hypotheses": int(hypotheses.shape[1]), "seconds": t,
            "deviations_per_s": deviations / t, "images_per_s": batch / t}
     if device.startswith("cuda"):

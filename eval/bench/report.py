@@ -47,10 +47,10 @@ def grid_floor_ms(row: dict, ns: float) -> float:
 def _latency_lines(report: dict) -> list[str]:
     """bench.md's end-to-end latency table."""
     lines = ["## End-to-end latency per image (CPU, batch 1, ms)", "",
-              "| image | mode | search | segments | decode+LSD | grid | refine | cues | total | floor: decode | floor: LSD | grid floor |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| image | mode | segments | decode+LSD | grid | refine | cues | total | floor: decode | floor: LSD | grid floor |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["end_to_end"]:
-        lines.append(f"| {r['image']} | {r['mode']} | {r.get('search', 'eager')} | {r['segments']} | {r['detect_ms']:.1f} | {r['grid_ms']:.1f} | "
+        lines.append(f"| {r['image']} | {r['mode']} | {r['segments']} | {r['detect_ms']:.1f} | {r['grid_ms']:.1f} | "
                      f"{r['refine_ms']:.1f} | {r['cues_ms']:.1f} | **{r['wall_ms']:.1f}** | {r['decode_ms']:.1f} | "
                      f"{r['lsd_ms']:.1f} | {grid_floor_ms(r, report['transcendental_ns']):.1f} |")
     lines += ["", "Grid floor = G x N x 3 deviations x (atan2 + exp ns/element measured in cache: "
@@ -76,27 +76,16 @@ def _markdown(report: dict) -> str:
     lines += bench_distortion.markdown_lines(report.get("distortion", []))
     lines += bench_distortion.fit_markdown_lines(report.get("fit", []))
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
-              "| device | mode | search | batch | segments | images/s | ms/image | peak memory (MB) |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| device | mode | batch | segments | images/s | ms/image | peak memory (MB) |",
+              "|---|---|---|---|---|---|---|"]
     mem = {(r["batch"], r["device"]): r for r in report["memory"] if r.get("ok")}
     for r in report["throughput"]:
         peak = r.get("peak_memory_mb")
-        search = r.get("search", "eager")  # reports written before --compile have no such column
-        if peak is None and r.get("mode", "fast") == "fast" and search == "eager" and (r["batch"], r["device"]) in mem:
+        if peak is None and r.get("mode", "fast") == "fast" and (r["batch"], r["device"]) in mem:
             peak = mem[(r["batch"], r["device"])]["peak_increase_mb"]
         mode = r.get("mode", "fast") + ("" if r.get("reliability", True) else ", reliability off")
-        lines.append(f"| {r['device']} | {mode} | {search} | {r['batch']} | {r['segments']} | "
+        lines.append(f"| {r['device']} | {mode} | {r['batch']} | {r['segments']} | "
                      f"{r['images_per_s']:.1f} | {r['ms_per_image']:.2f} | {'' if peak is None else f'{peak:.0f}'} |")
-    compiled = [dict(r, device=r.get("device", "cpu")) for r in report["end_to_end"] + report["throughput"]
-                if "compile_s" in r]
-    if compiled:
-        lines += ["", "search: `eager` = the default; `compiled` = `--compile` (`SearchConfig.compile_search`: "
-                  "the grid's scores from one kernel fused by torch.compile, the refinement step compiled "
-                  "too); its compilation, once per process and device "
-                  "(the first warm-up call), took "
-                  + ", ".join(f"{max(r['compile_s'] for r in compiled if r['device'] == d):.1f} s ({d})"
-                              for d in dict.fromkeys(r["device"] for r in compiled))
-                  + " (less when torch's on-disk compile cache holds an earlier run's kernel)."]
     if report["memory"]:
         lines += ["", "## Peak memory (fresh subprocess per setting; CPU: peak RSS increase over the inputs)", "",
                   "| device | mode | batch | segments | k | peak increase (MB) | peak RSS (MB) | seconds | ok |",

@@ -20,10 +20,9 @@ def transcendental_ns(device: str = "cpu") -> float:
     return (ta + te) / n * 1e9
 
 
-def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fast", "fr"),
-               compile_search: bool = False) -> list[dict]:
-    """Latency of calibrate_images on single images (batch 1), per stage, medians (ms);
-    ``compile_search``: also each mode with the compiled search (after its compiling warm-up)."""
+def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fast", "fr")) -> list[dict]:
+    """Latency of calibrate_images on single images (batch 1), per stage, medians (ms), after a
+    warm-up call."""
     from fr_torch.detectors.registry import get_detector
     from fr_torch.images.convert import to_gray8
     from fr_torch.images.io import load_image
@@ -34,28 +33,23 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
         gray = to_gray8(load_image(path))
         decode = statistics.median(median_times(lambda: load_image(path), repeats))
         lsd = statistics.median(median_times(lambda: detector(gray), repeats))
-        for mode, compiled in [(m, c) for m in modes for c in ((False, True) if compile_search else (False,))]:
-            if progress.out_of_time(f"end_to_end {label} {mode}{' compiled' if compiled else ''}"):
+        for mode in modes:
+            if progress.out_of_time(f"end_to_end {label} {mode}"):
                 continue
-            est = bench_estimator(mode, compile_search=compiled)
-            start = time.perf_counter()
-            est.calibrate_images([path])  # warm-up (compiles, the first time in this process)
-            warmup_s = time.perf_counter() - start
+            est = bench_estimator(mode)
+            est.calibrate_images([path])  # warm-up
             runs = []
             for _ in range(repeats):
                 start = time.perf_counter()
                 [result] = est.calibrate_images([path])
                 wall = time.perf_counter() - start
                 runs.append(dict(result.runtime_s, wall=wall))
-            row = {"image": label, "mode": mode, "search": "compiled" if est.likelihood.compiled else "eager",
-                   "segments": result.num_segments,
+            row = {"image": label, "mode": mode, "segments": result.num_segments,
                    "width": result.width, "height": result.height}
             for key in STAGES + ("wall",):
                 row[f"{key}_ms"] = 1000 * statistics.median(r.get(key, 0.0) for r in runs)
             row["decode_ms"], row["lsd_ms"] = 1000 * decode, 1000 * lsd
             row["iterations"] = est.iterations
-            if compiled:
-                row["compile_s"] = warmup_s
             row["grid_hypotheses"] = est.search.grid_points_per_dim ** 4
             rows.append(row)
             progress.update(1, "end_to_end", row)
@@ -63,17 +57,13 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
 
 
 def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress, mode: str = "fast",
-               compile_search: bool = False, reliability: bool = True) -> list[dict]:
-    """Images/s of calibrate_segments (grid + refinement + cues) for each batch size.
-    ``compile_search``: with the compiled search kernels; the warm-up call, which compiles them
-    (once per process), is reported as ``compile_s``.  ``reliability=False``: without the
-    reliability stage (rows marked ``reliability: false``)."""
-    est = bench_estimator(mode, device, compile_search=compile_search, reliability=reliability)
+               reliability: bool = True) -> list[dict]:
+    """Images/s of calibrate_segments (grid + refinement + cues) for each batch size, after a
+    warm-up call.  ``reliability=False``: without the reliability stage (rows marked
+    ``reliability: false``)."""
+    est = bench_estimator(mode, device, reliability=reliability)
     pool = [scene_segments(n_segments, seed=i) for i in range(8)]
-    start = time.perf_counter()
     est.calibrate_segments(pool[:1], [(640, 480)])  # warm-up
-    warmup_s = time.perf_counter() - start
-    search = "compiled" if est.likelihood.compiled else "eager"  # eager also after a failed compile
     rows = []
     for batch in batch_sizes:
         if progress.out_of_time(f"throughput {device} {mode}{'' if reliability else ' no-reliability'} {batch}"):
@@ -88,10 +78,8 @@ def throughput(batch_sizes, n_segments: int, device: str, repeats: int, progress
         times = median_times(lambda: est.calibrate_segments(segs, sizes), reps, warmup=1 if batch <= 64 else 0,
                               sync=device_sync(device))
         t = statistics.median(times)
-        row = {"device": device, "mode": mode, "search": search, "batch": batch, "segments": n_segments, "seconds": t,
+        row = {"device": device, "mode": mode, "batch": batch, "segments": n_segments, "seconds": t,
                "images_per_s": batch / t, "ms_per_image": 1000 * t / batch, "repeats": reps, "reliability": reliability}
-        if compile_search:
-            row["compile_s"] = warmup_s
         if device.startswith("cuda"):  # over the timed runs (no extra run: a batch of 16384 takes seconds)
             row["peak_memory_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
         rows.append(row)
@@ -104,7 +92,7 @@ def outside_search(batch: int, n_segments: int, device: str, repeats: int, progr
     minimal search (k = 2, one start, no focal sweep, no passes, one step), default reliability
     stage included."""
     from fr_torch import FREstimator
-    from fr_torch.core.config import SearchConfig
+    from fr_torch.core.settings.config import SearchConfig
 
     if progress.out_of_time(f"outside-search {device}"):
         return None

@@ -31,7 +31,7 @@ def median_times(fn, repeats: int, warmup: int = 1, sync=None) -> list[float]:
 
 def scene_segments(n: int, seed: int = 0) -> np.ndarray:
     """About n synthetic segments of a 640x480 Manhattan scene (70 % Manhattan, 30 % clutter)."""
-    from fr_torch.core.camera import focal_from_hfov, rotation_from_angles
+    from fr_torch.core.geometry.conventions import focal_from_hfov, rotation_from_angles
     from fr_torch.synthetic import synthetic_segments
 
     rng = np.random.default_rng(seed)
@@ -45,15 +45,14 @@ def scene_segments(n: int, seed: int = 0) -> np.ndarray:
     return seg[:n]
 
 
-def bench_estimator(mode: str, device="cpu", k: int | None = None, compile_search: bool = False,
-                    reliability: bool = True, distortion: str | None = None, fit: str | None = None):
+def bench_estimator(mode: str, device="cpu", k: int | None = None, reliability: bool = True, distortion: str | None = None, fit: str | None = None):
     """The estimator of a bench row; ``reliability=False``: no reliability stage (and so, in fR, no
     ``focal_profile_gap`` cue: ``fr batch --no-reliability``); ``distortion``: the lens setting
-    (None: pinhole); ``fit``: :attr:`fr_torch.core.config.SearchConfig.fit` (None: the config's)."""
+    (None: pinhole); ``fit``: :attr:`fr_torch.core.settings.config.SearchConfig.fit` (None: the config's)."""
     from fr_torch import FREstimator
-    from fr_torch.core.config import SearchConfig
+    from fr_torch.core.settings.config import SearchConfig
 
-    config = SearchConfig.from_config(compile_search=compile_search, **({"grid_points_per_dim": k} if k else {}),
+    config = SearchConfig.from_config(**({"grid_points_per_dim": k} if k else {}),
                                       **({"fit": fit} if fit else {}))
     return FREstimator(mode=mode, device=device, search_config=config, distortion=distortion,
                        **({} if reliability else {"reliability": None}))

@@ -56,7 +56,7 @@ from fr_eval.datasets.live_stream import MJPEGServer, SyntheticCamera
 from fr_eval.machine import machine_description, proc_status_kb, session_processes
 from fr_eval.paths import REPO
 
-from fr_torch.core.camera import rotation_angles
+from fr_torch.core.geometry.conventions import rotation_angles
 from fr_torch.video.records import CAMERA_KEY, RECORD_KEYS
 
 FLEET_KEYS = (CAMERA_KEY,) + RECORD_KEYS

@@ -50,7 +50,7 @@ from fr_eval.paths import REPO
 from fr_eval.scoring.metrics import frame_error_deg
 from fr_eval.scoring.plots import save_figure
 
-from fr_torch.core.camera import rotation_angles
+from fr_torch.core.geometry.conventions import rotation_angles
 from fr_torch.video.records import RECORD_KEYS
 
 FR = [sys.executable, "-m", "fr_torch.cli", "track"]

@@ -7,7 +7,7 @@ A crop of a photo is the photo a camera with the same focal length (pixels) and 
 smaller sensor would have taken: the field of view narrows (YUD's 674.9 px over 400 px: 33.0°
 instead of 50.7° over 640 px) while the scene, the lines and the ground truth stay real.  Each
 crop is centred on the image's *calibrated* principal point, rounded to whole pixels, so the
-crop's centre (:func:`fr_torch.core.camera.image_centre`) -- the principal point every method
+crop's centre (:func:`fr_torch.core.geometry.conventions.image_centre`) -- the principal point every method
 assumes -- is the true one to within half a pixel (YUD: 0.05 px in x and y; the full YUD frames,
 evaluated with the image centre as in the paper, are 17 px off).
 
@@ -33,7 +33,7 @@ from fr_eval.datasets.make_dataset import parse_range, view_distortions
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.datasets.registry import load_dataset
 
-from fr_torch.core.camera import hfov_from_focal, image_centre, pan_from_rotation
+from fr_torch.core.geometry.conventions import hfov_from_focal, image_centre, pan_from_rotation
 from fr_torch.images.io import load_image
 from fr_torch.images.lens import distort_image
 
@@ -50,7 +50,7 @@ def _size(text: str) -> tuple[int, int]:
 
 def crop_origin(principal_point: tuple[float, float], size: tuple[int, int]) -> tuple[int, int]:
     """Top-left pixel (x0, y0) of the ``size`` = (width, height) crop whose centre
-    (:func:`fr_torch.core.camera.image_centre`, ``((w - 1) / 2, (h - 1) / 2)`` in the crop) lies
+    (:func:`fr_torch.core.geometry.conventions.image_centre`, ``((w - 1) / 2, (h - 1) / 2)`` in the crop) lies
     nearest to ``principal_point`` (pixels)."""
     cx, cy = image_centre(*size)
     return int(round(principal_point[0] - cx)), int(round(principal_point[1] - cy))
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
         distortion = lambda name: view_distortions(args.seed, name, 1, args.k_range)[0]  # noqa: E731
     summary = crop_dataset(samples, args.size, args.out, distortion)
     if args.k_range:
-        summary["distortion"] = {"model": "division (fr_torch.core.distortion), centre = the crop centre",
+        summary["distortion"] = {"model": "division (fr_torch.core.geometry.lens), centre = the crop centre",
                                  "k_range": list(args.k_range), "seed": args.seed}
     command = " ".join(argv if argv is not None else sys.argv[1:])
     summary = {"command": f"python -m fr_eval.datasets.crop_views {command}", "source": args.dataset, **summary}

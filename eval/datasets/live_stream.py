@@ -36,7 +36,8 @@ from typing import BinaryIO
 import cv2
 import numpy as np
 
-from fr_torch.core.camera import Camera, focal_from_hfov, rotation_from_angles
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import focal_from_hfov, rotation_from_angles
 from fr_torch.synthetic import render_manhattan_room
 
 BOUNDARY = b"frame"

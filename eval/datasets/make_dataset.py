@@ -7,13 +7,13 @@ of upright (gravity-aligned) equirectangular panoramas (or 6-face cube maps, one
 * per panorama ``--views-per-pano`` views (default 15): with ``--fovs 60,75,90,105,120`` (default)
   an equal number of views per horizontal FOV (3 x 5 = 15), or ``--uniform-fov 60:120``;
 * per view pan ~ U[-180, 180], pitch ~ U[-30, 30], roll ~ U[-10, 10] degrees, with
-  ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (:func:`fr_torch.core.camera.rotation_from_angles`).  The paper's
+  ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (:func:`fr_torch.core.geometry.conventions.rotation_from_angles`).  The paper's
   "tilt ~ U[-30, 30]" is applied to the **pitch** (elevation of the optical axis); the
   ground truth stores both the paper's horizon tilt (``tan tilt = tan pitch / cos roll``) and the
-  pitch, both computed with :func:`fr_torch.core.camera.horizon_angles` from the final R, exactly as
+  pitch, both computed with :func:`fr_torch.core.geometry.conventions.horizon_angles` from the final R, exactly as
   the estimator defines them;
 * rendering: :mod:`fr_eval.datasets.panorama` (tensor ``grid_sample``, principal point exactly the image
-  centre ``((w - 1) / 2, (h - 1) / 2)``, :func:`fr_torch.core.camera.image_centre`).
+  centre ``((w - 1) / 2, (h - 1) / 2)``, :func:`fr_torch.core.geometry.conventions.image_centre`).
 
 Outputs in ``--out``: ``images/<pano>_vNN.jpg``, ``gt.csv`` (one row per view: file, pano, group,
 split, width, height, cx, cy (the principal point), focal_px, hfov_deg, pan_deg, tilt_deg,
@@ -76,7 +76,7 @@ from fr_eval.datasets.panorama import (
 )
 
 from fr_torch.cli.options import add_device_arguments
-from fr_torch.core.camera import (
+from fr_torch.core.geometry.conventions import (
     focal_from_hfov,
     horizon_angles,
     image_centre,
@@ -338,7 +338,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--interp", choices=("bilinear", "bicubic"), default="bilinear")
     parser.add_argument("--k-range", type=parse_range, default=None, metavar="MIN:MAX",
                         help="render through a division-model lens, k ~ U[MIN, MAX] per view (normalised by half "
-                             "the diagonal; fr_torch.core.distortion), e.g. -0.4:0 for ZInD-fR-D; the views' angles "
+                             "the diagonal; fr_torch.core.geometry.lens), e.g. -0.4:0 for ZInD-fR-D; the views' angles "
                              "and FOVs are those of the same seed without it; gt.csv gains a column k")
     parser.add_argument("--format", choices=("jpg", "png"), default="jpg", help="view image format (jpg = quality 95)")
     add_device_arguments(parser)
@@ -441,13 +441,13 @@ def run(args: argparse.Namespace) -> int:
         "uniform_fov_deg": list(args.uniform_fov) if args.uniform_fov else None,
         "size": [w, h], "seed": args.seed,
         "distortion": None if args.k_range is None else {
-            "model": "division (fr_torch.core.distortion), centre the principal point", "k_range": list(args.k_range)}, "test_fraction": args.test_fraction, "group_by": args.group_by,
+            "model": "division (fr_torch.core.geometry.lens), centre the principal point", "k_range": list(args.k_range)}, "test_fraction": args.test_fraction, "group_by": args.group_by,
         "pan_range_deg": [-180.0, 180.0], "pitch_range_deg": list(args.pitch_range),
         "roll_range_deg": list(args.roll_range), "interp": args.interp, "format": args.format,
         "principal_point": "the image centre ((w-1)/2, (h-1)/2) (gt.csv cx, cy), pixel (0,0) centre at (0,0)",
         "rotation": "world->camera, room Manhattan frame when manhattan_known else panorama frame; "
                     "R.T = Ry(pan) Rx(pitch) Rz(roll); vertical (down) in column 1",
-        "angles": "the sampled range applies to the pitch; tilt/roll/pitch in gt.csv from fr_torch.core.camera.horizon_angles",
+        "angles": "the sampled range applies to the pitch; tilt/roll/pitch in gt.csv from fr_torch.core.geometry.conventions.horizon_angles",
         "summary": summary, "seconds": round(time.time() - t0, 1),
     }
     (out / "dataset.json").write_text(json.dumps(meta, indent=2))

@@ -52,7 +52,8 @@ import numpy as np
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import data_root
 
-from fr_torch.core.camera import Camera, rotation_from_angles
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import rotation_from_angles
 
 FOLDER = "nyu_vp"
 WIDTH, HEIGHT = 640, 480

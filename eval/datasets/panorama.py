@@ -1,7 +1,7 @@
 """Equirectangular (and cube-map) panoramas -> pinhole views with exactly known K and R.
 
 Everything here is tensor code (``torch.nn.functional.grid_sample``), batched over views and
-runnable on CPU or CUDA.  Conventions follow :mod:`fr_torch.core.camera`; in addition:
+runnable on CPU or CUDA.  Conventions follow :mod:`fr_torch.core.geometry.conventions`; in addition:
 
 Panorama world frame
 --------------------
@@ -31,7 +31,7 @@ Room (Manhattan) frame and ``manhattan_yaw_deg``
 ``manhattan_yaw_deg`` is the **longitude of one horizontal Manhattan axis** in the panorama
 frame (any of the four, they differ by 90 deg).  The room frame is the pano frame turned right by
 that yaw about the vertical: ``d_pano = Ry(yaw) @ d_room`` with ``Ry`` the active rotation of
-:func:`fr_torch.core.camera.rotation_from_angles` (``Ry(a) @ e_z`` has longitude ``a``).  So the room's
+:func:`fr_torch.core.geometry.conventions.rotation_from_angles` (``Ry(a) @ e_z`` has longitude ``a``).  So the room's
 z axis is at longitude ``yaw`` and its x axis at ``yaw + 90``.  Rotations handed to
 :func:`render_views` are world->camera **in the room frame** (``X_cam = R @ X_room``); the
 renderer uses ``R_pano = R @ Ry(yaw).T``.  With yaw = 0 the room frame is the pano frame.
@@ -40,7 +40,7 @@ Pinhole views
 -------------
 ``K = [[f, 0, (w-1)/2], [0, f, (h-1)/2], [0, 0, 1]]`` in the project's pixel convention (pixel
 (0, 0)'s centre at (0, 0)), i.e. the principal point is exactly the image centre
-(:func:`fr_torch.core.camera.image_centre`).  The colour of output pixel (u, v) is the
+(:func:`fr_torch.core.geometry.conventions.image_centre`).  The colour of output pixel (u, v) is the
 panorama sampled along the ray ``R_pano.T @ K^-1 @ (u, v, 1)``; so ``K @ R[:, i]`` is exactly
 the vanishing point of room axis i, with no half-pixel bias.
 
@@ -64,8 +64,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fr_torch.core.camera import image_centre, intrinsics, rotation_from_angles
-from fr_torch.core.distortion import normalising_radius, undistort_points
+from fr_torch.core.geometry.conventions import image_centre, intrinsics, rotation_from_angles
+from fr_torch.core.geometry.lens import normalising_radius, undistort_points
 
 __all__ = [
     "to_chw_float",
@@ -141,9 +141,9 @@ def view_rays(rotations: torch.Tensor, focal_px: torch.Tensor, size: tuple[int, 
     """Pano-frame ray directions (V, h, w, 3) (not normalised) of every output pixel centre.
 
     ray(u, v) = Ry(yaw) @ R.T @ K^-1 @ (u, v, 1), with K's principal point the image centre
-    ((w-1)/2, (h-1)/2) (:func:`fr_torch.core.camera.image_centre`).
+    ((w-1)/2, (h-1)/2) (:func:`fr_torch.core.geometry.conventions.image_centre`).
     ``distortion_k`` (V,) or None: views through the division model of these k
-    (:mod:`fr_torch.core.distortion`, centre the principal point): pixel (u, v) is undistorted first.
+    (:mod:`fr_torch.core.geometry.lens`, centre the principal point): pixel (u, v) is undistorted first.
     """
     w, h = size
     rotations = torch.as_tensor(rotations, dtype=dtype, device=device).reshape(-1, 3, 3)

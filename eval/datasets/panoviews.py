@@ -15,8 +15,8 @@ A generated folder holds ``gt.csv`` (one row per view), ``dataset.json`` and ``i
 
 Each view becomes a :class:`fr_eval.datasets.registry.CalibrationSample` with the exact ground truth
 (focal, principal point, R world->camera, tilt / roll / pitch from
-:func:`fr_torch.core.camera.horizon_angles`).  The principal point is ``gt.csv``'s ``cx``, ``cy``
-(pixels; the generators write the image centre :func:`fr_torch.core.camera.image_centre`); a
+:func:`fr_torch.core.geometry.conventions.horizon_angles`).  The principal point is ``gt.csv``'s ``cx``, ``cy``
+(pixels; the generators write the image centre :func:`fr_torch.core.geometry.conventions.image_centre`); a
 ``gt.csv`` without those columns was rendered with the principal point at ``(w / 2, h / 2)``
 (:func:`unrecorded_principal_point`), which the loader then uses.  When the panorama's Manhattan
 yaw was unknown (``manhattan_known`` False) ``rotation`` is still the exact camera orientation but
@@ -37,7 +37,8 @@ import pandas as pd
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import cache_root
 
-from fr_torch.core.camera import Camera, image_centre
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import image_centre
 
 R_COLUMNS = [f"r{i}{j}" for i in range(3) for j in range(3)]
 #: The columns of ``gt.csv``, in order, as written by ``fr make-dataset`` and ``fr_eval.datasets.crop_views``
@@ -55,7 +56,7 @@ SPLITS = ("train", "test", "all")
 
 @dataclass
 class PanoView:
-    """One generated view with its ground truth (conventions of :mod:`fr_torch.core.camera`)."""
+    """One generated view with its ground truth (conventions of :mod:`fr_torch.core.geometry.conventions`)."""
 
     name: str
     image_path: Path
@@ -71,7 +72,7 @@ class PanoView:
     roll_deg: float
     pitch_deg: float
     manhattan_known: bool
-    distortion_k: float = 0.0  # division model's k (fr_torch.core.distortion); 0 = a pinhole view
+    distortion_k: float = 0.0  # division model's k (fr_torch.core.geometry.lens); 0 = a pinhole view
     principal_point: tuple[float, float] | None = None  # (x, y) pixels; None = image_centre(width, height)
 
     def __post_init__(self) -> None:

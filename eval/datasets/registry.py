@@ -10,10 +10,10 @@ A dataset loader is a callable ``loader(root, split, **kwargs) -> Sequence[Calib
 * ``split`` is a split name (``"train"``, ``"test"``, ``"all"``; a dataset may define more).
 
 Each sample is a :class:`CalibrationSample` (or any object with the same attributes) holding its
-ground truth as one :class:`fr_torch.core.camera.Camera`.  All fields follow :mod:`fr_torch.core.camera`:
+ground truth as one :class:`fr_torch.core.geometry.camera.Camera`.  All fields follow :mod:`fr_torch.core.geometry.conventions`:
 pixels with a 0-based pixel-centre origin, degrees, ``rotation`` the 3x3 world->camera matrix
 (camera x right / y down / z forward, world y = gravity/down, vertical Manhattan direction in
-column 1, det +1), ``roll/tilt/pitch`` from :func:`fr_torch.core.camera.horizon_angles` and ``hfov_deg``
+column 1, det +1), ``roll/tilt/pitch`` from :func:`fr_torch.core.geometry.conventions.horizon_angles` and ``hfov_deg``
 the horizontal field of view, all derived from the camera.  Quantities a dataset does not know are
 ``None`` (the metrics then show "n/a").  ``segments`` (N, 4)
 ``[x1, y1, x2, y2]`` and ``segment_labels`` (N,) (column of ``rotation`` each segment belongs to,
@@ -41,7 +41,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from fr_torch.core.camera import Camera, camera_record
+from fr_torch.core.geometry.camera import Camera, camera_record
 from fr_torch.registry import Registry
 
 
@@ -50,7 +50,7 @@ from fr_torch.registry import Registry
 class CalibrationSample:
     """One evaluation image with its ground truth (see the module docstring for conventions).
 
-    ``camera``: the ground-truth :class:`fr_torch.core.camera.Camera` (None when the dataset knows
+    ``camera``: the ground-truth :class:`fr_torch.core.geometry.camera.Camera` (None when the dataset knows
     neither focal length nor orientation; its principal point is the calibrated one, default the
     image centre; ``pan_known=False`` when only gravity is known, e.g. a panorama view whose
     Manhattan frame is unknown).  ``focal_px``, ``hfov_deg``, ``principal_point``, ``rotation``

@@ -33,7 +33,7 @@ Conversions (decided here, used by every YUD number this project reports)
   indices into ``Manhattan_Image_DB_Names``, names stored with a trailing backslash) -- the split
   the authors' ``evaluation_onlinefR.m`` uses.
 
-GT roll / tilt / pitch come from :func:`fr_torch.core.camera.horizon_angles` (paper definitions).
+GT roll / tilt / pitch come from :func:`fr_torch.core.geometry.conventions.horizon_angles` (paper definitions).
 """
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ import scipy.io as sio
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import data_root
 
-from fr_torch.core.camera import Camera
+from fr_torch.core.geometry.camera import Camera
 
 FOLDER = "yorkurbandb"
 WIDTH, HEIGHT = 640, 480

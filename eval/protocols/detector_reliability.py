@@ -15,7 +15,7 @@ detector the reliability stage is the shipped one with that detector among its p
 detector is declared -- whether or not ``configs/reliability.json`` declares it.
 
 Reported per (mode, dataset, detector), with the shipped promise (90 % bounds = the shipped scale x the
-estimate's own spreads, :mod:`fr_torch.core.reliability_bounds`; limits focal 10 %, tilt 3 deg):
+estimate's own spreads, :mod:`fr_torch.core.reliability.bounds`; limits focal 10 %, tilt 3 deg):
 precision, recall and share of ``reliable`` (:func:`fr_eval.protocols.lodo_reliability.evaluate`;
 "good" = within both limits), the focal MAE of the reliable photos and of all, the share within each
 bound, each error's own 90 % quantile of actual / sigma (the scale the detector's photos would need;
@@ -45,8 +45,8 @@ from fr_eval.protocols.lodo_reliability import ERROR_OF, MODE_LABEL, METHOD_OF_M
 from fr_eval.scoring.plots import risk_coverage_panel, save_figure
 from scipy.stats import spearmanr
 
-from fr_torch.core.reliability import ReliabilityModel
-from fr_torch.core.reliability_bounds import PROMISE_TARGETS, SIGMAS, ReliabilityPromise, conformal_scale
+from fr_torch.core.reliability.model import ReliabilityModel
+from fr_torch.core.reliability.bounds import PROMISE_TARGETS, SIGMAS, ReliabilityPromise, conformal_scale
 
 DETECTORS = ("lsd", "torch-lines")
 #: (dataset, split) of every run: the test splits first (as installed), then the train splits.
@@ -72,7 +72,7 @@ def calibrator(mode: str, detector: str, device: str = "cpu"):
         return None
     from fr_eval.protocols.run_eval import make_calibrator
 
-    from fr_torch.core.fov import FovRange
+    from fr_torch.core.settings.fov import FovRange
 
     model = ReliabilityModel.load_default(mode)
     if model is None or model.promise is None:

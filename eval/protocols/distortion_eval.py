@@ -8,13 +8,13 @@
 caches one CSV per (dataset, split, method) under ``$FR_CACHE/distortion`` (a method already
 cached is skipped: the command resumes).  Per image: focal / roll / tilt errors
 (:func:`fr_eval.scoring.metrics.image_errors`), the true and estimated k and their border bows
-(:func:`fr_torch.core.distortion.border_bow_percent`, % of the width), ``reliable`` and its reason,
+(:func:`fr_torch.core.geometry.lens.border_bow_percent`, % of the width), ``reliable`` and its reason,
 and the "lines bend" cues.  ``table`` prints a summary of cached runs; ``report`` writes
 ``results/distortion/tables.md`` (the tables of ``results/distortion/README.md``, the issue's
 targets) and the figure of estimated against true k from the cache.
 
 Method specs: ``fr`` / ``fast-fr`` with options ``distortion=pinhole|division|auto``, ``k=K`` (known)
-and any :class:`fr_torch.core.config.SearchConfig` field of the distortion search
+and any :class:`fr_torch.core.settings.config.SearchConfig` field of the distortion search
 (``distortion_grid_size``, ``distortion_lattice``, ``grid_passes``, ...; ``distortion_grid_k`` as
 K1:K2:...) for screening on
 the train splits.
@@ -35,9 +35,9 @@ from fr_eval.scoring.metrics import image_errors, mean_se
 from fr_eval.scoring.tables import format_mean_se, parse_method_spec
 from tqdm import tqdm
 
-from fr_torch.core.config import SearchConfig
-from fr_torch.core.cues import LINE_BEND_CUES
-from fr_torch.core.distortion import border_bow_percent
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core.reliability.sanity import LINE_BEND_CUES
+from fr_torch.core.geometry.lens import border_bow_percent
 from fr_torch.registry import split_method_list
 from fr_torch.runtime.estimator import FREstimator
 

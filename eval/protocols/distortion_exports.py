@@ -2,12 +2,12 @@
 
     python -m fr_eval.protocols.distortion_exports --out results/distortion/exports.md
 
-For every image size and k, the exports of :mod:`fr_torch.core.distortion` -- COLMAP's
-``SIMPLE_DIVISION`` and ``RADIAL`` (:func:`~fr_torch.core.distortion.colmap_camera`) and OpenCV's
-``K`` + ``[k1, k2, p1, p2, k3]`` (:func:`~fr_torch.core.distortion.opencv_camera`) -- are handed
+For every image size and k, the exports of :mod:`fr_torch.core.geometry.lens` -- COLMAP's
+``SIMPLE_DIVISION`` and ``RADIAL`` (:func:`~fr_torch.core.exports.colmap_camera`) and OpenCV's
+``K`` + ``[k1, k2, p1, p2, k3]`` (:func:`~fr_torch.core.exports.opencv_camera`) -- are handed
 to the tools themselves (pycolmap's ``Camera``, ``cv2``) over a grid of photo pixels that reaches
 the image's corners (:func:`pixel_grid`), and their answers are compared with fR's
-(:func:`~fr_torch.core.distortion.undistort_points`, :func:`~fr_torch.core.distortion.distort_points`)
+(:func:`~fr_torch.core.geometry.lens.undistort_points`, :func:`~fr_torch.core.geometry.lens.distort_points`)
 in both directions (:func:`export_errors`).  ``tests/test_exports.py`` holds the exports to these
 numbers; the table is ``results/distortion/exports.md``.
 """
@@ -23,10 +23,11 @@ import cv2
 import numpy as np
 import pycolmap
 
-from fr_torch.core.distortion import colmap_camera, normalising_radius, opencv_camera, undistort_points
+from fr_torch.core.exports import colmap_camera, opencv_camera
+from fr_torch.core.geometry.lens import normalising_radius, undistort_points
 from fr_torch.output import write_text_atomic
 
-#: The exports compared: COLMAP's two models of a division estimate (:class:`fr_torch.core.distortion.ColmapModel`)
+#: The exports compared: COLMAP's two models of a division estimate (:class:`fr_torch.core.exports.ColmapModel`)
 #: and OpenCV's.
 EXPORTS = ("colmap-division", "colmap-radial", "opencv")
 #: ``cv2.undistortPoints``' stopping rule here: enough iterations to converge (its default, 5, does not at strong k).

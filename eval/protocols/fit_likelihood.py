@@ -45,7 +45,7 @@ import torch
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import REPO
 
-from fr_torch.core.camera import VERTICAL_AXIS, vanishing_points
+from fr_torch.core.geometry.conventions import VERTICAL_AXIS, vanishing_points
 from fr_torch.resources import config_dir
 
 PAPER = {  # Qian & Elder 2022, deviation-measure table (lambda; vertical / horizontal) and priors
@@ -66,7 +66,7 @@ AUTHORS_SAMPLES = {  # the authors' measure-b training samples (radians), decode
 
 
 def _deviations_fn():
-    from fr_torch.core.likelihood import deviations
+    from fr_torch.core.likelihood.measures import deviations
 
     return deviations
 
@@ -120,7 +120,7 @@ def fit_measures(samples: Sequence[Any], range_px: float | None = None) -> dict[
                 entry[f"median_{family}"] = to_unit(float(np.median(x))) if x.size else math.nan
             entry[f"n_{family}"] = int(x.size)
         if measure == "a":
-            from fr_torch.core.likelihood import LikelihoodParams
+            from fr_torch.core.likelihood.mixture import LikelihoodParams
 
             limit = range_px or LikelihoodParams.range_px
             saturated = sum(int((data[f] >= 0.999 * limit).sum()) for f in ("horizontal", "vertical"))
@@ -259,7 +259,7 @@ def report_markdown(command: str, dataset: str, split: str, n_images: int, fitte
         f"Produced by `{command}` ({time.strftime('%Y-%m-%d')}); dataset `{dataset}`, split `{split}` "
         f"({n_images} images, {shares['n_segments']} hand-labelled segments), GT vanishing points "
         "`K R[:, k]` with the calibrated focal length and principal point. Deviations are computed by "
-        "`fr_torch.core.likelihood.deviations` (the estimator's own definitions). lambda = exponential MLE = "
+        "`fr_torch.core.likelihood.measures.deviations` (the estimator's own definitions). lambda = exponential MLE = "
         "sample mean per family (vertical = the world-up column, horizontal = both horizontal columns pooled).",
         "",
         "## Exponential means lambda (vertical / horizontal)",

@@ -53,9 +53,10 @@ from fr_eval.scoring.tables import to_markdown
 from tqdm import tqdm
 
 from fr_torch import FREstimator
-from fr_torch.core.camera import Camera, Horizon, border_columns
-from fr_torch.core.reliability_bounds import horizon_bound_pct
-from fr_torch.core.segments import SegmentFilter
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.horizon import Horizon, border_columns
+from fr_torch.core.reliability.bounds import horizon_bound_pct
+from fr_torch.core.likelihood.segments import SegmentFilter
 from fr_torch.images.io import WORKING_LONG_SIDE, load_image
 from fr_torch.plugins.interface import ImageMeta
 

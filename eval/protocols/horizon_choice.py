@@ -8,13 +8,13 @@ Usage::
 What it does: fR (mode ``fr``, the photos' own segments, principal point at the image centre, FOV
 range of ``configs/search.json``) runs twice over the train split's photos that have a labelled
 horizon: with ``--fit manhattan`` and with ``--fit horizon``.  The horizon run's cues hold the
-choice's evidence (``choice_*``, :data:`fr_torch.core.horizon_fit.CHOICE_FEATURES`); the label of
+choice's evidence (``choice_*``, :data:`fr_torch.core.search.choice.CHOICE_FEATURES`); the label of
 a photo is whether the horizon run's horizon is nearer the labelled one than the Manhattan run's
 (errors clipped at 25 % of the height, the benchmark's cutoff), weighted by how much nearer: the
 rule minimises the clipped error it causes, not the number of wrong choices.  A logistic regression
 on the standardised evidence, its regularisation ``C`` chosen by 5-fold cross-validation on the
 same split (folds by photo), is the rule; its weights go to ``--config``
-(:class:`fr_torch.core.horizon_fit.HorizonChooser` reads them) and the cross-validation table and
+(:class:`fr_torch.core.search.choice.HorizonChooser` reads them) and the cross-validation table and
 per-photo records to ``--out``.  No photo of a set a table reports is used: the shipped rule is
 trained on NYU-VP train, and the horizon tables report ecd-tune, YUD and NYU-VP val.
 """
@@ -32,8 +32,8 @@ import torch
 
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.scoring.horizon_metric import lezama_auc, truth_horizons
-from fr_torch.core.config import SearchConfig
-from fr_torch.core.horizon_fit import CHOICE_FEATURES, CHOOSER_CONFIG, clean_evidence
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core.search.choice import CHOICE_FEATURES, CHOOSER_CONFIG, clean_evidence
 from fr_torch.resources import config_path
 
 CUTOFF = 0.25

@@ -11,7 +11,7 @@ Datasets: any whose samples carry a ground-truth horizon (:func:`fr_eval.scoring
 ``yud`` (definitions ``labelled``, ``lezama-code`` and ``frame``: :mod:`fr_eval.datasets.yud`),
 ``ecd-tune`` (``labelled``), ``nyu-vp`` (``labelled`` where two horizontal VPs are labelled, ``frame``),
 and any dataset with a ground-truth camera (``frame``).  Each method's horizon is
-:meth:`fr_torch.core.camera.Horizon.from_camera` of its estimate (focal length and vertical, through
+:meth:`fr_torch.core.geometry.horizon.Horizon.from_camera` of its estimate (focal length and vertical, through
 its lens when it estimated one); the options ``--pp`` and ``--known-focal`` give every method the
 calibrated principal point / the focal length, as for the camera task.
 

@@ -53,7 +53,7 @@ from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import REPO, cache_root
 from fr_eval.scoring.plots import safe_name
 
-from fr_torch.core.camera import focal_from_hfov, hfov_from_focal, rotation_from_angles
+from fr_torch.core.geometry.conventions import focal_from_hfov, hfov_from_focal, rotation_from_angles
 
 FAMILIES = {"yud": ("yud", "yud-crop-400x300", "yud-crop-480x360"), "zind-fr": ("zind-fr",), "nyu-vp": ("nyu-vp",)}
 REPORTED = (("yud", "test"), ("zind-fr", "test"), ("nyu-vp", "val"), ("yud-crop-400x300", "test"),
@@ -92,7 +92,7 @@ def _train_samples(dataset: str, root: str | None) -> tuple:
 
 
 def default_config() -> dict:
-    from fr_torch.core.likelihood import likelihood_config_path
+    from fr_torch.core.likelihood.mixture import likelihood_config_path
     return json.loads(likelihood_config_path(None).read_text())
 
 
@@ -154,7 +154,7 @@ def method_spec(method: str, config_path: Path | None) -> str:
 
 def zenith_error_deg(gt_roll, gt_pitch, est_roll, est_pitch) -> np.ndarray:
     """Angle (deg) between the ground-truth and the estimated vertical direction in the camera, both
-    from roll and pitch (degrees; :func:`fr_torch.core.camera.rotation_from_angles`); NaN where missing."""
+    from roll and pitch (degrees; :func:`fr_torch.core.geometry.conventions.rotation_from_angles`); NaN where missing."""
     gt = rotation_from_angles(0.0, np.asarray(gt_pitch, np.float64), np.asarray(gt_roll, np.float64))[..., :, 1]
     est = rotation_from_angles(0.0, np.asarray(est_pitch, np.float64), np.asarray(est_roll, np.float64))[..., :, 1]
     cos = (gt * est).sum(-1).clamp(-1.0, 1.0).numpy()
@@ -178,7 +178,7 @@ def run_predictions(dataset: str, split: str, method: str, setting: str, config_
     run (None: built from ``method`` and ``config_path``, FOV range [30, 120] deg)."""
     from fr_eval.protocols.run_eval import evaluate_method, make_calibrator
 
-    from fr_torch.core.fov import FovRange
+    from fr_torch.core.settings.fov import FovRange
 
     path = prediction_path(cache, setting, dataset, split, method, pp_mode)
     if path.is_file():

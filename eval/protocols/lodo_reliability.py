@@ -14,7 +14,7 @@ the train splits of :data:`~fr_eval.protocols.lodo.RELIABILITY_TRAIN` under the 
 Bounds (``--bounds``): a bound is ``scale x sigma`` per error (focal %, tilt deg).
 
 * ``spreads`` (what ``reliable`` ships with): sigma from the estimate's own spreads
-  (:data:`fr_torch.core.reliability_bounds.SIGMAS`); no model is fitted.
+  (:data:`fr_torch.core.reliability.bounds.SIGMAS`); no model is fitted.
 * ``knn`` (the KNN's bounds, for comparison): sigma = the KNN's predicted error
   (:class:`fr_torch.core.reliability.ReliabilityModel`, the shipped cue set of the mode, floored at
   0.5 % / 0.1 deg), the model fitted on the calibration records (for a family's scale: without
@@ -56,9 +56,9 @@ from fr_eval.scoring.metrics import aurc
 from fr_eval.scoring.plots import risk_coverage_panel, save_figure
 from scipy.stats import spearmanr
 
-from fr_torch.core.cues import SPREAD_CUE_NAMES
-from fr_torch.core.reliability import ERROR_COLUMNS, ReliabilityModel, model_cue_names
-from fr_torch.core.reliability_bounds import (
+from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
+from fr_torch.core.reliability.model import ERROR_COLUMNS, ReliabilityModel, model_cue_names
+from fr_torch.core.reliability.bounds import (
     DEFAULT_COVERAGE,
     DEFAULT_LIMITS,
     PROMISE_TARGETS,
@@ -273,7 +273,7 @@ def shipped_promise(cache: Path, limits: dict, coverage: float, validated_detect
             "validated_detectors": list(validated_detectors),
             "doc": "error_bound = scale x sigma, a 90 % bound; sigma from the estimate's own spreads (focal: "
                    "100 sqrt(focal_profile_spread x focal_resample_spread) %, tilt: hypot(pitch_resample_spread, "
-                   "0.5) deg; fr_torch.core.reliability_bounds); reliable = every bound within its limit (enforce "
+                   "0.5) deg; fr_torch.core.reliability.bounds); reliable = every bound within its limit (enforce "
                    "false: reported only, reliable keeps the thresholds); scales: split-conformal quantiles of "
                    "actual / sigma per dataset family (YUD + crops, ZInD-fR, NYU-VP; train splits), the largest "
                    "kept (python -m fr_eval.protocols.lodo_reliability promise --write; docs/reliability.md); "

@@ -15,7 +15,7 @@ recompute): the cues of :meth:`fr_torch.runtime.estimator.FREstimator._cues`, th
 truth and the absolute errors
 
 * ``roll_err_deg`` = ``|roll_est - roll_gt|`` and ``tilt_err_deg`` = ``|tilt_est - tilt_gt|``, both
-  angles with the paper's horizon definitions (:func:`fr_torch.core.camera.horizon_angles`; the same
+  angles with the paper's horizon definitions (:func:`fr_torch.core.geometry.conventions.horizon_angles`; the same
   numbers as ``eval/scoring/metrics.py``);
 * ``focal_err_pct`` = ``100 |f_est - f_gt| / f_gt``.
 
@@ -45,8 +45,8 @@ import numpy as np
 import pandas as pd
 from fr_eval.paths import REPO
 
-from fr_torch.core.camera import focal_from_hfov, rotation_angles
-from fr_torch.core.reliability import (
+from fr_torch.core.geometry.conventions import focal_from_hfov, rotation_angles
+from fr_torch.core.reliability.model import (
     ERROR_COLUMNS,
     FR_MODEL_CUE_NAMES,
     MODEL_CUE_NAMES,
@@ -226,7 +226,7 @@ def reliability_table(frame: pd.DataFrame, predicted: np.ndarray, rank_by: str, 
     (sum of the three predicted errors each divided by ``scales`` -- by default the model's
     thresholds -- i.e. the largest share of its threshold).
     """
-    from fr_torch.core.reliability import TARGETS
+    from fr_torch.core.reliability.model import TARGETS
 
     if rank_by == "combined":
         scales = np.asarray(scales if scales is not None else [1.0, 1.0, 1.0], float)
@@ -248,7 +248,7 @@ def reliability_table(frame: pd.DataFrame, predicted: np.ndarray, rank_by: str, 
 def spearman(predicted: np.ndarray, frame: pd.DataFrame) -> dict[str, float]:
     from scipy.stats import spearmanr
 
-    from fr_torch.core.reliability import TARGETS
+    from fr_torch.core.reliability.model import TARGETS
 
     actual = frame[list(ERROR_COLUMNS)].to_numpy(float)
     return {t: float(spearmanr(predicted[:, j], actual[:, j]).statistic) for j, t in enumerate(TARGETS)}
@@ -480,7 +480,7 @@ def trained_for(mode: str) -> dict[str, str]:
     """The setting the records of :func:`gather` come from (the estimator's defaults: the default
     likelihood config and its deviation measure, LSD), stored as the model's ``meta["trained_for"]``
     (:attr:`fr_torch.core.reliability.ReliabilityModel.trained_for`)."""
-    from fr_torch.core.likelihood import LikelihoodParams
+    from fr_torch.core.likelihood.mixture import LikelihoodParams
 
     return {"measure": LikelihoodParams.from_config(mode=mode).measure, "detector": "lsd", "likelihood": "default"}
 

@@ -200,7 +200,7 @@ def _rows(path: Path) -> list[dict]:
 
 
 def _angle_deg(a, b) -> float:
-    from fr_torch.core.camera import manhattan_frame_error_deg
+    from fr_torch.core.geometry.conventions import manhattan_frame_error_deg
 
     return manhattan_frame_error_deg(np.asarray(a), np.asarray(b))
 

@@ -75,7 +75,7 @@ from fr_eval.scoring.tables import (
 from tqdm import tqdm
 
 from fr_torch.cli.options import add_device_arguments, add_fov_range_argument
-from fr_torch.core.fov import FovRange
+from fr_torch.core.settings.fov import FovRange
 from fr_torch.images.io import load_image
 from fr_torch.plugins.interface import (
     CALIBRATORS,

@@ -392,7 +392,7 @@ def run_principal_point(args) -> None:
     from tqdm import tqdm
 
     from fr_torch import FREstimator
-    from fr_torch.core.camera import image_centre
+    from fr_torch.core.geometry.conventions import image_centre
     from fr_torch.runtime.shared_focal import SharedFocalSettings, shared_from_results
 
     torch.set_num_threads(1)

@@ -1,9 +1,9 @@
 """The horizon benchmark's metric (Barinova et al. 2010, Lezama et al. 2014, Zhai et al. 2016), as
 Lezama et al.'s published evaluation code computes it.
 
-1. **Per photo** (:meth:`fr_torch.core.camera.Horizon.error`): the larger of the vertical distances
+1. **Per photo** (:meth:`fr_torch.core.geometry.horizon.Horizon.error`): the larger of the vertical distances
    between the estimated and the labelled horizon at the left and right image borders, ``x = 0`` and
-   ``x = w - 1`` (:func:`fr_torch.core.camera.border_columns`; the code's MATLAB columns 1 and W),
+   ``x = w - 1`` (:func:`fr_torch.core.geometry.horizon.border_columns`; the code's MATLAB columns 1 and W),
    divided by the image height.  A method that gives no horizon (a failure, a vertical horizon)
    scores infinity: beyond the cutoff.
 2. **AUC** (:func:`lezama_auc`, ``calc_auc.m`` of ``jlezama/VPdetection-CVPR14``, used by its
@@ -27,7 +27,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fr_torch.core.camera import Horizon
+from fr_torch.core.geometry.horizon import Horizon
 
 CUTOFF = 0.25
 #: The horizon of the sample's ground-truth camera (its K and vertical).

@@ -3,7 +3,7 @@
 Per image (``image_errors``):
 
 * ``roll_err_deg`` / ``tilt_err_deg``: ``|est - gt|`` in degrees, both angles with the paper's
-  horizon definitions (:func:`fr_torch.core.camera.horizon_angles`; an estimate that only gives a
+  horizon definitions (:func:`fr_torch.core.geometry.conventions.horizon_angles`; an estimate that only gives a
   rotation gets its roll / tilt from it).
 * ``fov_err_pct``: ``100 |hfov_est - hfov_gt| / hfov_gt``; ``focal_err_pct``:
   ``100 |f_est - f_gt| / f_gt`` (normalised by the ground truth).  An estimate giving only one of
@@ -28,7 +28,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from fr_torch.core.camera import (  # noqa: F401
+from fr_torch.core.geometry.conventions import (
     MANHATTAN_SYMMETRIES,
     focal_from_hfov,
     hfov_from_focal,
@@ -42,7 +42,7 @@ from fr_torch.registry import NOT_SUPPLIED, is_not_supplied
 METRICS = ("runtime_s", "roll_err_deg", "tilt_err_deg", "fov_err_pct", "focal_err_pct", "frame_err_deg")
 
 
-_G24 = MANHATTAN_SYMMETRIES  # the 24 proper signed permutations (fr_torch.core.camera)
+_G24 = MANHATTAN_SYMMETRIES  # the 24 proper signed permutations (fr_torch.core.geometry.conventions)
 proper_signed_permutations = manhattan_symmetries
 
 

@@ -13,18 +13,18 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from fr_torch.core.cues import LINE_BEND_CUES
-from fr_torch.core.reliability import CUE_NAMES, TARGETS
+from fr_torch.core.reliability.sanity import LINE_BEND_CUES
+from fr_torch.core.reliability.model import CUE_NAMES, TARGETS
 
 # Keys of the dict-valued result fields (struct columns); unknown keys are dropped.
 RUNTIME_KEYS = ("detect", "grid", "refine", "cues", "total")
 #: The cues of a row: the reliability model's and the "lines bend" check's.
 ROW_CUES = CUE_NAMES + LINE_BEND_CUES
-#: Number fields of the ``distortion`` struct (:func:`fr_torch.core.distortion.distortion_record`).
+#: Number fields of the ``distortion`` struct (:func:`fr_torch.core.geometry.lens.distortion_record`).
 DISTORTION_NUMBERS = ("k", "radius_px", "bow_pct")
-#: Bounded targets of ``error_bound`` (:mod:`fr_torch.core.reliability_bounds`).
+#: Bounded targets of ``error_bound`` (:mod:`fr_torch.core.reliability.bounds`).
 BOUND_KEYS = ("focal_pct", "tilt_deg")
-#: Number fields of the ``horizon`` struct (:meth:`fr_torch.core.camera.Horizon.to_json`), besides ``line``.
+#: Number fields of the ``horizon`` struct (:meth:`fr_torch.core.geometry.horizon.Horizon.to_json`), besides ``line``.
 HORIZON_NUMBERS = ("left_y", "right_y", "bound_pct")
 
 
@@ -35,7 +35,7 @@ FLOAT_FIELDS = ("focal_px", "hfov_deg", "pan_deg", "tilt_deg", "roll_deg", "pitc
 def result_schema():
     """The Arrow schema of the output rows (without carried-through manifest columns).
 
-    Units as in :class:`fr_torch.core.estimator.CalibrationResult`: pixels, degrees, seconds.
+    Units as in :class:`fr_torch.core.result.CalibrationResult`: pixels, degrees, seconds.
     """
 
     f64 = pa.float64()

@@ -11,7 +11,7 @@ import torch
 
 from fr_torch.batch.inputs import has_scheme, read_remote_image
 from fr_torch.batch.table import _finite_or_none, records_to_table, with_prior_columns
-from fr_torch.core.estimator import CalibrationResult
+from fr_torch.core.result import CalibrationResult
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.focal_prior import image_priors
 from fr_torch.runtime.pipeline import calibrate_paths

@@ -17,7 +17,7 @@ from fr_torch.cli.options import (
     device_policy,
     estimator_kwargs,
 )
-from fr_torch.core.distortion import ColmapModel, colmap_cameras_txt
+from fr_torch.core.exports import ColmapModel, colmap_cameras_txt
 from fr_torch.errors import FRInputError
 from fr_torch.images.overlay import write_overlay
 from fr_torch.output import dumps, json_safe, output_folder, write_text_atomic
@@ -66,7 +66,7 @@ FORMATS = ("json", "opencv", "colmap")
 
 def opencv_record(path, result) -> dict:
     """One image's ``--format opencv`` object: the image, whether the estimate is reliable (and
-    why not), then :meth:`~fr_torch.core.estimator.CalibrationResult.opencv`'s nodes."""
+    why not), then :meth:`~fr_torch.core.result.CalibrationResult.opencv`'s nodes."""
     head = {"image": str(path), "ok": bool(result.ok), "reliable": bool(result.reliable), "reason": result.reason}
     return dict(head, **result.opencv()) if result.ok else head
 

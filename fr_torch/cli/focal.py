@@ -1,7 +1,7 @@
 """``fr calibrate --shared-focal`` and ``fr calibrate --focal-prior``: the front end of
 :mod:`fr_torch.runtime.shared_focal` and :mod:`fr_torch.runtime.focal_prior` (``docs/shared-focal.md``).
 
-Every image's JSON record gets two keys besides :data:`fr_torch.core.estimator.JSON_KEYS`:
+Every image's JSON record gets two keys besides :data:`fr_torch.core.result.JSON_KEYS`:
 ``focal_prior`` (``{source, focal_px, sigma_pct}`` of the prior used for it, or null; with
 ``--focal-prior exif`` and no usable EXIF, ``focal_prior_reason`` says why) and, with
 ``--shared-focal``, ``shared_focal`` (:meth:`fr_torch.runtime.shared_focal.SharedFocalResult.to_json`, the

@@ -3,8 +3,8 @@
 * :func:`add_estimator_arguments` -> :func:`estimator_kwargs`: the method (``--fast``,
   ``--measure``, ``--detector``, ``--likelihood``), the search box (``--fov-range``,
   ``--pitch-range``, ``--roll-range``) and the lens model (``--distortion``, ``--k``) as one
-  :class:`~fr_torch.core.config.SearchConfig`, ``--compile``, and ``--atlanta`` as one
-  :class:`~fr_torch.core.vanishing.AtlantaConfig`.
+  :class:`~fr_torch.core.settings.config.SearchConfig`, and ``--atlanta`` as one
+  :class:`~fr_torch.core.geometry.vanishing.AtlantaConfig`.
 * :func:`add_device_arguments` -> :func:`device_policy`: ``--device`` (and, where the command
   takes them, ``--workers`` / ``--batch-size``) as one
   :class:`~fr_torch.runtime.device.DevicePolicy`.
@@ -18,10 +18,10 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from fr_torch.core.checks import finite_number, positive_number
-from fr_torch.core.config import FITS, Mode, SearchConfig
-from fr_torch.core.distortion import DistortionMode
-from fr_torch.core.vanishing import AtlantaConfig
+from fr_torch.core.settings.checks import finite_number, positive_number
+from fr_torch.core.settings.config import FITS, Mode, SearchConfig
+from fr_torch.core.settings.distortion import DistortionMode
+from fr_torch.core.geometry.vanishing import AtlantaConfig
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.device import DECODE_CHOICES, DevicePolicy
 
@@ -30,7 +30,8 @@ MEASURE_CHOICES = tuple("abcde")
 
 def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True) -> None:
     """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--fov-range``,
-    ``--pitch-range``, ``--roll-range``, ``--compile``, ``--atlanta`` and (``device``) ``--device``."""
+    ``--pitch-range``, ``--roll-range``, ``--atlanta`` and (``device``) ``--device``; the removed
+    ``--compile`` is still parsed, to fail with a one-line reason (:data:`~fr_torch.core.settings.config.REMOVED_SETTINGS`)."""
     group = parser.add_argument_group("estimator")
     group.add_argument("--fast", action="store_true", help="Fast-fR: 10 refinement iterations")
     group.add_argument("--measure", choices=MEASURE_CHOICES, default=None, help="deviation measure (default b)")
@@ -59,10 +60,7 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
                             "its horizon, with a truncated vote, reported with fR's focal length; docs/horizon.md) or choose "
                             "(per photo, by a rule learned on NYU-VP train from the photo's evidence); the JSON's "
                             "model says which fit an estimate comes from")
-    group.add_argument("--compile", action="store_true",
-                       help="run the search with kernels compiled by torch.compile (needs a C++ compiler on CPU, "
-                            "Triton on CUDA; 10-25 s of compilation per process, then faster: for long batch "
-                            "jobs and video; falls back with a warning where it cannot compile)")
+    group.add_argument("--compile", action="store_true", help=argparse.SUPPRESS)  # removed: one-line error
     group.add_argument("--atlanta", nargs="?", const="on", default=None, metavar="SETTINGS",
                        help="also find extra horizontal vanishing points at free azimuths (Atlanta world) and rank "
                             "them with the Manhattan three in ranked_vanishing_points; f and R do not change. "
@@ -110,7 +108,7 @@ def add_camera_arguments(parser: argparse.ArgumentParser, focal_help: str | None
 def camera_options(args: argparse.Namespace) -> tuple[float | None, tuple[float, float] | None]:
     """The known focal length (``--focal``, pixels, > 0) and principal point (``--pp X,Y``, pixels,
     finite) for all images of a command, or None; FRInputError (one line) when malformed.  Whether
-    they fit each image is checked per image (:func:`fr_torch.core.checks.check_camera`)."""
+    they fit each image is checked per image (:func:`fr_torch.core.settings.checks.check_camera`)."""
     principal_point = None
     if getattr(args, "pp", None):
         parts = args.pp.split(",")
@@ -124,8 +122,9 @@ def camera_options(args: argparse.Namespace) -> tuple[float | None, tuple[float,
 
 
 def search_config(args: argparse.Namespace) -> SearchConfig:
-    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range``, ``--fit`` and
-    ``--compile`` over the shipped defaults; FRInputError (one line) naming a malformed option."""
+    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range`` and ``--fit``
+    over the shipped defaults; FRInputError (one line) naming a malformed option, or saying what
+    replaced the removed ``--compile``."""
     overrides = {"compile_search": True} if getattr(args, "compile", False) else {}
     config = SearchConfig.from_config(**overrides)
     if getattr(args, "fov_range", None):

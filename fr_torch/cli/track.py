@@ -20,7 +20,7 @@ from fr_torch.cli.options import (
     device_policy,
     estimator_kwargs,
 )
-from fr_torch.core.checks import finite_number, positive_int, positive_number
+from fr_torch.core.settings.checks import finite_number, positive_int, positive_number
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.pipeline import CalibrationPool

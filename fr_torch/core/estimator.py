@@ -9,22 +9,20 @@ Usage::
 
     est.calibrate_segments([segments], image_sizes=[(640, 480)])   # your own (N, 4) segments
 
-Conventions: see :mod:`fr_torch.core.camera` (pixels; degrees; R world->camera, x right / y down /
+Conventions: see :mod:`fr_torch.core.geometry.conventions` (pixels; degrees; R world->camera, x right / y down /
 z forward, vertical Manhattan direction in column 1).
 """
 from __future__ import annotations
 
-import copy
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
-
+from typing import Sequence
 import numpy as np
 import torch
-
-from fr_torch.core.camera import VERTICAL_AXIS, Camera, Horizon, camera_record, image_centre
-from fr_torch.core.checks import (
+from fr_torch.core.geometry.conventions import image_centre
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.settings.checks import (
     MAX_REACH_IMAGE_SIZES,
     check_camera,
     check_image_size,
@@ -33,60 +31,36 @@ from fr_torch.core.checks import (
     resolve_device,
     segment_sets,
 )
-from fr_torch.core.checks import image_sizes as checked_image_sizes
-from fr_torch.core.config import Mode, SearchConfig
+from fr_torch.core.settings.checks import image_sizes as checked_image_sizes
+from fr_torch.core.settings.config import Mode, SearchConfig
 from fr_torch.core.exact import first_argmax
-from fr_torch.core.distortion import (
-    DistortionMode,
-    colmap_camera,
-    distort_points,
-    distortion_record,
-    normalising_radius,
-    opencv_camera,
-    undistort_points,
-)
-from fr_torch.core.cues import (
+from fr_torch.core.settings.distortion import DistortionMode
+from fr_torch.core.reliability.sanity import (
     check_result,
     finite_record,
-    focal_cues,
     LINE_BEND_CUES,
-    image_cues,
     lines_bend_reason,
     sanity_check,
 )
-from fr_torch.core.likelihood import (
-    LikelihoodParams,
-    MixtureLikelihood,
-    SegmentFeatures,
-)
-from fr_torch.core.horizon_fit import HorizonChooser, choose_fit
-from fr_torch.core.params import DISTORTION, FOCAL, CameraParams
-from fr_torch.core.reliability import ReliabilityModel
-from fr_torch.core.reliability_bounds import horizon_bound_pct
-from fr_torch.core.search_distortion import SegmentGeometry, bend_test, search_with_k
-from fr_torch.core.search import (
-    best_of_start_and_refined,
-    grid_hypotheses,
-    parameter_box,
-    refine,
-    score_grid,
-    select_starts,
-    subdivide_starts,
-    sweep_focal,
-    tie_tolerance,
-)
-from fr_torch.core.vanishing import AtlantaConfig, rank_vanishing_points
-from fr_torch.core.segments import (
-    SegmentBatch,
-    SegmentFilter,
-    drop_absurd_segments,
-    validate_segments,
-)
+from fr_torch.core.reliability.cues import focal_cues, image_cues
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.search.choice import HorizonChooser, choose_fit
+from fr_torch.core.geometry.params import DISTORTION, FOCAL, CameraParams
+from fr_torch.core.reliability.model import ReliabilityModel
+from fr_torch.core.search.lens import SegmentGeometry, bend_test, search_with_k
+from fr_torch.core.search.passes import best_of_start_and_refined, subdivide_starts, sweep_focal, tie_tolerance
+from fr_torch.core.search.grid import grid_hypotheses, parameter_box, score_grid, select_starts
+from fr_torch.core.search.refine import refine
+from fr_torch.core.geometry.vanishing import AtlantaConfig, rank_vanishing_points
+from fr_torch.core.likelihood.segments import SegmentBatch, SegmentFilter, drop_absurd_segments, validate_segments
 from fr_torch.errors import FRInputError
+from fr_torch.core.result import CalibrationResult
+
 
 BACKGROUND_LABEL = 3
 #: The reason of an estimate that another, different solution matched within rounding
-#: (:func:`fr_torch.core.search.best_of_start_and_refined`).
+#: (:func:`fr_torch.core.search.passes.best_of_start_and_refined`).
 TIE_REASON = ("another solution scores the same to within rounding (the photo has two answers: another machine "
               "could return the other)")
 
@@ -123,175 +97,6 @@ def keep_sane_segments(segments: np.ndarray, size: tuple, name: str) -> tuple[np
 
 SEARCH_CHUNK_IMAGES = 4096  # images searched together (bounds host and device memory for any batch)
 
-# CalibrationResult.to_json: its keys, in order (the CLI's output schema)
-JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "model", "focal_px", "hfov_deg", "principal_point",
-             "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
-             "ranked_vanishing_points", "horizon", "distortion", "log_likelihood", "num_segments", "manhattan_fraction", "cues",
-             "predicted_error", "error_bound", "runtime_s")
-
-
-@camera_record
-@dataclass
-class CalibrationResult:
-    """Everything fR says about one image.  Angles in degrees, lengths in pixels.
-
-    ``camera`` is the estimate (:class:`fr_torch.core.camera.Camera`: focal length, principal point,
-    rotation); ``focal_px``, ``hfov_deg``, ``principal_point``, ``rotation`` (3, 3) world->camera,
-    ``pan_deg`` / ``tilt_deg`` / ``roll_deg`` / ``pitch_deg`` and ``vanishing_points`` (3, 3; row i
-    = homogeneous VP i (x, y, w), w >= 0) are read-only views of it (:func:`fr_torch.core.camera.camera_record`).
-    ``ok`` is False when no estimate could be made (then ``camera`` and those fields are None and
-    ``reason`` says why).  ``reliable`` is False when the estimate exists but should not be
-    trusted (too few segments, a Manhattan family nearly empty, or predicted errors above the
-    threshold once a reliability model is loaded); ``reason`` lists why.
-
-    ``ranked_vanishing_points`` (M, 3): every vanishing point of the estimate, rows ``(x, y, w)``
-    (``w >= 0``), ranked by ``vanishing_point_support`` (M,), the length-weighted posterior mass of
-    each family's segments (pixels), most supported first; ``vanishing_point_families`` (M,) says
-    which family each is: 0-2 the column of R (1 = vertical), 3.. an Atlanta family (an extra
-    horizontal direction, ``atlanta`` option; :mod:`fr_torch.core.vanishing`).  M = 3 without it.
-
-    ``model``: the fit the estimate comes from, ``manhattan`` (fR's mixture fit) or ``horizon``
-    (:mod:`fr_torch.core.horizon_fit`, chosen by :attr:`fr_torch.core.config.SearchConfig.fit`);
-    None without an estimate.
-
-    ``horizon`` (:class:`fr_torch.core.camera.Horizon`, None without an estimate): the horizon in
-    the input image's pixels, where it crosses the left and right borders, and its 90 % bound in %
-    of the image height (from ``error_bound``; None without one).
-    """
-
-    image: str
-    width: int
-    height: int
-    ok: bool = True
-    reliable: bool = False
-    reason: str = ""
-    camera: Camera | None = None
-    vertical_axis: int = VERTICAL_AXIS
-    log_likelihood: float | None = None
-    num_segments: int = 0
-    manhattan_fraction: float | None = None  # share of total segment length labelled with a family
-    segments: np.ndarray | None = None  # (N, 4) the segments used
-    labels: np.ndarray | None = None  # (N,) 0, 1, 2 = Manhattan column (1 = vertical), 3 = background
-    ranked_vanishing_points: np.ndarray | None = None  # (M, 3) rows (x, y, w), most supported first
-    vanishing_point_support: np.ndarray | None = None  # (M,) pixels of segment length
-    vanishing_point_families: np.ndarray | None = None  # (M,) 0-2 Manhattan column, 3.. Atlanta family
-    cues: dict[str, float] = field(default_factory=dict)
-    predicted_error: dict[str, float] | None = None
-    # what `reliable` promises (fr_torch.core.reliability_bounds): {"coverage", "focal_pct", "tilt_deg" (the
-    # bounds), "limits": {...}}; None without a reliability promise
-    error_bound: dict[str, Any] | None = None
-    # seconds per image: detect, grid (the k^4 grid, the focal sweep and the lattice passes), refine, cues, total
-    runtime_s: dict[str, float] = field(default_factory=dict)
-    # the lens model of the estimate: "pinhole" or "division" with its normalised k (fr_torch.core.distortion)
-    distortion_model: str = "pinhole"
-    distortion_k: float = 0.0
-    # the fit the estimate comes from: "manhattan" (fR's mixture fit) or "horizon"
-    # (fr_torch.core.horizon_fit; SearchConfig.fit); None without an estimate
-    model: str | None = None
-
-    @property
-    def distortion(self) -> dict[str, Any] | None:
-        """The estimate's lens model, ``{"model", "k", "centre": [x, y], "radius_px", "bow_pct"}``
-        (:func:`fr_torch.core.distortion.distortion_record`; ``model`` ``pinhole`` with k = 0 for a
-        pinhole estimate); None without an estimate."""
-        if self.camera is None:
-            return None
-        record = distortion_record(self.distortion_k, self.camera.principal_point, self.width, self.height)
-        return dict(record, model=self.distortion_model)
-
-    @property
-    def horizon(self) -> Horizon | None:
-        """The estimate's horizon in the input image's pixels (:meth:`fr_torch.core.camera.Horizon.from_camera`:
-        the line ``K^-T R[:, 1]``, through the estimate's lens when it has one), where it crosses the
-        borders ``x = 0`` and ``x = w - 1``, and the 90 % bound of its error at the borders in % of
-        the image height (:func:`fr_torch.core.reliability_bounds.horizon_bound_pct`, from
-        ``error_bound``; None without one); None without an estimate."""
-        if not self.ok or self.camera is None:
-            return None
-        bound = None
-        if self.focal_px is not None and self.tilt_deg is not None:
-            bound = horizon_bound_pct(self.error_bound, self.focal_px, self.tilt_deg, self.height)
-        return Horizon.from_camera(self.camera, self.distortion_k, bound)
-
-    def _lens(self):
-        if self.camera is None or self.focal_px is None:
-            raise ValueError(f"{self.image}: no estimate ({self.reason})")
-        return self.distortion_k, self.focal_px, self.camera.principal_point, self.width, self.height
-
-    def undistort_points(self, points) -> np.ndarray:
-        """Photo pixels (..., 2) -> the estimate's undistorted (pinhole) pixels, where ``K`` and
-        ``rotation`` apply (:func:`fr_torch.core.distortion.undistort_points`; unchanged for a
-        pinhole estimate).  ValueError without an estimate."""
-        k, _, centre, width, height = self._lens()
-        return undistort_points(np.asarray(points, np.float64), k, np.asarray(centre), normalising_radius(width, height))
-
-    def distort_points(self, points) -> np.ndarray:
-        """Undistorted pixels (..., 2) -> photo pixels (the inverse of :meth:`undistort_points`)."""
-        k, _, centre, width, height = self._lens()
-        return distort_points(np.asarray(points, np.float64), k, np.asarray(centre), normalising_radius(width, height))
-
-    def opencv(self) -> dict[str, Any]:
-        """The estimate as OpenCV's camera matrix and distortion coefficients (a dict that
-        ``cv2.FileStorage`` reads as JSON; :func:`fr_torch.core.distortion.opencv_camera`: k1, k2
-        (k3 where two terms leave more than a pixel) fitted to the division model, the fit's residual
-        in pixels beside them).  ValueError without an estimate."""
-        return opencv_camera(*self._lens())
-
-    def colmap(self, model: str = "division") -> tuple[str, list[float], dict[str, float]]:
-        """COLMAP's camera model, parameters and residual in pixels
-        (:func:`fr_torch.core.distortion.colmap_camera`): a division estimate as ``SIMPLE_DIVISION``
-        (exact, COLMAP >= 4.0; ``model="division"``) or ``RADIAL`` (fitted, ``model="radial"``), a
-        pinhole one as ``SIMPLE_PINHOLE``.  ValueError without an estimate, FRInputError for an
-        unknown ``model``."""
-        return colmap_camera(*self._lens(), model=model)
-
-    def to_kornia(self):
-        """The estimate as a ``kornia.geometry.camera.PinholeCamera`` (batch of 1, float64): intrinsics
-        ``K`` and extrinsics ``[R | 0]`` (world -> camera, the Manhattan frame; no translation is
-        known).  Kornia's pinhole camera has no distortion: apply it to :meth:`undistort_points`'
-        pixels, or straighten the photo first (``fr undistort``).  ValueError without an estimate."""
-        import kornia.geometry.camera as kornia_camera  # imported on use: kornia adds ~1 s to start-up
-
-        if self.camera is None or self.focal_px is None or self.rotation is None:
-            raise ValueError(f"{self.image}: no estimate ({self.reason})")
-        intrinsics = torch.eye(4, dtype=torch.float64)
-        intrinsics[:3, :3] = torch.as_tensor(self.camera.K)
-        extrinsics = torch.eye(4, dtype=torch.float64)
-        extrinsics[:3, :3] = torch.as_tensor(self.rotation)
-        height, width = torch.tensor([float(self.height)], dtype=torch.float64), torch.tensor([float(self.width)],
-                                                                                               dtype=torch.float64)
-        return kornia_camera.PinholeCamera(intrinsics[None], extrinsics[None], height, width)
-
-    def to_json(self, include_segments: bool = False) -> dict[str, Any]:
-        """JSON-ready dict (the CLI's output schema, keys :data:`JSON_KEYS`; arrays become nested lists)."""
-        computed = ("ranked_vanishing_points", "horizon")
-        out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS if key not in computed}
-        out["ranked_vanishing_points"] = self.ranked_vanishing_points_json()
-        horizon = self.horizon
-        out["horizon"] = None if horizon is None else horizon.to_json()
-        out = {key: out[key] for key in JSON_KEYS}
-        for key in ("rotation", "vanishing_points"):
-            if out[key] is not None:
-                out[key] = np.asarray(out[key]).tolist()
-        if include_segments and self.segments is not None:
-            out["segments"] = self.segments.tolist()
-            out["labels"] = self.labels.tolist()
-        if self.labels is not None:
-            out["segments_per_family"] = np.bincount(self.labels, minlength=4).tolist()
-        return out
-
-    def ranked_vanishing_points_json(self) -> list[dict[str, Any]] | None:
-        """``[{"point": [x, y, w], "support_px": s, "family": k}, ...]`` most supported first (the
-        JSON's ``ranked_vanishing_points``), or None without them."""
-        if self.ranked_vanishing_points is None:
-            return None
-        support = self.vanishing_point_support if self.vanishing_point_support is not None else \
-            np.full(len(self.ranked_vanishing_points), np.nan)
-        families = self.vanishing_point_families if self.vanishing_point_families is not None else \
-            np.full(len(self.ranked_vanishing_points), -1)
-        return [{"point": np.asarray(p, np.float64).tolist(), "support_px": float(s), "family": int(k)}
-                for p, s, k in zip(self.ranked_vanishing_points, support, families)]
-
 
 class SegmentEstimator:
     """fR / Fast-fR (Qian & Elder, ECCV 2022) on CPU or CUDA, batched over images.
@@ -312,21 +117,21 @@ class SegmentEstimator:
     shipped model of this mode, when installed), a model object, a path to a model ``.npz``, or None
     (off).  When on, every estimate gets ``predicted_error``, ``error_bound`` and ``reliable = False``
     when a bound exceeds its limit (the promise of ``configs/reliability.json``,
-    :mod:`fr_torch.core.reliability_bounds`; with ``"enforce": false``: a predicted error above its
+    :mod:`fr_torch.core.reliability.bounds`; with ``"enforce": false``: a predicted error above its
     threshold).
     ``profile_gap``: compute the ``focal_profile_gap`` cue (:meth:`_focal_cues`; a quarter of fR's
     time per photo, half of its batch throughput): None (default) when the reliability model uses
     it (fR's shipped model does; with ``reliability=None`` it is skipped), True always (records
     for training a model), False never (a model that uses it is then an error).
     ``spreads``: compute the cues the bounds of ``reliable`` rest on
-    (:data:`fr_torch.core.cues.SPREAD_CUE_NAMES`): None (default) when the reliability stage holds
+    (:data:`fr_torch.core.reliability.cues.SPREAD_CUE_NAMES`): None (default) when the reliability stage holds
     such bounds (the shipped one does), True always (records), False never.
     ``atlanta``: extra vanishing points beyond the Manhattan three after the fit
-    (:class:`fr_torch.core.vanishing.AtlantaConfig` or anything its ``parse`` takes; None = off);
+    (:class:`fr_torch.core.geometry.vanishing.AtlantaConfig` or anything its ``parse`` takes; None = off);
     they join ``ranked_vanishing_points`` and change neither f nor R.
     ``distortion``: the lens model, ``pinhole`` (default), ``division`` (k of the division model
-    estimated with f and R) or ``auto`` (:class:`~fr_torch.core.distortion.DistortionSetting`);
-    ``k``: a known k (normalised by half the image diagonal, :mod:`fr_torch.core.distortion`),
+    estimated with f and R) or ``auto`` (:class:`~fr_torch.core.settings.distortion.DistortionSetting`);
+    ``k``: a known k (normalised by half the image diagonal, :mod:`fr_torch.core.geometry.lens`),
     which implies ``division``.  Both override ``search_config.distortion``.
     """
 
@@ -347,8 +152,7 @@ class SegmentEstimator:
         # the likelihood as given (the reliability model's scope is checked against it)
         self.likelihood_params = params
         self.likelihood_name = "custom parameters" if likelihood_params is not None else str(likelihood or "default")
-        self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.fov_range),
-                                            compiled=self.search.compile_search)
+        self.likelihood = MixtureLikelihood(params.with_prior_in_range(self.search.fov_range))
         self.device = resolve_device(device)
         self.dtype = dtype
         self.segment_filter = segment_filter or SegmentFilter(max_segments=self.search.max_segments)
@@ -366,7 +170,7 @@ class SegmentEstimator:
             raise FRInputError("the reliability model uses the focal_profile_gap cue: profile_gap=False "
                                "needs reliability=None or a model without it")
         self.profile_gap = "focal_profile_gap" in model_cues if profile_gap is None else bool(profile_gap)
-        # the spread cues that the bounds of `reliable` rest on (fr_torch.core.reliability_bounds)
+        # the spread cues that the bounds of `reliable` rest on (fr_torch.core.reliability.bounds)
         self.spreads = getattr(reliability, "needs_spreads", False) if spreads is None else bool(spreads)
         # the per-photo choice between the Manhattan and the horizon fit (SearchConfig.fit = choose)
         self.horizon_chooser = HorizonChooser.load() if self.search.fit == "choose" else None
@@ -382,10 +186,10 @@ class SegmentEstimator:
         nested list or tensor per image; counts may differ.  ``image_sizes``: one (width, height)
         pair of numbers per image, pixels.  ``names``: one per image (default ``image0``, ...).
         ``focal_px`` / ``principal_point``: None, one value for all images or one per image
-        (:func:`fr_torch.core.checks.per_image`).  An argument of the wrong form or length is an
+        (:func:`fr_torch.core.settings.checks.per_image`).  An argument of the wrong form or length is an
         FRInputError naming it; a bad value of one image (its segments, size, focal length or
         principal point) fails only that image (``ok=False`` and the reason).  Rows with non-finite
-        coordinates fail their image; rows beyond :data:`~fr_torch.core.checks.MAX_REACH_IMAGE_SIZES`
+        coordinates fail their image; rows beyond :data:`~fr_torch.core.settings.checks.MAX_REACH_IMAGE_SIZES`
         image sizes from the image are dropped (the result is then not reliable and its reason
         says how many).  Segments are filtered like detected ones unless ``apply_filter`` is False.
         """
@@ -481,7 +285,7 @@ class SegmentEstimator:
         """Search ``group`` (images with segments; all with or all without a known focal length)
         and fill their results.  ``lens``: ``pinhole`` or ``division``; None = the setting's
         (``auto``: pinhole, then the division search for the images whose lines bend,
-        :func:`fr_torch.core.cues.lines_bend_reason`'s criterion)."""
+        :func:`fr_torch.core.reliability.sanity.lines_bend_reason`'s criterion)."""
         setting = self.search.distortion
         auto = lens is None and setting.mode is DistortionMode.AUTO and setting.known_k is None
         if lens is None:
@@ -505,7 +309,7 @@ class SegmentEstimator:
                                                  setting.k_prior_weight if lens == "division" else 0.0)
         k_estimate = None  # (B,) k of the division estimates
         horizon_fit = torch.zeros(len(group), dtype=torch.bool)  # (B,) the horizon fit chosen (choose_fit)
-        choice_evidence = {}  # the choice's evidence (fr_torch.core.horizon_fit.CHOICE_FEATURES), cues choice_*
+        choice_evidence = {}  # the choice's evidence (fr_torch.core.search.choice.CHOICE_FEATURES), cues choice_*
         if lens == "division":
             found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal,
                                   self.iterations, fast=self.mode == "fast")

@@ -26,7 +26,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from fr_torch.core.camera import resize_points
+from fr_torch.core.geometry.conventions import resize_points
 
 
 class OnnxLineDetector:

@@ -14,7 +14,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from fr_torch.core.segments import SegmentFilter
+from fr_torch.core.likelihood.segments import SegmentFilter
 from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.errors import FRInputError
 from fr_torch.images.convert import to_gray8

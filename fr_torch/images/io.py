@@ -25,7 +25,7 @@ Working resolution: the detector runs on a copy whose long side is at most
 :data:`WORKING_LONG_SIDE` pixels (default 640, the resolution of the benchmarks the method was
 designed on; images smaller than that are used as they are).  The estimate is made in working
 pixels and brought back (``scale`` = input pixels per working pixel; points map as the resize
-maps pixels, :func:`fr_torch.core.camera.resize_points`, pixel centres at integers), so results are
+maps pixels, :func:`fr_torch.core.geometry.conventions.resize_points`, pixel centres at integers), so results are
 always reported in the **input image's pixels**, and the time per image does not grow with the
 input resolution.
 """
@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fr_torch.core.camera import resize_homogeneous, resize_points
+from fr_torch.core.geometry.conventions import resize_homogeneous, resize_points
 from fr_torch.errors import FRInputError
 from fr_torch.images.convert import to_bgr8, to_gray8
 
@@ -437,7 +437,7 @@ def focal_and_pp_to_working(focal, principal_point, scale: float, input_size: tu
     """The user's focal length / principal point (input pixels) in working pixels (one image).
 
     The focal length divides by ``scale`` (input pixels per working pixel); the principal point
-    moves as the resize moves a pixel (:func:`fr_torch.core.camera.resize_points`, pixel centres at
+    moves as the resize moves a pixel (:func:`fr_torch.core.geometry.conventions.resize_points`, pixel centres at
     integers), so the input's centre is the working image's centre.  ``input_size``,
     ``working_size``: (width, height) in pixels."""
     focal = None if focal is None else float(focal) / scale
@@ -452,7 +452,7 @@ def result_to_input_pixels(result, scale: float, input_size: tuple[int, int]) ->
 
     The focal length is multiplied by ``scale`` (input pixels per working pixel); points (the
     principal point, the segments' endpoints, the ranked vanishing points) move as the resize
-    moves a pixel (:func:`fr_torch.core.camera.resize_points`: ``x_in = (x_work + 0.5) w_in / w_work
+    moves a pixel (:func:`fr_torch.core.geometry.conventions.resize_points`: ``x_in = (x_work + 0.5) w_in / w_work
     - 0.5``, likewise y); angles, rotation, cues and labels are unchanged; width / height become the
     input's; the HFOV and the vanishing points follow from the rescaled camera.
     """

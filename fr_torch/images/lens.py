@@ -1,6 +1,6 @@
 """Images through a division-model lens: straighten a photo, or bend a pinhole image.
 
-The model and its normalisation are :mod:`fr_torch.core.distortion`'s (k normalised by half the
+The model and its normalisation are :mod:`fr_torch.core.geometry.lens`'s (k normalised by half the
 *photo's* diagonal, centre = principal point).  Both warps resample with ``cv2.remap`` (bilinear).
 """
 from __future__ import annotations
@@ -11,8 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fr_torch.core.camera import image_centre
-from fr_torch.core.distortion import distort_points, normalising_radius, undistort_points
+from fr_torch.core.geometry.conventions import image_centre
+from fr_torch.core.geometry.lens import distort_points, normalising_radius, undistort_points
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import encode_png, read_image
 from fr_torch.output import write_bytes
@@ -50,7 +50,7 @@ def distort_image(source_image: np.ndarray, k: float, size: tuple[int, int], cen
     pinhole image ``source_image`` (the inverse of :func:`undistort_image`).
 
     ``centre``: the photo's distortion centre (x, y) pixels (default its image centre,
-    :func:`fr_torch.core.camera.image_centre`); ``source_centre``: the pixel of ``source_image`` at
+    :func:`fr_torch.core.geometry.conventions.image_centre`); ``source_centre``: the pixel of ``source_image`` at
     the same ray (default: its image centre when the sizes differ, else ``centre``), so a larger
     source (e.g. the full frame of a crop) supplies the pixels barrel distortion pulls in from
     outside the frame.  k is normalised by half the photo's diagonal.  Pixels beyond the source

@@ -14,8 +14,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fr_torch.core.camera import border_columns, horizon_border_y, horizon_line, resize_points
-from fr_torch.core.estimator import BACKGROUND_LABEL, CalibrationResult
+from fr_torch.core.geometry.horizon import border_columns, horizon_border_y, horizon_line
+from fr_torch.core.geometry.conventions import resize_points
+from fr_torch.core.estimator import BACKGROUND_LABEL
+from fr_torch.core.result import CalibrationResult
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import encode_png, read_image
 from fr_torch.images.lens import undistort_image
@@ -28,7 +30,7 @@ CAPTION_BOX, CAPTION_TEXT = (20, 20, 20), (245, 245, 245)
 
 
 def _horizon_line(result: CalibrationResult) -> np.ndarray | None:
-    """The horizon's line (3,) in the undistorted image (:func:`fr_torch.core.camera.horizon_line`),
+    """The horizon's line (3,) in the undistorted image (:func:`fr_torch.core.geometry.horizon.horizon_line`),
     or None without an estimate or when the horizon is at infinity."""
     if result.camera is None or result.camera.K is None or result.camera.rotation is None:
         return None

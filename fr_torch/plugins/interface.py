@@ -8,7 +8,7 @@ project (see :mod:`fr_torch.registry` and ``examples/fr_plugin_example``)::
 
     fr eval --dataset yud --methods fr,my_package.my_module:MyCalibrator
 
-Conventions for every field are those of :mod:`fr_torch.core.camera` (pixels, degrees, R world->camera
+Conventions for every field are those of :mod:`fr_torch.core.geometry.conventions` (pixels, degrees, R world->camera
 with x right / y down / z forward, vertical Manhattan direction in column 1).
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 import numpy as np
 
-from fr_torch.core.camera import Camera, camera_record
+from fr_torch.core.geometry.camera import Camera, camera_record
 from fr_torch.registry import Registry
 
 
@@ -46,7 +46,7 @@ class ImageMeta:
 class CameraEstimate:
     """One method's answer for one image.
 
-    ``camera``: what the method estimated, as one :class:`fr_torch.core.camera.Camera` of the image
+    ``camera``: what the method estimated, as one :class:`fr_torch.core.geometry.camera.Camera` of the image
     (``Camera(width, height, focal_px, principal_point, rotation)``): ``focal_px=None`` for a method
     that estimates only the orientation, ``rotation=None`` for one that estimates only the focal
     length, ``Camera.from_angles(..., roll_deg=, tilt_deg=)`` (``pan_known=False``) for one that

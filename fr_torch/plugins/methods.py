@@ -5,17 +5,17 @@ Registered names: ``fr``, ``fast-fr`` (image in, LSD or another detector), and `
 upper bound of a line-based method).  Options select configurations:
 ``fr[measure=a]`` ... ``fr[measure=e]`` (deviation measure), ``fr[detector=mcmlsd]``,
 ``fr[likelihood=paper]`` (likelihood config by name or path, see
-:func:`fr_torch.core.likelihood.likelihood_config_path`), ``fr[range=paper]`` / ``fr[range=40:130]``
-(the FOV search range across the long side, anything :meth:`fr_torch.core.fov.FovRange.parse`
+:func:`fr_torch.core.likelihood.mixture.likelihood_config_path`), ``fr[range=paper]`` / ``fr[range=40:130]``
+(the FOV search range across the long side, anything :meth:`fr_torch.core.settings.fov.FovRange.parse`
 accepts: ``paper`` = [50, 130], ``default`` = [30, 120]), ``fr[model=nomixture]`` (the paper's "no
-probabilistic model" ablation, see :class:`fr_torch.core.likelihood.LikelihoodParams`),
+probabilistic model" ablation, see :class:`fr_torch.core.likelihood.mixture.LikelihoodParams`),
 ``fr[atlanta=on]`` (extra horizontal vanishing points at free azimuths, ranked with the Manhattan
 three; f and R unchanged; ``atlanta=max_extra=2:prior=0.05`` sets its parameters, see
-:class:`fr_torch.core.vanishing.AtlantaConfig`).  Every estimate carries fR's vanishing points
+:class:`fr_torch.core.geometry.vanishing.AtlantaConfig`).  Every estimate carries fR's vanishing points
 ranked by support (``CameraEstimate.ranked_vanishing_points``).  ``fr[distortion=division]`` /
-``fr[distortion=auto]`` (radial distortion estimated, see :mod:`fr_torch.core.distortion`) and
+``fr[distortion=auto]`` (radial distortion estimated, see :mod:`fr_torch.core.geometry.lens`) and
 ``fr[k=-0.2]`` (a known k); ``fr[fit=choose]`` / ``fr[fit=horizon]`` (what the search returns,
-:attr:`fr_torch.core.config.SearchConfig.fit`).
+:attr:`fr_torch.core.settings.config.SearchConfig.fit`).
 """
 from __future__ import annotations
 
@@ -24,9 +24,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from fr_torch.core.config import SearchConfig
-from fr_torch.core.estimator import CalibrationResult
-from fr_torch.core.likelihood import LikelihoodParams
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core.result import CalibrationResult
+from fr_torch.core.likelihood.mixture import LikelihoodParams
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, register
 from fr_torch.registry import format_method_spec
 from fr_torch.runtime.estimator import FREstimator

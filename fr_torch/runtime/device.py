@@ -34,7 +34,7 @@ from typing import Iterator, Union
 import cv2
 import torch
 
-from fr_torch.core.checks import resolve_device
+from fr_torch.core.settings.checks import resolve_device
 from fr_torch.errors import FRInputError
 from fr_torch.runtime import cpuload
 from fr_torch.runtime.workers import usable_cores

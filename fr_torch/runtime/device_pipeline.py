@@ -209,7 +209,7 @@ def as_numpy_lists(segments: torch.Tensor, mask: torch.Tensor) -> list[np.ndarra
 def detect_decoded(detector, decoded: Sequence[DecodedImage], segment_filter=None) -> list[Detection]:
     """One :class:`~fr_torch.runtime.detection.Detection` per decoded image (module docstring, step
     2): same-size images detected together by ``detector.detect_batch``, ``segment_filter`` (a
-    :class:`~fr_torch.core.segments.SegmentFilter`, or None) applied to each image's segments."""
+    :class:`~fr_torch.core.likelihood.segments.SegmentFilter`, or None) applied to each image's segments."""
     detections: list[Detection | None] = [None] * len(decoded)
     by_size: dict[tuple[int, int], list[int]] = {}
     for i, d in enumerate(decoded):
@@ -244,7 +244,7 @@ def calibrate_on_device(estimator, images: Sequence, names: Sequence[str], focal
                         pp_list: Sequence, batch_size: int, searchers: int | None = None) -> Iterator[tuple[list, list]]:
     """``(images, results)`` per batch of at most ``batch_size`` images, in input order (module
     docstring): a reader thread decodes the next batches while earlier ones are detected and
-    searched by ``searchers`` threads (None = :data:`SEARCH_THREADS`, one with a compiled search),
+    searched by ``searchers`` threads (None = :data:`SEARCH_THREADS`),
     each on a CUDA stream of its own, so that one batch's host work overlaps another's device work
     (the first batch is searched alone).
     ``focal_list`` / ``pp_list``: one focal length / principal point (or None) per image, input pixels."""
@@ -253,7 +253,7 @@ def calibrate_on_device(estimator, images: Sequence, names: Sequence[str], focal
     working = estimator.working_long_side
     cuda = device.type == "cuda"
     if searchers is None:
-        searchers = 1 if estimator.likelihood.compiled else SEARCH_THREADS
+        searchers = SEARCH_THREADS
     streams = [torch.cuda.Stream(device) for _ in range(searchers + 1)] if cuda else []
 
     def on(stream):  # work queued on ``stream`` (a CUDA device), or as it comes (any other)
@@ -310,7 +310,7 @@ def calibrate_on_device(estimator, images: Sequence, names: Sequence[str], focal
 
 def calibrate_decoded(estimator, detector, images: torch.Tensor, names=None, focal_px=None,
                       principal_point=None) -> list:
-    """Results (one :class:`fr_torch.core.estimator.CalibrationResult` each) for ``images``
+    """Results (one :class:`fr_torch.core.result.CalibrationResult` each) for ``images``
     (B, 1, H, W) or (B, H, W), grey levels 0..255 (uint8 or float), already on the device, at the
     resolution they are calibrated at.
 

@@ -12,7 +12,7 @@ Usage::
 
 The search itself is the engine's (:class:`fr_torch.core.estimator.SegmentEstimator`); this class
 adds the line detector and the decoding pipeline (:mod:`fr_torch.runtime.pipeline`).
-Conventions: see :mod:`fr_torch.core.camera`.
+Conventions: see :mod:`fr_torch.core.geometry.conventions`.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from fr_torch.core.checks import (
+from fr_torch.core.settings.checks import (
     batch_of,
     check_camera,
     check_image_size,
@@ -30,15 +30,11 @@ from fr_torch.core.checks import (
     positive_number,
     shown,
 )
-from fr_torch.core.config import Mode
-from fr_torch.core.cues import finite_record
-from fr_torch.core.estimator import (
-    CalibrationResult,
-    SegmentEstimator,
-    _Image,
-    keep_sane_segments,
-)
-from fr_torch.core.segments import validate_segments
+from fr_torch.core.settings.config import Mode
+from fr_torch.core.reliability.sanity import finite_record
+from fr_torch.core.result import CalibrationResult
+from fr_torch.core.estimator import SegmentEstimator, _Image, keep_sane_segments
+from fr_torch.core.likelihood.segments import validate_segments
 from fr_torch.detectors.registry import get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import (

@@ -48,10 +48,10 @@ import cv2
 import numpy as np
 import torch
 
-from fr_torch.core.checks import image_names, per_image, segment_sets
-from fr_torch.core.checks import image_sizes as checked_image_sizes
-from fr_torch.core.estimator import CalibrationResult
-from fr_torch.core.segments import SegmentFilter
+from fr_torch.core.settings.checks import image_names, per_image, segment_sets
+from fr_torch.core.settings.checks import image_sizes as checked_image_sizes
+from fr_torch.core.result import CalibrationResult
+from fr_torch.core.likelihood.segments import SegmentFilter
 from fr_torch.detectors.registry import detect_segments, get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import WORKING_LONG_SIDE, read_working
@@ -360,7 +360,7 @@ def _ahead_of_search(workers: int, batch_size: int) -> int:
 def calibrate_stream(estimator, frames: Iterable, batch_size: int = 8, workers: int = 0,
                      whole_frames: bool | None = None, in_flight: int | None = None) -> Iterator:
     """Calibrate a stream of ``(image, name)`` pairs (a video's frames: arrays or paths), yielding one
-    :class:`~fr_torch.core.estimator.CalibrationResult` per frame, in order, without reading the stream
+    :class:`~fr_torch.core.result.CalibrationResult` per frame, in order, without reading the stream
     ahead by more than what is in flight (one batch in-process).  ``workers > 0`` with
     ``whole_frames`` (the default for a CPU estimator): two chunks of ``batch_size`` frames per
     worker, each calibrated whole in a worker process, as :func:`calibrate_paths` does.  Without

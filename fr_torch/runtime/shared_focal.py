@@ -51,23 +51,17 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from fr_torch.core.camera import image_centre
-from fr_torch.core.cues import EDGE_REASON
+from fr_torch.core.geometry.conventions import image_centre
+from fr_torch.core.reliability.sanity import EDGE_REASON
 from fr_torch.core.exact import exact_sum
-from fr_torch.core.fov import FovRange
-from fr_torch.core.likelihood import SegmentFeatures
-from fr_torch.core.params import rotations
-from fr_torch.core.search import (
-    _focal_ridge_rotations,
-    angles_from_search_rotation,
-    grid_hypotheses,
-    into_box,
-    parameter_box,
-    refine,
-    score_grid,
-    select_starts,
-)
-from fr_torch.core.segments import SegmentBatch
+from fr_torch.core.settings.fov import FovRange
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.geometry.params import rotations
+from fr_torch.core.search.passes import _focal_ridge_rotations
+from fr_torch.core.geometry.params import angles_from_search_rotation
+from fr_torch.core.search.grid import grid_hypotheses, into_box, parameter_box, score_grid, select_starts
+from fr_torch.core.search.refine import refine
+from fr_torch.core.likelihood.segments import SegmentBatch
 from fr_torch.errors import FRInputError
 
 #: Relative tolerance on the aspect ratio (short / long side) of the photos of one group.
@@ -134,7 +128,7 @@ def focal_profiles(estimator, features, estimates: torch.Tensor, log_ratios: np.
 
     Args:
         estimator: the :class:`~fr_torch.runtime.estimator.FREstimator` (its likelihood and search settings).
-        features: :class:`~fr_torch.core.likelihood.SegmentFeatures` of B photos (on the estimator's device).
+        features: :class:`~fr_torch.core.likelihood.measures.SegmentFeatures` of B photos (on the estimator's device).
         estimates: (B, 4) each photo's own estimate [pan, pitch, roll (degrees), f (pixels)].
         log_ratios: (K,) values of ``log(f / L)`` (:func:`log_ratio_grid`).
         settings: the profile's search settings.
@@ -271,7 +265,7 @@ class SharedFocalResult:
     length (%); ``images`` / ``images_used``: photos in the group / that entered the estimate
     (ok, with segments); ``ok`` False (and ``reason``) when no photo was usable: then ``focal_px``
     is None and ``results`` are the per-photo failures.  ``results``: one
-    :class:`~fr_torch.core.estimator.CalibrationResult` per photo, in input order, searched with the
+    :class:`~fr_torch.core.result.CalibrationResult` per photo, in input order, searched with the
     focal length known (a photo that failed alone keeps its failure).  ``focal_prior``: the prior
     that entered (:meth:`fr_torch.runtime.focal_prior.FocalPrior.to_json`) or None.
     ``principal_point``: the group's estimated principal point (x, y) in the first usable photo's
@@ -363,7 +357,7 @@ def profile_results(estimator, results, settings: SharedFocalSettings,
 def with_estimator_prior(estimator, log_ratios: np.ndarray, profiles: np.ndarray, total_length: np.ndarray,
                          long_side: np.ndarray) -> np.ndarray:
     """``profiles`` (n, K) of the data term plus the estimator's own focal prior
-    (:meth:`~fr_torch.core.likelihood.MixtureLikelihood.focal_prior`) at each grid value: the objective each
+    (:meth:`~fr_torch.core.likelihood.mixture.MixtureLikelihood.focal_prior`) at each grid value: the objective each
     photo's own estimate maximises.  ``total_length`` (n,) segment length W and ``long_side`` (n,)
     pixels, as the prior's weight and scale.  The prior corrects the likelihood's pull towards narrow
     views per photo; summed over a group it stays a per-photo correction (each profile is tempered
@@ -506,7 +500,7 @@ def calibrate_shared(estimator, images: Sequence | None = None, *, segments: Seq
 
 def require_pinhole(distortion) -> None:
     """FRInputError (one line) unless the lens setting ``distortion``
-    (:class:`~fr_torch.core.distortion.DistortionSetting`) is the pinhole camera: the shared focal
+    (:class:`~fr_torch.core.settings.distortion.DistortionSetting`) is the pinhole camera: the shared focal
     length's per-photo focal profiles are a pinhole camera's."""
     if distortion.estimates_k:
         raise FRInputError("a shared focal length (--shared-focal, --shared-focal-by) works with the pinhole model "

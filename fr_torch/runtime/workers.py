@@ -39,7 +39,7 @@ from typing import Callable, Iterator, Sequence
 
 #: Modules the fork server imports once for all workers (``__main__`` as multiprocessing does).
 #: Not ``torch._dynamo`` (1-2 s): the refinement no longer builds a ``torch.optim.Adam`` object,
-#: whose constructor imported it (it calls torch.optim's functional Adam: fr_torch.core.search._FusedAdam).
+#: whose constructor imported it (it calls torch.optim's functional Adam: fr_torch.core.search.passes._FusedAdam).
 PRELOAD = ["__main__", "fr_torch.runtime.pipeline", "fr_torch.runtime.estimator"]
 
 

@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
-from fr_torch.core.config import SearchConfig
+from fr_torch.core.settings.config import SearchConfig
 from fr_torch.errors import FRInputError
 from fr_torch.video.sources import Frame, Source
 from fr_torch.video.track import Tracking, plot_requests, stop_reason

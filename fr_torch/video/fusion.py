@@ -1,13 +1,13 @@
 """Fusion of per-frame fR estimates into a current calibration (:class:`OnlineCalibrator`).
 
 The maths only: frame sources, outputs and the ``fr track`` command live in :mod:`fr_torch.video.track`.
-Manhattan-frame geometry (the 24 symmetries, nearest rotation, angles) is in :mod:`fr_torch.core.camera`.
+Manhattan-frame geometry (the 24 symmetries, nearest rotation, angles) is in :mod:`fr_torch.core.geometry.conventions`.
 
 Fusion (one *epoch* = the frames since the last restart)
 --------------------------------------------------------
 * A frame is **rejected** when the estimate failed or ``result.reliable`` is False (too few
   segments, non-Manhattan scene, or an error bound above its limit: the promise of
-  ``configs/reliability.json``, :mod:`fr_torch.core.reliability_bounds`; the estimator's reliability
+  ``configs/reliability.json``, :mod:`fr_torch.core.reliability.bounds`; the estimator's reliability
   stage sets both).
 * Each accepted frame carries predicted absolute errors ``e`` (roll, tilt in deg, focal in %; a
   missing prediction counts as the thresholds).  Predicted *mean absolute* errors are turned into
@@ -39,15 +39,9 @@ from typing import Any
 
 import numpy as np
 
-from fr_torch.core.camera import (
-    Camera,
-    align_to,
-    camera_record,
-    nearest_rotation,
-    rotation_angle_deg,
-    rotation_angles,
-)
-from fr_torch.core.reliability import load_thresholds
+from fr_torch.core.geometry.camera import Camera, camera_record
+from fr_torch.core.geometry.conventions import align_to, nearest_rotation, rotation_angle_deg, rotation_angles
+from fr_torch.core.reliability.model import load_thresholds
 
 SIGMA_FROM_MAE = math.sqrt(math.pi / 2.0)  # Gaussian: std = MAE * sqrt(pi / 2)
 
@@ -57,7 +51,7 @@ SIGMA_FROM_MAE = math.sqrt(math.pi / 2.0)  # Gaussian: std = MAE * sqrt(pi / 2)
 class FrameEstimate:
     """What the calibrator needs from one frame (built from a CalibrationResult).
 
-    ``camera``: the frame's estimate (:class:`fr_torch.core.camera.Camera`, None when it failed);
+    ``camera``: the frame's estimate (:class:`fr_torch.core.geometry.camera.Camera`, None when it failed);
     ``focal_px``, ``rotation``, ``roll_deg``, ``tilt_deg`` ... are read-only views of it.
     """
 

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fr_torch.core.camera import Camera, focal_from_hfov
+from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import focal_from_hfov
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.detectors.registry import detect_segments
@@ -42,7 +43,7 @@ class HorizonFromLines(TimedCalibrator):
         order = np.argsort(angle[keep])
         cumulative = np.cumsum(length[keep][order])
         median = float(angle[keep][order][np.searchsorted(cumulative, cumulative[-1] / 2)])
-        # fr_torch.core.camera's roll is positive when the horizon turns anticlockwise on screen; the
+        # fr_torch.core.geometry.conventions's roll is positive when the horizon turns anticlockwise on screen; the
         # heading is not estimated (pan unknown: a horizon-only camera)
         camera = Camera.from_angles(width, height, focal_from_hfov(self.hfov_deg, width), roll_deg=-median,
                                     tilt_deg=0.0)

@@ -16,13 +16,13 @@ fR).
 * ``min_family_segments``, ``grid_entropy``, ``mean_log_likelihood``: the paper's cues (defined in
   :meth:`fr_torch.runtime.estimator.FREstimator._cues`);
 * ``focal_conditioning`` (not in the paper): how well the estimated Manhattan frame's geometry
-  constrains f, from the estimated rotation alone (:func:`fr_torch.core.cues.focal_conditioning`):
+  constrains f, from the estimated rotation alone (:func:`fr_torch.core.reliability.cues.focal_conditioning`):
   a VP whose direction makes an angle theta with the optical axis sits at ``f tan(theta)`` from the
   principal point; at theta = 0 (VP on the principal point) and theta = 90 deg (VP at infinity) its
   position says nothing about f.  The cue is ``sqrt(sum_i (sin(theta_i) cos(theta_i))^2)`` over the
   three VPs, in [0, sqrt(3)/2].  A camera panned square to a wall (one horizontal VP near the
   centre, the other and the vertical one near infinity) scores near 0.
-* ``focal_prior_share`` (not in the paper; :func:`fr_torch.core.cues.focal_prior_share`): the share of
+* ``focal_prior_share`` (not in the paper; :func:`fr_torch.core.reliability.cues.focal_prior_share`): the share of
   the focal length's determination that comes from the focal prior, from a quadratic fit of the
   objective around the estimate: ``c_p / (c_p + c_l)`` with ``c_p`` the prior's curvature in log f
   and ``c_l`` the likelihood's (angles re-optimised), in [0, 1].  It sees what
@@ -30,13 +30,13 @@ fR).
   segments, noisy ones, and narrow views whose VPs lie far outside the image, which the prior
   pulls wide (Fast-fR's log-normal, centred at 82 deg; fR's flat top from 64 deg).  0 for a given
   focal length.
-* ``focal_profile_gap`` (not in the paper; :func:`fr_torch.core.cues.focal_profile_gap`; fR only): the
+* ``focal_profile_gap`` (not in the paper; :func:`fr_torch.core.reliability.cues.focal_profile_gap`; fR only): the
   objective at the estimate minus the best objective of a known-focal search at 0.6 - 1.67 times the
   estimated focal length (nats, length-weighted): how much better the estimated focal length
   explains the segments than a clearly different one.  Small or negative: a second basin nearly as
   good (or better: a search miss), the case of most large focal errors; ``focal_prior_share`` sees
   a flat profile, this cue a second peak.  0 for a given focal length.
-* ``focal_spread`` (not in the paper; :func:`fr_torch.core.cues.focal_spread`): the marginal spread
+* ``focal_spread`` (not in the paper; :func:`fr_torch.core.reliability.cues.focal_spread`): the marginal spread
   of log f (angles re-optimised, focal prior included) of the local quadratic fit that also gives
   ``focal_prior_share``, for the objective per pixel of segment length: how sharply the whole
   objective peaks along f (``focal_prior_share`` says how much of that peak is the prior's).  0 for
@@ -46,11 +46,11 @@ The shipped models' cue sets (Fast-fR: the paper's three, ``focal_prior_share`` 
 fR: all seven)
 were chosen out of fold on the train splits (``results/DECISIONS.md``; ``focal_spread``: left-one-
 family-out on the train splits, ``results/decisions/35.md``).  The estimator also reports the three
-spread cues of :data:`fr_torch.core.cues.SPREAD_CUE_NAMES` (in :data:`CUE_NAMES`, not in a shipped
+spread cues of :data:`fr_torch.core.reliability.cues.SPREAD_CUE_NAMES` (in :data:`CUE_NAMES`, not in a shipped
 model) when a model holds a promise: its bounds rest on them.
 
 Run-time use: the estimator's last stage calls :meth:`ReliabilityModel.annotate_many`, which sets
-``predicted_error`` (this KNN) and, with a :class:`~fr_torch.core.reliability_bounds.ReliabilityPromise`
+``predicted_error`` (this KNN) and, with a :class:`~fr_torch.core.reliability.bounds.ReliabilityPromise`
 (``configs/reliability.json``'s ``promise`` block), ``error_bound`` and ``reliable`` by the promise;
 without one, or with ``"enforce": false``, ``reliable`` is cleared when a predicted error exceeds its
 threshold (``thresholds``: roll 2 deg, tilt 3 deg, focal 15 %).
@@ -73,14 +73,13 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
-
 import numpy as np
-
-from fr_torch.core.config import Mode
-from fr_torch.core.cues import SPREAD_CUE_NAMES
-from fr_torch.core.likelihood import LikelihoodParams
-from fr_torch.core.reliability_bounds import ReliabilityPromise
+from fr_torch.core.settings.config import Mode
+from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
+from fr_torch.core.likelihood.mixture import LikelihoodParams
+from fr_torch.core.reliability.bounds import ReliabilityPromise
 from fr_torch.resources import config_dir
+
 
 _config_dir = config_dir  # load_default has an argument of that name
 
@@ -89,7 +88,7 @@ FR_MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_conditioning", "focal_prior_share
                                          "focal_spread")  # fR's shipped model: the seven of the module docstring
 MODEL_CUE_NAMES = PAPER_CUE_NAMES + ("focal_prior_share", "focal_spread")  # Fast-fR's shipped model (module docstring)
 # what the estimator reports: the seven (focal_profile_gap in fr mode only) and, when the promise's
-# bounds need them, the spreads (fr_torch.core.cues.SPREAD_CUE_NAMES, fr_torch.core.reliability_bounds)
+# bounds need them, the spreads (fr_torch.core.reliability.cues.SPREAD_CUE_NAMES, fr_torch.core.reliability.bounds)
 CUE_NAMES = FR_MODEL_CUE_NAMES + SPREAD_CUE_NAMES
 TARGETS = ("roll_deg", "tilt_deg", "focal_pct")
 ERROR_COLUMNS = ("roll_err_deg", "tilt_err_deg", "focal_err_pct")  # training-record column names
@@ -307,7 +306,7 @@ class ReliabilityModel:
     def detectors(self) -> tuple[str, ...]:
         """Names of the line detectors whose segments the model applies to: the one it was trained
         on (``trained_for["detector"]``) and those its promise was validated on
-        (:attr:`~fr_torch.core.reliability_bounds.ReliabilityPromise.validated_detectors`)."""
+        (:attr:`~fr_torch.core.reliability.bounds.ReliabilityPromise.validated_detectors`)."""
         validated = self.promise.validated_detectors if self.promise is not None else ()
         return tuple(dict.fromkeys([self.trained_for["detector"], *validated]))
 
@@ -318,7 +317,7 @@ class ReliabilityModel:
         The cues, and the errors they predict, depend on the deviation measure, the likelihood and
         the segments' detector: a model predicts only for the setting it was trained on
         (:attr:`trained_for`).  ``likelihood_params``: the estimator's
-        :class:`~fr_torch.core.likelihood.LikelihoodParams` (before its FOV range is applied), compared
+        :class:`~fr_torch.core.likelihood.mixture.LikelihoodParams` (before its FOV range is applied), compared
         with those of the trained measure and likelihood config in ``mode``; ``likelihood_name``: what
         the message calls them.  ``detector``: the name of the detector that produced the segments,
         None when they came from the caller (not checked); it must be one of :attr:`detectors`, and
@@ -343,7 +342,7 @@ class ReliabilityModel:
     @property
     def needs_spreads(self) -> bool:
         """True when the model holds a promise: its bounds rest on the spread cues
-        (:data:`fr_torch.core.cues.SPREAD_CUE_NAMES`), which the estimator then computes."""
+        (:data:`fr_torch.core.reliability.cues.SPREAD_CUE_NAMES`), which the estimator then computes."""
         return self.promise is not None
 
     def predict_dict(self, cues: dict) -> dict[str, float]:
@@ -358,7 +357,7 @@ class ReliabilityModel:
                       focal_known: Sequence[bool] | None = None) -> None:
         """:meth:`annotate` for many results with one prediction call (results with ``ok`` False are
         left alone): ``predicted_error`` from the KNN, ``error_bound`` from the promise's bounds
-        (:meth:`~fr_torch.core.reliability_bounds.ReliabilityPromise.bounds`, from the result's
+        (:meth:`~fr_torch.core.reliability.bounds.ReliabilityPromise.bounds`, from the result's
         spread cues) and ``reliable = False`` with the reason when a bound exceeds its limit (the
         promise enforced) or a predicted error its threshold (not enforced, or no promise).
         ``focal_known`` (one bool per result): the focal length was given, not estimated; its

@@ -8,15 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Sequence
-
 import numpy as np
 import torch
-
-from fr_torch.core.camera import image_centre
-from fr_torch.core.checks import MAX_REACH_IMAGE_SIZES
+from fr_torch.core.geometry.conventions import image_centre
+from fr_torch.core.settings.checks import MAX_REACH_IMAGE_SIZES
 from fr_torch.errors import FRInputError
 
-# --------------------------------------------------------------------------- filters
 
 @dataclass(frozen=True)
 class SegmentFilter:
@@ -95,7 +92,7 @@ def validate_segments(segments, name: str = "segments", finite: bool = True) -> 
 def drop_absurd_segments(segments: np.ndarray, size: tuple[float, float]) -> tuple[np.ndarray, int]:
     """Drop the rows of (N, 4) ``segments`` of an image of ``size`` (width, height) pixels that no
     image of that size can hold: a non-finite coordinate, or an endpoint further than
-    :data:`~fr_torch.core.checks.MAX_REACH_IMAGE_SIZES` long sides from the image centre (1e20 px
+    :data:`~fr_torch.core.settings.checks.MAX_REACH_IMAGE_SIZES` long sides from the image centre (1e20 px
     is a bug upstream, not a line; kept, it overflows the float32 search into NaN).  Returns the
     kept rows (input order) and how many were dropped."""
     width, height = float(size[0]), float(size[1])
@@ -107,7 +104,7 @@ def drop_absurd_segments(segments: np.ndarray, size: tuple[float, float]) -> tup
     return (segments[keep] if dropped else segments), dropped
 
 
-# --------------------------------------------------------------------------- batches
+
 
 @dataclass
 class SegmentBatch:

@@ -39,12 +39,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
-
 import torch
-
-from fr_torch.core.camera import signed_rows, vanishing_point_rows, vanishing_points
+from fr_torch.core.geometry.conventions import signed_rows, vanishing_point_rows, vanishing_points
 from fr_torch.core.exact import cross3, dot3, exact_sum, first_argmax, small_sum, top_indices
 from fr_torch.errors import FRInputError
+
 
 #: Images whose Atlanta candidates are scored at once (bounds memory: N x A deviations each).
 ATLANTA_CHUNK_IMAGES = 4
@@ -141,8 +140,8 @@ def rank_vanishing_points(likelihood, features, rotation: torch.Tensor, focal: t
                           atlanta: AtlantaConfig | None = None) -> RankedVanishingPoints:
     """Rank the Manhattan VPs of B estimates by support and add extra families (module docstring).
 
-    ``likelihood``: the :class:`~fr_torch.core.likelihood.MixtureLikelihood` of the search;
-    ``features``: its :class:`~fr_torch.core.likelihood.SegmentFeatures` (B, N); ``rotation``
+    ``likelihood``: the :class:`~fr_torch.core.likelihood.mixture.MixtureLikelihood` of the search;
+    ``features``: its :class:`~fr_torch.core.likelihood.measures.SegmentFeatures` (B, N); ``rotation``
     (B, 3, 3) world -> camera; ``focal`` (B,) pixels.  Computed in float64.
     """
     if atlanta is not None and likelihood.params.model != "mixture":
@@ -166,7 +165,7 @@ def _unit_directions(focal: torch.Tensor, pp: torch.Tensor, points: torch.Tensor
 def _pixels(focal: torch.Tensor, pp: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
     """Homogeneous pixel points ``K d`` (B, C, 3) of camera directions d (B, C, 3), focal lengths
     (B,) and principal points (B, 2), pixels: their vanishing points
-    (:func:`fr_torch.core.camera.vanishing_points`, directions as columns)."""
+    (:func:`fr_torch.core.geometry.conventions.vanishing_points`, directions as columns)."""
     return vanishing_points(focal, pp, dirs.transpose(-1, -2)).transpose(-1, -2)
 
 

@@ -19,12 +19,12 @@ import math
 from dataclasses import dataclass, fields, replace
 from enum import StrEnum
 from pathlib import Path
-
-from fr_torch.core.checks import enum_member
-from fr_torch.core.distortion import DistortionSetting
-from fr_torch.core.fov import FovRange, two_numbers
+from fr_torch.core.settings.checks import enum_member
+from fr_torch.core.settings.distortion import DistortionSetting
+from fr_torch.core.settings.fov import FovRange, two_numbers
 from fr_torch.errors import FRInputError
 from fr_torch.resources import config_path
+
 
 FOCAL_GRIDS = ("linear_f", "log_f", "fov")
 
@@ -54,13 +54,21 @@ MODE_PRESETS: dict[Mode, dict[str, int]] = {
 
 
 #: The fits a search can return (:attr:`SearchConfig.fit`): fR's Manhattan mixture fit, the horizon fit
-#: (:mod:`fr_torch.core.horizon_fit`), or a per-photo choice between the two.
+#: (:mod:`fr_torch.core.search.horizon`), or a per-photo choice between the two.
 FITS = ("manhattan", "horizon", "choose")
+
+#: Settings that no longer exist, each with the one-line error that says what replaced it (kept for
+#: a release, so that a configuration written for an older version fails with a reason).
+REMOVED_SETTINGS = {
+    "compile_search": "compile_search (--compile) was removed in 0.2: the fused CPU kernels "
+                      "(fr_torch.core.likelihood.native) replaced it and give the same bits as the default search; "
+                      "drop the setting",
+}
 
 
 @dataclass(frozen=True)
 class HorizonFitConfig:
-    """Settings of the horizon fit (:mod:`fr_torch.core.horizon_fit`); angles in degrees.
+    """Settings of the horizon fit (:mod:`fr_torch.core.search.horizon`); angles in degrees.
 
     ``inlier_deg``: a segment votes for a vanishing point within this angle (measure b), with a
     weight falling from 1 to 0 there; ``kernel_deg``: the width of the refinement's smooth vote;
@@ -121,20 +129,20 @@ class HorizonFitConfig:
 class SearchConfig:
     """Search settings; angles in degrees.
 
-    ``fov_range``: the :class:`~fr_torch.core.fov.FovRange` searched (FOV across the image's long
+    ``fov_range``: the :class:`~fr_torch.core.settings.fov.FovRange` searched (FOV across the image's long
     side; default [30, 120]); a name, ``"MIN,MAX"`` or a pair is parsed on construction.
     ``pan_range_deg`` / ``pitch_range_deg`` / ``roll_range_deg``: the angle boxes of the grid and the
     refinement (default [-45, 45], [-35, 35], [-15, 15]; pitch and roll within [-89, 89];
     :meth:`with_angle_range`).  A pan box of exactly 90 deg wraps (:attr:`periodic_pan`); a pitch
-    or roll estimate at its box's edge is flagged unreliable (:func:`fr_torch.core.cues.check_result`).
+    or roll estimate at its box's edge is flagged unreliable (:func:`fr_torch.core.reliability.sanity.check_result`).
     ``grid_points_per_dim``: k of the stage-1 k^4 grid.  ``top_l``: grid points refined.
     ``focal_grid``: spacing of the stage-1 focal values: ``linear_f`` (the paper / MATLAB release),
     ``log_f`` (uniform in log f) or ``fov`` (uniform in FOV).
-    ``focal_sweep_points``: focal values of :func:`fr_torch.core.search.sweep_focal` (each ``top_l``
+    ``focal_sweep_points``: focal values of :func:`fr_torch.core.search.passes.sweep_focal` (each ``top_l``
     start tried at this many focal lengths over the whole range with its vertical VP fixed, the
     best added as a second start; 0 = off).
     ``grid_passes``: coarse-to-fine passes around each start before refinement
-    (:func:`fr_torch.core.search.subdivide_starts`); each scores 3^4 = 81 points per start.
+    (:func:`fr_torch.core.search.passes.subdivide_starts`); each scores 3^4 = 81 points per start.
     0 = the paper's two stages.
     ``refine_iterations``: refinement steps; ``max_segments``: each image keeps at most this many
     of its longest segments (bounds the time per image whatever the photo); ``grid_segments``:
@@ -145,16 +153,13 @@ class SearchConfig:
     count.
     ``max_chunk_elements``: on a GPU, at most this many per-segment deviations are scored and
     refined at once (about 7 bytes each in the eager grid; 2^27 is under 1 GB).  On a CPU the
-    chunks are cache-sized (:mod:`fr_torch.core.search`) and this only caps them.  Results do not
+    chunks are cache-sized (:mod:`fr_torch.core.search.passes`) and this only caps them.  Results do not
     depend on it.
-    ``compile_search``: score the no-gradient hypotheses with one kernel fused by ``torch.compile``
-    and compile the refinement step too (``--compile``); the same estimates to float rounding, a
-    compilation per process (10-25 s on a 2-core CPU), then faster.  Off by default.
-    ``distortion``: the lens model (:class:`~fr_torch.core.distortion.DistortionSetting`; a mode
+    ``distortion``: the lens model (:class:`~fr_torch.core.settings.distortion.DistortionSetting`; a mode
     name or a dict is parsed on construction): pinhole (the default) or the division model's k
-    estimated jointly with f and R (:mod:`fr_torch.core.search_distortion`).
+    estimated jointly with f and R (:mod:`fr_torch.core.search.lens`).
     ``distortion_grid_k``: the values of k stage 1 scores besides (``distortion_plumb_line``) the
-    k that straightens pieces of lines (:func:`fr_torch.core.search_distortion.plumb_line`); a known
+    k that straightens pieces of lines (:func:`fr_torch.core.search.lens.plumb_line`); a known
     k replaces them all; ``distortion_grid_size``: the k of the k^4 angle-and-focal grid at each
     (0 = ``grid_points_per_dim``); ``distortion_lattice``: the lattice passes step k on its own axis
     (``axis``: the 3^4 lattice at the start's k, and k one step either side) or with the other
@@ -162,9 +167,9 @@ class SearchConfig:
     start from (their first k step is a third of it).
     ``results/decisions/46.md`` says how they were chosen.
     ``fit``: what the pinhole search returns (:data:`FITS`): ``manhattan`` (fR's mixture fit),
-    ``horizon`` (the horizon fit, :mod:`fr_torch.core.horizon_fit`, where it finds a vertical) or
+    ``horizon`` (the horizon fit, :mod:`fr_torch.core.search.horizon`, where it finds a vertical) or
     ``choose`` (per photo, by a rule learned on a train split from the photo's evidence,
-    :func:`fr_torch.core.horizon_fit.choose_fit`); ``horizon``: the horizon fit's settings
+    :func:`fr_torch.core.search.choice.choose_fit`); ``horizon``: the horizon fit's settings
     (:class:`HorizonFitConfig`, a dict is parsed on construction).  The division-lens search is
     always the Manhattan fit.
 
@@ -186,7 +191,6 @@ class SearchConfig:
     refine_tolerance: float = 0.0
     refine_patience: int = 10
     max_chunk_elements: int = 1 << 27
-    compile_search: bool = False
     distortion: DistortionSetting = DistortionSetting()
     distortion_grid_k: tuple[float, ...] = (-0.4, 0.0)
     distortion_grid_size: int = 6
@@ -255,6 +259,9 @@ class SearchConfig:
             raise FRInputError(f"search config {path}: expected a JSON object of overrides")
         values = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
         values.update(overrides)
+        for name in values:
+            if name in REMOVED_SETTINGS:
+                raise FRInputError(REMOVED_SETTINGS[name])
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(values) - known)
         if unknown:
@@ -280,7 +287,7 @@ class SearchConfig:
 
     def with_distortion(self, mode=None, known_k: float | None = None) -> "SearchConfig":
         """A copy with the lens model ``mode`` (``pinhole``, ``division``, ``auto``; None keeps the
-        current one) and, when given, a known k (normalised: :mod:`fr_torch.core.distortion`)."""
+        current one) and, when given, a known k (normalised: :mod:`fr_torch.core.geometry.lens`)."""
         current = self.distortion
         setting = replace(current, mode=current.mode if mode is None else mode,
                           known_k=current.known_k if known_k is None else known_k)

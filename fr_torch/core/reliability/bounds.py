@@ -2,12 +2,12 @@
 they are held to.
 
 Each estimate carries two **spreads** that the estimator measures on its own segments
-(:func:`fr_torch.core.cues.focal_cues` with ``spreads`` on), from which its error scales come:
+(:func:`fr_torch.core.reliability.cues.focal_cues` with ``spreads`` on), from which its error scales come:
 
 * focal, in % of f: ``sigma_f = 100 sqrt(focal_profile_spread x focal_resample_spread)``
   (:func:`focal_sigma_pct`), the geometric mean of how far f could move before the segments notice
-  at the profile points 13 % / 15 % away (:func:`fr_torch.core.cues.focal_profile_spread`) and of
-  the spread of log f when the segments are resampled (:func:`fr_torch.core.cues.resample_spreads`);
+  at the profile points 13 % / 15 % away (:func:`fr_torch.core.reliability.cues.focal_profile_spread`) and of
+  the spread of log f when the segments are resampled (:func:`fr_torch.core.reliability.cues.resample_spreads`);
   both leave the focal prior out, so a focal length that the prior set gets a wide one;
 * tilt, in degrees: ``sigma_t = hypot(pitch_resample_spread, TILT_FLOOR_DEG)`` (:func:`tilt_sigma_deg`):
   the pitch's resampling spread, and a floor for what no per-photo spread sees -- chiefly the
@@ -36,10 +36,9 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
-
 import numpy as np
-
 from fr_torch.resources import config_dir
+
 
 PROMISE_TARGETS = ("focal_pct", "tilt_deg")
 DEFAULT_LIMITS = {"focal_pct": 10.0, "tilt_deg": 3.0}
@@ -97,11 +96,11 @@ HORIZON_BOUND_CAP_PCT = 1000.0
 def horizon_bound_pct(bounds: Mapping[str, float] | None, focal_px: float, tilt_deg: float,
                       height: float) -> float | None:
     """A 90 % bound of the horizon benchmark's error (the larger vertical distance at the left and
-    right borders, :meth:`fr_torch.core.camera.Horizon.error`) in % of the image height, from the
+    right borders, :meth:`fr_torch.core.geometry.horizon.Horizon.error`) in % of the image height, from the
     estimate's tilt and focal bounds (:meth:`ReliabilityPromise.bounds`).
 
     Derivation: the horizon crosses the image column of the principal point at
-    ``y = c_y + f tan(tilt)`` (:mod:`fr_torch.core.camera`: ``tilt = atan(c_z / c_y)`` of world-up c)
+    ``y = c_y + f tan(tilt)`` (:mod:`fr_torch.core.geometry.conventions`: ``tilt = atan(c_z / c_y)`` of world-up c)
     and has slope ``-tan(roll)``.  A tilt error within its bound ``b_t`` moves that crossing by at
     most ``f max_(+-) |tan(tilt +- b_t) - tan(tilt)|``, a focal error within ``b_f`` (%) by
     ``f |tan(tilt)| b_f / 100``; the bound is their sum (the horizon is off by more only when one of

@@ -46,7 +46,7 @@ density (>= 0.019 for measure b), which it cannot change in float32 or float64, 
 is unchanged bit for bit whenever the background prior exceeds ~1e-28.  ``atan2(0, 0) = 0`` as in
 the generic path (and the gradient there is 0, as the generic path's guard gives).
 
-Fused CPU kernels (float32 on a CPU, where they build: :mod:`fr_torch.core.native`): the grid's
+Fused CPU kernels (float32 on a CPU, where they build: :mod:`fr_torch.core.likelihood.native`): the grid's
 scores (:func:`objective_b_nograd`) and the refinement's objective with its gradient
 (:func:`measure_b_objective_and_grad`) run as one C pass each, which never stores the per-segment
 deviations and keeps the exact sums' integers in registers; the same operations in the same
@@ -55,46 +55,46 @@ other device, dtype and machine: the same bits either way.
 
 One photo, one answer: s and t are written out per entry (:func:`incidence`, no matrix product),
 the angle is ``atan(|s / t|)``, the families are added in one order on every path
-(:func:`_family_sum`) and every sum over segments is exact
+(:func:`family_sum`) and every sum over segments is exact
 (:func:`fr_torch.core.exact.exact_sum`), so an image's objective (float64) is the same bits in
 any batch, chunk, thread count and CPU kernel set (:mod:`fr_torch.core.exact`).
-
-Compiled search (opt-in, ``MixtureLikelihood(compiled=True)``, ``SearchConfig.compile_search``,
-``--compile``): the no-gradient measure-b sums are written as broadcast elementwise ops and one
-reduction over segments (:func:`objective_b_elementwise`), which ``torch.compile`` turns into one
-fused kernel (C++ on CPU, Triton on CUDA) that never stores the (B, 2N, 3H) deviations; the
-refinement's closed-form objective and gradient (:func:`fr_torch.core.search.objective_and_grad`) are
-compiled too, which removes most of its per-step operator overhead.  Compilation happens once per
-process (:func:`compiled_call`); where it fails (no C++ compiler, no Triton)
-the estimator warns once and keeps the eager paths.
 """
 from __future__ import annotations
 
 import json
 import math
-import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-
 import torch
-
-from fr_torch.core.camera import (
-    VERTICAL_AXIS,
-    focal_from_hfov,
-    vanishing_points,
-)
-from fr_torch.core import native
-from fr_torch.core.config import Mode
-from fr_torch.core.exact import angle_of, angle_of_, dot3, exact_sum, fixed_point_scale, small_sum, top_indices
-from fr_torch.core.fov import FOV_LIMITS_DEG, FovRange
-from fr_torch.core.segments import SegmentBatch
+from fr_torch.core.geometry.conventions import VERTICAL_AXIS, focal_from_hfov, vanishing_points
+from fr_torch.core.likelihood import native
+from fr_torch.core.settings.config import Mode
+from fr_torch.core.exact import exact_sum, small_sum
+from fr_torch.core.settings.fov import FOV_LIMITS_DEG, FovRange
 from fr_torch.resources import config_dir
+from fr_torch.core.likelihood.measures import (
+    MEASURES,
+    SegmentFeatures,
+    incidence_of,
+    deviations_from_incidence,
+    incidence,
+)
+from fr_torch.core.likelihood.objective import (
+    EXP_FLOOR,
+    MeasureBObjective,
+    family_sum,
+    log_sum_bound,
+    native_ok,
+    measure_b_objective_and_grad,
+    objective_b_nograd,
+    vp_major,
+)
+from fr_torch.core.likelihood.measures import RANGE_PX
 
-MEASURES = ("a", "b", "c", "d", "e")
+
 MODELS = ("mixture", "nomixture")
 CONFIG_DIR = config_dir()  # the shipped configs/ folder (fr_torch/resources.py)
 DEFAULT_LIKELIHOOD_CONFIG = CONFIG_DIR / "likelihood.json"
-_TINY = 1e-30  # guards 0 / 0 in measure a
 
 
 def likelihood_config_path(name_or_path: str | Path | None) -> Path:
@@ -145,7 +145,7 @@ class LikelihoodParams:
     prior_vertical: float = 0.45
     prior_horizontal: float = 0.26
     prior_background: float = 0.03
-    range_px: float = 2000.0
+    range_px: float = RANGE_PX
     model: str = "mixture"
     focal_prior_weight: float = 0.0
     focal_prior_hfov_deg: float = 82.0
@@ -286,186 +286,14 @@ class LikelihoodParams:
                    prior_background=background / total, range_px=range_px)
 
 
-@dataclass
-class SegmentFeatures:
-    """Per-segment quantities the likelihood needs, (B, N, ...) tensors (see module docstring)."""
-
-    line: torch.Tensor  # (B, N, 3) l, unit normal
-    along: torch.Tensor  # (B, N, 3) g
-    half_length: torch.Tensor  # (B, N) pixels
-    weight: torch.Tensor  # (B, N) length in pixels, 0 for padding
-    mask: torch.Tensor  # (B, N) bool
-    principal_point: torch.Tensor  # (B, 2) pixels
-    long_side: torch.Tensor  # (B,) the image's longer side, pixels (the focal prior's scale)
-    #: (B, 2N, 3) ``line`` then ``along`` rows: one :func:`incidence` with the VPs gives s and t
-    #: (the measure-b paths).
-    #: Built from ``line`` and ``along`` unless given (then ``line`` and ``along`` are its halves).
-    line_along: torch.Tensor | None = field(default=None, repr=False)
-
-    def __post_init__(self) -> None:
-        if self.line_along is None:
-            self.line_along = torch.cat([self.line, self.along], 1)
-
-    @classmethod
-    def from_batch(cls, batch: SegmentBatch, principal_point: torch.Tensor) -> "SegmentFeatures":
-        return cls.from_endpoints(batch.endpoints, batch.mask, principal_point,
-                                  batch.image_size.to(batch.endpoints).amax(-1))
-
-    @classmethod
-    def from_endpoints(cls, endpoints: torch.Tensor, mask: torch.Tensor | None,
-                       principal_point: torch.Tensor, long_side: torch.Tensor | None = None) -> "SegmentFeatures":
-        """``long_side`` (B,) pixels; default ``2 max(pp) + 1`` (the image's long side when the
-        principal point is the image centre, :func:`fr_torch.core.camera.image_centre`)."""
-        p1, p2 = endpoints[..., :2], endpoints[..., 2:]
-        delta = p2 - p1
-        length = torch.sqrt(delta[..., 0] * delta[..., 0] + delta[..., 1] * delta[..., 1])
-        if mask is None:
-            mask = torch.ones_like(length, dtype=torch.bool)
-        mask = mask & (length > 0)
-        d = delta / length.clamp_min(1e-12).unsqueeze(-1)
-        m = (p1 + p2) / 2
-        line = torch.stack([-d[..., 1], d[..., 0], d[..., 1] * m[..., 0] - d[..., 0] * m[..., 1]], -1)
-        along = torch.stack([d[..., 0], d[..., 1], -(d[..., 0] * m[..., 0] + d[..., 1] * m[..., 1])], -1)
-        pp = principal_point.to(endpoints).expand(endpoints.shape[0], 2)
-        long_side = 2 * pp.amax(-1) + 1 if long_side is None else long_side.to(endpoints).expand(endpoints.shape[0])
-        return cls(line, along, length / 2, length * mask, mask, pp, long_side)
-
-    def total_length(self) -> torch.Tensor:
-        """(B,) float64 total segment length per image, pixels (an exact sum: the same bits in any
-        batch, :func:`fr_torch.core.exact.exact_sum`); computed once per object (the search asks
-        for it at every step), so the tensors must not change in place afterwards."""
-        cached = self.__dict__.get("_total_length")
-        if cached is None:
-            cached = self.__dict__["_total_length"] = exact_sum(self.weight, 1)
-        return cached
-
-    def longest(self, count: int) -> "SegmentFeatures":
-        """The ``count`` longest segments of each image (B, min(count, N), ...); padding stays last
-        (weight 0)."""
-        if count >= self.weight.shape[1]:
-            return self
-        index = top_indices(self.weight, count, dim=1)  # (B, count), equal lengths in segment order
-
-        def take(x: torch.Tensor) -> torch.Tensor:
-            shaped = index.view(index.shape + (1,) * (x.dim() - 2)).expand(index.shape + x.shape[2:])
-            return torch.gather(x, 1, shaped)
-
-        return SegmentFeatures(take(self.line), take(self.along), take(self.half_length), take(self.weight),
-                               take(self.mask), self.principal_point, self.long_side)
-
-    def take_images(self, index: torch.Tensor) -> "SegmentFeatures":
-        """Images ``index`` (M,) int64 of the batch, in that order, repeats allowed: (M, N, ...)
-        (copies)."""
-        def take(x: torch.Tensor) -> torch.Tensor:
-            return x.index_select(0, index)
-
-        return SegmentFeatures(take(self.line), take(self.along), take(self.half_length), take(self.weight),
-                               take(self.mask), take(self.principal_point), take(self.long_side))
-
-    def images(self, start: int, stop: int) -> "SegmentFeatures":
-        """Images ``start:stop`` of the batch (views, no copies)."""
-        if start == 0 and stop >= self.weight.shape[0]:
-            return self
-        return SegmentFeatures(self.line[start:stop], self.along[start:stop], self.half_length[start:stop],
-                               self.weight[start:stop], self.mask[start:stop], self.principal_point[start:stop],
-                               self.long_side[start:stop])
-
-
-def incidence(rows: torch.Tensor, columns: torch.Tensor, out: torch.Tensor | None = None,
-              tmp: torch.Tensor | None = None) -> torch.Tensor:
-    """``rows @ columns`` for (B, R, 3) segment rows (``line`` or ``along`` coefficients) and (B, 3, M)
-    homogeneous points: (B, R, M), every entry ``r_0 c_0 + r_1 c_1 + r_2 c_2`` with one rounding per
-    product and sum (:func:`fr_torch.core.exact.dot3`'s order), not a matrix product, so a segment's
-    s and t are the same bits in any batch, chunk and kernel set.  ``out`` / ``tmp``: optional
-    buffers of the result's shape (the grid reuses them)."""
-    if out is None:  # functional (differentiable); the same operations in the same order
-        return dot3(rows[:, :, None, :], columns.transpose(1, 2)[:, None, :, :])
-    torch.mul(rows[:, :, 0, None], columns[:, None, 0], out=out)
-    tmp = tmp if tmp is not None else torch.empty_like(out)
-    for c in (1, 2):
-        out.add_(torch.mul(rows[:, :, c, None], columns[:, None, c], out=tmp))
-    return out
-
-
-def _incidence(features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor):
-    """s = l . v and t = g . v for the homogeneous VPs v = K R[:, k].
-
-    Returns s, t with shape (B, N, H, 3) (segments before hypotheses) and v3 with shape (B, 1, H, 3).
-    """
-    vps = vanishing_points(focal, features.principal_point[:, None, :], rotation)  # (B, H, 3, 3)
-    batch, hyp = vps.shape[:2]
-    flat = vps.permute(0, 2, 1, 3).reshape(batch, 3, hyp * 3)  # (B, 3 coords, H * 3 VPs)
-    s = incidence(features.line, flat).view(batch, -1, hyp, 3)
-    t = incidence(features.along, flat).view(batch, -1, hyp, 3)
-    return s, t, vps[:, None, :, 2, :]
-
-
-def deviations_from_incidence(measure: str, s: torch.Tensor, t: torch.Tensor, v3: torch.Tensor,
-                              features: SegmentFeatures, focal: torch.Tensor,
-                              range_px: float = LikelihoodParams.range_px) -> torch.Tensor:
-    """Deviation of every segment from every VP, internal units (rad or px).
-
-    ``s``, ``t``: (B, N, H, 3); ``v3``: (B, 1, H, 3); ``focal``: (B, H).  Returns (B, N, H, 3).
-    """
-    abs_s = s.abs()
-    if measure == "a":
-        return range_px * abs_s / (torch.maximum(abs_s, range_px * v3.abs()) + _TINY)
-    if measure == "e":
-        # |n| for n = K^T l: (f l_x, f l_y, l . (c, 1)) with (l_x, l_y) a unit vector; |D| = |R[:, k]| = 1.
-        pp_h = torch.cat([features.principal_point, torch.ones_like(features.principal_point[:, :1])], -1)
-        offset = (features.line * pp_h[:, None, :]).sum(-1)
-        normal_sq = (focal[:, None, :] ** 2 + offset[:, :, None] ** 2)[..., None]  # (B, N, H, 1)
-        # asin(|s| / |n|) written as atan2(|s|, sqrt(|n|^2 - s^2)): the same angle, but finite with a
-        # finite gradient in float32 where |s| / |n| rounds to 1 (asin' = inf there -> NaN parameters).
-        cos_part = torch.sqrt((normal_sq - abs_s * abs_s).clamp_min(normal_sq * 1e-12))
-        return angle_of(abs_s, cos_part)
-    abs_t = t.abs()
-    # A midpoint exactly on the VP (s = t = 0) gets angle 0 with a finite gradient.
-    angle = angle_of(abs_s, torch.where((abs_s == 0) & (abs_t == 0), torch.ones_like(abs_t), abs_t))
-    if measure == "b":
-        return angle
-    half = features.half_length[:, :, None, None]
-    if measure == "c":
-        return half * torch.sin(angle)
-    if measure == "d":
-        return torch.minimum(half * torch.tan(angle.clamp(max=math.pi / 2 - 1e-6)), half)
-    raise ValueError(f"unknown deviation measure {measure!r}")
-
-
-def deviations(measure: str, endpoints: torch.Tensor, vps: torch.Tensor, focal: torch.Tensor,
-               principal_point: torch.Tensor, mask: torch.Tensor | None = None,
-               range_px: float = LikelihoodParams.range_px) -> torch.Tensor:
-    """Deviation of segments (B, N, 4) from homogeneous VPs ``vps`` (B, H, 3, 3; column k = VP k).
-
-    ``focal`` (B, H) and ``principal_point`` (B, 2) in pixels (needed by measure e).  Returns
-    (B, H, N, 3) in radians (b, e) or pixels (a, c, d).
-    """
-    features = SegmentFeatures.from_endpoints(endpoints, mask, principal_point)
-    if measure == "e":  # normalise so that |K^-1 v| = 1, as for a column of R
-        pp = features.principal_point[:, None, :, None]
-        direction = torch.stack([(vps[:, :, 0] - pp[..., 0, :] * vps[:, :, 2]) / focal[..., None],
-                                 (vps[:, :, 1] - pp[..., 1, :] * vps[:, :, 2]) / focal[..., None],
-                                 vps[:, :, 2]], -2)
-        vps = vps / torch.sqrt(small_sum(direction * direction, -2))[:, :, None, :]
-    columns = vps.transpose(-1, -2)[:, None]  # (B, 1, H, 3 VPs, 3 coordinates)
-    s = dot3(features.line[:, :, None, None, :], columns)
-    t = dot3(features.along[:, :, None, None, :], columns)
-    x = deviations_from_incidence(measure, s, t, vps[:, None, :, 2, :], features, focal, range_px)
-    return x.transpose(1, 2)
-
-
 class MixtureLikelihood:
     """The fR mixture model for one deviation measure; all methods are batched tensor ops.
 
     Hypotheses come as rotations (B, H, 3, 3) and focal lengths (B, H) in pixels.
     """
 
-    def __init__(self, params: LikelihoodParams | None = None, compiled: bool = False):
-        """``compiled``: score no-gradient measure-b hypotheses (grid, sweep, passes, cue lattice)
-        with :func:`objective_b_elementwise` under ``torch.compile``, and let the refinement
-        compile its step (module docstring); turned off, with one warning, where that fails."""
+    def __init__(self, params: LikelihoodParams | None = None):
         self.params = params or LikelihoodParams.from_config()
-        self.compiled = bool(compiled)
         # log(f0 / L): the focal prior's centre as a focal length per pixel of the long side
         self._prior_centre = math.log(focal_from_hfov(self.params.focal_prior_hfov_deg, 1.0))
 
@@ -489,7 +317,7 @@ class MixtureLikelihood:
         return math.log(p.prior_background) - torch.log(half)
 
     def _deviations(self, features, rotation, focal) -> torch.Tensor:
-        s, t, v3 = _incidence(features, rotation, focal)
+        s, t, v3 = incidence_of(features, rotation, focal)
         return deviations_from_incidence(self.params.measure, s, t, v3, features, focal, self.params.range_px)
 
     def _component_log_densities(self, x: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:
@@ -540,7 +368,7 @@ class MixtureLikelihood:
         else:
             density = torch.exp(x * (-1.0 / scale)) * (prior / scale)
         background = torch.exp(self._log_background(density, features))[..., 0]
-        return torch.log(_family_sum(density, -1) + background)
+        return torch.log(family_sum(density, -1) + background)
 
     def objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                   workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
@@ -602,13 +430,8 @@ class MixtureLikelihood:
             flat = vp_major(vps)
             constants = self._b_constants(features.weight)
             if torch.is_grad_enabled() and vps.requires_grad:
-                return _MeasureBObjective.apply(features.line_along, features.weight, flat, *constants)
+                return MeasureBObjective.apply(features.line_along, features.weight, flat, *constants)
             with torch.no_grad():
-                if self.compiled:
-                    value = compiled_call(objective_b_elementwise, self, features.line_along, features.weight,
-                                          flat.contiguous(), *constants)
-                    if value is not None:
-                        return value
                 return objective_b_nograd(features.line_along, features.weight, flat, *constants,
                                           workspace=workspace, vertical_block=vertical_block)
         if self.params.model == "nomixture":
@@ -633,17 +456,17 @@ class MixtureLikelihood:
     def sum_over_segments(self, log_p: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:
         """``sum_i len_i log p_i`` of per-segment terms (B, N, H) from :meth:`segment_log_p`: (B, H)
         float64, the data part of :meth:`objective` bit for bit (the same exact sum and bound)."""
-        bound = _log_sum_bound(features.weight, self._b_constants(features.weight)[-1]) \
+        bound = log_sum_bound(features.weight, self._b_constants(features.weight)[-1]) \
             if self._fast_path(features) else None
         return exact_sum(log_p, 1, bound=bound, weight=features.weight[:, :, None])
 
     def stores_no_deviations(self, features: SegmentFeatures) -> bool:
-        """True when scoring without gradients runs the fused kernel (:mod:`fr_torch.core.native`),
+        """True when scoring without gradients runs the fused kernel (:mod:`fr_torch.core.likelihood.native`),
         which keeps no per-segment deviations: the grid needs no chunking for memory then."""
-        return self._fast_path(features) and not self.compiled and _native_ok(features.weight)
+        return self._fast_path(features) and native_ok(features.weight)
 
     def _fast_path(self, features: SegmentFeatures) -> bool:
-        return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in _EXP_FLOOR
+        return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in EXP_FLOOR
                 and not (features.line.requires_grad or features.along.requires_grad
                          or features.weight.requires_grad)
                 and self.params.prior_background > 1e-20)
@@ -661,7 +484,7 @@ class MixtureLikelihood:
             peak = background + float((prior / scale).sum())
             log_bound = max(abs(math.log(background)), abs(math.log(peak)))
             cached = ((-1.0 / scale)[:, None].contiguous(), torch.log(prior / scale)[:, None].contiguous(),
-                      background, _EXP_FLOOR[like.dtype], log_bound)
+                      background, EXP_FLOOR[like.dtype], log_bound)
             self._constants_cache[key] = cached
         return cached
 
@@ -685,248 +508,8 @@ class MixtureLikelihood:
         return torch.exp(log_components - log_p[..., None]).transpose(1, 2), log_p.transpose(1, 2)
 
 
-def _family_sum(density: torch.Tensor, dim: int) -> torch.Tensor:
-    """The three families' densities summed over ``dim`` (size 3, Manhattan column order) as
-    ``(horizontal + horizontal) + vertical``: the order of the fused paths, which score the vertical
-    VP apart (:func:`objective_b_nograd`), so every path gives the same bits."""
-    first, second = [density.select(dim, k) for k in range(3) if k != VERTICAL_AXIS]
-    return first + second + density.select(dim, VERTICAL_AXIS)
-
-
-# --------------------------------------------------------------------------- fused measure-b path
-
-_EXP_FLOOR = {torch.float32: -87.0, torch.float64: -700.0}  # exp() stays out of denormals above these
-
-
-def vp_major(vps: torch.Tensor) -> torch.Tensor:
-    """(B, H, 3 coords, 3 VPs) -> (B, 3 coords, 3 * H), columns ordered (VP, hypothesis)."""
-    batch, hyp = vps.shape[:2]
-    return vps.permute(0, 2, 3, 1).reshape(batch, 3, 3 * hyp)
-
-
-def _take(workspace: dict | None, name: str, shape, like: torch.Tensor) -> torch.Tensor:
-    """A buffer of ``shape`` from ``workspace`` (grown on demand, reused across chunks)."""
-    numel = math.prod(shape)
-    if workspace is None:
-        return like.new_empty(shape)
-    buf = workspace.get(name)
-    if buf is None or buf.numel() < numel or buf.dtype != like.dtype or buf.device != like.device:
-        buf = like.new_empty(numel)
-        workspace[name] = buf
-    return buf[:numel].view(shape)
-
-
-def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound,
-                       workspace: dict | None = None, vertical_block: int = 1, per_segment: bool = False,
-                       fused: bool = True) -> torch.Tensor:
-    """Measure-b objective (B, H) float64 for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd;
-    with ``per_segment`` each segment's log p_i instead, (B, N, H) in the segments' dtype (a view of
-    the ``workspace`` buffer when one is given).
-
-    Every pass is in place on reusable buffers: [s; t] (:func:`incidence`); x = atan(|s / t|)
-    (:func:`fr_torch.core.exact.angle_of_`); log(prior/lambda) - x/lambda, clamped at ``floor``;
-    exp; the 3 families and the background added as ``(horizontal + horizontal) + vertical +
-    background`` (:func:`_family_sum`'s order); log; the length-weighted sum over segments, exact
-    (:func:`fr_torch.core.exact.exact_sum`, bounded per image by ``log_bound`` times the longest
-    segment).
-
-    ``vertical_block`` = k > 1: runs of k consecutive hypotheses share the vertical VP (column
-    ``VERTICAL_AXIS``), so only every k-th one is scored and added to its run: (2 + 1/k) H VP
-    columns instead of 3 H, the same sums bit for bit.  H must be a multiple of k.
-
-    ``fused``: the objective of float32 CPU tensors comes from the fused kernel of
-    :mod:`fr_torch.core.native` where it is available (the same bits, the deviations never stored);
-    False always takes the torch path written here, the reference the kernel is checked against.
-    """
-    batch, n_seg = weight.shape
-    hyp = flat.shape[2] // 3
-    if vertical_block > 1 and hyp % vertical_block:
-        raise ValueError(f"vertical_block {vertical_block} does not divide the {hyp} hypotheses")
-    if fused and not per_segment and vertical_block <= native.TILE and _native_ok(weight):
-        factor, scale = _sum_grid(weight, log_bound)
-        return native.measure_b_scores(line_along, factor, scale, flat, neg_inv_scale, log_coef, background, floor,
-                                       VERTICAL_AXIS, vertical_block)
-    block = max(1, vertical_block)
-    columns = flat.view(batch, 3, 3, hyp)
-    h_cols = _without_vertical(columns, 2).reshape(batch, 3, 2 * hyp)
-    v_cols = columns[:, :, VERTICAL_AXIS, ::block]  # (B, 3, H / k): one per run
-    h = _family_density(line_along, h_cols, _without_vertical(neg_inv_scale, 0), _without_vertical(log_coef, 0),
-                        floor, workspace, "h", groups=2).view(batch, n_seg, 2, hyp)
-    v = _family_density(line_along, v_cols, neg_inv_scale[VERTICAL_AXIS], log_coef[VERTICAL_AXIS], floor,
-                        workspace, "v")
-    p = torch.add(h[:, :, 0], h[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), weight))
-    p.view(batch, n_seg, hyp // block, block).add_(v[..., None])
-    p.add_(background).log_()
-    if per_segment:
-        return p
-    return exact_sum(p, 1, bound=_log_sum_bound(weight, log_bound), weight=weight[:, :, None])
-
-
-def _native_ok(weight: torch.Tensor) -> bool:
-    """Whether segments of ``weight``'s dtype and device take the fused kernels (:mod:`fr_torch.core.native`)."""
-    return weight.dtype == torch.float32 and weight.device.type == "cpu" and native.available()
-
-
-def _sum_grid(weight: torch.Tensor, log_bound: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The fixed-point grid of the objective's exact sum over segments, as
-    :func:`fr_torch.core.exact.exact_sum` forms it from the bound :func:`_log_sum_bound`: each
-    segment's factor ``weight * scale`` (B, N) in ``weight``'s dtype and the scale (B,) float64."""
-    scale = fixed_point_scale(_log_sum_bound(weight, log_bound))  # (B, 1, 1)
-    factor = weight[:, :, None] * scale.to(weight.dtype)
-    return factor[..., 0], scale.view(-1)
-
-
-def _log_sum_bound(weight: torch.Tensor, log_bound: float) -> torch.Tensor:
-    """(B, 1, 1) bound on ``|len_i log p_i|`` per image: its longest segment times ``log_bound``
-    (a bound on |log p_i| for any hypothesis), the same whatever the batch."""
-    return (weight.amax(1) * log_bound)[:, None, None] if weight.shape[1] else weight.new_zeros(weight.shape[0], 1, 1)
-
-
-def objective_b_elementwise(line_along, weight, flat, neg_inv_scale, log_coef, background, floor,
-                            log_bound=None) -> torch.Tensor:
-    """Measure-b objective (B, H) of :func:`objective_b_nograd` (``vertical_block`` = 1, same
-    arguments and terms), written for a compiler: s and t of each VP as broadcast products
-    (B, N, 1) x (B, 1, H) instead of buffers, the mixture elementwise, one weighted reduction over
-    the N segments.  Eager, this materialises more than the buffered path; under ``torch.compile``
-    (:func:`compiled_call`) it is one kernel reading only the segments and the VPs, whose sums the
-    compiler orders (equal to :func:`objective_b_nograd` to float rounding, not bit for bit).
-    ``flat`` (B, 3, 3H) VP-major and contiguous (:func:`vp_major`).
-    """
-    batch, n_seg = weight.shape
-    hyp = flat.shape[2] // 3
-    line, along = line_along[:, :n_seg, :, None], line_along[:, n_seg:, :, None]  # (B, N, 3, 1)
-    vps = flat.view(batch, 1, 3, 3, hyp)  # (B, 1, coordinate, VP, H)
-    densities = []
-    for k in range(3):
-        v = vps[:, :, :, k]  # (B, 1, 3, H)
-        s = line[:, :, 0] * v[:, :, 0] + line[:, :, 1] * v[:, :, 1] + line[:, :, 2] * v[:, :, 2]
-        t = along[:, :, 0] * v[:, :, 0] + along[:, :, 1] * v[:, :, 1] + along[:, :, 2] * v[:, :, 2]
-        densities.append(torch.exp(torch.clamp_min(angle_of(s, t) * neg_inv_scale[k] + log_coef[k], floor)))
-    mixture = _family_sum(torch.stack(densities, -1), -1)
-    return (weight[:, :, None] * torch.log(mixture + background)).to(torch.float64).sum(1)
-
-
-_COMPILED: dict = {}  # function -> its torch.compile wrapper, one per process
-
-
-def compiled_call(fn, owner, *args):
-    """``fn(*args)`` through ``torch.compile(fn, dynamic=True)`` (compiled on the first call, one
-    compilation per process and device serves every batch, segment and hypothesis count).
-
-    ``owner`` (a :class:`MixtureLikelihood`) has ``compiled`` set to False, with one warning, when
-    compiling or running the kernel fails (no C++ compiler, no Triton, an unsupported backend);
-    the call then returns None and the caller takes its eager path.
-    """
-    compiled = _COMPILED.get(fn)
-    if compiled is None:
-        compiled = _COMPILED[fn] = torch.compile(fn, dynamic=True)
-    try:
-        return compiled(*args)
-    except Exception as exc:
-        owner.compiled = False
-        first_line = (str(exc).strip().splitlines() or [""])[0][:200]
-        warnings.warn(f"fR: compiled search unavailable ({type(exc).__name__}: {first_line}); running without it",
-                      RuntimeWarning, stacklevel=3)
-        return None
-
-
-def _family_density(line_along, columns, neg_inv_scale, log_coef, floor, workspace, name, groups=1):
-    """prior/lambda exp(-x/lambda) of every segment for VP columns (B, 3, M): (B, N, M), in place
-    in the ``workspace`` buffer named ``name`` (a view of it is returned).  ``line_along`` (B, 2N, 3)
-    as in :class:`SegmentFeatures`.  The columns form ``groups`` equal blocks (VPs) with constants
-    ``neg_inv_scale`` = -1/lambda and ``log_coef`` = log(prior/lambda) of shape (groups, 1);
-    exponents are clamped at ``floor``."""
-    batch, n_seg = line_along.shape[0], line_along.shape[1] // 2
-    width = columns.shape[2]
-    shape = (batch, 2 * n_seg, width)
-    st = incidence(line_along, columns, out=_take(workspace, name, shape, line_along),
-                   tmp=_take(workspace, "incidence", shape, line_along))
-    s = angle_of_(st[:, :n_seg], st[:, n_seg:])  # x = atan(|s / t|), in the s half
-    s.view(batch, n_seg, groups, width // groups).mul_(neg_inv_scale).add_(log_coef)
-    return s.clamp_min_(floor).exp_()
-
-
-def _without_vertical(x: torch.Tensor, dim: int) -> torch.Tensor:
-    """``x`` without index ``VERTICAL_AXIS`` along ``dim`` (the two horizontal families), from two
-    slices: indexing a GPU tensor with a Python list copies the index to the device and waits for
-    it, once per grid chunk."""
-    return torch.cat([x.narrow(dim, 0, VERTICAL_AXIS), x.narrow(dim, VERTICAL_AXIS + 1, 2 - VERTICAL_AXIS)], dim)
-
-
-def measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound):
-    """Measure-b objective (B, H) float64 and what :func:`measure_b_backward` needs (no autograd
-    graph); the same terms and sum as :func:`objective_b_nograd`, bit for bit.
-
-    ``line_along`` (B, 2N, 3) as in :class:`SegmentFeatures`, ``weight`` (B, N), ``flat`` (B, 3, 3H)
-    VP-major vanishing points (:func:`vp_major`)."""
-    batch, n_seg = weight.shape
-    hyp = flat.shape[2] // 3
-    st = incidence(line_along, flat)
-    s, t = st[:, :n_seg], st[:, n_seg:]
-    theta = angle_of(s, t).view(batch, n_seg, 3, hyp)
-    e = (theta * neg_inv_scale).add_(log_coef).clamp_min_(floor).exp_()  # prior/lambda exp(-x/lambda)
-    p = _family_sum(e, 2).add_(background)
-    objective = exact_sum(torch.log(p), 1, bound=_log_sum_bound(weight, log_bound), weight=weight[:, :, None])
-    return objective, (line_along, weight, s, t, e, p, neg_inv_scale)
-
-
-def measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out, fused: bool = True):
-    """Measure-b objective (B, H) float64 and its gradient with respect to the VP-major vanishing
-    points ``flat`` (B, 3, 3H), float64, for the upstream gradient ``grad_out`` (broadcastable to
-    (B, H)): :func:`measure_b_forward` then :func:`measure_b_backward`, or for float32 CPU tensors
-    the fused kernel of :mod:`fr_torch.core.native` (the same bits in one pass; ``fused`` = False
-    always takes the torch path).  ``constants``: :meth:`MixtureLikelihood._b_constants`."""
-    batch, hyp = weight.shape[0], flat.shape[2] // 3
-    if fused and _native_ok(weight):
-        neg_inv_scale, log_coef, background, floor, log_bound = constants
-        factor, scale = _sum_grid(weight, log_bound)
-        return native.measure_b_grad(line_along, weight, factor, scale, flat, neg_inv_scale, log_coef, background,
-                                     floor, VERTICAL_AXIS, grad_out.to(weight.dtype))
-    objective, saved = measure_b_forward(line_along, weight, flat, *constants)
-    return objective, measure_b_backward(saved, grad_out.to(weight.dtype).expand(batch, hyp).contiguous())
-
-
-def measure_b_backward(saved, grad_out, flat: torch.Tensor | None = None):
-    """d objective / d flat (B, 3, 3H) float64 for the upstream gradient ``grad_out`` (B, H).
-
-    With ``flat`` (the forward pass's VP-major vanishing points) also d objective / d line_along,
-    (B, 2N, 3): ``d obj / d l_i = sum_v G_is v``, ``d obj / d g_i = sum_v G_it v`` (the distortion
-    parameter's chain, :mod:`fr_torch.core.distortion`).  Returns the one tensor, or the pair.
-    Sums over segments are exact (:func:`fr_torch.core.exact.exact_sum`), those over the VPs
-    written out: the same bits in any batch."""
-    line_along, weight, s, t, e, p, neg_inv_scale = saved
-    batch, n_seg, hyp = p.shape
-    line, along = line_along[:, :n_seg], line_along[:, n_seg:]
-    # d obj / d x_ik = w_i / p_i * (-e_ik / lambda_k);  x = atan2(|s|, |t|):
-    # dx/ds = sign(s) |t| / r2 = q t / r2, dx/dt = -sign(t) |s| / r2 = -q s / r2, with
-    # r2 = s^2 + t^2 and q = sign(s) sign(t) (both 0 at s = 0 or t = 0; r2 > 0 guards 0 / 0).
-    g = (weight[:, :, None] / p).mul_(grad_out.to(p.dtype)[:, None, :])  # (B, N, H)
-    r2 = (s * s).add_(t * t).clamp_min_(torch.finfo(s.dtype).tiny)
-    q = torch.sign(s * t)
-    common = (e * neg_inv_scale).mul_(g[:, :, None, :]).view(batch, n_seg, 3 * hyp).mul_(q).div_(r2)
-    if flat is not None:  # terms below float's normal range (< 1e-38) are 0 to the sums, but subnormal
-        # operands slow the CPU's products several times over: drop them
-        common.masked_fill_(common.abs() < torch.finfo(common.dtype).tiny, 0.0)
-    grad_s = common * t  # d obj / d s
-    grad_t = common.mul_(s).neg_()  # d obj / d t
-    # d obj / d flat[c] = sum_i line_ic grad_s_i + along_ic grad_t_i, one exact sum per coordinate, its
-    # fixed-point grid set by the image's largest term (one reduction over the whole image: a reduction
-    # over the segment axis alone, with a few hypotheses inside it, is several times slower)
-    sums = []
-    for c in range(3):
-        terms = line[:, :, c, None] * grad_s + along[:, :, c, None] * grad_t
-        bound = terms.detach().abs().flatten(1).amax(1)[:, None, None] if terms.numel() else None
-        sums.append(exact_sum(terms, 1, bound=bound))
-    grad_flat = torch.stack(sums, 1)
-    if flat is None:
-        return grad_flat
-    columns = flat.to(grad_s.dtype).transpose(1, 2)  # (B, 3H, 3)
-    per_segment = [small_sum(grad[:, :, :, None] * columns[:, None], 2) for grad in (grad_s, grad_t)]
-    return grad_flat, torch.cat(per_segment, 1)
-
-
 def kernels_match_torch() -> bool:
-    """The fused kernels (:mod:`fr_torch.core.native`) against the torch path on random scenes (segments through a VP, VPs at
+    """The fused kernels (:mod:`fr_torch.core.likelihood.native`) against the torch path on random scenes (segments through a VP, VPs at
     infinity, no segments, several tiles and MKL calls, ``vertical_block`` 1 to 3): True when every
     score, objective and gradient has the same bits (about 0.1 s, once per process)."""
     generator = torch.Generator().manual_seed(60)
@@ -954,20 +537,3 @@ def kernels_match_torch() -> bool:
 
 
 native.register_check(kernels_match_torch)
-
-
-class _MeasureBObjective(torch.autograd.Function):
-    """Measure-b objective with an analytic gradient w.r.t. the VP-major vanishing points."""
-
-    @staticmethod
-    def forward(ctx, line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound):
-        objective, saved = measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, background, floor,
-                                             log_bound)
-        ctx.save_for_backward(*saved)
-        ctx.flat_dtype = flat.dtype
-        return objective
-
-    @staticmethod
-    def backward(ctx, grad_out):
-        grad_flat = measure_b_backward(ctx.saved_tensors, grad_out)
-        return None, None, grad_flat.to(ctx.flat_dtype), None, None, None, None, None

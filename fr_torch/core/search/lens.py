@@ -1,11 +1,11 @@
 """The search with a distortion parameter: k of the division model estimated jointly with f and R.
 
-Rows of 5 (:data:`fr_torch.core.params.DISTORTION`): ``[pan, pitch, roll, focal, k]``, k the division
-model's normalised coefficient (:mod:`fr_torch.core.distortion`).  Every hypothesis is scored on
+Rows of 5 (:data:`fr_torch.core.geometry.params.DISTORTION`): ``[pan, pitch, roll, focal, k]``, k the division
+model's normalised coefficient (:mod:`fr_torch.core.geometry.lens`).  Every hypothesis is scored on
 its image's segments undistorted with its own k (:class:`SegmentGeometry`): hypotheses that share
 a k share the undistorted segments, so each stage builds one **virtual image** per (image, k) --
 the undistorted segments of that image at that k -- and scores its hypotheses with the pinhole
-machinery of :mod:`fr_torch.core.search` unchanged.
+machinery of :mod:`fr_torch.core.search.passes` unchanged.
 
 The stages (the pinhole search's, with k added):
 
@@ -14,7 +14,7 @@ The stages (the pinhole search's, with k added):
    the k that straightens pieces of lines, independent of f and R) and at the values of
    ``distortion_grid_k``; the ``top_l`` best of all (k, grid point) pairs start.
 2. **Focal sweep** (:func:`sweep_focal_rows`): each start's focal ridge at its k
-   (:func:`fr_torch.core.search.sweep_focal`).
+   (:func:`fr_torch.core.search.passes.sweep_focal`).
 3. **Lattice passes** (:func:`subdivide_rows`): the 3^4 lattice around each start at its k and k
    one step either side (``distortion_lattice="axis"``; or the 3^5 lattice, ``"joint"``); the k step
    a third of ``distortion_k_spacing``, then a third of that.
@@ -25,7 +25,7 @@ The stages (the pinhole search's, with k added):
 :func:`bend_test` asks whether a pinhole estimate's lines bend: the plumb line, and a short
 division search from the estimate (at the plumb-line k: the focal sweep and lattice passes) with
 its gain in nats per 1000 px of segment length (:func:`likelihood_gain`); the "lines bend" sanity
-check of pinhole estimates (:func:`fr_torch.core.cues.lines_bend_reason`) and the criterion by which
+check of pinhole estimates (:func:`fr_torch.core.reliability.sanity.lines_bend_reason`) and the criterion by which
 ``auto`` runs this search on an image.
 """
 from __future__ import annotations
@@ -33,28 +33,16 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
-
 import torch
-
-from fr_torch.core.config import SearchConfig
-from fr_torch.core.distortion import normalising_radius
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core.geometry.lens import normalising_radius
 from fr_torch.core.exact import dot3, exact_index_sum, exact_sum, first_argmax, top_indices
-from fr_torch.core.likelihood import MixtureLikelihood, SegmentFeatures
-from fr_torch.core.params import DISTORTION, FOCAL, from_log_focal
-from fr_torch.core.search import (
-    LATTICE,
-    best_of_start_and_refined,
-    grid_cell,
-    grid_hypotheses,
-    into_box,
-    lattice_passes,
-    parameter_box,
-    refine,
-    score_grid,
-    select_starts,
-    sweep_focal,
-    tie_tolerance,
-)
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.geometry.params import DISTORTION, from_log_focal
+from fr_torch.core.search.passes import LATTICE, best_of_start_and_refined, lattice_passes, sweep_focal, tie_tolerance
+from fr_torch.core.search.grid import grid_cell, grid_hypotheses, into_box, parameter_box, score_grid, select_starts
+from fr_torch.core.search.refine import refine
 
 
 @dataclass
@@ -183,7 +171,7 @@ def _norm2(a: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(_dot2(a, a))
 
 
-# --------------------------------------------------------------------------- plumb lines
+
 
 #: Pieces of one line: two segments whose nearest endpoints are closer than this share of the long
 #: side, whose directions differ by less than :data:`CHAIN_MAX_ANGLE_DEG`, and each of whose nearer
@@ -289,7 +277,7 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> Plu
     return PlumbLine(k, share.clamp(0.0, 1.0), pairs)
 
 
-# --------------------------------------------------------------------------- stages
+
 
 def angle_grid_config(config: SearchConfig) -> SearchConfig:
     """The configuration of the k^4 grid at each k: ``grid_points_per_dim`` =
@@ -321,7 +309,7 @@ def k_step(config: SearchConfig) -> float:
 
 
 def parameter_box_k(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None):
-    """:func:`fr_torch.core.search.parameter_box` with k's box as a fifth column: (B, 5) each."""
+    """:func:`fr_torch.core.search.grid.parameter_box` with k's box as a fifth column: (B, 5) each."""
     lower, upper = parameter_box(config, long_side, known_focal)
     k_low, k_high = config.distortion.k_box()
     return with_k(lower, k_low), with_k(upper, k_high)
@@ -377,7 +365,7 @@ def grid_over_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, config
 
 def sweep_focal_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, starts: torch.Tensor,
                      scores: torch.Tensor, config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor):
-    """:func:`fr_torch.core.search.sweep_focal` of each start (B, L, 5) at its own k: returns (B, 2L, 5)
+    """:func:`fr_torch.core.search.passes.sweep_focal` of each start (B, L, 5) at its own k: returns (B, 2L, 5)
     starts (the inputs, then each one's best swept point or a copy) and their (B, 2L) scores."""
     batch, n_start = starts.shape[:2]
     features = geometry.features(starts[..., DISTORTION])
@@ -393,7 +381,7 @@ def sweep_focal_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, s
             torch.cat([swept_scores[:, :, 0], swept_scores[:, :, 1]], 1))
 
 
-#: The 3^5 lattice of :func:`subdivide_rows`: k slowest (three blocks of :data:`~fr_torch.core.search.LATTICE`,
+#: The 3^5 lattice of :func:`subdivide_rows`: k slowest (three blocks of :data:`~fr_torch.core.search.passes.LATTICE`,
 #: the 3^4 lattice, pan fastest), so each block shares k and runs of 3 share the vertical VP.
 LATTICE_K = torch.cat([torch.cat([LATTICE, torch.full((len(LATTICE), 1), offset, dtype=torch.float64)], 1)
                        for offset in (-1.0, 0.0, 1.0)])
@@ -402,7 +390,7 @@ LATTICE_K = torch.cat([torch.cat([LATTICE, torch.full((len(LATTICE), 1), offset,
 def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, starts: torch.Tensor,
                    scores: torch.Tensor, config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor,
                    k_spacing: float | None = None):
-    """:func:`fr_torch.core.search.subdivide_starts` in five dimensions: ``config.grid_passes`` passes
+    """:func:`fr_torch.core.search.passes.subdivide_starts` in five dimensions: ``config.grid_passes`` passes
     of the 3^5 lattice :data:`LATTICE_K` around each start (B, L, 5) (k's step: a third of
     ``k_spacing``, default :func:`k_step`, then a third of that; a known k
     stays fixed), keeping the best point.  Returns (starts, scores) of the same shapes; every score
@@ -436,7 +424,7 @@ def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, sta
                           tie_tolerance(geometry), device)
 
 
-# --------------------------------------------------------------------------- the whole search
+
 
 @dataclass
 class DistortedSearch:
@@ -446,7 +434,7 @@ class DistortedSearch:
     ``grid_scores`` (B, G) and ``grid_counts`` (B,) for the ``grid_entropy`` cue;
     ``grid_seconds``: the time of the stages before the refinement (all images); ``tied`` (B,) bool:
     another solution scored within rounding of the estimate
-    (:func:`fr_torch.core.search.best_of_start_and_refined`)."""
+    (:func:`fr_torch.core.search.passes.best_of_start_and_refined`)."""
 
     params: torch.Tensor
     scores: torch.Tensor
@@ -497,7 +485,7 @@ def bend_test(likelihood: MixtureLikelihood, geometry: SegmentGeometry, features
     length is far from its undistorted one) and lattice passes refine f, R and k together
     (:func:`subdivide_rows`, k spacing :data:`PLUMB_K_SPACING`; a ``known_focal`` (B,) stays fixed).
 
-    Returns float64 (B,) tensors, the cues of :data:`fr_torch.core.cues.LINE_BEND_CUES`:
+    Returns float64 (B,) tensors, the cues of :data:`fr_torch.core.reliability.sanity.LINE_BEND_CUES`:
     ``line_bend_gain`` (:func:`likelihood_gain` of the best point over the pinhole estimate, >= 0),
     ``line_bend_k`` (its k), ``line_bend_plumb_k``, ``line_bend_share`` and ``line_bend_pairs`` (the
     plumb line's k, share and pairs)."""

@@ -1,6 +1,6 @@
 """Fused CPU kernels, built on first use: the measure-b grid scores and the refinement's step.
 
-:func:`measure_b_scores` computes :func:`fr_torch.core.likelihood.objective_b_nograd`'s objective
+:func:`measure_b_scores` computes :func:`fr_torch.core.likelihood.objective.objective_b_nograd`'s objective
 (B, H) float64 and :func:`measure_b_grad` the refinement's objective with its gradient
 (``measure_b_forward`` + ``measure_b_backward``), bit for bit, without storing the (B, 2N, 3H)
 deviations: ``kernels_measure_b.c`` scores a tile of hypotheses a few segments at a time in
@@ -17,7 +17,7 @@ Building and trusting them:
   named by a hash of the source, the flags, the compiler and the torch version: about 1 s, once.
   Later processes load the cached library.
 * Before first use in a process the kernels are checked against the torch path on random segments
-  and vanishing points (:func:`fr_torch.core.likelihood.kernels_match_torch`, registered by that
+  and vanishing points (:func:`fr_torch.core.likelihood.mixture.kernels_match_torch`, registered by that
   module through :func:`register_check`);
   one differing bit and it is not used.
 * Without a C compiler, without MKL in torch (torch's ``atan`` / ``exp`` / ``log`` are then other
@@ -41,8 +41,8 @@ import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-
 import torch
+
 
 SOURCE = Path(__file__).with_name("kernels_measure_b.c")
 #: -ffp-contract=off: no fused multiply-add, every product and sum rounded once (torch's CPU kernels
@@ -135,7 +135,7 @@ def _load():
 
 def register_check(check) -> None:
     """The test every process runs before trusting the kernels: ``check()`` -> True when they give
-    the torch path's bits (:func:`fr_torch.core.likelihood.kernels_match_torch`, registered when
+    the torch path's bits (:func:`fr_torch.core.likelihood.mixture.kernels_match_torch`, registered when
     that module loads; without one the kernels are not used)."""
     _state["check"] = check
 
@@ -179,7 +179,7 @@ def _pool() -> ThreadPoolExecutor:
 def measure_b_scores(line_along: torch.Tensor, factor: torch.Tensor, scale: torch.Tensor, flat: torch.Tensor,
                      neg_inv_scale: torch.Tensor, log_coef: torch.Tensor, background: float, floor: float,
                      vertical_axis: int, vertical_block: int = 1) -> torch.Tensor:
-    """Measure-b objective (B, H) float64 (:func:`fr_torch.core.likelihood.objective_b_nograd`'s,
+    """Measure-b objective (B, H) float64 (:func:`fr_torch.core.likelihood.objective.objective_b_nograd`'s,
     bit for bit) in one fused pass; call only when :func:`available`.
 
     ``line_along`` (B, 2N, 3) float32; ``factor`` (B, N) float32 and ``scale`` (B,) float64 the
@@ -227,7 +227,7 @@ def measure_b_grad(line_along: torch.Tensor, weight: torch.Tensor, factor: torch
                    floor: float, vertical_axis: int, grad_out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The refinement's measure-b objective (B, H) float64 and its gradient with respect to the
     VP-major vanishing points, (B, 3, 3H) float64, for the upstream gradient ``grad_out`` (B, H):
-    :func:`fr_torch.core.likelihood.measure_b_forward` then ``measure_b_backward``, bit for bit, in
+    :func:`fr_torch.core.likelihood.objective.measure_b_forward` then ``measure_b_backward``, bit for bit, in
     one pass per image; call only when :func:`available`.  Arguments as for
     :func:`measure_b_scores`, plus ``weight`` (B, N) float32."""
     function, vml = _state["functions"]["grad"], _state["vml"]

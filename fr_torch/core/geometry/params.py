@@ -1,8 +1,8 @@
 """The search's camera parameters: batched ``[pan, pitch, roll, focal]`` rows with named fields.
 
 The search works on tensors of shape (..., 4) holding, per hypothesis, pan, pitch and roll in
-degrees (the angles of :func:`fr_torch.core.camera.rotation_from_angles`) and the focal length in
-pixels; with a distortion parameter (:mod:`fr_torch.core.distortion`) rows have a fifth field,
+degrees (the angles of :func:`fr_torch.core.geometry.conventions.rotation_from_angles`) and the focal length in
+pixels; with a distortion parameter (:mod:`fr_torch.core.geometry.lens`) rows have a fifth field,
 :data:`DISTORTION`, the division model's normalised k.  :class:`CameraParams` names those fields and holds the conversions; the hot loops index
 the raw tensors with :data:`PAN`, :data:`PITCH`, :data:`ROLL`, :data:`FOCAL` and :data:`ANGLES`.
 The refinement optimises the focal length in log space (:func:`to_log_focal`).
@@ -17,13 +17,15 @@ from __future__ import annotations
 
 import torch
 
-from fr_torch.core.camera import rotation_from_cos_sin
+from fr_torch.core.exact import atan2
+from fr_torch.core.geometry.conventions import pan_from_rotation, rotation_from_cos_sin
+
 
 #: Positions of the fields in the last dimension.
 PAN, PITCH, ROLL, FOCAL = 0, 1, 2, 3
 #: Position of the division model's k in rows of 5 (the search with a distortion parameter).
 DISTORTION = 4
-#: The three angles (degrees), in the order of :func:`fr_torch.core.camera.rotation_from_angles`.
+#: The three angles (degrees), in the order of :func:`fr_torch.core.geometry.conventions.rotation_from_angles`.
 ANGLES = slice(PAN, ROLL + 1)
 #: Field names, in order (the columns of a parameter table).
 NAMES = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
@@ -102,3 +104,13 @@ class CameraParams:
 
     def __repr__(self) -> str:
         return f"CameraParams(shape={tuple(self.shape)}, dtype={self.data.dtype})"
+
+
+def angles_from_search_rotation(rotation: torch.Tensor) -> torch.Tensor:
+    """[pan, pitch, roll] in degrees, (..., 3), from world->camera R (..., 3, 3): the inverse of
+    :func:`fr_torch.core.geometry.params.rotations` (``R.T = Ry(pan) Rx(pitch) Rz(roll)``) for |pitch| < 90 deg, pan folded
+    into [-45, 45) (:func:`fr_torch.core.geometry.conventions.pan_from_rotation`; the Manhattan frame is symmetric
+    under quarter turns about the vertical)."""
+    pitch = torch.rad2deg(torch.asin((-rotation[..., 2, 1]).clamp(-1.0, 1.0)))
+    roll = torch.rad2deg(atan2(rotation[..., 0, 1], rotation[..., 1, 1]))
+    return torch.stack([pan_from_rotation(rotation), pitch, roll], -1)

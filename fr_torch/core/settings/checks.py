@@ -10,13 +10,12 @@ import numbers
 import reprlib
 from collections.abc import Iterable
 from enum import StrEnum
-
 import numpy as np
 import torch
-
-from fr_torch.core.camera import focal_from_hfov, image_centre
-from fr_torch.core.fov import FOV_LIMITS_DEG
+from fr_torch.core.geometry.conventions import focal_from_hfov, image_centre
+from fr_torch.core.settings.fov import FOV_LIMITS_DEG
 from fr_torch.errors import FRInputError
+
 
 # How far from an image's centre a point given in its pixels (a principal point, a segment's
 # endpoint) may lie, in image sizes (the long side): beyond, the number is nonsense, not geometry.
@@ -45,7 +44,7 @@ def finite_number(value, name: str) -> float:
 
 def check_focal(focal, width: float, height: float, name: str = "focal length") -> float:
     """A user focal length (pixels) that a pinhole camera of this size can have: finite, > 0 and a
-    field of view on the long side within :data:`~fr_torch.core.fov.FOV_LIMITS_DEG` ([1, 179] degrees)."""
+    field of view on the long side within :data:`~fr_torch.core.settings.fov.FOV_LIMITS_DEG` ([1, 179] degrees)."""
     f = finite_number(focal, name)
     long_side = max(width, height)
     min_fov, max_fov = FOV_LIMITS_DEG
@@ -208,7 +207,7 @@ def segment_sets(value, name: str = "segments") -> list:
     """``segments`` of an API call: a sequence of one (N_i, 4) array per image (lists, arrays,
     tensors; ragged counts welcome), as a list.  One image's segments given without the enclosing
     list (an (N, 4) array, or a list of 4-number rows) is an FRInputError saying to wrap them; each
-    image's array itself is checked per image (:func:`fr_torch.core.segments.validate_segments`)."""
+    image's array itself is checked per image (:func:`fr_torch.core.likelihood.segments.validate_segments`)."""
     sets = batch_of(value, name, "(N, 4) segment arrays [x1, y1, x2, y2]")
     if sets:
         first = sets[0]
@@ -234,7 +233,7 @@ def positive_number(value, name: str) -> float:
     return number
 
 
-# --------------------------------------------------------------------------- JSON output
+
 
 
 def resolve_device(device) -> "torch.device":

@@ -1,0 +1,159 @@
+"""TODO"""
+from __future__ import annotations
+
+import math
+import torch
+from fr_torch.core.geometry.conventions import focal_from_hfov
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core.exact import top_indices
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.geometry.params import ANGLES, FOCAL, rotations
+
+
+# Grid deviations per chunk on CPU, whatever the thread count: float32 buffers of a few MB, 32 of
+# torch's 2^15-element grains (up to 32 threads share every op).  Scores are the same for any chunk
+# size (results/DECISIONS.md, results/decisions/60.md).
+CPU_CHUNK_ELEMENTS = 1 << 20
+
+
+def _cell_centres(low: float, high: float, k: int) -> torch.Tensor:
+    return low + (torch.arange(k, dtype=torch.float64) + 0.5) * (high - low) / k
+
+
+def parameter_box(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None):
+    """Lower and upper bounds, (B, 4) float64, of [pan, pitch, roll, focal] per image.
+
+    ``long_side``: (B,) the longer image side in pixels (``max(width, height)``).
+    """
+    f_lo, f_hi = config.fov_range.focal_bounds(long_side)
+    if known_focal is not None:
+        f_lo = f_hi = known_focal.to(torch.float64)
+    lo = torch.stack([torch.full_like(f_lo, config.pan_range_deg[0]), torch.full_like(f_lo, config.pitch_range_deg[0]),
+                      torch.full_like(f_lo, config.roll_range_deg[0]), f_lo], -1)
+    hi = torch.stack([torch.full_like(f_hi, config.pan_range_deg[1]), torch.full_like(f_hi, config.pitch_range_deg[1]),
+                      torch.full_like(f_hi, config.roll_range_deg[1]), f_hi], -1)
+    return lo, hi
+
+
+def into_box(points: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, periodic_pan: bool) -> torch.Tensor:
+    """``points`` (..., 4) [pan, pitch, roll, f or log f] moved into the box [``lower``, ``upper``]
+    (broadcastable to ``points``): clamped, but for pan when ``periodic_pan``
+    (:attr:`SearchConfig.periodic_pan`), which is wrapped into [lower, upper) instead."""
+    boxed = torch.minimum(torch.maximum(points, lower), upper)
+    if not periodic_pan:
+        return boxed
+    pan_low, pan_span = lower[..., :1], (upper - lower)[..., :1]
+    return torch.cat([pan_low + torch.remainder(points[..., :1] - pan_low, pan_span), boxed[..., 1:]], -1)
+
+
+def log_spaced_focals(f_lo: torch.Tensor, f_hi: torch.Tensor, count: int) -> torch.Tensor:
+    """``count`` focal lengths per image, (B, count) float64 pixels, at the centres of ``count``
+    equal cells in log f between ``f_lo`` and ``f_hi`` ((B,) float64 pixels)."""
+    fraction = (torch.arange(count, dtype=torch.float64, device=f_lo.device) + 0.5) / count
+    return torch.exp(f_lo.log()[:, None] + fraction * (f_hi / f_lo).log()[:, None])
+
+
+def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:
+    """The k stage-1 focal values per image, (B, k) float64 pixels, at cell centres of the range,
+    spaced per ``config.focal_grid`` (linear in f, in log f, or in FOV)."""
+    k = config.grid_points_per_dim
+    frac = (torch.arange(k, dtype=torch.float64, device=long_side.device) + 0.5) / k
+    long_side = long_side.to(torch.float64)
+    if config.focal_grid == "fov":
+        lo, hi = config.fov_range
+        fov = torch.tensor(hi, dtype=torch.float64) - frac * (hi - lo)  # wide -> narrow: f ascending
+        return focal_from_hfov(fov[None, :], long_side[:, None])
+    f_lo, f_hi = config.fov_range.focal_bounds(long_side)
+    if config.focal_grid == "log_f":
+        return log_spaced_focals(f_lo, f_hi, k)
+    return f_lo[:, None] + frac * (f_hi - f_lo)[:, None]
+
+
+def grid_hypotheses(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None = None):
+    """Grid of [pan, pitch, roll, focal] per image: (B, G, 4) float64, G = k^4 (k^3 with known f),
+    on the device of ``known_focal`` if given, else of ``long_side``.
+
+    ``long_side``: (B,) the longer image side in pixels.  Order: focal slowest, then pitch, roll,
+    pan fastest -- runs of k hypotheses differing only in pan share the vertical VP (pan turns the
+    camera about the vertical), which :func:`score_grid` scores once per run (``vertical_block``).
+    """
+    k = config.grid_points_per_dim
+    if known_focal is not None:
+        focal = known_focal.to(torch.float64)[:, None]
+    else:
+        focal = focal_grid(config, long_side)
+    pan = _cell_centres(*config.pan_range_deg, k)
+    pitch = _cell_centres(*config.pitch_range_deg, k)
+    roll = _cell_centres(*config.roll_range_deg, k)
+    # (k^3, 3) as [pan, pitch, roll], on the device of the inputs (a GPU batch's grid is built there:
+    # 128 KB per image, 0.5 GB for 4096 images, is not worth a host->device copy)
+    angles = torch.cartesian_prod(pitch, roll, pan)[:, [2, 0, 1]].to(focal.device)
+    batch, n_focal = focal.shape
+    hyp = torch.cat([angles.expand(batch, n_focal, -1, -1),
+                     focal[:, :, None, None].expand(-1, -1, angles.shape[0], 1)], -1)
+    return hyp.reshape(batch, -1, 4)
+
+
+def select_starts(config: SearchConfig, grid_scores: torch.Tensor, hypotheses: torch.Tensor):
+    """Stage-2 starting points: the ``top_l`` best grid points, best first.
+
+    ``grid_scores`` (B, G) and ``hypotheses`` (B, G, 4) as from :func:`grid_hypotheses` (or rows of
+    5 with k, :mod:`fr_torch.core.search.lens`).
+    Returns (starts (B, L, 4 or 5), their scores (B, L)), L = min(top_l, G); equal scores are
+    taken in grid order (:func:`fr_torch.core.exact.top_indices`).
+    """
+    index = top_indices(grid_scores, min(config.top_l, grid_scores.shape[1]), dim=1)
+    return (torch.gather(hypotheses, 1, index[..., None].expand(-1, -1, hypotheses.shape[-1])),
+            torch.gather(grid_scores, 1, index))
+
+
+def grid_cell(config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+    """Size of one stage-1 grid cell per image, (B, 4) float64: [pan, pitch, roll] in degrees and
+    the focal step in log f (``log(f_max / f_min) / k``, the log-f grid's spacing; 0 for a known
+    focal).  ``lower``, ``upper``: (B, 4) from :func:`parameter_box`."""
+    k = config.grid_points_per_dim
+    angles = (upper[:, ANGLES] - lower[:, ANGLES]) / k
+    log_focal = (upper[:, 3:].log() - lower[:, 3:].log()) / k
+    return torch.cat([angles, log_focal], -1)
+
+
+def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypotheses: torch.Tensor,
+               max_chunk_elements: int, vertical_block: int = 1) -> torch.Tensor:
+    """Length-weighted log-likelihood of every hypothesis, (B, G) float64, in chunks of hypotheses
+    and images.
+
+    At most ``max_chunk_elements`` (``CPU_CHUNK_ELEMENTS`` on CPU, if smaller) per-segment
+    deviations exist at once, in chunks that are the same at every thread count; scores do not
+    depend on the chunking, the batch or the thread count,
+    bit for bit (:mod:`fr_torch.core.exact`).  ``vertical_block`` = k: runs of k consecutive
+    hypotheses differ only in pan (the grid of :func:`grid_hypotheses`), so their vertical VP is
+    scored once (chunks hold whole runs; the same scores bit for bit).
+    """
+    batch, count = hypotheses.shape[:2]
+    n_seg = max(1, features.weight.shape[1])
+    dtype, device = features.weight.dtype, features.weight.device
+    if vertical_block < 1 or count % vertical_block:
+        vertical_block = 1
+    # CPU: a fixed cache-sized chunk at any thread count (the fused kernel stores no deviations: no chunk)
+    cpu_budget = max_chunk_elements if likelihood.stores_no_deviations(features) else CPU_CHUNK_ELEMENTS
+    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, cpu_budget))
+    per_hypothesis = n_seg * 3
+    hyp_chunk = max(1, min(count, budget // per_hypothesis))
+    hyp_chunk = max(vertical_block, hyp_chunk - hyp_chunk % vertical_block)  # whole runs
+    img_chunk = max(1, min(batch, budget // (per_hypothesis * hyp_chunk)))
+    scores = torch.empty(batch, count, dtype=torch.float64, device=device)
+    workspace: dict = {}
+    with torch.no_grad():
+        for b0 in range(0, batch, img_chunk):
+            b1 = min(batch, b0 + img_chunk)
+            sub = features.images(b0, b1)
+            # Rotations of this image slice: (b, G, 3, 3) -- small (9 numbers per hypothesis).
+            part = hypotheses[b0:b1].to(device)
+            rotation = rotations(part.to(dtype))
+            focal = part[..., FOCAL].to(dtype)
+            for h0 in range(0, count, hyp_chunk):
+                h1 = min(count, h0 + hyp_chunk)
+                scores[b0:b1, h0:h1] = likelihood.objective(sub, rotation[:, h0:h1], focal[:, h0:h1],
+                                                            workspace=workspace, vertical_block=vertical_block)
+    return scores.nan_to_num_(nan=-math.inf)  # a NaN score is never the best (topk ranks NaN first)

@@ -1,0 +1,280 @@
+"""TODO"""
+from __future__ import annotations
+
+import math
+import torch
+from fr_torch.core.geometry.conventions import rotation_from_cos_sin
+from fr_torch.core.exact import dot3, exact_sum, small_matmul, small_sum
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.objective import (
+    measure_b_backward,
+    measure_b_forward,
+    measure_b_objective_and_grad,
+    vp_major,
+)
+from fr_torch.core.geometry.params import ANGLES, DISTORTION, FOCAL, PAN, from_log_focal, rotations, to_log_focal
+
+
+CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
+
+
+def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
+           lower: torch.Tensor, upper: torch.Tensor, iterations: int, fast: bool,
+           max_chunk_elements: int = 1 << 24, tolerance: float = 0.0,
+           patience: int = 10, periodic_pan: bool = False,
+           geometry=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Refine starts (B, L, 4) inside the box [lower, upper] (B, 4).  Returns (params, objective).
+
+    With ``geometry`` (:class:`~fr_torch.core.search.lens.SegmentGeometry`, the segments of the same
+    images) the rows have a fifth parameter, the division model's k (:data:`~fr_torch.core.geometry.params.DISTORTION`):
+    starts (B, L, 5) inside a box (B, 5) or, per start, (B, L, 5); every hypothesis is scored on its
+    segments undistorted with its own k, and k is refined with the others (``features`` then gives
+    the segments' weights, the normalising length and the chunking, not the scores).
+
+    Parameters are optimised as u = (p - lower) / (upper - lower) in [0, 1] (a degenerate box,
+    e.g. a known focal length, keeps that parameter fixed); with ``periodic_pan``
+    (:attr:`SearchConfig.periodic_pan`) pan wraps around its 90-degree box instead of stopping at
+    its edge.  The loss of every hypothesis is its
+    negative log-likelihood divided by the image's total segment length, so step sizes do not
+    depend on how many segments an image has.  Images are refined in independent slices of at
+    most ``max_chunk_elements`` deviations (bounded memory; same result as one big batch).
+
+    Stopping rule (``tolerance > 0``, not in fast mode): an image stops (its parameters stay put)
+    once none of its hypotheses changed its normalised objective by more than ``tolerance`` over
+    the last ``patience`` steps; the loop ends when every image has stopped.  Each image's answer
+    is its own, whatever else is in the batch.  Guards: the
+    gradient is made finite (NaN, inf -> 0) and bounded by ``_GRAD_BOUND``, so no step makes a
+    parameter non-finite, and a non-finite final objective is returned as -inf (never chosen over a
+    finite one).
+    """
+    batch, n_start = starts.shape[:2]
+    n_seg = max(1, features.weight.shape[1])
+    if features.weight.device.type == "cpu":
+        max_chunk_elements = min(max_chunk_elements, CPU_REFINE_ELEMENTS)
+    step = max(1, max_chunk_elements // (n_seg * n_start * 3))
+    tol = tolerance if not fast else 0.0
+    if batch > step:
+        parts = [_refine_slice(likelihood, features.images(b, b + step), starts[b:b + step],
+                               lower[b:b + step], upper[b:b + step], iterations, fast, tol, patience, periodic_pan,
+                               None if geometry is None else geometry.images(b, b + step))
+                 for b in range(0, batch, step)]
+        return torch.cat([p for p, _ in parts]), torch.cat([o for _, o in parts])
+    return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tol, patience, periodic_pan,
+                         geometry)
+
+
+#: Bound on each gradient component of the normalised loss in box units (real ones stay below ~1e4).
+_GRAD_BOUND = 1e6
+
+
+class Adam:
+    """Adam (Kingma & Ba; torch.optim's update: ``p -= lr / (1 - b1^t) * m / (sqrt(v) / sqrt(1 - b2^t)
+    + eps)``) on one tensor, with a step size that decays by ``gamma`` after every step.
+
+    Written in single torch operations, each rounded once: the update is the same bits on every
+    kernel set and device (torch's fused Adam kernel takes fused multiply-adds on some and not on
+    others, :mod:`fr_torch.core.exact`), and building no ``torch.optim`` object spares a process
+    the 1-2 s import of ``torch._dynamo`` that its constructor triggers.
+    """
+
+    def __init__(self, param: torch.Tensor, lr: float, gamma: float, betas: tuple[float, float], eps: float = 1e-8):
+        self.param, self.lr, self.gamma, self.betas, self.eps = param, lr, gamma, betas, eps
+        self.exp_avg = torch.zeros_like(param)
+        self.exp_avg_sq = torch.zeros_like(param)
+        self.step_count = 0
+
+    def step(self, grad: torch.Tensor, active: torch.Tensor | None = None) -> None:
+        """One Adam update of the parameter (in place) with gradient ``grad`` (same shape), then
+        the step size decays by ``gamma``.  ``active``: broadcastable bool mask; entries outside it
+        keep their parameter and moments (converged images)."""
+        beta1, beta2 = self.betas
+        self.step_count += 1
+        with torch.no_grad():
+            exp_avg = self.exp_avg * beta1 + grad * (1.0 - beta1)
+            exp_avg_sq = self.exp_avg_sq * beta2 + (grad * grad) * (1.0 - beta2)
+            denom = exp_avg_sq.sqrt() / math.sqrt(1.0 - beta2 ** self.step_count) + self.eps
+            update = exp_avg / denom * (self.lr / (1.0 - beta1 ** self.step_count))
+            if active is None:
+                self.exp_avg, self.exp_avg_sq = exp_avg, exp_avg_sq
+                self.param.sub_(update)
+            else:
+                self.exp_avg = torch.where(active, exp_avg, self.exp_avg)
+                self.exp_avg_sq = torch.where(active, exp_avg_sq, self.exp_avg_sq)
+                self.param.sub_(torch.where(active, update, torch.zeros_like(update)))
+        self.lr = self.lr * self.gamma
+
+
+def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10,
+                  periodic_pan=False, geometry=None):
+    dtype, device = features.weight.dtype, features.weight.device
+    # The focal length is refined as log f: a step is the same relative change of f (and about the
+    # same change of FOV) at every zoom, matching the log-spaced stage-1 grid.
+    if lower.dim() == 2:  # one box per image
+        lower, upper = lower[:, None, :], upper[:, None, :]
+    lower = to_log_focal(lower.to(device=device, dtype=dtype))
+    upper = to_log_focal(upper.to(device=device, dtype=dtype))
+    starts = to_log_focal(starts.to(device=device, dtype=dtype))
+    span = (upper - lower)
+    free = span > 0
+    span_safe = torch.where(free, span, torch.ones_like(span))
+    u = ((starts - lower) / span_safe).clamp(0, 1).detach().requires_grad_(True)
+    total_length = features.total_length().clamp_min(1e-9)[:, None]  # (B, 1) float64
+    # Step sizes in box units: about a quarter of a grid cell at first, decaying geometrically.
+    cell = 1.0 / 8
+    lr0 = 0.25 * cell
+    lr_final = (0.02 if fast else 0.002) * cell
+    gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
+    optimiser = Adam(u, lr0, gamma, betas=(0.5, 0.9))
+    all_free = bool(free.all())
+    history: list[torch.Tensor] = []
+    active = None  # (B, 1, 1) images still refined under the stopping rule
+
+    def evaluate(u_value):
+        params = from_log_focal(lower + u_value * span)
+        if geometry is not None:  # one virtual image per hypothesis, its segments undistorted with its k
+            batch, n_hyp = params.shape[:2]
+            virtual = geometry.features(params[..., DISTORTION])
+            flat = params[..., :DISTORTION].reshape(batch * n_hyp, 1, DISTORTION)
+            value = likelihood.objective(virtual, rotations(flat), flat[..., FOCAL]).view(batch, n_hyp)
+            return params, value + geometry.k_log_prior(params[..., DISTORTION])[0]
+        rotation = rotations(params)
+        return params, likelihood.objective(features, rotation, params[..., FOCAL])
+
+    analytic = likelihood._fast_path(features)
+    grad_out = (-1.0 / total_length).to(dtype)
+    for _ in range(iterations):
+        u.grad = None
+        if analytic and geometry is not None:
+            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out, geometry)
+        elif analytic:  # same gradient in closed form, no autograd graph (see objective_and_grad)
+            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out)
+        else:
+            _, objective = evaluate(u)
+            finite = torch.where(torch.isfinite(objective), objective, torch.zeros_like(objective))
+            loss = -(finite / total_length).sum()
+            loss.backward()
+            grad = u.grad
+        grad = grad.to(dtype)
+        if not all_free:
+            grad = torch.where(free, grad, torch.zeros_like(grad))
+        # A finite, bounded gradient keeps Adam's moments and so every parameter finite.
+        optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-_GRAD_BOUND, _GRAD_BOUND),
+                       active)
+        with torch.no_grad():
+            if periodic_pan:  # u's pan is (pan - lower) / 90 deg: wrap it into [0, 1)
+                u[..., PAN] = torch.remainder(u[..., PAN], 1.0)
+            u.clamp_(0.0, 1.0)
+        if tolerance > 0:  # an image stops once none of its hypotheses moves its objective any more
+            history.append(objective.detach() / total_length)
+            if len(history) > patience:
+                old = history.pop(0)
+                change = (history[-1] - old).abs()
+                moving = ((change > tolerance) & torch.isfinite(change)).any(1)  # (B,)
+                active = moving[:, None, None] if active is None else active & moving[:, None, None]
+                if not bool(active.any()):
+                    break
+    with torch.no_grad():
+        params, objective = evaluate(u)
+        objective = torch.where(torch.isfinite(objective), objective, torch.full_like(objective, -math.inf))
+    return params.detach(), objective.detach()
+
+
+def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures, lower: torch.Tensor,
+                       span: torch.Tensor, u: torch.Tensor, grad_out: torch.Tensor,
+                       geometry=None):
+    """Measure-b objective (B, L) at ``params = lower + u * span`` and the gradient of
+    ``sum(grad_out * objective)`` with respect to u (B, L, 4), without autograd.
+
+    With ``geometry`` the rows have a fifth parameter, k: each hypothesis is scored on its images'
+    segments undistorted with its k (:meth:`~fr_torch.core.search.lens.SegmentGeometry.features`, one
+    virtual image per hypothesis), and d obj / dk = sum_i (d obj / d line_along_i) . (d line_along_i / dk)
+    (:func:`fr_torch.core.likelihood.objective.measure_b_backward` with the VPs); u is then (B, L, 5).
+
+    ``params`` = [pan, pitch, roll (degrees), log f (f in pixels)], the refinement's coordinates.
+
+    ``lower``, ``span``: (B, 1, 4); ``grad_out``: broadcastable to (B, L).  The chain is written
+    out: G = d obj / d V for the VPs V = K R from :func:`fr_torch.core.likelihood.objective.measure_b_backward`;
+    ``dV/df = [R_0; R_1; 0]``; and for the angles, with ``R.T = Ry(pan) Rx(pitch) Rz(roll)``
+    (:func:`fr_torch.core.geometry.params.rotations`), ``dR/d angle = -R [w]_x`` for the axis ``w`` = e_y (pan),
+    ``Ry(pan) e_x`` (pitch) and ``R.T e_z`` (roll), so ``d obj / d angle = -w . axial(V.T G)``
+    (``<G, K dR> = <K.T G, -R [w]_x> = -<R.T K.T G, [w]_x>``; axial(M) = (M21 - M12, M02 - M20,
+    M10 - M01)).  Equal to the autograd gradient of the same objective to rounding (tests); used
+    by the refinement, where autograd's per-step overhead dominated at small batches.
+    """
+    params = lower + u * span
+    batch, n_hyp = params.shape[:2]
+    rad = torch.deg2rad(params[..., ANGLES])
+    cos, sin = torch.cos(rad), torch.sin(rad)
+    rotation = rotation_from_cos_sin(cos, sin)  # (B, L, 3, 3)
+    focal = torch.exp(params[..., FOCAL])
+    if geometry is not None:
+        features, d_line_along = geometry.features(params[..., DISTORTION], derivative=True)  # B * L images
+    pp = features.principal_point[:, None, :]  # (B, 1, 2)
+    if geometry is not None:
+        pp = pp.view(batch, n_hyp, 2)
+    vps = camera_vps(rotation, focal, pp)  # (B, L, 3, 3)
+    constants = likelihood._b_constants(features.weight)
+    if geometry is None:
+        objective, grad_flat = measure_b_objective_and_grad(features.line_along, features.weight, vp_major(vps),
+                                                            constants, grad_out)
+        grad_v = grad_flat.view(batch, 3, 3, n_hyp).permute(0, 3, 1, 2)  # (B, L, coord, VP)
+    else:
+        flat = vp_major(vps.reshape(batch * n_hyp, 1, 3, 3))  # (B * L, 3, 3): one hypothesis per virtual image
+        objective, saved = measure_b_forward(features.line_along, features.weight, flat, *constants)
+        objective = objective.view(batch, n_hyp)
+        grad_flat, grad_line_along = measure_b_backward(saved, grad_out.expand(batch, n_hyp).reshape(-1, 1).contiguous(),
+                                                        flat)
+        grad_v = grad_flat.view(batch, n_hyp, 3, 3)  # (B, L, coord, VP)
+        grad_k = exact_sum(small_sum(grad_line_along * d_line_along, -1), 1).view(batch, n_hyp)
+        if geometry.k_prior_weight:  # the prior on k (SegmentGeometry.k_log_prior)
+            k_prior, d_k_prior = geometry.k_log_prior(params[..., DISTORTION])
+            objective = objective + k_prior
+            grad_k = grad_k + grad_out * d_k_prior
+    focal_prior_grad = None
+    if likelihood.params.focal_prior_weight:  # the focal prior of MixtureLikelihood.objective
+        if geometry is None:
+            prior, d_prior = likelihood.focal_prior(features, focal)
+        else:
+            prior, d_prior = (x.view(batch, n_hyp) for x in likelihood.focal_prior(features, focal.reshape(-1, 1)))
+        objective = objective + prior
+        focal_prior_grad = grad_out * d_prior
+    grad_p = chain_to_params(vps, rotation, cos, sin, focal, grad_v, focal_prior_grad)
+    if geometry is not None:
+        grad_p = torch.cat([grad_p, grad_k[..., None]], -1)
+    return objective, grad_p * span
+
+
+
+
+def camera_vps(rotation: torch.Tensor, focal: torch.Tensor, principal_point: torch.Tensor) -> torch.Tensor:
+    """The vanishing points ``V = K R`` (..., 3, 3) (rows x, y, w in pixels; column j the VP of
+    world axis j) of rotations (..., 3, 3), focal lengths (...) and principal points broadcastable
+    to (..., 2), pixels: rows 0, 1 = ``f R_j + c R_2``, row 2 = ``R_2``, each product rounded once."""
+    top = focal[..., None, None] * rotation[..., :2, :] + principal_point[..., None] * rotation[..., 2:, :]
+    return torch.cat([top, rotation[..., 2:, :]], -2)
+
+
+def chain_to_params(vps: torch.Tensor, rotation: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor,
+                    focal: torch.Tensor, grad_v: torch.Tensor, grad_f_extra: torch.Tensor | None = None) -> torch.Tensor:
+    """The gradient (..., 4) with respect to [pan, pitch, roll (per degree), log f] of a function of
+    the vanishing points ``V = K R`` whose gradient with respect to V is ``grad_v`` (..., coord, VP).
+
+    ``vps`` (..., 3, 3) = K R (rows x, y, w; columns the VPs), ``rotation`` (..., 3, 3) world->camera
+    with ``R.T = Ry(pan) Rx(pitch) Rz(roll)`` (:func:`fr_torch.core.geometry.params.rotations`), ``cos`` /
+    ``sin`` (..., 3) of the angles, ``focal`` (...) pixels; ``grad_f_extra`` (...) is added to the
+    derivative with respect to f (a prior on f).  ``dV/df = [R_0; R_1; 0]`` and
+    ``dR/d angle = -R [w]_x`` for the axis ``w`` = e_y (pan), ``Ry(pan) e_x`` (pitch) and ``R.T e_z``
+    (roll), so ``d / d angle = -w . axial(V.T G)`` (axial(M) = (M21 - M12, M02 - M20, M10 - M01));
+    every product written out (:mod:`fr_torch.core.exact`)."""
+    grad_v = grad_v.to(rotation.dtype)
+    grad_f = small_sum(small_sum(grad_v[..., :2, :] * rotation[..., :2, :], -1), -1)
+    if grad_f_extra is not None:
+        grad_f = grad_f + grad_f_extra
+    m = small_matmul(vps.transpose(-1, -2), grad_v)  # R.T K.T G (..., 3, 3)
+    anti = m - m.transpose(-1, -2)
+    axial = torch.stack([anti[..., 2, 1], anti[..., 0, 2], anti[..., 1, 0]], -1)  # (..., 3)
+    grad_pitch = cos[..., 0] * axial[..., 0] - sin[..., 0] * axial[..., 2]  # w = Ry e_x = (cos pan, 0, -sin pan)
+    grad_roll = dot3(rotation[..., 2, :], axial)  # w = R.T e_z = row 2 of R
+    grad_angles = torch.stack([axial[..., 1], grad_pitch, grad_roll], -1) * (-math.pi / 180)  # per degree
+    return torch.cat([grad_angles, (grad_f * focal)[..., None]], -1)  # d/d log f = f d/df
