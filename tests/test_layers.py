@@ -88,6 +88,18 @@ LAYERS = (
     {"cli"},  # the fr command
 )
 
+#: Rooms of the engine fr_torch.core, lowest first (fr_torch/core/__init__.py): a module imports
+#: its own room and those below it.
+CORE_ROOMS = (
+    {"exact"},  # arithmetic with the same bits everywhere
+    {"geometry"},  # the camera model
+    {"settings"},  # settings parsed into types
+    {"likelihood"},  # segments, measures, the mixture, the fused objective
+    {"search"},  # grid -> passes -> refine, and the fits
+    {"reliability"},  # cues, error model, bounds, sanity checks
+    {"estimator", "result", "exports"},  # the estimator over segment batches, its result
+)
+
 #: Layers of the harness fr_eval (folder eval/), lowest first, by sub-package or top-level module.
 HARNESS_LAYERS = (
     {"paths", "machine"},  # where the data lives, what machine a measurement ran on
@@ -182,15 +194,19 @@ def _upward_imports(package: str, layers) -> list[str]:
     belong to a layer (by its first name below ``package``)."""
     rank = {name: level for level, names in enumerate(layers) for name in names}
     graph = _module_graph()
-    unplaced = sorted(m for m in graph if m.startswith(package + ".") and m.split(".")[1] not in rank)
+
+    def first_name(module: str) -> str:  # the module's first name below ``package``
+        return module[len(package) + 1:].split(".")[0]
+
+    unplaced = sorted(m for m in graph if m.startswith(package + ".") and first_name(m) not in rank)
     assert not unplaced, f"place these modules in a layer of tests/test_layers.py: {unplaced}"
     offenders = []
     for module, deps in graph.items():
         if not module.startswith(package + "."):
             continue
-        here = rank[module.split(".")[1]]
+        here = rank[first_name(module)]
         for dep in deps:
-            if dep.startswith(package + ".") and rank[dep.split(".")[1]] > here:
+            if dep.startswith(package + ".") and rank[first_name(dep)] > here:
                 offenders.append(f"{module} imports {dep}")
     return sorted(offenders)
 
@@ -198,6 +214,27 @@ def _upward_imports(package: str, layers) -> list[str]:
 def test_fr_torch_layers_import_downwards_only():
     offenders = _upward_imports("fr_torch", LAYERS)
     assert not offenders, "\n".join(offenders)
+
+
+def test_engine_rooms_import_downwards_only():
+    offenders = _upward_imports("fr_torch.core", CORE_ROOMS)
+    assert not offenders, "\n".join(offenders)
+
+
+def test_engine_rooms_stay_small_and_say_what_they_hold():
+    """Every engine file under 600 lines, no room of more than 8 files, and every room's docstring
+    says what it holds and what it may import (fr_torch/core/__init__.py draws the rooms)."""
+    core = REPO / "fr_torch" / "core"
+    long_files = [f"{p.relative_to(REPO)}: {n}" for p in core.rglob("*.py")
+                  if (n := len(p.read_text().splitlines())) > 600]
+    assert not long_files, long_files
+    rooms = [path for path in core.iterdir() if (path / "__init__.py").is_file()]
+    assert {room.name for room in rooms} == set().union(*CORE_ROOMS[1:6])
+    for room in rooms:
+        files = [p for p in room.iterdir() if p.is_file() and p.suffix in (".py", ".c")]
+        assert len(files) <= 8, (room.name, sorted(p.name for p in files))
+        doc = (room / "__init__.py").read_text()
+        assert doc.startswith('"""') and "May import" in doc, room.name
 
 
 def test_harness_layers_import_downwards_only():

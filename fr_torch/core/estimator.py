@@ -49,13 +49,11 @@ from fr_torch.core.search.choice import HorizonChooser, choose_fit
 from fr_torch.core.geometry.params import DISTORTION, FOCAL, CameraParams
 from fr_torch.core.reliability.model import ReliabilityModel
 from fr_torch.core.search.lens import SegmentGeometry, bend_test, search_with_k
-from fr_torch.core.search.passes import best_of_start_and_refined, subdivide_starts, sweep_focal, tie_tolerance
-from fr_torch.core.search.grid import grid_hypotheses, parameter_box, score_grid, select_starts
-from fr_torch.core.search.refine import refine
 from fr_torch.core.geometry.vanishing import AtlantaConfig, rank_vanishing_points
 from fr_torch.core.likelihood.segments import SegmentBatch, SegmentFilter, drop_absurd_segments, validate_segments
 from fr_torch.errors import FRInputError
 from fr_torch.core.result import CalibrationResult
+from fr_torch.core.search.manhattan import search_manhattan
 
 
 BACKGROUND_LABEL = 3
@@ -310,38 +308,22 @@ class SegmentEstimator:
         k_estimate = None  # (B,) k of the division estimates
         horizon_fit = torch.zeros(len(group), dtype=torch.bool)  # (B,) the horizon fit chosen (choose_fit)
         choice_evidence = {}  # the choice's evidence (fr_torch.core.search.choice.CHOICE_FEATURES), cues choice_*
+        fast = self.mode == "fast"
+        if lens == "division":  # the lens fit: k with f and R
+            found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal, self.iterations,
+                                  fast)
+        else:  # the Manhattan fit, and the horizon fit where the setting chooses it
+            found = search_manhattan(self.likelihood, features, self.search, long_side, focal, self.iterations, fast)
+        t1 = t0 + found.grid_seconds
+        params, best_scores, tied = found.params, found.scores, found.tied
+        grid_scores, grid_counts = found.grid_scores, found.grid_counts
         if lens == "division":
-            found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal,
-                                  self.iterations, fast=self.mode == "fast")
-            params, best_scores, tied = found.params, found.scores, found.tied
             k_estimate = params[:, DISTORTION]
             estimate = CameraParams(params[:, :DISTORTION].contiguous())
             features = geometry.features(params[:, DISTORTION, None])  # the segments as the estimate sees them
-            grid_scores, grid_counts = found.grid_scores, found.grid_counts
-            t1 = t0 + found.grid_seconds
         else:
-            hypotheses = grid_hypotheses(self.search, long_side.to(device), None if focal is None else focal.to(device))
-            # Stage 1 scores each image's longest segments only (they carry the evidence); stage 2 all.
-            grid_count = self.search.grid_segments
-            grid_features = features.longest(grid_count) if grid_count else features
-            grid_scores = score_grid(self.likelihood, grid_features, hypotheses, self.search.max_chunk_elements,
-                                     vertical_block=self.search.grid_points_per_dim)
-            grid_counts = grid_features.mask.sum(-1)
-            starts, top_scores = select_starts(self.search, grid_scores, hypotheses)
-            lower, upper = parameter_box(self.search, long_side, focal)
-            starts, top_scores = sweep_focal(self.likelihood, features, starts, top_scores, self.search, lower, upper)
-            starts, top_scores = subdivide_starts(self.likelihood, features, starts, top_scores, self.search,
-                                                  lower, upper)
-            t1 = time.perf_counter()
-
-            refined, refined_scores = refine(self.likelihood, features, starts, lower, upper, self.iterations,
-                                             fast=self.mode == "fast", tolerance=self.search.refine_tolerance,
-                                             patience=self.search.refine_patience,
-                                             periodic_pan=self.search.periodic_pan)
-            params, best_scores, tied = best_of_start_and_refined(starts, top_scores, refined, refined_scores,
-                                                                  tie_tolerance(features))
-            choice = choose_fit(self.likelihood, features, params, best_scores, lower, upper, batch.image_size,
-                                self.search, self.horizon_chooser)
+            choice = choose_fit(self.likelihood, features, params, best_scores, found.lower, found.upper,
+                                batch.image_size, self.search, self.horizon_chooser)
             horizon_fit, choice_evidence = choice.horizon, choice.evidence
             params = torch.where(horizon_fit[:, None], choice.params.to(params.dtype), params)
             best_scores = torch.where(horizon_fit, choice.scores.to(best_scores.dtype), best_scores)

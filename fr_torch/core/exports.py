@@ -1,4 +1,22 @@
-"""TODO"""
+"""The camera files of a division-lens estimate for other tools: COLMAP and OpenCV.
+
+COLMAP (>= 4.0) has the division model itself, ``SIMPLE_DIVISION`` (f, cx, cy, k'): it lifts a
+pixel to ``x = (p - c) / f`` and undistorts it to ``x / (1 + k' |x|^2)``, i.e. its radius is
+normalised by the **focal length**, ours by ``s``.  Since ``|p - c|^2 / s^2 = |x|^2 f^2 / s^2``,
+the two are the same model exactly when
+
+    ``k' = k (f / s)^2``        (and back: ``k = k' (s / f)^2``)
+
+(:func:`colmap_division_k`; checked against pycolmap's ``cam_from_img`` / ``img_from_cam`` in
+``tests/test_exports.py``).  COLMAP's ``DIVISION`` (fx, fy, cx, cy, k') is the same with two
+focal lengths; fR has one.  COLMAP's pixel origin is the image's top-left corner, so its cx, cy
+are ours + 0.5 (the offsets ``p - c``, and with them k', are unchanged).
+
+OpenCV (any version) and COLMAP before 4.0 have no division model: their radial models are
+polynomials in the undistorted radius, ``x_d = x_u (1 + k1 R^2 + k2 R^4 ...)``, whose
+coefficients are fitted to the division model by least squares over the image
+(:func:`fit_radial_polynomial`), and the fit's residual (pixels) is stated with them.
+"""
 from __future__ import annotations
 
 from enum import StrEnum

@@ -1,4 +1,8 @@
-"""TODO"""
+""":class:`CalibrationResult`: one image's estimate and everything said about it -- the camera, the
+lens, the segments' labels, the ranked vanishing points, the horizon, the cues, the predicted
+errors and bounds, ``reliable`` and its reason -- with its JSON form (:data:`JSON_KEYS`, the CLI's
+output schema) and its exports (OpenCV, COLMAP, kornia).
+"""
 from __future__ import annotations
 
 import copy

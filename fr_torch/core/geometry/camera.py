@@ -1,4 +1,10 @@
-"""TODO"""
+"""The :class:`Camera` value type: image size, focal length, principal point and orientation, with
+every derived quantity (K, hfov, angles, vanishing points, the horizon) read from it; and
+:func:`camera_record`, which gives a record holding a ``camera`` those quantities as read-only
+attributes (:class:`CameraField`).
+
+Conventions: :mod:`fr_torch.core.geometry.conventions`.
+"""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,10 @@
-"""TODO"""
+"""The horizon: the vanishing line of the horizontal planes, where it crosses the image's borders, and
+the :class:`Horizon` value fR reports and the horizon benchmark scores.
+
+Conventions: :mod:`fr_torch.core.geometry.conventions` (pixels, y down; R world->camera with the
+vertical in column 1).  Through a division-model lens (:mod:`fr_torch.core.geometry.lens`) the
+horizon is a curve in the photo; its border crossings are found on the curve.
+"""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,31 @@
-"""TODO"""
+"""The segments as the likelihood sees them (:class:`SegmentFeatures`) and the deviation measures
+(a)-(e) of a segment from a vanishing point.
+
+Shapes: B images, H hypotheses per image, N segments per image (padded; ``mask`` marks the real
+ones), 3 vanishing points.  All computations use the *homogeneous* vanishing point, so a VP at
+infinity (third coordinate 0) needs no special case: for a segment with unit direction d,
+midpoint m and homogeneous line ``l = (-d_y, d_x, d_y m_x - d_x m_y)`` (unit normal, so
+``l . (x, y, 1)`` is the signed distance of pixel (x, y) from the segment's line), and
+``g = (d_x, d_y, -d . m)`` (``g . (x, y, 1)`` is the signed position of (x, y) along the segment
+from its midpoint), a VP ``v`` gives
+
+* ``s = l . v`` — v3 times the signed distance of the VP from the segment's line;
+* ``t = g . v`` — v3 times the VP's position along the segment direction.
+
+Deviation measures (internal units: radians for b and e, pixels for a, c, d):
+
+(a) distance from the VP to the segment's line, ``|s| / |v3|`` (saturates at ``range`` px);
+(b) angle between the segment and the line from its midpoint to the VP, ``atan2(|s|, |t|)`` —
+    the default; a segment whose midpoint coincides with the VP gets 0;
+(c) distance from an endpoint to the line through the midpoint and the VP, ``(len/2) sin(b)``;
+(d) endpoint distance measured orthogonally to the segment, ``(len/2) tan(b)``;
+(e) Gauss-sphere angle between the VP direction ``D = K^-1 v`` and the segment's interpretation
+    plane (normal ``n = K^T l``): ``asin(|n . D| / (|n| |D|))``, where ``n . D = s`` (evaluated as
+    ``atan2(|s|, sqrt(|n|^2 - s^2))``: finite value and gradient in float32 too).
+
+s and t are written out per entry (:func:`incidence`, no matrix product), so they are the same
+bits in any batch (:mod:`fr_torch.core.exact`).
+"""
 from __future__ import annotations
 
 import math

@@ -1,61 +1,26 @@
-"""Deviation measures (a)-(e) and the 4-way mixture likelihood of line segments.
+"""The 4-way mixture likelihood of line segments and its parameters.
 
 Every segment is explained by one of the three Manhattan families (vanishing point i = K R[:, i];
-column 1 is the vertical) or by a uniform background.  Shapes: B images, H hypotheses per image,
-N segments per image (padded; ``mask`` marks the real ones), 3 vanishing points.
-
-All computations use the *homogeneous* vanishing point, so a VP at infinity (third coordinate
-0) needs no special case: for a segment with unit direction d, midpoint m and homogeneous line
-``l = (-d_y, d_x, d_y m_x - d_x m_y)`` (unit normal, so ``l . (x, y, 1)`` is the signed distance
-of pixel (x, y) from the segment's line), and ``g = (d_x, d_y, -d . m)`` (``g . (x, y, 1)`` is the
-signed position of (x, y) along the segment from its midpoint), a VP ``v`` gives
-
-* ``s = l . v`` — v3 times the signed distance of the VP from the segment's line;
-* ``t = g . v`` — v3 times the VP's position along the segment direction.
-
-Deviation measures (internal units: radians for b and e, pixels for a, c, d):
-
-(a) distance from the VP to the segment's line, ``|s| / |v3|`` (saturates at ``range`` px);
-(b) angle between the segment and the line from its midpoint to the VP, ``atan2(|s|, |t|)`` —
-    the default; a segment whose midpoint coincides with the VP gets 0;
-(c) distance from an endpoint to the line through the midpoint and the VP, ``(len/2) sin(b)``;
-(d) endpoint distance measured orthogonally to the segment, ``(len/2) tan(b)``;
-(e) Gauss-sphere angle between the VP direction ``D = K^-1 v`` and the segment's interpretation
-    plane (normal ``n = K^T l``): ``asin(|n . D| / (|n| |D|))``, where ``n . D = s`` (evaluated as
-    ``atan2(|s|, sqrt(|n|^2 - s^2))``: finite value and gradient in float32 too).
+column 1 is the vertical) or by a uniform background.  The deviation of a segment from a
+vanishing point is one of the measures (a)-(e) of :mod:`fr_torch.core.likelihood.measures`.
 
 Likelihoods: exponential ``exp(-x / lambda) / lambda`` for a, b, c, e; half-normal (a central
 Gaussian on the signed deviation, sigma = 1 px by default) for d; background uniform over the
 measure's range (pi/2 for b and e, ``range`` px for a, the half length for c and d; measures are
-clamped to their range).  Objective: ``sum_i len_i * log p_i``.
+clamped to their range).  Objective: ``sum_i len_i * log p_i``, plus the focal prior
+(:class:`LikelihoodParams`).
 
 The vertical parameters (lambda and prior) go on the world-up column (column 1), as in the
 paper.  The authors' MATLAB release attaches them to a horizontal column instead; we follow the
 paper.
 
 Speed (measure b, the default): :meth:`MixtureLikelihood.objective` evaluates the same mixture
-with a fused path instead of the generic one.  Without gradients (the grid) it works in place
-on reusable buffers (``workspace``) with vanishing points laid out VP-major, ``(B, N, 3 * H)``,
-so the sum over the three families adds contiguous blocks; with gradients (the refinement) a
-custom autograd function returns the analytic gradient with respect to the vanishing points
-(``d obj / d v = sum_i [G_is l_i + G_it g_i]``), so autograd only sees the small (B, H, 3, 3)
-tensors.  One deliberate detail: the exponent ``log(prior / lambda) - x / lambda`` is clamped
-below at -87 (float32; -700 for float64) because ``exp`` of a more negative float32 argument
-takes a much slower denormal path; the clamped term (< 1e-37) is then added to the background
-density (>= 0.019 for measure b), which it cannot change in float32 or float64, so the objective
-is unchanged bit for bit whenever the background prior exceeds ~1e-28.  ``atan2(0, 0) = 0`` as in
-the generic path (and the gradient there is 0, as the generic path's guard gives).
+with the fused path of :mod:`fr_torch.core.likelihood.objective` (and its C kernels on a CPU,
+checked bit for bit against the torch path once per process by :func:`kernels_match_torch`).
 
-Fused CPU kernels (float32 on a CPU, where they build: :mod:`fr_torch.core.likelihood.native`): the grid's
-scores (:func:`objective_b_nograd`) and the refinement's objective with its gradient
-(:func:`measure_b_objective_and_grad`) run as one C pass each, which never stores the per-segment
-deviations and keeps the exact sums' integers in registers; the same operations in the same
-order as the torch code here, which stays the reference (``fused=False``) and the path of every
-other device, dtype and machine: the same bits either way.
-
-One photo, one answer: s and t are written out per entry (:func:`incidence`, no matrix product),
-the angle is ``atan(|s / t|)``, the families are added in one order on every path
-(:func:`family_sum`) and every sum over segments is exact
+One photo, one answer: s and t are written out per entry, the angle is ``atan(|s / t|)``, the
+families are added in one order on every path
+(:func:`~fr_torch.core.likelihood.objective.family_sum`) and every sum over segments is exact
 (:func:`fr_torch.core.exact.exact_sum`), so an image's objective (float64) is the same bits in
 any batch, chunk, thread count and CPU kernel set (:mod:`fr_torch.core.exact`).
 """
@@ -425,7 +390,7 @@ class MixtureLikelihood:
         Measure b in float32/float64 takes the fused path (module docstring); ``workspace`` (a
         dict, reused across calls of the same shape) lets the grid avoid fresh allocations.
         """
-        if self._fast_path(features):
+        if self.fast_path(features):
             vps = vanishing_points(focal, features.principal_point[:, None, :], rotation)  # (B, H, 3, 3)
             flat = vp_major(vps)
             constants = self._b_constants(features.weight)
@@ -447,7 +412,7 @@ class MixtureLikelihood:
         :meth:`objective`, bit for bit (the fused path for measure b, else
         :meth:`segment_log_likelihood`)."""
         with torch.no_grad():
-            if self._fast_path(features):
+            if self.fast_path(features):
                 flat = vp_major(vanishing_points(focal, features.principal_point[:, None, :], rotation))
                 return objective_b_nograd(features.line_along, features.weight, flat, *self._b_constants(features.weight),
                                           per_segment=True)
@@ -457,15 +422,15 @@ class MixtureLikelihood:
         """``sum_i len_i log p_i`` of per-segment terms (B, N, H) from :meth:`segment_log_p`: (B, H)
         float64, the data part of :meth:`objective` bit for bit (the same exact sum and bound)."""
         bound = log_sum_bound(features.weight, self._b_constants(features.weight)[-1]) \
-            if self._fast_path(features) else None
+            if self.fast_path(features) else None
         return exact_sum(log_p, 1, bound=bound, weight=features.weight[:, :, None])
 
     def stores_no_deviations(self, features: SegmentFeatures) -> bool:
         """True when scoring without gradients runs the fused kernel (:mod:`fr_torch.core.likelihood.native`),
         which keeps no per-segment deviations: the grid needs no chunking for memory then."""
-        return self._fast_path(features) and native_ok(features.weight)
+        return self.fast_path(features) and native_ok(features.weight)
 
-    def _fast_path(self, features: SegmentFeatures) -> bool:
+    def fast_path(self, features: SegmentFeatures) -> bool:
         return (self.params.measure == "b" and self.params.model == "mixture" and features.weight.dtype in EXP_FLOOR
                 and not (features.line.requires_grad or features.along.requires_grad
                          or features.weight.requires_grad)

@@ -1,4 +1,26 @@
-"""TODO"""
+"""The fused measure-b objective: what the grid and the refinement evaluate millions of times.
+
+:meth:`~fr_torch.core.likelihood.mixture.MixtureLikelihood.objective` takes this path for measure
+b instead of the generic one, with the same terms.  Without gradients (the grid) it works in place
+on reusable buffers (``workspace``) with vanishing points laid out VP-major, ``(B, N, 3 * H)``
+(:func:`vp_major`), so the sum over the three families adds contiguous blocks; with gradients (the
+refinement) :class:`MeasureBObjective` returns the analytic gradient with respect to the vanishing
+points (``d obj / d v = sum_i [G_is l_i + G_it g_i]``), so autograd only sees the small
+(B, H, 3, 3) tensors.  One deliberate detail: the exponent ``log(prior / lambda) - x / lambda`` is
+clamped below at -87 (float32; -700 for float64, :data:`EXP_FLOOR`) because ``exp`` of a more
+negative float32 argument takes a much slower denormal path; the clamped term (< 1e-37) is then
+added to the background density (>= 0.019 for measure b), which it cannot change in float32 or
+float64, so the objective is unchanged bit for bit whenever the background prior exceeds ~1e-28.
+``atan2(0, 0) = 0`` as in the generic path (and the gradient there is 0, as the generic path's
+guard gives).
+
+Fused CPU kernels (float32 on a CPU, where they build: :mod:`fr_torch.core.likelihood.native`): the
+grid's scores (:func:`objective_b_nograd`) and the refinement's objective with its gradient
+(:func:`measure_b_objective_and_grad`) run as one C pass each, which never stores the per-segment
+deviations and keeps the exact sums' integers in registers; the same operations in the same order
+as the torch code here, which stays the reference (``fused=False``) and the path of every other
+device, dtype and machine: the same bits either way.
+"""
 from __future__ import annotations
 
 import math

@@ -1,11 +1,11 @@
-"""Reliability cues and final sanity checks of an estimate.
+"""The reliability cues of an estimate.
 
-The cues feed the error model (:mod:`fr_torch.core.reliability`): the paper's three (segments per
+The cues feed the error model (:mod:`fr_torch.core.reliability.model`): the paper's three (segments per
 family, grid entropy, mean log-likelihood) and geometric ones of ours (focal conditioning, the focal
 prior's share, the focal profile gap); the spreads (:data:`SPREAD_CUE_NAMES`: how far f and the pitch
 could move before the segments notice, from the focal profile and a segment resampling) feed the
-bounds of ``reliable`` (:mod:`fr_torch.core.reliability.bounds`).  The checks flag non-finite
-estimates and estimates at the edge of the search box.
+bounds of ``reliable`` (:mod:`fr_torch.core.reliability.bounds`).  The sanity checks that use
+some of them are :mod:`fr_torch.core.reliability.sanity`.
 """
 from __future__ import annotations
 

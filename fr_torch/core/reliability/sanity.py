@@ -1,4 +1,9 @@
-"""TODO"""
+"""The sanity checks of an estimate, each a reason in ``reason`` and ``reliable = False``: too few
+segments, a Manhattan family nearly empty, too little of the segment length following a Manhattan
+frame (:func:`sanity_check`); the focal length or an angle at its search box's edge
+(:func:`check_result`); lines that bend (:func:`lines_bend_reason`, from the cues
+:data:`LINE_BEND_CUES`); and, last of all, nothing non-finite in any field (:func:`finite_record`).
+"""
 from __future__ import annotations
 
 import math

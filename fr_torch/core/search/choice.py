@@ -1,4 +1,12 @@
-"""TODO"""
+"""Which fit a photo reports: the Manhattan fit's, or the horizon fit's horizon on the Manhattan
+fit's camera (``SearchConfig.fit``: ``manhattan``, ``horizon`` or ``choose``).
+
+:func:`choose_fit` runs the horizon fit (:mod:`fr_torch.core.search.horizon`) where the setting
+asks for it; with ``choose`` a logistic rule learned on a train split (:class:`HorizonChooser`,
+``configs/horizon_choice.json``) weighs the photo's own evidence (:func:`choice_features`,
+:data:`CHOICE_FEATURES`, reported as cues ``choice_*``).  What is reported from the horizon fit is
+its horizon with the Manhattan fit's focal length and horizontal directions (:func:`fit_on_horizon`).
+"""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,13 @@
-"""TODO"""
+"""Stage 1 of the search: the box, the k^4 grid of hypotheses in it, their scores, the best starts.
+
+The box: pan, pitch and roll ranges (degrees) and the focal range of the FOV range
+(:class:`~fr_torch.core.settings.fov.FovRange`, across the long side), or a known focal length.
+The grid: k cell centres per dimension, the focal length spaced uniformly in log f by default
+(``SearchConfig.focal_grid``).  :func:`score_grid` scores every hypothesis as one batched tensor
+computation (the fused kernel on a CPU stores no deviations; else cache-sized chunks on a CPU and
+``max_chunk_elements`` on a GPU; no chunk size depends on the thread count), and
+:func:`select_starts` keeps each image's ``top_l`` best.
+"""
 from __future__ import annotations
 
 import math

@@ -46,10 +46,11 @@ from fr_torch.core.geometry.conventions import rotation_from_cos_sin
 from fr_torch.core.settings.config import HorizonFitConfig
 from fr_torch.core.exact import atan2, cross3, dot3, exact_sum, first_argmax, top_indices
 from fr_torch.core.likelihood.measures import SegmentFeatures
-from fr_torch.core.geometry.params import FOCAL, PITCH, ROLL, from_log_focal, to_log_focal
-from fr_torch.core.search.refine import Adam, camera_vps, chain_to_params
+from fr_torch.core.geometry.params import FOCAL, PITCH, ROLL
+from fr_torch.core.search.refine import camera_vps, chain_to_params
 from fr_torch.core.geometry.params import angles_from_search_rotation
 from fr_torch.core.search.grid import into_box, log_spaced_focals
+from fr_torch.core.search.refine import UnitBox, adam_in_box
 
 
 @dataclass
@@ -322,25 +323,20 @@ def horizon_vote(features: SegmentFeatures, params: torch.Tensor, config: Horizo
 
 def refine_horizon(features: SegmentFeatures, params: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor,
                    config: HorizonFitConfig, periodic_pan: bool) -> torch.Tensor:
-    """Adam on the smooth vote from ``params`` (B, 4) inside the box (B, 4); float64 (B, 4)."""
-    low, high = to_log_focal(lower)[:, None], to_log_focal(upper)[:, None]
-    span = high - low
-    free = span > 0
-    span_safe = torch.where(free, span, torch.ones_like(span))
-    u = ((to_log_focal(params)[:, None] - low) / span_safe).clamp(0, 1)
+    """Adam on the smooth vote from ``params`` (B, 4) inside the box (B, 4) (the refinement loop
+    of every fit, :func:`~fr_torch.core.search.refine.adam_in_box`, with its own step sizes and no
+    stopping rule); float64 (B, 4)."""
+    box = UnitBox(lower[:, None], upper[:, None])
+    u = box.to_unit(params[:, None])
     total = features.total_length().clamp_min(1e-9)[:, None]
-    cell = 1.0 / 8
-    lr0, lr_final = 0.1 * cell, 0.005 * cell
-    gamma = (lr_final / lr0) ** (1.0 / max(1, config.refine_iterations - 1))
-    optimiser = Adam(u, lr0, gamma, betas=(0.5, 0.9))
-    for _ in range(config.refine_iterations):
-        current = from_log_focal(low + u * span)
-        vps, rotation, cos, sin, focal = _vps(current, features)
+
+    def gradient(u_value):
+        vps, rotation, cos, sin, focal = _vps(box.to_params(u_value), features)
         grad_v = _kernel_terms(features, vps, config, gradient=True)
-        grad = chain_to_params(vps, rotation, cos, sin, focal, grad_v * (-1.0 / total)[..., None, None]) * span
-        grad = torch.where(free, grad, torch.zeros_like(grad))
-        optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0))
-        if periodic_pan:
-            u[..., 0] = torch.remainder(u[..., 0], 1.0)
-        u.clamp_(0.0, 1.0)
-    return from_log_focal(low + u * span)[:, 0]
+        return None, chain_to_params(vps, rotation, cos, sin, focal, grad_v * (-1.0 / total)[..., None, None]) * box.span
+
+    cell = 1.0 / 8
+    adam_in_box(u, box, config.refine_iterations, 0.1 * cell, 0.005 * cell, gradient, periodic_pan)
+    return box.to_params(u)[:, 0]
+
+

@@ -43,6 +43,7 @@ from fr_torch.core.geometry.params import DISTORTION, from_log_focal
 from fr_torch.core.search.passes import LATTICE, best_of_start_and_refined, lattice_passes, sweep_focal, tie_tolerance
 from fr_torch.core.search.grid import grid_cell, grid_hypotheses, into_box, parameter_box, score_grid, select_starts
 from fr_torch.core.search.refine import refine
+from fr_torch.core.search.passes import SearchResult
 
 
 @dataclass
@@ -426,27 +427,9 @@ def subdivide_rows(likelihood: MixtureLikelihood, geometry: SegmentGeometry, sta
 
 
 
-@dataclass
-class DistortedSearch:
-    """What :func:`search_with_k` found for B images.
-
-    ``params`` (B, 5) the estimates [pan, pitch, roll, f, k] and ``scores`` (B,) their objectives;
-    ``grid_scores`` (B, G) and ``grid_counts`` (B,) for the ``grid_entropy`` cue;
-    ``grid_seconds``: the time of the stages before the refinement (all images); ``tied`` (B,) bool:
-    another solution scored within rounding of the estimate
-    (:func:`fr_torch.core.search.passes.best_of_start_and_refined`)."""
-
-    params: torch.Tensor
-    scores: torch.Tensor
-    grid_scores: torch.Tensor
-    grid_counts: torch.Tensor
-    grid_seconds: float
-    tied: torch.Tensor
-
-
 def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, features: SegmentFeatures,
                   config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None,
-                  iterations: int, fast: bool) -> DistortedSearch:
+                  iterations: int, fast: bool) -> SearchResult:
     """The whole search with k (module docstring) for the images of ``geometry``.
 
     ``features``: the same images' segments as :meth:`SegmentGeometry.features` gives them at any k
@@ -464,7 +447,7 @@ def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, feat
                                      periodic_pan=config.periodic_pan, geometry=geometry)
     params, scores, tied = best_of_start_and_refined(starts, top_scores, refined, refined_scores,
                                                      tie_tolerance(geometry))
-    return DistortedSearch(params, scores, grid_scores, grid_counts, grid_seconds, tied)
+    return SearchResult(params, scores, grid_scores, grid_counts, grid_seconds, tied, lower, upper)
 
 
 def likelihood_gain(scores: torch.Tensor, baseline: torch.Tensor, features: SegmentFeatures) -> torch.Tensor:

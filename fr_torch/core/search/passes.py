@@ -1,40 +1,22 @@
-"""Two-stage search for (f, R): a k^4 grid, then batched refinement of the best l grid points.
+"""Between the grid and the refinement: the focal sweep, the lattice passes, and the tie rules.
 
-Stage 1 scores every grid hypothesis (pan x pitch x roll x focal, k values each, cell centres
-of the ranges; focal spaced uniformly in log f over the FOV range by default) as
-one batched tensor computation, chunked so that at most ``max_chunk_elements`` per-segment
-deviations exist at once.  Each of the best ``top_l`` grid points gains a second start, its best
-point along its focal ridge (:func:`sweep_focal`: the vertical VP, the best-determined, held
-fixed while f runs over the whole range); all 2l starts are then sharpened by ``grid_passes``
-coarse-to-fine passes (:func:`subdivide_starts`: a 3^4 lattice at a third of the previous spacing
-around each, keep the best), so refinement starts within 1/27 of a grid cell of the best lattice
-point instead of half a cell.  Stage 2 refines these starts of every image together
-with ``torch.optim`` (Adam on box-normalised parameters, projected back into the box after every
-step), focal length included (the MATLAB release pins f to its grid value; we refine it
-continuously, as the paper does).  each mode runs its ``refine_iterations`` (fR 100 with a decaying step size, Fast-fR
-10; :data:`fr_torch.core.settings.config.MODE_PRESETS`).  Each hypothesis' update depends only on its own gradient, so a
-batch gives the same answer as images one by one.
+Each of the best ``top_l`` grid points gains a second start, its best point along its focal ridge
+(:func:`sweep_focal`: the vertical VP, the best-determined, held fixed while f runs over the whole
+range); all 2l starts are then sharpened by ``grid_passes`` coarse-to-fine passes
+(:func:`lattice_passes` of the 3^4 :data:`LATTICE` at a third of the previous spacing around each,
+keep the best; :func:`subdivide_starts`), so the refinement starts within 1/27 of a grid cell of
+the best lattice point instead of half a cell.  The lens fit passes a lattice with k
+(:func:`fr_torch.core.search.lens.subdivide_rows`) to the same :func:`lattice_passes`.
 
-Speed and memory (same math; see also :mod:`fr_torch.core.likelihood.mixture`):
-
-* Grid: with the fused CPU kernel (:mod:`fr_torch.core.likelihood.native`, which stores no deviations) the
-  hypotheses of an image slice are scored in one call; on the torch path on CPU in cache-sized
-  chunks (``CPU_CHUNK_ELEMENTS`` deviations, a few MB of buffers) that reuse the same buffers,
-  instead of ``max_chunk_elements`` (which still bounds the chunk on GPU and caps it on CPU);
-  rotations / vanishing points are built once per image slice, not per chunk.  Large batches are
-  cut into image slices, so memory stays bounded for any batch size.  No chunk size depends on the
-  thread count: a search takes the same path whatever threads the load leaves it
-  (``FR_THREADS=auto``), in a worker process or not.
-* Refinement: images are refined in independent slices of at most ``max_chunk_elements``
-  (``CPU_REFINE_ELEMENTS`` on CPU) deviations per step (identical results: every image's loss and
-  Adam update are its own), and the rotation is built in closed form
-  (``R.T = Ry(pan) Rx(pitch) Rz(roll)``, equal to :func:`fr_torch.core.geometry.conventions.rotation_from_angles`
-  to rounding) with fewer, smaller autograd nodes.
-  The iteration counts and step-size schedule are unchanged.
+After the refinement the better of each start and its refinement wins
+(:func:`best_of_start_and_refined`); two different solutions within rounding of each other
+(:func:`tie_tolerance`) make the estimate ``tied``: another machine could return the other.
+What a fit found is a :class:`SearchResult`.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 import torch
 from fr_torch.core.geometry.conventions import VERTICAL_AXIS
 from fr_torch.core.settings.config import SearchConfig
@@ -267,3 +249,26 @@ def lattice_passes(starts: torch.Tensor, scores: torch.Tensor, lattice: torch.Te
         points, point_scores = score_points(place(lattice), place)  # lattice points (B, L, P, D)
         current, scores = _keep_best(current, scores, points, point_scores, tolerance)
     return from_log_focal(current).to(starts), scores
+
+
+@dataclass
+class SearchResult:
+    """What a fit's search (:func:`~fr_torch.core.search.manhattan.search_manhattan`,
+    :func:`~fr_torch.core.search.lens.search_with_k`) found for B images.
+
+    ``params`` (B, P) the estimates (P = 4: [pan, pitch, roll (degrees), f (pixels)]; 5 with the
+    division model's k) and ``scores`` (B,) their objectives; ``grid_scores`` (B, G) and
+    ``grid_counts`` (B,) the stage-1 scores and the segments each image's grid scored (the
+    ``grid_entropy`` cue); ``grid_seconds``: the time of the stages before the refinement (all
+    images); ``tied`` (B,) bool: another solution scored within rounding of the estimate
+    (:func:`best_of_start_and_refined`); ``lower``, ``upper`` (B, P): the search box.
+    """
+
+    params: torch.Tensor
+    scores: torch.Tensor
+    grid_scores: torch.Tensor
+    grid_counts: torch.Tensor
+    grid_seconds: float
+    tied: torch.Tensor
+    lower: torch.Tensor
+    upper: torch.Tensor

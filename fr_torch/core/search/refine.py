@@ -1,4 +1,20 @@
-"""TODO"""
+"""Stage 2 of the search: Adam inside the box, the one refinement loop every fit uses.
+
+Parameters are stepped as u in the unit box (:class:`UnitBox`: ``u = (p' - lower') / (upper' -
+lower')``, the focal length as log f, a degenerate side fixed), projected back after every step,
+pan wrapped around its 90-degree box where it is periodic (:func:`adam_in_box`).  :class:`Adam`
+is written in single torch operations (the same bits on every kernel set), :class:`Patience` is the
+per-image stopping rule.  The Manhattan and lens fits refine the mixture likelihood
+(:func:`refine`: the analytic gradient of measure b through :func:`objective_and_grad`, autograd
+otherwise); the horizon fit refines its smooth vote (:func:`fr_torch.core.search.horizon.refine_horizon`);
+both reach the parameters through the same chain rule from the vanishing points
+(:func:`chain_to_params`).
+
+Images are refined in independent slices of at most ``max_chunk_elements`` (``CPU_REFINE_ELEMENTS``
+on a CPU) deviations per step, and each hypothesis' update depends only on its own gradient: a
+batch gives the same answer as images one by one.  Each mode runs its ``refine_iterations`` (fR
+100 with a decaying step size, Fast-fR 10; :data:`fr_torch.core.settings.config.MODE_PRESETS`).
+"""
 from __future__ import annotations
 
 import math
@@ -105,33 +121,102 @@ class Adam:
         self.lr = self.lr * self.gamma
 
 
+class UnitBox:
+    """Parameter rows mapped into the unit box the refinement steps in: ``u = (p' - lower') /
+    (upper' - lower')`` in [0, 1], where ``'`` replaces the focal length by its log
+    (:func:`~fr_torch.core.geometry.params.to_log_focal`: a step is the same relative change of f,
+    and about the same change of FOV, at every zoom, as the log-spaced grid).
+
+    ``lower``, ``upper``: the box, broadcastable to the rows (e.g. (B, 1, P) for rows (B, L, P)),
+    in the rows' dtype and device.  A degenerate side (a known focal length) has ``free`` False:
+    that parameter stays where it is.
+    """
+
+    def __init__(self, lower: torch.Tensor, upper: torch.Tensor):
+        self.lower, upper = to_log_focal(lower), to_log_focal(upper)
+        self.span = upper - self.lower
+        self.free = self.span > 0
+        self.span_safe = torch.where(self.free, self.span, torch.ones_like(self.span))
+
+    def to_unit(self, params: torch.Tensor) -> torch.Tensor:
+        """u of rows ``params``, clamped into [0, 1]."""
+        return ((to_log_focal(params) - self.lower) / self.span_safe).clamp(0, 1)
+
+    def to_params(self, u: torch.Tensor) -> torch.Tensor:
+        """The rows at ``u`` (the inverse of :meth:`to_unit` inside the box)."""
+        return from_log_focal(self.lower + u * self.span)
+
+
+class Patience:
+    """The refinement's stopping rule: an image stops (its parameters stay put) once none of its
+    hypotheses changed its normalised objective (objective / ``total_length``, (B, 1)) by more than
+    ``tolerance`` over the last ``patience`` steps.  Each image decides alone, so a batch cannot
+    change its answer."""
+
+    def __init__(self, tolerance: float, patience: int, total_length: torch.Tensor):
+        self.tolerance, self.patience, self.total_length = tolerance, patience, total_length
+        self.history: list[torch.Tensor] = []
+        self.active: torch.Tensor | None = None  # (B, 1, 1) images still refined; None = all
+        self.done = False
+
+    def update(self, objective: torch.Tensor) -> torch.Tensor | None:
+        """Record one step's objectives (B, L); returns the mask of images still refined."""
+        self.history.append(objective.detach() / self.total_length)
+        if len(self.history) > self.patience:
+            old = self.history.pop(0)
+            change = (self.history[-1] - old).abs()
+            moving = ((change > self.tolerance) & torch.isfinite(change)).any(1)  # (B,)
+            self.active = moving[:, None, None] if self.active is None else self.active & moving[:, None, None]
+            self.done = not bool(self.active.any())
+        return self.active
+
+
+def adam_in_box(u: torch.Tensor, box: UnitBox, iterations: int, lr0: float, lr_final: float, gradient,
+                periodic_pan: bool, grad_bound: float | None = None, stop: Patience | None = None) -> None:
+    """The refinement loop every fit shares: ``iterations`` Adam steps (:class:`Adam`, betas (0.5,
+    0.9), step size decaying geometrically from ``lr0`` to ``lr_final``, box units) on ``u``
+    (B, L, P) in place, each projected back into the unit box (pan wrapped around it with
+    ``periodic_pan``: u's pan is (pan - lower) / 90 deg).
+
+    ``gradient(u)`` -> (objective (B, L) or None, d loss / d u (B, L, P)): the fit's objective and
+    the gradient of its loss in box units.  The gradient is zeroed on the box's fixed sides, made
+    finite (NaN, inf -> 0) and, with ``grad_bound``, clamped to +-``grad_bound``: no step makes a
+    parameter non-finite.  ``stop``: the stopping rule (it reads the objectives), None = every step.
+    """
+    gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
+    optimiser = Adam(u, lr0, gamma, betas=(0.5, 0.9))
+    all_free = bool(box.free.all())
+    active = None  # (B, 1, 1) images still refined under the stopping rule
+    for _ in range(iterations):
+        objective, grad = gradient(u)
+        grad = grad.to(u.dtype)
+        if not all_free:
+            grad = torch.where(box.free, grad, torch.zeros_like(grad))
+        grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+        if grad_bound is not None:
+            grad = grad.clamp_(-grad_bound, grad_bound)
+        optimiser.step(grad, active)
+        with torch.no_grad():
+            if periodic_pan:
+                u[..., PAN] = torch.remainder(u[..., PAN], 1.0)
+            u.clamp_(0.0, 1.0)
+        if stop is not None:
+            active = stop.update(objective)
+            if stop.done:
+                break
+
+
 def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10,
                   periodic_pan=False, geometry=None):
     dtype, device = features.weight.dtype, features.weight.device
-    # The focal length is refined as log f: a step is the same relative change of f (and about the
-    # same change of FOV) at every zoom, matching the log-spaced stage-1 grid.
     if lower.dim() == 2:  # one box per image
         lower, upper = lower[:, None, :], upper[:, None, :]
-    lower = to_log_focal(lower.to(device=device, dtype=dtype))
-    upper = to_log_focal(upper.to(device=device, dtype=dtype))
-    starts = to_log_focal(starts.to(device=device, dtype=dtype))
-    span = (upper - lower)
-    free = span > 0
-    span_safe = torch.where(free, span, torch.ones_like(span))
-    u = ((starts - lower) / span_safe).clamp(0, 1).detach().requires_grad_(True)
+    box = UnitBox(lower.to(device=device, dtype=dtype), upper.to(device=device, dtype=dtype))
+    u = box.to_unit(starts.to(device=device, dtype=dtype)).detach().requires_grad_(True)
     total_length = features.total_length().clamp_min(1e-9)[:, None]  # (B, 1) float64
-    # Step sizes in box units: about a quarter of a grid cell at first, decaying geometrically.
-    cell = 1.0 / 8
-    lr0 = 0.25 * cell
-    lr_final = (0.02 if fast else 0.002) * cell
-    gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
-    optimiser = Adam(u, lr0, gamma, betas=(0.5, 0.9))
-    all_free = bool(free.all())
-    history: list[torch.Tensor] = []
-    active = None  # (B, 1, 1) images still refined under the stopping rule
 
     def evaluate(u_value):
-        params = from_log_focal(lower + u_value * span)
+        params = box.to_params(u_value)
         if geometry is not None:  # one virtual image per hypothesis, its segments undistorted with its k
             batch, n_hyp = params.shape[:2]
             virtual = geometry.features(params[..., DISTORTION])
@@ -141,39 +226,23 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
         rotation = rotations(params)
         return params, likelihood.objective(features, rotation, params[..., FOCAL])
 
-    analytic = likelihood._fast_path(features)
+    analytic = likelihood.fast_path(features)
     grad_out = (-1.0 / total_length).to(dtype)
-    for _ in range(iterations):
-        u.grad = None
-        if analytic and geometry is not None:
-            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out, geometry)
-        elif analytic:  # same gradient in closed form, no autograd graph (see objective_and_grad)
-            objective, grad = objective_and_grad(likelihood, features, lower, span, u.detach(), grad_out)
-        else:
-            _, objective = evaluate(u)
-            finite = torch.where(torch.isfinite(objective), objective, torch.zeros_like(objective))
-            loss = -(finite / total_length).sum()
-            loss.backward()
-            grad = u.grad
-        grad = grad.to(dtype)
-        if not all_free:
-            grad = torch.where(free, grad, torch.zeros_like(grad))
-        # A finite, bounded gradient keeps Adam's moments and so every parameter finite.
-        optimiser.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0).clamp_(-_GRAD_BOUND, _GRAD_BOUND),
-                       active)
-        with torch.no_grad():
-            if periodic_pan:  # u's pan is (pan - lower) / 90 deg: wrap it into [0, 1)
-                u[..., PAN] = torch.remainder(u[..., PAN], 1.0)
-            u.clamp_(0.0, 1.0)
-        if tolerance > 0:  # an image stops once none of its hypotheses moves its objective any more
-            history.append(objective.detach() / total_length)
-            if len(history) > patience:
-                old = history.pop(0)
-                change = (history[-1] - old).abs()
-                moving = ((change > tolerance) & torch.isfinite(change)).any(1)  # (B,)
-                active = moving[:, None, None] if active is None else active & moving[:, None, None]
-                if not bool(active.any()):
-                    break
+
+    def gradient(u_value):
+        u_value.grad = None
+        if analytic:  # the same gradient in closed form, no autograd graph (see objective_and_grad)
+            return objective_and_grad(likelihood, features, box.lower, box.span, u_value.detach(), grad_out, geometry)
+        _, objective = evaluate(u_value)
+        finite = torch.where(torch.isfinite(objective), objective, torch.zeros_like(objective))
+        loss = -(finite / total_length).sum()
+        loss.backward()
+        return objective, u_value.grad
+
+    # Step sizes in box units: about a quarter of a grid cell at first, decaying geometrically.
+    cell = 1.0 / 8
+    adam_in_box(u, box, iterations, 0.25 * cell, (0.02 if fast else 0.002) * cell, gradient, periodic_pan,
+                grad_bound=_GRAD_BOUND, stop=Patience(tolerance, patience, total_length) if tolerance > 0 else None)
     with torch.no_grad():
         params, objective = evaluate(u)
         objective = torch.where(torch.isfinite(objective), objective, torch.full_like(objective, -math.inf))

@@ -1,4 +1,9 @@
-"""TODO"""
+"""The lens setting: :class:`DistortionSetting` (pinhole, the division model's k estimated with f and
+R, or ``auto``: pinhole, then the division model where the lines bend), its k range and the
+"lines bend" test's thresholds, parsed once from ``--distortion``, ``--k`` or ``configs/search.json``.
+
+The model itself (what k means, how points move) is :mod:`fr_torch.core.geometry.lens`.
+"""
 from __future__ import annotations
 
 import math
@@ -6,10 +11,9 @@ from dataclasses import dataclass, fields
 from enum import StrEnum
 from fr_torch.core.settings.checks import enum_member, finite_number
 from fr_torch.errors import FRInputError
+from fr_torch.core.geometry.lens import K_LIMITS
 
 
-#: Open interval of k over which the division model is one-to-one on the image (module docstring).
-K_LIMITS = (-1.0, 1.0)
 
 
 class DistortionMode(StrEnum):
@@ -35,7 +39,7 @@ class DistortionSetting:
     the search then holds it fixed (``mode`` becomes ``division``); None = estimate it.
     ``k_range``: the search box of k (default [-0.6, 0.2]: from no distortion to a fisheye-like
     barrel whose border lines bow by ~10 % of the width, and a mild pincushion), within
-    :data:`K_LIMITS`.  ``k_prior_weight`` (gamma >= 0): a prior on k, ``log p(k) = -(gamma / 2) W k^2``
+    :data:`~fr_torch.core.geometry.lens.K_LIMITS`.  ``k_prior_weight`` (gamma >= 0): a prior on k, ``log p(k) = -(gamma / 2) W k^2``
     per image (W its total segment length, pixels; nats), which holds k near 0 where the lines say
     little about it (:meth:`fr_torch.core.search.lens.SegmentGeometry.k_log_prior`).
     ``bend_min_gain``, ``bend_min_share``, ``bend_min_pairs``,
