@@ -9,8 +9,8 @@ import torch
 
 from fr_torch.cli.main import attach_range_values, main
 from fr_torch.core.geometry.conventions import rotation_from_angles
-from fr_torch.core.settings.config import SearchConfig
 from fr_torch.core.search.grid import into_box
+from fr_torch.core.settings.config import SearchConfig
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.synthetic import synthetic_segments

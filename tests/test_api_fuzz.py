@@ -20,10 +20,10 @@ from fr_torch import FREstimator, FRInputError
 from fr_torch.cli.main import main
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import rotation_from_angles
-from fr_torch.core.reliability.sanity import finite_record
-from fr_torch.core.result import CalibrationResult
 from fr_torch.core.likelihood.mixture import LikelihoodParams
 from fr_torch.core.reliability.model import ReliabilityModel
+from fr_torch.core.reliability.sanity import finite_record
+from fr_torch.core.result import CalibrationResult
 from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.detectors.registry import get_detector
 from fr_torch.plugins.interface import get_calibrator

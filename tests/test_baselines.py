@@ -15,6 +15,7 @@ import math
 import numpy as np
 import pytest
 import torch
+
 from fr_baselines import vp_geometry as vg
 from fr_baselines.ctrlc import (
     CTRLC,
@@ -26,7 +27,6 @@ from fr_baselines.external import ExternalPredictions
 from fr_baselines.lee2009 import Lee2009
 from fr_baselines.prior import Prior
 from fr_baselines.simon2018 import Simon2018, meaningful_modes
-
 from fr_torch.core.geometry.conventions import focal_from_hfov, horizon_angles, image_centre, rotation_from_angles
 from fr_torch.plugins.interface import (
     Calibrator,

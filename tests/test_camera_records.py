@@ -6,8 +6,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from fr_eval.datasets.registry import CalibrationSample
 
+from fr_eval.datasets.registry import CalibrationSample
 from fr_torch.core.geometry.camera import Camera, pitch_from_tilt
 from fr_torch.core.geometry.conventions import angles_from_rotation, hfov_from_focal, intrinsics, rotation_from_angles
 from fr_torch.core.result import JSON_KEYS, CalibrationResult
@@ -124,8 +124,8 @@ def test_estimator_and_fusion_build_cameras():
     assert state.hfov_deg == pytest.approx(result.hfov_deg)
     assert state.to_json()["rotation"] == np.asarray(state.rotation).tolist()
     # the non-finite check clears focal and rotation, keeps the principal point (as before)
-    from fr_torch.core.settings.config import SearchConfig
     from fr_torch.core.reliability.sanity import check_result
+    from fr_torch.core.settings.config import SearchConfig
 
     result.camera = replace(result.camera, rotation=np.full((3, 3), np.nan))
     check_result(result, SearchConfig.from_config())

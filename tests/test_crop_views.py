@@ -3,10 +3,10 @@ loader reads them back."""
 import cv2
 import numpy as np
 import pytest
+
 from fr_eval.datasets.crop_views import crop_dataset, crop_origin, main
 from fr_eval.datasets.panoviews import PanoViews
 from fr_eval.datasets.registry import CalibrationSample
-
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import hfov_from_focal, image_centre, rotation_from_angles
 from fr_torch.synthetic import render_manhattan_room

@@ -2,7 +2,6 @@
 stand-in for torchvision's device decoder; the CUDA tests run it for real."""
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest

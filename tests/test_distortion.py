@@ -10,9 +10,8 @@ import torch
 
 from fr_torch import FREstimator
 from fr_torch.cli.main import main as cli_main
+from fr_torch.core.estimator import SegmentEstimator
 from fr_torch.core.geometry.conventions import image_centre
-from fr_torch.core.settings.config import SearchConfig
-from fr_torch.core.settings.distortion import DistortionMode, DistortionSetting
 from fr_torch.core.geometry.lens import (
     border_bow_percent,
     distort_points,
@@ -20,12 +19,13 @@ from fr_torch.core.geometry.lens import (
     normalising_radius,
     undistort_points,
 )
-from fr_torch.core.estimator import SegmentEstimator
-from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
-from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.geometry.params import DISTORTION, FOCAL, from_log_focal, rotations
-from fr_torch.core.search.refine import objective_and_grad
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
 from fr_torch.core.search.lens import SegmentGeometry
+from fr_torch.core.search.refine import objective_and_grad
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core.settings.distortion import DistortionMode, DistortionSetting
 from fr_torch.errors import FRInputError
 from fr_torch.images.lens import distort_image, undistort_image
 from fr_torch.synthetic import distorted_segments, random_rotation, synthetic_segments

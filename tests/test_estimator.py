@@ -5,10 +5,10 @@ import torch
 
 from fr_torch import FREstimator
 from fr_torch.core.geometry.camera import Camera
-from fr_torch.core.geometry.horizon import Horizon
 from fr_torch.core.geometry.conventions import focal_from_hfov, horizon_angles, image_centre, rotation_from_angles
-from fr_torch.core.reliability.sanity import LINE_BEND_CUES
+from fr_torch.core.geometry.horizon import Horizon
 from fr_torch.core.reliability.cues import focal_conditioning
+from fr_torch.core.reliability.sanity import LINE_BEND_CUES
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
 
@@ -173,8 +173,8 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     The cue matches a direct evaluation of :func:`fr_torch.core.reliability.cues.focal_prior_share`."""
     from dataclasses import replace
 
-    from fr_torch.core.reliability.cues import focal_prior_share
     from fr_torch.core.likelihood.mixture import MixtureLikelihood
+    from fr_torch.core.reliability.cues import focal_prior_share
 
     focal = focal_from_hfov(70.0, 640)
     views = {"oblique": rotation_from_angles(torch.tensor(30.0, dtype=torch.float64), 15.0, 3.0).numpy(),
@@ -190,8 +190,8 @@ def test_focal_prior_share_says_when_the_prior_sets_f():
     [given] = est.calibrate_segments(segments[:1], [(640, 480)], focal_px=focal)
     assert given.cues["focal_prior_share"] == 0.0 and given.cues["focal_spread"] == 0.0
 
-    from fr_torch.core.likelihood.measures import SegmentFeatures
     from fr_torch.core.geometry.params import angles_from_search_rotation
+    from fr_torch.core.likelihood.measures import SegmentFeatures
     from fr_torch.core.likelihood.segments import SegmentBatch
 
     batch = SegmentBatch.from_list([oblique.segments], [(640, 480)])
@@ -223,11 +223,11 @@ def test_focal_profile_gap_sign_and_scale(monkeypatch):
     """``focal_profile_gap``: large at a well-determined estimate, small where the lines say little
     about f (camera square to a wall), negative at an estimate a clearly different focal length
     beats, 0 for a given focal length (fR only; Fast-fR does not compute it)."""
-    from fr_torch.core.reliability.cues import focal_profile_gap
-    from fr_torch.core.likelihood.measures import SegmentFeatures
-    from fr_torch.core.geometry.params import rotations as hypothesis_rotations
     from fr_torch.core.geometry.params import angles_from_search_rotation
+    from fr_torch.core.geometry.params import rotations as hypothesis_rotations
+    from fr_torch.core.likelihood.measures import SegmentFeatures
     from fr_torch.core.likelihood.segments import SegmentBatch
+    from fr_torch.core.reliability.cues import focal_profile_gap
 
     focal, views, segments = _oblique_and_square()
     est = FREstimator(mode="fr", reliability=None, profile_gap=True)
@@ -295,10 +295,10 @@ def test_spread_cues_measure_how_well_the_segments_fix_the_camera():
     they leave it to the prior (a camera square to a wall), at their maximum at an estimate a nearby
     focal length beats; a given focal length has no focal spread but a pitch spread; computed when
     the reliability stage holds a promise or when asked, skipped otherwise."""
-    from fr_torch.core.reliability.cues import MAX_SPREAD, SPREAD_FOCAL_RATIOS, focal_profile, focal_profile_spread
-    from fr_torch.core.likelihood.measures import SegmentFeatures
     from fr_torch.core.geometry.params import angles_from_search_rotation
+    from fr_torch.core.likelihood.measures import SegmentFeatures
     from fr_torch.core.likelihood.segments import SegmentBatch
+    from fr_torch.core.reliability.cues import MAX_SPREAD, SPREAD_FOCAL_RATIOS, focal_profile, focal_profile_spread
 
     focal, views, segments = _oblique_and_square()
     est = FREstimator(mode="fast", reliability=None, spreads=True)

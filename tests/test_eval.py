@@ -12,9 +12,9 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
-from fr_eval.protocols import fit_likelihood, run_eval
-from fr_eval.datasets.registry import CalibrationSample
 
+from fr_eval.datasets.registry import CalibrationSample
+from fr_eval.protocols import fit_likelihood, run_eval
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 import pytest
-from fr_eval.protocols.distortion_exports import export_errors
 
+from fr_eval.protocols.distortion_exports import export_errors
 from fr_torch.core.exports import ColmapModel, colmap_camera, colmap_cameras_txt, colmap_division_k
 from fr_torch.core.geometry.lens import normalising_radius
 from fr_torch.errors import FRInputError

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+
 from fr_eval.bench.track_live import default_stop_signals
 from fr_eval.datasets.live_stream import MJPEGServer, SyntheticCamera
-
 from fr_torch.cli.main import main
 from fr_torch.core.result import CalibrationResult
 from fr_torch.errors import FRInputError

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-from fr_eval.protocols import focal_fusion
 
+from fr_eval.protocols import focal_fusion
 from fr_torch.core.reliability.model import ERROR_COLUMNS, FR_MODEL_CUE_NAMES
 
 
@@ -73,7 +73,6 @@ def test_fast_records_without_the_profile_gap(tmp_path):
     """Fast-fR does not compute focal_profile_gap: its records leave the column empty; cue sets with
     it are left out of the comparison, and asking for it is a one-line error, not an empty fit."""
     from fr_eval.protocols.reliability_train import CUE_SETS, compare_cue_sets, usable
-
     from fr_torch.core.reliability.model import MODEL_CUE_NAMES, model_cue_names
 
     train = pd.concat([_records(60, seed=1).assign(source="yud", name=[f"y{i}" for i in range(60)]),

@@ -5,12 +5,12 @@ import math
 import numpy as np
 import pytest
 
+from fr_eval.scoring.horizon_metric import FRAME, estimate_horizon, lezama_auc, truth_horizons
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.horizon import Horizon, border_columns, horizon_border_y, horizon_line
 from fr_torch.core.geometry.lens import distort_points, normalising_radius
-from fr_torch.core.result import CalibrationResult
 from fr_torch.core.reliability.bounds import HORIZON_BOUND_CAP_PCT, horizon_bound_pct
-from fr_eval.scoring.horizon_metric import FRAME, estimate_horizon, lezama_auc, truth_horizons
+from fr_torch.core.result import CalibrationResult
 from fr_torch.plugins.interface import CameraEstimate
 
 W, H, F = 640, 480, 500.0

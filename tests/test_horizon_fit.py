@@ -10,16 +10,16 @@ import torch
 
 from fr_torch import FREstimator
 from fr_torch.core.geometry.camera import Camera
-from fr_torch.core.geometry.horizon import Horizon
 from fr_torch.core.geometry.conventions import rotation_from_angles
-from fr_torch.core.settings.config import HorizonFitConfig, SearchConfig
-from fr_torch.core.search.choice import CHOICE_FEATURES, HorizonChooser, fit_on_horizon, horizon_of
-from fr_torch.core.search.horizon import fit_horizon, horizon_vote
-from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
-from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.geometry.horizon import Horizon
 from fr_torch.core.geometry.params import CameraParams
-from fr_torch.core.search.grid import parameter_box
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
 from fr_torch.core.likelihood.segments import SegmentBatch
+from fr_torch.core.search.choice import CHOICE_FEATURES, HorizonChooser, fit_on_horizon, horizon_of
+from fr_torch.core.search.grid import parameter_box
+from fr_torch.core.search.horizon import fit_horizon, horizon_vote
+from fr_torch.core.settings.config import HorizonFitConfig, SearchConfig
 from fr_torch.errors import FRInputError
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import checkout_env

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from fr_torch import FREstimator
+from fr_torch.core.exports import colmap_camera
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import image_centre, resize_homogeneous, resize_points, rotation_from_angles
-from fr_torch.core.exports import colmap_camera
 from fr_torch.images.io import focal_and_pp_to_working, working_image, working_size
 from fr_torch.synthetic import render_manhattan_room, synthetic_segments
 

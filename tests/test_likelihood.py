@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from fr_torch.core.geometry.conventions import VERTICAL_AXIS, rotation_from_angles
-from fr_torch.core.settings.fov import FovRange
-from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
 from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
 from fr_torch.core.likelihood.segments import SegmentBatch
+from fr_torch.core.settings.fov import FovRange
 
 
 def _direct_objective(segments, R, f, pp, params):

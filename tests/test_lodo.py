@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from fr_eval.datasets import nyu_vp
 from fr_eval.protocols.lodo import (
     FAMILIES,
@@ -13,7 +14,6 @@ from fr_eval.protocols.lodo import (
     zenith_error_deg,
 )
 from fr_eval.protocols.run_eval import build_meta, given_segments
-
 from fr_torch.core.geometry.conventions import rotation_from_angles
 
 
@@ -97,9 +97,9 @@ def test_zenith_error_and_families():
 def test_lodo_reliability_scales_and_judgement():
     """Per-family conformal scales of the spreads' sigmas and the held-out judgement on self-made records."""
     import pandas as pd
+
     from fr_eval.protocols.lodo_reliability import evaluate, family_scales, sigmas
     from fr_eval.scoring.metrics import aurc, risk_coverage
-
     from fr_torch.core.reliability.model import MODEL_CUE_NAMES
 
     rng = np.random.default_rng(0)
@@ -140,6 +140,7 @@ def test_lodo_reliability_scales_and_judgement():
 def test_detector_reliability_verdict():
     """The rule of results/decisions/45.md: >= 90 % where LSD is, and within LSD's per-family spread."""
     import pandas as pd
+
     from fr_eval.protocols.detector_reliability import verdict
 
     def table(other: dict[str, float]) -> pd.DataFrame:

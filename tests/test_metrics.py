@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
+
 from fr_eval.datasets.registry import CalibrationSample
 from fr_eval.scoring.metrics import (
     NOT_SUPPLIED,
@@ -24,7 +25,6 @@ from fr_eval.scoring.tables import (
     to_latex,
     to_markdown,
 )
-
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import hfov_from_focal, horizon_angles, rotation_from_angles
 from fr_torch.plugins.interface import CameraEstimate

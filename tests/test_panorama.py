@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+
 from fr_eval.datasets import make_dataset
 from fr_eval.datasets.panorama import (
     cube_face_rotations,
@@ -27,7 +28,6 @@ from fr_eval.datasets.panorama import (
     save_rgb,
     yaw_rotation,
 )
-
 from fr_torch.core.geometry.conventions import (
     focal_from_hfov,
     horizon_angles,

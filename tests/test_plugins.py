@@ -17,7 +17,17 @@ import pytest
 from fr_torch.detectors.registry import available_detectors, get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import available_methods, get_calibrator
-from fr_torch.registry import NOT_SUPPLIED, Registry, entry_points, format_method_spec, is_not_supplied, not_supplied, parse_method_spec, split_method_list, with_option
+from fr_torch.registry import (
+    NOT_SUPPLIED,
+    Registry,
+    entry_points,
+    format_method_spec,
+    is_not_supplied,
+    not_supplied,
+    parse_method_spec,
+    split_method_list,
+    with_option,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "fr_plugin_example"

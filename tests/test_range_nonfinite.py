@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from fr_torch.core.geometry.camera import Camera
-from fr_torch.core.settings.config import SearchConfig
 from fr_torch.core.reliability.sanity import check_result
+from fr_torch.core.settings.config import SearchConfig
 from fr_torch.core.settings.fov import FovRange
 from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate
@@ -73,8 +73,8 @@ def test_non_finite_refinement_fails_that_image_only(monkeypatch):
 
 
 def test_metrics_count_non_finite_estimate_as_failure():
-    from fr_eval.scoring.metrics import failure_reason, is_failure, summarize
     from fr_eval.protocols.run_eval import prediction_row
+    from fr_eval.scoring.metrics import failure_reason, is_failure, summarize
 
     class Sample:
         name, width, height, split = "img", 640, 480, "test"

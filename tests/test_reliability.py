@@ -9,7 +9,6 @@ import pytest
 from scipy.stats import spearmanr
 
 from fr_torch.core.geometry.camera import Camera
-from fr_torch.core.result import CalibrationResult
 from fr_torch.core.reliability.model import (
     CUE_NAMES,
     FR_MODEL_CUE_NAMES,
@@ -23,6 +22,7 @@ from fr_torch.core.reliability.model import (
     load_thresholds,
     model_cue_names,
 )
+from fr_torch.core.result import CalibrationResult
 from fr_torch.resources import config_dir
 
 

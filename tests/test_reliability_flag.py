@@ -8,8 +8,6 @@ import numpy as np
 import pytest
 
 from fr_torch.core.geometry.camera import Camera
-from fr_torch.core.result import CalibrationResult
-from fr_torch.core.reliability.model import MODEL_CUE_NAMES, ReliabilityModel
 from fr_torch.core.reliability.bounds import (
     FOCAL_SIGMA_FLOOR_PCT,
     ReliabilityPromise,
@@ -18,6 +16,8 @@ from fr_torch.core.reliability.bounds import (
     tilt_sigma_deg,
     worst_group_scale,
 )
+from fr_torch.core.reliability.model import MODEL_CUE_NAMES, ReliabilityModel
+from fr_torch.core.result import CalibrationResult
 
 
 def test_conformal_scale_is_the_finite_sample_quantile():

@@ -204,12 +204,12 @@ def test_the_torch_path_gives_the_fused_kernels_bits(reference):
 def test_the_fused_kernels_check_themselves_against_the_torch_path():
     """Where the kernels build (a C compiler, torch with MKL), their first-use check passed; the
     grid's scores and the refinement's gradient equal the torch path's on a scene bit for bit."""
-    from fr_torch.core.likelihood import native
-    from fr_torch.core.likelihood.mixture import MixtureLikelihood, kernels_match_torch
-    from fr_torch.core.likelihood.measures import SegmentFeatures
-    from fr_torch.core.likelihood.objective import measure_b_objective_and_grad, objective_b_nograd, vp_major
     from fr_torch.core.geometry.conventions import image_centre, vanishing_points
     from fr_torch.core.geometry.params import rotations
+    from fr_torch.core.likelihood import native
+    from fr_torch.core.likelihood.measures import SegmentFeatures
+    from fr_torch.core.likelihood.mixture import MixtureLikelihood, kernels_match_torch
+    from fr_torch.core.likelihood.objective import measure_b_objective_and_grad, objective_b_nograd, vp_major
 
     if not native.available():
         pytest.skip(f"fused kernels unavailable here ({native._state.get('error', 'FR_NATIVE=0')})")

@@ -11,13 +11,13 @@ import torch
 import fr_torch.core.search.passes as search
 from fr_torch import FREstimator
 from fr_torch.core.geometry.conventions import focal_from_hfov, rotation_from_angles
-from fr_torch.core.settings.config import SearchConfig
-from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
-from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.geometry.params import rotations as fast_rotations
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
+from fr_torch.core.likelihood.segments import SegmentBatch
 from fr_torch.core.search.grid import grid_hypotheses, score_grid
 from fr_torch.core.search.refine import refine
-from fr_torch.core.likelihood.segments import SegmentBatch
+from fr_torch.core.settings.config import SearchConfig
 from fr_torch.synthetic import synthetic_segments
 from tests.conftest import gpu
 

@@ -247,6 +247,7 @@ def test_decode_jpeg_batch(room):
 
 def test_bench_detector_rows(room, tmp_path):
     import cv2
+
     from fr_eval.bench import detectors as bench_detectors
 
     class Progress:

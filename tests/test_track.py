@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from fr_torch.core.geometry.conventions import MANHATTAN_SYMMETRIES as SYMMETRIES
 from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import MANHATTAN_SYMMETRIES as SYMMETRIES
 from fr_torch.core.geometry.conventions import (
     align_to,
     focal_from_hfov,

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+
 from fr_baselines import consac as consac_module
 from fr_baselines import vp_geometry as vg
 from fr_eval.scoring.vp_metric import (
@@ -23,7 +24,6 @@ from fr_eval.scoring.vp_metric import (
     directions_from_vps,
     match_errors,
 )
-
 from fr_torch.core.geometry.conventions import image_centre, rotation_from_angles
 from fr_torch.core.geometry.vanishing import AtlantaConfig
 from fr_torch.errors import FRInputError

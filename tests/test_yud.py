@@ -8,9 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+
 from fr_eval.datasets.registry import get_dataset_loader, load_dataset
 from fr_eval.datasets.yud import load_yud, rotation_from_vp_orthogonal
-
 from fr_torch.core.geometry.conventions import vanishing_points
 from tests.conftest import require_dataset
 
@@ -160,7 +160,6 @@ def test_resolution_check_rejects_bad_scales(scales, capsys):
 def test_resolution_check_counts_failed_estimates(data_root, tmp_path, monkeypatch):
     """A failed estimate is counted in the `valid` column and named, not silently left out."""
     import fr_eval.protocols.resolution_check as check
-
     from fr_torch import FREstimator
 
     class FailsSecond(FREstimator):

@@ -24,8 +24,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    import fr_torch.core.reliability.cues as cues
     import fr_torch.core.estimator as estimator_module
+    import fr_torch.core.reliability.cues as cues
     from fr_eval.datasets.registry import load_dataset
     from fr_torch import FREstimator
     from fr_torch.detectors.lsd import LSDDetector

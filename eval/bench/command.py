@@ -71,6 +71,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+
 from fr_eval.bench import detectors as bench_detectors
 from fr_eval.bench import distortion as bench_distortion
 from fr_eval.bench.gpu import grid_kernel
@@ -81,7 +82,6 @@ from fr_eval.bench.search import end_to_end, outside_search, scaling, throughput
 from fr_eval.bench.timing import Progress
 from fr_eval.machine import machine_description
 from fr_eval.paths import REPO
-
 from fr_torch.cli.options import add_device_arguments
 from fr_torch.runtime.workers import usable_cores
 

@@ -24,7 +24,6 @@ from pathlib import Path
 
 from fr_eval.machine import machine_description
 from fr_eval.paths import data_root
-
 from fr_torch.cli.options import add_device_arguments
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.runtime.workers import usable_cores

@@ -25,8 +25,8 @@ def grid_kernel(device: str, batch: int, n_segments: int, repeats: int, progress
 
     from fr_torch.core.geometry.conventions import image_centre
     from fr_torch.core.likelihood.measures import SegmentFeatures
-    from fr_torch.core.search.grid import grid_hypotheses, score_grid
     from fr_torch.core.likelihood.segments import SegmentBatch
+    from fr_torch.core.search.grid import grid_hypotheses, score_grid
 
     label = f"grid kernel {device}"
     if progress.out_of_time(label):

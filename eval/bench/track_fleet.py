@@ -51,11 +51,11 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
 from fr_eval.bench.track_live import FR, _env, _records_check, _stop, default_stop_signals
 from fr_eval.datasets.live_stream import MJPEGServer, SyntheticCamera
 from fr_eval.machine import machine_description, proc_status_kb, session_processes
 from fr_eval.paths import REPO
-
 from fr_torch.core.geometry.conventions import rotation_angles
 from fr_torch.video.records import CAMERA_KEY, RECORD_KEYS
 
@@ -391,6 +391,7 @@ def _soak_report(records: pd.DataFrame, memory: pd.DataFrame, args, out: Path, f
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     from fr_eval.scoring.plots import save_figure
 
     first = float(records["t_s"].min())

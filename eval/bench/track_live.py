@@ -44,12 +44,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pandas as pd
+
 from fr_eval.datasets.live_stream import SyntheticCamera
 from fr_eval.machine import machine_description, proc_status_kb, session_processes
 from fr_eval.paths import REPO
 from fr_eval.scoring.metrics import frame_error_deg
 from fr_eval.scoring.plots import save_figure
-
 from fr_torch.core.geometry.conventions import rotation_angles
 from fr_torch.video.records import RECORD_KEYS
 
@@ -333,7 +333,6 @@ def stops(args) -> None:
 
 def pan(args) -> None:
     from fr_eval.datasets.yud import load_yud
-
     from fr_torch.runtime.estimator import FREstimator
 
     samples = load_yud(split="test")

@@ -29,10 +29,10 @@ import cv2
 import numpy as np
 import pandas as pd
 import torch
+
 from fr_eval.datasets.make_dataset import parse_range, view_distortions
 from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_eval.datasets.registry import load_dataset
-
 from fr_torch.core.geometry.conventions import hfov_from_focal, image_centre, pan_from_rotation
 from fr_torch.images.io import load_image
 from fr_torch.images.lens import distort_image

@@ -65,7 +65,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
+
 from fr_eval.datasets.panorama import (
     cubemap_to_equirect,
     load_cubemap,
@@ -74,7 +74,7 @@ from fr_eval.datasets.panorama import (
     save_rgb,
     yaw_rotation,
 )
-
+from fr_eval.datasets.panoviews import GT_COLUMNS, R_COLUMNS
 from fr_torch.cli.options import add_device_arguments
 from fr_torch.core.geometry.conventions import (
     focal_from_hfov,

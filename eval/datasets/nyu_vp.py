@@ -49,9 +49,9 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import data_root
-
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import rotation_from_angles
 

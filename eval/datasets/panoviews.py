@@ -34,9 +34,9 @@ from typing import Iterator
 
 import numpy as np
 import pandas as pd
+
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import cache_root
-
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import image_centre
 

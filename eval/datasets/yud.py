@@ -42,9 +42,9 @@ from pathlib import Path
 
 import numpy as np
 import scipy.io as sio
+
 from fr_eval.datasets.registry import CalibrationSample, register_dataset
 from fr_eval.paths import data_root
-
 from fr_torch.core.geometry.camera import Camera
 
 FOLDER = "yorkurbandb"

@@ -39,14 +39,14 @@ from typing import Sequence
 
 import numpy as np
 import pandas as pd
-from fr_eval.paths import REPO, cache_root
-from fr_eval.protocols.lodo import SHIPPED, family_of, prediction_path, run_predictions
-from fr_eval.protocols.lodo_reliability import ERROR_OF, MODE_LABEL, METHOD_OF_MODE, evaluate, records_from_predictions
-from fr_eval.scoring.plots import risk_coverage_panel, save_figure
 from scipy.stats import spearmanr
 
-from fr_torch.core.reliability.model import ReliabilityModel
+from fr_eval.paths import REPO, cache_root
+from fr_eval.protocols.lodo import SHIPPED, family_of, prediction_path, run_predictions
+from fr_eval.protocols.lodo_reliability import ERROR_OF, METHOD_OF_MODE, MODE_LABEL, evaluate, records_from_predictions
+from fr_eval.scoring.plots import risk_coverage_panel, save_figure
 from fr_torch.core.reliability.bounds import PROMISE_TARGETS, SIGMAS, ReliabilityPromise, conformal_scale
+from fr_torch.core.reliability.model import ReliabilityModel
 
 DETECTORS = ("lsd", "torch-lines")
 #: (dataset, split) of every run: the test splits first (as installed), then the train splits.
@@ -71,7 +71,6 @@ def calibrator(mode: str, detector: str, device: str = "cpu"):
     if detector == "lsd" and device == "cpu":
         return None
     from fr_eval.protocols.run_eval import make_calibrator
-
     from fr_torch.core.settings.fov import FovRange
 
     model = ReliabilityModel.load_default(mode)

@@ -28,16 +28,16 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from tqdm import tqdm
+
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import cache_root
 from fr_eval.protocols.run_eval import given_segments
 from fr_eval.scoring.metrics import image_errors, mean_se
 from fr_eval.scoring.tables import format_mean_se, parse_method_spec
-from tqdm import tqdm
-
-from fr_torch.core.settings.config import SearchConfig
-from fr_torch.core.reliability.sanity import LINE_BEND_CUES
 from fr_torch.core.geometry.lens import border_bow_percent
+from fr_torch.core.reliability.sanity import LINE_BEND_CUES
+from fr_torch.core.settings.config import SearchConfig
 from fr_torch.registry import split_method_list
 from fr_torch.runtime.estimator import FREstimator
 

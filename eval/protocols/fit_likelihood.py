@@ -42,9 +42,9 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
+
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import REPO
-
 from fr_torch.core.geometry.conventions import VERTICAL_AXIS, vanishing_points
 from fr_torch.resources import config_dir
 

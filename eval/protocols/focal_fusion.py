@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from fr_eval.protocols.reliability_train import DEFAULT_RECORDS, fit_model, usable
 
+from fr_eval.protocols.reliability_train import DEFAULT_RECORDS, fit_model, usable
 from fr_torch.core.reliability.model import PAPER_CUE_NAMES, ReliabilityModel
 from fr_torch.video.fusion import OnlineCalibrator
 

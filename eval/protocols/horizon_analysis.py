@@ -44,19 +44,19 @@ from typing import Any
 import cv2
 import numpy as np
 import pandas as pd
+from tqdm import tqdm
+
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import REPO, cache_root
 from fr_eval.protocols.run_eval import make_calibrator
 from fr_eval.scoring.horizon_metric import lezama_auc, truth_horizons
 from fr_eval.scoring.plots import plt, save_figure
 from fr_eval.scoring.tables import to_markdown
-from tqdm import tqdm
-
 from fr_torch import FREstimator
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.horizon import Horizon, border_columns
-from fr_torch.core.reliability.bounds import horizon_bound_pct
 from fr_torch.core.likelihood.segments import SegmentFilter
+from fr_torch.core.reliability.bounds import horizon_bound_pct
 from fr_torch.images.io import WORKING_LONG_SIDE, load_image
 from fr_torch.plugins.interface import ImageMeta
 

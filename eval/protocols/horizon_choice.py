@@ -32,8 +32,8 @@ import torch
 
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.scoring.horizon_metric import lezama_auc, truth_horizons
-from fr_torch.core.settings.config import SearchConfig
 from fr_torch.core.search.choice import CHOICE_FEATURES, CHOOSER_CONFIG, clean_evidence
+from fr_torch.core.settings.config import SearchConfig
 from fr_torch.resources import config_path
 
 CUTOFF = 0.25

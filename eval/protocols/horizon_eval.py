@@ -42,6 +42,7 @@ from typing import Any, Sequence
 
 import numpy as np
 import pandas as pd
+
 from fr_eval.machine import machine_description
 from fr_eval.paths import REPO
 from fr_eval.protocols.run_eval import (
@@ -56,7 +57,6 @@ from fr_eval.scoring.horizon_metric import CUTOFF, definition_notes, estimate_ho
 from fr_eval.scoring.metrics import failure_reason, is_failure
 from fr_eval.scoring.plots import recall_figure, safe_name
 from fr_eval.scoring.tables import to_latex, to_markdown
-
 
 #: Definitions in the order the tables show them (others follow in the order met).
 DEFINITION_ORDER = ("labelled", "lezama-code", "frame")

@@ -49,10 +49,10 @@ from typing import Sequence
 
 import numpy as np
 import pandas as pd
+
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.paths import REPO, cache_root
 from fr_eval.scoring.plots import safe_name
-
 from fr_torch.core.geometry.conventions import focal_from_hfov, hfov_from_focal, rotation_from_angles
 
 FAMILIES = {"yud": ("yud", "yud-crop-400x300", "yud-crop-480x360"), "zind-fr": ("zind-fr",), "nyu-vp": ("nyu-vp",)}
@@ -177,7 +177,6 @@ def run_predictions(dataset: str, split: str, method: str, setting: str, config_
     ``cache/<setting>/<dataset>_<split>_<method>[_pp].csv``.  ``calibrator``: the method object to
     run (None: built from ``method`` and ``config_path``, FOV range [30, 120] deg)."""
     from fr_eval.protocols.run_eval import evaluate_method, make_calibrator
-
     from fr_torch.core.settings.fov import FovRange
 
     path = prediction_path(cache, setting, dataset, split, method, pp_mode)

@@ -43,6 +43,8 @@ from typing import Sequence
 
 import numpy as np
 import pandas as pd
+from scipy.stats import spearmanr
+
 from fr_eval.paths import REPO, cache_root
 from fr_eval.protocols.lodo import (
     RELIABILITY_TRAIN,
@@ -54,10 +56,6 @@ from fr_eval.protocols.lodo import (
 )
 from fr_eval.scoring.metrics import aurc
 from fr_eval.scoring.plots import risk_coverage_panel, save_figure
-from scipy.stats import spearmanr
-
-from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
-from fr_torch.core.reliability.model import ERROR_COLUMNS, ReliabilityModel, model_cue_names
 from fr_torch.core.reliability.bounds import (
     DEFAULT_COVERAGE,
     DEFAULT_LIMITS,
@@ -66,6 +64,8 @@ from fr_torch.core.reliability.bounds import (
     conformal_scale,
     worst_group_scale,
 )
+from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
+from fr_torch.core.reliability.model import ERROR_COLUMNS, ReliabilityModel, model_cue_names
 
 TARGET_INDEX = {"roll_deg": 0, "tilt_deg": 1, "focal_pct": 2}
 ERROR_OF = {"focal_pct": "focal_err_pct", "tilt_deg": "tilt_err_deg"}

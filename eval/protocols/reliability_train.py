@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from fr_eval.paths import REPO
 
+from fr_eval.paths import REPO
 from fr_torch.core.geometry.conventions import focal_from_hfov, rotation_angles
 from fr_torch.core.reliability.model import (
     ERROR_COLUMNS,
@@ -82,9 +82,9 @@ def _record(result, gt: dict) -> dict:
 def dataset_records(dataset: str, split: str, mode: str, data_root=None, batch_size: int = 8,
                     limit: int | None = None, progress: bool = True) -> pd.DataFrame:
     """Run FREstimator(mode) over a registered evaluation dataset (``fr_eval.datasets``)."""
-    from fr_eval.datasets.registry import load_dataset
     from tqdm import tqdm
 
+    from fr_eval.datasets.registry import load_dataset
     from fr_torch.runtime.estimator import FREstimator
 
     samples = load_dataset(dataset, root=data_root, split=split)

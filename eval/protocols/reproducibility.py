@@ -82,7 +82,6 @@ def prepare_inputs(path: Path, data_root=None, limit: int | None = None) -> dict
     """The photos every setting calibrates, saved to ``path`` (.npz): YUD test with LSD segments and
     NYU-VP val with its own; returns a summary {dataset: count}."""
     from fr_eval.datasets.registry import load_dataset
-
     from fr_torch.detectors.lsd import LSDDetector
     from fr_torch.images.io import read_working
 

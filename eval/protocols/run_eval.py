@@ -55,8 +55,11 @@ from typing import Any, Sequence
 
 import numpy as np
 import pandas as pd
-from fr_eval.machine import machine_description
+from tqdm import tqdm
+
 from fr_eval.datasets.registry import available_datasets, load_dataset
+from fr_eval.machine import machine_description
+from fr_eval.paths import REPO
 from fr_eval.scoring.metrics import (
     estimate_quantities,
     failure_reason,
@@ -65,15 +68,12 @@ from fr_eval.scoring.metrics import (
     summarize,
     summarize_groups,
 )
-from fr_eval.paths import REPO
 from fr_eval.scoring.plots import distributions_figure, histogram_figure, safe_name
 from fr_eval.scoring.tables import (
     deviation_measure_summaries,
     parse_method_spec,
     write_tables,
 )
-from tqdm import tqdm
-
 from fr_torch.cli.options import add_device_arguments, add_fov_range_argument
 from fr_torch.core.settings.fov import FovRange
 from fr_torch.images.io import load_image

@@ -32,6 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+
 from fr_eval.paths import REPO, cache_root
 
 OUT_DIR = REPO / "results" / "shared_focal"

@@ -13,8 +13,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from fr_torch.core.reliability.sanity import LINE_BEND_CUES
 from fr_torch.core.reliability.model import CUE_NAMES, TARGETS
+from fr_torch.core.reliability.sanity import LINE_BEND_CUES
 
 # Keys of the dict-valued result fields (struct columns); unknown keys are dropped.
 RUNTIME_KEYS = ("detect", "grid", "refine", "cues", "total")

@@ -18,10 +18,10 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from fr_torch.core.geometry.vanishing import AtlantaConfig
 from fr_torch.core.settings.checks import finite_number, positive_number
 from fr_torch.core.settings.config import FITS, Mode, SearchConfig
 from fr_torch.core.settings.distortion import DistortionMode
-from fr_torch.core.geometry.vanishing import AtlantaConfig
 from fr_torch.errors import FRInputError
 from fr_torch.runtime.device import DECODE_CHOICES, DevicePolicy
 

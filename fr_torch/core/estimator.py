@@ -18,10 +18,31 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
+
 import numpy as np
 import torch
-from fr_torch.core.geometry.conventions import image_centre
+
+from fr_torch.core.exact import first_argmax
 from fr_torch.core.geometry.camera import Camera
+from fr_torch.core.geometry.conventions import image_centre
+from fr_torch.core.geometry.params import DISTORTION, FOCAL, CameraParams
+from fr_torch.core.geometry.vanishing import AtlantaConfig, rank_vanishing_points
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
+from fr_torch.core.likelihood.segments import SegmentBatch, SegmentFilter, drop_absurd_segments, validate_segments
+from fr_torch.core.reliability.cues import focal_cues, image_cues
+from fr_torch.core.reliability.model import ReliabilityModel
+from fr_torch.core.reliability.sanity import (
+    LINE_BEND_CUES,
+    check_result,
+    finite_record,
+    lines_bend_reason,
+    sanity_check,
+)
+from fr_torch.core.result import CalibrationResult
+from fr_torch.core.search.choice import HorizonChooser, choose_fit
+from fr_torch.core.search.lens import SegmentGeometry, bend_test, search_with_k
+from fr_torch.core.search.manhattan import search_manhattan
 from fr_torch.core.settings.checks import (
     MAX_REACH_IMAGE_SIZES,
     check_camera,
@@ -33,28 +54,8 @@ from fr_torch.core.settings.checks import (
 )
 from fr_torch.core.settings.checks import image_sizes as checked_image_sizes
 from fr_torch.core.settings.config import Mode, SearchConfig
-from fr_torch.core.exact import first_argmax
 from fr_torch.core.settings.distortion import DistortionMode
-from fr_torch.core.reliability.sanity import (
-    check_result,
-    finite_record,
-    LINE_BEND_CUES,
-    lines_bend_reason,
-    sanity_check,
-)
-from fr_torch.core.reliability.cues import focal_cues, image_cues
-from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
-from fr_torch.core.likelihood.measures import SegmentFeatures
-from fr_torch.core.search.choice import HorizonChooser, choose_fit
-from fr_torch.core.geometry.params import DISTORTION, FOCAL, CameraParams
-from fr_torch.core.reliability.model import ReliabilityModel
-from fr_torch.core.search.lens import SegmentGeometry, bend_test, search_with_k
-from fr_torch.core.geometry.vanishing import AtlantaConfig, rank_vanishing_points
-from fr_torch.core.likelihood.segments import SegmentBatch, SegmentFilter, drop_absurd_segments, validate_segments
 from fr_torch.errors import FRInputError
-from fr_torch.core.result import CalibrationResult
-from fr_torch.core.search.manhattan import search_manhattan
-
 
 BACKGROUND_LABEL = 3
 #: The reason of an estimate that another, different solution matched within rounding

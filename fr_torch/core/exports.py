@@ -21,10 +21,11 @@ from __future__ import annotations
 
 from enum import StrEnum
 from typing import Any
-import numpy as np
-from fr_torch.core.settings.checks import enum_member
-from fr_torch.core.geometry.lens import normalising_radius, undistort_points
 
+import numpy as np
+
+from fr_torch.core.geometry.lens import normalising_radius, undistort_points
+from fr_torch.core.settings.checks import enum_member
 
 #: Points per side of the grid over the image on which the exported polynomial models are fitted.
 FIT_GRID = 41

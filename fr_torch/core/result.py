@@ -8,15 +8,16 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass, field
 from typing import Any
+
 import numpy as np
 import torch
-from fr_torch.core.geometry.conventions import VERTICAL_AXIS
-from fr_torch.core.geometry.camera import Camera, camera_record
-from fr_torch.core.geometry.horizon import Horizon
+
 from fr_torch.core.exports import colmap_camera, opencv_camera
+from fr_torch.core.geometry.camera import Camera, camera_record
+from fr_torch.core.geometry.conventions import VERTICAL_AXIS
+from fr_torch.core.geometry.horizon import Horizon
 from fr_torch.core.geometry.lens import distort_points, distortion_record, normalising_radius, undistort_points
 from fr_torch.core.reliability.bounds import horizon_bound_pct
-
 
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
 JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "model", "focal_px", "hfov_deg", "principal_point",

@@ -14,9 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fr_torch.core.geometry.horizon import border_columns, horizon_border_y, horizon_line
-from fr_torch.core.geometry.conventions import resize_points
 from fr_torch.core.estimator import BACKGROUND_LABEL
+from fr_torch.core.geometry.conventions import resize_points
+from fr_torch.core.geometry.horizon import border_columns, horizon_border_y, horizon_line
 from fr_torch.core.result import CalibrationResult
 from fr_torch.images.convert import to_bgr8
 from fr_torch.images.io import encode_png, read_image

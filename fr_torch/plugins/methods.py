@@ -24,9 +24,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from fr_torch.core.settings.config import SearchConfig
-from fr_torch.core.result import CalibrationResult
 from fr_torch.core.likelihood.mixture import LikelihoodParams
+from fr_torch.core.result import CalibrationResult
+from fr_torch.core.settings.config import SearchConfig
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, register
 from fr_torch.registry import format_method_spec
 from fr_torch.runtime.estimator import FREstimator

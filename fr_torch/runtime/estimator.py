@@ -21,6 +21,10 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from fr_torch.core.estimator import SegmentEstimator, _Image, keep_sane_segments
+from fr_torch.core.likelihood.segments import validate_segments
+from fr_torch.core.reliability.sanity import finite_record
+from fr_torch.core.result import CalibrationResult
 from fr_torch.core.settings.checks import (
     batch_of,
     check_camera,
@@ -31,10 +35,6 @@ from fr_torch.core.settings.checks import (
     shown,
 )
 from fr_torch.core.settings.config import Mode
-from fr_torch.core.reliability.sanity import finite_record
-from fr_torch.core.result import CalibrationResult
-from fr_torch.core.estimator import SegmentEstimator, _Image, keep_sane_segments
-from fr_torch.core.likelihood.segments import validate_segments
 from fr_torch.detectors.registry import get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import (

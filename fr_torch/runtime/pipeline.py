@@ -48,10 +48,10 @@ import cv2
 import numpy as np
 import torch
 
+from fr_torch.core.likelihood.segments import SegmentFilter
+from fr_torch.core.result import CalibrationResult
 from fr_torch.core.settings.checks import image_names, per_image, segment_sets
 from fr_torch.core.settings.checks import image_sizes as checked_image_sizes
-from fr_torch.core.result import CalibrationResult
-from fr_torch.core.likelihood.segments import SegmentFilter
 from fr_torch.detectors.registry import detect_segments, get_detector
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import WORKING_LONG_SIDE, read_working

@@ -51,17 +51,16 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from fr_torch.core.geometry.conventions import image_centre
-from fr_torch.core.reliability.sanity import EDGE_REASON
 from fr_torch.core.exact import exact_sum
-from fr_torch.core.settings.fov import FovRange
+from fr_torch.core.geometry.conventions import image_centre
+from fr_torch.core.geometry.params import angles_from_search_rotation, rotations
 from fr_torch.core.likelihood.measures import SegmentFeatures
-from fr_torch.core.geometry.params import rotations
-from fr_torch.core.search.passes import _focal_ridge_rotations
-from fr_torch.core.geometry.params import angles_from_search_rotation
-from fr_torch.core.search.grid import grid_hypotheses, into_box, parameter_box, score_grid, select_starts
-from fr_torch.core.search.refine import refine
 from fr_torch.core.likelihood.segments import SegmentBatch
+from fr_torch.core.reliability.sanity import EDGE_REASON
+from fr_torch.core.search.grid import grid_hypotheses, into_box, parameter_box, score_grid, select_starts
+from fr_torch.core.search.passes import _focal_ridge_rotations
+from fr_torch.core.search.refine import refine
+from fr_torch.core.settings.fov import FovRange
 from fr_torch.errors import FRInputError
 
 #: Relative tolerance on the aspect ratio (short / long side) of the photos of one group.

@@ -14,9 +14,9 @@ import numpy as np
 
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import focal_from_hfov
-from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 from fr_torch.detectors.lsd import LSDDetector
 from fr_torch.detectors.registry import detect_segments
+from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 
 
 class HorizonFromLines(TimedCalibrator):

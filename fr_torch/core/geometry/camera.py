@@ -10,8 +10,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from functools import cached_property
+
 import numpy as np
 import torch
+
 from fr_torch.core.geometry.conventions import (
     angles_from_rotation,
     focal_from_hfov,

@@ -34,10 +34,11 @@ from __future__ import annotations
 
 import itertools
 import math
+
 import numpy as np
 import torch
-from fr_torch.core.exact import atan2
 
+from fr_torch.core.exact import atan2
 
 VERTICAL_AXIS = 1  # column of R holding the (downward) vertical Manhattan direction
 Y_UP = (1.0, -1.0, 1.0)  # diag flipping the camera y axis (y-down <-> y-up frames)

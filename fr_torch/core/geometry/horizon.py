@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
 import numpy as np
+
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import VERTICAL_AXIS, principal_point_or_centre
 

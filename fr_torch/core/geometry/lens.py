@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import math
 from typing import Any
+
 import numpy as np
 import torch
-
 
 #: Open interval of k over which the division model is one-to-one on the image (module docstring).
 K_LIMITS = (-1.0, 1.0)

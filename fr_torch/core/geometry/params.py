@@ -20,7 +20,6 @@ import torch
 from fr_torch.core.exact import atan2
 from fr_torch.core.geometry.conventions import pan_from_rotation, rotation_from_cos_sin
 
-
 #: Positions of the fields in the last dimension.
 PAN, PITCH, ROLL, FOCAL = 0, 1, 2, 3
 #: Position of the division model's k in rows of 5 (the search with a distortion parameter).

@@ -39,11 +39,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
-import torch
-from fr_torch.core.geometry.conventions import signed_rows, vanishing_point_rows, vanishing_points
-from fr_torch.core.exact import cross3, dot3, exact_sum, first_argmax, small_sum, top_indices
-from fr_torch.errors import FRInputError
 
+import torch
+
+from fr_torch.core.exact import cross3, dot3, exact_sum, first_argmax, small_sum, top_indices
+from fr_torch.core.geometry.conventions import signed_rows, vanishing_point_rows, vanishing_points
+from fr_torch.errors import FRInputError
 
 #: Images whose Atlanta candidates are scored at once (bounds memory: N x A deviations each).
 ATLANTA_CHUNK_IMAGES = 4

@@ -30,11 +30,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-import torch
-from fr_torch.core.geometry.conventions import vanishing_points
-from fr_torch.core.exact import angle_of, dot3, exact_sum, small_sum, top_indices
-from fr_torch.core.likelihood.segments import SegmentBatch
 
+import torch
+
+from fr_torch.core.exact import angle_of, dot3, exact_sum, small_sum, top_indices
+from fr_torch.core.geometry.conventions import vanishing_points
+from fr_torch.core.likelihood.segments import SegmentBatch
 
 MEASURES = ("a", "b", "c", "d", "e")
 

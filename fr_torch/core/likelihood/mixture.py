@@ -30,32 +30,33 @@ import json
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+
 import torch
+
+from fr_torch.core.exact import exact_sum, small_sum
 from fr_torch.core.geometry.conventions import VERTICAL_AXIS, focal_from_hfov, vanishing_points
 from fr_torch.core.likelihood import native
-from fr_torch.core.settings.config import Mode
-from fr_torch.core.exact import exact_sum, small_sum
-from fr_torch.core.settings.fov import FOV_LIMITS_DEG, FovRange
-from fr_torch.resources import config_dir
 from fr_torch.core.likelihood.measures import (
     MEASURES,
+    RANGE_PX,
     SegmentFeatures,
-    incidence_of,
     deviations_from_incidence,
     incidence,
+    incidence_of,
 )
 from fr_torch.core.likelihood.objective import (
     EXP_FLOOR,
     MeasureBObjective,
     family_sum,
     log_sum_bound,
-    native_ok,
     measure_b_objective_and_grad,
+    native_ok,
     objective_b_nograd,
     vp_major,
 )
-from fr_torch.core.likelihood.measures import RANGE_PX
-
+from fr_torch.core.settings.config import Mode
+from fr_torch.core.settings.fov import FOV_LIMITS_DEG, FovRange
+from fr_torch.resources import config_dir
 
 MODELS = ("mixture", "nomixture")
 CONFIG_DIR = config_dir()  # the shipped configs/ folder (fr_torch/resources.py)

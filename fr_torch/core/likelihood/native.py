@@ -41,8 +41,8 @@ import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-import torch
 
+import torch
 
 SOURCE = Path(__file__).with_name("kernels_measure_b.c")
 #: -ffp-contract=off: no fused multiply-add, every product and sum rounded once (torch's CPU kernels

@@ -24,10 +24,12 @@ device, dtype and machine: the same bits either way.
 from __future__ import annotations
 
 import math
+
 import torch
+
+from fr_torch.core.exact import angle_of, angle_of_, exact_sum, fixed_point_scale, small_sum
 from fr_torch.core.geometry.conventions import VERTICAL_AXIS
 from fr_torch.core.likelihood import native
-from fr_torch.core.exact import angle_of, angle_of_, exact_sum, fixed_point_scale, small_sum
 from fr_torch.core.likelihood.measures import incidence
 
 

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Sequence
+
 import numpy as np
 import torch
+
 from fr_torch.core.geometry.conventions import image_centre
 from fr_torch.core.settings.checks import MAX_REACH_IMAGE_SIZES
 from fr_torch.errors import FRInputError

@@ -36,9 +36,10 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Mapping, Sequence
-import numpy as np
-from fr_torch.resources import config_dir
 
+import numpy as np
+
+from fr_torch.resources import config_dir
 
 PROMISE_TARGETS = ("focal_pct", "tilt_deg")
 DEFAULT_LIMITS = {"focal_pct": 10.0, "tilt_deg": 3.0}

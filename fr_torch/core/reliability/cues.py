@@ -12,15 +12,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from typing import Sequence
+
 import torch
-from fr_torch.core.settings.config import FAST_REFINE_ITERATIONS, SearchConfig
+
 from fr_torch.core.exact import exact_sum, first_argmax, small_matmul, small_sum
-from fr_torch.core.likelihood.mixture import MixtureLikelihood
-from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.geometry.params import FOCAL, from_log_focal, rotations, to_log_focal
-from fr_torch.core.search.passes import LATTICE
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.search.grid import grid_hypotheses, parameter_box, score_grid, select_starts
+from fr_torch.core.search.passes import LATTICE
 from fr_torch.core.search.refine import refine
+from fr_torch.core.settings.config import FAST_REFINE_ITERATIONS, SearchConfig
 
 
 def _quadratic_fit_matrix() -> torch.Tensor:

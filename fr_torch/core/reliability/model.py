@@ -73,13 +73,14 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
+
 import numpy as np
-from fr_torch.core.settings.config import Mode
-from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
+
 from fr_torch.core.likelihood.mixture import LikelihoodParams
 from fr_torch.core.reliability.bounds import ReliabilityPromise
+from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
+from fr_torch.core.settings.config import Mode
 from fr_torch.resources import config_dir
-
 
 _config_dir = config_dir  # load_default has an argument of that name
 

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import math
 from typing import Sequence
+
 import numpy as np
+
+from fr_torch.core.geometry.lens import border_bow_percent
 from fr_torch.core.settings.config import SearchConfig
 from fr_torch.core.settings.distortion import DistortionSetting
-from fr_torch.core.geometry.lens import border_bow_percent
-
 
 EDGE_REASON = "focal at the edge of the search range"
 #: The cues of the "lines bend" check of pinhole estimates (:func:`lines_bend_reason`,

@@ -11,16 +11,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-import torch
-from fr_torch.core.geometry.conventions import horizon_angles
-from fr_torch.core.settings.config import SearchConfig
-from fr_torch.core.exact import cross3, dot3
-from fr_torch.core.likelihood.mixture import MixtureLikelihood
-from fr_torch.core.likelihood.measures import SegmentFeatures
-from fr_torch.core.geometry.params import FOCAL, PITCH, ROLL, rotations
-from fr_torch.core.geometry.params import angles_from_search_rotation
-from fr_torch.core.search.horizon import HorizonFit, unit, fit_horizon, horizon_vote, pitch_roll_in_box
 
+import torch
+
+from fr_torch.core.exact import cross3, dot3
+from fr_torch.core.geometry.conventions import horizon_angles
+from fr_torch.core.geometry.params import FOCAL, PITCH, ROLL, angles_from_search_rotation, rotations
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.search.horizon import HorizonFit, fit_horizon, horizon_vote, pitch_roll_in_box, unit
+from fr_torch.core.settings.config import SearchConfig
 
 #: The evidence the choice weighs (:func:`choice_features`), in the order of the chooser's weights.
 CHOICE_FEATURES = ("vote_gain", "manhattan_vote", "horizon_vote", "mixture_loss", "horizon_shift", "focal_ratio",

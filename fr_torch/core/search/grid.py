@@ -11,14 +11,15 @@ computation (the fused kernel on a CPU stores no deviations; else cache-sized ch
 from __future__ import annotations
 
 import math
-import torch
-from fr_torch.core.geometry.conventions import focal_from_hfov
-from fr_torch.core.settings.config import SearchConfig
-from fr_torch.core.exact import top_indices
-from fr_torch.core.likelihood.mixture import MixtureLikelihood
-from fr_torch.core.likelihood.measures import SegmentFeatures
-from fr_torch.core.geometry.params import ANGLES, FOCAL, rotations
 
+import torch
+
+from fr_torch.core.exact import top_indices
+from fr_torch.core.geometry.conventions import focal_from_hfov
+from fr_torch.core.geometry.params import ANGLES, FOCAL, rotations
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.settings.config import SearchConfig
 
 # Grid deviations per chunk on CPU, whatever the thread count: float32 buffers of a few MB, 32 of
 # torch's 2^15-element grains (up to 32 threads share every op).  Scores are the same for any chunk

@@ -41,16 +41,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
 import torch
-from fr_torch.core.geometry.conventions import rotation_from_cos_sin
-from fr_torch.core.settings.config import HorizonFitConfig
+
 from fr_torch.core.exact import atan2, cross3, dot3, exact_sum, first_argmax, top_indices
+from fr_torch.core.geometry.conventions import rotation_from_cos_sin
+from fr_torch.core.geometry.params import FOCAL, PITCH, ROLL, angles_from_search_rotation
 from fr_torch.core.likelihood.measures import SegmentFeatures
-from fr_torch.core.geometry.params import FOCAL, PITCH, ROLL
-from fr_torch.core.search.refine import camera_vps, chain_to_params
-from fr_torch.core.geometry.params import angles_from_search_rotation
 from fr_torch.core.search.grid import into_box, log_spaced_focals
-from fr_torch.core.search.refine import UnitBox, adam_in_box
+from fr_torch.core.search.refine import UnitBox, adam_in_box, camera_vps, chain_to_params
+from fr_torch.core.settings.config import HorizonFitConfig
 
 
 @dataclass

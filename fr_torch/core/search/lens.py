@@ -33,17 +33,25 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
+
 import torch
-from fr_torch.core.settings.config import SearchConfig
-from fr_torch.core.geometry.lens import normalising_radius
+
 from fr_torch.core.exact import dot3, exact_index_sum, exact_sum, first_argmax, top_indices
-from fr_torch.core.likelihood.mixture import MixtureLikelihood
-from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.geometry.lens import normalising_radius
 from fr_torch.core.geometry.params import DISTORTION, from_log_focal
-from fr_torch.core.search.passes import LATTICE, best_of_start_and_refined, lattice_passes, sweep_focal, tie_tolerance
+from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.search.grid import grid_cell, grid_hypotheses, into_box, parameter_box, score_grid, select_starts
+from fr_torch.core.search.passes import (
+    LATTICE,
+    SearchResult,
+    best_of_start_and_refined,
+    lattice_passes,
+    sweep_focal,
+    tie_tolerance,
+)
 from fr_torch.core.search.refine import refine
-from fr_torch.core.search.passes import SearchResult
+from fr_torch.core.settings.config import SearchConfig
 
 
 @dataclass

@@ -17,15 +17,25 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
 import torch
-from fr_torch.core.geometry.conventions import VERTICAL_AXIS
-from fr_torch.core.settings.config import SearchConfig
+
 from fr_torch.core.exact import cross3, dot3, exact_sum, first_argmax
-from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.geometry.conventions import VERTICAL_AXIS
+from fr_torch.core.geometry.params import (
+    ANGLES,
+    DISTORTION,
+    FOCAL,
+    PAN,
+    angles_from_search_rotation,
+    from_log_focal,
+    rotations,
+    to_log_focal,
+)
 from fr_torch.core.likelihood.measures import SegmentFeatures
-from fr_torch.core.geometry.params import ANGLES, DISTORTION, FOCAL, PAN, from_log_focal, rotations, to_log_focal
-from fr_torch.core.geometry.params import angles_from_search_rotation
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.search.grid import grid_cell, into_box, log_spaced_focals, score_grid
+from fr_torch.core.settings.config import SearchConfig
 
 
 def _focal_ridge_rotations(rotation: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:

@@ -18,19 +18,20 @@ batch gives the same answer as images one by one.  Each mode runs its ``refine_i
 from __future__ import annotations
 
 import math
+
 import torch
-from fr_torch.core.geometry.conventions import rotation_from_cos_sin
+
 from fr_torch.core.exact import dot3, exact_sum, small_matmul, small_sum
-from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.geometry.conventions import rotation_from_cos_sin
+from fr_torch.core.geometry.params import ANGLES, DISTORTION, FOCAL, PAN, from_log_focal, rotations, to_log_focal
 from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.likelihood.objective import (
     measure_b_backward,
     measure_b_forward,
     measure_b_objective_and_grad,
     vp_major,
 )
-from fr_torch.core.geometry.params import ANGLES, DISTORTION, FOCAL, PAN, from_log_focal, rotations, to_log_focal
-
 
 CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
 

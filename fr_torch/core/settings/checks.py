@@ -10,12 +10,13 @@ import numbers
 import reprlib
 from collections.abc import Iterable
 from enum import StrEnum
+
 import numpy as np
 import torch
+
 from fr_torch.core.geometry.conventions import focal_from_hfov, image_centre
 from fr_torch.core.settings.fov import FOV_LIMITS_DEG
 from fr_torch.errors import FRInputError
-
 
 # How far from an image's centre a point given in its pixels (a principal point, a segment's
 # endpoint) may lie, in image sizes (the long side): beyond, the number is nonsense, not geometry.

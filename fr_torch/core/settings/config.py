@@ -19,12 +19,12 @@ import math
 from dataclasses import dataclass, fields, replace
 from enum import StrEnum
 from pathlib import Path
+
 from fr_torch.core.settings.checks import enum_member
 from fr_torch.core.settings.distortion import DistortionSetting
 from fr_torch.core.settings.fov import FovRange, two_numbers
 from fr_torch.errors import FRInputError
 from fr_torch.resources import config_path
-
 
 FOCAL_GRIDS = ("linear_f", "log_f", "fov")
 

@@ -9,11 +9,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 from enum import StrEnum
+
+from fr_torch.core.geometry.lens import K_LIMITS
 from fr_torch.core.settings.checks import enum_member, finite_number
 from fr_torch.errors import FRInputError
-from fr_torch.core.geometry.lens import K_LIMITS
-
-
 
 
 class DistortionMode(StrEnum):

@@ -18,10 +18,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from typing import ClassVar
+
 import torch
+
 from fr_torch.core.geometry.conventions import focal_from_hfov, hfov_from_focal
 from fr_torch.errors import FRInputError
-
 
 #: A pinhole camera whose FOV across the long side lies outside these degrees cannot be estimated;
 #: the bounds of every search range and of every focal length a user gives.
