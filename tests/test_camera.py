@@ -37,7 +37,7 @@ def test_angle_definitions_and_signs():
     assert float(a["pan_deg"]) == pytest.approx(20.0, abs=1e-9)
     assert float(a["roll_deg"]) == pytest.approx(10.0, abs=1e-9)
     assert float(a["pitch_deg"]) == pytest.approx(30.0, abs=1e-9)
-    # tan(tilt) = tan(pitch) / cos(roll): 30.38 deg (fr_torch/camera.py module docstring)
+    # tan(tilt) = tan(pitch) / cos(roll): 30.38 deg (fr_torch/core/geometry/conventions.py module docstring)
     expected_tilt = math.degrees(math.atan(math.tan(math.radians(30)) / math.cos(math.radians(10))))
     assert float(a["tilt_deg"]) == pytest.approx(expected_tilt, abs=1e-9)
     assert float(a["tilt_deg"]) == pytest.approx(30.38, abs=0.01)

@@ -98,12 +98,12 @@ def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
     """With ``grid_segments`` set, stage 1 scores each image's longest that many segments (0, all,
     by default in both modes' presets); the other stages always get every segment; negative counts
     are refused."""
-    import fr_torch.core.estimator as estimator_module
+    import fr_torch.core.search.manhattan as manhattan
     from fr_torch.core.settings.config import SearchConfig
 
     seen = []
-    original = estimator_module.score_grid
-    monkeypatch.setattr(estimator_module, "score_grid",
+    original = manhattan.score_grid
+    monkeypatch.setattr(manhattan, "score_grid",
                         lambda model, features, *a, **k: seen.append(features.weight.shape[1]) or original(
                             model, features, *a, **k))
     segments, _, _ = _scene(3, 70.0, 10.0, 5.0, 2.0)  # 3 x 60 + 30 % clutter

@@ -22,7 +22,7 @@ def _camera(pan, pitch, roll, focal=F, pp=None):
 
 @pytest.mark.parametrize("pan,pitch,roll,pp", [(0, 0, 0, None), (20, 12, 4, None), (-33, -18, -7, (330.0, 250.0))])
 def test_horizon_follows_tilt_and_roll(pan, pitch, roll, pp):
-    """y(x) = c_y + f tan(tilt) - (x - c_x) tan(roll) (module docstring of camera.py), and every
+    """y(x) = c_y + f tan(tilt) - (x - c_x) tan(roll) (module docstring of core/geometry/conventions.py), and every
     horizontal vanishing point lies on the line."""
     camera = _camera(pan, pitch, roll, pp=pp)
     horizon = Horizon.from_camera(camera)

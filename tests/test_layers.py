@@ -255,3 +255,11 @@ def test_relative_imports_are_in_the_graph():
     graph = _module_graph()
     assert "fr_baselines.vp_geometry" in graph["fr_baselines.lee2009"]  # from . import vp_geometry as vg
     assert "fr_eval.bench.detectors" in graph["fr_eval.bench.report"]  # from fr_eval.bench import detectors
+
+
+def test_architecture_table_is_the_codes_own():
+    """docs/architecture.md's room-to-room import table is what ``tools/engine_map.py`` reads from
+    the code now (the same command redraws docs/engine.png)."""
+    done = subprocess.run([sys.executable, str(REPO / "tools" / "engine_map.py"), "--check"], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr

@@ -53,9 +53,9 @@ def test_check_result_marks_non_finite_as_failure():
 def test_non_finite_refinement_fails_that_image_only(monkeypatch):
     """A NaN from the search (parameters or objective) makes that image's result ok=False with the
     reason, in a batch whose other images keep their estimates."""
-    import fr_torch.core.estimator as estimator_module
+    import fr_torch.core.search.refine as refine_module
 
-    real_refine = estimator_module.refine
+    real_refine = refine_module.refine
 
     def refine_with_nan(*args, **kwargs):
         params, objective = real_refine(*args, **kwargs)
@@ -64,7 +64,7 @@ def test_non_finite_refinement_fails_that_image_only(monkeypatch):
         objective[1] = float("inf")  # ... scored above everything, so it is the one chosen
         return params, objective
 
-    monkeypatch.setattr(estimator_module, "refine", refine_with_nan)
+    monkeypatch.setattr(refine_module, "refine", refine_with_nan)
     scenes = [_scene(seed, 500.0)[0] for seed in (3, 4, 5)]
     results = FREstimator(mode="fast", reliability=None).calibrate_segments(scenes, [(640, 480)] * 3)
     assert [r.ok for r in results] == [True, False, True]

@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-import fr_torch.core.search.passes as search
+import fr_torch.core.geometry.params as param_rows
+import fr_torch.core.search.grid as search_grid
+import fr_torch.core.search.passes as search_passes
+import fr_torch.core.search.refine as search_refine
 from fr_torch import FREstimator
 from fr_torch.core.geometry.conventions import focal_from_hfov, rotation_from_angles
 from fr_torch.core.geometry.params import rotations as fast_rotations
@@ -162,11 +165,11 @@ def test_chunking_does_not_change_scores_or_refinement(monkeypatch):
     hyp = grid_hypotheses(config, width)
     model = MixtureLikelihood(_data_only())
     whole = score_grid(model, features, hyp, 1 << 30)
-    monkeypatch.setattr(search, "CPU_CHUNK_ELEMENTS", 1000)  # many tiny chunks, also split over images
+    monkeypatch.setattr(search_grid, "CPU_CHUNK_ELEMENTS", 1000)  # many tiny chunks, also split over images
     assert torch.allclose(score_grid(model, features, hyp, 1 << 30), whole, rtol=1e-12)
     assert torch.allclose(score_grid(model, features, hyp, 7), whole, rtol=1e-12)  # one hypothesis, one image
     starts = hyp[:, :2]
-    lower, upper = search.parameter_box(config, width, None)
+    lower, upper = search_grid.parameter_box(config, width, None)
     p1, o1 = refine(model, features, starts, lower, upper, 5, fast=True)
     p2, o2 = refine(model, features, starts, lower, upper, 5, fast=True, max_chunk_elements=10)  # image by image
     assert torch.allclose(p1, p2, rtol=1e-12) and torch.allclose(o1, o2, rtol=1e-12)
@@ -282,7 +285,7 @@ def test_refinement_closed_form_gradient_matches_autograd():
 
 
 def test_closed_form_refinement_gradient_matches_autograd_with_focal_prior():
-    """search.objective_and_grad (the refinement's gradient, no autograd) = autograd of the full
+    """search_refine.objective_and_grad (the refinement's gradient, no autograd) = autograd of the full
     objective, focal prior included."""
     from fr_torch.core.search.refine import objective_and_grad
 
@@ -311,24 +314,24 @@ def test_subdivision_passes_improve_starts_stay_in_box_and_batch_equals_single()
     long_side = torch.tensor([640.0, 640.0], dtype=torch.float64)
     model = MixtureLikelihood(_data_only())
     hyp = grid_hypotheses(config, long_side)
-    starts, scores = search.select_starts(config, score_grid(model, features, hyp, 1 << 30), hyp)
-    lower, upper = search.parameter_box(config, long_side, None)
-    moved, moved_scores = search.subdivide_starts(model, features, starts, scores, config, lower, upper)
+    starts, scores = search_grid.select_starts(config, score_grid(model, features, hyp, 1 << 30), hyp)
+    lower, upper = search_grid.parameter_box(config, long_side, None)
+    moved, moved_scores = search_passes.subdivide_starts(model, features, starts, scores, config, lower, upper)
     assert moved.shape == starts.shape and (moved_scores >= scores).all() and (moved_scores > scores).any()
     assert (moved >= lower[:, None] - 1e-9).all() and (moved <= upper[:, None] + 1e-9).all()
     rescored = score_grid(model, features, moved, 1 << 30)
     assert torch.allclose(rescored, moved_scores, rtol=1e-12)  # the scores are those of the returned points
-    one, one_scores = search.subdivide_starts(model, _features(segs[1:], torch.float64), starts[1:], scores[1:],
+    one, one_scores = search_passes.subdivide_starts(model, _features(segs[1:], torch.float64), starts[1:], scores[1:],
                                               config, lower[1:], upper[1:])
     assert torch.allclose(one, moved[1:], rtol=1e-12) and torch.allclose(one_scores, moved_scores[1:], rtol=1e-12)
-    same, same_scores = search.subdivide_starts(model, features, starts, scores, replace(config, grid_passes=0),
+    same, same_scores = search_passes.subdivide_starts(model, features, starts, scores, replace(config, grid_passes=0),
                                                 lower, upper)
     assert same is starts and same_scores is scores
     known = torch.tensor([500.0, 300.0], dtype=torch.float64)
-    k_lower, k_upper = search.parameter_box(config, long_side, known)
+    k_lower, k_upper = search_grid.parameter_box(config, long_side, known)
     k_hyp = grid_hypotheses(config, long_side, known)
-    k_starts, k_scores = search.select_starts(config, score_grid(model, features, k_hyp, 1 << 30), k_hyp)
-    fixed, _ = search.subdivide_starts(model, features, k_starts, k_scores, config, k_lower, k_upper)
+    k_starts, k_scores = search_grid.select_starts(config, score_grid(model, features, k_hyp, 1 << 30), k_hyp)
+    fixed, _ = search_passes.subdivide_starts(model, features, k_starts, k_scores, config, k_lower, k_upper)
     assert torch.allclose(fixed[..., 3], known[:, None].expand(-1, 2), rtol=1e-12)
 
 
@@ -336,7 +339,7 @@ def test_search_angles_invert_fast_rotations():
     """angles_from_search_rotation is the inverse of fast_rotations (pan folded to [-45, 45))."""
     rng = np.random.default_rng(3)
     angles = torch.tensor(np.c_[rng.uniform(-44, 44, 30), rng.uniform(-60, 60, 30), rng.uniform(-80, 80, 30)])
-    assert torch.allclose(search.angles_from_search_rotation(fast_rotations(angles)), angles, atol=1e-10)
+    assert torch.allclose(param_rows.angles_from_search_rotation(fast_rotations(angles)), angles, atol=1e-10)
 
 
 def test_focal_ridge_rotations_keep_the_vertical_vp_and_stay_rotations():
@@ -345,7 +348,7 @@ def test_focal_ridge_rotations_keep_the_vertical_vp_and_stay_rotations():
     angles = torch.tensor([[20.0, 12.0, 4.0], [-30.0, -25.0, -8.0], [5.0, 0.0, 0.0]], dtype=torch.float64)
     rotation = fast_rotations(angles)
     ratio = torch.tensor([[0.5, 1.0, 2.0]] * 3, dtype=torch.float64)
-    ridge = search._focal_ridge_rotations(rotation, ratio)  # (3, 3 ratios, 3, 3)
+    ridge = search_passes._focal_ridge_rotations(rotation, ratio)  # (3, 3 ratios, 3, 3)
     eye = torch.eye(3, dtype=torch.float64)
     assert torch.allclose(ridge @ ridge.transpose(-1, -2), eye.expand_as(ridge), atol=1e-12)
     assert torch.allclose(torch.linalg.det(ridge), torch.ones(3, 3, dtype=torch.float64), atol=1e-12)
@@ -369,16 +372,16 @@ def test_focal_sweep_finds_the_focal_the_grid_traded_for_pitch():
     segs = [_scene(21, 110.0, 10.0, -15.0, 3.0), _scene(22, 60.0, -20.0, 8.0, -2.0)]
     features = _features(segs, torch.float64)
     long_side = torch.tensor([640.0, 640.0], dtype=torch.float64)
-    lower, upper = search.parameter_box(config, long_side, None)
+    lower, upper = search_grid.parameter_box(config, long_side, None)
     # Image 0's start: f 1.6x too long, pitch moved so that the vertical VP stays where it is.
-    wrong = search._focal_ridge_rotations(fast_rotations(torch.tensor([[10.0, -15.0, 3.0]], dtype=torch.float64)),
+    wrong = search_passes._focal_ridge_rotations(fast_rotations(torch.tensor([[10.0, -15.0, 3.0]], dtype=torch.float64)),
                                           torch.tensor([[1.6]], dtype=torch.float64))[0, 0]
-    start0 = torch.cat([search.angles_from_search_rotation(wrong), torch.tensor([1.6 * true_focal])])
+    start0 = torch.cat([param_rows.angles_from_search_rotation(wrong), torch.tensor([1.6 * true_focal])])
     start1 = torch.tensor([-20.0, 8.0, -2.0, focal_from_hfov(60.0, 640)], dtype=torch.float64)
     starts = torch.stack([start0, start1])[:, None]
     model = MixtureLikelihood(_data_only())
     scores = score_grid(model, features, starts, 1 << 30)
-    out, out_scores = search.sweep_focal(model, features, starts, scores, config, lower, upper)
+    out, out_scores = search_passes.sweep_focal(model, features, starts, scores, config, lower, upper)
     assert out.shape == (2, 2, 4) and out_scores.shape == (2, 2)
     assert torch.equal(out[:, :1], starts) and torch.equal(out_scores[:, :1], scores)
     assert (out_scores[:, 1] >= scores[:, 0]).all() and out_scores[0, 1] > scores[0, 0]
@@ -387,13 +390,13 @@ def test_focal_sweep_finds_the_focal_the_grid_traded_for_pitch():
     assert (out >= lower[:, None] - 1e-9).all() and (out <= upper[:, None] + 1e-9).all()
     if not out_scores[1, 1] > scores[1, 0]:  # the true camera: nothing better on the ridge, a copy
         assert torch.equal(out[1, 1], starts[1, 0])
-    one, one_scores = search.sweep_focal(model, _features(segs[1:], torch.float64), starts[1:], scores[1:],
+    one, one_scores = search_passes.sweep_focal(model, _features(segs[1:], torch.float64), starts[1:], scores[1:],
                                          config, lower[1:], upper[1:])
     assert torch.allclose(one, out[1:], rtol=1e-12) and torch.allclose(one_scores, out_scores[1:], rtol=1e-12)
-    k_lower, k_upper = search.parameter_box(config, long_side, starts[:, 0, 3])
-    assert search.sweep_focal(model, features, starts, scores, config, k_lower, k_upper)[0] is starts
+    k_lower, k_upper = search_grid.parameter_box(config, long_side, starts[:, 0, 3])
+    assert search_passes.sweep_focal(model, features, starts, scores, config, k_lower, k_upper)[0] is starts
     off = replace(config, focal_sweep_points=0)
-    assert search.sweep_focal(model, features, starts, scores, off, lower, upper)[0] is starts
+    assert search_passes.sweep_focal(model, features, starts, scores, off, lower, upper)[0] is starts
 
 
 @pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
@@ -408,7 +411,7 @@ def test_grid_shared_vertical_vp_equals_full_scoring(dtype, rtol, monkeypatch):
     model = MixtureLikelihood(LikelihoodParams.from_config("b"))
     full = score_grid(model, features, hyp, 1 << 30)
     assert torch.allclose(score_grid(model, features, hyp, 1 << 30, vertical_block=4), full, rtol=rtol)
-    monkeypatch.setattr(search, "CPU_CHUNK_ELEMENTS", 500)  # chunks of whole runs, images one by one
+    monkeypatch.setattr(search_grid, "CPU_CHUNK_ELEMENTS", 500)  # chunks of whole runs, images one by one
     assert torch.allclose(score_grid(model, features, hyp, 1 << 30, vertical_block=4), full, rtol=rtol)
     odd = hyp[:, :6]  # 6 is not a multiple of 4: scored in full
     assert torch.allclose(score_grid(model, features, odd, 1 << 30, vertical_block=4), full[:, :6], rtol=rtol)
@@ -423,8 +426,8 @@ def test_refinement_stays_finite_and_in_the_box_under_a_bad_gradient(monkeypatch
     features = _features([_scene(21, n_per_family=20)], torch.float32)
     width = torch.tensor([640.0], dtype=torch.float64)
     hyp = grid_hypotheses(config, width)
-    lower, upper = search.parameter_box(config, width, None)
-    real = search.objective_and_grad
+    lower, upper = search_grid.parameter_box(config, width, None)
+    real = search_refine.objective_and_grad
 
     def spoiled(*args, **kwargs):
         objective, grad = real(*args, **kwargs)
@@ -433,22 +436,22 @@ def test_refinement_stays_finite_and_in_the_box_under_a_bad_gradient(monkeypatch
         grad[..., 3] *= 1e30 if bad == 1e30 else 1.0  # focal: huge too, but of the right sign
         return objective, grad
 
-    monkeypatch.setattr(search, "objective_and_grad", spoiled)
+    monkeypatch.setattr(search_refine, "objective_and_grad", spoiled)
     params, objective = refine(MixtureLikelihood(), features, hyp[:, :3], lower, upper, 20, fast=False)
     assert torch.isfinite(params).all() and torch.isfinite(objective).all()
     assert (params >= lower[:, None].to(params) - 1e-4).all() and (params <= upper[:, None].to(params) + 1e-3).all()
 
 
 def test_refinement_adam_is_torch_adam_and_the_same_bits_in_any_layout():
-    """search.Adam = torch.optim.Adam stepped by ExponentialLR (to float rounding), and an entry's
+    """search_refine.Adam = torch.optim.Adam stepped by ExponentialLR (to float rounding), and an entry's
     update does not depend on where it sits (torch's fused kernel rounds body and tail differently)."""
     torch.manual_seed(0)
     grads = [torch.randn(3, 8, 4) * 10 ** torch.randint(-3, 3, ()).item() for _ in range(30)]
     ours = torch.rand(3, 8, 4)
     shifted = torch.cat([torch.rand(1, 8, 4), ours.clone()])  # the same entries one image further on
     theirs = ours.clone().requires_grad_(True)
-    adam = search.Adam(ours, 0.03, 0.8, betas=(0.5, 0.9))
-    adam_shifted = search.Adam(shifted, 0.03, 0.8, betas=(0.5, 0.9))
+    adam = search_refine.Adam(ours, 0.03, 0.8, betas=(0.5, 0.9))
+    adam_shifted = search_refine.Adam(shifted, 0.03, 0.8, betas=(0.5, 0.9))
     reference = torch.optim.Adam([theirs], lr=0.03, betas=(0.5, 0.9), foreach=False)
     schedule = torch.optim.lr_scheduler.ExponentialLR(reference, 0.8)
     for grad in grads:

@@ -21,11 +21,12 @@ def count_operators(mode: str, batch: int, n_segments: int, chunking: str = "cpu
     """(top-level operator events, all operator events) of one batch of ``batch`` scenes."""
     from torch.profiler import ProfilerActivity, profile
 
-    import fr_torch.core.search.passes as search
+    import fr_torch.core.search.grid as grid
+    import fr_torch.core.search.refine as refine
     from fr_eval.bench.timing import bench_estimator, scene_segments
 
     if chunking == "device":
-        search.CPU_CHUNK_ELEMENTS = search.CPU_REFINE_ELEMENTS = 1 << 40
+        grid.CPU_CHUNK_ELEMENTS = refine.CPU_REFINE_ELEMENTS = 1 << 40
 
     est = bench_estimator(mode, "cpu")
     pool = [scene_segments(n_segments, seed=i) for i in range(8)]

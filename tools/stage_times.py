@@ -26,6 +26,8 @@ def main() -> None:
 
     import fr_torch.core.estimator as estimator_module
     import fr_torch.core.reliability.cues as cues
+    import fr_torch.core.search.manhattan as manhattan
+    import fr_torch.core.search.refine as refine
     from fr_eval.datasets.registry import load_dataset
     from fr_torch import FREstimator
     from fr_torch.detectors.lsd import LSDDetector
@@ -45,8 +47,9 @@ def main() -> None:
                 spent[name] += time.perf_counter() - start
         setattr(module, name, wrapper)
 
-    for name in ("score_grid", "sweep_focal", "subdivide_starts", "refine", "bend_test", "rank_vanishing_points"):
-        timed(estimator_module, name)
+    for module, name in ((manhattan, "score_grid"), (manhattan, "sweep_focal"), (manhattan, "subdivide_starts"),
+                         (refine, "refine"), (estimator_module, "bend_test"), (estimator_module, "rank_vanishing_points")):
+        timed(module, name)
     for name in ("local_quadratic", "focal_profile", "resample_spreads", "focal_profile_spread"):
         timed(cues, name)
     detector = LSDDetector()

@@ -1,7 +1,7 @@
 /* Fused measure-b scoring (fr_measure_b_scores) and the refinement's objective with its gradient
  * (fr_measure_b_grad): fr_torch/core/native.py builds, checks and calls this file.
  *
- * Every value is the torch path's (fr_torch/core/likelihood.py: objective_b_nograd,
+ * Every value is the torch path's (fr_torch/core/likelihood/objective.py: objective_b_nograd,
  * measure_b_forward / measure_b_backward) bit for bit:
  * the same IEEE float32 operations in the same order (compiled with -ffp-contract=off, no fast
  * math), and atan / exp / log through the same MKL VML routines torch's CPU kernels call (their
@@ -153,7 +153,7 @@ static inline uint32_t magnitude_bits(float x) {
 }
 
 /* The refinement's objective and its gradient with respect to the vanishing points, per image:
- * measure_b_forward followed by measure_b_backward (fr_torch/core/likelihood.py) bit for bit.
+ * measure_b_forward followed by measure_b_backward (fr_torch/core/likelihood/objective.py) bit for bit.
  *
  * Images [first, last) of the batch; hyp hypotheses each (columns k * hyp + h of flat (B, 3, 3H));
  * weight (B, N), factor (B, N) and scale (B,) as for fr_measure_b_scores; grad_out (B, H) float32.

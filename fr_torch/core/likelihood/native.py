@@ -143,7 +143,7 @@ def register_check(check) -> None:
 def available() -> bool:
     """True when the fused kernel is built, loaded and checked in this process (the first call
     does that; module docstring).  ``FR_NATIVE=0`` turns it off."""
-    if os.environ.get("FR_NATIVE", "1") == "0" or "check" not in _state:  # the check comes with likelihood.py
+    if os.environ.get("FR_NATIVE", "1") == "0" or "check" not in _state:  # the check comes with likelihood/mixture.py
         return False
     if "ok" not in _state:
         with _lock:

@@ -42,15 +42,8 @@ from fr_torch.core.geometry.params import DISTORTION, from_log_focal
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.search.grid import grid_cell, grid_hypotheses, into_box, parameter_box, score_grid, select_starts
-from fr_torch.core.search.passes import (
-    LATTICE,
-    SearchResult,
-    best_of_start_and_refined,
-    lattice_passes,
-    sweep_focal,
-    tie_tolerance,
-)
-from fr_torch.core.search.refine import refine
+from fr_torch.core.search.passes import LATTICE, SearchResult, lattice_passes, sweep_focal, tie_tolerance
+from fr_torch.core.search.refine import refine_starts
 from fr_torch.core.settings.config import SearchConfig
 
 
@@ -450,11 +443,8 @@ def search_with_k(likelihood: MixtureLikelihood, geometry: SegmentGeometry, feat
     starts, top_scores = sweep_focal_rows(likelihood, geometry, starts, top_scores, config, lower, upper)
     starts, top_scores = subdivide_rows(likelihood, geometry, starts, top_scores, config, lower, upper)
     grid_seconds = time.perf_counter() - t0
-    refined, refined_scores = refine(likelihood, features, starts, lower, upper, iterations, fast=fast,
-                                     tolerance=config.refine_tolerance, patience=config.refine_patience,
-                                     periodic_pan=config.periodic_pan, geometry=geometry)
-    params, scores, tied = best_of_start_and_refined(starts, top_scores, refined, refined_scores,
-                                                     tie_tolerance(geometry))
+    params, scores, tied = refine_starts(likelihood, features, starts, top_scores, lower, upper, config, iterations,
+                                         fast, geometry)
     return SearchResult(params, scores, grid_scores, grid_counts, grid_seconds, tied, lower, upper)
 
 

@@ -16,14 +16,8 @@ import torch
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.search.grid import grid_hypotheses, parameter_box, score_grid, select_starts
-from fr_torch.core.search.passes import (
-    SearchResult,
-    best_of_start_and_refined,
-    subdivide_starts,
-    sweep_focal,
-    tie_tolerance,
-)
-from fr_torch.core.search.refine import refine
+from fr_torch.core.search.passes import SearchResult, subdivide_starts, sweep_focal
+from fr_torch.core.search.refine import refine_starts
 from fr_torch.core.settings.config import SearchConfig
 
 
@@ -48,9 +42,6 @@ def search_manhattan(likelihood: MixtureLikelihood, features: SegmentFeatures, c
     starts, top_scores = sweep_focal(likelihood, features, starts, top_scores, config, lower, upper)
     starts, top_scores = subdivide_starts(likelihood, features, starts, top_scores, config, lower, upper)
     grid_seconds = time.perf_counter() - t0
-    refined, refined_scores = refine(likelihood, features, starts, lower, upper, iterations, fast=fast,
-                                     tolerance=config.refine_tolerance, patience=config.refine_patience,
-                                     periodic_pan=config.periodic_pan)
-    params, scores, tied = best_of_start_and_refined(starts, top_scores, refined, refined_scores,
-                                                     tie_tolerance(features))
+    params, scores, tied = refine_starts(likelihood, features, starts, top_scores, lower, upper, config, iterations,
+                                         fast)
     return SearchResult(params, scores, grid_scores, grid_counts, grid_seconds, tied, lower, upper)

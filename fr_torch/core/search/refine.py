@@ -32,6 +32,8 @@ from fr_torch.core.likelihood.objective import (
     measure_b_objective_and_grad,
     vp_major,
 )
+from fr_torch.core.search.passes import best_of_start_and_refined, tie_tolerance
+from fr_torch.core.settings.config import SearchConfig
 
 CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
 
@@ -79,6 +81,21 @@ def refine(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: tor
         return torch.cat([p for p, _ in parts]), torch.cat([o for _, o in parts])
     return _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tol, patience, periodic_pan,
                          geometry)
+
+
+def refine_starts(likelihood: MixtureLikelihood, features: SegmentFeatures, starts: torch.Tensor,
+                  start_scores: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor, config: SearchConfig,
+                  iterations: int, fast: bool, geometry=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Stage 2 of a fit: :func:`refine` the starts (B, L, P) with objectives ``start_scores`` (B, L)
+    inside the box under ``config``'s stopping rule and pan period, then keep each image's best of
+    the starts and their refinements
+    (:func:`~fr_torch.core.search.passes.best_of_start_and_refined`).  Returns (params (B, P),
+    scores (B,), tied (B,) bool)."""
+    refined, refined_scores = refine(likelihood, features, starts, lower, upper, iterations, fast=fast,
+                                     tolerance=config.refine_tolerance, patience=config.refine_patience,
+                                     periodic_pan=config.periodic_pan, geometry=geometry)
+    return best_of_start_and_refined(starts, start_scores, refined, refined_scores,
+                                     tie_tolerance(features if geometry is None else geometry))
 
 
 #: Bound on each gradient component of the normalised loss in box units (real ones stay below ~1e4).
