@@ -134,11 +134,11 @@ def _markdown(report: dict) -> str:
                   f"Deviations = B x G x N x 3 (nominal). Fraction of FP32 peak: {FLOPS_PER_DEVIATION} FLOPs per "
                   "deviation (a convention: s, t, atan2, exp, mixture) against the GPU's data-sheet FP32 peak "
                   f"({', '.join(f'{k} {v / 1e12:.1f} TFLOP/s' for k, v in GPU_FP32_PEAK.items())}).", "",
-                  "| device | search | batch | segments | hypotheses | ms | images/s | deviations/s | fraction of FP32 peak |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "| device | batch | segments | hypotheses | ms | images/s | deviations/s | fraction of FP32 peak |",
+                  "|---|---|---|---|---|---|---|---|"]
         for r in report["grid_kernel"]:
             fraction = r.get("fraction_of_fp32_peak")
-            lines.append(f"| {r['device']} | {r['search']} | {r['batch']} | {r['segments']} | {r['hypotheses']} | "
+            lines.append(f"| {r['device']} | {r['batch']} | {r['segments']} | {r['hypotheses']} | "
                          f"{1000 * r['seconds']:.1f} | {r['images_per_s']:.0f} | {r['deviations_per_s']:.3g} | "
                          f"{'' if fraction is None else f'{100 * fraction:.1f} %'} |")
         lines.append("")

@@ -16,7 +16,7 @@ Bounds (``--bounds``): a bound is ``scale x sigma`` per error (focal %, tilt deg
 * ``spreads`` (what ``reliable`` ships with): sigma from the estimate's own spreads
   (:data:`fr_torch.core.reliability.bounds.SIGMAS`); no model is fitted.
 * ``knn`` (the KNN's bounds, for comparison): sigma = the KNN's predicted error
-  (:class:`fr_torch.core.reliability.ReliabilityModel`, the shipped cue set of the mode, floored at
+  (:class:`fr_torch.core.reliability.model.ReliabilityModel`, the shipped cue set of the mode, floored at
   0.5 % / 0.1 deg), the model fitted on the calibration records (for a family's scale: without
   that family).
 

@@ -479,7 +479,7 @@ def _plot_focal_cues(train: pd.DataFrame, png: Path, mode: str) -> None:
 def trained_for(mode: str) -> dict[str, str]:
     """The setting the records of :func:`gather` come from (the estimator's defaults: the default
     likelihood config and its deviation measure, LSD), stored as the model's ``meta["trained_for"]``
-    (:attr:`fr_torch.core.reliability.ReliabilityModel.trained_for`)."""
+    (:attr:`fr_torch.core.reliability.model.ReliabilityModel.trained_for`)."""
     from fr_torch.core.likelihood.mixture import LikelihoodParams
 
     return {"measure": LikelihoodParams.from_config(mode=mode).measure, "detector": "lsd", "likelihood": "default"}

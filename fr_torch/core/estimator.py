@@ -271,7 +271,7 @@ class SegmentEstimator:
     def reliability_scope_gap(self, detected: bool) -> str | None:
         """Why the reliability model does not apply to this estimator's results, or None when it
         does: it was trained on another deviation measure or likelihood
-        (:meth:`fr_torch.core.reliability.ReliabilityModel.scope_gap`), or -- for segments from
+        (:meth:`fr_torch.core.reliability.model.ReliabilityModel.scope_gap`), or -- for segments from
         this estimator's detector (``detected``), not the caller's -- on another detector."""
         scope_gap = getattr(self.reliability, "scope_gap", None)
         if scope_gap is None:  # a model object without a declared scope

@@ -172,7 +172,7 @@ class ReliabilityPromise:
     (``error_bound``) but ``reliable`` is the thresholds rule on the predicted errors.
     ``validated_detectors``: names of line detectors (:mod:`fr_torch.detectors.registry`) whose
     segments the promise was measured to hold for besides the reliability model's own
-    (:attr:`fr_torch.core.reliability.ReliabilityModel.detectors`; results/decisions/45.md)."""
+    (:attr:`fr_torch.core.reliability.model.ReliabilityModel.detectors`; results/decisions/45.md)."""
 
     limits: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_LIMITS))
     scales: Mapping[str, Mapping[str, float]] = field(default_factory=dict)

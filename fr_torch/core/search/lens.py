@@ -19,7 +19,7 @@ The stages (the pinhole search's, with k added):
    one step either side (``distortion_lattice="axis"``; or the 3^5 lattice, ``"joint"``); the k step
    a third of ``distortion_k_spacing``, then a third of that.
 4. **Refinement**: Adam on the five box-normalised parameters
-   (:func:`fr_torch.core.search.refine` with the geometry: the analytic gradient of measure b
+   (:func:`fr_torch.core.search.refine.refine` with the geometry: the analytic gradient of measure b
    extends to k through d line / dk).
 
 :func:`bend_test` asks whether a pinhole estimate's lines bend: the plumb line, and a short
