@@ -25,8 +25,9 @@ MASK = "***"
 #: ``key``, ``apikey``, ``auth``, ``authorization``, ``sig``, ``signature``, ``secret``, ``credential``,
 #: ``session``, ``sid``, ``ticket``, ``jwt``, ``otp``, ...
 SECRET_NAME = re.compile(r"pass|pwd|token|key|auth|sig|secret|cred|session|sid|ticket|jwt|otp", re.IGNORECASE)
-#: A URL: a scheme, ``://`` and what follows up to white space or a quote.
-URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s'\"<>`]+")
+#: A URL in a text: a scheme, ``://`` and what follows up to white space or a quote, less a
+#: sentence's closing punctuation.
+URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s'\"<>`]*[^\s'\"<>`.,;:)\]]")
 _SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
 

@@ -159,7 +159,7 @@ def test_rows_per_part_gathers_batches_and_cli_summary(image_set, tmp_path, caps
     assert main(["batch", str(tmp_path / "list.txt"), "--out", str(out), "--fast", "--batch-size", "2", "--workers", "1",
                  "--rows-per-part", "100", "--no-progress", "--no-reliability"]) == 0
     assert len(list(out.glob("part-*.parquet"))) == 1 and len(pd.read_parquet(out)) == 6
-    assert "6 processed (3 failed)" in capsys.readouterr().err
+    assert "6 processed (3 failed: " in capsys.readouterr().err
     assert main(["batch", str(tmp_path / "nothing*.png"), "--out", str(out)]) == 2  # one-line error
 
 
