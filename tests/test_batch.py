@@ -230,8 +230,8 @@ def test_records_with_missing_or_malformed_arrays_become_nulls():
     assert rows[0]["principal_point"] == [320.0, 240.0] and rows[0]["rotation"] == np.eye(3).tolist()
     assert all(rows[i][key] is None for i in (1, 2) for key in ("principal_point", "rotation", "vanishing_points"))
     assert rows[1]["focal_px"] is None
-    assert rows[0]["horizon"] == good["horizon"] and rows[2]["horizon"] is None
-    assert rows[1]["horizon"] == {"line": None, "left_y": None, "right_y": None, "bound_pct": None}
+    assert rows[0]["horizon"] == dict(good["horizon"], unbounded=False) and rows[2]["horizon"] is None
+    assert rows[1]["horizon"] == {"line": None, "left_y": None, "right_y": None, "bound_pct": None, "unbounded": False}
 
 
 def test_pipelined_rows_match_per_batch_rows_and_survive_a_search_error(image_set, monkeypatch):
