@@ -322,3 +322,11 @@ def test_metrics_address_defaults_to_this_machine_and_bad_values_are_one_line():
     for bad in ("", "host", "host:99999", ":80", "1.2.3.4:-1"):
         with pytest.raises(ValueError, match="--metrics"):
             MetricsAddress.parse(bad)
+
+
+def test_an_unknown_option_shows_the_commands_usage(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["track", "x.mp4", "--no-such-option"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.startswith("usage: fr track ") and "--no-such-option" in err
+    assert "--no-progress" in main.__globals__["build_parser"]("track").command_parsers["track"].format_usage()
