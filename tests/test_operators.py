@@ -143,6 +143,7 @@ def test_a_fleet_keeps_its_secrets_logs_a_line_per_event_and_serves_metrics(tmp_
     captured = capsys.readouterr()
     assert code == 1  # "nobody" has no calibration
     outputs = {"stdout": captured.out.encode(), "stderr": captured.err.encode(), **_files(out),
+               "--json": jsonl.read_bytes(),
                **{f"metrics page {i}": page.encode() for i, page in enumerate(scraper.pages)}}
     assert not _leaks(outputs)
     # the log: no carriage return, one line per event, each naming its camera

@@ -61,9 +61,9 @@ import cv2
 import numpy as np
 
 from fr_torch.errors import FRInputError
-from fr_torch.redaction import redact_text, redact_url
 from fr_torch.images.io import decode_image_bytes, load_image
 from fr_torch.images.stream import split_images
+from fr_torch.redaction import redact_text, redact_url
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 #: Frames a live source may queue without real time (then the reader waits for the search).
