@@ -188,7 +188,7 @@ def _run(args: argparse.Namespace) -> int:
         first = f"from frame {output.start_frame}" if not source.live else "frames counted from 0 again"
         say(f"fr track: {output.folder} holds earlier records: segment {output.segment}, {first}")
     stream = open_frames(source, args.every, output.start_frame, args.realtime, reconnect, args.stream_timeout, say)
-    tracking = Tracking(stream, tracker, output, say)
+    tracking = Tracking(stream, tracker, output, say, f"fr track: {source}")  # its lines name the source
     try:
         metrics = _metrics(args, [(source.label, tracking)], say)
     except FRInputError:

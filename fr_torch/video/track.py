@@ -80,7 +80,7 @@ class Tracking:
     result and writes its record (appended and flushed) and, when the fusion changed,
     calibration.json (atomically), without a stop in between
     (:func:`fr_torch.runtime.workers.stops_held`); :meth:`finish` writes how the run ended and
-    closes the files.  ``say``: where a restart's line goes; ``prefix``: what starts it (``fr track``,
+    closes the files.  ``say``: where a restart's line goes; ``prefix``: what starts it (``fr track: SOURCE``,
     or the camera's name after it).
     """
 
