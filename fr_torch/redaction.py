@@ -4,7 +4,8 @@ An IP camera's URL often carries its credentials: in the user part (``rtsp://adm
 or in the query string (``http://host/videostream.cgi?user=admin&pwd=secret``,
 ``rtsp://host/live?token=...``).  :func:`redact_url` turns such a URL into the text fR shows
 anywhere (messages, ``calibration.json``, records, metrics): the password of the user part becomes
-``***`` (the user name stays), and so does the value of every query or fragment parameter whose
+``***`` (the user name stays; a user part without a password, which may be a token, becomes
+``***`` whole), and so does the value of every query or fragment parameter whose
 name says it is a credential (:data:`SECRET_NAME`: it contains ``pass``, ``pwd``, ``token``,
 ``key``, ``auth``, ``sig``, ``secret``, ``cred``, ``session``, ``sid``, ``ticket``, ``jwt`` or
 ``otp``; case-insensitive, the name percent-decoded first).  Everything else is kept as written,
@@ -70,7 +71,7 @@ def redact_url(url: str) -> str:
     userinfo, at, hostport = authority.rpartition("@")
     if at:
         user, colon, _ = userinfo.partition(":")
-        authority = f"{user}:{MASK}@{hostport}" if colon else authority
+        authority = f"{user}:{MASK}@{hostport}" if colon else f"{MASK}@{hostport}"
     path, hash_, fragment = tail.partition("#")
     path, question, query = path.partition("?")
     tail = path + (question + _parameters(query) if question else "") + (hash_ + _parameters(fragment) if hash_ else "")

@@ -55,6 +55,7 @@ CORPUS = (
      "rtsp://cam.local/stream1?access_token=***;secret=***"),
     ("https://a:b/c@host.example/x?X-Amz-Signature=AwsSig6&X-Amz-Credential=AwsCred8", ("b/c", "AwsSig6", "AwsCred8"),
      "https://a:***@host.example/x?X-Amz-Signature=***&X-Amz-Credential=***"),
+    ("rtsp://UserTok9@127.0.0.1:9/h264", ("UserTok9",), "rtsp://***@127.0.0.1:9/h264"),
 )
 SECRETS = tuple(secret for _, secrets, _ in CORPUS for secret in secrets if secret != "b/c")
 
@@ -69,7 +70,7 @@ def test_redact_url_hides_every_secret_of_the_corpus_and_keeps_the_rest():
         assert not any(secret in redact_url(url) for secret in secrets if secret != "b/c")
     assert redact_url("/data/site3.mp4") == "/data/site3.mp4" and redact_url("0") == "0"
     assert redact_url("rtsp://10.0.0.7/stream1?channel=2") == "rtsp://10.0.0.7/stream1?channel=2"
-    assert redact_url("http://admin@10.0.0.7/x") == "http://admin@10.0.0.7/x"  # a user name alone is no secret
+    assert redact_url("http://admin@10.0.0.7/x") == "http://***@10.0.0.7/x"  # a user part alone may be a token
     text = "error: cannot open 'rtsp://u:pw1@h/x?pwd=pw2' nor http://h/y?auth=pw3."
     assert redact_text(text) == f"error: cannot open 'rtsp://u:{MASK}@h/x?pwd={MASK}' nor http://h/y?auth={MASK}."
 
