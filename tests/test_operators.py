@@ -271,6 +271,7 @@ def test_a_bound_that_says_nothing_is_null_and_flagged():
         record = complete(record)
         assert record["horizon"]["bound_pct"] is None and record["horizon"]["unbounded"] is True
         assert record["error_bound"]["focal_pct"] == (None if bound["focal_pct"] > 100 else bound["focal_pct"])
+        assert complete(json.loads(json.dumps(record))) == record  # a record in the schema stays as it is
 
 
 class _Frames(FrameStream):

@@ -101,15 +101,18 @@ def _finite(value: Any) -> bool:
 
 def complete(record: dict[str, Any]) -> dict[str, Any]:
     """A ``to_json`` record in the schema (module docstring), in place and returned: every cue
-    present, unbounded bounds null and flagged."""
+    present, unbounded bounds null and flagged.  A record already in the schema is returned as it
+    is (its flags kept)."""
     cues = record.get("cues") or {}
     record["cues"] = {name: cues.get(name) for name in ALL_CUES} if record.get("ok") else {}
     bound = record.get("error_bound")
     if bound:
-        flags = unbounded_bounds(bound)
+        given = bound.get("unbounded") or {}
+        flags = {name: flag or bool(given.get(name)) for name, flag in unbounded_bounds(bound).items()}
         horizon = record.get("horizon")
         if horizon is not None:
-            open_ = horizon_unbounded(bound, record.get("tilt_deg"), horizon.get("bound_pct"))
+            open_ = horizon_unbounded(bound, record.get("tilt_deg"), horizon.get("bound_pct")) \
+                or bool(horizon.get("unbounded")) or any(flags.values())
             record["horizon"] = dict(horizon, bound_pct=None if open_ else horizon.get("bound_pct"), unbounded=open_)
         record["error_bound"] = dict(bound, **{name: None for name, flag in flags.items() if flag}, unbounded=flags)
     elif record.get("horizon") is not None:
