@@ -263,8 +263,10 @@ def test_a_bound_that_says_nothing_is_null_and_flagged():
     assert record["horizon"]["bound_pct"] == 3.0 and record["horizon"]["unbounded"] is False
     assert record["error_bound"]["unbounded"] == {"focal_pct": False, "tilt_deg": False}
     assert set(record["cues"]) == set(ALL_CUES) and all(v is None for v in record["cues"].values())
-    for bound, horizon_bound in (({"focal_pct": 975.8, "tilt_deg": 1.0}, 40.0), ({"focal_pct": 4.0, "tilt_deg": 89.0},
-                                                                               975.8), ({"focal_pct": 4.0, "tilt_deg": 2.0}, 1000.0)):
+    cases = (({"focal_pct": 975.8, "tilt_deg": 1.0}, 40.0),  # a focal bound that says nothing
+             ({"focal_pct": 4.0, "tilt_deg": 89.0}, 975.8),  # a tilt within its bound reaching 89 deg
+             ({"focal_pct": 4.0, "tilt_deg": 2.0}, 1000.0))  # the core's cap
+    for bound, horizon_bound in cases:
         record = json.loads(json.dumps(bounded))
         record["error_bound"].update(bound)
         record["horizon"]["bound_pct"] = horizon_bound

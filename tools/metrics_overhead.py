@@ -52,7 +52,8 @@ def run(urls: list[str], seconds: float, metrics_port: int | None, scrape_every:
         command = [sys.executable, "-m", "fr_torch.cli", "track", *urls, "--out", str(out), "--fast", "--no-progress"]
         if metrics_port is not None:
             command += ["--metrics", f"127.0.0.1:{metrics_port}"]
-        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                   start_new_session=True)
         pages, stop = [], threading.Event()
 
         def scrape() -> None:

@@ -109,8 +109,8 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
             writer.write(pa.concat_tables(pending))
             pending.clear()
 
-    bar = tqdm(total=len(todo), unit="img", desc="fr batch", disable=not progress or not todo or not sys.stderr.isatty(),
-               smoothing=0.1,
+    bar = tqdm(total=len(todo), unit="img", desc="fr batch", smoothing=0.1,
+               disable=not progress or not todo or not sys.stderr.isatty(),
                file=sys.stderr)
     try:
         if todo:

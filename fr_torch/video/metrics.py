@@ -84,7 +84,8 @@ class MetricsAddress:
 FUSED = (("focal_px", "fused focal length, pixels", "focal_px", None),
          ("tilt_deg", "fused tilt (the paper's, horizon-based), degrees", "tilt_deg", None),
          ("roll_deg", "fused roll, degrees", "roll_deg", None),
-         ("focal_sigma_pct", "standard deviation of the fused focal length, % (90 % bound: 1.645 x)", None, "focal_pct"),
+         ("focal_sigma_pct", "standard deviation of the fused focal length, % (90 % bound: 1.645 x)", None,
+          "focal_pct"),
          ("tilt_sigma_deg", "standard deviation of the fused tilt, degrees (90 % bound: 1.645 x)", None, "tilt_deg"),
          ("roll_sigma_deg", "standard deviation of the fused roll, degrees (90 % bound: 1.645 x)", None, "roll_deg"))
 
@@ -133,7 +134,8 @@ class TrackCollector:
                     ("frames_read", "frames read from the source, every segment", totals.arrived + stream.arrived),
                     ("frames_searched", "frames searched and recorded, every segment", totals.processed),
                     ("frames_accepted", "frames fused into the calibration, every segment", totals.accepted),
-                    ("frames_dropped", "live frames dropped in real time, every segment", totals.dropped + stream.dropped),
+                    ("frames_dropped", "live frames dropped in real time, every segment",
+                     totals.dropped + stream.dropped),
                     ("reconnects", "reconnections of the source in this run", stream.reconnects)):
                 family(CounterMetricFamily, name, text).add_metric([label], float(value))
         yield from families.values()

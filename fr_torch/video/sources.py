@@ -382,8 +382,8 @@ class LiveFrames(FrameStream):
                         if waits is not None:  # the outage's second line: the source is back
                             self.reconnects += 1
                             self.outage = False
-                            self.log(f"fr track: {self.name}: reconnected after "
-                                     f"{time.monotonic() - last_frame_at:.1f} s ({tries} {'try' if tries == 1 else 'tries'})")
+                            self.log(f"fr track: {self.name}: reconnected after {time.monotonic() - last_frame_at:.1f}"
+                                     f" s ({tries} {'try' if tries == 1 else 'tries'})")
                             waits, tries = None, 0
                         self._put(image)
                         last_frame_at = time.monotonic()
