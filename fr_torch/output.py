@@ -12,11 +12,15 @@ from typing import Any
 import numpy as np
 
 from fr_torch.errors import FRInputError
+from fr_torch.redaction import redact_text
 
 
 def json_safe(value: Any) -> Any:
-    """A copy of ``value`` with every NaN / inf float replaced by None (JSON null) and numpy
-    scalars / arrays turned into Python numbers / lists: the last guard before serialisation."""
+    """A copy of ``value`` with every NaN / inf float replaced by None (JSON null), numpy
+    scalars / arrays turned into Python numbers / lists and every URL in a text redacted
+    (:func:`fr_torch.redaction.redact_text`): the last guard before serialisation."""
+    if isinstance(value, str):
+        return redact_text(value)
     if isinstance(value, dict):
         return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

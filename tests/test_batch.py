@@ -159,7 +159,7 @@ def test_rows_per_part_gathers_batches_and_cli_summary(image_set, tmp_path, caps
     assert main(["batch", str(tmp_path / "list.txt"), "--out", str(out), "--fast", "--batch-size", "2", "--workers", "1",
                  "--rows-per-part", "100", "--no-progress", "--no-reliability"]) == 0
     assert len(list(out.glob("part-*.parquet"))) == 1 and len(pd.read_parquet(out)) == 6
-    assert "6 processed (3 failed)" in capsys.readouterr().err
+    assert "6 processed (3 failed: " in capsys.readouterr().err
     assert main(["batch", str(tmp_path / "nothing*.png"), "--out", str(out)]) == 2  # one-line error
 
 
@@ -230,8 +230,8 @@ def test_records_with_missing_or_malformed_arrays_become_nulls():
     assert rows[0]["principal_point"] == [320.0, 240.0] and rows[0]["rotation"] == np.eye(3).tolist()
     assert all(rows[i][key] is None for i in (1, 2) for key in ("principal_point", "rotation", "vanishing_points"))
     assert rows[1]["focal_px"] is None
-    assert rows[0]["horizon"] == good["horizon"] and rows[2]["horizon"] is None
-    assert rows[1]["horizon"] == {"line": None, "left_y": None, "right_y": None, "bound_pct": None}
+    assert rows[0]["horizon"] == dict(good["horizon"], unbounded=False) and rows[2]["horizon"] is None
+    assert rows[1]["horizon"] == {"line": None, "left_y": None, "right_y": None, "bound_pct": None, "unbounded": False}
 
 
 def test_pipelined_rows_match_per_batch_rows_and_survive_a_search_error(image_set, monkeypatch):

@@ -58,6 +58,6 @@ def test_calibrate_without_reliability_skips_the_profile_gap():
     out = fr("calibrate", EXAMPLE, "--no-reliability")
     assert out.returncode == 0, out.stderr
     record = json.loads(out.stdout.strip().splitlines()[0])
-    assert record["predicted_error"] is None and "focal_profile_gap" not in record["cues"]
+    assert record["predicted_error"] is None and record["cues"]["focal_profile_gap"] is None  # not computed: null
     assert "focal_prior_share" in record["cues"] and record["reliable"] is True
     assert abs(record["focal_px"] - TRUE_FOCAL) / TRUE_FOCAL < 0.03

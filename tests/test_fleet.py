@@ -9,6 +9,7 @@ they check (who is served in which turn) does not depend on time.
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -28,7 +29,7 @@ from fr_torch.errors import FRInputError
 from fr_torch.video.fleet import CameraSpec, FleetCamera, camera_line, camera_specs, track_fleet
 from fr_torch.video.fusion import OnlineCalibrator
 from fr_torch.video.records import CAMERA_KEY, RECORD_KEYS, TrackOutput
-from fr_torch.video.sources import Frame, FrameStream, Source
+from fr_torch.video.sources import Frame, FrameStream, Reconnect, Source
 from fr_torch.video.track import Tracking
 from tests.conftest import checkout_env, reap_session, session_left
 
@@ -53,6 +54,12 @@ def test_sources_file_lines_names_and_one_line_errors(tmp_path):
     assert (site.source.kind, site.every, site.focal_px, site.max_rate) == ("file", 25, 1210.0, 2.0)
     assert site.min_interval_s == 0.5 and CameraSpec("x", site.source).min_interval_s == 0.0
     assert camera_line("   # only a comment", "f:1") is None
+    # --reconnect per camera, its SECONDS optional; the others get the command's
+    for line, give_up in (("a rtsp://x/y --reconnect", math.inf), ("a rtsp://x/y --reconnect 30 --every 2", 30.0),
+                          ("a rtsp://x/y --reconnect --every 2", math.inf), ("a rtsp://x/y --reconnect=0", 0.0)):
+        assert camera_line(line, "f:1")[2]["reconnect"] == Reconnect(give_up_s=give_up)
+    listing.write_text(f"gate rtsp://x/y --reconnect 30\nlobby rtsp://x/z\n'{video}'\n")
+    assert [s.reconnect.give_up_s for s in camera_specs([], listing, reconnect=Reconnect(5.0))] == [30.0, 5.0, 5.0]
     for line, message in [("gate", "gate: no such video file"),
                           ("a b c", "expected \\[NAME\\] SOURCE"),
                           ("a rtsp://x/y --zoom 2", "unknown option '--zoom'"),
@@ -61,7 +68,8 @@ def test_sources_file_lines_names_and_one_line_errors(tmp_path):
                           ("a rtsp://x/y --focal -3", "--focal expects a number > 0"),
                           ("a rtsp://x/y --fov-range 90,30", "--fov-range"),
                           ("'a rtsp://x/y", "No closing quotation"),
-                          ("a/b rtsp://x/y", "camera name 'a/b'")]:
+                          ("a/b rtsp://x/y", "camera name 'a/b'"),
+                          ("a rtsp://x/y --reconnect=-1", "--reconnect: expected seconds")]:
         with pytest.raises(FRInputError, match=f"^f:1: .*{message}"):
             camera_line(line, "f:1")
     twice = tmp_path / "twice.txt"
@@ -240,12 +248,12 @@ def test_sigterm_stops_a_fleet_with_every_record_on_disk_and_no_process_left(tmp
     """Two cameras, searched by worker processes (the default on a CPU): after SIGTERM every record
     is on disk, every calibration.json says so, and no process of the run is left."""
     out = tmp_path / "out"
-    stderr_path = tmp_path / "stderr.txt"
+    stderr_path, stdout_path = tmp_path / "stderr.txt", tmp_path / "stdout.txt"
     with MJPEGServer(SyntheticCamera(**SMALL), fps=25) as a, \
             MJPEGServer(SyntheticCamera(**SMALL, hfov_deg=55, room_seed=2), fps=25) as b:
         command = [sys.executable, "-m", "fr_torch.cli", "track", a.url, b.url, "--out", str(out), "--fast"]
-        with open(stderr_path, "w") as stderr:
-            process = subprocess.Popen(command, env=checkout_env(), stdout=subprocess.DEVNULL, stderr=stderr,
+        with open(stderr_path, "w") as stderr, open(stdout_path, "w") as stdout:
+            process = subprocess.Popen(command, env=checkout_env(), stdout=stdout, stderr=stderr,
                                        start_new_session=True, preexec_fn=default_stop_signals)
         try:
             deadline = time.monotonic() + 120
@@ -261,7 +269,8 @@ def test_sigterm_stops_a_fleet_with_every_record_on_disk_and_no_process_left(tmp
         finally:
             reap_session(process)
     assert returncode == 128 + signal.SIGTERM and not left
-    last = stderr_path.read_text().replace("\r", "\n").splitlines()[-1]
+    assert "\r" not in stderr_path.read_text()  # a file is no terminal: no progress bar
+    last = stderr_path.read_text().splitlines()[-1]
     assert last.startswith("fr track: stopped by SIGTERM; ") and "(2 cameras)" in last
     written = int(last.split("; ")[1].split()[0])
     total = 0
@@ -271,3 +280,7 @@ def test_sigterm_stops_a_fleet_with_every_record_on_disk_and_no_process_left(tmp
         summary = json.loads((out / name / "calibration.json").read_text())
         assert summary["run"] == "stopped by SIGTERM" and summary["frames_processed"] == len(table)
     assert total == written
+    # each camera's summary line, as at the end of a run
+    summaries = [json.loads(line) for line in stdout_path.read_text().splitlines()]
+    assert [(s["camera"], s["run"]) for s in summaries] == [("stream_1", "stopped by SIGTERM"),
+                                                             ("stream_2", "stopped by SIGTERM")]

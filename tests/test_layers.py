@@ -79,7 +79,7 @@ def test_harness_commands_found_from_any_folder(tmp_path):
 
 #: Layers of fr_torch, lowest first: a module may import its own layer and those below it.
 LAYERS = (
-    {"errors", "resources", "registry", "output"},  # infrastructure
+    {"errors", "resources", "registry", "output", "redaction"},  # infrastructure
     {"core"},  # the tensor engine
     {"images", "synthetic"},  # image files and arrays
     {"detectors"},  # line segments from images

@@ -143,7 +143,7 @@ def test_fr_track_end_to_end(tmp_path):
     assert main(["track", str(frames), "--out", str(out), "--fast", "--batch-size", "4"]) == 0
     table = pd.read_csv(out / "frames.csv")
     assert len(table) == 3 and list(table["frame"]) == [0, 1, 2]
-    assert {"status", "epoch", "fused_focal_px", "fused_roll_deg", "pred_focal_err_pct",
+    assert {"status", "epoch", "fused_focal_px", "fused_roll_deg", "predicted_error_focal_pct",
             "restarted"} <= set(table.columns)
     summary = json.loads((out / "calibration.json").read_text())
     assert summary["frames_processed"] == 3 and summary["calibration"]["focal_px"] > 0
@@ -160,7 +160,7 @@ def test_fr_track_end_to_end(tmp_path):
     assert main(["track", str(frames), "--out", str(tmp_path / "o5"), "--fast", "--batch-size", "4",
                  "--workers", "2"]) == 0
     workers = pd.read_csv(tmp_path / "o5" / "frames.csv")
-    assert list(workers["frame"]) == [0, 1, 2] and list(workers["name"]) == list(table["name"])
+    assert list(workers["frame"]) == [0, 1, 2] and list(workers["image"]) == list(table["image"])
     assert np.allclose(workers["focal_px"], table["focal_px"], rtol=1e-5)
     assert main(["track", str(tmp_path / "missing.mp4"), "--out", str(tmp_path / "o3")]) == 2
 

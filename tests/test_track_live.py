@@ -157,7 +157,11 @@ def test_fr_track_reconnects_a_dropped_stream_and_gives_up(tmp_path, capsys):
     assert table["reconnects"].iloc[-1] >= 1
     _check_drops(table)  # frame indices keep counting over the reconnections
     err = capsys.readouterr().err
-    assert "the stream ended; reconnecting in 0.5 s (--reconnect)" in err and "reconnected after" in err
+    # one line when the stream drops, one when it is back: never a line per retry
+    events = [line for line in err.splitlines() if "(--reconnect)" in line or "reconnected after" in line]
+    assert "the stream ended; reconnecting in 0.5 s (--reconnect)" in events[0] and len(events) >= 2
+    assert all(("reconnecting in" in line) == (i % 2 == 0) for i, line in enumerate(events)), events
+    assert all("reconnected after" in line for line in events[1::2]), events
     # nothing listens there: the first connection fails, one retry, then a one-line error
     closed = f"http://127.0.0.1:{server.url.split(':')[2].split('/')[0]}/stream.mjpg"
     assert main(["track", closed, "--out", str(tmp_path / "none"), "--fast", "--reconnect", "0.8"]) == 2

@@ -228,7 +228,7 @@ def throughput(args) -> None:
                 for i, run in enumerate(runs):
                     window = [r for r in run.records if start <= r["time"] < end]
                     ages += [r["age_s"] for r in window]
-                    runtimes += [r["runtime_s"] for r in window if r["runtime_s"] is not None]
+                    runtimes += [r["runtime_s_total"] for r in window if r["runtime_s_total"] is not None]
                     if mode.startswith("fleet"):
                         per_camera += [sum(r[CAMERA_KEY] == name for r in window)
                                        for name in sorted({r[CAMERA_KEY] for r in run.records})]
@@ -380,7 +380,7 @@ def soak(args) -> None:
     records = pd.DataFrame(run.records)
     records["t_s"] = records["time"] - started
     memory = pd.DataFrame(memory)
-    records[["t_s", CAMERA_KEY, "frame", "status", "age_s", "runtime_s", "fused_focal_px", "fused_tilt_deg"]].to_csv(
+    records[["t_s", CAMERA_KEY, "frame", "status", "age_s", "runtime_s_total", "fused_focal_px", "fused_tilt_deg"]].to_csv(
         out / "soak_records.csv", index=False, float_format="%.5g")
     memory.to_csv(out / "soak_memory.csv", index=False, float_format="%.4g")
     _soak_report(records, memory, args, out, folder)

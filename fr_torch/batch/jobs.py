@@ -57,6 +57,7 @@ from fr_torch.batch.ray import run_ray
 from fr_torch.batch.shared import run_shared_groups, shared_groups
 from fr_torch.batch.table import PartWriter, records_to_table
 from fr_torch.batch.worker import CRASH_ENV, BatchWorker, _failed, options_device
+from fr_torch.redaction import redact_text, redact_url
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.runtime.pipeline import crash_reason, ordered_pool_map
 
@@ -74,6 +75,7 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     CPUs / ``threads_per_worker``).
     ``batch_size``: images per batch and per part file (None = the device's
     :attr:`~fr_torch.runtime.device.DevicePolicy.default_batch_size`: 16 on a CPU, 256 on a GPU).
+    ``summary["failed_images"]``: the images of this run that failed (each also one line on stderr).
     ``rows_per_part``: 0 = one part file per batch (an interruption loses only the batches in
     flight); N = gather finished batches into parts of at least N rows (fewer files for millions
     of images; a hard kill loses up to N rows, CTRL-C writes what is finished).
@@ -95,9 +97,9 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
     writer = PartWriter(out)
     writer.cleanup()
     done = writer.done_images()
-    todo = [row for row in rows if row["image"] not in done]
+    todo = [row for row in rows if redact_url(str(row["image"])) not in done]  # the parts hold redacted URLs
     extras = extra_columns(rows)
-    summary = {"total": len(rows), "skipped": len(rows) - len(todo), "processed": 0, "failed": 0,
+    summary = {"total": len(rows), "skipped": len(rows) - len(todo), "processed": 0, "failed": 0, "failed_images": [],
                "engine": engine, "workers": workers, "batch_size": batch_size}
     start = time.perf_counter()
     pending: list = []
@@ -107,7 +109,8 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
             writer.write(pa.concat_tables(pending))
             pending.clear()
 
-    bar = tqdm(total=len(todo), unit="img", desc="fr batch", disable=not progress or not todo, smoothing=0.1,
+    bar = tqdm(total=len(todo), unit="img", desc="fr batch", smoothing=0.1,
+               disable=not progress or not todo or not sys.stderr.isatty(),
                file=sys.stderr)
     try:
         if todo:
@@ -132,7 +135,11 @@ def run_batch(inputs: Sequence[str], out: str | Path, options: dict[str, Any], e
                 if sum(t.num_rows for t in pending) >= rows_per_part:
                     flush()
                 summary["processed"] += table.num_rows
-                summary["failed"] += table.num_rows - sum(table.column("ok").to_pylist())
+                for image, ok, reason in zip(*(table.column(k).to_pylist() for k in ("image", "ok", "reason"))):
+                    if not ok:  # one line per failed image, named (the row's image and reason are redacted)
+                        summary["failed"] += 1
+                        summary["failed_images"].append(image)
+                        bar.write(redact_text(f"fr batch: failed: {image}: {reason}"), file=sys.stderr)
                 bar.update(table.num_rows)
     except KeyboardInterrupt as interrupt:  # CTRL-C, SIGTERM: what the command's one-line report adds
         interrupt.add_note(f"{summary['skipped'] + summary['processed']} of {summary['total']} images are in "

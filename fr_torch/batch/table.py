@@ -13,18 +13,20 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from fr_torch.core.reliability.model import CUE_NAMES, TARGETS
-from fr_torch.core.reliability.sanity import LINE_BEND_CUES
+from fr_torch.core.reliability.model import TARGETS
+from fr_torch.redaction import redact_text, redact_url
+from fr_torch.runtime.schema import ALL_CUES, BOUND_TARGETS, RUNTIME_STAGES, complete
 
-# Keys of the dict-valued result fields (struct columns); unknown keys are dropped.
-RUNTIME_KEYS = ("detect", "grid", "refine", "cues", "total")
-#: The cues of a row: the reliability model's and the "lines bend" check's.
-ROW_CUES = CUE_NAMES + LINE_BEND_CUES
+# Keys of the dict-valued result fields (struct columns, :data:`fr_torch.runtime.schema.TEMPLATE`).
+RUNTIME_KEYS = RUNTIME_STAGES
+#: The cues of a row: every cue of the schema (:data:`fr_torch.runtime.schema.ALL_CUES`).
+ROW_CUES = ALL_CUES
 #: Number fields of the ``distortion`` struct (:func:`fr_torch.core.geometry.lens.distortion_record`).
 DISTORTION_NUMBERS = ("k", "radius_px", "bow_pct")
 #: Bounded targets of ``error_bound`` (:mod:`fr_torch.core.reliability.bounds`).
-BOUND_KEYS = ("focal_pct", "tilt_deg")
-#: Number fields of the ``horizon`` struct (:meth:`fr_torch.core.geometry.horizon.Horizon.to_json`), besides ``line``.
+BOUND_KEYS = BOUND_TARGETS
+#: Number fields of the ``horizon`` struct (:meth:`fr_torch.core.geometry.horizon.Horizon.to_json`), besides
+#: ``line`` and the ``unbounded`` flag.
 HORIZON_NUMBERS = ("left_y", "right_y", "bound_pct")
 
 
@@ -52,7 +54,8 @@ def result_schema():
         ("vanishing_points", mat3),
         ("ranked_vanishing_points", pa.list_(pa.struct([("point", pa.list_(f64)), ("support_px", f64),
                                                          ("family", pa.int8())]))),
-        ("horizon", pa.struct([("line", pa.list_(f64)), *[(k, f64) for k in HORIZON_NUMBERS]])),
+        ("horizon", pa.struct([("line", pa.list_(f64)), *[(k, f64) for k in HORIZON_NUMBERS],
+                               ("unbounded", pa.bool_())])),
         ("distortion", pa.struct([("model", pa.string()), *[(k, f64) for k in DISTORTION_NUMBERS],
                                   ("centre", pa.list_(f64))])),
         ("log_likelihood", f64), ("num_segments", pa.int32()),
@@ -60,7 +63,8 @@ def result_schema():
         ("cues", pa.struct([(k, f64) for k in ROW_CUES])),
         ("predicted_error", pa.struct([(k, f64) for k in TARGETS])),
         ("error_bound", pa.struct([("coverage", f64), *[(k, f64) for k in BOUND_KEYS],
-                                   ("limits", pa.struct([(k, f64) for k in BOUND_KEYS])), ("enforced", pa.bool_())])),
+                                   ("limits", pa.struct([(k, f64) for k in BOUND_KEYS])), ("enforced", pa.bool_()),
+                                   ("unbounded", pa.struct([(k, pa.bool_()) for k in BOUND_KEYS]))])),
         ("runtime_s", pa.struct([(k, f64) for k in RUNTIME_KEYS])),
     ])
 
@@ -113,13 +117,17 @@ def _clean_ranked(value):
 
 
 def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]], extras=()):
-    """JSON records (``CalibrationResult.to_json``) + their input rows -> Arrow table of the output
+    """JSON records (``CalibrationResult.to_json``, put in the schema by
+    :func:`fr_torch.runtime.schema.complete`) + their input rows -> Arrow table of the output
     schema plus the carried manifest columns ``extras`` (from :func:`extra_columns`)."""
 
     schema = result_schema()
     clean = []
     for record in records:
+        record = complete(dict(record))
         out = {name: record.get(name) for name in schema.names}
+        out["image"] = redact_url(str(out["image"]))  # never a URL's secret in a row (the resume compares these)
+        out["reason"] = redact_text(str(out["reason"] or ""))
         for key in FLOAT_FIELDS:
             out[key] = _clean_float(out[key])
         for key, shape in NESTED_SHAPES.items():
@@ -131,7 +139,8 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
         horizon = out["horizon"]
         if horizon:
             out["horizon"] = {"line": _clean_nested(horizon.get("line"), (3,)),
-                              **{k: _clean_float(horizon.get(k)) for k in HORIZON_NUMBERS}}
+                              **{k: _clean_float(horizon.get(k)) for k in HORIZON_NUMBERS},
+                              "unbounded": bool(horizon.get("unbounded"))}
         lens = out["distortion"]
         if lens:
             out["distortion"] = {"model": str(lens.get("model")), **{k: _clean_float(lens.get(k)) for k in DISTORTION_NUMBERS},
@@ -142,7 +151,8 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
             out["error_bound"] = {"coverage": _clean_float(bound.get("coverage")),
                                   **{k: _clean_float(bound.get(k)) for k in BOUND_KEYS},
                                   "limits": {k: _clean_float(limits.get(k)) for k in BOUND_KEYS},
-                                  "enforced": bool(bound.get("enforced"))}
+                                  "enforced": bool(bound.get("enforced")),
+                                  "unbounded": {k: bool((bound.get("unbounded") or {}).get(k)) for k in BOUND_KEYS}}
         clean.append(out)
     table = pa.Table.from_pylist(clean, schema=schema)
     for source, target, kind in extras:

@@ -16,8 +16,13 @@ from fr_torch.cli.options import (
     device_policy,
     estimator_kwargs,
 )
+from fr_torch.redaction import redact_text
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.runtime.workers import start_worker_server
+
+
+#: Failed images the summary line names (each one also had its own line as it failed).
+FAILED_NAMED = 5
 
 
 def estimator_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -92,7 +97,10 @@ def run(args: argparse.Namespace) -> int:
                         progress=not args.no_progress, threads_per_worker=args.threads_per_worker,
                         gpus_per_worker=args.gpus_per_worker, rows_per_part=args.rows_per_part,
                         shared_focal_by=args.shared_focal_by)
-    print(f"fr batch: {summary['total']} images, {summary['skipped']} already done, {summary['processed']} "
-          f"processed ({summary['failed']} failed) in {summary['seconds']:.1f} s "
-          f"({summary['images_per_s']:.1f} img/s) -> {args.out}", file=sys.stderr)
+    failed = summary["failed_images"]
+    named = ": " + ", ".join(failed[:FAILED_NAMED]) + (f", ... ({len(failed) - FAILED_NAMED} more)"
+                                                       if len(failed) > FAILED_NAMED else "") if failed else ""
+    print(redact_text(f"fr batch: {summary['total']} images, {summary['skipped']} already done, {summary['processed']} "
+                      f"processed ({summary['failed']} failed{named}) in {summary['seconds']:.1f} s "
+                      f"({summary['images_per_s']:.1f} img/s) -> {args.out}"), file=sys.stderr)
     return 0

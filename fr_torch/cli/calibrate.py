@@ -21,9 +21,11 @@ from fr_torch.core.exports import ColmapModel, colmap_cameras_txt
 from fr_torch.errors import FRInputError
 from fr_torch.images.overlay import write_overlay
 from fr_torch.output import dumps, json_safe, output_folder, write_text_atomic
+from fr_torch.redaction import redact_text
 from fr_torch.runtime.device_pipeline import device_path_gap
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.pipeline import calibrate_paths
+from fr_torch.runtime.schema import result_record
 from fr_torch.runtime.workers import start_worker_server
 
 
@@ -108,21 +110,21 @@ def run(args: argparse.Namespace) -> int:
             try:
                 write_overlay(path, result, args.overlay)
             except FRInputError as exc:
-                bar.write(f"fr: {exc}", file=sys.stderr)
-        record = json_safe(dict(result.to_json(include_segments=args.segments), **(extra or {})))
+                bar.write(redact_text(f"fr: {exc}"), file=sys.stderr)
+        record = json_safe(dict(result_record(result, include_segments=args.segments), **(extra or {})))
         everything.append(record)
         if args.format == "json":
             print(dumps(record), flush=True)
         elif args.format == "opencv":
             print(dumps(json_safe(opencv_record(path, result))), flush=True)
         elif result.ok:
-            colmap_lines.append((str(path), result.width, result.height, *result.colmap(colmap_model)))
+            colmap_lines.append((redact_text(str(path)), result.width, result.height, *result.colmap(colmap_model)))
         else:
-            colmap_lines.append((str(path), result.reason))
+            colmap_lines.append((redact_text(str(path)), redact_text(result.reason)))
         if not result.ok:
             failures += 1
             reason = result.reason  # image reading reasons already start with the path
-            bar.write(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}",
+            bar.write(redact_text(f"fr: {reason}" if reason.startswith(f"{path}:") else f"fr: {path}: {reason}"),
                       file=sys.stderr)
         bar.update(1)
 

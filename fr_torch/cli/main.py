@@ -20,6 +20,7 @@ import signal
 import sys
 
 from fr_torch.errors import FRInputError
+from fr_torch.redaction import redact_text
 from fr_torch.registry import entry_points, load_object
 from fr_torch.runtime.workers import interrupt_exit_status, interrupt_on_signals
 
@@ -51,8 +52,9 @@ def build_parser(command: str | None = None, commands: dict[str, tuple[str, str]
     parser = argparse.ArgumentParser(prog="fr", description="fR: focal length and camera rotation from one image "
                                      "(Qian & Elder, ECCV 2022).")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    parser.command_parsers = {}  # name -> its parser: a command's usage errors show its own usage
     for name, (module, help_text) in (commands or SUBCOMMANDS).items():
-        sp = sub.add_parser(name, help=help_text)
+        sp = parser.command_parsers[name] = sub.add_parser(name, help=help_text)
         if name == command:
             importlib.import_module(module).add_arguments(sp)
     return parser
@@ -71,7 +73,9 @@ def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str
     except ModuleNotFoundError as exc:
         print(f"fr: the '{command}' command is not available in this installation ({exc})", file=sys.stderr)
         return 2
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # argparse would show the top-level usage; the command's is the one that helps
+        parser.command_parsers.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}")
     if args.command is None:
         parser.print_help()
         return 2
@@ -83,10 +87,10 @@ def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str
     except (FRInputError, FileNotFoundError, ValueError) as exc:
         if os.environ.get("FR_DEBUG"):
             raise
-        print(f"fr {args.command}: error: {exc}", file=sys.stderr)
+        print(redact_text(f"fr {args.command}: error: {exc}"), file=sys.stderr)
         return 2
     except KeyboardInterrupt as interrupt:
-        print(stopped_line(args.command, interrupt), file=sys.stderr)
+        print(redact_text(stopped_line(args.command, interrupt)), file=sys.stderr)
         return interrupt_exit_status(interrupt)
     except BrokenPipeError:  # output piped into `head` & co.: stop quietly, as Unix tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -94,7 +98,7 @@ def main(argv: list[str] | None = None, extra_commands: dict[str, tuple[str, str
     except (OSError, RuntimeError, TypeError, KeyError, AttributeError, ZeroDivisionError, OverflowError) as exc:
         if os.environ.get("FR_DEBUG"):  # last guard: one line, never a traceback (FR_DEBUG=1 shows it)
             raise
-        print(f"fr {args.command}: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        print(redact_text(f"fr {args.command}: error: {type(exc).__name__}: {exc}"), file=sys.stderr)
         return 2
 
 

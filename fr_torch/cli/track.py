@@ -3,7 +3,13 @@
 
 SIGINT (CTRL-C), SIGTERM and SIGHUP (a closed terminal, a service manager's reload) stop it the
 same way: every processed frame is on disk, calibration.json holds the latest fusion, the figure
-is drawn, one line says so, and the exit status is 128 + the signal's number (130, 143, 129).
+is drawn, each camera's summary line is printed as at the end of a run, one line says so, and the
+exit status is 128 + the signal's number (130, 143, 129).
+
+Standard error is a log: one line per event, each naming its camera (``fr track: NAME: ...``),
+every URL's secrets hidden (:func:`fr_torch.redaction.redact_text`); the progress bar is drawn
+only on a terminal (and never with ``--no-progress``).  ``--metrics [HOST:]PORT`` serves live
+metrics for Prometheus (:mod:`fr_torch.video.metrics`).
 """
 from __future__ import annotations
 
@@ -22,11 +28,13 @@ from fr_torch.cli.options import (
 )
 from fr_torch.core.settings.checks import finite_number, positive_int, positive_number
 from fr_torch.errors import FRInputError
+from fr_torch.redaction import redact_text
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.pipeline import CalibrationPool
 from fr_torch.runtime.workers import interrupt_on_signals, start_worker_server, usable_cores
 from fr_torch.video.fleet import FleetCamera, camera_specs, track_fleet
 from fr_torch.video.fusion import OnlineCalibrator
+from fr_torch.video.metrics import MetricsAddress, MetricsServer
 from fr_torch.video.records import TrackOutput
 from fr_torch.video.sources import Reconnect, Source, open_frames
 from fr_torch.video.track import Tracking, track
@@ -56,7 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "together (docs/track.md)")
     parser.add_argument("--sources", type=Path, default=None, metavar="FILE",
                         help="a fleet's cameras, one per line: [NAME] SOURCE [--fov-range MIN,MAX] [--every N] "
-                             "[--focal PX] [--max-rate HZ] (# comments)")
+                             "[--focal PX] [--max-rate HZ] [--reconnect [SECONDS]] (# comments)")
     parser.add_argument("--out", type=Path, default=None,
                         help="output folder (default track_<source name>, for a fleet track_fleet with a folder "
                              "per camera); a second run with the same --out appends a new segment (a file "
@@ -78,13 +86,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "process; worth it for long videos on many cores). A fleet on a CPU: each turn's "
                              "frames are split over N worker processes (default: the usable cores, at most one "
                              "per camera; 0: searched in this process)")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (it is drawn only when standard error is a terminal)")
+    parser.add_argument("--metrics", default=None, metavar="[HOST:]PORT",
+                        help="serve live metrics for Prometheus at http://HOST:PORT/metrics (HOST default "
+                             "127.0.0.1: this machine only; 0.0.0.0 for every interface; PORT 0: any free port)")
     live = parser.add_argument_group("live sources")
     live.add_argument("--realtime", action=argparse.BooleanOptionalAction, default=None,
                       help="process the newest frame whenever the search is free and drop the frames that "
                            "arrived meanwhile (default for live sources); --no-realtime queues every frame")
     live.add_argument("--reconnect", nargs="?", const="inf", default=None, metavar="SECONDS",
                       help="reopen a stream or camera that drops, with back-off (0.5 s doubling to 30 s), "
-                           "giving up after SECONDS without a frame (alone: never give up)")
+                           "giving up after SECONDS without a frame (alone: never give up); one line when it "
+                           "drops, one when it is back. A file or folder is read to its end. In a fleet: "
+                           "every live camera's, unless its line in --sources gives its own")
     live.add_argument("--stream-timeout", type=float, default=5.0, metavar="SECONDS",
                       help="a stream's connection or next frame taking longer counts as a drop (default 5)")
     add_estimator_arguments(parser)  # the estimator options shared with fr calibrate and fr batch
@@ -104,6 +119,37 @@ def run(args: argparse.Namespace) -> int:
         return _run(args)
 
 
+def _progress(args: argparse.Namespace, desc: str) -> tqdm:
+    """The progress bar: drawn only on a terminal's stderr and without ``--no-progress``; its
+    ``write`` prints a line either way (above the bar when there is one)."""
+    return tqdm(desc=desc, unit="frame", file=sys.stderr, disable=args.no_progress or not sys.stderr.isatty())
+
+
+def _say(bar: tqdm):
+    """One line on stderr (above the progress bar), its URLs' secrets hidden."""
+    return lambda message: bar.write(redact_text(message), file=sys.stderr)
+
+
+def _metrics(args: argparse.Namespace, cameras, say) -> MetricsServer | None:
+    """The metrics server of ``--metrics`` (None without it), and one line saying where."""
+    if args.metrics is None:
+        return None
+    server = MetricsServer(args.metrics_address, lambda: cameras)
+    say(f"fr track: metrics at {server.url}")
+    return server
+
+
+def _summaries(outputs, to_stderr: bool) -> int:
+    """Print each output's summary line (stdout, or stderr when the records go to stdout); returns
+    how many cameras have a calibration."""
+    calibrated = 0
+    for output in outputs:
+        summary = json.loads(output.calibration_path.read_text())
+        calibrated += summary["calibration"] is not None
+        print(json.dumps(_summary_line(summary)), file=sys.stderr if to_stderr else sys.stdout, flush=True)
+    return calibrated
+
+
 def _run(args: argparse.Namespace) -> int:
     if args.every < 1 or (args.batch_size is not None and args.batch_size < 1):
         raise FRInputError("--every and --batch-size must be at least 1")
@@ -112,6 +158,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.max_rate is not None:
         positive_number(args.max_rate, "--max-rate")
     track_options(args)
+    args.metrics_address = None if args.metrics is None else MetricsAddress.parse(args.metrics)
     if not args.source and args.sources is None:
         raise FRInputError("give a SOURCE (or several), or --sources FILE")
     if len(args.source) > 1 or args.sources is not None:
@@ -131,30 +178,40 @@ def _run(args: argparse.Namespace) -> int:
     estimator, model = _estimator(args)
     mode = estimator.mode
     tracker = _tracker(args)
-    output = TrackOutput(args.out or Path(f"track_{source.label}"), source, _settings(args, source, reconnect),
-                         str(mode), json_target=args.json, reliability_model=model)
+    output = TrackOutput(args.out or Path(f"track_{source.label}"), source,
+                         _settings(args, source, reconnect, estimator), str(mode), json_target=args.json,
+                         reliability_model=model)
     _restore(tracker, output)
+    bar = _progress(args, "fr track")
+    output.log = say = _say(bar)
     if output.resumed:
         first = f"from frame {output.start_frame}" if not source.live else "frames counted from 0 again"
-        print(f"fr track: {output.folder} holds earlier records: segment {output.segment}, {first}", file=sys.stderr)
-    bar = tqdm(desc="fr track", unit="frame", file=sys.stderr)
-    output.log = say = lambda message: bar.write(message, file=sys.stderr)  # lines above the progress bar
+        say(f"fr track: {output.folder} holds earlier records: segment {output.segment}, {first}")
     stream = open_frames(source, args.every, output.start_frame, args.realtime, reconnect, args.stream_timeout, say)
+    tracking = Tracking(stream, tracker, output, say, f"fr track: {source}")  # its lines name the source
     try:
-        ended = track(stream, estimator, tracker, output, args.batch_size or 8, args.workers, args.max_frames, bar,
-                      f"fr track {source.label} ({mode})")
+        metrics = _metrics(args, [(source.label, tracking)], say)
+    except FRInputError:
+        output.close()
+        raise
+    try:
+        track(stream, estimator, tracker, output, args.batch_size or 8, args.workers, args.max_frames, bar,
+              f"fr track {source.label} ({mode})", tracking=tracking)
     except KeyboardInterrupt as stop:
+        bar.close()
+        _summaries([output], args.json == "-")
         stop.add_note(f"{output.processed} frames of this run are in {output.records_path}; the same command "
                       "again appends")
         raise
     finally:
         bar.close()
+        if metrics is not None:
+            metrics.close()
     if output.processed == 0 and not (output.resumed and not source.live):
         raise FRInputError(f"{source}: no frame could be read (all skipped)")
-    summary = json.loads(output.calibration_path.read_text())
-    print(json.dumps(_summary_line(summary)), file=sys.stderr if args.json == "-" else sys.stdout)
+    calibrated = _summaries([output], args.json == "-")
     print(f"fr track: wrote {output.records_path}, {output.calibration_path}, {output.figure_path}", file=sys.stderr)
-    return 0 if summary["calibration"] is not None else 1
+    return 0 if calibrated else 1
 
 
 SUMMARY_KEYS = ("run", "segment", "frames_processed", "frames_accepted", "frames_dropped", "dropped_share",
@@ -186,11 +243,19 @@ def _tracker(args: argparse.Namespace) -> OnlineCalibrator:
     return OnlineCalibrator(memory=args.memory, change_k=args.change_k, patience=args.patience)
 
 
-def _settings(args: argparse.Namespace, source: Source, reconnect: Reconnect, **more) -> dict:
-    """calibration.json's ``settings``."""
+def _settings(args: argparse.Namespace, source: Source, reconnect: Reconnect, estimator: FREstimator,
+              **more) -> dict:
+    """calibration.json's ``settings``: the run's (every, fusion, real time, reconnection) and the
+    search's as ``fr calibrate`` would run it (``fit``, ranges in degrees, lens model, known focal
+    length)."""
     realtime = source.live and args.realtime is not False
+    search = estimator.search
     return {"every": args.every, "memory": args.memory, "change_k": args.change_k, "patience": args.patience,
-            "realtime": realtime, "reconnect_give_up_s": reconnect.give_up_s if reconnect.enabled else None, **more}
+            "realtime": realtime, "reconnect_give_up_s": reconnect.give_up_s if reconnect.enabled and source.live
+            else None, "fit": search.fit, "fov_range_deg": [search.fov_range.min_deg, search.fov_range.max_deg],
+            "pitch_range_deg": list(search.pitch_range_deg), "roll_range_deg": list(search.roll_range_deg),
+            "distortion": search.distortion.mode.value, "focal_px": None, "fov_range": None, "max_rate": None,
+            **more}
 
 
 def _restore(tracker: OnlineCalibrator, output: TrackOutput) -> None:
@@ -212,11 +277,7 @@ def _run_fleet(args: argparse.Namespace) -> int:
     """``fr track`` over several sources (:mod:`fr_torch.video.fleet`)."""
     if args.every != 1:
         raise FRInputError("--every: give it per camera in the sources file (SOURCE --every N)")
-    specs = camera_specs(args.source, args.sources, args.max_rate)
-    reconnect = Reconnect.parse(args.reconnect)
-    for spec in specs:
-        if reconnect.enabled and not spec.source.live:
-            raise FRInputError(f"--reconnect: {spec.name} ({spec.source}) is a file, read to its end")
+    specs = camera_specs(args.source, args.sources, args.max_rate, Reconnect.parse(args.reconnect))
     policy = device_policy(args)
     if args.workers and not policy.whole_image_workers:
         raise FRInputError(f"--workers: a fleet on {args.device} searches each turn's frames on the device")
@@ -235,14 +296,15 @@ def _run_fleet(args: argparse.Namespace) -> int:
     searches = {key: (CalibrationPool(estimator, workers) if workers else estimator, model)
                 for key, (estimator, model) in estimators.items()}
     folder = args.out or Path("track_fleet")
-    bar = tqdm(desc=f"fr track ({len(specs)} cameras)", unit="frame", file=sys.stderr)
-    say = lambda message: bar.write(message, file=sys.stderr)  # noqa: E731 (lines above the progress bar)
+    bar = _progress(args, f"fr track ({len(specs)} cameras)")
+    say = _say(bar)
     cameras = []
+    metrics = None
     try:
         for spec in specs:
             estimator, model = searches[spec.fov_range]
-            settings = _settings(args, spec.source, reconnect, every=spec.every, fov_range=spec.fov_range,
-                                 focal_px=spec.focal_px, max_rate=spec.max_rate)
+            settings = _settings(args, spec.source, spec.reconnect, estimators[spec.fov_range][0], every=spec.every,
+                                 fov_range=spec.fov_range, focal_px=spec.focal_px, max_rate=spec.max_rate)
             output = TrackOutput(folder / spec.name, spec.source, settings, str(estimator.mode), json_target=args.json,
                                  reliability_model=model, log=say, camera=spec.name)
             tracker = _tracker(args)
@@ -250,34 +312,38 @@ def _run_fleet(args: argparse.Namespace) -> int:
             if output.resumed:
                 first = f"from frame {output.start_frame}" if not spec.source.live else "frames counted from 0 again"
                 say(f"fr track: {spec.name}: {output.folder} holds earlier records: segment {output.segment}, {first}")
-            stream = open_frames(spec.source, spec.every, output.start_frame, args.realtime, reconnect,
-                                 args.stream_timeout, say)
+            stream = open_frames(spec.source, spec.every, output.start_frame, args.realtime, spec.reconnect,
+                                 args.stream_timeout, say, name=spec.name)
             cameras.append(FleetCamera(spec, Tracking(stream, tracker, output, say, f"fr track: {spec.name}"),
                                        estimator))
+        metrics = _metrics(args, [(camera.spec.name, camera.tracking) for camera in cameras], say)
     except FRInputError as exc:  # named by the camera it is about; nothing was read yet
         for camera in cameras:
             camera.tracking.output.close()
         bar.close()
         _close(searches)
-        raise FRInputError(f"{specs[len(cameras)].name}: {exc}") from None
+        if len(cameras) < len(specs):
+            raise FRInputError(f"{specs[len(cameras)].name}: {exc}") from None
+        raise
 
     def plot(camera: FleetCamera) -> None:
         camera.tracking.output.plot(f"fr track {camera.spec.name} ({camera.estimator.mode})")
 
+    outputs = [camera.tracking.output for camera in cameras]
     try:
         track_fleet(cameras, args.batch_size or len(cameras), args.max_frames, bar, say, plot=plot)
     except KeyboardInterrupt as stop:
-        processed = sum(c.tracking.output.processed for c in cameras)
+        bar.close()
+        _summaries(outputs, args.json == "-")
+        processed = sum(output.processed for output in outputs)
         stop.add_note(f"{processed} frames of this run are in {folder}/*/frames.csv ({len(cameras)} cameras); "
                       "the same command again appends")
         raise
     finally:
         bar.close()
         _close(searches)
-    calibrated = 0
-    for camera in cameras:
-        summary = json.loads(camera.tracking.output.calibration_path.read_text())
-        calibrated += summary["calibration"] is not None
-        print(json.dumps(_summary_line(summary)), file=sys.stderr if args.json == "-" else sys.stdout)
+        if metrics is not None:
+            metrics.close()
+    calibrated = _summaries(outputs, args.json == "-")
     print(f"fr track: wrote {folder}/<camera>/: {', '.join(c.spec.name for c in cameras)}", file=sys.stderr)
     return 0 if calibrated == len(cameras) else 1

@@ -23,9 +23,9 @@ of cameras: one waiting frame and one fusion state each; the records are on disk
 **Sources file** (``--sources FILE``), one camera per line; ``#`` starts a comment, blank lines
 are skipped, words are split as a shell would (quote a path with spaces)::
 
-    # [NAME] SOURCE [--fov-range MIN,MAX] [--every N] [--focal PX] [--max-rate HZ]
-    gate    rtsp://user:pass@10.0.0.5/stream1   --fov-range 30,60
-    lobby   http://10.0.0.6/mjpg/video.mjpg     --focal 1210 --max-rate 2
+    # [NAME] SOURCE [--fov-range MIN,MAX] [--every N] [--focal PX] [--max-rate HZ] [--reconnect [SECONDS]]
+    gate    rtsp://user:pass@10.0.0.5/stream1   --fov-range 30,60 --reconnect
+    lobby   http://10.0.0.6/mjpg/video.mjpg     --focal 1210 --max-rate 2 --reconnect 600
     archive /data/site3.mp4                     --every 25
     rtsp://10.0.0.7/stream1
 
@@ -34,7 +34,10 @@ column; without it the source's short name is used (``Source.label``), followed 
 position in the fleet, from 1) when two cameras would share it.  ``--every`` applies to files and
 folders, as for one source; ``--fov-range`` is the search range of ``fr calibrate``; ``--focal``
 a known focal length (pixels, then only the rotation is searched); ``--max-rate`` caps the
-camera's frames searched per second (default: the command's ``--max-rate``, or none).
+camera's frames searched per second (default: the command's ``--max-rate``, or none);
+``--reconnect [SECONDS]`` reopens the camera when it drops, as the command's ``--reconnect`` (which
+is the default of every live camera).  A file or folder is read to its end whatever
+``--reconnect`` says: its end is its camera's end.
 """
 from __future__ import annotations
 
@@ -49,13 +52,14 @@ from typing import Any, Callable, Iterator, Sequence
 
 from fr_torch.core.settings.config import SearchConfig
 from fr_torch.errors import FRInputError
-from fr_torch.video.sources import Frame, Source
+from fr_torch.video.sources import Frame, Reconnect, Source
 from fr_torch.video.track import Tracking, plot_requests, stop_reason
 
 #: A camera's name: its output folder.
 CAMERA_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
 #: The options of a sources file's line, and the CameraSpec field each sets.
-CAMERA_OPTIONS = {"--fov-range": "fov_range", "--every": "every", "--focal": "focal_px", "--max-rate": "max_rate"}
+CAMERA_OPTIONS = {"--fov-range": "fov_range", "--every": "every", "--focal": "focal_px", "--max-rate": "max_rate",
+                  "--reconnect": "reconnect"}
 
 
 @dataclass(frozen=True)
@@ -63,7 +67,8 @@ class CameraSpec:
     """One camera of a fleet as given: ``name`` (its output folder and ``camera`` column),
     ``source``, ``fov_range`` (``MIN,MAX`` degrees or ``paper``; None: the command's),
     ``every`` (files: every N-th frame), ``focal_px`` (known focal length, pixels, or None),
-    ``max_rate`` (frames searched per second at most, or None)."""
+    ``max_rate`` (frames searched per second at most, or None), ``reconnect`` (what a live
+    camera does when it drops; a file's is never used)."""
 
     name: str
     source: Source
@@ -71,6 +76,7 @@ class CameraSpec:
     every: int = 1
     focal_px: float | None = None
     max_rate: float | None = None
+    reconnect: Reconnect = Reconnect()
 
     @property
     def min_interval_s(self) -> float:
@@ -107,7 +113,13 @@ def camera_line(text: str, where: str) -> tuple[str | None, Source, dict[str, An
             if option not in CAMERA_OPTIONS:
                 raise FRInputError(f"{where}: unknown option {option!r} (a camera takes "
                                    f"{', '.join(CAMERA_OPTIONS)})")
-            if not equals:
+            if not equals and option == "--reconnect":  # its SECONDS may be left out: for ever
+                if i + 1 < len(words) and _seconds(words[i + 1]):
+                    i += 1
+                    value = words[i]
+                else:
+                    value = "inf"
+            elif not equals:
                 if i + 1 >= len(words):
                     raise FRInputError(f"{where}: {option} needs a value")
                 i += 1
@@ -125,7 +137,20 @@ def camera_line(text: str, where: str) -> tuple[str | None, Source, dict[str, An
     return name, _source(positional[-1], where), options
 
 
+def _seconds(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
 def _option_value(option: str, value: str, where: str):
+    if option == "--reconnect":
+        try:
+            return Reconnect.parse(value)
+        except FRInputError as exc:
+            raise FRInputError(f"{where}: {exc}") from None
     if option == "--fov-range":
         try:
             SearchConfig.from_config().with_fov_range(value)
@@ -157,9 +182,10 @@ def read_sources_file(path: str | Path) -> list[tuple[str | None, Source, dict[s
 
 
 def camera_specs(sources: Sequence[str], sources_file: str | Path | None = None,
-                 max_rate: float | None = None) -> list[CameraSpec]:
+                 max_rate: float | None = None, reconnect: Reconnect = Reconnect()) -> list[CameraSpec]:
     """The fleet of the command line: each SOURCE, then each line of ``sources_file``, as a
-    :class:`CameraSpec` with a unique name (module docstring); ``max_rate``: the default rate cap.
+    :class:`CameraSpec` with a unique name (module docstring); ``max_rate``, ``reconnect``: the
+    command's, each camera's unless its line gives its own.
     FRInputError (one line) for a bad source, line or name."""
     given = [(None, _source(text, "SOURCE"), {}) for text in sources]
     if sources_file is not None:
@@ -173,7 +199,7 @@ def camera_specs(sources: Sequence[str], sources_file: str | Path | None = None,
     for position, ((name, source, options), label) in enumerate(zip(given, labels), 1):
         if name is None and (labels.count(label) > 1 or label in explicit):
             label = f"{label}_{position}"
-        specs.append(CameraSpec(label, source, **{"max_rate": max_rate, **options}))
+        specs.append(CameraSpec(label, source, **{"max_rate": max_rate, "reconnect": reconnect, **options}))
     names = [spec.name for spec in specs]
     if len(set(names)) != len(names):
         clash = next(name for name in names if names.count(name) > 1)

@@ -39,8 +39,12 @@ from typing import Any, Callable, TextIO
 import numpy as np
 import pandas as pd
 
+from fr_torch.core.geometry.horizon import Horizon
+from fr_torch.core.reliability.bounds import horizon_bound_pct
 from fr_torch.errors import FRInputError
 from fr_torch.output import dumps, output_folder, write_bytes_atomic, write_text_atomic
+from fr_torch.redaction import redact_text
+from fr_torch.runtime.schema import FLAT_COLUMNS, flat_record, horizon_unbounded, result_record
 from fr_torch.video.fusion import FusedState
 from fr_torch.video.sources import Frame, FrameStream, Source, log_line
 
@@ -53,20 +57,24 @@ KEPT_ENTRIES = 100
 #: Above this many records the figure shows dots without error bars (the bars would hide the track).
 ERROR_BAR_RECORDS = 200
 
-#: Columns of frames.csv and keys of a JSON-lines record, in order.  ``segment``: the run that
-#: wrote it; ``frame``: the frame's index (sources.Frame); ``time``: Unix time when the record was
-#: written (s); ``age_s``: seconds from reading the frame off the source to writing its record;
-#: ``dropped``: live frames dropped since the previous record; ``dropped_share``: share of this
-#: segment's frames dropped so far; ``reconnects``: reconnections of the source in this segment;
-#: ``runtime_s``: the frame's detection + search time; the others as CalibrationResult /
-#: FusedState (``pred_*``: predicted errors, ``fused_*``: the fused state after the frame).
-RECORD_KEYS = ("segment", "frame", "name", "time", "age_s", "dropped", "dropped_share", "reconnects",
-               "width", "height", "ok", "reliable", "status", "epoch", "restarted",
-               "focal_px", "hfov_deg", "roll_deg", "tilt_deg", "pan_deg",
-               "pred_roll_err_deg", "pred_tilt_err_deg", "pred_focal_err_pct",
-               "fused_focal_px", "fused_roll_deg", "fused_tilt_deg", "fused_pan_deg",
-               "fused_sigma_roll_deg", "fused_sigma_tilt_deg", "fused_sigma_focal_pct",
-               "n_fused", "disagreement", "runtime_s", "reason")
+#: The track's own columns of a record, first.  ``segment``: the run that wrote it; ``frame``: the
+#: frame's index (sources.Frame); ``time``: Unix time when the record was written (s); ``age_s``:
+#: seconds from reading the frame off the source to writing its record; ``dropped``: live frames
+#: dropped since the previous record; ``dropped_share``: share of this segment's frames dropped so
+#: far; ``reconnects``: reconnections of the source in this segment; ``status``, ``epoch``,
+#: ``restarted``, ``n_fused``, ``disagreement`` as FusedState; ``fused_*``: the fused calibration
+#: after the frame (:func:`fused_calibration`; ``fused_sigma_*`` its standard deviations).
+TRACK_KEYS = ("segment", "frame", "time", "age_s", "dropped", "dropped_share", "reconnects", "status", "epoch",
+              "restarted", "fused_focal_px", "fused_roll_deg", "fused_tilt_deg", "fused_pan_deg",
+              "fused_sigma_roll_deg", "fused_sigma_tilt_deg", "fused_sigma_focal_pct",
+              "fused_horizon_left_y", "fused_horizon_right_y", "fused_horizon_bound_pct", "fused_horizon_unbounded",
+              "n_fused", "disagreement")
+#: Columns of frames.csv and keys of a JSON-lines record, in order: :data:`TRACK_KEYS`, then the
+#: frame's estimate as every output writes it (:data:`fr_torch.runtime.schema.FLAT_COLUMNS`:
+#: ``image`` is the frame's name).
+RECORD_KEYS = TRACK_KEYS + FLAT_COLUMNS
+#: Two-sided 90 % quantile of a standard normal: the fused horizon's bound from the fused sigmas.
+Z90 = 1.6448536269514722
 
 #: The first column of a fleet camera's records (its name).
 CAMERA_KEY = "camera"
@@ -76,24 +84,45 @@ CHANGES_FUSION = ("fused", "started", "restarted", "held")
 ACCEPTED = ("fused", "started", "restarted")
 
 
-def frame_record(frame: Frame, result, state: FusedState, segment: int, stream: FrameStream) -> dict[str, Any]:
-    """The record of one processed frame, timed now (``time``, ``age_s``)."""
-    pred = result.predicted_error or {}
+def fused_calibration(state: FusedState) -> dict[str, Any] | None:
+    """calibration.json's ``calibration``: the fused state (:meth:`FusedState.to_json`: frame,
+    status, epoch, n_fused, focal_px, rotation, roll / tilt / pitch / pan in degrees, sigma,
+    restarted, disagreement) with its ``hfov_deg``, ``principal_point`` ``[x, y]`` (pixels) and
+    ``horizon`` ``{line, left_y, right_y, bound_pct, unbounded}`` as a frame's record has them, the
+    bound from the fused standard deviations (90 %: :data:`Z90` sigma of the tilt and focal
+    length; :func:`fr_torch.core.reliability.bounds.horizon_bound_pct`), null and ``unbounded``
+    when it says nothing (:func:`fr_torch.runtime.schema.horizon_unbounded`).  None before the
+    first accepted frame."""
+    if not state.valid:
+        return None
     sigma = state.sigma or {}
-    return {"segment": segment, "frame": frame.index, "name": frame.name, "time": round(time.time(), 3),
+    bounds = None
+    if sigma.get("tilt_deg") is not None and sigma.get("focal_pct") is not None:
+        bounds = {"tilt_deg": Z90 * sigma["tilt_deg"], "focal_pct": Z90 * sigma["focal_pct"]}
+    camera = state.camera
+    bound = horizon_bound_pct(bounds, state.focal_px, state.tilt_deg, camera.height) if bounds else None
+    horizon = Horizon.from_camera(camera, 0.0, bound)
+    if horizon is not None:
+        open_ = horizon_unbounded(bounds, state.tilt_deg, bound)
+        horizon = dict(horizon.to_json(), bound_pct=None if open_ else bound, unbounded=open_)
+    return dict(state.to_json(), hfov_deg=state.hfov_deg, principal_point=list(camera.principal_point),
+                horizon=horizon)
+
+
+def frame_record(frame: Frame, result, state: FusedState, segment: int, stream: FrameStream) -> dict[str, Any]:
+    """The record of one processed frame (:data:`RECORD_KEYS`), timed now (``time``, ``age_s``)."""
+    sigma = state.sigma or {}
+    horizon = (fused_calibration(state) or {}).get("horizon") or {}
+    return {"segment": segment, "frame": frame.index, "time": round(time.time(), 3),
             "age_s": round(time.monotonic() - frame.read_at, 4), "dropped": frame.dropped,
             "dropped_share": round(stream.dropped_share, 4), "reconnects": stream.reconnects,
-            "width": result.width, "height": result.height, "ok": result.ok,
-            "reliable": bool(result.ok and result.reliable), "status": state.status, "epoch": state.epoch,
-            "restarted": state.restarted, "focal_px": result.focal_px, "hfov_deg": result.hfov_deg,
-            "roll_deg": result.roll_deg, "tilt_deg": result.tilt_deg, "pan_deg": result.pan_deg,
-            "pred_roll_err_deg": pred.get("roll_deg"), "pred_tilt_err_deg": pred.get("tilt_deg"),
-            "pred_focal_err_pct": pred.get("focal_pct"),
+            "status": state.status, "epoch": state.epoch, "restarted": state.restarted,
             "fused_focal_px": state.focal_px, "fused_roll_deg": state.roll_deg, "fused_tilt_deg": state.tilt_deg,
             "fused_pan_deg": state.pan_deg, "fused_sigma_roll_deg": sigma.get("roll_deg"),
             "fused_sigma_tilt_deg": sigma.get("tilt_deg"), "fused_sigma_focal_pct": sigma.get("focal_pct"),
+            **{f"fused_horizon_{key}": horizon.get(key) for key in ("left_y", "right_y", "bound_pct", "unbounded")},
             "n_fused": state.n_fused, "disagreement": state.disagreement,
-            "runtime_s": (result.runtime_s or {}).get("total"), "reason": result.reason}
+            **flat_record(result_record(result))}
 
 
 def _csv_value(value: Any) -> Any:
@@ -103,7 +132,7 @@ def _csv_value(value: Any) -> Any:
     if isinstance(value, (np.floating, np.integer, np.bool_)):
         return _csv_value(value.item())
     if isinstance(value, str):
-        return " ".join(value.splitlines())
+        return redact_text(" ".join(value.splitlines()))
     return value
 
 
@@ -171,6 +200,8 @@ class TrackOutput:
         self.restarts = list((previous or {}).get("restarts_at_frames") or [])
         self.calibration: dict | None = (previous or {}).get("calibration")
         self.processed = 0  # this segment's records
+        self.last_reliable = False  # whether the latest record's frame was reliable
+        self.last_accepted_at: float | None = None  # Unix time of the latest accepted frame's record
         self.started = _now()
         self._records = self._open_records()
         self._json: TextIO | None = None
@@ -255,6 +286,9 @@ class TrackOutput:
         self.processed += 1
         self.totals.processed += 1
         self.totals.accepted += record["status"] in ACCEPTED
+        self.last_reliable = bool(record["reliable"])
+        if record["status"] in ACCEPTED:
+            self.last_accepted_at = record["time"]
         self.totals.rejected += record["status"] == "rejected"
         if record["restarted"]:
             self.restarts = (self.restarts + [record["frame"]])[-KEPT_ENTRIES:]
@@ -265,7 +299,7 @@ class TrackOutput:
         one written), ``checkpoint`` the fusion's, ``stream`` this segment's counters, ``run``
         ``running`` or how the run ended."""
         if state is not None and state.valid:
-            self.calibration = dict(state.to_json(), hfov_deg=state.hfov_deg)
+            self.calibration = fused_calibration(state)
         segment = {"segment": self.segment, "started": self.started, "first_frame": self.start_frame,
                    "frames_processed": self.processed, "frames_arrived": stream.arrived,
                    "frames_dropped": stream.dropped, "frames_skipped": stream.skipped,
@@ -337,9 +371,9 @@ def plot_track(records: pd.DataFrame, target, title: str = "", live: bool = Fals
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(4, 1, figsize=(9, 9), sharex=True)
-    panels = [("roll_deg", "pred_roll_err_deg", "fused_roll_deg", "roll (deg)"),
-              ("tilt_deg", "pred_tilt_err_deg", "fused_tilt_deg", "tilt (deg)"),
-              ("focal_px", "pred_focal_err_pct", "fused_focal_px", "focal (px)"),
+    panels = [("roll_deg", "predicted_error_roll_deg", "fused_roll_deg", "roll (deg)"),
+              ("tilt_deg", "predicted_error_tilt_deg", "fused_tilt_deg", "tilt (deg)"),
+              ("focal_px", "predicted_error_focal_pct", "fused_focal_px", "focal (px)"),
               ("pan_deg", None, "fused_pan_deg", "pan (deg, folded)")]
 
     def column(key) -> np.ndarray:

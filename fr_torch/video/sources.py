@@ -30,9 +30,10 @@ in this run, so the gaps between processed indices are the drops.
 
 A live source that ends or fails (the connection drops, a read times out after
 ``read_timeout_s``, the camera is unplugged) is opened again with back-off when
-:class:`Reconnect` allows it, and each drop and reconnection is one line on stderr; standard input
-is never reopened (its end is the end).  A frame that cannot be decoded is skipped with one line.
-Each line names the source once, a URL's password hidden (:meth:`Source.__str__`).
+:class:`Reconnect` allows it: an outage is one line when it starts and one when the source is back
+(or given up), however many tries it took; standard input is never reopened (its end is the end).
+A frame that cannot be decoded is skipped with one line.  Each line starts with ``fr track: NAME:``
+(``name``: a fleet camera's name; else the source, its URL's secrets hidden, :meth:`Source.__str__`).
 
 OpenCV's and FFmpeg's own messages (``[tcp @ 0x...] Connection refused``, ``[ WARN:0@...]
 VIDEOIO(FFMPEG) ...``, a decoder's complaints) are kept off stderr (:func:`quiet_video_logs`):
@@ -54,7 +55,7 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator
-from urllib.parse import urlsplit, urlunsplit
+from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
@@ -62,6 +63,7 @@ import numpy as np
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import decode_image_bytes, load_image
 from fr_torch.images.stream import split_images
+from fr_torch.redaction import redact_text, redact_url
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 #: Frames a live source may queue without real time (then the reader waits for the search).
@@ -70,8 +72,8 @@ _URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
 
 def log_line(message: str) -> None:
-    """One line on stderr, flushed (the default ``log`` of the frame sources)."""
-    print(message, file=sys.stderr, flush=True)
+    """One line on stderr, flushed, URLs redacted (the default ``log`` of the frame sources)."""
+    print(redact_text(message), file=sys.stderr, flush=True)
 
 
 def quiet_video_logs() -> None:
@@ -133,15 +135,11 @@ class Source:
         return self.kind in self.LIVE_KINDS
 
     def __str__(self) -> str:
-        """The source for messages and outputs, a URL's password hidden."""
+        """The source as every message, record, file and metric shows it: a URL's password and
+        credential parameters hidden (:func:`fr_torch.redaction.redact_url`)."""
         if self.kind != "stream":
             return "stdin" if self.kind == "stdin" else self.target
-        parts = urlsplit(self.target)
-        if parts.password is None:
-            return self.target
-        host = parts.hostname or ""
-        netloc = f"{parts.username}:***@{host}" + (f":{parts.port}" if parts.port else "")
-        return urlunsplit(parts._replace(netloc=netloc))
+        return redact_url(self.target)
 
     @property
     def label(self) -> str:
@@ -151,7 +149,7 @@ class Source:
         if self.kind == "camera":
             return f"camera{self.target}" if self.target.isdigit() else Path(self.target).name
         if self.kind == "stream":
-            parts = urlsplit(self.target)
+            parts = urlsplit(str(self))  # the redacted URL: a malformed user part cannot pass for the host
             name = Path(parts.path).stem or parts.hostname or parts.scheme
             return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
         path = Path(self.target)
@@ -215,13 +213,17 @@ class FrameStream:
 
     Counters (this run): ``arrived`` frames read from the source, ``dropped`` of them never
     processed because a newer one replaced them (real time), ``skipped`` that could not be read or
-    decoded, ``reconnects`` successful reconnections.  ``end_reason`` says why the iteration
-    ended.  :meth:`close` stops reading (a live source's thread)."""
+    decoded, ``reconnects`` successful reconnections, ``outage`` True while a live source is away
+    (between a drop and its reconnection).  ``end_reason`` says why the iteration ended.
+    :meth:`close` stops reading (a live source's thread).  ``log`` takes each line, which starts
+    with ``fr track: NAME:`` (``name``: a fleet camera's name; None: the source)."""
 
     live = False
+    outage = False
 
-    def __init__(self, source: Source, log: Callable[[str], None] = log_line):
+    def __init__(self, source: Source, log: Callable[[str], None] = log_line, name: str | None = None):
         self.source, self.log = source, log
+        self.name = name or str(source)
         self.arrived = self.dropped = self.skipped = self.reconnects = 0
         self.end_reason = ""
 
@@ -252,8 +254,9 @@ class FileFrames(FrameStream):
     """Every ``every``-th frame of a video file or folder of images from frame ``start`` on,
     read on demand; an unreadable image of a folder is skipped with one line."""
 
-    def __init__(self, source: Source, every: int = 1, start: int = 0, log: Callable[[str], None] = log_line):
-        super().__init__(source, log)
+    def __init__(self, source: Source, every: int = 1, start: int = 0, log: Callable[[str], None] = log_line,
+                 name: str | None = None):
+        super().__init__(source, log, name)
         self.every, self.start = max(1, int(every)), max(0, int(start))
 
     def _wanted(self, index: int) -> bool:
@@ -278,7 +281,7 @@ class FileFrames(FrameStream):
                 image = load_image(str(file))
             except FRInputError as exc:
                 self.skipped += 1
-                self.log(f"fr track: skipping {file.name}: {exc}")
+                self.log(f"fr track: {self.name}: skipping {file.name}: {exc}")
                 continue
             self.arrived += 1
             yield Frame(index, file.name, image, time.monotonic())
@@ -297,7 +300,7 @@ class FileFrames(FrameStream):
                         yield Frame(index, f"{path.stem}_{index:06d}", image, time.monotonic())
                     else:
                         self.skipped += 1
-                        self.log(f"fr track: skipping frame {index} of {path.name}: it cannot be decoded")
+                        self.log(f"fr track: {self.name}: skipping frame {index} of {path.name}: it cannot be decoded")
                 index += 1
         finally:
             capture.release()
@@ -317,8 +320,8 @@ class LiveFrames(FrameStream):
 
     def __init__(self, source: Source, realtime: bool = True, reconnect: Reconnect = Reconnect(),
                  queue_length: int = QUEUE_LENGTH, open_timeout_s: float = 10.0, read_timeout_s: float = 5.0,
-                 log: Callable[[str], None] = log_line, stdin_fd: int | None = None):
-        super().__init__(source, log)
+                 log: Callable[[str], None] = log_line, stdin_fd: int | None = None, name: str | None = None):
+        super().__init__(source, log, name)
         self.realtime, self.reconnect = realtime, reconnect
         self.queue_length = 1 if realtime else max(1, int(queue_length))
         self.open_timeout_s, self.read_timeout_s = open_timeout_s, read_timeout_s
@@ -362,10 +365,11 @@ class LiveFrames(FrameStream):
     def _skipped_bytes(self, count: int) -> None:
         with self._condition:
             self.skipped += 1
-        self.log(f"fr track: {self.source}: skipping {count} bytes that are no complete image")
+        self.log(f"fr track: {self.name}: skipping {count} bytes that are no complete image")
 
     def _read(self) -> None:
-        waits: Iterator[float] | None = None
+        waits: Iterator[float] | None = None  # the back-off of the outage in progress (None: none)
+        tries = 0
         last_frame_at = time.monotonic()
         end = "the stream ended"
         try:
@@ -375,17 +379,18 @@ class LiveFrames(FrameStream):
                     for image in connection:
                         if self._stop.is_set():
                             return
-                        if waits is not None:
+                        if waits is not None:  # the outage's second line: the source is back
                             self.reconnects += 1
-                            self.log(f"fr track: {self.source}: reconnected after "
-                                     f"{time.monotonic() - last_frame_at:.1f} s")
-                            waits = None
+                            self.outage = False
+                            self.log(f"fr track: {self.name}: reconnected after {time.monotonic() - last_frame_at:.1f}"
+                                     f" s ({tries} {'try' if tries == 1 else 'tries'})")
+                            waits, tries = None, 0
                         self._put(image)
                         last_frame_at = time.monotonic()
                 except FRInputError as exc:
-                    problem = str(exc)
+                    problem = redact_text(str(exc))
                 except Exception as exc:  # a decoder's or a socket's failure ends this connection only
-                    problem = f"{type(exc).__name__}: {exc}"
+                    problem = redact_text(f"{type(exc).__name__}: {exc}")
                 if self._stop.is_set():
                     return
                 if self.source.kind == "stdin" or not self.reconnect.enabled:
@@ -393,17 +398,22 @@ class LiveFrames(FrameStream):
                     if self.arrived == 0 and problem != "the stream ended":
                         self._failure = f"{self.source}: {problem}"
                     return
+                first = waits is None
                 waits = waits or self.reconnect.waits()
                 wait = next(waits)
                 silent = time.monotonic() - last_frame_at
                 if silent + wait > self.reconnect.give_up_s:
+                    self.outage = False
                     end = f"{problem}; no frame for {silent:.0f} s: gave up reconnecting (--reconnect)"
                     if self.arrived == 0:  # the iteration raises it: the command's error line
                         self._failure = f"{self.source}: {end}"
                     else:
-                        self.log(f"fr track: {self.source}: {end}")
+                        self.log(f"fr track: {self.name}: {end}")
                     return
-                self.log(f"fr track: {self.source}: {problem}; reconnecting in {wait:g} s (--reconnect)")
+                if first:  # the outage's first line; its retries are silent
+                    self.outage = True
+                    self.log(f"fr track: {self.name}: {problem}; reconnecting in {wait:g} s (--reconnect)")
+                tries += 1
                 if self._stop.wait(wait):
                     return
         finally:
@@ -459,7 +469,7 @@ class LiveFrames(FrameStream):
                 except FRInputError as exc:
                     with self._condition:
                         self.skipped += 1
-                    self.log(f"fr track: skipping frame {index}: {exc}")
+                    self.log(f"fr track: {self.name}: skipping frame {index}: {exc}")
                     previous = index  # skipped, not dropped
                     continue
             dropped, previous = index - previous - 1, index
@@ -478,22 +488,24 @@ class LiveFrames(FrameStream):
 
 def open_frames(source: Source, every: int = 1, start: int = 0, realtime: bool | None = None,
                 reconnect: Reconnect = Reconnect(), stream_timeout_s: float = 5.0,
-                log: Callable[[str], None] = log_line) -> FrameStream:
+                log: Callable[[str], None] = log_line, name: str | None = None) -> FrameStream:
     """The :class:`FrameStream` of ``source``: :class:`FileFrames` (``every``, ``start``) for a
     file or folder, :class:`LiveFrames` for a live source (``realtime``: default True;
-    ``reconnect``; a stream's read may take ``stream_timeout_s``, its connection at least 10 s).
-    FRInputError for options that do not fit the source.  OpenCV's and FFmpeg's own messages are
-    silenced from here on (:func:`quiet_video_logs`)."""
+    ``reconnect``, which a file or folder ignores: it is read to its end; a stream's read may take
+    ``stream_timeout_s``, its connection at least 10 s).  ``name``: what its lines start with
+    after ``fr track:`` (a fleet camera's name; None: the source).  FRInputError for options that
+    do not fit the source.  OpenCV's and FFmpeg's own messages are silenced from here on
+    (:func:`quiet_video_logs`)."""
     quiet_video_logs()
     if not source.live:
         if realtime:
             raise FRInputError(f"--realtime: {source} is a file; its frames are read one after another, none dropped")
-        return FileFrames(source, every, start, log)
+        return FileFrames(source, every, start, log, name)
     if every != 1:
         raise FRInputError("--every applies to files and folders: a live source in real time takes the newest "
                            "frame whenever the search is free (--no-realtime queues them all)")
     return LiveFrames(source, True if realtime is None else realtime, reconnect,
-                      open_timeout_s=max(10.0, stream_timeout_s), read_timeout_s=stream_timeout_s, log=log)
+                      open_timeout_s=max(10.0, stream_timeout_s), read_timeout_s=stream_timeout_s, log=log, name=name)
 
 
 def limited(frames: Iterator[Frame], max_frames: int | None) -> Iterator[Frame]:

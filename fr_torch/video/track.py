@@ -80,13 +80,14 @@ class Tracking:
     result and writes its record (appended and flushed) and, when the fusion changed,
     calibration.json (atomically), without a stop in between
     (:func:`fr_torch.runtime.workers.stops_held`); :meth:`finish` writes how the run ended and
-    closes the files.  ``say``: where a restart's line goes; ``prefix``: what starts it (``fr track``,
+    closes the files.  ``say``: where a restart's line goes; ``prefix``: what starts it (``fr track: SOURCE``,
     or the camera's name after it).
     """
 
     def __init__(self, stream: FrameStream, tracker: OnlineCalibrator, output: TrackOutput,
                  say: Callable[[str], None], prefix: str = "fr track"):
         self.stream, self.tracker, self.output, self.say, self.prefix = stream, tracker, output, say, prefix
+        self.ended = False  # finish() ran
 
     def begin(self) -> None:
         self.output.write_calibration(None, self.tracker.checkpoint(), self.stream)
@@ -109,10 +110,12 @@ class Tracking:
         with stops_held():
             self.output.write_calibration(None, self.tracker.checkpoint(), self.stream, run)
             self.output.close()
+        self.ended = True
 
 
 def track(stream: FrameStream, estimator, tracker: OnlineCalibrator, output: TrackOutput, batch_size: int = 8,
-          workers: int = 0, max_frames: int | None = None, progress=None, title: str = "") -> str:
+          workers: int = 0, max_frames: int | None = None, progress=None, title: str = "",
+          tracking: Tracking | None = None) -> str:
     """Calibrate, fuse and record the frames of ``stream`` until it ends (or ``max_frames``
     frames); returns how the run ended (``ended: ...``), as calibration.json's ``run`` says.
 
@@ -123,7 +126,8 @@ def track(stream: FrameStream, estimator, tracker: OnlineCalibrator, output: Tra
     CTRL-C, or SIGTERM / SIGHUP made :class:`~fr_torch.runtime.workers.Stopped`) or an error ends
     the run the same way -- calibration.json gets the latest fusion and ``run`` says why, the
     figure is drawn -- and is raised again.  ``progress``: a tqdm-like bar (``update``, ``write``)
-    or None; SIGUSR1 draws the figure after the next frame.
+    or None; SIGUSR1 draws the figure after the next frame.  ``tracking``: the :class:`Tracking` of
+    these stream, tracker and output (None: made here), for a caller that watches it (metrics).
     """
     realtime = stream.live and getattr(stream, "realtime", False)
     if realtime:
@@ -135,7 +139,8 @@ def track(stream: FrameStream, estimator, tracker: OnlineCalibrator, output: Tra
             waiting.append(frame)
             yield frame.image, frame.name
 
-    tracking = Tracking(stream, tracker, output, progress.write if progress is not None else output.log)
+    if tracking is None:
+        tracking = Tracking(stream, tracker, output, progress.write if progress is not None else output.log)
     run = "error"
     tracking.begin()
     try:
