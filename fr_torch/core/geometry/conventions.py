@@ -180,9 +180,10 @@ def vanishing_points(focal_px: torch.Tensor, principal_point: torch.Tensor, rota
     focal_px = torch.as_tensor(focal_px, dtype=rotation.dtype, device=rotation.device)[..., None]
     pp = torch.as_tensor(principal_point, dtype=rotation.dtype, device=rotation.device)
     last = rotation[..., 2, :]
-    return torch.stack([focal_px * rotation[..., 0, :] + pp[..., 0:1] * last,
-                        focal_px * rotation[..., 1, :] + pp[..., 1:2] * last,
-                        last.expand(torch.broadcast_shapes(last.shape, focal_px.shape))], -2)
+    first = focal_px * rotation[..., 0, :] + pp[..., 0:1] * last
+    # the third row as a view of the first two's shape (torch.broadcast_shapes would import sympy, a
+    # third of a second on a process's first search)
+    return torch.stack([first, focal_px * rotation[..., 1, :] + pp[..., 1:2] * last, last.expand(first.shape)], -2)
 
 
 def vanishing_point_rows(focal_px: torch.Tensor, principal_point: torch.Tensor,
