@@ -302,7 +302,6 @@ class SegmentEstimator:
         features = SegmentFeatures.from_batch(batch, pp.to(device=device, dtype=dtype))
         focal = torch.tensor([float(g.focal_px) for g in group], dtype=torch.float64) if known_focal else None
 
-        t0 = time.perf_counter()
         long_side = torch.maximum(width, height)  # the FOV range is on the long side (portrait = landscape)
         geometry = SegmentGeometry.from_features(features, batch.endpoints, batch.image_size,
                                                  setting.k_prior_weight if lens == "division" else 0.0)
@@ -310,6 +309,7 @@ class SegmentEstimator:
         horizon_fit = torch.zeros(len(group), dtype=torch.bool)  # (B,) the horizon fit chosen (choose_fit)
         choice_evidence = {}  # the choice's evidence (fr_torch.core.search.choice.CHOICE_FEATURES), cues choice_*
         fast = self.mode == "fast"
+        t0 = time.perf_counter()
         if lens == "division":  # the lens fit: k with f and R
             found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal, self.iterations,
                                   fast)
