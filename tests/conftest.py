@@ -7,9 +7,12 @@ silently.
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import struct
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -129,6 +132,37 @@ def checkout_env(**extra: str) -> dict[str, str]:
     wheels), plus ``extra`` variables."""
     paths = [str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
     return {**os.environ, "PYTHONPATH": os.pathsep.join(paths), **extra}
+
+
+#: What a process under another CPU kernel set calibrates (:func:`kernel_set_records`): the photos of
+#: tests/test_reproducibility.py (Fast-fR) and the streets of tests/test_horizon_fit.py (the horizon fit).
+_KERNEL_SET_CODE = """
+import json
+from fr_torch import FREstimator
+from fr_torch.core.config import SearchConfig
+from tests.test_horizon_fit import _street
+from tests.test_reproducibility import _photos, _record
+p = _photos()
+photos = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p])
+s = [_street(seed=1), _street(focal=500.0, size=(640, 480), seed=2, inclined=40)]
+horizon = FREstimator(mode='fast', search_config=SearchConfig.from_config(fit='horizon')).calibrate_segments(
+    [x[0] for x in s], [x[1] for x in s])
+print(json.dumps({'photos': [_record(x) for x in photos], 'horizon': [_record(x) for x in horizon]}))
+"""
+_kernel_set_runs: dict[str, dict] = {}
+
+
+def kernel_set_records(kernels: str) -> dict:
+    """The records (JSON, ``runtime_s`` left out) of one subprocess with ``ATEN_CPU_CAPABILITY=kernels``
+    and one thread: ``photos`` (tests/test_reproducibility.py's photos, Fast-fR) and ``horizon``
+    (tests/test_horizon_fit.py's two streets, ``fit=horizon``).  One process per kernel set for the
+    whole session: every check that compares across kernel sets reads its part."""
+    if kernels not in _kernel_set_runs:
+        done = subprocess.run([sys.executable, "-c", _KERNEL_SET_CODE], capture_output=True, text=True, timeout=600,
+                              cwd=REPO, env=checkout_env(ATEN_CPU_CAPABILITY=kernels, FR_THREADS="1"))
+        assert done.returncode == 0, done.stderr[-3000:]
+        _kernel_set_runs[kernels] = json.loads(done.stdout.strip().splitlines()[-1])
+    return _kernel_set_runs[kernels]
 
 
 def has_cuda() -> bool:

@@ -15,7 +15,7 @@ from fr_torch.core.camera import rotation_from_angles
 from fr_torch.core.search import best_of_start_and_refined, different_solutions, first_near_best
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.synthetic import random_rotation, synthetic_segments
-from tests.conftest import checkout_env, gpu
+from tests.conftest import checkout_env, gpu, kernel_set_records
 
 
 def _photos():
@@ -175,15 +175,7 @@ def _kernel_sets():
 def test_every_cpu_kernel_set_gives_the_same_bits(reference, kernels):
     """The photos searched in a process with another ATEN_CPU_CAPABILITY: bit for bit the same records
     (CI machines differ in their CPUs; this is what a new one must reproduce)."""
-    code = ("import json, sys; sys.path.insert(0, 'tests'); from test_reproducibility import _photos, _record; "
-            "from fr_torch import FREstimator; p = _photos(); "
-            "r = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p]); "
-            "print(json.dumps([_record(x) for x in r]))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
-                          env=checkout_env(ATEN_CPU_CAPABILITY=kernels, FR_THREADS="1"),
-                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert json.loads(done.stdout.strip().splitlines()[-1]) == reference
+    assert kernel_set_records(kernels)["photos"] == reference
 
 
 def test_the_torch_path_gives_the_fused_kernels_bits(reference):
