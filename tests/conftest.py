@@ -134,12 +134,16 @@ def checkout_env(**extra: str) -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": os.pathsep.join(paths), **extra}
 
 
-#: What a process under another CPU kernel set calibrates (:func:`kernel_set_records`): the photos of
-#: tests/test_reproducibility.py (Fast-fR) and the streets of tests/test_horizon_fit.py (the horizon fit).
-_KERNEL_SET_CODE = """
-import json
+#: What a fresh process calibrates (:func:`fresh_process_records`): the photos of
+#: tests/test_reproducibility.py (Fast-fR), the streets of tests/test_horizon_fit.py (the horizon fit)
+#: and one scene with fR; then whether the fused kernels ran and whether torch's compiler was imported.
+_FRESH_PROCESS_CODE = """
+import json, sys
 from fr_torch import FREstimator
+from fr_torch.core import native
+from fr_torch.core.camera import rotation_from_angles
 from fr_torch.core.config import SearchConfig
+from fr_torch.synthetic import synthetic_segments
 from tests.test_horizon_fit import _street
 from tests.test_reproducibility import _photos, _record
 p = _photos()
@@ -147,22 +151,62 @@ photos = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] fo
 s = [_street(seed=1), _street(focal=500.0, size=(640, 480), seed=2, inclined=40)]
 horizon = FREstimator(mode='fast', search_config=SearchConfig.from_config(fit='horizon')).calibrate_segments(
     [x[0] for x in s], [x[1] for x in s])
-print(json.dumps({'photos': [_record(x) for x in photos], 'horizon': [_record(x) for x in horizon]}))
+scene, _ = synthetic_segments(500.0, rotation_from_angles(10.0, 5.0, 2.0).numpy(), 640, 480, n_per_family=30, seed=0)
+[fr] = FREstimator(mode='fr').calibrate_segments([scene], [(640, 480)])
+print(json.dumps({'photos': [_record(x) for x in photos], 'horizon': [_record(x) for x in horizon],
+                  'fr_ok': [fr.ok, fr.reason], 'native': native.available(),
+                  'dynamo_imported': 'torch._dynamo' in sys.modules}))
 """
-_kernel_set_runs: dict[str, dict] = {}
 
 
-def kernel_set_records(kernels: str) -> dict:
-    """The records (JSON, ``runtime_s`` left out) of one subprocess with ``ATEN_CPU_CAPABILITY=kernels``
-    and one thread: ``photos`` (tests/test_reproducibility.py's photos, Fast-fR) and ``horizon``
-    (tests/test_horizon_fit.py's two streets, ``fit=horizon``).  One process per kernel set for the
-    whole session: every check that compares across kernel sets reads its part."""
-    if kernels not in _kernel_set_runs:
-        done = subprocess.run([sys.executable, "-c", _KERNEL_SET_CODE], capture_output=True, text=True, timeout=600,
-                              cwd=REPO, env=checkout_env(ATEN_CPU_CAPABILITY=kernels, FR_THREADS="1"))
-        assert done.returncode == 0, done.stderr[-3000:]
-        _kernel_set_runs[kernels] = json.loads(done.stdout.strip().splitlines()[-1])
-    return _kernel_set_runs[kernels]
+def cpu_kernel_sets() -> list[str]:
+    """torch CPU kernel sets (``ATEN_CPU_CAPABILITY``) this machine can run: default, and avx2,
+    avx512 where the CPU has them."""
+    flags = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
+    return ["default"] + (["avx2"] if "avx2" in flags else []) + (["avx512"] if "avx512f" in flags else [])
+
+
+#: The fresh processes, by name: one per CPU kernel set (one thread), and ``torch-path`` (FR_NATIVE=0,
+#: one thread: the torch path of every score and gradient, what a machine without a C compiler runs).
+def _fresh_process_env(name: str) -> dict[str, str]:
+    if name == "torch-path":
+        return checkout_env(FR_NATIVE="0", FR_THREADS="1")
+    return checkout_env(ATEN_CPU_CAPABILITY=name, FR_THREADS="1")
+
+
+_fresh_processes: dict[str, subprocess.Popen] = {}
+_fresh_records: dict[str, dict] = {}
+
+
+def fresh_process_records(name: str) -> dict:
+    """The JSON of one fresh process (:data:`_FRESH_PROCESS_CODE`): ``photos`` and ``horizon``
+    (records, ``runtime_s`` left out), ``fr_ok``, ``native``, ``dynamo_imported``.  ``name``: a
+    kernel set of :func:`cpu_kernel_sets` or ``torch-path``.  The first call starts all of them
+    together (each is one thread: they share the cores); each runs once per session, and every check
+    that compares across kernel sets or paths reads its part."""
+    if not _fresh_processes:
+        for each in [*cpu_kernel_sets(), "torch-path"]:
+            _fresh_processes[each] = subprocess.Popen([sys.executable, "-c", _FRESH_PROCESS_CODE], cwd=REPO,
+                                                      env=_fresh_process_env(each), stdout=subprocess.PIPE,
+                                                      stderr=subprocess.PIPE, text=True)
+    if name not in _fresh_records:
+        process = _fresh_processes[name]
+        try:
+            stdout, stderr = process.communicate(timeout=600)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            stdout, stderr = process.communicate()
+        assert process.returncode == 0, f"{name}: {stderr[-3000:]}"
+        _fresh_records[name] = json.loads(stdout.strip().splitlines()[-1])
+    return _fresh_records[name]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Fresh processes that no test waited for (a run of some tests only) do not outlive the session."""
+    for process in _fresh_processes.values():
+        if process.poll() is None:
+            process.kill()
+        process.communicate()
 
 
 def has_cuda() -> bool:

@@ -1,6 +1,5 @@
 """The horizon fit (fr_torch.core.horizon_fit) and the per-photo choice of fit (SearchConfig.fit)."""
 import json
-import os
 
 import numpy as np
 import pytest
@@ -23,7 +22,7 @@ from fr_torch.core.search import parameter_box
 from fr_torch.core.segments import SegmentBatch
 from fr_torch.errors import FRInputError
 from fr_torch.synthetic import synthetic_segments
-from tests.conftest import kernel_set_records
+from tests.conftest import cpu_kernel_sets, fresh_process_records
 
 SEARCH = SearchConfig.from_config().resolve("fr")
 
@@ -139,20 +138,19 @@ def test_the_choice_names_its_model_and_gives_one_answer_alone_and_in_a_batch():
 
 
 def _kernel_sets():
-    flags = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
-    return ["default"] + (["avx2"] if "avx2" in flags else [])
+    return [k for k in cpu_kernel_sets() if k in ("default", "avx2")]
 
 
 @pytest.mark.parametrize("kernels", _kernel_sets())
 def test_the_horizon_fit_gives_the_same_bits_under_every_kernel_set(kernels):
     """Two streets (one on a hill) fitted with ``fit=horizon`` in a process with another
-    ATEN_CPU_CAPABILITY and one thread (:func:`tests.conftest.kernel_set_records`): bit for bit the
+    ATEN_CPU_CAPABILITY and one thread (:func:`tests.conftest.fresh_process_records`): bit for bit the
     records of this process, with its own kernels and thread count."""
     photos = [_street(seed=1), _street(focal=500.0, size=(640, 480), seed=2, inclined=40)]
     here = FREstimator(mode="fast", search_config=SearchConfig.from_config(fit="horizon")).calibrate_segments(
         [p[0] for p in photos], [p[1] for p in photos])  # this process: its own kernels and thread count
     expected = json.loads(json.dumps([{k: v for k, v in r.to_json().items() if k != "runtime_s"} for r in here]))
-    assert kernel_set_records(kernels)["horizon"] == expected
+    assert fresh_process_records(kernels)["horizon"] == expected
     assert [r["model"] for r in expected] == ["horizon", "horizon"]
 
 
