@@ -238,6 +238,13 @@ def with_exif_orientation(jpeg: bytes, orientation: int, big_endian: bool = Fals
     return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body + jpeg[2:]
 
 
+@pytest.fixture(scope="session")
+def shared_focal_local_batch(tmp_path_factory):
+    """:func:`shared_focal_batch_on_local_engine` once per session (tests/test_shared_focal.py checks it,
+    tests/test_batch.py compares the Ray engine's rows with it)."""
+    return shared_focal_batch_on_local_engine(tmp_path_factory.mktemp("shared_focal_batch"))
+
+
 def shared_focal_batch_on_local_engine(tmp_path: Path):
     """``fr batch --shared-focal-by`` on the local engine over three copies of ``examples/room.png`` and a
     missing file, checked; returns (manifest, options, output table by image)."""
