@@ -84,10 +84,11 @@ def test_exported_ctrlc_in_fr_eval(small_onnx, data_root, tmp_path, monkeypatch)
     refused = CTRLC(onnx_path=small_onnx).estimate(np.zeros((480, 640, 3), np.uint8), ImageMeta(name="x"))
     assert not refused.ok and refused.reason.startswith("n/a (not supplied: ") and "random weights" in refused.reason
     monkeypatch.setenv("FR_CTRLC_ALLOW_RANDOM", "1")
-    result = _fr("eval", "--dataset", "yud", "--limit", "3", "--methods", "ctrlc", "--ctrlc-onnx", str(small_onnx),
-                 "--data-root", str(data_root), "--out", str(tmp_path), "--no-plots", "--group-by", "none",
-                 cwd=tmp_path)
-    assert result.returncode == 0, result.stderr[-3000:]
+    monkeypatch.chdir(tmp_path)
+    from fr_torch.cli.main import main  # in this process: the command's own start-up is small_onnx's export
+
+    assert main(["eval", "--dataset", "yud", "--limit", "3", "--methods", "ctrlc", "--ctrlc-onnx", str(small_onnx),
+                 "--data-root", str(data_root), "--out", str(tmp_path), "--no-plots", "--group-by", "none"]) == 0
     rows = pd.read_csv(tmp_path / "predictions.csv")
     assert len(rows) == 3 and not rows["failed"].astype(bool).any(), rows.get("reason")
     for column in ("est_hfov_deg", "est_roll_deg", "est_tilt_deg", "roll_err_deg", "fov_err_pct"):
