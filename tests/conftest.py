@@ -178,17 +178,34 @@ _fresh_processes: dict[str, subprocess.Popen] = {}
 _fresh_records: dict[str, dict] = {}
 
 
+#: The tests that read :func:`fresh_process_records`: when one of them is collected, the fresh
+#: processes start as soon as collection ends and run beside the tests before it.
+FRESH_PROCESS_TESTS = {"test_every_cpu_kernel_set_gives_the_same_bits", "test_the_torch_path_gives_the_fused_kernels_bits",
+                       "test_the_horizon_fit_gives_the_same_bits_under_every_kernel_set",
+                       "test_calibrating_does_not_import_the_compiler"}
+
+
+def start_fresh_processes() -> None:
+    """Start the fresh processes of :func:`fresh_process_records` (once per session)."""
+    if not _fresh_processes:
+        for each in [*cpu_kernel_sets(), "torch-path"]:
+            _fresh_processes[each] = subprocess.Popen([sys.executable, "-c", _FRESH_PROCESS_CODE], cwd=REPO,
+                                                      env=_fresh_process_env(each), stdout=subprocess.PIPE,
+                                                      stderr=subprocess.PIPE, text=True)
+
+
+def pytest_collection_finish(session):
+    if any(getattr(item, "originalname", item.name) in FRESH_PROCESS_TESTS for item in session.items):
+        start_fresh_processes()
+
+
 def fresh_process_records(name: str) -> dict:
     """The JSON of one fresh process (:data:`_FRESH_PROCESS_CODE`): ``photos`` and ``horizon``
     (records, ``runtime_s`` left out), ``fr_ok``, ``native``, ``dynamo_imported``.  ``name``: a
     kernel set of :func:`cpu_kernel_sets` or ``torch-path``.  The first call starts all of them
     together (each is one thread: they share the cores); each runs once per session, and every check
     that compares across kernel sets or paths reads its part."""
-    if not _fresh_processes:
-        for each in [*cpu_kernel_sets(), "torch-path"]:
-            _fresh_processes[each] = subprocess.Popen([sys.executable, "-c", _FRESH_PROCESS_CODE], cwd=REPO,
-                                                      env=_fresh_process_env(each), stdout=subprocess.PIPE,
-                                                      stderr=subprocess.PIPE, text=True)
+    start_fresh_processes()
     if name not in _fresh_records:
         process = _fresh_processes[name]
         try:
