@@ -3,6 +3,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from tests.conftest import REPO
 
 EXAMPLE = REPO / "examples" / "room.png"
@@ -10,9 +12,44 @@ EXAMPLE = REPO / "examples" / "room.png"
 TRUE_FOCAL, TRUE_ROLL, TRUE_TILT = 420.0, 4.0, 8.0246
 
 
-def fr(*args, cwd=REPO):
-    return subprocess.run([sys.executable, "-m", "fr_torch.cli", *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
+class Runs:
+    """``fr`` commands started together (each is mostly torch's import: side by side they share the
+    cores); :meth:`result` waits for one."""
+
+    def __init__(self, commands: dict):
+        self.processes = {name: subprocess.Popen([sys.executable, "-m", "fr_torch.cli", *map(str, args)],
+                                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+                          for name, args in commands.items()}
+        self.results = {}
+
+    def result(self, name: str) -> subprocess.CompletedProcess:
+        if name not in self.results:
+            process = self.processes[name]
+            stdout, stderr = process.communicate(timeout=300)
+            self.results[name] = subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr)
+        return self.results[name]
+
+    def close(self) -> None:
+        for process in self.processes.values():
+            if process.poll() is None:
+                process.kill()
+            process.communicate()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def runs(tmp_path_factory):
+    """The module's ``fr calibrate`` processes, started before its first test: over a missing file, a
+    file that is no image and the example (with --overlay and --json); fR without reliability."""
+    folder = tmp_path_factory.mktemp("cli")
+    (folder / "bad.jpg").write_text("nope")
+    started = Runs({"bad_inputs": ["calibrate", folder / "missing.jpg", folder / "bad.jpg", EXAMPLE, "--fast",
+                                   "--overlay", folder / "ov", "--json", folder / "out.json"],
+                    "no_reliability": ["calibrate", EXAMPLE, "--no-reliability"]})
+    started.folder = folder
+    try:
+        yield started
+    finally:
+        started.close()
 
 
 def test_a_reader_that_closes_the_pipe_early_loses_no_overlay(tmp_path):
@@ -27,14 +64,13 @@ def test_a_reader_that_closes_the_pipe_early_loses_no_overlay(tmp_path):
     assert (tmp_path / "ov" / "room_fr.png").stat().st_size > 1000
 
 
-def test_calibrate_writes_json_and_overlay_and_bad_inputs_give_one_line_errors(tmp_path, capsys):
+def test_calibrate_writes_json_and_overlay_and_bad_inputs_give_one_line_errors(runs, capsys):
     """One ``fr calibrate --fast`` over a missing file, a file that is no image and the example: the
     example's record (every field, the right camera), its overlay and --json file; the bad inputs
     fail alone with one-line messages and a non-zero exit status.  A bad option: a one-line error,
     exit status 2 (in this process; the command line's own start-up is the subprocess above)."""
-    (tmp_path / "bad.jpg").write_text("nope")
-    out = fr("calibrate", tmp_path / "missing.jpg", tmp_path / "bad.jpg", EXAMPLE, "--fast",
-             "--overlay", tmp_path / "ov", "--json", tmp_path / "out.json")
+    tmp_path = runs.folder
+    out = runs.result("bad_inputs")
     assert out.returncode != 0
     assert "Traceback" not in out.stderr
     assert "no such file" in out.stderr and "not a readable image" in out.stderr
@@ -61,9 +97,9 @@ def test_calibrate_writes_json_and_overlay_and_bad_inputs_give_one_line_errors(t
     assert status == 2 and "--focal" in err and err.strip().count("\n") == 0
 
 
-def test_calibrate_without_reliability_skips_the_profile_gap():
+def test_calibrate_without_reliability_skips_the_profile_gap(runs):
     """``--no-reliability``: no predicted errors, and fR skips the cue only the model needs."""
-    out = fr("calibrate", EXAMPLE, "--no-reliability")
+    out = runs.result("no_reliability")
     assert out.returncode == 0, out.stderr
     record = json.loads(out.stdout.strip().splitlines()[0])
     assert record["predicted_error"] is None and "focal_profile_gap" not in record["cues"]
