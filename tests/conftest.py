@@ -202,9 +202,10 @@ def pytest_collection_finish(session):
 def fresh_process_records(name: str) -> dict:
     """The JSON of one fresh process (:data:`_FRESH_PROCESS_CODE`): ``photos`` and ``horizon``
     (records, ``runtime_s`` left out), ``fr_ok``, ``native``, ``dynamo_imported``.  ``name``: a
-    kernel set of :func:`cpu_kernel_sets` or ``torch-path``.  The first call starts all of them
-    together (each is one thread: they share the cores); each runs once per session, and every check
-    that compares across kernel sets or paths reads its part."""
+    kernel set of :func:`cpu_kernel_sets` or ``torch-path``.  All of them start together (each is one
+    thread: they share the cores), when collection ends (:func:`pytest_collection_finish`) or else at
+    the first call; each runs once per session, and every check that compares across kernel sets or
+    paths reads its part."""
     start_fresh_processes()
     if name not in _fresh_records:
         process = _fresh_processes[name]
