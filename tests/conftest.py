@@ -7,9 +7,12 @@ silently.
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import struct
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -131,6 +134,99 @@ def checkout_env(**extra: str) -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": os.pathsep.join(paths), **extra}
 
 
+#: What a fresh process calibrates (:func:`fresh_process_records`): the photos of
+#: tests/test_reproducibility.py (Fast-fR), the streets of tests/test_horizon_fit.py (the horizon fit)
+#: and one scene with fR; then whether the fused kernels ran and whether torch's compiler was imported.
+_FRESH_PROCESS_CODE = """
+import json, sys
+from fr_torch import FREstimator
+from fr_torch.core.likelihood import native
+from fr_torch.core.geometry.conventions import rotation_from_angles
+from fr_torch.core.settings.config import SearchConfig
+from fr_torch.synthetic import synthetic_segments
+from tests.test_horizon_fit import _street
+from tests.test_reproducibility import _photos, _record
+p = _photos()
+photos = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p])
+s = [_street(seed=1), _street(focal=500.0, size=(640, 480), seed=2, inclined=40)]
+horizon = FREstimator(mode='fast', search_config=SearchConfig.from_config(fit='horizon')).calibrate_segments(
+    [x[0] for x in s], [x[1] for x in s])
+scene, _ = synthetic_segments(500.0, rotation_from_angles(10.0, 5.0, 2.0).numpy(), 640, 480, n_per_family=30, seed=0)
+[fr] = FREstimator(mode='fr').calibrate_segments([scene], [(640, 480)])
+print(json.dumps({'photos': [_record(x) for x in photos], 'horizon': [_record(x) for x in horizon],
+                  'fr_ok': [fr.ok, fr.reason], 'native': native.available(),
+                  'dynamo_imported': 'torch._dynamo' in sys.modules}))
+"""
+
+
+def cpu_kernel_sets() -> list[str]:
+    """torch CPU kernel sets (``ATEN_CPU_CAPABILITY``) this machine can run: default, and avx2,
+    avx512 where the CPU has them."""
+    flags = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
+    return ["default"] + (["avx2"] if "avx2" in flags else []) + (["avx512"] if "avx512f" in flags else [])
+
+
+#: The fresh processes, by name: one per CPU kernel set (one thread), and ``torch-path`` (FR_NATIVE=0,
+#: one thread: the torch path of every score and gradient, what a machine without a C compiler runs).
+def _fresh_process_env(name: str) -> dict[str, str]:
+    if name == "torch-path":
+        return checkout_env(FR_NATIVE="0", FR_THREADS="1")
+    return checkout_env(ATEN_CPU_CAPABILITY=name, FR_THREADS="1")
+
+
+_fresh_processes: dict[str, subprocess.Popen] = {}
+_fresh_records: dict[str, dict] = {}
+
+
+#: The tests that read :func:`fresh_process_records`: when one of them is collected, the fresh
+#: processes start as soon as collection ends and run beside the tests before it.
+FRESH_PROCESS_TESTS = {"test_every_cpu_kernel_set_gives_the_same_bits", "test_the_torch_path_gives_the_fused_kernels_bits",
+                       "test_the_horizon_fit_gives_the_same_bits_under_every_kernel_set",
+                       "test_calibrating_does_not_import_the_compiler"}
+
+
+def start_fresh_processes() -> None:
+    """Start the fresh processes of :func:`fresh_process_records` (once per session)."""
+    if not _fresh_processes:
+        for each in [*cpu_kernel_sets(), "torch-path"]:
+            _fresh_processes[each] = subprocess.Popen([sys.executable, "-c", _FRESH_PROCESS_CODE], cwd=REPO,
+                                                      env=_fresh_process_env(each), stdout=subprocess.PIPE,
+                                                      stderr=subprocess.PIPE, text=True)
+
+
+def pytest_collection_finish(session):
+    if any(getattr(item, "originalname", item.name) in FRESH_PROCESS_TESTS for item in session.items):
+        start_fresh_processes()
+
+
+def fresh_process_records(name: str) -> dict:
+    """The JSON of one fresh process (:data:`_FRESH_PROCESS_CODE`): ``photos`` and ``horizon``
+    (records, ``runtime_s`` left out), ``fr_ok``, ``native``, ``dynamo_imported``.  ``name``: a
+    kernel set of :func:`cpu_kernel_sets` or ``torch-path``.  All of them start together (each is one
+    thread: they share the cores), when collection ends (:func:`pytest_collection_finish`) or else at
+    the first call; each runs once per session, and every check that compares across kernel sets or
+    paths reads its part."""
+    start_fresh_processes()
+    if name not in _fresh_records:
+        process = _fresh_processes[name]
+        try:
+            stdout, stderr = process.communicate(timeout=600)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            stdout, stderr = process.communicate()
+        assert process.returncode == 0, f"{name}: {stderr[-3000:]}"
+        _fresh_records[name] = json.loads(stdout.strip().splitlines()[-1])
+    return _fresh_records[name]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Fresh processes that no test waited for (a run of some tests only) do not outlive the session."""
+    for process in _fresh_processes.values():
+        if process.poll() is None:
+            process.kill()
+        process.communicate()
+
+
 def has_cuda() -> bool:
     import torch
 
@@ -158,6 +254,13 @@ def with_exif_orientation(jpeg: bytes, orientation: int, big_endian: bool = Fals
     tiff += struct.pack(order + "HHIHHI", 0x0112, 3, 1, orientation, 0, 0)
     body = b"Exif\x00\x00" + tiff
     return jpeg[:2] + b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body + jpeg[2:]
+
+
+@pytest.fixture(scope="session")
+def shared_focal_local_batch(tmp_path_factory):
+    """:func:`shared_focal_batch_on_local_engine` once per session (tests/test_shared_focal.py checks it,
+    tests/test_batch.py compares the Ray engine's rows with it)."""
+    return shared_focal_batch_on_local_engine(tmp_path_factory.mktemp("shared_focal_batch"))
 
 
 def shared_focal_batch_on_local_engine(tmp_path: Path):

@@ -24,7 +24,7 @@ from fr_torch.cli.batch import estimator_options
 from fr_torch.cli.main import build_parser
 from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.synthetic import render_manhattan_room
-from tests.conftest import checkout_env, shared_focal_batch_on_local_engine
+from tests.conftest import checkout_env
 
 N_GOOD = 30
 
@@ -204,9 +204,9 @@ def test_ray_engine_matches_embedded_despite_worker_crash(image_set, local_outpu
     assert ray_cluster.data.read_parquet(str(out)).count() == N_GOOD + 3  # readable by Ray in one line
 
 
-def test_batch_shared_focal_by_on_ray_equals_local(ray_cluster, tmp_path):
+def test_batch_shared_focal_by_on_ray_equals_local(ray_cluster, shared_focal_local_batch, tmp_path):
     """The Ray engine searches each group in one actor and gives the local engine's rows."""
-    manifest, options, local = shared_focal_batch_on_local_engine(tmp_path)
+    manifest, options, local = shared_focal_local_batch
     summary = run_batch([str(manifest)], tmp_path / "ray_out", options, engine="ray", workers=2,
                         progress=False, shared_focal_by="camera")
     assert summary["processed"] == 4 and summary["failed"] == 1

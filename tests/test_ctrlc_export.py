@@ -61,6 +61,7 @@ def small_onnx(ctrlc_source, data_root, tmp_path_factory) -> Path:
 
 def test_export_agrees_and_records_provenance(small_onnx):
     import onnxruntime as ort
+
     from fr_baselines.ctrlc import CTRLC
 
     session = ort.InferenceSession(str(small_onnx), providers=["CPUExecutionProvider"])
@@ -77,17 +78,17 @@ def test_exported_ctrlc_in_fr_eval(small_onnx, data_root, tmp_path, monkeypatch)
     refused by default (n/a), and with FR_CTRLC_ALLOW_RANDOM=1 every image gets finite numbers and
     the caption names the weights and says they are random."""
     from fr_baselines.ctrlc import CTRLC
-
     from fr_torch.plugins.interface import ImageMeta
 
     monkeypatch.delenv("FR_CTRLC_ALLOW_RANDOM", raising=False)
     refused = CTRLC(onnx_path=small_onnx).estimate(np.zeros((480, 640, 3), np.uint8), ImageMeta(name="x"))
     assert not refused.ok and refused.reason.startswith("n/a (not supplied: ") and "random weights" in refused.reason
     monkeypatch.setenv("FR_CTRLC_ALLOW_RANDOM", "1")
-    result = _fr("eval", "--dataset", "yud", "--limit", "3", "--methods", "ctrlc", "--ctrlc-onnx", str(small_onnx),
-                 "--data-root", str(data_root), "--out", str(tmp_path), "--no-plots", "--group-by", "none",
-                 cwd=tmp_path)
-    assert result.returncode == 0, result.stderr[-3000:]
+    monkeypatch.chdir(tmp_path)
+    from fr_torch.cli.main import main  # in this process: the command's own start-up is small_onnx's export
+
+    assert main(["eval", "--dataset", "yud", "--limit", "3", "--methods", "ctrlc", "--ctrlc-onnx", str(small_onnx),
+                 "--data-root", str(data_root), "--out", str(tmp_path), "--no-plots", "--group-by", "none"]) == 0
     rows = pd.read_csv(tmp_path / "predictions.csv")
     assert len(rows) == 3 and not rows["failed"].astype(bool).any(), rows.get("reason")
     for column in ("est_hfov_deg", "est_roll_deg", "est_tilt_deg", "roll_err_deg", "fov_err_pct"):
@@ -96,10 +97,17 @@ def test_exported_ctrlc_in_fr_eval(small_onnx, data_root, tmp_path, monkeypatch)
     assert "ctrlc = ctrlc_small_random.onnx (sha256 " in caption and "RANDOM WEIGHTS" in caption
 
 
-def test_export_errors_are_one_line(tmp_path):
-    result = _fr("export-ctrlc", "--random-weights", "--ctrlc-source", str(tmp_path), cwd=tmp_path)
-    assert result.returncode == 2 and "not a CTRL-C checkout" in result.stderr
-    assert "Traceback" not in result.stderr
-    result = _fr("export-ctrlc", "--checkpoint", str(tmp_path / "none.pth"), "--ctrlc-source", str(tmp_path),
-                 cwd=tmp_path)
-    assert result.returncode == 2 and "not found" in result.stderr
+def test_export_errors_are_one_line(tmp_path, capsys):
+    """In this process (``fr export-ctrlc`` itself runs as a subprocess in ``small_onnx``): a folder
+    that is not a CTRL-C checkout and a missing checkpoint are one-line errors, exit status 2."""
+    import torch
+
+    from fr_torch.cli.main import main
+
+    with torch.random.fork_rng(devices=[]):  # the command seeds torch before it looks at the source
+        assert main(["export-ctrlc", "--random-weights", "--ctrlc-source", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "not a CTRL-C checkout" in err and err.count("\n") == 1
+    assert main(["export-ctrlc", "--checkpoint", str(tmp_path / "none.pth"), "--ctrlc-source", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "not found" in err and err.count("\n") == 1

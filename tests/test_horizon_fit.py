@@ -1,8 +1,5 @@
 """The horizon fit (fr_torch.core.search.horizon) and the per-photo choice of fit (SearchConfig.fit)."""
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -22,7 +19,7 @@ from fr_torch.core.search.horizon import fit_horizon, horizon_vote
 from fr_torch.core.settings.config import HorizonFitConfig, SearchConfig
 from fr_torch.errors import FRInputError
 from fr_torch.synthetic import synthetic_segments
-from tests.conftest import checkout_env
+from tests.conftest import cpu_kernel_sets, fresh_process_records
 
 SEARCH = SearchConfig.from_config().resolve("fr")
 
@@ -138,27 +135,19 @@ def test_the_choice_names_its_model_and_gives_one_answer_alone_and_in_a_batch():
 
 
 def _kernel_sets():
-    flags = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
-    return ["default"] + (["avx2"] if "avx2" in flags else [])
+    return [k for k in cpu_kernel_sets() if k in ("default", "avx2")]
 
 
 @pytest.mark.parametrize("kernels", _kernel_sets())
 def test_the_horizon_fit_gives_the_same_bits_under_every_kernel_set(kernels):
-    code = ("import json, sys; sys.path.insert(0, '.'); from tests.test_horizon_fit import _street; "
-            "from fr_torch import FREstimator; from fr_torch.core.settings.config import SearchConfig; "
-            "p = [_street(seed=1), _street(focal=500.0, size=(640, 480), seed=2, inclined=40)]; "
-            "e = FREstimator(mode='fast', search_config=SearchConfig.from_config(fit='horizon')); "
-            "r = e.calibrate_segments([x[0] for x in p], [x[1] for x in p]); "
-            "print(json.dumps([{k: v for k, v in x.to_json().items() if k != 'runtime_s'} for x in r]))")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, cwd=root,
-                          env=checkout_env(ATEN_CPU_CAPABILITY=kernels, FR_THREADS="1"))
-    assert done.returncode == 0, done.stderr[-3000:]
+    """Two streets (one on a hill) fitted with ``fit=horizon`` in a process with another
+    ATEN_CPU_CAPABILITY and one thread (:func:`tests.conftest.fresh_process_records`): bit for bit the
+    records of this process, with its own kernels and thread count."""
     photos = [_street(seed=1), _street(focal=500.0, size=(640, 480), seed=2, inclined=40)]
     here = FREstimator(mode="fast", search_config=SearchConfig.from_config(fit="horizon")).calibrate_segments(
         [p[0] for p in photos], [p[1] for p in photos])  # this process: its own kernels and thread count
     expected = json.loads(json.dumps([{k: v for k, v in r.to_json().items() if k != "runtime_s"} for r in here]))
-    assert json.loads(done.stdout.strip().splitlines()[-1]) == expected
+    assert fresh_process_records(kernels)["horizon"] == expected
     assert [r["model"] for r in expected] == ["horizon", "horizon"]
 
 

@@ -68,13 +68,20 @@ def test_pipeline_equals_in_process_and_keeps_order(folder, workers, whole_image
     assert all(r.ok for i, r in enumerate(results) if i not in (1, len(folder) - 1))
 
 
+@pytest.fixture(scope="module")
+def stream_frames(folder):
+    """The folder as a stream (the first as an array), 4 times over: 20 frames, more than the 10 a
+    stream with workers may read ahead; and their in-process results."""
+    frames = [(cv2.imread(p) if i == 0 else p, f"frame{i}") for i, p in enumerate(folder)] * 4
+    return frames, FREstimator(mode="fast").calibrate_images([f for f, _ in frames], names=[n for _, n in frames])
+
+
 @pytest.mark.parametrize("workers, whole_frames", [(0, None), (2, True), (2, False)])
-def test_stream_equals_in_process_and_reads_only_what_is_in_flight(folder, workers, whole_frames):
+def test_stream_equals_in_process_and_reads_only_what_is_in_flight(stream_frames, workers, whole_frames):
     """A stream of frames (arrays and paths, a bad one among them): in-process, whole frames in
     workers (a CPU's default) and detection-only workers (a GPU's), in order, never read far ahead."""
     est = FREstimator(mode="fast")
-    frames = [(cv2.imread(p) if i == 0 else p, f"frame{i}") for i, p in enumerate(folder)] * 8
-    reference = est.calibrate_images([f for f, _ in frames], names=[n for _, n in frames])
+    frames, reference = stream_frames
     read = []
 
     def source():

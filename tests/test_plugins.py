@@ -104,10 +104,34 @@ def _run(code_or_args, target: Path, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, *args], env=env, cwd=cwd, capture_output=True, text=True, timeout=300)
 
 
-def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
-    """After installation (and only then) ``horizon-lines`` is a method and ``long-lsd`` a detector:
-    in ``fr eval --methods all``, by name, with options, and estimating a synthetic room's roll."""
-    code = textwrap.dedent("""
+@pytest.fixture(scope="module")
+def plugin_process(installed_plugin, tmp_path_factory) -> tuple[subprocess.CompletedProcess, Path]:
+    """One process with the plug-in installed: the checks of :func:`test_installed_plugin_is_found_and_runs`
+    (it prints OK), then ``fr eval --methods horizon-lines,prior`` (``fr_torch.cli.main``) on a
+    two-image synthetic dataset given by import path; returns it and the eval's output folder."""
+    from fr_torch.core.geometry.conventions import rotation_from_angles
+    from fr_torch.synthetic import render_manhattan_room
+
+    work = tmp_path_factory.mktemp("plugin_run")
+    for i, roll in enumerate((4.0, -7.0)):
+        cv2.imwrite(str(work / f"room{i}.png"),
+                    render_manhattan_room(500.0, rotation_from_angles(15.0, 0.0, roll).numpy(), seed=i))
+    (work / "rooms_ds.py").write_text(textwrap.dedent(f"""
+        from pathlib import Path
+        from fr_eval.datasets.registry import CalibrationSample
+        from fr_torch.core.geometry.camera import Camera
+        from fr_torch.core.geometry.conventions import rotation_from_angles
+        from fr_torch.registry import plugin
+
+        @plugin("dataset")
+        def load(root=None, split="test", **kwargs):
+            return [CalibrationSample(name=f"room{{i}}.png", image_path=Path({str(work)!r}) / f"room{{i}}.png",
+                                      width=640, height=480,
+                                      camera=Camera(640, 480, 500.0, rotation=rotation_from_angles(15.0, 0.0, roll).numpy()))
+                    for i, roll in enumerate((4.0, -7.0))]
+    """))
+    out = work / "out"
+    code = textwrap.dedent(f"""
         from fr_torch.core.geometry.conventions import rotation_from_angles
         from fr_torch.plugins.interface import ImageMeta, available_methods, get_calibrator
         from fr_torch.registry import load_object  # finds fr_eval also in a checkout that is not installed
@@ -121,39 +145,26 @@ def test_installed_plugin_is_found_and_runs(installed_plugin, tmp_path):
         est = method.estimate(image, ImageMeta(name="room", width=640, height=480))
         assert est.ok and abs(est.hfov_deg - 70.0) < 1e-9 and abs(est.roll_deg - 6.0) < 1.0, est
         assert len(get_detector("long-lsd[min_length=40]")(image)) > 10
-        print("OK")
+        print("OK", flush=True)
+        from fr_torch.cli.main import main
+        raise SystemExit(main(["eval", "--dataset", "rooms_ds:load", "--methods", "horizon-lines,prior",
+                               "--out", {str(out)!r}, "--no-plots", "--group-by", "none"]))
     """)
-    result = _run(code, installed_plugin, tmp_path)
-    assert result.returncode == 0 and "OK" in result.stdout, result.stderr[-3000:]
+    return _run(code, installed_plugin, work), out
+
+
+def test_installed_plugin_is_found_and_runs(plugin_process):
+    """After installation (and only then) ``horizon-lines`` is a method and ``long-lsd`` a detector:
+    in ``fr eval --methods all``, by name, with options, and estimating a synthetic room's roll."""
+    result, _ = plugin_process
+    assert "OK" in result.stdout.splitlines(), result.stderr[-3000:]
     # without the installation the name is unknown
     assert "horizon-lines" not in available_methods()
 
 
-def test_installed_plugin_in_fr_eval(installed_plugin, tmp_path):
+def test_installed_plugin_in_fr_eval(plugin_process):
     """``fr eval --methods horizon-lines,prior`` on a two-image synthetic dataset given by import path."""
-    from fr_torch.core.geometry.conventions import rotation_from_angles
-    from fr_torch.synthetic import render_manhattan_room
-
-    for i, roll in enumerate((4.0, -7.0)):
-        cv2.imwrite(str(tmp_path / f"room{i}.png"),
-                    render_manhattan_room(500.0, rotation_from_angles(15.0, 0.0, roll).numpy(), seed=i))
-    (tmp_path / "rooms_ds.py").write_text(textwrap.dedent(f"""
-        from pathlib import Path
-        from fr_eval.datasets.registry import CalibrationSample
-        from fr_torch.core.geometry.camera import Camera
-        from fr_torch.core.geometry.conventions import rotation_from_angles
-        from fr_torch.registry import plugin
-
-        @plugin("dataset")
-        def load(root=None, split="test", **kwargs):
-            return [CalibrationSample(name=f"room{{i}}.png", image_path=Path({str(tmp_path)!r}) / f"room{{i}}.png",
-                                      width=640, height=480,
-                                      camera=Camera(640, 480, 500.0, rotation=rotation_from_angles(15.0, 0.0, roll).numpy()))
-                    for i, roll in enumerate((4.0, -7.0))]
-    """))
-    out = tmp_path / "out"
-    result = _run(["-m", "fr_torch.cli", "eval", "--dataset", "rooms_ds:load", "--methods", "horizon-lines,prior",
-                   "--out", str(out), "--no-plots", "--group-by", "none"], installed_plugin, tmp_path)
+    result, out = plugin_process
     assert result.returncode == 0, result.stderr[-3000:]
     rows = pd.read_csv(out / "predictions.csv")
     mine = rows[rows["method"] == "horizon-lines"]

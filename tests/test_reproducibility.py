@@ -1,9 +1,6 @@
 """One photo, one answer: the same bits in any batch, thread count and CPU kernel set, and run after
 run on a GPU (fr_torch.core.exact; results/reproducibility/ measures it on the datasets)."""
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -15,7 +12,7 @@ from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.core.search.passes import best_of_start_and_refined, different_solutions, first_near_best
 from fr_torch.runtime.device import DevicePolicy
 from fr_torch.synthetic import random_rotation, synthetic_segments
-from tests.conftest import checkout_env, gpu
+from tests.conftest import cpu_kernel_sets, fresh_process_records, gpu
 
 
 def _photos():
@@ -165,40 +162,20 @@ def test_the_search_takes_one_path_at_every_thread_count(monkeypatch):
     assert records[2] == records[1]
 
 
-def _kernel_sets():
-    """torch CPU kernel sets this machine can run besides its own (the default one always)."""
-    flags = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
-    return ["default"] + (["avx2"] if "avx2" in flags else []) + (["avx512"] if "avx512f" in flags else [])
-
-
-@pytest.mark.parametrize("kernels", _kernel_sets())
+@pytest.mark.parametrize("kernels", cpu_kernel_sets())
 def test_every_cpu_kernel_set_gives_the_same_bits(reference, kernels):
     """The photos searched in a process with another ATEN_CPU_CAPABILITY: bit for bit the same records
     (CI machines differ in their CPUs; this is what a new one must reproduce)."""
-    code = ("import json, sys; sys.path.insert(0, 'tests'); from test_reproducibility import _photos, _record; "
-            "from fr_torch import FREstimator; p = _photos(); "
-            "r = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p]); "
-            "print(json.dumps([_record(x) for x in r]))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
-                          env=checkout_env(ATEN_CPU_CAPABILITY=kernels, FR_THREADS="1"),
-                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert json.loads(done.stdout.strip().splitlines()[-1]) == reference
+    assert fresh_process_records(kernels)["photos"] == reference
 
 
 def test_the_torch_path_gives_the_fused_kernels_bits(reference):
     """FR_NATIVE=0, what a machine without a C compiler (or a torch without MKL) runs: the torch path
     of every score and gradient, bit for bit the records of this process (whose fused kernels of
     fr_torch.core.likelihood.native run when this machine can build them)."""
-    code = ("import json, sys; sys.path.insert(0, 'tests'); from test_reproducibility import _photos, _record; "
-            "from fr_torch import FREstimator; from fr_torch.core.likelihood import native; assert not native.available(); "
-            "p = _photos(); r = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p]); "
-            "print(json.dumps([_record(x) for x in r]))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
-                          env=checkout_env(FR_NATIVE="0", FR_THREADS="1"),
-                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert json.loads(done.stdout.strip().splitlines()[-1]) == reference
+    torch_path = fresh_process_records("torch-path")
+    assert not torch_path["native"]
+    assert torch_path["photos"] == reference
 
 
 def test_the_fused_kernels_check_themselves_against_the_torch_path():
@@ -206,9 +183,8 @@ def test_the_fused_kernels_check_themselves_against_the_torch_path():
     grid's scores and the refinement's gradient equal the torch path's on a scene bit for bit."""
     from fr_torch.core.geometry.conventions import image_centre, vanishing_points
     from fr_torch.core.geometry.params import rotations
-    from fr_torch.core.likelihood import native
     from fr_torch.core.likelihood.measures import SegmentFeatures
-    from fr_torch.core.likelihood.mixture import MixtureLikelihood, kernels_match_torch
+    from fr_torch.core.likelihood.mixture import MixtureLikelihood, kernels_match_torch, native
     from fr_torch.core.likelihood.objective import measure_b_objective_and_grad, objective_b_nograd, vp_major
 
     if not native.available():

@@ -14,7 +14,7 @@ from fr_torch.runtime.shared_focal import (
     log_ratio_grid,
 )
 from fr_torch.synthetic import random_rotation, synthetic_segments
-from tests.conftest import ROOM_F, shared_focal_batch_on_local_engine
+from tests.conftest import ROOM_F
 
 TRUE_F = 600.0
 
@@ -121,8 +121,11 @@ def test_cli_shared_focal(tmp_path, capsys):
     assert main(["calibrate", *paths, "--shared-focal", "--focal", "500"]) == 2
 
 
-def test_batch_shared_focal_by(tmp_path):
-    shared_focal_batch_on_local_engine(tmp_path)
+def test_batch_shared_focal_by(shared_focal_local_batch):
+    """``fr batch --shared-focal-by`` on the local engine: checked in the fixture
+    (:func:`tests.conftest.shared_focal_batch_on_local_engine`)."""
+    manifest, options, table = shared_focal_local_batch
+    assert len(table) == 4
 
 
 def test_shared_principal_point(estimator):

@@ -465,18 +465,14 @@ def test_refinement_adam_is_torch_adam_and_the_same_bits_in_any_layout():
 
 
 def test_calibrating_does_not_import_the_compiler():
-    """torch.optim's first optimiser imports torch._dynamo (1-2 s); the refinement must not pay it."""
-    import subprocess
-    import sys
+    """torch.optim's first optimiser imports torch._dynamo (1-2 s); the refinement must not pay it.
+    A fresh process (:func:`tests.conftest.fresh_process_records`: Fast-fR on photos, the horizon fit
+    and fR on a scene) never imported it."""
+    from tests.conftest import fresh_process_records
 
-    code = ("import sys; from fr_torch import FREstimator; from fr_torch.synthetic import synthetic_segments; "
-            "from fr_torch.core.geometry.conventions import rotation_from_angles; "
-            "s, _ = synthetic_segments(500.0, rotation_from_angles(10.0, 5.0, 2.0).numpy(), 640, 480, n_per_family=30, seed=0); "
-            "[r] = FREstimator(mode='fr').calibrate_segments([s], [(640, 480)]); assert r.ok, r.reason; "
-            "print('torch._dynamo' in sys.modules)")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.strip() == "False"
+    fresh = fresh_process_records("default")
+    assert fresh["fr_ok"][0], fresh["fr_ok"][1]
+    assert fresh["dynamo_imported"] is False
 
 
 def test_compile_was_removed_with_a_one_line_reason(capsys):

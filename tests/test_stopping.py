@@ -64,30 +64,63 @@ def _parts(out: Path) -> list[Path]:
     return list(out.glob("part-*.parquet")) if out.is_dir() else []
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGKILL], ids=lambda s: s.name)
-def test_stopped_batch_leaves_no_process_and_a_rerun_completes_it(folder, tmp_path, signum):
-    out = tmp_path / "out.parquet"
-    stderr_path = tmp_path / "stderr.txt"
-    env = checkout_env(FR_BATCH_STALL=f"room{STALLED}.png:60", OMP_NUM_THREADS="1")
-    command = [sys.executable, "-m", "fr_torch.cli", "batch", str(folder), "--out", str(out), "--fast",
-               "--batch-size", str(BATCH), "--workers", "2", "--no-progress"]
-    with open(stderr_path, "w") as stderr:
-        process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=stderr,
-                                   start_new_session=True, preexec_fn=_default_sigint)
-    left: list[int] = []
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGKILL)
+
+
+@pytest.fixture(scope="module")
+def stopped_runs(folder, tmp_path_factory) -> dict:
+    """One ``fr batch`` per signal, the three started together (their start-up -- torch, fork server,
+    workers -- is most of a run), each stopped by its signal once it waits on the stalled batch.  The
+    signals are sent one run at a time, each run's pool given :data:`POOL_GONE_S` on a quiet machine
+    (the other runs wait on their stalled batch meanwhile).  Per signal name: out, stderr_path, pool
+    (its processes before the signal), left, returncode, or error (why it was not stopped)."""
+    env = checkout_env(FR_BATCH_STALL=f"room{STALLED}.png:180", OMP_NUM_THREADS="1")
+    runs = {}
     try:
-        deadline = time.monotonic() + 120
-        while len(_parts(out)) < STALLED // BATCH:  # the batches before the stalled one are written
-            assert process.poll() is None, stderr_path.read_text()
-            assert time.monotonic() < deadline, "no part written in 120 s"
+        for signum in SIGNALS:
+            base = tmp_path_factory.mktemp(f"stop_{signum.name}")
+            run = runs[signum.name] = {"out": base / "out.parquet", "stderr_path": base / "stderr.txt"}
+            command = [sys.executable, "-m", "fr_torch.cli", "batch", str(folder), "--out", str(run["out"]),
+                       "--fast", "--batch-size", str(BATCH), "--workers", "2", "--no-progress"]
+            with open(run["stderr_path"], "w") as stderr:
+                run["process"] = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=stderr,
+                                                  start_new_session=True, preexec_fn=_default_sigint)
+        deadline = time.monotonic() + 180
+        waiting = set(runs)
+        while waiting:  # the batches before the stalled one are written
+            for name in sorted(waiting):
+                run = runs[name]
+                if len(_parts(run["out"])) >= STALLED // BATCH:
+                    waiting.discard(name)
+                elif run["process"].poll() is not None:
+                    run["error"] = f"fr batch ended ({run['process'].returncode}): " + run["stderr_path"].read_text()
+                    waiting.discard(name)
+                elif time.monotonic() > deadline:
+                    run["error"] = "no part written in 180 s"
+                    waiting.discard(name)
             time.sleep(0.05)
-        pool = session_processes(process.pid)
-        assert len(pool) >= 3, pool  # fork server, resource tracker, the workers
-        os.kill(process.pid, signum)
-        left = session_left(process.pid, time.monotonic())
-        returncode = process.wait(timeout=60)
+        for signum in SIGNALS:
+            run = runs[signum.name]
+            if "error" in run:
+                continue
+            process = run["process"]
+            run["pool"] = session_processes(process.pid)
+            os.kill(process.pid, signum)
+            run["left"] = session_left(process.pid, time.monotonic())
+            run["returncode"] = process.wait(timeout=60)
     finally:
-        reap_session(process)
+        for run in runs.values():
+            if "process" in run:
+                reap_session(run["process"])
+    return runs
+
+
+@pytest.mark.parametrize("signum", SIGNALS, ids=lambda s: s.name)
+def test_stopped_batch_leaves_no_process_and_a_rerun_completes_it(stopped_runs, folder, signum):
+    run = stopped_runs[signum.name]
+    assert "error" not in run, run.get("error")
+    out, stderr_path, left, returncode = run["out"], run["stderr_path"], run["left"], run["returncode"]
+    assert len(run["pool"]) >= 3, run["pool"]  # fork server, resource tracker, the workers
     assert not left, f"{len(left)} process(es) of the pool still running {POOL_GONE_S:.0f} s after {signum.name}"
     if signum == signal.SIGKILL:
         assert returncode == -signal.SIGKILL

@@ -62,20 +62,39 @@ def test_wheel_installs_and_runs_from_any_folder(tmp_path):
     work = tmp_path / "elsewhere"
     work.mkdir()
     fr = env_dir / ("Scripts/fr.exe" if os.name == "nt" else "bin/fr")
-    where = _run([str(python), "-c", "import fr_torch; print(fr_torch.__file__)"], cwd=work, env=env).stdout
+    # Four commands from elsewhere, run side by side (each is one process of its own): one python
+    # process says which fr_torch it imports, the methods its entry points register and which packages
+    # it finds (fr_eval ... installed; the folder names eval, baselines not); fr --help;
+    # python -m fr_eval --help; fr calibrate.
+    commands = {
+        "probe": [str(python), "-c", "import importlib.util as u, fr_torch; print(fr_torch.__file__); "
+                  "from fr_torch.plugins.interface import available_methods as m; print(m()); "
+                  "print([u.find_spec(n) is not None for n in ('fr_eval', 'fr_eval.datasets', 'fr_eval.protocols', "
+                  "'fr_eval.bench', 'fr_eval.scoring', 'fr_baselines', 'eval', 'baselines')])"],
+        "help": [str(fr), "--help"],
+        "eval_help": [str(python), "-m", "fr_eval", "--help"],
+        "calibrate": [str(fr), "calibrate", "--fast", str(REPO / "examples" / "room.png")],
+    }
+    running = {name: subprocess.Popen(cmd, cwd=work, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+               for name, cmd in commands.items()}
+    done = {}
+    try:
+        for name, process in running.items():
+            stdout, stderr = process.communicate(timeout=240)
+            assert process.returncode == 0, f"{commands[name]}: {stdout[-2000:]}\n{stderr[-2000:]}"
+            done[name] = stdout
+    finally:
+        for process in running.values():
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    where, methods, found = done["probe"].strip().splitlines()[-3:]
     assert str(env_dir) in where, where  # the wheel's copy, not the checkout
-    help_text = _run([str(fr), "--help"], cwd=work, env=env).stdout
     for command in ("calibrate", "track", "eval", "train-reliability", "bench"):  # harness: via entry points
-        assert command in help_text
-    methods = _run([str(python), "-c", "from fr_torch.plugins.interface import available_methods as m; print(m())"],
-                   cwd=work, env=env).stdout
+        assert command in done["help"]
     assert "lee2009" in methods  # baselines registered through the fr_torch.calibrators entry point
-    found = _run([str(python), "-c", "import importlib.util as u; print([u.find_spec(n) is not None for n in "
-                  "('fr_eval', 'fr_eval.datasets', 'fr_eval.protocols', 'fr_eval.bench', 'fr_eval.scoring', "
-                  "'fr_baselines', 'eval', 'baselines')])"], cwd=work, env=env).stdout
     assert found.strip() == "[True, True, True, True, True, True, False, False]", found
-    assert "train-reliability" in _run([str(python), "-m", "fr_eval", "--help"], cwd=work, env=env).stdout
-    out = _run([str(fr), "calibrate", "--fast", str(REPO / "examples" / "room.png")], cwd=work, env=env)
-    record = json.loads(out.stdout.strip().splitlines()[0])
+    assert "train-reliability" in done["eval_help"]
+    record = json.loads(done["calibrate"].strip().splitlines()[0])
     assert record["ok"] and abs(record["focal_px"] - 420) < 15
     assert record["predicted_error"] is not None  # the shipped reliability model was found
