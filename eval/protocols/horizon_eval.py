@@ -226,7 +226,8 @@ def run(args: argparse.Namespace) -> int:
     for spec in methods:
         try:
             rows += evaluate_method(spec, samples, pp_mode=args.pp, known_focal=args.known_focal, dataset=args.dataset,
-                                    device=args.device, calibrator=calibrators[spec], row_of=horizon_row)
+                                    device=args.device, calibrator=calibrators[spec], row_of=horizon_row,
+                                    progress=not args.no_progress)
         except ValueError as exc:  # e.g. --pp calibrated on a dataset without a principal point
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -159,6 +159,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated deviation measures (e.g. a,b,c,d,e): run every method as "
                              "<method>[measure=x] and write the deviation-measure table")
     parser.add_argument("--out", default=None, help="output folder (default results/<dataset>)")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar (there is one only when stderr is a terminal)")
     parser.add_argument("--data-root", default=None, help="dataset root (default $FR_DATA or ../shared/data)")
     parser.add_argument("--pp", choices=("centre", "calibrated"), default="centre",
                         help="principal point given to the methods: image centre (paper, default) or "
@@ -298,7 +300,8 @@ def evaluate_method(spec: str, samples: Sequence[Any], *, pp_mode: str = "centre
     method = calibrator if calibrator is not None else make_calibrator(base_spec, device)
     rows = []
     na_streak: str | None = None  # the n/a reason every answer so far had
-    for i, sample in enumerate(tqdm(samples, desc=spec, unit="img", disable=not progress, file=sys.stderr)):
+    for i, sample in enumerate(tqdm(samples, desc=spec, unit="img", disable=not progress or not sys.stderr.isatty(),
+                                    file=sys.stderr)):
         meta = build_meta(sample, pp_mode, labelled, known_focal, dataset, device)
         has_image = getattr(sample, "image_path", None) is not None
         est = None
@@ -462,7 +465,8 @@ def run(args: argparse.Namespace) -> int:
     summaries, group_summaries = [], []
     for spec in methods:
         rows = evaluate_method(spec, samples, pp_mode=args.pp, known_focal=args.known_focal,
-                               dataset=args.dataset, device=args.device, calibrator=calibrators[spec])
+                               dataset=args.dataset, device=args.device, calibrator=calibrators[spec],
+                               progress=not args.no_progress)
         if group_key:
             for row in rows:
                 row["group"] = groups.get(row["image"])

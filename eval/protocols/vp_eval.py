@@ -106,8 +106,8 @@ def run_setting(spec: str, calibrator, samples: Sequence[Any], intrinsics: str, 
     known = intrinsics == "known"
     per_image: list[dict[str, np.ndarray | None]] = []
     times, reasons = [], []
-    for i, sample in enumerate(tqdm(samples, desc=f"{spec} ({intrinsics})", unit="img", disable=not progress,
-                                    file=sys.stderr)):
+    for i, sample in enumerate(tqdm(samples, desc=f"{spec} ({intrinsics})", unit="img",
+                                    disable=not progress or not sys.stderr.isatty(), file=sys.stderr)):
         meta = build_meta(sample, "calibrated" if known else "centre", False, known, dataset, device)
         image = load_image(sample.image_path) if getattr(sample, "image_path", None) is not None else None
         estimate, wall = _call(calibrator, spec, image, meta)
@@ -193,7 +193,8 @@ def run(args: argparse.Namespace) -> int:
         reuse = None
         for setting in settings:
             if reuse is None or getattr(calibrator, "uses_intrinsics", True):
-                reuse = run_setting(spec, calibrator, samples, setting, args.dataset, args.device)
+                reuse = run_setting(spec, calibrator, samples, setting, args.dataset, args.device,
+                                    progress=not getattr(args, "no_progress", False))
             points, wall, reasons = reuse
             times[(spec, setting)] = float(np.mean(wall))
             for name, per_image in points.items():
