@@ -177,8 +177,8 @@ class Patience:
         self.active: torch.Tensor | None = None  # (B, 1, 1) images still refined; None = all
         self.done = False
 
-    def update(self, objective: torch.Tensor) -> torch.Tensor | None:
-        """Record one step's objectives (B, L); returns the mask of images still refined."""
+    def update(self, objective: torch.Tensor) -> None:
+        """Record one step's objectives (B, L); :attr:`active` and :attr:`done` follow them."""
         self.history.append(objective.detach() / self.total_length)
         if len(self.history) > self.patience:
             old = self.history.pop(0)
@@ -186,7 +186,6 @@ class Patience:
             moving = ((change > self.tolerance) & torch.isfinite(change)).any(1)  # (B,)
             self.active = moving[:, None, None] if self.active is None else self.active & moving[:, None, None]
             self.done = not bool(self.active.any())
-        return self.active
 
 
 def adam_in_box(u: torch.Tensor, box: UnitBox, iterations: int, lr0: float, lr_final: float, gradient,
@@ -204,7 +203,6 @@ def adam_in_box(u: torch.Tensor, box: UnitBox, iterations: int, lr0: float, lr_f
     gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
     optimiser = Adam(u, lr0, gamma, betas=(0.5, 0.9))
     all_free = bool(box.free.all())
-    active = None  # (B, 1, 1) images still refined under the stopping rule
     for _ in range(iterations):
         objective, grad = gradient(u)
         grad = grad.to(u.dtype)
@@ -213,13 +211,13 @@ def adam_in_box(u: torch.Tensor, box: UnitBox, iterations: int, lr0: float, lr_f
         grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
         if grad_bound is not None:
             grad = grad.clamp_(-grad_bound, grad_bound)
-        optimiser.step(grad, active)
+        optimiser.step(grad, None if stop is None else stop.active)
         with torch.no_grad():
             if periodic_pan:
                 u[..., PAN] = torch.remainder(u[..., PAN], 1.0)
             u.clamp_(0.0, 1.0)
         if stop is not None:
-            active = stop.update(objective)
+            stop.update(objective)
             if stop.done:
                 break
 
