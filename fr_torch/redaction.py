@@ -29,7 +29,8 @@ SECRET_NAME = re.compile(r"pass|pwd|token|key|auth|sig|secret|cred|session|sid|t
 #: A URL in a text: a scheme, ``://`` and what follows up to white space or a quote, less a
 #: sentence's closing punctuation.
 URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s'\"<>`]*[^\s'\"<>`.,;:)\]]")
-_SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
+#: The start of a ``scheme://`` URL (a stream's address, not a file path).
+SCHEME = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
 
 def secret_name(name: str) -> bool:
@@ -55,7 +56,7 @@ def redact_url(url: str) -> str:
     >>> redact_url("rtsp://admin:hunter2@10.0.0.5:554/live?channel=1&token=abc")
     'rtsp://admin:***@10.0.0.5:554/live?channel=1&token=***'
     """
-    match = _SCHEME.match(url)
+    match = SCHEME.match(url)
     if not match:
         return url
     scheme, rest = match.group(0), url[match.end():]

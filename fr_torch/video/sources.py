@@ -63,12 +63,11 @@ import numpy as np
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import decode_image_bytes, load_image
 from fr_torch.images.stream import split_images
-from fr_torch.redaction import redact_text, redact_url
+from fr_torch.redaction import SCHEME, redact_text, redact_url
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 #: Frames a live source may queue without real time (then the reader waits for the search).
 QUEUE_LENGTH = 64
-_URL = re.compile(r"^[A-Za-z][A-Za-z0-9+.-]*://")
 
 
 def log_line(message: str) -> None:
@@ -112,7 +111,7 @@ class Source:
         text = os.fspath(text)
         if text == "-":
             return cls("stdin", "-")
-        if _URL.match(text):
+        if SCHEME.match(text):
             return cls("stream", text)
         path = Path(text)
         if path.is_dir():
