@@ -69,3 +69,16 @@ def session_processes(session: int) -> list[int]:
         if int(sid) == session and state not in ("Z", "X"):
             found.append(int(entry.name))
     return found
+
+
+def session_cpu_s(session: int) -> float:
+    """CPU seconds (user + system) used so far by the leader of the session ``session`` and its
+    live processes (:func:`session_processes`), from /proc (0 for a process gone)."""
+    total = 0
+    for pid in [session] + session_processes(session):
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])  # utime, stime (clock ticks)
+        except (OSError, IndexError, ValueError):
+            pass
+    return total / os.sysconf("SC_CLK_TCK")

@@ -25,23 +25,11 @@ import urllib.request
 from pathlib import Path
 
 from fr_eval.datasets.live_stream import MJPEGServer, SyntheticCamera
+from fr_eval.machine import session_cpu_s
 
 
 def _records(out: Path) -> int:
     return sum(max(0, len(path.read_bytes().splitlines()) - 1) for path in out.glob("*/frames.csv"))
-
-
-def session_cpu_s(session: int) -> float:
-    """CPU seconds (user + system) used so far by the live processes of ``session`` (Linux /proc)."""
-    total, tick = 0.0, os.sysconf("SC_CLK_TCK")
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[3]) == session:  # fields after the name: state ppid pgrp session ... utime(12) stime(13)
-            total += (int(fields[11]) + int(fields[12])) / tick
-    return total
 
 
 def run(urls: list[str], seconds: float, metrics_port: int | None, scrape_every: float) -> tuple[float, float, int]:

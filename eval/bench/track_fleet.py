@@ -54,7 +54,7 @@ import pandas as pd
 
 from fr_eval.bench.track_live import FR, _env, _records_check, _stop, default_stop_signals
 from fr_eval.datasets.live_stream import MJPEGServer, SyntheticCamera
-from fr_eval.machine import machine_description, proc_status_kb, session_processes
+from fr_eval.machine import machine_description, proc_status_kb, session_cpu_s, session_processes
 from fr_eval.paths import REPO
 from fr_torch.core.geometry.conventions import rotation_angles
 from fr_torch.video.records import CAMERA_KEY, RECORD_KEYS
@@ -147,15 +147,8 @@ class Run:
 
     def cpu_s(self) -> float:
         """CPU seconds (user + system) used so far by the fr track process and every live process it
-        started, from /proc (0 for a process gone)."""
-        total = 0
-        for pid in [self.process.pid] + session_processes(self.process.pid):
-            try:
-                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-                total += int(fields[11]) + int(fields[12])  # utime, stime (clock ticks)
-            except (OSError, IndexError, ValueError):
-                pass
-        return total / os.sysconf("SC_CLK_TCK")
+        started (:func:`fr_eval.machine.session_cpu_s`)."""
+        return session_cpu_s(self.process.pid)
 
     def rss_mb(self) -> float:
         """Resident memory of the fr track process and of every process it started (its search
