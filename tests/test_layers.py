@@ -8,6 +8,7 @@ import subprocess
 import sys
 import tomllib
 
+from fr_torch.core import ROOMS
 from tests.conftest import REPO, checkout_env
 
 # an import of, or a dotted module path into, the harness / baselines under their installed names
@@ -88,17 +89,9 @@ LAYERS = (
     {"cli"},  # the fr command
 )
 
-#: Rooms of the engine fr_torch.core, lowest first (fr_torch/core/__init__.py): a module imports
-#: its own room and those below it.
-CORE_ROOMS = (
-    {"exact"},  # arithmetic with the same bits everywhere
-    {"geometry"},  # the camera model
-    {"settings"},  # settings parsed into types
-    {"likelihood"},  # segments, measures, the mixture, the fused objective
-    {"search"},  # grid -> passes -> refine, and the fits
-    {"reliability"},  # cues, error model, bounds, sanity checks
-    {"estimator", "result", "exports"},  # the estimator over segment batches, its result
-)
+#: Rooms of the engine fr_torch.core, lowest first, as the package declares them
+#: (fr_torch/core/__init__.py, ROOMS): a module imports its own room and those below it.
+CORE_ROOMS = tuple(set(room) for room in ROOMS)
 
 #: Layers of the harness fr_eval (folder eval/), lowest first, by sub-package or top-level module.
 HARNESS_LAYERS = (

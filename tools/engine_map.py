@@ -17,22 +17,23 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+from fr_torch.core import ROOMS as CORE_ROOMS
+
 REPO = Path(__file__).resolve().parents[1]
 CORE = REPO / "fr_torch" / "core"
 ARCHITECTURE = REPO / "docs" / "architecture.md"
 FIGURE = REPO / "docs" / "engine.png"
 BEGIN, END = "<!-- engine-imports: begin (python tools/engine_map.py) -->", "<!-- engine-imports: end -->"
 
-#: The rooms in the order of the engine's stages, lowest first, with the modules at core's top level
-#: that form a room of their own.
-ROOMS = ("exact", "geometry", "settings", "likelihood", "search", "reliability", "estimator")
-TOP_LEVEL = {"exact": "exact", "estimator": "estimator", "result": "estimator", "exports": "estimator"}
+#: The rooms in the order of the engine's stages, lowest first, by their label
+#: (:data:`fr_torch.core.ROOMS`), and the room of each first name below ``fr_torch.core``.
+ROOMS = tuple(room[0] for room in CORE_ROOMS)
+ROOM_OF_NAME = {name: room[0] for room in CORE_ROOMS for name in room}
 
 
 def room_of(module: str) -> str | None:
     """The room of a dotted module below ``fr_torch.core`` (``search.refine`` -> ``search``)."""
-    first = module.split(".")[0]
-    return TOP_LEVEL.get(first, first if first in ROOMS else None)
+    return ROOM_OF_NAME.get(module.split(".")[0])
 
 
 def modules() -> dict[str, Path]:

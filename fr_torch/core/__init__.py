@@ -1,7 +1,7 @@
 """The tensor engine: a photo's segments in, a camera and how far to trust it out.
 
 Rooms, lowest first; a module imports only its own room and the rooms below it
-(``tests/test_layers.py``, ``CORE_ROOMS``):
+(:data:`ROOMS`; ``tests/test_layers.py`` checks it):
 
 0. :mod:`~fr_torch.core.exact` -- arithmetic that gives the same bits in any batch, thread count,
    kernel set and device: exact sums, written-out products, tie rules.
@@ -23,3 +23,8 @@ No file I/O beyond the shipped configuration files, no argparse, no processes: e
 on tensors (CPU or CUDA) and is what the layers above (:mod:`fr_torch.runtime`, :mod:`fr_torch.cli`)
 call.  ``docs/architecture.md`` draws the rooms and the path a photo's segments take through them.
 """
+
+#: The rooms, lowest first, each the names of its first level below ``fr_torch.core`` (a subpackage,
+#: or the top-level modules that form the room); its first name labels it.
+ROOMS = (("exact",), ("geometry",), ("settings",), ("likelihood",), ("search",), ("reliability",),
+         ("estimator", "result", "exports"))
