@@ -81,7 +81,8 @@ def unbounded_bounds(error_bound: dict[str, Any] | None) -> dict[str, bool] | No
     the quantity open); None without bounds."""
     if not error_bound:
         return None
-    return {name: _finite(error_bound.get(name)) and error_bound[name] > NO_INFORMATION[name] for name in BOUND_TARGETS}
+    return {name: is_finite_number(error_bound.get(name)) and error_bound[name] > NO_INFORMATION[name]
+            for name in BOUND_TARGETS}
 
 
 def horizon_unbounded(error_bound: dict[str, Any] | None, tilt_deg: float | None, bound_pct: float | None) -> bool:
@@ -91,11 +92,14 @@ def horizon_unbounded(error_bound: dict[str, Any] | None, tilt_deg: float | None
     infinity), or a bound at the core's cap :data:`~fr_torch.core.reliability.bounds.HORIZON_BOUND_CAP_PCT`."""
     flags = unbounded_bounds(error_bound) or {}
     tilt_bound = (error_bound or {}).get("tilt_deg")
-    reaches = _finite(tilt_bound) and _finite(tilt_deg) and abs(tilt_deg) + tilt_bound >= HORIZON_TILT_LIMIT_DEG
-    return bool(any(flags.values()) or reaches or (_finite(bound_pct) and bound_pct >= HORIZON_BOUND_CAP_PCT))
+    reaches = (is_finite_number(tilt_bound) and is_finite_number(tilt_deg)
+               and abs(tilt_deg) + tilt_bound >= HORIZON_TILT_LIMIT_DEG)
+    capped = is_finite_number(bound_pct) and bound_pct >= HORIZON_BOUND_CAP_PCT
+    return bool(any(flags.values()) or reaches or capped)
 
 
-def _finite(value: Any) -> bool:
+def is_finite_number(value: Any) -> bool:
+    """True for a finite int or float (not a bool, not None): a value a record writes as a number."""
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 

@@ -35,7 +35,6 @@ metric                                   type      value
 from __future__ import annotations
 
 import ipaddress
-import math
 import time
 from dataclasses import dataclass
 from typing import Callable, Iterator, Sequence
@@ -44,6 +43,7 @@ from prometheus_client import CollectorRegistry, start_http_server
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from fr_torch.errors import FRInputError
+from fr_torch.runtime.schema import is_finite_number
 
 #: The metrics' prefix.
 PREFIX = "fr_track_"
@@ -111,10 +111,10 @@ class TrackCollector:
             calibration = output.calibration or {}
             for name, text, key, sigma_key in FUSED:
                 value = calibration.get(key) if key else (calibration.get("sigma") or {}).get(sigma_key)
-                if _number(value):
+                if is_finite_number(value):
                     family(GaugeMetricFamily, name, text).add_metric([label], float(value))
             horizon = calibration.get("horizon") or {}
-            if _number(horizon.get("bound_pct")):
+            if is_finite_number(horizon.get("bound_pct")):
                 family(GaugeMetricFamily, "horizon_bound_pct", "90 % bound of the fused horizon at the image "
                        "borders, % of the image height").add_metric([label], float(horizon["bound_pct"]))
             if horizon:
@@ -139,10 +139,6 @@ class TrackCollector:
                     ("reconnects", "reconnections of the source in this run", stream.reconnects)):
                 family(CounterMetricFamily, name, text).add_metric([label], float(value))
         yield from families.values()
-
-
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 class MetricsServer:
