@@ -74,7 +74,7 @@ def test_jpeg_header(room):
 
 def test_decode_batch_routes_and_fails_per_file(files, fake_device_decoder):
     names = ["a.jpg", "b.png", "rotated.jpg", "broken.jpg", "missing.jpg", "empty.jpg", "big.jpg"]
-    decoded = decode_batch([str(files / n) for n in names], names, torch.device("cpu"))
+    decoded = decode_batch([str(files / n) for n in names], names, torch.device("cpu"), 640)
     assert fake_device_decoder == [3]  # a.jpg, broken.jpg and big.jpg (1.5x the working side) tried on the device
     by_name = dict(zip(names, decoded))
     assert by_name["a.jpg"].error is None and tuple(by_name["a.jpg"].pixels.shape) == (HEIGHT, WIDTH)

@@ -24,7 +24,8 @@ from fr_torch import FREstimator, FRInputError
 from fr_torch.cli.main import main
 from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.core.likelihood.mixture import LikelihoodParams
-from fr_torch.images.io import load_image, probe_image_size, read_image
+from fr_torch.images.io import WORKING_LONG_SIDE, load_image, parse_working_long_side, probe_image_size, read_image
+from fr_torch.plugins.methods import FRCalibrator
 from fr_torch.output import dumps, json_safe
 from fr_torch.synthetic import render_manhattan_room
 from tests.conftest import checkout_env, with_exif_orientation
@@ -312,6 +313,39 @@ def test_same_scene_at_two_resolutions_gives_the_same_camera():
     assert abs(a.hfov_deg - b.hfov_deg) < 0.02 * a.hfov_deg
     assert b.focal_px == pytest.approx(4 * a.focal_px, rel=0.02)
     assert b.segments.max() > 1100  # segments reported in the input's pixels
+
+
+@pytest.mark.parametrize("value, expected", [(640, 640), ("1280", 1280), (2048.0, 2048), ("input", None),
+                                             (" Input ", None), (None, None)])
+def test_working_long_side_is_parsed_once(value, expected):
+    assert parse_working_long_side(value) == expected
+    assert FREstimator(mode="fast", reliability=None, working_long_side=value).working_long_side == expected
+
+
+@pytest.mark.parametrize("value", [0, 63, -640, 640.5, "640px", "nan", True, [640]])
+def test_a_bad_working_long_side_is_one_line(value, capsys):
+    with pytest.raises(FRInputError, match="working_long_side: expected a whole number") as caught:
+        FREstimator(mode="fast", reliability=None, working_long_side=value)
+    assert "\n" not in str(caught.value)
+    code = main(["calibrate", "--fast", "missing.png", "--working-long-side", str(value)])
+    err = capsys.readouterr().err
+    assert code == 2 and "--working-long-side: expected" in err and len(err.strip().splitlines()) == 1
+
+
+def test_working_long_side_caps_the_detection_not_the_answer_s_pixels():
+    """A 1600 x 1200 room: the default detects it at WORKING_LONG_SIDE, 640 at 640 and ``input`` at
+    1600, and every answer is in the input's pixels (focal within 3 % of each other)."""
+    rotation = rotation_from_angles(-10.0, 6.0, 3.0).numpy()
+    image = render_manhattan_room(1000.0, rotation, 1600, 1200, seed=11)
+    results = {}
+    for side in (640, None, "input"):
+        estimator = FREstimator(mode="fast", reliability=None, **({} if side is None else {"working_long_side": side}))
+        [results[side]] = estimator.calibrate_images([image])
+    assert estimator.working_long_side is None and WORKING_LONG_SIDE < 1600
+    for result in results.values():
+        assert result.ok and (result.width, result.height) == (1600, 1200)
+        assert result.focal_px == pytest.approx(1000.0, rel=0.03)
+    assert FRCalibrator(mode="fr", working_long_side="640").name == "fr[working_long_side=640]"
 
 
 # --------------------------------------------------------------------------- slow: memory and many images

@@ -134,13 +134,13 @@ def test_sharded_segments_equal_in_process():
 def test_calibrate_detections_works_in_input_pixels():
     """Detections carry working-pixel segments; the caller's focal / principal point and every
     result are in the input's pixels; a bad detection or camera fails only its own image."""
-    est = FREstimator(mode="fast")
+    est = FREstimator(mode="fast", working_long_side=640)
     rng = np.random.default_rng(5)
     big = render_manhattan_room(1000.0, random_rotation(rng, pan=(-25, 25), pitch=(-8, 8), roll=(-4, 4)),
                                 1280, 960, seed=7)  # worked on at 640 x 480: scale 2
     images = [big, big, np.zeros((0, 0), np.uint8), big]
     names = ["known", "pp", "empty", "absurd"]
-    detections = list(iter_detections(images, names, est.detector, est.segment_filter))
+    detections = list(iter_detections(images, names, est.detector, est.segment_filter, working_long_side=640))
     assert detections[0].scale == pytest.approx(2.0) and detections[0].input_size == (1280, 960)
     results = est.calibrate_detections(detections, names, focal_px=[1000.0, None, None, 1e9],
                                        principal_point=[None, (650.0, 470.0), None, None])

@@ -148,6 +148,20 @@ def test_resolution_check_runs_on_upscaled_images(data_root, tmp_path):
     assert "| 2x | 1280x960 | 2/2 |" in text and "nan" not in text and "Failed" not in text
 
 
+def test_working_resolution_compares_caps(data_root, tmp_path, capsys):
+    """`fr_eval.protocols.working_resolution` (results/resolution/working/): one row per cap, the
+    upscaled photos scored in their own pixels; a bad cap is a one-line usage error."""
+    from fr_eval.protocols.working_resolution import main
+
+    assert main(["--dataset", "yud", "--split", "train", "--mode", "fast", "--caps", "320,input", "--upscale", "2",
+                 "--limit", "2", "--data-root", str(data_root), "--out", str(tmp_path)]) == 0
+    text = (tmp_path / "yud_train_fast_x2.md").read_text()
+    assert "| 320 | " in text and "| input | " in text and "(2) |" in text and "nan" not in text
+    with pytest.raises(SystemExit) as stop:
+        main(["--caps", "12"])
+    assert stop.value.code == 2 and "--caps: expected a whole number" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("scales", ["0,2", "1,x", ""])
 def test_resolution_check_rejects_bad_scales(scales, capsys):
     from fr_eval.protocols.resolution_check import main

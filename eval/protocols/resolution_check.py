@@ -102,7 +102,7 @@ def main(argv=None) -> int:
               f"point at the image centre; means ± standard error over the valid estimates). {machine['cpu']}, "
               f"{machine['usable_cores']} usable cores, torch {machine['torch']}, {machine['threads']} threads; "
               f"ms = detection at the working resolution (long side <= {WORKING_LONG_SIDE} px, "
-              f"`fr_torch/image_io.WORKING_LONG_SIDE`; the {estimator.segment_filter.max_segments} longest segments) "
+              f"`fr_torch.images.io.WORKING_LONG_SIDE`; the {estimator.segment_filter.max_segments} longest segments) "
               f"+ search, decode excluded."]
     text = "\n".join(lines) + "\n"
     print(text)

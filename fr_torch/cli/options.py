@@ -23,6 +23,7 @@ from fr_torch.core.settings.checks import finite_number, positive_number
 from fr_torch.core.settings.config import FITS, Mode, SearchConfig
 from fr_torch.core.settings.distortion import DistortionMode
 from fr_torch.errors import FRInputError
+from fr_torch.images.io import WORKING_LONG_SIDE, parse_working_long_side
 from fr_torch.runtime.device import DECODE_CHOICES, DevicePolicy
 
 MEASURE_CHOICES = tuple("abcde")
@@ -60,6 +61,10 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
                             "its horizon, with a truncated vote, reported with fR's focal length; docs/horizon.md) or choose "
                             "(per photo, by a rule learned on NYU-VP train from the photo's evidence); the JSON's "
                             "model says which fit an estimate comes from")
+    group.add_argument("--working-long-side", default=None, metavar="PX|input",
+                       help=f"detect the lines on a copy of each image whose long side is at most PX pixels "
+                            f"(default {WORKING_LONG_SIDE}; 'input' = the input's own resolution, slower for large "
+                            f"photos); results are always in the input's pixels")
     group.add_argument("--compile", action="store_true", help=argparse.SUPPRESS)  # removed: one-line error
     group.add_argument("--atlanta", nargs="?", const="on", default=None, metavar="SETTINGS",
                        help="also find extra horizontal vanishing points at free azimuths (Atlanta world) and rank "
@@ -154,7 +159,15 @@ def estimator_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """FREstimator keyword arguments from :func:`add_estimator_arguments`'s options (picklable)."""
     return dict(mode=Mode.FAST if args.fast else Mode.FR, measure=args.measure, detector=args.detector,
                 likelihood=args.likelihood, device=args.device, decode=getattr(args, "decode", "auto"),
-                search_config=search_config(args), atlanta=AtlantaConfig.parse(getattr(args, "atlanta", None)))
+                search_config=search_config(args), atlanta=AtlantaConfig.parse(getattr(args, "atlanta", None)),
+                working_long_side=working_long_side(args))
+
+
+def working_long_side(args: argparse.Namespace) -> int | None:
+    """The working resolution's cap of ``--working-long-side`` (pixels; None = the input's own), the
+    shipped default when the option is absent; FRInputError (one line) when malformed."""
+    value = getattr(args, "working_long_side", None)
+    return WORKING_LONG_SIDE if value is None else parse_working_long_side(value, "--working-long-side")
 
 
 def device_policy(args: argparse.Namespace) -> DevicePolicy:

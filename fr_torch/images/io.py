@@ -22,12 +22,13 @@ Policy (what a file may cost before it is refused or reduced):
   the displayed (upright) picture, not to the sensor's raw pixel rows.
 
 Working resolution: the detector runs on a copy whose long side is at most
-:data:`WORKING_LONG_SIDE` pixels (default 640, the resolution of the benchmarks the method was
-designed on; images smaller than that are used as they are).  The estimate is made in working
-pixels and brought back (``scale`` = input pixels per working pixel; points map as the resize
-maps pixels, :func:`fr_torch.core.geometry.conventions.resize_points`, pixel centres at integers), so results are
-always reported in the **input image's pixels**, and the time per image does not grow with the
-input resolution.
+:data:`WORKING_LONG_SIDE` pixels (images smaller than that are used as they are; a setting of the
+estimator, :func:`parse_working_long_side`).  The estimate is made in working pixels and brought
+back (``scale`` = input pixels per working pixel; points map as the resize maps pixels,
+:func:`fr_torch.core.geometry.conventions.resize_points`, pixel centres at integers), so results are
+always reported in the **input image's pixels**.  The detection's time grows with the working
+image's pixels up to the cap; the search keeps a fixed number of the longest segments, so its
+time does not.
 """
 from __future__ import annotations
 
@@ -56,7 +57,11 @@ def _env_number(name: str, default: float) -> float:
 MAX_IMAGE_PIXELS = int(_env_number("FR_MAX_IMAGE_PIXELS", 600e6))
 MAX_FILE_BYTES = int(_env_number("FR_MAX_FILE_BYTES", 512 * 2 ** 20))
 MAX_COLOR_BYTES = 400 * 2 ** 20  # above this a colour decode would be too big: decode in grey
-WORKING_LONG_SIDE = 640
+#: The default cap on the long side (pixels) of the image the lines are detected on: a larger photo
+#: is brought down to it, a smaller one is used as it is.
+WORKING_LONG_SIDE = 1280
+#: The smallest cap :func:`parse_working_long_side` accepts (pixels).
+MIN_WORKING_LONG_SIDE = 64
 # OpenCV reads this once, at its first decode: bound the formats we cannot probe as well.
 os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
 
@@ -379,6 +384,22 @@ def _is_jpeg(path) -> bool:
             return handle.read(2) == b"\xff\xd8"
     except OSError:
         return False
+
+
+def parse_working_long_side(value, name: str = "working_long_side") -> int | None:
+    """The working resolution's cap from a setting: a whole number of pixels >= :data:`MIN_WORKING_LONG_SIDE`
+    (an int or its text), or ``None`` / ``"input"`` for the input's own resolution (no cap).
+    Anything else is an FRInputError (one line) naming the setting ``name``."""
+    if value is None or (isinstance(value, str) and value.strip().lower() == "input"):
+        return None
+    try:
+        number = int(value) if not isinstance(value, float) or float(value).is_integer() else None
+    except (TypeError, ValueError):
+        number = None
+    if isinstance(value, bool) or number is None or number < MIN_WORKING_LONG_SIDE:
+        raise FRInputError(f"{name}: expected a whole number of pixels >= {MIN_WORKING_LONG_SIDE} "
+                           f"or 'input', got {value!r}")
+    return number
 
 
 def working_size(size: tuple[int, int], max_long_side: int | None = WORKING_LONG_SIDE) -> tuple[int, int]:

@@ -15,7 +15,9 @@ three; f and R unchanged; ``atlanta=max_extra=2:prior=0.05`` sets its parameters
 ranked by support (``CameraEstimate.ranked_vanishing_points``).  ``fr[distortion=division]`` /
 ``fr[distortion=auto]`` (radial distortion estimated, see :mod:`fr_torch.core.geometry.lens`) and
 ``fr[k=-0.2]`` (a known k); ``fr[fit=choose]`` / ``fr[fit=horizon]`` (what the search returns,
-:attr:`fr_torch.core.settings.config.SearchConfig.fit`).
+:attr:`fr_torch.core.settings.config.SearchConfig.fit`); ``fr[working_long_side=640]`` /
+``fr[working_long_side=input]`` (the cap on the long side the lines are detected at,
+:func:`fr_torch.images.io.parse_working_long_side`).
 """
 from __future__ import annotations
 
@@ -80,7 +82,7 @@ class FRCalibrator:
             "measure": measure or None, "detector": detector if detector != "lsd" else None,
             "likelihood": likelihood or None, "range": range if isinstance(range, str) else None, "model": model,
             "atlanta": atlanta if self.estimator.atlanta is not None else None, "distortion": distortion, "k": k,
-            "fit": fit})
+            "fit": fit, "working_long_side": estimator_kwargs.get("working_long_side")})
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
         start = time.perf_counter()

@@ -40,6 +40,7 @@ from fr_torch.errors import FRInputError
 from fr_torch.images.io import (
     WORKING_LONG_SIDE,
     focal_and_pp_to_working,
+    parse_working_long_side,
     result_to_input_pixels,
 )
 from fr_torch.runtime.device import DevicePolicy
@@ -56,17 +57,21 @@ class FREstimator(SegmentEstimator):
     decoded and detected on the device (:mod:`fr_torch.runtime.device_pipeline`).  ``device``: a name (``cpu``, ``cuda``, ``cuda:1``), a torch.device or a
     :class:`~fr_torch.runtime.device.DevicePolicy` (:attr:`policy` holds the resolved one).
     ``decode``: where a GPU estimator decodes image files, ``"auto"``, ``"device"`` or ``"host"``
-    (:attr:`~fr_torch.runtime.device.DevicePolicy.decode`; a given policy keeps its own).  Images are detected at a long side of at most :attr:`working_long_side`
-    pixels; every result is reported in the input image's pixels.  The other arguments are the
-    engine's.
+    (:attr:`~fr_torch.runtime.device.DevicePolicy.decode`; a given policy keeps its own).
+    ``working_long_side``: images are detected at a long side of at most this many pixels
+    (default :data:`~fr_torch.images.io.WORKING_LONG_SIDE`; ``"input"`` or None: at the input's
+    own resolution; :func:`~fr_torch.images.io.parse_working_long_side`), held in
+    :attr:`working_long_side`; every result is reported in the input image's pixels.  The other
+    arguments are the engine's.
     """
 
     def __init__(self, mode: Mode | str = Mode.FR, measure: str | None = None, detector=None,
-                 device: str | torch.device | DevicePolicy = "cpu", decode: str = "auto", **kwargs):
+                 device: str | torch.device | DevicePolicy = "cpu", decode: str = "auto",
+                 working_long_side: int | str | None = WORKING_LONG_SIDE, **kwargs):
+        self.working_long_side = parse_working_long_side(working_long_side)
         self.policy = DevicePolicy.resolve(device, decode=decode)
         super().__init__(mode=mode, measure=measure, device=self.policy.device, **kwargs)
         self.detector = get_detector(self.policy.default_detector if detector is None else detector)
-        self.working_long_side = WORKING_LONG_SIDE
 
     def _calibrate(self, items, focal_list, pp_list, **kwargs) -> list[CalibrationResult]:
         """The engine's search, with the intra-op threads of :meth:`DevicePolicy.search_threads`."""
