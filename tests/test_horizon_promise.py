@@ -132,3 +132,23 @@ def test_batch_rows_carry_the_horizon_promise(tmp_path):
     assert table[1]["horizon_reason"] == "no segments"
     assert table[0]["error_bound"]["horizon_pct"] == pytest.approx(r.error_bound["horizon_pct"])
     assert table[0]["error_bound"]["limits"]["horizon_pct"] == 5.0
+
+
+def test_the_focal_tilt_route(tmp_path):
+    """With ``or_focal_tilt`` the horizon is trusted where the focal / tilt promise holds, whatever its
+    own bound; without it, only by its own bound."""
+    wide_but_kept = {"focal_profile_spread": 0.01, "focal_resample_spread": 0.004, "pitch_resample_spread": 1.0}
+    for route in (False, True):
+        model = _model(tmp_path)
+        config = json.loads((tmp_path / "reliability.json").read_text())
+        config["promise"]["horizon"] |= {"or_focal_tilt": route, "scales": {"fast": 30.0}}
+        (tmp_path / "reliability.json").write_text(json.dumps(config))
+        model = ReliabilityModel.load_default("fast", config_dir=tmp_path)
+        r = _result(wide_but_kept)
+        model.annotate_many([r], mode="fast")
+        assert r.reliable and r.error_bound["horizon_pct"] > 5.0  # the focal / tilt promise holds
+        assert r.horizon_reliable is route
+        assert route or r.horizon_reason.startswith("outside the horizon promise: 90 % bound of the horizon")
+    promise = HorizonPromise(scales={"fr": 3.0}, or_focal_tilt=True)
+    assert promise.violation(7.0).endswith("and the focal / tilt promise does not hold")
+    assert promise.violation(7.0, focal_tilt_kept=True) is None
