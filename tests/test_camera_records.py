@@ -95,7 +95,8 @@ def test_horizon_only_and_focal_only_cameras():
 
 
 def test_json_schemas_unchanged():
-    assert JSON_KEYS == ("image", "width", "height", "ok", "reliable", "reason", "model", "focal_px",
+    assert JSON_KEYS == ("image", "width", "height", "ok", "reliable", "reason", "horizon_reliable", "horizon_reason",
+                         "model", "focal_px",
                          "hfov_deg", "principal_point", "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg",
                          "pitch_deg", "vanishing_points", "ranked_vanishing_points", "horizon", "distortion",
                          "log_likelihood",

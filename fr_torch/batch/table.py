@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 
 from fr_torch.core.reliability.model import TARGETS
 from fr_torch.redaction import redact_text, redact_url
-from fr_torch.runtime.schema import ALL_CUES, BOUND_TARGETS, RUNTIME_STAGES, complete
+from fr_torch.runtime.schema import ALL_CUES, BOUND_TARGETS, HORIZON_BOUND, RUNTIME_STAGES, complete
 
 # Keys of the dict-valued result fields (struct columns, :data:`fr_torch.runtime.schema.TEMPLATE`).
 RUNTIME_KEYS = RUNTIME_STAGES
@@ -47,7 +47,8 @@ def result_schema():
     mat3 = pa.list_(pa.list_(f64))
     return pa.schema([
         ("image", pa.string()), ("width", pa.int32()), ("height", pa.int32()),
-        ("ok", pa.bool_()), ("reliable", pa.bool_()), ("reason", pa.string()), ("model", pa.string()),
+        ("ok", pa.bool_()), ("reliable", pa.bool_()), ("reason", pa.string()),
+        ("horizon_reliable", pa.bool_()), ("horizon_reason", pa.string()), ("model", pa.string()),
         ("focal_px", f64), ("hfov_deg", f64), ("principal_point", pa.list_(f64)),
         ("rotation", mat3), ("vertical_axis", pa.int8()),
         ("pan_deg", f64), ("tilt_deg", f64), ("roll_deg", f64), ("pitch_deg", f64),
@@ -62,8 +63,9 @@ def result_schema():
         ("manhattan_fraction", f64), ("segments_per_family", pa.list_(pa.int32())),
         ("cues", pa.struct([(k, f64) for k in ROW_CUES])),
         ("predicted_error", pa.struct([(k, f64) for k in TARGETS])),
-        ("error_bound", pa.struct([("coverage", f64), *[(k, f64) for k in BOUND_KEYS],
-                                   ("limits", pa.struct([(k, f64) for k in BOUND_KEYS])), ("enforced", pa.bool_()),
+        ("error_bound", pa.struct([("coverage", f64), *[(k, f64) for k in BOUND_KEYS + (HORIZON_BOUND,)],
+                                   ("limits", pa.struct([(k, f64) for k in BOUND_KEYS + (HORIZON_BOUND,)])),
+                                   ("enforced", pa.bool_()),
                                    ("unbounded", pa.struct([(k, pa.bool_()) for k in BOUND_KEYS]))])),
         ("runtime_s", pa.struct([(k, f64) for k in RUNTIME_KEYS])),
     ])
@@ -128,6 +130,7 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
         out = {name: record.get(name) for name in schema.names}
         out["image"] = redact_url(str(out["image"]))  # never a URL's secret in a row (the resume compares these)
         out["reason"] = redact_text(str(out["reason"] or ""))
+        out["horizon_reason"] = redact_text(str(out["horizon_reason"] or ""))
         for key in FLOAT_FIELDS:
             out[key] = _clean_float(out[key])
         for key, shape in NESTED_SHAPES.items():
@@ -149,8 +152,8 @@ def records_to_table(records: Sequence[dict[str, Any]], rows: Sequence[dict[str,
         if bound:
             limits = bound.get("limits") or {}
             out["error_bound"] = {"coverage": _clean_float(bound.get("coverage")),
-                                  **{k: _clean_float(bound.get(k)) for k in BOUND_KEYS},
-                                  "limits": {k: _clean_float(limits.get(k)) for k in BOUND_KEYS},
+                                  **{k: _clean_float(bound.get(k)) for k in BOUND_KEYS + (HORIZON_BOUND,)},
+                                  "limits": {k: _clean_float(limits.get(k)) for k in BOUND_KEYS + (HORIZON_BOUND,)},
                                   "enforced": bool(bound.get("enforced")),
                                   "unbounded": {k: bool((bound.get("unbounded") or {}).get(k)) for k in BOUND_KEYS}}
         clean.append(out)

@@ -19,8 +19,12 @@ from fr_torch.core.geometry.horizon import Horizon
 from fr_torch.core.geometry.lens import distort_points, distortion_record, normalising_radius, undistort_points
 from fr_torch.core.reliability.bounds import horizon_bound_pct
 
+#: ``horizon_reason`` of a result that no horizon promise was applied to (no reliability model, or a
+#: promise without a ``horizon`` block).
+NO_HORIZON_PROMISE = "no horizon promise (no reliability model with a horizon bound)"
+
 # CalibrationResult.to_json: its keys, in order (the CLI's output schema)
-JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "model", "focal_px", "hfov_deg", "principal_point",
+JSON_KEYS = ("image", "width", "height", "ok", "reliable", "reason", "horizon_reliable", "horizon_reason", "model", "focal_px", "hfov_deg", "principal_point",
              "rotation", "vertical_axis", "pan_deg", "tilt_deg", "roll_deg", "pitch_deg", "vanishing_points",
              "ranked_vanishing_points", "horizon", "distortion", "log_likelihood", "num_segments", "manhattan_fraction", "cues",
              "predicted_error", "error_bound", "runtime_s")
@@ -53,6 +57,12 @@ class CalibrationResult:
     ``horizon`` (:class:`fr_torch.core.geometry.horizon.Horizon`, None without an estimate): the horizon in
     the input image's pixels, where it crosses the left and right borders, and its 90 % bound in %
     of the image height (from ``error_bound``; None without one).
+
+    ``horizon_reliable``: the horizon promise (:class:`fr_torch.core.reliability.bounds.HorizonPromise`)
+    holds -- the sanity checks passed and the horizon's 90 % bound (``error_bound["horizon_pct"]``) is
+    within its limit (``error_bound["limits"]["horizon_pct"]``, % of the image height); independent of
+    ``reliable`` (a horizon can be trusted where the focal length cannot).  ``horizon_reason``
+    says why not (empty when it holds).
     """
 
     image: str
@@ -61,6 +71,8 @@ class CalibrationResult:
     ok: bool = True
     reliable: bool = False
     reason: str = ""
+    horizon_reliable: bool = False
+    horizon_reason: str = ""
     camera: Camera | None = None
     vertical_axis: int = VERTICAL_AXIS
     log_likelihood: float | None = None
@@ -100,12 +112,16 @@ class CalibrationResult:
         """The estimate's horizon in the input image's pixels (:meth:`fr_torch.core.geometry.horizon.Horizon.from_camera`:
         the line ``K^-T R[:, 1]``, through the estimate's lens when it has one), where it crosses the
         borders ``x = 0`` and ``x = w - 1``, and the 90 % bound of its error at the borders in % of
-        the image height (:func:`fr_torch.core.reliability.bounds.horizon_bound_pct`, from
-        ``error_bound``; None without one); None without an estimate."""
+        the image height: the horizon promise's (``error_bound["horizon_pct"]``) where the promise
+        has one, else derived from the focal and tilt bounds
+        (:func:`fr_torch.core.reliability.bounds.horizon_bound_pct`); None without one; None without
+        an estimate."""
         if not self.ok or self.camera is None:
             return None
         bound = None
-        if self.focal_px is not None and self.tilt_deg is not None:
+        if self.error_bound is not None and "horizon_pct" in self.error_bound:
+            bound = self.error_bound["horizon_pct"]
+        elif self.focal_px is not None and self.tilt_deg is not None:
             bound = horizon_bound_pct(self.error_bound, self.focal_px, self.tilt_deg, self.height)
         return Horizon.from_camera(self.camera, self.distortion_k, bound)
 
@@ -163,6 +179,9 @@ class CalibrationResult:
         computed = ("ranked_vanishing_points", "horizon")
         out = {key: copy.deepcopy(getattr(self, key)) for key in JSON_KEYS if key not in computed}
         out["ranked_vanishing_points"] = self.ranked_vanishing_points_json()
+        out["horizon_reliable"] = bool(self.horizon_reliable and self.ok)
+        if not out["horizon_reliable"] and not self.horizon_reason:  # never "not reliable" without a reason
+            out["horizon_reason"] = self.reason if not self.ok and self.reason else NO_HORIZON_PROMISE
         horizon = self.horizon
         out["horizon"] = None if horizon is None else horizon.to_json()
         out = {key: out[key] for key in JSON_KEYS}

@@ -28,6 +28,8 @@ from fr_torch.core.search.choice import CHOICE_FEATURES
 ALL_CUES = CUE_NAMES + LINE_BEND_CUES + tuple(f"choice_{name}" for name in CHOICE_FEATURES)
 #: The targets ``error_bound`` bounds.
 BOUND_TARGETS = ("focal_pct", "tilt_deg")
+#: The horizon promise's bound in ``error_bound`` (% of the image height; its limit in ``limits``).
+HORIZON_BOUND = "horizon_pct"
 #: Stages of ``runtime_s``.
 RUNTIME_STAGES = ("detect", "grid", "refine", "cues", "total")
 #: A record's top-level fields, in order: ``to_json``'s, ``segments_per_family`` included.
@@ -41,7 +43,8 @@ def _shape(size: int, inner: Any = None) -> list:
 #: The shape of a full record: each field's nesting (dicts with their keys, fixed-size lists with
 #: their lengths); :data:`FLAT_COLUMNS` is its flattening.
 TEMPLATE: dict[str, Any] = {
-    "image": None, "width": None, "height": None, "ok": None, "reliable": None, "reason": None, "model": None,
+    "image": None, "width": None, "height": None, "ok": None, "reliable": None, "reason": None,
+    "horizon_reliable": None, "horizon_reason": None, "model": None,
     "focal_px": None, "hfov_deg": None, "principal_point": _shape(2), "rotation": _shape(3, _shape(3)),
     "vertical_axis": None, "pan_deg": None, "tilt_deg": None, "roll_deg": None, "pitch_deg": None,
     "vanishing_points": _shape(3, _shape(3)), "ranked_vanishing_points": None,
@@ -50,8 +53,8 @@ TEMPLATE: dict[str, Any] = {
     "log_likelihood": None, "num_segments": None, "manhattan_fraction": None, "segments_per_family": _shape(4),
     "cues": {name: None for name in ALL_CUES},
     "predicted_error": {name: None for name in TARGETS},
-    "error_bound": {"coverage": None, **{name: None for name in BOUND_TARGETS},
-                    "limits": {name: None for name in BOUND_TARGETS}, "enforced": None,
+    "error_bound": {"coverage": None, **{name: None for name in BOUND_TARGETS}, HORIZON_BOUND: None,
+                    "limits": {name: None for name in BOUND_TARGETS + (HORIZON_BOUND,)}, "enforced": None,
                     "unbounded": {name: None for name in BOUND_TARGETS}},
     "runtime_s": {name: None for name in RUNTIME_STAGES},
 }
@@ -86,15 +89,19 @@ def unbounded_bounds(error_bound: dict[str, Any] | None) -> dict[str, bool] | No
 
 
 def horizon_unbounded(error_bound: dict[str, Any] | None, tilt_deg: float | None, bound_pct: float | None) -> bool:
-    """True when the horizon's bound says nothing: a tilt or focal bound that is unbounded
-    (:func:`unbounded_bounds`), a tilt within its bound that reaches the horizon's limit of
-    :data:`~fr_torch.core.reliability.bounds.HORIZON_TILT_LIMIT_DEG` (the horizon could be at
-    infinity), or a bound at the core's cap :data:`~fr_torch.core.reliability.bounds.HORIZON_BOUND_CAP_PCT`."""
+    """True when the horizon's bound says nothing: a bound at the core's cap
+    :data:`~fr_torch.core.reliability.bounds.HORIZON_BOUND_CAP_PCT`; for a bound derived from the focal and
+    tilt bounds (``error_bound`` without :data:`HORIZON_BOUND`), also a tilt or focal bound that is
+    unbounded (:func:`unbounded_bounds`) or a tilt within its bound that reaches the horizon's limit
+    of :data:`~fr_torch.core.reliability.bounds.HORIZON_TILT_LIMIT_DEG` (the horizon could be at
+    infinity).  The horizon promise's own bound is unbounded only when missing or capped."""
+    capped = is_finite_number(bound_pct) and bound_pct >= HORIZON_BOUND_CAP_PCT
+    if error_bound and HORIZON_BOUND in error_bound:
+        return bool(capped or not is_finite_number(error_bound.get(HORIZON_BOUND)))
     flags = unbounded_bounds(error_bound) or {}
     tilt_bound = (error_bound or {}).get("tilt_deg")
     reaches = (is_finite_number(tilt_bound) and is_finite_number(tilt_deg)
                and abs(tilt_deg) + tilt_bound >= HORIZON_TILT_LIMIT_DEG)
-    capped = is_finite_number(bound_pct) and bound_pct >= HORIZON_BOUND_CAP_PCT
     return bool(any(flags.values()) or reaches or capped)
 
 
@@ -115,8 +122,9 @@ def complete(record: dict[str, Any]) -> dict[str, Any]:
         flags = {name: flag or bool(given.get(name)) for name, flag in unbounded_bounds(bound).items()}
         horizon = record.get("horizon")
         if horizon is not None:
+            own = HORIZON_BOUND in bound  # the horizon promise's bound: its own flag, not the focal / tilt ones
             open_ = horizon_unbounded(bound, record.get("tilt_deg"), horizon.get("bound_pct")) \
-                or bool(horizon.get("unbounded")) or any(flags.values())
+                or bool(horizon.get("unbounded")) or (not own and any(flags.values()))
             record["horizon"] = dict(horizon, bound_pct=None if open_ else horizon.get("bound_pct"), unbounded=open_)
         record["error_bound"] = dict(bound, **{name: None for name, flag in flags.items() if flag}, unbounded=flags)
     elif record.get("horizon") is not None:

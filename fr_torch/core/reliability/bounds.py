@@ -22,6 +22,19 @@ and keeps the largest per-family quantile (:func:`worst_group_scale`), so the bo
 family when that family was the new camera.  No model is fitted: the spreads come from the
 estimator, the scales are the only numbers learned from data.
 
+The **horizon promise** (:class:`HorizonPromise`, the ``horizon`` block of the ``promise``) bounds
+the horizon benchmark's error (the larger vertical distance at the image borders, % of the image
+height) the same way, from a scale of its own: ``sigma_h`` (:func:`horizon_sigma_pct`) is how far
+the horizon's crossing of the principal point's column moves under the pitch's resampling spread
+and the focal sigma, in quadrature, with a floor; its conformal scale is fitted per estimator mode
+on the same families (``fr_eval.protocols.horizon_promise``).  ``horizon_reliable`` says that its
+90 % bound is within ``limit_pct`` (default 5 % of the height) or, with ``or_focal_tilt`` (shipped),
+that the focal / tilt promise holds: on every family the horizon errors of the photos that promise
+keeps were within the limit for about nine in ten of them, and the two routes together keep more of
+the good horizons than either (results/horizon/promise/).  Unlike the tilt sigma, ``sigma_h`` has no
+floor for the principal point's offset: the horizon is a line in the image (through the horizontal
+vanishing points), which an offset principal point moves far less than it moves the tilt.
+
 An estimate is **reliable** when every bound is within its limit (:class:`ReliabilityPromise`;
 ``configs/reliability.json``'s ``promise`` block; default: focal error <= 10 %, tilt error <= 3 deg,
 90 % bounds).  Read: "the 90 % bound of the focal error is at most 10 % and that of the tilt error
@@ -135,6 +148,43 @@ def horizon_bound_pct(bounds: Mapping[str, float] | None, focal_px: float, tilt_
     return min(bound, HORIZON_BOUND_CAP_PCT)
 
 
+#: The horizon promise's default limit: the 90 % bound of the horizon error, % of the image height.
+HORIZON_LIMIT_PCT = 5.0
+
+
+def horizon_sigma_pct(cues, focal_px, tilt_deg, height, floor_pct: float, focal_known=False) -> np.ndarray:
+    """The horizon error scale ``sigma_h`` in % of the image height (module docstring).
+
+    The horizon crosses the principal point's column at ``y = c_y + f tan(tilt)``; a pitch error
+    ``d_t`` moves it by ``f sec^2(tilt) d_t`` and a relative focal error ``d_f`` by ``f |tan(tilt)|
+    d_f``.  ``sigma_h = 100 / h sqrt((f sec^2(t) s_p)^2 + (f |tan t| s_f)^2) (+) floor_pct`` with
+    ``s_p`` the pitch's resampling spread (radians, ``pitch_resample_spread``), ``s_f`` the focal
+    sigma (:func:`focal_sigma_pct` / 100; 0 for a given focal length) and the floor added in
+    quadrature (% of h).  The tilt is clamped to :data:`HORIZON_TILT_LIMIT_DEG`; at most
+    :data:`HORIZON_BOUND_CAP_PCT`.
+
+    Args:
+        cues: one result's cues dict or a table with the cue columns (as :func:`focal_sigma_pct`).
+        focal_px: estimated focal length(s), pixels.
+        tilt_deg: estimated (paper's) tilt(s), degrees.
+        height: image height(s), pixels.
+        floor_pct: the floor, % of the image height.
+        focal_known: the focal length was given (bool or (n,) bools).
+
+    Returns:
+        float64 array (0-d for a dict, (n,) for a table); NaN where a cue or number is missing.
+    """
+    limit = math.radians(HORIZON_TILT_LIMIT_DEG)
+    tilt = np.clip(np.radians(np.asarray(tilt_deg, np.float64)), -limit, limit)
+    focal = np.asarray(focal_px, np.float64)
+    pitch = np.radians(np.minimum(_values(cues, "pitch_resample_spread"), 2 * HORIZON_TILT_LIMIT_DEG))
+    focal_sigma = np.where(np.asarray(focal_known, bool), 0.0, focal_sigma_pct(cues) / 100.0)
+    shift = np.hypot(focal * pitch / np.cos(tilt) ** 2, focal * np.abs(np.tan(tilt)) * focal_sigma)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sigma = np.hypot(100.0 * shift / np.asarray(height, np.float64), floor_pct)
+    return np.minimum(sigma, HORIZON_BOUND_CAP_PCT)
+
+
 def conformal_scale(predicted: np.ndarray, actual: np.ndarray, coverage: float = DEFAULT_COVERAGE,
                     floor: float = 0.0) -> float:
     """Split-conformal scale s: ``actual <= s * max(predicted, floor)`` for a share ``coverage`` of
@@ -162,6 +212,66 @@ def worst_group_scale(predicted: np.ndarray, actual: np.ndarray, groups: Sequenc
 
 
 @dataclass(frozen=True)
+class HorizonPromise:
+    """The horizon's 90 % bound and the limit ``horizon_reliable`` holds it to (module docstring).
+
+    ``limit_pct``: the largest allowed bound, % of the image height.  ``scales``: mode (``fr`` /
+    ``fast``) -> conformal scale s (bound = s * :func:`horizon_sigma_pct`).  ``floor_pct``: the floor
+    of ``sigma_h`` (% of the height).  ``or_focal_tilt``: the horizon is also trusted where the focal /
+    tilt promise holds (its bounds within their limits), whatever its own bound."""
+
+    limit_pct: float = HORIZON_LIMIT_PCT
+    scales: Mapping[str, float] = field(default_factory=dict)
+    floor_pct: float = 0.0
+    or_focal_tilt: bool = False
+
+    def __post_init__(self) -> None:
+        if not float(self.limit_pct) > 0 or not float(self.floor_pct) >= 0:
+            raise ValueError(f"horizon promise limit_pct={self.limit_pct!r} floor_pct={self.floor_pct!r}: need a "
+                             "limit > 0 and a floor >= 0")
+        for mode, value in self.scales.items():
+            if not float(value) > 0:
+                raise ValueError(f"horizon promise scale {mode}={value!r}: need a number > 0")
+
+    @classmethod
+    def from_block(cls, block: Mapping | None) -> "HorizonPromise | None":
+        """``{"limit_pct": 5, "floor_pct": F, "scales": {"fr": s, "fast": s}, "or_focal_tilt": true}`` ->
+        the promise (None for no block)."""
+        if not block:
+            return None
+        return cls(limit_pct=float(block.get("limit_pct", HORIZON_LIMIT_PCT)),
+                   scales={m: float(v) for m, v in block.get("scales", {}).items()},
+                   floor_pct=float(block.get("floor_pct", 0.0)), or_focal_tilt=bool(block.get("or_focal_tilt", False)))
+
+    def bound(self, cues: Mapping[str, float], mode: str, focal_px: float | None, tilt_deg: float | None,
+              height: float, focal_known: bool = False) -> float:
+        """The 90 % bound of one estimate's horizon error, % of the image height (at most
+        :data:`HORIZON_BOUND_CAP_PCT`); NaN when the mode has no scale or a number is missing."""
+        scale = self.scales.get(mode)
+        if scale is None or focal_px is None or tilt_deg is None:
+            return math.nan
+        sigma = float(horizon_sigma_pct(cues, focal_px, tilt_deg, height, self.floor_pct, focal_known))
+        return min(scale * sigma, HORIZON_BOUND_CAP_PCT) if math.isfinite(sigma) else math.nan
+
+    def violation(self, bound: float, coverage: float = DEFAULT_COVERAGE, focal_tilt_kept: bool = False) -> str | None:
+        """Why the horizon promise does not hold (None when it does): its bound, e.g. ``"90 % bound of
+        the horizon 7.3 % of the height > 5 %"``, and with :attr:`or_focal_tilt` that the focal / tilt
+        promise does not hold either (``focal_tilt_kept``: it holds -> None)."""
+        if self.or_focal_tilt and focal_tilt_kept:
+            return None
+        percent = round(100 * coverage)
+        if not math.isfinite(bound):
+            why = f"no {percent:d} % bound of the horizon (its cues are missing)"
+        elif bound >= HORIZON_BOUND_CAP_PCT:
+            why = f"the lines do not bound the horizon ({percent:d} % bound > {HORIZON_BOUND_CAP_PCT:g} % of the height)"
+        elif not bound <= self.limit_pct:
+            why = f"{percent:d} % bound of the horizon {bound:.1f} % of the height > {self.limit_pct:g} %"
+        else:
+            return None
+        return why + (" and the focal / tilt promise does not hold" if self.or_focal_tilt else "")
+
+
+@dataclass(frozen=True)
 class ReliabilityPromise:
     """Bounds of an estimate's errors and the limits ``reliable`` holds them to (module docstring).
 
@@ -172,13 +282,15 @@ class ReliabilityPromise:
     (``error_bound``) but ``reliable`` is the thresholds rule on the predicted errors.
     ``validated_detectors``: names of line detectors (:mod:`fr_torch.detectors.registry`) whose
     segments the promise was measured to hold for besides the reliability model's own
-    (:attr:`fr_torch.core.reliability.model.ReliabilityModel.detectors`; results/decisions/45.md)."""
+    (:attr:`fr_torch.core.reliability.model.ReliabilityModel.detectors`; results/decisions/45.md).
+    ``horizon``: the horizon promise (:class:`HorizonPromise`; None: no ``horizon_reliable``)."""
 
     limits: Mapping[str, float] = field(default_factory=lambda: dict(DEFAULT_LIMITS))
     scales: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
     coverage: float = DEFAULT_COVERAGE
     enforce: bool = True
     validated_detectors: tuple[str, ...] = ()
+    horizon: HorizonPromise | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 < self.coverage < 1.0:
@@ -202,7 +314,8 @@ class ReliabilityPromise:
 
             "promise": {"coverage": 0.9, "limits": {"focal_pct": 10, "tilt_deg": 3}, "enforce": true,
                         "scales": {"fr": {"focal_pct": s, "tilt_deg": s}, "fast": {...}},
-                        "validated_detectors": ["torch-lines"]}
+                        "validated_detectors": ["torch-lines"],
+                        "horizon": {"limit_pct": 5, "floor_pct": F, "scales": {"fr": s, "fast": s}}}
         """
         path = Path(path) if path is not None else config_dir() / "reliability.json"
         if not path.is_file():
@@ -213,7 +326,8 @@ class ReliabilityPromise:
         return cls(limits={k: float(v) for k, v in block.get("limits", DEFAULT_LIMITS).items()},
                    scales={m: {k: float(v) for k, v in s.items()} for m, s in block.get("scales", {}).items()},
                    coverage=float(block.get("coverage", DEFAULT_COVERAGE)), enforce=bool(block.get("enforce", True)),
-                   validated_detectors=block.get("validated_detectors", ()))
+                   validated_detectors=block.get("validated_detectors", ()),
+                   horizon=HorizonPromise.from_block(block.get("horizon")))
 
     def bounds(self, cues: Mapping[str, float], mode: str, focal_known: bool = False) -> dict[str, float] | None:
         """target -> bound (``scale * sigma``, :data:`SIGMAS`) of one estimate from its ``cues`` dict, for the

@@ -384,6 +384,7 @@ class ReliabilityModel:
                 result.error_bound = {"coverage": self.promise.coverage,  # None: no bound (missing cues)
                                       **{k: (v if math.isfinite(v) else None) for k, v in bounds.items()},
                                       "limits": dict(self.promise.limits), "enforced": self.promise.enforce}
+                self._horizon_promise(result, mode or mine, given)
                 if not self.promise.enforce:
                     bounds = None  # reported only: `reliable` keeps the thresholds below
             if bounds is not None:
@@ -404,6 +405,24 @@ class ReliabilityModel:
                     message += f"; {PRIOR_SET_FOCAL_HINT}"
                 result.reliable = False
                 result.reason = f"{result.reason}; {message}" if result.reason else message
+
+    def _horizon_promise(self, result, mode: str, given: bool) -> None:
+        """The horizon promise of one result (before the focal / tilt promise touches ``reliable``):
+        ``error_bound["horizon_pct"]`` and its limit, ``horizon_reliable`` (the sanity checks passed
+        -- ``reliable`` still True -- and the bound within its limit or, with ``or_focal_tilt``, the
+        focal / tilt bounds within theirs) and ``horizon_reason``.  No-op without a horizon block in
+        the promise."""
+        horizon = self.promise.horizon
+        if horizon is None:
+            return
+        bound = horizon.bound(result.cues, mode, result.focal_px, result.tilt_deg, result.height, given)
+        result.error_bound["horizon_pct"] = bound if math.isfinite(bound) else None
+        result.error_bound["limits"]["horizon_pct"] = horizon.limit_pct
+        focal_tilt = {k: v if v is not None else math.nan for k, v in result.error_bound.items() if k in self.promise.limits}
+        why = horizon.violation(bound, self.promise.coverage, focal_tilt_kept=not self.promise.violations(focal_tilt))
+        result.horizon_reliable = bool(result.reliable) and why is None
+        reasons = ("" if result.reliable else result.reason, f"outside the horizon promise: {why}" if why else "")
+        result.horizon_reason = "; ".join(r for r in reasons if r)
 
     # ------------------------------------------------------------------ storage
 
