@@ -9,7 +9,8 @@ A cap below a photo's long side stands for a larger photo brought down to it: YU
 resolution); detected at 640 they keep it.  ``--upscale K`` enlarges every photo by K (bicubic)
 first: a photo with no more detail than its pixels say (a digital zoom), where a higher cap can only
 cost time.  Per cap: focal, tilt and roll errors (mean +- standard error), the horizon AUC (Lezama's,
-against the labelled horizon, or the ground-truth camera's own with ``--upscale``), how many
+against the labelled horizon, or the ground-truth camera's own with ``--upscale``, which needs
+a ground-truth camera), how many
 estimates are ``reliable`` and how many of those are within the promise's limits (10 % focal, 3 deg
 tilt), and the CPU seconds per photo of the whole ``calibrate_images`` call (one thread; decode
 excluded).  Writes ``--out/<dataset>_<split>_<mode>[_x<K>].md`` when ``--out`` is given.
@@ -78,8 +79,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.upscale < 1:
         parser.error("--upscale: expected a whole factor >= 1")
-    torch.set_num_threads(1)
     samples = load_dataset(args.dataset, root=args.data_root, split=args.split)[: args.limit]
+    if args.upscale > 1 and any(s.camera is None for s in samples):
+        parser.error(f"--upscale needs a ground-truth camera per photo; {args.dataset} has none")
+    torch.set_num_threads(1)
     estimators = {cap: FREstimator(mode=args.mode, working_long_side=cap) for cap in args.caps}
     rows = {cap: [] for cap in args.caps}
     for sample in tqdm(samples, desc=f"{args.dataset} {args.mode}", unit="img", file=sys.stderr):
@@ -91,7 +94,9 @@ def main(argv=None) -> int:
             errors.update(cpu_s=time.process_time() - start, reliable=bool(result.ok and result.reliable),
                           horizon=horizon_error(truth, result, args.upscale > 1))
             rows[cap].append(errors)
-    size = f"{samples[0].width * args.upscale}x{samples[0].height * args.upscale}"
+    long_sides = sorted({max(s.width, s.height) * args.upscale for s in samples})
+    size = (f"{samples[0].width * args.upscale}x{samples[0].height * args.upscale}" if len(long_sides) == 1
+            else f"long side {long_sides[0]}–{long_sides[-1]} px")
     lines = [f"# Working resolution: {args.dataset} {args.split} ({len(samples)} photos, {size}"
              f"{f', upscaled {args.upscale}x' if args.upscale > 1 else ''}), {args.mode}", "",
              "| cap (long side, px) | " + " | ".join(METRICS) + " | horizon AUC | reliable | within the limits "
@@ -100,9 +105,11 @@ def main(argv=None) -> int:
         cells = []
         for metric in METRICS:
             mean, se, n = mean_se(r[metric] for r in cap_rows if r[metric] is not None)
-            cells.append(f"{mean:.3f} ± {se:.3f} ({n})")
+            cells.append(f"{mean:.3f} ± {se:.3f} ({n})" if n else "n/a")
         reliable = [r for r in cap_rows if r["reliable"]]
-        kept = sum(all(r[m] is not None and r[m] <= limit for m, limit in PROMISE_LIMITS.items()) for r in reliable)
+        scored = any(r["focal_err_pct"] is not None for r in cap_rows)
+        kept = sum(all(r[m] is not None and r[m] <= limit for m, limit in PROMISE_LIMITS.items())
+                   for r in reliable) if scored else "n/a"
         auc = 100 * lezama_auc([r["horizon"] for r in cap_rows])[0]
         lines.append(f"| {cap or 'input'} | " + " | ".join(cells) + f" | {auc:.2f} | {len(reliable)} | {kept} | "
                      f"{np.median([r['cpu_s'] for r in cap_rows]):.3f} |")
