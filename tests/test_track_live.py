@@ -122,7 +122,7 @@ def test_realtime_keeps_the_newest_frame_and_counts_the_rest():
 
 
 class GarbledCamera(SyntheticCamera):
-    """A camera whose every fourth frame (k = 2 mod 4) is JPEG bytes that cannot be decoded."""
+    """A camera whose every fourth frame (k = 2 mod 4) is bytes that start as a JPEG and cannot be decoded."""
 
     def jpeg(self, k: int) -> bytes:
         return b"\xff\xd8\xff\xe0 no image" if k % 4 == 2 else super().jpeg(k)
@@ -153,6 +153,24 @@ def test_an_mjpeg_stream_is_decoded_only_for_the_frames_taken(monkeypatch):
     # decoded as `fr calibrate` decodes the same JPEG saved to a file
     for frame in (first, second):
         assert np.array_equal(frame.image, decode_image_bytes(camera.jpeg(0), "frame")[0])
+
+
+@pytest.mark.parametrize("fourcc, suffix, encoded", [("MJPG", ".avi", True), ("mp4v", ".mp4", False)])
+def test_a_stream_is_kept_encoded_only_when_each_frame_is_a_jpeg(tmp_path, fourcc, suffix, encoded):
+    """OpenCV's FFmpeg back end opens a file as it opens a URL: Motion JPEG frames stay JPEG bytes,
+    MPEG-4 (each frame predicted from the ones before) is decoded as it is read."""
+    path = str(tmp_path / f"clip{suffix}")
+    writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*fourcc), 5.0, (320, 240))
+    assert writer.isOpened()
+    camera = SyntheticCamera(**SMALL, noise_variants=2)
+    for k in range(3):
+        writer.write(cv2.imdecode(np.frombuffer(camera.jpeg(k), np.uint8), cv2.IMREAD_COLOR))
+    writer.release()
+    frames = LiveFrames(Source("stream", path))
+    read = list(frames._capture())
+    assert len(read) == 3 and all(isinstance(item, bytes) == encoded for item in read)
+    if encoded:  # each is a whole JPEG of the frame
+        assert all(decode_image_bytes(item, "frame")[0].shape == (240, 320, 3) for item in read)
 
 
 def test_an_mjpeg_frame_that_cannot_be_decoded_is_skipped_not_the_stream():
