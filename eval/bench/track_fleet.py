@@ -8,6 +8,7 @@ process (:func:`serve`; :mod:`fr_eval.datasets.live_stream`) and writes its tabl
     python -m fr_eval.bench.track_fleet accuracy --seconds 75                          # accuracy.md / .csv
     python -m fr_eval.bench.track_fleet soak --cameras 16 --minutes 10                 # soak.md, soak.png, soak_*.csv
     python -m fr_eval.bench.track_fleet stops --trials 20                              # stop_trials.md / .csv
+    python -m fr_eval.bench.track_fleet readers --cameras 16 --seconds 20              # reading alone: CPU per frame
     python -m fr_eval.bench.track_fleet serve --cameras 4 --port 18600                 # the cameras alone
 
 The cameras (:func:`fleet_camera`): synthetic rooms of 640 x 480 with image noise, each its own
@@ -340,6 +341,38 @@ def _throughput_report(table: pd.DataFrame, args, out: Path) -> None:
     print("\n".join(text))
 
 
+# ---------------------------------------------------------------------------------- readers
+
+def readers(args) -> None:
+    """The cost of reading alone: ``--cameras`` cameras read in this process as a fleet reads them
+    (:class:`fr_torch.video.sources.LiveFrames`, real time, no frame taken, nothing searched) for
+    ``--seconds`` after ``--warmup-s``; prints one JSON line: the fr_torch that read, frames read,
+    this process's CPU in cores and in milliseconds per frame read, the load average.  For another
+    checkout's readers run it in that checkout's folder with ``PYTHONPATH`` set to it (``-m`` puts
+    the current folder first on the path)."""
+    import fr_torch
+    from fr_torch.video.sources import LiveFrames, Source, quiet_video_logs
+
+    quiet_video_logs()
+    server, urls, _ = start_cameras(args.cameras, args.port, args.fps)
+    streams = [LiveFrames(Source.parse(url)) for url in urls]
+    try:
+        for stream in streams:
+            stream.start()
+        time.sleep(args.warmup_s)
+        cpu, read, wall = time.process_time(), sum(s.arrived for s in streams), time.monotonic()
+        time.sleep(args.seconds)
+        cpu, read, wall = (time.process_time() - cpu, sum(s.arrived for s in streams) - read,
+                           time.monotonic() - wall)
+    finally:
+        for stream in streams:
+            stream.close()
+        _stop(server)
+    print(json.dumps({"fr_torch": str(Path(fr_torch.__file__).parent), "cameras": args.cameras,
+                      "frames_read": read, "cores": round(cpu / wall, 3),
+                      "cpu_ms_per_frame": round(1000 * cpu / max(1, read), 3), "load": round(os.getloadavg()[0], 2)}))
+
+
 # ---------------------------------------------------------------------------------- accuracy
 
 def accuracy(args) -> None:
@@ -645,6 +678,11 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--startup-s", type=float, default=240.0)
     t.add_argument("extra", nargs="*", help="more fr track options (after --)")
     t.set_defaults(run=throughput)
+    r = sub.add_parser("readers", parents=[common])
+    r.add_argument("--cameras", type=int, default=16)
+    r.add_argument("--seconds", type=float, default=20.0)
+    r.add_argument("--warmup-s", type=float, default=3.0)
+    r.set_defaults(run=readers)
     a = sub.add_parser("accuracy", parents=[common])
     a.add_argument("--seconds", type=float, default=75.0)
     a.add_argument("--outage", default="25,37", help="START,END seconds after the servers start: camera 3 stalls")
