@@ -29,7 +29,7 @@ stream's frames are lost upstream).  A live frame's index counts every frame rea
 in this run, so the gaps between processed indices are the drops.
 
 **Only the frames taken are decoded.**  A stream whose codec is Motion JPEG (an HTTP MJPEG
-camera, MJPEG over RTSP) is read undecoded (:data:`ENCODED_CODECS`; OpenCV's raw mode): the reader
+camera; any stream whose codec FFmpeg reports as MJPEG) is read undecoded (:data:`ENCODED_CODECS`; OpenCV's raw mode): the reader
 keeps each frame's JPEG bytes, and only a frame that the search takes is decoded, by the bounded
 decoder of ``fr calibrate`` (:func:`fr_torch.images.io.decode_image_bytes`), as a frame from
 stdin is.  So a 25 frames/s camera searched once a second costs one decode a second, not 25, and
@@ -513,7 +513,7 @@ class LiveFrames(FrameStream):
 
 def codec(capture: cv2.VideoCapture) -> str:
     """The four characters of an opened capture's codec (``CAP_PROP_FOURCC``: ``MJPG``, ``h264``, ...)."""
-    code = int(capture.get(cv2.CAP_PROP_FOURCC))
+    code = int(capture.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
     return code.to_bytes(4, "little").decode("latin-1")
 
 
