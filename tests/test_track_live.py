@@ -8,6 +8,7 @@ time: what dropping and stopping must keep is checked on the records themselves.
 from __future__ import annotations
 
 import io
+import itertools
 import json
 import os
 import signal
@@ -118,6 +119,70 @@ def test_realtime_keeps_the_newest_frame_and_counts_the_rest():
         assert frames.arrived == 5 and frames.dropped == 5 - len(expected)
         assert sum(dropped for _, dropped in taken) == frames.dropped
         assert frames.dropped_share == pytest.approx(frames.dropped / 5)
+
+
+class GarbledCamera(SyntheticCamera):
+    """A camera whose every fourth frame (k = 2 mod 4) is bytes that start as a JPEG and cannot be decoded."""
+
+    def jpeg(self, k: int) -> bytes:
+        return b"\xff\xd8\xff\xe0 no image" if k % 4 == 2 else super().jpeg(k)
+
+
+def _wait_for(condition, what: str, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"no {what} within {timeout_s:.0f} s"
+        time.sleep(0.02)
+
+
+def test_an_mjpeg_stream_is_decoded_only_for_the_frames_taken(monkeypatch):
+    import fr_torch.video.sources as sources
+
+    decoded = []
+    monkeypatch.setattr(sources, "decode_image_bytes", lambda data, name: decoded.append(name)
+                        or decode_image_bytes(data, name))
+    camera = SyntheticCamera(**SMALL, noise_variants=1)  # every frame the same JPEG
+    with MJPEGServer(camera, fps=50) as server, LiveFrames(Source.parse(server.url)) as frames:
+        taken = iter(frames)
+        first = next(taken)
+        _wait_for(lambda: frames.arrived >= first.index + 11, "10 more frames")
+        with frames._condition:  # the newest frame waits as the camera sent it, undecoded
+            assert frames._waiting[0][1] == camera.jpeg(0)
+        second = next(taken)
+    assert len(decoded) == 2 and second.dropped >= 9  # 11 frames or more read, 2 decoded
+    # decoded as `fr calibrate` decodes the same JPEG saved to a file
+    for frame in (first, second):
+        assert np.array_equal(frame.image, decode_image_bytes(camera.jpeg(0), "frame")[0])
+
+
+@pytest.mark.parametrize("fourcc, suffix, encoded", [("MJPG", ".avi", True), ("mp4v", ".mp4", False)])
+def test_a_stream_is_kept_encoded_only_when_each_frame_is_a_jpeg(tmp_path, fourcc, suffix, encoded):
+    """OpenCV's FFmpeg back end opens a file as it opens a URL: Motion JPEG frames stay JPEG bytes,
+    MPEG-4 (each frame predicted from the ones before) is decoded as it is read."""
+    path = str(tmp_path / f"clip{suffix}")
+    writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*fourcc), 5.0, (320, 240))
+    assert writer.isOpened()
+    camera = SyntheticCamera(**SMALL, noise_variants=2)
+    for k in range(3):
+        writer.write(cv2.imdecode(np.frombuffer(camera.jpeg(k), np.uint8), cv2.IMREAD_COLOR))
+    writer.release()
+    frames = LiveFrames(Source("stream", path))
+    read = list(frames._capture())
+    assert len(read) == 3 and all(isinstance(item, bytes) == encoded for item in read)
+    if encoded:  # each is a whole JPEG of the frame
+        assert all(decode_image_bytes(item, "frame")[0].shape == (240, 320, 3) for item in read)
+
+
+def test_an_mjpeg_frame_that_cannot_be_decoded_is_skipped_not_the_stream():
+    lines: list[str] = []
+    with MJPEGServer(GarbledCamera(**SMALL, noise_variants=1), fps=50) as server, \
+            LiveFrames(Source.parse(server.url), realtime=False, log=lines.append, name="cam") as frames:
+        taken = list(itertools.islice(frames, 12))
+    good = decode_image_bytes(SyntheticCamera(**SMALL, noise_variants=1).jpeg(0), "frame")[0]
+    assert all(np.array_equal(frame.image, good) for frame in taken)
+    assert frames.skipped >= 3 and frames.reconnects == 0 and frames.dropped == 0
+    assert sum(frame.dropped for frame in taken) == 0  # a skipped frame is no drop
+    assert lines and all(line.startswith("fr track: cam: skipping frame ") for line in lines), lines
 
 
 def test_fusion_checkpoint_continues_exactly_and_history_is_bounded(fast_results):

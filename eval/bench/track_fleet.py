@@ -8,6 +8,7 @@ process (:func:`serve`; :mod:`fr_eval.datasets.live_stream`) and writes its tabl
     python -m fr_eval.bench.track_fleet accuracy --seconds 75                          # accuracy.md / .csv
     python -m fr_eval.bench.track_fleet soak --cameras 16 --minutes 10                 # soak.md, soak.png, soak_*.csv
     python -m fr_eval.bench.track_fleet stops --trials 20                              # stop_trials.md / .csv
+    python -m fr_eval.bench.track_fleet readers --cameras 16 --seconds 20              # reading alone: CPU per frame
     python -m fr_eval.bench.track_fleet serve --cameras 4 --port 18600                 # the cameras alone
 
 The cameras (:func:`fleet_camera`): synthetic rooms of 640 x 480 with image noise, each its own
@@ -22,6 +23,10 @@ process, each searching its newest frame at batch 1).  Once every camera has its
 records are counted for ``--seconds``: frames searched per second in all, searches per camera per
 second (the least served camera's and the median), the age of a frame at its record, and the
 resident memory of all the fr processes.
+
+``--code before=TREE,after=`` runs each N and mode with the ``fr track`` of each checkout in turn
+(TREE: e.g. ``git archive`` of an older commit; empty: this one), ``--rounds`` times, the order
+reversed every other round: a before / after figure from one run on one machine.
 
 **accuracy**: four cameras of different focal lengths for ``--seconds``; camera 3 stalls (its
 server sends nothing) from ``--outage`` seconds, so ``fr track --reconnect`` drops and reopens it.
@@ -39,6 +44,7 @@ valid with the records of this run and how its run ended, the stop line's count,
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import random
@@ -48,6 +54,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 import pandas as pd
@@ -122,15 +129,26 @@ def start_cameras(count: int, port: int, fps: float, first: int = 0, stall: int 
     return server, started["urls"], started["frame0"]
 
 
+def code_env(tree: Path | None) -> dict[str, str]:
+    """The environment of an ``fr track`` of ``tree`` (a checkout of fR, e.g. an exported older
+    commit: its ``fr_torch`` imported first, with this interpreter's packages), or of this checkout
+    (None)."""
+    env = _env()
+    if tree is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(tree), env["PYTHONPATH"]])
+    return env
+
+
 class Run:
     """An ``fr track`` process whose JSON-line records are collected (stamped ``arrived``) as they
-    come, and whose resident memory can be sampled."""
+    come, and whose resident memory can be sampled.  ``tree``: the checkout whose code it runs
+    (:func:`code_env`; None: this one)."""
 
-    def __init__(self, arguments: list[str], out: Path):
+    def __init__(self, arguments: list[str], out: Path, tree: Path | None = None):
         self.records: list[dict] = []
         self.process = subprocess.Popen(FR + arguments + ["--out", str(out), "--json", "-"], stdout=subprocess.PIPE,
-                                        stderr=subprocess.PIPE, text=True, env=_env(), start_new_session=True,
-                                        preexec_fn=default_stop_signals)
+                                        stderr=subprocess.PIPE, text=True, env=code_env(tree), cwd=tree,
+                                        start_new_session=True, preexec_fn=default_stop_signals)
         self.stderr = ""
         threading.Thread(target=self._read, daemon=True).start()
         threading.Thread(target=self._read_stderr, daemon=True).start()
@@ -185,26 +203,49 @@ def _wait_for_records(runs: list[Run], cameras: int, timeout_s: float) -> float:
 
 # ---------------------------------------------------------------------------------- throughput
 
+def parse_code(text: str) -> list[tuple[str, Path | None]]:
+    """``--code LABEL=TREE,...`` as (label, tree) pairs; an empty TREE (or no option) is this checkout."""
+    if not text:
+        return [("", None)]
+    pairs = [item.partition("=") for item in text.split(",")]
+    return [(label, Path(tree).resolve() if tree else None) for label, _, tree in pairs]
+
+
+def _interleaved(rounds: int, counts: list[int], modes: list[str], codes: list) -> Iterator[tuple]:
+    """(round, N, mode, code) of each run: every code run after run for the same N and mode, in the
+    given order in odd rounds and reversed in even ones (A B, B A: a drift of the machine's load
+    favours neither)."""
+    for round_ in range(1, rounds + 1):
+        for n, mode in itertools.product(counts, modes):
+            for code in (codes if round_ % 2 else codes[::-1]):
+                yield round_, n, mode, code
+
+
 def throughput(args) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     counts = [int(n) for n in args.cameras.split(",")]
     in_process = [int(n) for n in args.in_process.split(",") if n]
+    codes = parse_code(args.code)
     server, urls, _ = start_cameras(max(counts), args.port, args.fps)
     rows = []
     try:
-        for n in counts:
-            modes = ("fleet", "separate") if n > 1 else ("separate",)  # one camera: the same command
-            for mode in modes + (("fleet, --workers 0",) if n in in_process else ()):
-                folder = Path(args.work) / f"throughput_{mode.split(',')[0]}{'_0' if ',' in mode else ''}_{n}"
+        for round_, n, mode, (code, tree) in _interleaved(args.rounds, counts, args.modes.split(","), codes):
+            if mode == "fleet" and n == 1:  # one camera: the same command as one process
+                continue
+            for mode in (mode,) + (("fleet, --workers 0",) if mode == "fleet" and n in in_process else ()):
+                folder = Path(args.work) / (f"throughput_{mode.split(',')[0]}{'_0' if ',' in mode else ''}_{n}"
+                                            + (f"_{code}" if code else ""))
                 _clean(folder)
                 if mode.startswith("fleet"):
                     workers = ["--workers", "0"] if "--workers 0" in mode else []
-                    runs = [Run(urls[:n] + ["--fast", *workers, *args.extra], folder)]
+                    runs = [Run(urls[:n] + ["--fast", *workers, *args.extra], folder, tree)]
                 else:
-                    runs = [Run([url, "--fast", *args.extra], folder / f"camera{i}") for i, url in enumerate(urls[:n])]
+                    runs = [Run([url, "--fast", *args.extra], folder / f"camera{i}", tree)
+                            for i, url in enumerate(urls[:n])]
                 try:
                     start = _wait_for_records(runs, n, args.startup_s)
+                    load_start = os.getloadavg()[0]
                     cpu_start = sum(run.cpu_s() for run in runs)
                     rss = []
                     while time.time() < start + args.seconds:
@@ -229,7 +270,8 @@ def throughput(args) -> None:
                         per_camera.append(len(window))
                 seconds = end - start
                 rates = np.array(per_camera) / seconds
-                rows.append({"cameras": n, "mode": mode, "seconds": round(seconds, 1), "records": int(sum(per_camera)),
+                rows.append({"round": round_, "code": code, "cameras": n, "mode": mode, "seconds": round(seconds, 1),
+                             "records": int(sum(per_camera)),
                              "frames_per_s": round(sum(per_camera) / seconds, 3),
                              "per_camera_min_per_s": round(float(rates.min()), 3),
                              "per_camera_median_per_s": round(float(np.median(rates)), 3),
@@ -237,7 +279,8 @@ def throughput(args) -> None:
                              "age_p95_s": round(float(np.percentile(ages, 95)), 3),
                              "runtime_median_s": round(float(np.median(runtimes)), 3),
                              "cpu_s_per_frame": round(cpu / max(1, sum(per_camera)), 3),
-                             "rss_mb": round(float(np.median(rss)), 0), "load_avg": round(load, 2)})
+                             "rss_mb": round(float(np.median(rss)), 0), "load_start": round(load_start, 2),
+                             "load_avg": round(load, 2)})
                 print(rows[-1], flush=True)
                 pd.DataFrame(rows).to_csv(out / "throughput.csv", index=False)
     finally:
@@ -250,39 +293,84 @@ def _shown(value, digits: int = 3) -> str:
 
 
 def _throughput_report(table: pd.DataFrame, args, out: Path) -> None:
-    fleet = table[table["mode"] == "fleet"].set_index("cameras")
-    separate = table[table["mode"] == "separate"].set_index("cameras")
-    served = fleet[fleet["per_camera_min_per_s"] >= 1.0]
+    for column, default in (("round", 1), ("code", ""), ("load_start", np.nan)):  # a table of an older run
+        if column not in table:
+            table[column] = default
+    table["code"] = table["code"].fillna("")
     machine = machine_description("cpu")
+    code = f" --code {args.code}" if getattr(args, "code", "") else ""
     text = ["# `fr track` over a fleet: throughput by number of cameras", "",
             f"Command: `python -m fr_eval.bench.track_fleet throughput --cameras {args.cameras} --seconds "
-            f"{args.seconds:g} --fps {args.fps:g}`. For each N: `fr track URL1 ... URLN --fast --json -` (one "
+            f"{args.seconds:g} --fps {args.fps:g} --modes {args.modes} --rounds {args.rounds}{code}`. For each N: "
+            "`fr track URL1 ... URLN --fast --json -` (one "
             "process, one batched search per turn, split over its worker processes), then N processes `fr track "
             "URLi --fast --json -` (one camera each, batch 1; `fleet, --workers 0`: the fleet searching in its own "
             f"process, among its reader threads), both on the same N synthetic cameras (640 x 480, {args.fps:g} frames/s, HTTP MJPEG, "
             "served by one other process on the same cores). Records counted over the window that starts when every "
-            "camera has its first record.",
+            "camera has its first record. `code`: whose `fr track` ran (`--code LABEL=TREE`: a checkout's fr_torch; "
+            "the codes interleaved, run after run).",
             f"Machine: {machine['cpu']}, {machine['usable_cores']} usable cores, torch {machine['torch']}; "
-            "shared with other work (`load avg`: 1-minute load average at the end of each window).", "",
-            "| cameras | mode | frames searched / s | per camera / s (least served, median) | age at record "
-            "(median, p95) s | detection + search per frame (median) s | CPU s per frame searched | RSS of all fr "
-            "processes (MB) | load avg |",
-            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+            "shared with other work (`load`: 1-minute load average at the start and the end of each window).", "",
+            "| round | code | cameras | mode | frames searched / s | per camera / s (least served, median) | age at "
+            "record (median, p95) s | detection + search per frame (median) s | CPU s per frame searched | RSS of all "
+            "fr processes (MB) | load (start, end) |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for _, row in table.iterrows():
-        text.append(f"| {row['cameras']} | {row['mode']} | {row['frames_per_s']:.2f} | {row['per_camera_min_per_s']:.2f}, "
-                    f"{row['per_camera_median_per_s']:.2f} | {row['age_median_s']:.2f}, {row['age_p95_s']:.2f} | "
-                    f"{row['runtime_median_s']:.3f} | {_shown(row.get('cpu_s_per_frame'))} | {row['rss_mb']:.0f} | "
+        text.append(f"| {row['round']} | {row['code']} | {row['cameras']} | {row['mode']} | {row['frames_per_s']:.2f} | "
+                    f"{row['per_camera_min_per_s']:.2f}, {row['per_camera_median_per_s']:.2f} | "
+                    f"{row['age_median_s']:.2f}, {row['age_p95_s']:.2f} | {row['runtime_median_s']:.3f} | "
+                    f"{_shown(row.get('cpu_s_per_frame'))} | {row['rss_mb']:.0f} | {_shown(row['load_start'], 1)}, "
                     f"{row['load_avg']:.1f} |")
-    text += ["", "Fleet against one process per camera (frames searched per second, the same N):", ""]
-    for n in fleet.index:
-        if n in separate.index:
-            text.append(f"- {n} cameras: {fleet.loc[n, 'frames_per_s']:.2f} / {separate.loc[n, 'frames_per_s']:.2f} = "
-                        f"**{fleet.loc[n, 'frames_per_s'] / separate.loc[n, 'frames_per_s']:.2f} x**; memory "
-                        f"{fleet.loc[n, 'rss_mb']:.0f} MB against {separate.loc[n, 'rss_mb']:.0f} MB")
-    most = int(served.index.max()) if len(served) else 0
-    text += ["", f"Most cameras of this table served at >= 1 search per camera per second by one fleet: **{most}**."]
+    fleet, separate = table[table["mode"] == "fleet"], table[table["mode"] == "separate"]
+    text += ["", "Fleet against one process per camera (frames searched per second, the same N and round; "
+             "`fleet code / separate code`):", ""]
+    for (round_, n), fleets in fleet.groupby(["round", "cameras"]):
+        for _, f in fleets.iterrows():
+            for _, o in separate[(separate["round"] == round_) & (separate["cameras"] == n)].iterrows():
+                text.append(f"- round {round_}, {n} cameras, {f['code'] or 'fleet'} / {o['code'] or 'separate'}: "
+                            f"{f['frames_per_s']:.2f} / {o['frames_per_s']:.2f} = "
+                            f"**{f['frames_per_s'] / o['frames_per_s']:.2f} x**; memory {f['rss_mb']:.0f} MB against "
+                            f"{o['rss_mb']:.0f} MB")
+    text.append("")
+    for label, runs in fleet.groupby("code"):
+        served = runs[runs["per_camera_min_per_s"] >= 1.0]
+        most = int(served["cameras"].max()) if len(served) else 0
+        text.append(f"Most cameras of this table served at >= 1 search per camera per second by one fleet"
+                    f"{f' ({label})' if label else ''}: **{most}**.")
     (out / "throughput.md").write_text("\n".join(text) + "\n")
     print("\n".join(text))
+
+
+# ---------------------------------------------------------------------------------- readers
+
+def readers(args) -> None:
+    """The cost of reading alone: ``--cameras`` cameras read in this process as a fleet reads them
+    (:class:`fr_torch.video.sources.LiveFrames`, real time, no frame taken, nothing searched) for
+    ``--seconds`` after ``--warmup-s``; prints one JSON line: the fr_torch that read, frames read,
+    this process's CPU in cores and in milliseconds per frame read, the load average.  For another
+    checkout's readers run it in that checkout's folder with ``PYTHONPATH`` set to it (``-m`` puts
+    the current folder first on the path)."""
+    import fr_torch
+    from fr_torch.video.sources import LiveFrames, Source, quiet_video_logs
+
+    quiet_video_logs()
+    server, urls, _ = start_cameras(args.cameras, args.port, args.fps)
+    streams = [LiveFrames(Source.parse(url)) for url in urls]
+    try:
+        for stream in streams:
+            stream.start()
+        time.sleep(args.warmup_s)
+        cpu, read, wall = time.process_time(), sum(s.arrived for s in streams), time.monotonic()
+        time.sleep(args.seconds)
+        cpu, read, wall = (time.process_time() - cpu, sum(s.arrived for s in streams) - read,
+                           time.monotonic() - wall)
+    finally:
+        for stream in streams:
+            stream.close()
+        _stop(server)
+    print(json.dumps({"fr_torch": str(Path(fr_torch.__file__).parent), "cameras": args.cameras,
+                      "frames_read": read, "cores": round(cpu / wall, 3),
+                      "cpu_ms_per_frame": round(1000 * cpu / max(1, read), 3), "load": round(os.getloadavg()[0], 2)}))
 
 
 # ---------------------------------------------------------------------------------- accuracy
@@ -583,9 +671,18 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--cameras", default="1,2,4,8,16")
     t.add_argument("--seconds", type=float, default=40.0)
     t.add_argument("--in-process", default="16", help="N for which the fleet is also run with --workers 0")
+    t.add_argument("--modes", default="fleet,separate", help="fleet, separate or both")
+    t.add_argument("--rounds", type=int, default=1, help="the whole comparison this many times (noise)")
+    t.add_argument("--code", default="", help="LABEL=TREE,...: whose fr track to run, interleaved (TREE: a "
+                   "checkout, e.g. `git archive` of an older commit; empty: this one)")
     t.add_argument("--startup-s", type=float, default=240.0)
     t.add_argument("extra", nargs="*", help="more fr track options (after --)")
     t.set_defaults(run=throughput)
+    r = sub.add_parser("readers", parents=[common])
+    r.add_argument("--cameras", type=int, default=16)
+    r.add_argument("--seconds", type=float, default=20.0)
+    r.add_argument("--warmup-s", type=float, default=3.0)
+    r.set_defaults(run=readers)
     a = sub.add_parser("accuracy", parents=[common])
     a.add_argument("--seconds", type=float, default=75.0)
     a.add_argument("--outage", default="25,37", help="START,END seconds after the servers start: camera 3 stalls")

@@ -28,6 +28,15 @@ queue of :data:`QUEUE_LENGTH` (when it is full the reader waits: a pipe's writer
 stream's frames are lost upstream).  A live frame's index counts every frame read from the source
 in this run, so the gaps between processed indices are the drops.
 
+**Only the frames taken are decoded.**  A stream whose codec is Motion JPEG (an HTTP MJPEG
+camera; any stream whose codec FFmpeg reports as MJPEG) is read undecoded (:data:`ENCODED_CODECS`; OpenCV's raw mode): the reader
+keeps each frame's JPEG bytes, and only a frame that the search takes is decoded, by the bounded
+decoder of ``fr calibrate`` (:func:`fr_torch.images.io.decode_image_bytes`), as a frame from
+stdin is.  So a 25 frames/s camera searched once a second costs one decode a second, not 25, and
+its frame is decoded as the same JPEG saved to a file would be.  Other codecs (H.264, H.265, ...)
+predict each frame from the ones before it: every frame is decoded by FFmpeg as it arrives (such a
+stream is opened twice per connection: once to learn its codec, once decoding).
+
 A live source that ends or fails (the connection drops, a read times out after
 ``read_timeout_s``, the camera is unplugged) is opened again with back-off when
 :class:`Reconnect` allows it: an outage is one line when it starts and one when the source is back
@@ -68,6 +77,9 @@ from fr_torch.redaction import SCHEME, redact_text, redact_url
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 #: Frames a live source may queue without real time (then the reader waits for the search).
 QUEUE_LENGTH = 64
+#: Codecs (OpenCV's ``CAP_PROP_FOURCC``) whose every frame is a whole JPEG image: a stream of them is
+#: read undecoded and only the frames taken are decoded (module docstring).
+ENCODED_CODECS = frozenset({"MJPG", "mjpg", "MJPA", "AVRN", "JPEG", "jpeg"})
 
 
 def log_line(message: str) -> None:
@@ -335,19 +347,19 @@ class LiveFrames(FrameStream):
     # ------------------------------------------------------------ the reader thread
 
     def _connections(self) -> Iterator[Iterator]:
-        """One iterator of frames (arrays, or encoded bytes from stdin) per connection."""
+        """One iterator of frames (arrays, or encoded bytes: stdin, a Motion JPEG stream) per connection."""
         if self.source.kind == "stdin":
             yield split_images(lambda size: os.read(self.stdin_fd, size), on_skip=self._skipped_bytes)
             return
         while True:
             yield self._capture()
 
-    def _capture(self) -> Iterator[np.ndarray]:
+    def _capture(self) -> Iterator[np.ndarray | bytes]:
+        """One connection's frames: BGR arrays, or a Motion JPEG stream's encoded frames (bytes)."""
         target = self.source.target
+        encoded = False
         if self.source.kind == "stream":
-            params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(self.open_timeout_s * 1000),
-                      cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(self.read_timeout_s * 1000)]
-            capture = cv2.VideoCapture(target, cv2.CAP_FFMPEG, params)
+            capture, encoded = self._open_stream(target)
         else:
             capture = cv2.VideoCapture(int(target) if target.isdigit() else target)
         try:
@@ -357,9 +369,23 @@ class LiveFrames(FrameStream):
                 ok, image = capture.read()
                 if not ok:
                     return
-                yield image
+                yield image.tobytes() if encoded else image
         finally:
             capture.release()
+
+    def _open_stream(self, url: str) -> tuple[cv2.VideoCapture, bool]:
+        """The stream's capture and whether it hands out encoded frames: opened in OpenCV's raw
+        mode (``CAP_PROP_FORMAT`` -1: each read is one packet, undecoded) and kept so when the codec
+        is in :data:`ENCODED_CODECS`; else closed and opened again decoding (a second connection)."""
+        timeouts = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(self.open_timeout_s * 1000),
+                    cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(self.read_timeout_s * 1000)]
+        capture = cv2.VideoCapture(url, cv2.CAP_FFMPEG, timeouts + [cv2.CAP_PROP_FORMAT, -1])
+        if not capture.isOpened() or capture.get(cv2.CAP_PROP_FORMAT) != -1:  # failed, or decoding anyway
+            return capture, False
+        if codec(capture) in ENCODED_CODECS:
+            return capture, True
+        capture.release()
+        return cv2.VideoCapture(url, cv2.CAP_FFMPEG, timeouts), False
 
     def _skipped_bytes(self, count: int) -> None:
         with self._condition:
@@ -483,6 +509,12 @@ class LiveFrames(FrameStream):
             self._condition.notify_all()
         if self._thread.is_alive():
             self._thread.join(self.read_timeout_s + 1.0)
+
+
+def codec(capture: cv2.VideoCapture) -> str:
+    """The four characters of an opened capture's codec (``CAP_PROP_FOURCC``: ``MJPG``, ``h264``, ...)."""
+    code = int(capture.get(cv2.CAP_PROP_FOURCC)) & 0xFFFFFFFF
+    return code.to_bytes(4, "little").decode("latin-1")
 
 
 def open_frames(source: Source, every: int = 1, start: int = 0, realtime: bool | None = None,
