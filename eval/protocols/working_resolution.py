@@ -114,12 +114,13 @@ def main(argv=None) -> int:
         lines.append(f"| {cap or 'input'} | " + " | ".join(cells) + f" | {auc:.2f} | {len(reliable)} | {kept} | "
                      f"{np.median([r['cpu_s'] for r in cap_rows]):.3f} |")
     machine = machine_description("cpu")
+    low, high = next(iter(estimators.values())).search.fov_range
     command = " ".join(argv if argv is not None else sys.argv[1:])
     lines += ["", f"Command: `python -m fr_eval.protocols.working_resolution {command}`. Means ± standard error "
               "(valid estimates in brackets); horizon AUC: Lezama's, "
               + ("against the ground-truth camera's horizon" if args.upscale > 1 else "against the labelled horizon")
-              + "; within the limits: reliable estimates within 10 % focal and 3° tilt. FOV search range [30°, "
-              f"120°], principal point at the image centre. CPU: one thread, {machine['cpu']}, torch "
+              + "; within the limits: reliable estimates within 10 % focal and 3° tilt. FOV search range "
+              f"[{low:g}°, {high:g}°] across the long side, principal point at the image centre. CPU: one thread, {machine['cpu']}, torch "
               f"{machine['torch']}; the whole calibrate_images call, decode excluded."]
     text = "\n".join(lines) + "\n"
     print(text)
