@@ -34,7 +34,10 @@ for step in "${steps[@]}"; do
         --out "${FR_CACHE:-data_local}/zind-fr" --seed 0 --views-per-pano 15 --fovs 60,75,90,105,120 --test-fraction 0.5
       for s in $CROP_SIZES; do
         .venv/bin/python -m fr_eval.datasets.crop_views --dataset yud --size $s --out "${FR_CACHE:-data_local}/yud-crop-$s"
-      done ;;
+      done
+      # synthetic streets (issue 67): choices learned on train, reported on test; rendered, no input data
+      .venv/bin/python -m fr_eval.datasets.synthetic_streets --seed 0 --train 200 --test 200 \
+        --out "${FR_CACHE:-data_local}/synthetic-streets" ;;
     yud)  # Issue "evaluation harness": YUD test, both principal points, deviation measures a-e.
           # Every table: the library's default FOV range ([30, 120]) with the
           # paper's [50, 130] rows ([range=paper]) next to it (issue 13).

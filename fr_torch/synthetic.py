@@ -67,7 +67,7 @@ def synthetic_segments(focal_px: float, rotation: np.ndarray, width: int = 640, 
             if not ok:
                 continue
             # Keep the exact (un-rounded) geometry: clip the float segment to the image box.
-            a, b = _clip_float(uv[0], uv[1], width - 1, height - 1)
+            a, b = clip_segment(uv[0], uv[1], width - 1, height - 1)
             if a is None:
                 continue
             seg_len = np.linalg.norm(b - a)
@@ -116,8 +116,9 @@ def distorted_segments(segments: np.ndarray, labels: np.ndarray, k: float, width
     return np.concatenate(pieces).reshape(-1, 4), np.concatenate(piece_labels).astype(int)
 
 
-def _clip_float(p: np.ndarray, q: np.ndarray, xmax: float, ymax: float):
-    """Liang-Barsky clip of segment p-q to [0, xmax] x [0, ymax]; (None, None) if outside."""
+def clip_segment(p: np.ndarray, q: np.ndarray, xmax: float, ymax: float):
+    """Liang-Barsky clip of the image segment ``p``-``q`` ((2,) pixels each) to ``[0, xmax] x [0, ymax]``:
+    its two ends (2,) each, or (None, None) when it lies outside."""
     d = q - p
     t0, t1 = 0.0, 1.0
     for pi, qi in ((-d[0], p[0]), (d[0], xmax - p[0]), (-d[1], p[1]), (d[1], ymax - p[1])):
@@ -133,6 +134,18 @@ def _clip_float(p: np.ndarray, q: np.ndarray, xmax: float, ymax: float):
         if t0 > t1:
             return None, None
     return p + t0 * d, p + t1 * d
+
+
+def clip_segment_near(p: np.ndarray, q: np.ndarray, near: float) -> np.ndarray | None:
+    """The part (2, 3) of the camera-frame segment ``p``-``q`` ((3,) each) with depth ``z >= near``
+    (the same units), or None when all of it lies nearer."""
+    if p[2] < near and q[2] < near:
+        return None
+    if p[2] < near or q[2] < near:
+        t = (near - p[2]) / (q[2] - p[2])
+        cut = p + t * (q - p)
+        p, q = (cut, q) if p[2] < near else (p, cut)
+    return np.stack([p, q])
 
 
 def render_manhattan_room(focal_px: float = 500.0, rotation: np.ndarray | None = None, width: int = 640,
@@ -173,16 +186,12 @@ def render_manhattan_room(focal_px: float = 500.0, rotation: np.ndarray | None =
     for p, q in lines:
         p, q = np.asarray(p, float), np.asarray(q, float)
         pc, qc = rotation @ p, rotation @ q
-        near = 0.05
-        if pc[2] < near and qc[2] < near:
+        front = clip_segment_near(pc, qc, 0.05)
+        if front is None:
             continue
-        if pc[2] < near or qc[2] < near:  # clip the 3-D segment to the part in front of the camera
-            t = (near - pc[2]) / (qc[2] - pc[2])
-            cut = pc + t * (qc - pc)
-            pc, qc = (cut, qc) if pc[2] < near else (pc, cut)
-        uv = np.stack([pc, qc]) @ K.T
+        uv = front @ K.T
         uv = uv[:, :2] / uv[:, 2:]
-        a, b = _clip_float(uv[0], uv[1], width - 1, height - 1)
+        a, b = clip_segment(uv[0], uv[1], width - 1, height - 1)
         if a is None:
             continue
         a = tuple(int(round((v + 0.5) * scale * 16 - 8)) for v in a)

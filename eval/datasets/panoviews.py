@@ -139,7 +139,9 @@ class PanoViews:
         return out
 
 
-def _resolve(root, path, default_name: str | None) -> Path:
+def dataset_folder(root, path, default_name: str | None) -> Path:
+    """The folder of a generated dataset: ``path`` when given, else ``root`` when it holds a
+    ``gt.csv``, else ``<cache_root>/<default_name>``."""
     if path is not None:
         return Path(path)
     if root is not None and (Path(root) / "gt.csv").is_file():
@@ -152,14 +154,14 @@ def _resolve(root, path, default_name: str | None) -> Path:
 @register_dataset("panoviews")
 def load_panoviews(root=None, split: str = "test", path=None, **kwargs) -> list[CalibrationSample]:
     """Any ``fr make-dataset`` folder (``path=`` or ``root`` holding gt.csv)."""
-    return PanoViews(_resolve(root, path, None), split).samples(**kwargs)
+    return PanoViews(dataset_folder(root, path, None), split).samples(**kwargs)
 
 
 def _cache_folder_loader(name: str):
     """A loader for the generated folder ``<cache_root>/<name>``; ``root`` is the *data* root and is
     ignored unless it holds a gt.csv itself, ``path=`` names another folder."""
     def load(root=None, split: str = "test", path=None, **kwargs) -> list[CalibrationSample]:
-        return PanoViews(_resolve(root, path, name), split).samples(**kwargs)
+        return PanoViews(dataset_folder(root, path, name), split).samples(**kwargs)
     load.__doc__ = f"Views in ``<cache_root>/{name}`` (``root`` / ``path`` as for any cache folder)."
     return load
 

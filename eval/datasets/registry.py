@@ -74,7 +74,7 @@ DatasetLoader = Callable[..., Sequence[CalibrationSample]]
 # Modules that register datasets when imported (a module that does not exist is skipped); other
 # packages add datasets through entry points of group ``fr_torch.datasets``.
 _BUILTIN_MODULES = ("fr_eval.datasets.yud", "fr_eval.datasets.panoviews", "fr_eval.datasets.nyu_vp",
-                    "fr_eval.datasets.yud_plus", "fr_eval.datasets.ecd_tune")
+                    "fr_eval.datasets.yud_plus", "fr_eval.datasets.ecd_tune", "fr_eval.datasets.synthetic_streets")
 DATASETS: Registry[Sequence[CalibrationSample]] = Registry("dataset", group="fr_torch.datasets",
                                                            modules=_BUILTIN_MODULES)
 
