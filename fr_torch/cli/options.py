@@ -61,6 +61,12 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
                             "its horizon, with a truncated vote, reported with fR's focal length; docs/horizon.md) or choose "
                             "(per photo, by a rule learned on NYU-VP train from the photo's evidence); the JSON's "
                             "model says which fit an estimate comes from")
+    group.add_argument("--families", default=None, metavar="auto|off|SETTINGS",
+                       help="extra horizontal families inside the likelihood (opt-in): after the Manhattan fit, up "
+                            "to two more horizontal families with vanishing points on the horizon are refitted with f "
+                            "and R, their count per photo chosen by a penalised likelihood (BIC); 'auto' or key=value "
+                            "pairs joined by ':' (max_extra, prior, penalty, min_support, exclusion_deg, window_deg); "
+                            "the extra vanishing points join ranked_vanishing_points")
     group.add_argument("--working-long-side", default=None, metavar="PX|input",
                        help=f"detect the lines on a copy of each image whose long side is at most PX pixels "
                             f"(default {WORKING_LONG_SIDE}; 'input' = the input's own resolution, slower for large "
@@ -127,7 +133,7 @@ def camera_options(args: argparse.Namespace) -> tuple[float | None, tuple[float,
 
 
 def search_config(args: argparse.Namespace) -> SearchConfig:
-    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range`` and ``--fit``
+    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range``, ``--fit`` and ``--families``
     over the shipped defaults; FRInputError (one line) naming a malformed option, or saying what
     replaced the removed ``--compile``."""
     overrides = {"compile_search": True} if getattr(args, "compile", False) else {}
@@ -146,6 +152,8 @@ def search_config(args: argparse.Namespace) -> SearchConfig:
                 raise FRInputError(f"--{name}-range: {exc}") from None
     if getattr(args, "fit", None):
         config = config.with_fit(args.fit)
+    if getattr(args, "families", None):
+        config = config.with_families(args.families)
     distortion, k = getattr(args, "distortion", None), getattr(args, "k", None)
     if distortion is not None or k is not None:
         try:

@@ -25,7 +25,7 @@ import torch
 from fr_torch.core.exact import first_argmax
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import image_centre
-from fr_torch.core.geometry.params import DISTORTION, FOCAL, CameraParams
+from fr_torch.core.geometry.params import DISTORTION, FOCAL, CameraParams, rotations
 from fr_torch.core.geometry.vanishing import AtlantaConfig, rank_vanishing_points
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
@@ -42,7 +42,7 @@ from fr_torch.core.reliability.sanity import (
 from fr_torch.core.result import CalibrationResult
 from fr_torch.core.search.choice import HorizonChooser, choose_fit
 from fr_torch.core.search.lens import SegmentGeometry, bend_test, search_with_k
-from fr_torch.core.search.manhattan import search_manhattan
+from fr_torch.core.search.manhattan import fit_families, search_manhattan
 from fr_torch.core.settings.checks import (
     MAX_REACH_IMAGE_SIZES,
     check_camera,
@@ -307,6 +307,7 @@ class SegmentEstimator:
                                                  setting.k_prior_weight if lens == "division" else 0.0)
         k_estimate = None  # (B,) k of the division estimates
         horizon_fit = torch.zeros(len(group), dtype=torch.bool)  # (B,) the horizon fit chosen (choose_fit)
+        extra_azimuth = extra_weight = extra_count = None  # (B, m) degrees and (B,) of the extra families (SearchConfig.families)
         choice_evidence = {}  # the choice's evidence (fr_torch.core.search.choice.CHOICE_FEATURES), cues choice_*
         fast = self.mode == "fast"
         t0 = time.perf_counter()
@@ -329,6 +330,16 @@ class SegmentEstimator:
             params = torch.where(horizon_fit[:, None], choice.params.to(params.dtype), params)
             best_scores = torch.where(horizon_fit, choice.scores.to(best_scores.dtype), best_scores)
             tied = torch.where(horizon_fit, torch.zeros_like(tied), tied) | choice.tied
+            if self.search.families is not None:  # extra horizontal families inside the likelihood
+                families = fit_families(self.likelihood, features, params, found.lower, found.upper,
+                                        self.search.families, self.iterations)
+                extra = families.count > 0
+                params = torch.where(extra[:, None], families.params.to(params.dtype), params)
+                # the Manhattan mixture's objective at the camera (what the cues compare against)
+                manhattan_scores = self.likelihood.objective(features, rotations(params)[:, None].to(dtype),
+                                                             params[:, FOCAL, None].to(dtype))[:, 0]
+                best_scores = torch.where(extra, manhattan_scores.to(best_scores.dtype), best_scores)
+                extra_azimuth, extra_weight, extra_count = families.azimuth_deg, families.weight, families.count
             estimate = CameraParams(params)
         t2 = time.perf_counter()
 
@@ -336,9 +347,12 @@ class SegmentEstimator:
         posterior, log_p = self.likelihood.posteriors(features, rotation[:, None].to(dtype),
                                                       estimate.focal_px[:, None].to(dtype))
         labels = first_argmax(posterior[:, 0], -1)
-        ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta)
+        ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta,
+                                       extra_azimuth, extra_weight)
         cues = image_cues(grid_scores, grid_counts, labels, log_p[:, 0], batch.mask, rotation)
         cues.update({f"choice_{name}": value for name, value in choice_evidence.items()})
+        if extra_count is not None:
+            cues["extra_families"] = extra_count.to(torch.float64)
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
                                self.profile_gap, self.spreads))
         if lens == "pinhole":  # do the lines bend?  (a sanity check of pinhole estimates; auto's criterion)

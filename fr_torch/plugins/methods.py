@@ -62,13 +62,16 @@ class FRCalibrator:
     def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
                  likelihood: str | None = None, use_meta_segments: bool = False, name: str | None = None,
                  range=None, model: str | None = None, atlanta=None, distortion: str | None = None, k=None,
-                 fit: str | None = None, **estimator_kwargs):
+                 fit: str | None = None, families=None, **estimator_kwargs):
         if range is not None:
             base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
             estimator_kwargs["search_config"] = base.with_fov_range(range)
         if fit is not None:
             base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
             estimator_kwargs["search_config"] = base.with_fit(fit)
+        if families is not None:
+            base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
+            estimator_kwargs["search_config"] = base.with_families(families)
         if model is not None:
             params = (estimator_kwargs.get("likelihood_params")
                       or LikelihoodParams.from_config(measure, likelihood, mode=mode))
@@ -82,7 +85,7 @@ class FRCalibrator:
             "measure": measure or None, "detector": detector if detector != "lsd" else None,
             "likelihood": likelihood or None, "range": range if isinstance(range, str) else None, "model": model,
             "atlanta": atlanta if self.estimator.atlanta is not None else None, "distortion": distortion, "k": k,
-            "fit": fit, "working_long_side": estimator_kwargs.get("working_long_side")})
+            "fit": fit, "families": families, "working_long_side": estimator_kwargs.get("working_long_side")})
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
         start = time.perf_counter()

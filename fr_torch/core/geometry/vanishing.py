@@ -138,17 +138,26 @@ class RankedVanishingPoints:
 
 
 def rank_vanishing_points(likelihood, features, rotation: torch.Tensor, focal: torch.Tensor,
-                          atlanta: AtlantaConfig | None = None) -> RankedVanishingPoints:
+                          atlanta: AtlantaConfig | None = None, fixed_azimuth_deg: torch.Tensor | None = None,
+                          fixed_weight: torch.Tensor | None = None) -> RankedVanishingPoints:
     """Rank the Manhattan VPs of B estimates by support and add extra families (module docstring).
 
     ``likelihood``: the :class:`~fr_torch.core.likelihood.mixture.MixtureLikelihood` of the search;
     ``features``: its :class:`~fr_torch.core.likelihood.measures.SegmentFeatures` (B, N); ``rotation``
     (B, 3, 3) world -> camera; ``focal`` (B,) pixels.  Computed in float64.
+
+    ``fixed_azimuth_deg`` (B, S) degrees from ``R[:, 0]``, NaN = none: horizontal families the fit
+    already holds (:func:`fr_torch.core.search.manhattan.fit_families`), in the mixture before any
+    Atlanta family, with mixture weights ``fixed_weight`` (B, S) and the Manhattan components scaled
+    by one minus their sum; they are families 3, 4, ... in that order.
     """
     if atlanta is not None and likelihood.params.model != "mixture":
         atlanta = None  # the "no probabilistic model" ablation has no mixture to add a family to
-    chunk = ATLANTA_CHUNK_IMAGES if atlanta is not None else max(1, RANK_CHUNK_SEGMENTS // max(1, features.weight.shape[1]))
-    parts = [_rank_chunk(likelihood, features.images(b, b + chunk), rotation[b:b + chunk], focal[b:b + chunk], atlanta)
+    chunk = ATLANTA_CHUNK_IMAGES if atlanta is not None or fixed_azimuth_deg is not None \
+        else max(1, RANK_CHUNK_SEGMENTS // max(1, features.weight.shape[1]))
+    parts = [_rank_chunk(likelihood, features.images(b, b + chunk), rotation[b:b + chunk], focal[b:b + chunk], atlanta,
+                         None if fixed_azimuth_deg is None else fixed_azimuth_deg[b:b + chunk],
+                         None if fixed_weight is None else fixed_weight[b:b + chunk])
              for b in range(0, rotation.shape[0], chunk)]
     return RankedVanishingPoints(*(torch.cat([getattr(p, name) for p in parts]) for name in
                                    ("points", "support", "family", "azimuth_deg")))
@@ -183,7 +192,22 @@ def _free_candidates(features, unexplained: torch.Tensor, count: int, focal: tor
     return _pixels(focal, features.principal_point, dirs), dirs, usable
 
 
-def _rank_chunk(likelihood, features, rotation, focal, atlanta):
+def horizontal_directions(rotation: torch.Tensor, azimuth: torch.Tensor) -> torch.Tensor:
+    """Unit horizontal directions ``cos a R[:, 0] + sin a R[:, 2]`` (B, A, 3) at azimuths ``a`` (B, A)
+    or (A,) radians from the first Manhattan column of rotations (B, 3, 3) (world -> camera)."""
+    azimuth = azimuth.expand(rotation.shape[0], -1) if azimuth.dim() == 1 else azimuth
+    return torch.cos(azimuth)[..., None] * rotation[:, None, :, 0] + torch.sin(azimuth)[..., None] * rotation[:, None, :, 2]
+
+
+def horizon_points(rotation: torch.Tensor, focal: torch.Tensor, principal_point: torch.Tensor,
+                   azimuth: torch.Tensor) -> torch.Tensor:
+    """The vanishing points ``K d(a)`` (B, A, 3) homogeneous pixels of the horizontal directions at
+    azimuths ``a`` (B, A) or (A,) radians (:func:`horizontal_directions`); ``focal`` (B,) and
+    ``principal_point`` (B, 2) pixels."""
+    return _pixels(focal, principal_point, horizontal_directions(rotation, azimuth))
+
+
+def _rank_chunk(likelihood, features, rotation, focal, atlanta, fixed_azimuth_deg=None, fixed_weight=None):
     dtype = torch.float64
     rotation, focal = rotation.to(dtype), focal.to(dtype)
     feats = features if features.weight.dtype == dtype else _as_dtype(features, dtype)
@@ -195,24 +219,40 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
     comp = torch.exp(log_comp)
     mix = small_sum(comp, -1)  # (B, N) p_i
     extra = atlanta.max_extra if atlanta is not None else 0
-    count = 3 + extra
+    fixed = 0 if fixed_azimuth_deg is None else fixed_azimuth_deg.shape[1]
+    count = 3 + fixed + extra
     points = torch.zeros(batch, count, 3, dtype=dtype, device=device)
     points[:, :3] = vanishing_point_rows(focal, feats.principal_point, rotation)
     azimuth = torch.full((batch, count), math.nan, dtype=dtype, device=device)
     azimuth[:, 0], azimuth[:, 2] = 0.0, 90.0
     present = torch.zeros(batch, count, dtype=torch.bool, device=device)
     present[:, :3] = True
-    extra_density = torch.zeros(batch, weight.shape[1], extra, dtype=dtype, device=device)  # prior * h
+    extra_density = torch.zeros(batch, weight.shape[1], fixed + extra, dtype=dtype, device=device)  # prior * h
     manhattan_scale = torch.ones(batch, dtype=dtype, device=device)  # prod (1 - prior) of added families
+    if fixed:  # the fit's own families, in the mixture with the weights the fit gave them
+        fixed_deg = fixed_azimuth_deg.to(device=device, dtype=dtype)
+        held = torch.isfinite(fixed_deg)  # (B, S)
+        fixed_w = torch.where(held, fixed_weight.to(device=device, dtype=dtype), torch.zeros_like(fixed_deg))
+        fixed_points = horizon_points(rotation, focal, pp, torch.deg2rad(torch.nan_to_num(fixed_deg, nan=0.0)))
+        density = fixed_w[:, None, :] * torch.exp(likelihood.horizontal_log_density(
+            likelihood.point_deviations(feats, fixed_points, focal)))  # (B, N, S)
+        manhattan_scale = 1.0 - small_sum(fixed_w, -1)
+        mix = manhattan_scale[:, None] * mix + small_sum(density, -1)
+        points[:, 3:3 + fixed] = torch.where(held[..., None], signed_rows(fixed_points), points[:, 3:3 + fixed])
+        azimuth[:, 3:3 + fixed] = torch.remainder(fixed_deg, 180.0)
+        present[:, 3:3 + fixed] = held
+        extra_density[:, :, :fixed] = density
     if extra:
         step = math.radians(atlanta.step_deg)
         grid = torch.arange(0.0, math.pi, step, dtype=dtype, device=device)  # (A,)
-        grid_dirs = (torch.cos(grid)[None, :, None] * rotation[:, None, :, 0]
-                     + torch.sin(grid)[None, :, None] * rotation[:, None, :, 2])  # (B, A, 3)
+        grid_dirs = horizontal_directions(rotation, grid)  # (B, A, 3)
         grid_points = _pixels(focal, pp, grid_dirs)  # (B, A, 3)
         grid_density = atlanta.prior * torch.exp(likelihood.horizontal_log_density(
             likelihood.point_deviations(feats, grid_points, focal)))  # (B, N, A)
         taken = rotation.transpose(1, 2).clone()  # (B, F, 3) unit directions of the families in the model
+        if fixed:
+            taken = torch.cat([taken, torch.where(held[..., None], horizontal_directions(
+                rotation, torch.deg2rad(torch.nan_to_num(fixed_deg, nan=0.0))), taken[:, :1])], 1)
         total = exact_sum(weight, -1).clamp_min(1e-12)
         active = torch.ones(batch, dtype=torch.bool, device=device)
         rows = torch.arange(batch, device=device)
@@ -262,11 +302,11 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta):
                 mixed = torch.where(use_free[:, None], free_mixed, mixed)
                 horizontal = horizontal & ~use_free
                 keep = keep | use_free
-            slot = 3 + j
+            slot = 3 + fixed + j
             points[:, slot] = torch.where(keep[:, None], signed_rows(point), points[:, slot])
             azimuth[:, slot] = torch.where(horizontal, torch.rad2deg(grid[best]), azimuth[:, slot])
             present[:, slot] = keep
-            extra_density[:, :, j] = torch.where(keep[:, None], chosen, extra_density[:, :, j])
+            extra_density[:, :, fixed + j] = torch.where(keep[:, None], chosen, extra_density[:, :, fixed + j])
             mix = torch.where(keep[:, None], mixed, mix)
             manhattan_scale = torch.where(keep, manhattan_scale * (1.0 - prior), manhattan_scale)
             taken = torch.cat([taken, torch.where(keep[:, None, None], _unit_directions(focal, pp, point[:, None]),

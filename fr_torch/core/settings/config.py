@@ -126,6 +126,75 @@ class HorizonFitConfig:
 
 
 @dataclass(frozen=True)
+class FamiliesConfig:
+    """Extra horizontal families inside the likelihood (:func:`fr_torch.core.search.manhattan.fit_families`).
+
+    After the Manhattan fit, up to ``max_extra`` horizontal families with vanishing points on the
+    horizon join the mixture (the Manhattan components and the background scaled by one minus their
+    weights); f, R, their azimuths and their weights (starting at ``prior``, which is also the
+    weight of the candidates' search) are refined together, and each photo keeps the count m in
+    0..``max_extra`` of the largest penalised likelihood ``(L_m - L_0) N / W - penalty * m log N``
+    (``penalty`` = 1: BIC with two parameters per family, azimuth and weight; L the length-weighted
+    objective, W the total segment length, N the segment count).
+    ``min_support``: a candidate family must explain this share of the total segment length;
+    ``exclusion_deg``: candidates lie at least this far (degrees) from every family in the model;
+    ``window_deg``: each extra azimuth is refined within this many degrees of its candidate, and
+    pan within this many degrees of the Manhattan fit's (not wrapped: an extra family's azimuth is
+    measured from ``R[:, 0]``).
+    """
+
+    max_extra: int = 2
+    prior: float = 0.05
+    penalty: float = 1.0
+    min_support: float = 0.01
+    exclusion_deg: float = 5.0
+    window_deg: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.max_extra, int) and 0 <= self.max_extra <= 4):
+            raise FRInputError(f"families max_extra must be an integer in [0, 4], got {self.max_extra!r}")
+        checks = {"prior": (1e-4, 0.2), "penalty": (0.0, 1e3), "min_support": (0.0, 1.0),
+                  "exclusion_deg": (0.0, 45.0), "window_deg": (0.1, 45.0)}
+        for name, (low, high) in checks.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)
+                                               and low <= value <= high):
+                raise FRInputError(f"families {name} must be a number in [{low:g}, {high:g}], got {value!r}")
+
+    @classmethod
+    def parse(cls, value) -> "FamiliesConfig | None":
+        """None / ``"off"`` / ``"0"`` -> None (the Manhattan mixture alone, the default); ``"auto"`` ->
+        the defaults; ``"auto:max_extra=1:prior=0.1"`` or ``"max_extra=1"`` (``:``- or ``;``-separated
+        ``key=value``) -> the defaults with those overrides; a dict of fields or a
+        :class:`FamiliesConfig` as is.  FRInputError (one line) otherwise."""
+        if value is None or isinstance(value, cls):
+            return value
+        if isinstance(value, dict):
+            unknown = sorted(set(value) - {f.name for f in fields(cls)})
+            if unknown:
+                raise FRInputError(f"families: unknown setting(s) {', '.join(unknown)}")
+            return cls(**value)
+        text = str(value).strip()
+        if text.lower() in ("off", "0", "none", "false", "no", ""):
+            return None
+        overrides = {}
+        for part in text.replace(";", ":").split(":"):
+            part = part.strip()
+            if part.lower() in ("auto", "on"):
+                continue
+            key, _, raw = part.partition("=")
+            key = key.strip()
+            if key not in {f.name for f in fields(cls)} or not raw.strip():
+                raise FRInputError(f"families: expected auto, off or key=value pairs "
+                                   f"({', '.join(f.name for f in fields(cls))}), got {part!r}")
+            try:
+                overrides[key] = int(raw) if key == "max_extra" else float(raw)
+            except ValueError:
+                raise FRInputError(f"families {key}: not a number: {raw!r}") from None
+        return replace(cls(), **overrides)
+
+
+@dataclass(frozen=True)
 class SearchConfig:
     """Search settings; angles in degrees.
 
@@ -172,6 +241,9 @@ class SearchConfig:
     :func:`fr_torch.core.search.choice.choose_fit`); ``horizon``: the horizon fit's settings
     (:class:`HorizonFitConfig`, a dict is parsed on construction).  The division-lens search is
     always the Manhattan fit.
+    ``families``: extra horizontal families inside the likelihood after the Manhattan fit
+    (:class:`FamiliesConfig`; ``"auto"``, a dict or key=value text is parsed on construction;
+    None = off, the default): f and R are then refitted with them (pinhole search only).
 
     Invalid values raise :class:`~fr_torch.errors.FRInputError` (one line).
     """
@@ -199,9 +271,11 @@ class SearchConfig:
     distortion_k_spacing: float = 0.4
     fit: str = "manhattan"
     horizon: HorizonFitConfig = HorizonFitConfig()
+    families: FamiliesConfig | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "fov_range", FovRange.parse(self.fov_range))
+        object.__setattr__(self, "families", FamiliesConfig.parse(self.families))
         object.__setattr__(self, "horizon", HorizonFitConfig.parse(self.horizon))
         if self.fit not in FITS:
             raise FRInputError(f"fit must be one of {', '.join(FITS)}, got {self.fit!r}")
@@ -296,6 +370,10 @@ class SearchConfig:
     def with_fit(self, value: str) -> "SearchConfig":
         """A copy returning the fit ``value`` (one of :data:`FITS`)."""
         return replace(self, fit=str(value))
+
+    def with_families(self, value) -> "SearchConfig":
+        """A copy with the extra-families setting ``value`` (anything :meth:`FamiliesConfig.parse` takes)."""
+        return replace(self, families=FamiliesConfig.parse(value))
 
     def with_fov_range(self, value) -> "SearchConfig":
         """A copy searching the FOV range ``value`` (anything :meth:`FovRange.parse` accepts)."""
