@@ -105,18 +105,29 @@ class AtlantaConfig:
             return None
         if text.lower() in ("on", "true", "1", "yes", "default"):
             return cls()
-        kinds = {f.name: f.type for f in fields(cls)}
-        overrides = {}
-        for part in text.replace(";", ":").split(":"):
-            key, _, raw = part.partition("=")
-            key = key.strip()
-            if key not in kinds or not raw.strip():
-                raise FRInputError(f"atlanta: expected on, off or key=value pairs ({', '.join(kinds)}), got {part!r}")
-            try:
-                overrides[key] = int(raw) if key in ("max_extra", "free_segments") else float(raw)
-            except ValueError:
-                raise FRInputError(f"atlanta {key}: not a number: {raw!r}") from None
-        return replace(cls(), **overrides)
+        return replace(cls(), **overrides_from_text(cls, text, "atlanta", "on"))
+
+
+def overrides_from_text(cls, text: str, setting: str, switch: str, skip: tuple[str, ...] = ()) -> dict:
+    """The field overrides of dataclass ``cls`` written as ``key=value`` pairs joined by ``:`` or
+    ``;`` (``"max_extra=2:prior=0.05"``): {field name: int for a field typed ``int``, else float}.
+    Tokens in ``skip`` (lower case) are passed over.  FRInputError (one line, naming ``setting``
+    and, for a malformed pair, the words it accepts: ``switch``, off or the pairs) otherwise."""
+    kinds = {f.name: f.type for f in fields(cls)}
+    overrides = {}
+    for part in text.replace(";", ":").split(":"):
+        if part.strip().lower() in skip:
+            continue
+        key, _, raw = part.partition("=")
+        key = key.strip()
+        if key not in kinds or not raw.strip():
+            raise FRInputError(f"{setting}: expected {switch}, off or key=value pairs ({', '.join(kinds)}), "
+                               f"got {part!r}")
+        try:
+            overrides[key] = int(raw) if kinds[key] in ("int", int) else float(raw)
+        except ValueError:
+            raise FRInputError(f"{setting} {key}: not a number: {raw!r}") from None
+    return overrides
 
 
 @dataclass

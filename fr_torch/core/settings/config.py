@@ -20,6 +20,7 @@ from dataclasses import dataclass, fields, replace
 from enum import StrEnum
 from pathlib import Path
 
+from fr_torch.core.geometry.vanishing import overrides_from_text
 from fr_torch.core.settings.checks import enum_member
 from fr_torch.core.settings.distortion import DistortionSetting
 from fr_torch.core.settings.fov import FovRange, two_numbers
@@ -177,21 +178,7 @@ class FamiliesConfig:
         text = str(value).strip()
         if text.lower() in ("off", "0", "none", "false", "no", ""):
             return None
-        overrides = {}
-        for part in text.replace(";", ":").split(":"):
-            part = part.strip()
-            if part.lower() in ("auto", "on"):
-                continue
-            key, _, raw = part.partition("=")
-            key = key.strip()
-            if key not in {f.name for f in fields(cls)} or not raw.strip():
-                raise FRInputError(f"families: expected auto, off or key=value pairs "
-                                   f"({', '.join(f.name for f in fields(cls))}), got {part!r}")
-            try:
-                overrides[key] = int(raw) if key == "max_extra" else float(raw)
-            except ValueError:
-                raise FRInputError(f"families {key}: not a number: {raw!r}") from None
-        return replace(cls(), **overrides)
+        return replace(cls(), **overrides_from_text(cls, text, "families", "auto", skip=("auto", "on")))
 
 
 @dataclass(frozen=True)
