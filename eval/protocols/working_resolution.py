@@ -34,17 +34,20 @@ from fr_eval.scoring.horizon_metric import FRAME, lezama_auc, truth_horizons
 from fr_eval.scoring.metrics import image_errors, mean_se
 from fr_torch import FREstimator
 from fr_torch.core.geometry.horizon import Horizon
+from fr_torch.core.reliability.bounds import DEFAULT_LIMITS
+from fr_torch.errors import FRInputError
 from fr_torch.images.io import load_image, parse_working_long_side
 
 METRICS = ("focal_err_pct", "tilt_err_deg", "roll_err_deg")
-#: The promise's limits (configs/reliability.json): a reliable estimate within them is a kept promise.
-PROMISE_LIMITS = {"focal_err_pct": 10.0, "tilt_err_deg": 3.0}
+#: The promise's limits (:data:`fr_torch.core.reliability.bounds.DEFAULT_LIMITS`) by the error they
+#: bound: a reliable estimate within them is a kept promise.
+PROMISE_LIMITS = {"focal_err_pct": DEFAULT_LIMITS["focal_pct"], "tilt_err_deg": DEFAULT_LIMITS["tilt_deg"]}
 
 
 def _caps(text: str) -> list[int | None]:
     try:
         return [parse_working_long_side(v.strip(), "--caps") for v in text.split(",")]
-    except Exception as exc:  # FRInputError: a usage error of this command
+    except FRInputError as exc:  # a usage error of this command
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
