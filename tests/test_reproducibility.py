@@ -208,6 +208,35 @@ def test_the_fused_kernels_check_themselves_against_the_torch_path():
         assert torch.equal(fused, torch_path)
 
 
+def test_the_fused_refinement_reproduces_the_torch_loop():
+    """Where the kernels build, fR's 100-step refinement of a photo's starts runs as one kernel call
+    (fr_torch.core.search.refine.refine_fused) whose answer is the torch loop's bit for bit, with
+    the photo's hypotheses on one thread or split over two and three, and in a batch."""
+    from fr_torch.core.geometry.conventions import image_centre
+    from fr_torch.core.likelihood.measures import SegmentFeatures
+    from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood, native
+    from fr_torch.core.search.refine import _refine_slice, refine_kernel_matches_torch
+
+    if not native.available("refine"):
+        pytest.skip(f"fused kernels unavailable here ({native._state.get('error', 'FR_NATIVE=0')})")
+    assert refine_kernel_matches_torch()
+    segments, size = _photos()[0]
+    features = SegmentFeatures.from_endpoints(torch.as_tensor(segments, dtype=torch.float32)[None], None,
+                                              torch.tensor([image_centre(*size)]))
+    likelihood = MixtureLikelihood(LikelihoodParams(focal_prior_weight=0.3, focal_prior_flat_halfwidth=0.2))
+    generator = torch.Generator().manual_seed(66)
+    lower, upper = torch.tensor([[0.0, -45.0, -45.0, 150.0]]), torch.tensor([[90.0, 45.0, 45.0, 1500.0]])
+    starts = lower[:, None] + torch.rand(1, 8, 4, generator=generator) * (upper - lower)[:, None]
+    expected = _refine_slice(likelihood, features, starts, lower, upper, 100, False, periodic_pan=True, fused=False)
+    for threads in (1, 2, 3):
+        got = _refine_slice(likelihood, features, starts, lower, upper, 100, False, periodic_pan=True, threads=threads)
+        assert all(torch.equal(a, b) for a, b in zip(expected, got))
+    twice = features.take_images(torch.tensor([0, 0]))
+    batch = _refine_slice(likelihood, twice, starts.repeat(2, 1, 1), lower.repeat(2, 1), upper.repeat(2, 1), 100,
+                          False, periodic_pan=True, threads=2)
+    assert all(torch.equal(a[0], b[0]) and torch.equal(a[0], b[1]) for a, b in zip(expected, batch))
+
+
 @gpu
 def test_gpu_runs_repeat_and_match_the_cpu(reference):
     """On a GPU: two runs give the same bits; the CPU's answers within 1e-4 relative, no other basin."""

@@ -1,11 +1,12 @@
-/* Fused measure-b scoring (fr_measure_b_scores) and the refinement's objective with its gradient
- * (fr_measure_b_grad): fr_torch/core/native.py builds, checks and calls this file.
+/* Fused measure-b scoring (fr_measure_b_scores), the refinement's objective with its gradient
+ * (fr_measure_b_grad) and the refinement loop (fr_measure_b_refine):
+ * fr_torch/core/likelihood/native.py builds, checks and calls this file.
  *
  * Every value is the torch path's (fr_torch/core/likelihood/objective.py: objective_b_nograd,
  * measure_b_forward / measure_b_backward) bit for bit:
  * the same IEEE float32 operations in the same order (compiled with -ffp-contract=off, no fast
- * math), and atan / exp / log through the same MKL VML routines torch's CPU kernels call (their
- * addresses are passed in by the caller).  Only the sum over segments is done differently: each
+ * math), and atan / exp / log / sin / cos / sqrt through the same MKL VML routines torch's CPU
+ * kernels call (their addresses are passed in by the caller).  Only the sum over segments is done differently: each
  * term is rounded to the image's fixed-point grid (fr_torch/core/exact.py, exact_sum) and the
  * integers are added in double, where every order gives the same sum.  The per-segment deviations
  * are never stored: a tile of hypotheses is scored a few segments at a time in small buffers.
@@ -152,6 +153,143 @@ static inline uint32_t magnitude_bits(float x) {
     return v.u & 0x7fffffffu;
 }
 
+/* Buffers of the gradient pass for up to `hyp` hypotheses of an image with `n_seg` segments: one
+ * block of floats (grad_floats) carved into the arrays below. */
+typedef struct {
+    int64_t rows;               /* segments per MKL call */
+    float *s, *t, *x, *e;       /* (rows, 3H): incidence s, t; atan; exp */
+    float *a, *d;               /* (3H): each column's -1/lambda and log(prior/lambda) */
+    float *gs, *gt;             /* (3H): a segment's d obj / d s and d obj / d t */
+    float *p, *g;               /* (rows, H): p_i then log p_i; w_i / p_i * grad_out */
+    float *terms;               /* (3, N, 3H): each coordinate's gradient terms */
+    double *acc;                /* (H) */
+} grad_work;
+
+static int64_t grad_rows(int64_t hyp) { return CALL / (3 * hyp) > 1 ? CALL / (3 * hyp) : 1; }
+
+static size_t grad_floats(int64_t n_seg, int64_t hyp) {
+    const int64_t width = 3 * hyp, cells = grad_rows(hyp) * width;
+    return (size_t)(4 * cells + 4 * width + 2 * grad_rows(hyp) * hyp + 3 * n_seg * width + 1);
+}
+
+static void grad_work_carve(grad_work *w, float *block, double *acc, int64_t hyp) {
+    const int64_t width = 3 * hyp;
+    w->rows = grad_rows(hyp);
+    const int64_t cells = w->rows * width;
+    w->s = block; w->t = w->s + cells; w->x = w->t + cells; w->e = w->x + cells;
+    w->a = w->e + cells; w->d = w->a + width; w->gs = w->d + width; w->gt = w->gs + width;
+    w->p = w->gt + width; w->g = w->p + w->rows * hyp; w->terms = w->g + w->rows * hyp;
+    w->acc = acc;
+}
+
+/* Pass 1 of one image's objective and gradient for `hyp` hypotheses: measure_b_forward and the
+ * terms of measure_b_backward (fr_torch/core/likelihood/objective.py) bit for bit.
+ *
+ * fb (3, 3H) VP-major vanishing points; lines / alongs (N, 3); weight_b, factor_b (N); go (H)
+ * the upstream gradient.  Leaves sum_i round(log p_i * factor_i) in w->acc (H), every gradient
+ * term in w->terms and raises largest[c] to the magnitude bits of coordinate c's largest |term|. */
+static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical,
+                       const float *lines, const float *alongs, const float *weight_b, const float *factor_b,
+                       const float *fb, const float *coef, float background, float floor_value, const float *go,
+                       vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, uint32_t largest[3]) {
+    const int64_t width = 3 * hyp, rows = w->rows;
+    float *s = w->s, *t = w->t, *x = w->x, *e = w->e, *a = w->a, *d = w->d, *gs = w->gs, *gt = w->gt;
+    float *p = w->p, *g = w->g, *terms = w->terms;
+    double *acc = w->acc;
+    for (int k = 0; k < 3; k++)
+        for (int64_t h = 0; h < hyp; h++) { a[k * hyp + h] = coef[2 * k]; d[k * hyp + h] = coef[2 * k + 1]; }
+    int horizontal[2], q = 0;
+    for (int k = 0; k < 3; k++) if (k != vertical) horizontal[q++] = k;
+    for (int64_t h = 0; h < hyp; h++) acc[h] = 0.0;
+    for (int64_t i0 = 0; i0 < n_seg; i0 += rows) {
+        const int64_t count = n_seg - i0 < rows ? n_seg - i0 : rows;
+        for (int64_t r = 0; r < count; r++) {
+            const float *l = lines + 3 * (i0 + r), *m = alongs + 3 * (i0 + r);
+            for (int64_t j = 0; j < width; j++) {
+                float sj = l[0] * fb[j] + l[1] * fb[width + j];
+                sj = sj + l[2] * fb[2 * width + j];
+                float tj = m[0] * fb[j] + m[1] * fb[width + j];
+                tj = tj + m[2] * fb[2 * width + j];
+                s[r * width + j] = sj;
+                t[r * width + j] = tj;
+                x[r * width + j] = ratio(sj, tj);
+            }
+        }
+        v_atan((int)(count * width), x, x);
+        for (int64_t r = 0; r < count; r++)
+            for (int64_t j = 0; j < width; j++) {
+                float y = x[r * width + j] * a[j] + d[j];
+                e[r * width + j] = y < floor_value ? floor_value : y;
+            }
+        v_exp((int)(count * width), e, e);
+        for (int64_t r = 0; r < count; r++) {
+            const float *er = e + r * width;
+            const float wi = weight_b[i0 + r];
+            for (int64_t h = 0; h < hyp; h++) {
+                float sum = er[horizontal[0] * hyp + h] + er[horizontal[1] * hyp + h];
+                sum = sum + er[vertical * hyp + h];
+                sum = sum + background;
+                p[r * hyp + h] = sum;
+                g[r * hyp + h] = (wi / sum) * go[h];
+            }
+        }
+        v_ln((int)(count * hyp), p, p);  /* p is log p from here on */
+        for (int64_t r = 0; r < count; r++) {
+            const float f = factor_b[i0 + r];
+            for (int64_t h = 0; h < hyp; h++) acc[h] += (double)round_even(p[r * hyp + h] * f);
+        }
+        for (int64_t r = 0; r < count; r++) {
+            const int64_t i = i0 + r;
+            const float *l = lines + 3 * i, *m = alongs + 3 * i;
+            const float *sr = s + r * width, *tr = t + r * width, *er = e + r * width;
+            for (int k = 0; k < 3; k++)  /* each VP's block of columns takes the hypothesis' g */
+                for (int64_t h = 0; h < hyp; h++) gs[k * hyp + h] = g[r * hyp + h];
+            for (int64_t j = 0; j < width; j++) {
+                const float sj = sr[j], tj = tr[j];
+                float r2 = sj * sj + tj * tj;
+                r2 = r2 < FLT_MIN ? FLT_MIN : r2;  /* clamp_min_(tiny); NaN stays NaN */
+                float common = er[j] * a[j];
+                common = common * gs[j];
+                common = common * sign_of(sj * tj);
+                common = common / r2;
+                gs[j] = common * tj;
+                gt[j] = -(common * sj);
+            }
+            for (int c = 0; c < 3; c++) {
+                float *row = terms + (c * n_seg + i) * width;
+                const float lc = l[c], mc = m[c];
+                uint32_t top = largest[c];
+                for (int64_t j = 0; j < width; j++) {
+                    const float term = lc * gs[j] + mc * gt[j];
+                    row[j] = term;
+                    const uint32_t bits = magnitude_bits(term);
+                    top = bits > top ? bits : top;
+                }
+                largest[c] = top;
+            }
+        }
+    }
+}
+
+/* Pass 2: d objective / d fb (3, 3H) double into out, each coordinate's sum over segments exact on
+ * the grid set by the image's largest |term| of that coordinate (`largest`, over every hypothesis
+ * of the image, also those another part scored). */
+static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, const uint32_t largest[3], double *out) {
+    const int64_t width = 3 * hyp;
+    for (int c = 0; c < 3; c++) {
+        union { uint32_t u; float f; } top = {largest[c]};
+        const double grid = fixed_point_scale(top.f);  /* NaN when a term is NaN, as torch's amax */
+        const float grid32 = (float)grid;
+        double *o = out + c * width;
+        for (int64_t j = 0; j < width; j++) o[j] = 0.0;
+        for (int64_t i = 0; i < n_seg; i++) {
+            const float *row = w->terms + (c * n_seg + i) * width;
+            for (int64_t j = 0; j < width; j++) o[j] += (double)round_even(row[j] * grid32);
+        }
+        for (int64_t j = 0; j < width; j++) o[j] = o[j] / grid;
+    }
+}
+
 /* The refinement's objective and its gradient with respect to the vanishing points, per image:
  * measure_b_forward followed by measure_b_backward (fr_torch/core/likelihood/objective.py) bit for bit.
  *
@@ -164,108 +302,198 @@ int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, i
                       const float *flat, const float *coef, float background, float floor_value,
                       const float *grad_out, vml_fn v_atan, vml_fn v_exp, vml_fn v_ln,
                       double *objective, double *grad) {
-    const int64_t width = 3 * hyp;
-    const int64_t rows = CALL / width > 1 ? CALL / width : 1;  /* segments per MKL call */
-    const int64_t cells = rows * width;
-    float *work = malloc(sizeof(float) * (size_t)(4 * cells + 4 * width + 2 * rows * hyp + 3 * n_seg * width + 1));
+    float *block = malloc(sizeof(float) * grad_floats(n_seg, hyp));
     double *acc = malloc(sizeof(double) * (size_t)(hyp + 1));
-    if (work == NULL || acc == NULL) { free(work); free(acc); return 1; }
-    float *s = work, *t = s + cells, *x = t + cells, *e = x + cells, *a = e + cells, *d = a + width;
-    float *gs = d + width, *gt = gs + width;  /* a segment's d obj / d s and d obj / d t */
-    float *p = gt + width, *g = p + rows * hyp, *terms = g + rows * hyp; /* terms: (3, N, 3H) */
-    for (int k = 0; k < 3; k++)
-        for (int64_t h = 0; h < hyp; h++) { a[k * hyp + h] = coef[2 * k]; d[k * hyp + h] = coef[2 * k + 1]; }
-    int horizontal[2], q = 0;
-    for (int k = 0; k < 3; k++) if (k != vertical) horizontal[q++] = k;
+    if (block == NULL || acc == NULL) { free(block); free(acc); return 1; }
+    grad_work w;
+    grad_work_carve(&w, block, acc, hyp);
     for (int64_t b = first; b < last; b++) {
-        const float *fb = flat + b * 3 * width;
-        const float *lines = line_along + b * 2 * n_seg * 3, *alongs = lines + n_seg * 3;
-        const float *go = grad_out + b * hyp;
-        uint32_t largest[3] = {0, 0, 0};  /* magnitude_bits of each coordinate's largest |term| */
-        for (int64_t h = 0; h < hyp; h++) acc[h] = 0.0;
-        for (int64_t i0 = 0; i0 < n_seg; i0 += rows) {
-            const int64_t count = n_seg - i0 < rows ? n_seg - i0 : rows;
-            for (int64_t r = 0; r < count; r++) {
-                const float *l = lines + 3 * (i0 + r), *m = alongs + 3 * (i0 + r);
-                for (int64_t j = 0; j < width; j++) {
-                    float sj = l[0] * fb[j] + l[1] * fb[width + j];
-                    sj = sj + l[2] * fb[2 * width + j];
-                    float tj = m[0] * fb[j] + m[1] * fb[width + j];
-                    tj = tj + m[2] * fb[2 * width + j];
-                    s[r * width + j] = sj;
-                    t[r * width + j] = tj;
-                    x[r * width + j] = ratio(sj, tj);
-                }
-            }
-            v_atan((int)(count * width), x, x);
-            for (int64_t r = 0; r < count; r++)
-                for (int64_t j = 0; j < width; j++) {
-                    float y = x[r * width + j] * a[j] + d[j];
-                    e[r * width + j] = y < floor_value ? floor_value : y;
-                }
-            v_exp((int)(count * width), e, e);
-            for (int64_t r = 0; r < count; r++) {
-                const float *er = e + r * width;
-                const float w = weight[b * n_seg + i0 + r];
-                for (int64_t h = 0; h < hyp; h++) {
-                    float sum = er[horizontal[0] * hyp + h] + er[horizontal[1] * hyp + h];
-                    sum = sum + er[vertical * hyp + h];
-                    sum = sum + background;
-                    p[r * hyp + h] = sum;
-                    g[r * hyp + h] = (w / sum) * go[h];
-                }
-            }
-            v_ln((int)(count * hyp), p, p);  /* p is log p from here on */
-            for (int64_t r = 0; r < count; r++) {
-                const float f = factor[b * n_seg + i0 + r];
-                for (int64_t h = 0; h < hyp; h++) acc[h] += (double)round_even(p[r * hyp + h] * f);
-            }
-            for (int64_t r = 0; r < count; r++) {
-                const int64_t i = i0 + r;
-                const float *l = lines + 3 * i, *m = alongs + 3 * i;
-                const float *sr = s + r * width, *tr = t + r * width, *er = e + r * width;
-                for (int k = 0; k < 3; k++)  /* each VP's block of columns takes the hypothesis' g */
-                    for (int64_t h = 0; h < hyp; h++) gs[k * hyp + h] = g[r * hyp + h];
-                for (int64_t j = 0; j < width; j++) {
-                    const float sj = sr[j], tj = tr[j];
-                    float r2 = sj * sj + tj * tj;
-                    r2 = r2 < FLT_MIN ? FLT_MIN : r2;  /* clamp_min_(tiny); NaN stays NaN */
-                    float common = er[j] * a[j];
-                    common = common * gs[j];
-                    common = common * sign_of(sj * tj);
-                    common = common / r2;
-                    gs[j] = common * tj;
-                    gt[j] = -(common * sj);
-                }
-                for (int c = 0; c < 3; c++) {
-                    float *row = terms + (c * n_seg + i) * width;
-                    const float lc = l[c], mc = m[c];
-                    uint32_t top = largest[c];
-                    for (int64_t j = 0; j < width; j++) {
-                        const float term = lc * gs[j] + mc * gt[j];
-                        row[j] = term;
-                        const uint32_t bits = magnitude_bits(term);
-                        top = bits > top ? bits : top;
-                    }
-                    largest[c] = top;
-                }
-            }
-        }
+        const float *lines = line_along + b * 2 * n_seg * 3;
+        uint32_t largest[3] = {0, 0, 0};
+        grad_terms(&w, n_seg, hyp, vertical, lines, lines + n_seg * 3, weight + b * n_seg, factor + b * n_seg,
+                   flat + b * 9 * hyp, coef, background, floor_value, grad_out + b * hyp, v_atan, v_exp, v_ln,
+                   largest);
         for (int64_t h = 0; h < hyp; h++) objective[b * hyp + h] = acc[h] / scale[b];
-        for (int c = 0; c < 3; c++) {
-            union { uint32_t u; float f; } top = {largest[c]};
-            const double grid = fixed_point_scale(top.f);  /* NaN when a term is NaN, as torch's amax */
-            const float grid32 = (float)grid;
-            double *out = grad + (b * 3 + c) * width;
-            for (int64_t j = 0; j < width; j++) out[j] = 0.0;
-            for (int64_t i = 0; i < n_seg; i++) {
-                const float *row = terms + (c * n_seg + i) * width;
-                for (int64_t j = 0; j < width; j++) out[j] += (double)round_even(row[j] * grid32);
-            }
-            for (int64_t j = 0; j < width; j++) out[j] = out[j] / grid;
-        }
+        grad_sums(&w, n_seg, hyp, largest, grad + b * 9 * hyp);
     }
-    free(work);
+    free(block);
     free(acc);
     return 0;
+}
+
+/* ---- The refinement loop (fr_measure_b_refine) ------------------------------------------------ */
+
+#include <sched.h>
+
+#define DEG2RAD 0.017453292519943295f   /* (float)(pi / 180): torch.deg2rad of a float tensor */
+
+/* One step of a split refinement waits for every part: a counter and a generation, both int64 in
+ * `sync` (zeroed by the caller).  Spins briefly, then yields the core. */
+static void barrier_wait(int64_t *sync, int64_t parts) {
+    const int64_t generation = __atomic_load_n(&sync[1], __ATOMIC_ACQUIRE);
+    if (__atomic_add_fetch(&sync[0], 1, __ATOMIC_ACQ_REL) == parts) {
+        __atomic_store_n(&sync[0], 0, __ATOMIC_RELAXED);
+        __atomic_store_n(&sync[1], generation + 1, __ATOMIC_RELEASE);
+        return;
+    }
+    for (int spins = 0; __atomic_load_n(&sync[1], __ATOMIC_ACQUIRE) == generation; spins++)
+        if (spins > 200) sched_yield();
+}
+
+/* Floats of the workspace one part of fr_measure_b_refine needs for `hyp` of an image's hypotheses
+ * (doubles counted as two floats, first in the block). */
+int64_t fr_refine_work_floats(int64_t n_seg, int64_t hyp) {
+    return 2 * (10 * hyp + 1) + (int64_t)grad_floats(n_seg, hyp) + 43 * hyp;
+}
+
+/* fR's refinement (fr_torch/core/search/refine.py: _refine_slice with the analytic gradient,
+ * adam_in_box, Adam, objective_and_grad, camera_vps, chain_to_params, the focal prior of
+ * fr_torch/core/likelihood/mixture.py) for `iterations` steps in one call, bit for bit.
+ *
+ * u (B, H, 4) float32: the hypotheses in box units [pan, pitch, roll, log f], stepped in place.
+ * lower, span (B, 4): the box (log f); a side with span <= 0 stays fixed.  pp (B, 2) principal
+ * points, grad_out (B,) the loss's weight of each image's objective (-1 / its total length).
+ * prior (B, 2): the focal prior's curvature weight and the image's long side, or NULL without one;
+ * prior_centre, prior_flat its centre (log f / long side) and flat half-width.  steps (iterations, 2):
+ * Adam's sqrt(1 - beta2^t) and lr_t / (1 - beta1^t) of step t, as float32.  The other arguments as
+ * for fr_measure_b_grad.
+ *
+ * Work: images [first, last), and of each image the hypotheses [hyp * part / parts,
+ * hyp * (part + 1) / parts).  With parts > 1 the parts run at once in other threads and meet at a
+ * barrier every step (sync: two int64, shared: 2 * parts * 3 uint32): the gradient's exact sums take
+ * their grid from the largest term over all the image's hypotheses.  work: fr_refine_work_floats of
+ * this part's hypotheses. */
+void fr_measure_b_refine(int64_t first, int64_t last, int64_t part, int64_t parts, int64_t *sync, uint32_t *shared,
+                         int64_t n_seg, int64_t hyp, int64_t vertical, int64_t iterations,
+                         const float *line_along, const float *weight, const float *factor,
+                         const float *coef, float background, float floor_value, const float *grad_out,
+                         const float *pp, const float *lower, const float *span, const float *prior,
+                         float prior_centre, float prior_flat, const float *steps,
+                         float beta1, float one_minus_beta1, float beta2, float one_minus_beta2, float eps,
+                         float grad_bound, int64_t periodic_pan,
+                         vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, vml_fn v_sin, vml_fn v_cos, vml_fn v_sqrt,
+                         float *work, float *u) {
+    const int64_t h0 = hyp * part / parts, hp = hyp * (part + 1) / parts - h0;
+    double *grad = (double *)work;                 /* (3, 3hp) */
+    double *acc = grad + 9 * hp;                   /* (hp) */
+    float *block = work + 2 * (10 * hp + 1);
+    grad_work w;
+    grad_work_carve(&w, block, acc, hp);
+    float *rad = block + grad_floats(n_seg, hp);   /* (hp, 3) */
+    float *cosv = rad + 3 * hp, *sinv = cosv + 3 * hp;
+    float *focal = sinv + 3 * hp, *logf = focal + hp, *logr = logf + hp;
+    float *flat = logr + hp;                       /* (3, 3hp) VP-major */
+    float *m1 = flat + 9 * hp, *m2 = m1 + 4 * hp;  /* Adam's moments (hp, 4) */
+    float *go = m2 + 4 * hp, *rot = go + hp;      /* rot (hp, 9) */
+    float *root = rot + 9 * hp;                    /* (hp, 4) sqrt of the second moments */
+    for (int64_t b = first; b < last; b++) {
+        const float *lines = line_along + b * 2 * n_seg * 3, *lo = lower + 4 * b, *sp_ = span + 4 * b;
+        float *ub = u + (b * hyp + h0) * 4;
+        for (int64_t j = 0; j < 4 * hp; j++) { m1[j] = 0.0f; m2[j] = 0.0f; }
+        for (int64_t h = 0; h < hp; h++) go[h] = grad_out[b];
+        for (int64_t step = 0; step < iterations; step++) {
+            for (int64_t h = 0; h < hp; h++) {
+                for (int k = 0; k < 3; k++) rad[3 * h + k] = (lo[k] + ub[4 * h + k] * sp_[k]) * DEG2RAD;
+                logf[h] = lo[3] + ub[4 * h + 3] * sp_[3];
+            }
+            v_cos((int)(3 * hp), rad, cosv);
+            v_sin((int)(3 * hp), rad, sinv);
+            v_exp((int)hp, logf, focal);
+            for (int64_t h = 0; h < hp; h++) {
+                const float cp = cosv[3 * h], ct = cosv[3 * h + 1], cr = cosv[3 * h + 2];
+                const float sp = sinv[3 * h], st = sinv[3 * h + 1], sr = sinv[3 * h + 2];
+                const float spst = sp * st, cpst = cp * st;
+                float *r = rot + 9 * h;  /* rotation_from_cos_sin: row i of R */
+                r[0] = cp * cr + spst * sr; r[1] = ct * sr; r[2] = cpst * sr - sp * cr;
+                r[3] = spst * cr - cp * sr; r[4] = ct * cr; r[5] = sp * sr + cpst * cr;
+                r[6] = sp * ct; r[7] = -st; r[8] = cp * ct;
+                for (int j = 0; j < 3; j++) {
+                    flat[0 * 3 * hp + j * hp + h] = focal[h] * r[j] + pp[2 * b] * r[6 + j];
+                    flat[1 * 3 * hp + j * hp + h] = focal[h] * r[3 + j] + pp[2 * b + 1] * r[6 + j];
+                    flat[2 * 3 * hp + j * hp + h] = r[6 + j];
+                }
+            }
+            uint32_t largest[3] = {0, 0, 0};
+            grad_terms(&w, n_seg, hp, vertical, lines, lines + n_seg * 3, weight + b * n_seg, factor + b * n_seg,
+                       flat, coef, background, floor_value, go, v_atan, v_exp, v_ln, largest);
+            if (parts > 1) {  /* the image's largest terms over every part, this step's half of `shared` */
+                uint32_t *mine = shared + ((step & 1) * parts + part) * 3;
+                for (int c = 0; c < 3; c++) mine[c] = largest[c];
+                barrier_wait(sync, parts);
+                for (int64_t q = 0; q < parts; q++)
+                    for (int c = 0; c < 3; c++) {
+                        const uint32_t theirs = shared[((step & 1) * parts + q) * 3 + c];
+                        largest[c] = theirs > largest[c] ? theirs : largest[c];
+                    }
+            }
+            grad_sums(&w, n_seg, hp, largest, grad);
+            if (prior != NULL) {
+                for (int64_t h = 0; h < hp; h++) logr[h] = focal[h] / prior[2 * b + 1];
+                v_ln((int)hp, logr, logr);
+            }
+            const float step_bias = steps[2 * step], step_lr = steps[2 * step + 1];
+            for (int64_t h = 0; h < hp; h++) {
+                const float cp = cosv[3 * h], sp = sinv[3 * h];
+                const float *r = rot + 9 * h;
+                float v[9], g[9];  /* V = K R and d obj / d V, [coordinate][VP] */
+                for (int c = 0; c < 3; c++)
+                    for (int j = 0; j < 3; j++) {
+                        v[3 * c + j] = flat[c * 3 * hp + j * hp + h];
+                        g[3 * c + j] = (float)grad[c * 3 * hp + j * hp + h];
+                    }
+                float row0 = g[0] * r[0] + g[1] * r[1];
+                row0 = row0 + g[2] * r[2];
+                float row1 = g[3] * r[3] + g[4] * r[4];
+                row1 = row1 + g[5] * r[5];
+                float grad_f = row0 + row1;
+                if (prior != NULL) {
+                    float offset = logr[h] - prior_centre;
+                    if (prior_flat != 0.0f) {
+                        float excess = fabsf(offset) - prior_flat;
+                        excess = excess < 0.0f ? 0.0f : excess;  /* clamp_min(0); NaN stays NaN */
+                        offset = sign_of(offset) * excess;
+                    }
+                    const float d_prior = (-prior[2 * b] * offset) / focal[h];
+                    grad_f = grad_f + go[h] * d_prior;
+                }
+                float m[9];  /* V.T G */
+                for (int i = 0; i < 3; i++)
+                    for (int k = 0; k < 3; k++) {
+                        float x = v[i] * g[k] + v[3 + i] * g[3 + k];
+                        m[3 * i + k] = x + v[6 + i] * g[6 + k];
+                    }
+                const float axial0 = m[7] - m[5], axial1 = m[2] - m[6], axial2 = m[3] - m[1];
+                const float grad_pitch = cp * axial0 - sp * axial2;
+                float grad_roll = r[6] * axial0 + r[7] * axial1;
+                grad_roll = grad_roll + r[8] * axial2;
+                const float NEG_DEG = -DEG2RAD;
+                float gp[4] = {axial1 * NEG_DEG, grad_pitch * NEG_DEG, grad_roll * NEG_DEG, grad_f * focal[h]};
+                float *m1h = m1 + 4 * h, *m2h = m2 + 4 * h;
+                for (int k = 0; k < 4; k++) {
+                    float gk = gp[k] * sp_[k];
+                    if (!(sp_[k] > 0.0f)) gk = 0.0f;                       /* a fixed side */
+                    if (gk != gk || gk > FLT_MAX || gk < -FLT_MAX) gk = 0.0f; /* nan_to_num(0, 0, 0) */
+                    gk = gk < -grad_bound ? -grad_bound : (gk > grad_bound ? grad_bound : gk);
+                    m1h[k] = m1h[k] * beta1 + gk * one_minus_beta1;
+                    m2h[k] = m2h[k] * beta2 + (gk * gk) * one_minus_beta2;
+                }
+            }
+            v_sqrt((int)(4 * hp), m2, root);  /* torch's sqrt of float32: MKL's, not always IEEE-rounded */
+            for (int64_t h = 0; h < hp; h++) {
+                float *uh = ub + 4 * h;
+                for (int k = 0; k < 4; k++) {
+                    const float denom = root[4 * h + k] / step_bias + eps;
+                    uh[k] = uh[k] - (m1[4 * h + k] / denom) * step_lr;
+                }
+                if (periodic_pan) {  /* torch.remainder(u, 1) */
+                    float mod = fmodf(uh[0], 1.0f);
+                    uh[0] = (mod != 0.0f && mod < 0.0f) ? mod + 1.0f : mod;
+                }
+                for (int k = 0; k < 4; k++) {  /* clamp_(0, 1); NaN stays NaN */
+                    const float x = uh[k];
+                    uh[k] = x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x);
+                }
+            }
+        }
+    }
 }

@@ -1,13 +1,18 @@
-"""Fused CPU kernels, built on first use: the measure-b grid scores and the refinement's step.
+"""Fused CPU kernels, built on first use: the measure-b grid scores, the refinement's gradient and
+the whole refinement loop.
 
 :func:`measure_b_scores` computes :func:`fr_torch.core.likelihood.objective.objective_b_nograd`'s objective
-(B, H) float64 and :func:`measure_b_grad` the refinement's objective with its gradient
-(``measure_b_forward`` + ``measure_b_backward``), bit for bit, without storing the (B, 2N, 3H)
-deviations: ``kernels_measure_b.c`` scores a tile of hypotheses a few segments at a time in
-buffers that stay in the L1 cache, with
-the same float32 operations in the same order as the torch path, ``atan`` / ``exp`` / ``log`` from
-the same MKL VML routines torch's CPU kernels call, and the exact fixed-point sum over segments
-(:func:`fr_torch.core.exact.exact_sum`: every order of the integer additions gives the same sum).
+(B, H) float64, :func:`measure_b_grad` the refinement's objective with its gradient
+(``measure_b_forward`` + ``measure_b_backward``) and :func:`measure_b_refine` every Adam step of a
+refinement (:func:`fr_torch.core.search.refine.refine_fused`: parameters to vanishing points, the
+gradient, the chain rule to the parameters, the focal prior, Adam and the box), bit for bit, without
+storing the (B, 2N, 3H) deviations: ``kernels_measure_b.c`` scores a tile of hypotheses a few
+segments at a time in buffers that stay in the L1 cache, with
+the same float32 operations in the same order as the torch path, ``atan`` / ``exp`` / ``log`` /
+``sin`` / ``cos`` / ``sqrt`` from the same MKL VML routines torch's CPU kernels call (torch's float32
+``sqrt`` is MKL's, not always the correctly rounded one), and the exact fixed-point sum over
+segments (:func:`fr_torch.core.exact.exact_sum`: every order of the integer additions gives the
+same sum).
 
 Building and trusting them:
 
@@ -18,16 +23,19 @@ Building and trusting them:
   Later processes load the cached library.
 * Before first use in a process the kernels are checked against the torch path on random segments
   and vanishing points (:func:`fr_torch.core.likelihood.mixture.kernels_match_torch`, registered by that
-  module through :func:`register_check`);
-  one differing bit and it is not used.
+  module through :func:`register_check`), the refinement loop on random scenes
+  (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`, registered as ``"refine"``);
+  one differing bit and that kernel is not used.
 * Without a C compiler, without MKL in torch (torch's ``atan`` / ``exp`` / ``log`` are then other
   routines), with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False and the
   torch path runs: the same bits, slower.  ``tests/test_reproducibility.py`` runs both paths.
 
-Threads: the work items (image, tile of up to 256 hypotheses; an image for the gradient) are split
-into ``torch.get_num_threads()`` contiguous ranges, each scored by one call from a worker thread
-with MKL single-threaded (ctypes releases the GIL); every item's result is its own, so the split
-cannot change a bit.
+Threads: the work items (image, tile of up to 256 hypotheses; an image for the gradient and the
+refinement) are split into ``torch.get_num_threads()`` contiguous ranges, each scored by one call
+from a worker thread with MKL single-threaded (ctypes releases the GIL); every item's result is its
+own, so the split cannot change a bit.  A refinement of fewer images than threads (one photo)
+splits each image's hypotheses over the threads instead, which meet once per step
+(:func:`measure_b_refine`).
 """
 from __future__ import annotations
 
@@ -51,7 +59,8 @@ FLAGS = ("-O3", "-ffp-contract=off", "-fno-fast-math", "-fno-trapping-math", "-f
 TILE = 256  # at most this many hypotheses per work item: kernels_measure_b.c
 
 _state: dict = {}
-_lock = threading.Lock()
+_checks: dict = {}
+_lock = threading.RLock()
 
 
 def _cache_dir() -> Path:
@@ -118,7 +127,8 @@ def _load():
     torch_cpu = _torch_cpu_library()
     if torch_cpu is None:
         raise RuntimeError("torch's CPU library not found")
-    vml = [ctypes.cast(getattr(torch_cpu, name), ctypes.c_void_p).value for name in ("vsAtan", "vsExp", "vsLn")]
+    vml = [ctypes.cast(getattr(torch_cpu, name), ctypes.c_void_p).value
+           for name in ("vsAtan", "vsExp", "vsLn", "vsSin", "vsCos", "vsSqrt")]
     _state["mkl_threads"] = torch_cpu.MKL_Set_Num_Threads_Local  # MKL's thread count in the calling thread (C API)
     _state["mkl_threads"].argtypes, _state["mkl_threads"].restype = [ctypes.c_int], ctypes.c_int
     library = ctypes.CDLL(str(_build()))
@@ -130,35 +140,55 @@ def _load():
     grad.restype = ctypes.c_int
     grad.argtypes = ([ctypes.c_int64] * 5 + [ctypes.c_void_p] * 6 + [ctypes.c_float] * 2
                      + [ctypes.c_void_p] * 6)
-    return {"scores": scores, "grad": grad}, vml
+    refine = library.fr_measure_b_refine
+    refine.restype = None
+    refine.argtypes = ([ctypes.c_int64] * 4 + [ctypes.c_void_p] * 2 + [ctypes.c_int64] * 4 + [ctypes.c_void_p] * 4
+                       + [ctypes.c_float] * 2 + [ctypes.c_void_p] * 5 + [ctypes.c_float] * 2 + [ctypes.c_void_p]
+                       + [ctypes.c_float] * 6 + [ctypes.c_int64] + [ctypes.c_void_p] * 8)
+    work = library.fr_refine_work_floats
+    work.restype, work.argtypes = ctypes.c_int64, [ctypes.c_int64] * 2
+    return {"scores": scores, "grad": grad, "refine": refine, "refine_work": work}, vml
 
 
-def register_check(check) -> None:
-    """The test every process runs before trusting the kernels: ``check()`` -> True when they give
-    the torch path's bits (:func:`fr_torch.core.likelihood.mixture.kernels_match_torch`, registered when
-    that module loads; without one the kernels are not used)."""
-    _state["check"] = check
+def register_check(check, name: str = "kernels") -> None:
+    """The test every process runs before trusting a kernel: ``check()`` -> True when it gives the
+    torch path's bits.  ``"kernels"``: the scores and the gradient
+    (:func:`fr_torch.core.likelihood.mixture.kernels_match_torch`, registered when that module
+    loads; without it no kernel is used); ``"refine"``: the refinement loop
+    (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`)."""
+    _checks[name] = check
 
 
-def available() -> bool:
-    """True when the fused kernel is built, loaded and checked in this process (the first call
-    does that; module docstring).  ``FR_NATIVE=0`` turns it off."""
-    if os.environ.get("FR_NATIVE", "1") == "0" or "check" not in _state:  # the check comes with likelihood/mixture.py
+def available(name: str = "kernels") -> bool:
+    """True when the fused kernels are built, loaded and checked in this process, and ``name``'s
+    check (:func:`register_check`) passed; the first call does that (module docstring).
+    ``FR_NATIVE=0`` turns every kernel off."""
+    if os.environ.get("FR_NATIVE", "1") == "0" or "kernels" not in _checks or name not in _checks:
         return False
-    if "ok" not in _state:
+    verdicts = _state.setdefault("verdicts", {})
+    if name not in verdicts:
         with _lock:
-            if "ok" not in _state:
-                try:
-                    _state["functions"], _state["vml"] = _load()
-                    _state["ok"] = True
-                    _state["ok"] = bool(_state["check"]())
-                    if not _state["ok"]:
-                        warnings.warn("fR: the fused CPU kernel does not reproduce the torch path here; "
-                                      "running without it", RuntimeWarning, stacklevel=2)
-                except Exception as exc:  # no compiler, no MKL symbols, a failed build: the torch path
-                    _state["ok"] = False
-                    _state["error"] = f"{type(exc).__name__}: {exc}"
-    return _state["ok"]
+            if name not in verdicts:
+                _trust(name, verdicts)
+    return verdicts[name]
+
+
+def _trust(name: str, verdicts: dict) -> None:
+    """Load the kernels (once) and run ``name``'s check, recording the verdict."""
+    if name != "kernels" and not available("kernels"):
+        verdicts[name] = False
+        return
+    try:
+        if "functions" not in _state:
+            _state["functions"], _state["vml"] = _load()
+        verdicts[name] = True  # the check runs the kernel through the usual calls
+        verdicts[name] = bool(_checks[name]())
+        if not verdicts[name]:
+            warnings.warn(f"fR: the fused CPU kernel ({name}) does not reproduce the torch path here; "
+                          "running without it", RuntimeWarning, stacklevel=3)
+    except Exception as exc:  # no compiler, no MKL symbols, a failed build: the torch path
+        verdicts[name] = False
+        _state["error"] = f"{type(exc).__name__}: {exc}"
 
 
 def _pool() -> ThreadPoolExecutor:
@@ -188,7 +218,7 @@ def measure_b_scores(line_along: torch.Tensor, factor: torch.Tensor, scale: torc
     ``background`` the background density and ``floor`` the exponent floor (as float32);
     ``vertical_block`` as in ``objective_b_nograd`` (must divide H).
     """
-    function, vml = _state["functions"]["scores"], _state["vml"]
+    function, vml = _state["functions"]["scores"], _state["vml"][:3]
     batch, n_seg = factor.shape
     hyp = flat.shape[2] // 3
     line_along = line_along.contiguous()
@@ -230,7 +260,7 @@ def measure_b_grad(line_along: torch.Tensor, weight: torch.Tensor, factor: torch
     :func:`fr_torch.core.likelihood.objective.measure_b_forward` then ``measure_b_backward``, bit for bit, in
     one pass per image; call only when :func:`available`.  Arguments as for
     :func:`measure_b_scores`, plus ``weight`` (B, N) float32."""
-    function, vml = _state["functions"]["grad"], _state["vml"]
+    function, vml = _state["functions"]["grad"], _state["vml"][:3]
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
     line_along, weight, factor = line_along.contiguous(), weight.contiguous(), factor.contiguous()
@@ -249,3 +279,76 @@ def measure_b_grad(line_along: torch.Tensor, weight: torch.Tensor, factor: torch
 
     _in_threads(run, batch)
     return objective, grad
+
+
+def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Tensor, factor: torch.Tensor,
+                     neg_inv_scale: torch.Tensor, log_coef: torch.Tensor, background: float, floor: float,
+                     vertical_axis: int, grad_out: torch.Tensor, principal_point: torch.Tensor, lower: torch.Tensor,
+                     span: torch.Tensor, prior: torch.Tensor | None, prior_centre: float, prior_flat: float,
+                     steps: torch.Tensor, betas: tuple[float, float], eps: float, grad_bound: float,
+                     periodic_pan: bool, threads: int | None = None) -> None:
+    """fR's refinement loop in one call (:func:`fr_torch.core.search.refine.refine_fused`, bit for
+    bit the torch loop's steps); call only when ``available("refine")``.
+
+    ``u`` (B, H, 4) float32 contiguous, stepped in place: the hypotheses in box units [pan, pitch,
+    roll, log f]; ``lower`` / ``span`` (B, 4) float32 the box in log f; ``grad_out`` (B,) float32,
+    ``principal_point`` (B, 2) pixels; ``prior`` (B, 2) float32 [the focal prior's curvature weight,
+    long side (pixels)] or None; ``steps`` (iterations, 2) float32 Adam's ``sqrt(1 - beta2^t)`` and
+    ``lr_t / (1 - beta1^t)``; the segments and constants as for :func:`measure_b_grad`; ``threads``:
+    how many to use (None: torch's count, at most one per core).
+
+    Threads: with at least as many images as threads, the images are split as in
+    :func:`measure_b_grad`; with fewer (one photo), each image's hypotheses are split over the
+    threads, which meet every step (the gradient's exact sums take their grid from all of an
+    image's hypotheses), so the split cannot change a bit.
+    """
+    function, work_floats = _state["functions"]["refine"], _state["functions"]["refine_work"]
+    batch, n_seg = weight.shape
+    hyp, iterations = u.shape[1], steps.shape[0]
+    line_along, weight, factor = line_along.contiguous(), weight.contiguous(), factor.contiguous()
+    coef = torch.stack([neg_inv_scale.reshape(3), log_coef.reshape(3)], 1).to(torch.float32).contiguous()
+    inputs = [x.to(torch.float32).contiguous() for x in (grad_out.reshape(batch), principal_point, lower, span, steps)]
+    prior = None if prior is None else prior.to(torch.float32).contiguous()
+    keep = (line_along, weight, factor, coef, inputs, prior)  # alive until every call returned
+    beta1, beta2 = betas
+
+    def call(first: int, last: int, part: int, parts: int, sync, shared) -> None:
+        width = hyp * (part + 1) // parts - hyp * part // parts
+        work = torch.empty(int(work_floats(n_seg, width)), dtype=torch.float32)
+        function(first, last, part, parts, 0 if sync is None else sync.data_ptr(),
+                 0 if shared is None else shared.data_ptr(), n_seg, hyp, vertical_axis, iterations,
+                 line_along.data_ptr(), weight.data_ptr(), factor.data_ptr(), coef.data_ptr(), background, floor,
+                 *(x.data_ptr() for x in inputs[:4]), 0 if prior is None else prior.data_ptr(),
+                 prior_centre, prior_flat, inputs[4].data_ptr(), beta1, 1.0 - beta1, beta2, 1.0 - beta2, eps,
+                 grad_bound, int(periodic_pan), *_state["vml"], work.data_ptr(), u.data_ptr())
+
+    threads = max(1, min(threads or min(torch.get_num_threads(), os.cpu_count() or 1), hyp))
+    if batch >= threads or threads == 1:
+        _in_threads(lambda first, last: call(first, last, 0, 1, None, None), batch)
+    else:
+        sync = torch.zeros(2, dtype=torch.int64)
+        shared = torch.zeros(2 * threads * 3, dtype=torch.int32)
+        _in_own_threads(lambda part: call(0, batch, part, threads, sync, shared), threads)
+    del keep
+
+
+def _in_own_threads(run, parts: int) -> None:
+    """``run(part)`` for every part at once: part 0 in the calling thread, the others in threads
+    started for this call (the parts wait for each other every step, so none may queue behind
+    other work), each with MKL single-threaded while it runs."""
+    set_mkl_threads = _state["mkl_threads"]
+
+    def single(part: int) -> None:
+        previous = set_mkl_threads(1)
+        try:
+            run(part)
+        finally:
+            set_mkl_threads(previous)
+
+    others = [threading.Thread(target=single, args=(part,), name=f"fr-native-part{part}", daemon=True)
+              for part in range(1, parts)]
+    for thread in others:
+        thread.start()
+    single(0)
+    for thread in others:
+        thread.join()

@@ -91,7 +91,7 @@ def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, backgr
     if vertical_block > 1 and hyp % vertical_block:
         raise ValueError(f"vertical_block {vertical_block} does not divide the {hyp} hypotheses")
     if fused and not per_segment and vertical_block <= native.TILE and native_ok(weight):
-        factor, scale = _sum_grid(weight, log_bound)
+        factor, scale = sum_grid(weight, log_bound)
         return native.measure_b_scores(line_along, factor, scale, flat, neg_inv_scale, log_coef, background, floor,
                                        VERTICAL_AXIS, vertical_block)
     block = max(1, vertical_block)
@@ -115,7 +115,7 @@ def native_ok(weight: torch.Tensor) -> bool:
     return weight.dtype == torch.float32 and weight.device.type == "cpu" and native.available()
 
 
-def _sum_grid(weight: torch.Tensor, log_bound: float) -> tuple[torch.Tensor, torch.Tensor]:
+def sum_grid(weight: torch.Tensor, log_bound: float) -> tuple[torch.Tensor, torch.Tensor]:
     """The fixed-point grid of the objective's exact sum over segments, as
     :func:`fr_torch.core.exact.exact_sum` forms it from the bound :func:`log_sum_bound`: each
     segment's factor ``weight * scale`` (B, N) in ``weight``'s dtype and the scale (B,) float64."""
@@ -179,7 +179,7 @@ def measure_b_objective_and_grad(line_along, weight, flat, constants, grad_out, 
     batch, hyp = weight.shape[0], flat.shape[2] // 3
     if fused and native_ok(weight):
         neg_inv_scale, log_coef, background, floor, log_bound = constants
-        factor, scale = _sum_grid(weight, log_bound)
+        factor, scale = sum_grid(weight, log_bound)
         return native.measure_b_grad(line_along, weight, factor, scale, flat, neg_inv_scale, log_coef, background,
                                      floor, VERTICAL_AXIS, grad_out.to(weight.dtype))
     objective, saved = measure_b_forward(line_along, weight, flat, *constants)

@@ -12,7 +12,10 @@ both reach the parameters through the same chain rule from the vanishing points
 
 Images are refined in independent slices of at most ``max_chunk_elements`` (``CPU_REFINE_ELEMENTS``
 on a CPU) deviations per step, and each hypothesis' update depends only on its own gradient: a
-batch gives the same answer as images one by one.  Each mode runs its ``refine_iterations`` (fR
+batch gives the same answer as images one by one.  On a CPU where the fused kernels build, the
+Manhattan refinement without a stopping rule runs all its steps in one kernel call
+(:func:`refine_fused`, :func:`fr_torch.core.likelihood.native.measure_b_refine`): the loop below, bit
+for bit, checked against it once per process (:func:`refine_kernel_matches_torch`).  Each mode runs its ``refine_iterations`` (fR
 100 with a decaying step size, Fast-fR 10; :data:`fr_torch.core.settings.config.MODE_PRESETS`).
 """
 from __future__ import annotations
@@ -22,11 +25,14 @@ import math
 import torch
 
 from fr_torch.core.exact import dot3, exact_sum, small_matmul, small_sum
-from fr_torch.core.geometry.conventions import rotation_from_cos_sin
+from fr_torch.core.geometry.conventions import VERTICAL_AXIS, rotation_from_cos_sin
 from fr_torch.core.geometry.params import ANGLES, DISTORTION, FOCAL, PAN, from_log_focal, rotations, to_log_focal
 from fr_torch.core.likelihood.measures import SegmentFeatures
-from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.likelihood import native
+from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
 from fr_torch.core.likelihood.objective import (
+    native_ok,
+    sum_grid,
     measure_b_backward,
     measure_b_forward,
     measure_b_objective_and_grad,
@@ -112,7 +118,9 @@ class Adam:
     the 1-2 s import of ``torch._dynamo`` that its constructor triggers.
     """
 
-    def __init__(self, param: torch.Tensor, lr: float, gamma: float, betas: tuple[float, float], eps: float = 1e-8):
+    EPS = 1e-8  # added to the denominator
+
+    def __init__(self, param: torch.Tensor, lr: float, gamma: float, betas: tuple[float, float], eps: float = EPS):
         self.param, self.lr, self.gamma, self.betas, self.eps = param, lr, gamma, betas, eps
         self.exp_avg = torch.zeros_like(param)
         self.exp_avg_sq = torch.zeros_like(param)
@@ -124,11 +132,12 @@ class Adam:
         keep their parameter and moments (converged images)."""
         beta1, beta2 = self.betas
         self.step_count += 1
+        bias, step_size = adam_scalars(self.lr, self.betas, self.step_count)
         with torch.no_grad():
             exp_avg = self.exp_avg * beta1 + grad * (1.0 - beta1)
             exp_avg_sq = self.exp_avg_sq * beta2 + (grad * grad) * (1.0 - beta2)
-            denom = exp_avg_sq.sqrt() / math.sqrt(1.0 - beta2 ** self.step_count) + self.eps
-            update = exp_avg / denom * (self.lr / (1.0 - beta1 ** self.step_count))
+            denom = exp_avg_sq.sqrt() / bias + self.eps
+            update = exp_avg / denom * step_size
             if active is None:
                 self.exp_avg, self.exp_avg_sq = exp_avg, exp_avg_sq
                 self.param.sub_(update)
@@ -137,6 +146,23 @@ class Adam:
                 self.exp_avg_sq = torch.where(active, exp_avg_sq, self.exp_avg_sq)
                 self.param.sub_(torch.where(active, update, torch.zeros_like(update)))
         self.lr = self.lr * self.gamma
+
+
+def adam_scalars(lr: float, betas: tuple[float, float], step_count: int) -> tuple[float, float]:
+    """Adam's two per-step scalars at step ``step_count`` (from 1) with step size ``lr``:
+    ``sqrt(1 - beta2^t)`` (the second moment's bias correction) and ``lr / (1 - beta1^t)``."""
+    beta1, beta2 = betas
+    return math.sqrt(1.0 - beta2 ** step_count), lr / (1.0 - beta1 ** step_count)
+
+
+def step_decay(lr0: float, lr_final: float, iterations: int) -> float:
+    """The factor by which the step size decays after every step: from ``lr0`` at the first of
+    ``iterations`` steps to ``lr_final`` at the last."""
+    return (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
+
+
+#: Adam's moment decays in the refinement (:func:`adam_in_box`).
+BETAS = (0.5, 0.9)
 
 
 class UnitBox:
@@ -200,8 +226,7 @@ def adam_in_box(u: torch.Tensor, box: UnitBox, iterations: int, lr0: float, lr_f
     finite (NaN, inf -> 0) and, with ``grad_bound``, clamped to +-``grad_bound``: no step makes a
     parameter non-finite.  ``stop``: the stopping rule (it reads the objectives), None = every step.
     """
-    gamma = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
-    optimiser = Adam(u, lr0, gamma, betas=(0.5, 0.9))
+    optimiser = Adam(u, lr0, step_decay(lr0, lr_final, iterations), betas=BETAS)
     all_free = bool(box.free.all())
     for _ in range(iterations):
         objective, grad = gradient(u)
@@ -223,7 +248,7 @@ def adam_in_box(u: torch.Tensor, box: UnitBox, iterations: int, lr0: float, lr_f
 
 
 def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10,
-                  periodic_pan=False, geometry=None):
+                  periodic_pan=False, geometry=None, fused=True, threads=None):
     dtype, device = features.weight.dtype, features.weight.device
     if lower.dim() == 2:  # one box per image
         lower, upper = lower[:, None, :], upper[:, None, :]
@@ -257,12 +282,88 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
 
     # Step sizes in box units: about a quarter of a grid cell at first, decaying geometrically.
     cell = 1.0 / 8
-    adam_in_box(u, box, iterations, 0.25 * cell, (0.02 if fast else 0.002) * cell, gradient, periodic_pan,
-                grad_bound=_GRAD_BOUND, stop=Patience(tolerance, patience, total_length) if tolerance > 0 else None)
+    lr0, lr_final = 0.25 * cell, (0.02 if fast else 0.002) * cell
+    if fused and analytic and geometry is None and tolerance <= 0 and lower.shape[1] == 1 and fused_refine_ok(features):
+        refine_fused(likelihood, features, u, box, grad_out, iterations, lr0, lr_final, periodic_pan,
+                     threads=threads)
+    else:
+        adam_in_box(u, box, iterations, lr0, lr_final, gradient, periodic_pan, grad_bound=_GRAD_BOUND,
+                    stop=Patience(tolerance, patience, total_length) if tolerance > 0 else None)
     with torch.no_grad():
         params, objective = evaluate(u)
         objective = torch.where(torch.isfinite(objective), objective, torch.full_like(objective, -math.inf))
     return params.detach(), objective.detach()
+
+
+def fused_refine_ok(features: SegmentFeatures) -> bool:
+    """Whether the refinement of these segments runs as one kernel call (:func:`refine_fused`):
+    float32 segments on a CPU where the fused kernels and the refinement loop's check pass."""
+    return native_ok(features.weight) and native.available("refine")
+
+
+def refine_fused(likelihood: MixtureLikelihood, features: SegmentFeatures, u: torch.Tensor, box: UnitBox,
+                 grad_out: torch.Tensor, iterations: int, lr0: float, lr_final: float, periodic_pan: bool,
+                 threads: int | None = None) -> None:
+    """:func:`adam_in_box` over :func:`objective_and_grad` (measure b, no lens, no stopping rule)
+    as one call of the fused kernel (:func:`fr_torch.core.likelihood.native.measure_b_refine`): the
+    same steps bit for bit, without a torch operator per step.
+
+    ``u`` (B, L, 4) float32 box units, stepped in place; ``box`` with sides (B, 1, 4);
+    ``grad_out`` (B, 1) the loss's weight of each image's objective; ``threads``: the kernel's
+    threads (None: torch's count)."""
+    batch = u.shape[0]
+    neg_inv_scale, log_coef, background, floor, log_bound = likelihood._b_constants(features.weight)
+    factor, _ = sum_grid(features.weight, log_bound)
+    prior = None
+    if likelihood.params.focal_prior_weight:  # MixtureLikelihood.focal_prior_of's weight and scale
+        curvature = likelihood.focal_prior_curvature(features.total_length().to(u.dtype), features.long_side)
+        prior = torch.stack([curvature, features.long_side.to(u.dtype)], 1)
+    decay = step_decay(lr0, lr_final, iterations)
+    steps, lr = [], lr0
+    for step_count in range(1, iterations + 1):  # Adam.step's scalars, step by step
+        steps.append(adam_scalars(lr, BETAS, step_count))
+        lr = lr * decay
+    data = u.detach()
+    if not data.is_contiguous():
+        raise ValueError("refine_fused: u must be contiguous")
+    native.measure_b_refine(data, features.line_along, features.weight, factor, neg_inv_scale, log_coef, background,
+                            floor, VERTICAL_AXIS, grad_out, features.principal_point, box.lower.reshape(batch, 4),
+                            box.span.reshape(batch, 4), prior, likelihood._prior_centre,
+                            likelihood.params.focal_prior_flat_halfwidth,
+                            torch.tensor(steps, dtype=torch.float64).reshape(-1, 2), BETAS, Adam.EPS, _GRAD_BOUND,
+                            periodic_pan, threads=threads)
+
+
+def refine_kernel_matches_torch() -> bool:
+    """The fused refinement (:func:`refine_fused`) against the torch loop on random scenes (with and
+    without the focal prior and its flat band, a known focal length, a periodic pan, one image's
+    hypotheses split over two threads, several images): True when every refined parameter has the
+    same bits (about 0.1 s, once per process)."""
+    generator = torch.Generator().manual_seed(66)
+    cases = ((LikelihoodParams(), 2, 40, 24, False, True, 1),
+             (LikelihoodParams(focal_prior_weight=0.3, focal_prior_flat_halfwidth=0.2), 1, 60, 32, True, False, 2),
+             (LikelihoodParams(focal_prior_weight=0.3), 3, 25, 16, True, True, 2),
+             (LikelihoodParams(focal_prior_weight=0.3), 1, 30, 7, False, False, 3))
+    for params, batch, n_seg, n_start, periodic, fast, threads in cases:
+        likelihood = MixtureLikelihood(params)
+        endpoints = torch.rand(batch, n_seg, 4, generator=generator) * torch.tensor([640.0, 480.0, 640.0, 480.0])
+        features = SegmentFeatures.from_endpoints(endpoints, torch.ones(batch, n_seg, dtype=torch.bool),
+                                                  torch.tensor([[319.5, 239.5]]).expand(batch, 2))
+        lower = torch.tensor([[0.0, -40.0, -20.0, 200.0]]).repeat(batch, 1)
+        upper = torch.tensor([[90.0, 40.0, 20.0, 2000.0]]).repeat(batch, 1)
+        if not fast:  # a known focal length: a degenerate side
+            upper[:, FOCAL] = lower[:, FOCAL] = 500.0
+        starts = lower[:, None] + torch.rand(batch, n_start, 4, generator=generator) * (upper - lower)[:, None]
+        results = [_refine_slice(likelihood, features, starts, lower, upper, 8, fast, periodic_pan=periodic,
+                                 fused=fused, threads=threads) for fused in (False, True)]
+        for expected, got in zip(*results):
+            if not torch.equal(expected.view(torch.int32 if expected.dtype == torch.float32 else torch.int64),
+                               got.view(torch.int32 if got.dtype == torch.float32 else torch.int64)):
+                return False
+    return True
+
+
+native.register_check(refine_kernel_matches_torch, "refine")
 
 
 def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures, lower: torch.Tensor,
