@@ -335,15 +335,13 @@ def refine_fused(likelihood: MixtureLikelihood, features: SegmentFeatures, u: to
 
 
 def refine_kernel_matches_torch() -> bool:
-    """The fused refinement (:func:`refine_fused`) against the torch loop on random scenes (with and
-    without the focal prior and its flat band, a known focal length, a periodic pan, one image's
-    hypotheses split over two threads, several images): True when every refined parameter has the
-    same bits (about 0.1 s, once per process)."""
+    """The fused refinement (:func:`refine_fused`) against the torch loop on random scenes: two
+    images, one with a known focal length, under the focal prior with its flat band and a periodic
+    pan; and one image without the prior whose hypotheses are split over three threads.  True when
+    every refined parameter has the same bits (a few hundredths of a second, once per process)."""
     generator = torch.Generator().manual_seed(66)
-    cases = ((LikelihoodParams(), 2, 40, 24, False, True, 1),
-             (LikelihoodParams(focal_prior_weight=0.3, focal_prior_flat_halfwidth=0.2), 1, 60, 32, True, False, 2),
-             (LikelihoodParams(focal_prior_weight=0.3), 3, 25, 16, True, True, 2),
-             (LikelihoodParams(focal_prior_weight=0.3), 1, 30, 7, False, False, 3))
+    cases = ((LikelihoodParams(focal_prior_weight=0.3, focal_prior_flat_halfwidth=0.2), 2, 40, 24, True, False, 1),
+             (LikelihoodParams(), 1, 30, 16, False, True, 3))
     for params, batch, n_seg, n_start, periodic, fast, threads in cases:
         likelihood = MixtureLikelihood(params)
         endpoints = torch.rand(batch, n_seg, 4, generator=generator) * torch.tensor([640.0, 480.0, 640.0, 480.0])
@@ -351,14 +349,13 @@ def refine_kernel_matches_torch() -> bool:
                                                   torch.tensor([[319.5, 239.5]]).expand(batch, 2))
         lower = torch.tensor([[0.0, -40.0, -20.0, 200.0]]).repeat(batch, 1)
         upper = torch.tensor([[90.0, 40.0, 20.0, 2000.0]]).repeat(batch, 1)
-        if not fast:  # a known focal length: a degenerate side
-            upper[:, FOCAL] = lower[:, FOCAL] = 500.0
+        if batch > 1:  # the second image's focal length is known: a degenerate side
+            upper[1, FOCAL] = lower[1, FOCAL] = 500.0
         starts = lower[:, None] + torch.rand(batch, n_start, 4, generator=generator) * (upper - lower)[:, None]
         results = [_refine_slice(likelihood, features, starts, lower, upper, 8, fast, periodic_pan=periodic,
                                  fused=fused, threads=threads) for fused in (False, True)]
         for expected, got in zip(*results):
-            if not torch.equal(expected.view(torch.int32 if expected.dtype == torch.float32 else torch.int64),
-                               got.view(torch.int32 if got.dtype == torch.float32 else torch.int64)):
+            if not torch.equal(expected.contiguous().view(torch.uint8), got.contiguous().view(torch.uint8)):
                 return False
     return True
 
