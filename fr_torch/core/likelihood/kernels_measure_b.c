@@ -182,7 +182,7 @@ static void grad_work_carve(grad_work *w, float *block, double *acc, int64_t hyp
     w->acc = acc;
 }
 
-/* Pass 1 of one image's objective and gradient for `hyp` hypotheses: measure_b_forward and the
+/* Pass 1 of one image's objective and gradient for its `hyp` hypotheses: measure_b_forward and the
  * terms of measure_b_backward (fr_torch/core/likelihood/objective.py) bit for bit.
  *
  * fb (3, 3H) VP-major vanishing points; lines / alongs (N, 3); weight_b, factor_b (N); go (H)
@@ -273,7 +273,7 @@ static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t v
 
 /* Pass 2: d objective / d fb (3, 3H) double into out, each coordinate's sum over segments exact on
  * the grid set by the image's largest |term| of that coordinate (`largest`, over every hypothesis
- * of the image, also those another part scored). */
+ * of the image). */
 static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, const uint32_t largest[3], double *out) {
     const int64_t width = 3 * hyp;
     for (int c = 0; c < 3; c++) {
@@ -323,25 +323,11 @@ int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, i
 
 /* ---- The refinement loop (fr_measure_b_refine) ------------------------------------------------ */
 
-#include <sched.h>
 
 #define DEG2RAD 0.017453292519943295f   /* (float)(pi / 180): torch.deg2rad of a float tensor */
 
-/* One step of a split refinement waits for every part: a counter and a generation, both int64 in
- * `sync` (zeroed by the caller).  Spins briefly, then yields the core. */
-static void barrier_wait(int64_t *sync, int64_t parts) {
-    const int64_t generation = __atomic_load_n(&sync[1], __ATOMIC_ACQUIRE);
-    if (__atomic_add_fetch(&sync[0], 1, __ATOMIC_ACQ_REL) == parts) {
-        __atomic_store_n(&sync[0], 0, __ATOMIC_RELAXED);
-        __atomic_store_n(&sync[1], generation + 1, __ATOMIC_RELEASE);
-        return;
-    }
-    for (int spins = 0; __atomic_load_n(&sync[1], __ATOMIC_ACQUIRE) == generation; spins++)
-        if (spins > 200) sched_yield();
-}
-
-/* Floats of the workspace one part of fr_measure_b_refine needs for `hyp` of an image's hypotheses
- * (doubles counted as two floats, first in the block). */
+/* Floats of the workspace fr_measure_b_refine needs for images of `hyp` hypotheses (doubles
+ * counted as two floats, first in the block). */
 int64_t fr_refine_work_floats(int64_t n_seg, int64_t hyp) {
     return 2 * (10 * hyp + 1) + (int64_t)grad_floats(n_seg, hyp) + 43 * hyp;
 }
@@ -358,13 +344,8 @@ int64_t fr_refine_work_floats(int64_t n_seg, int64_t hyp) {
  * Adam's sqrt(1 - beta2^t) and lr_t / (1 - beta1^t) of step t, as float32.  The other arguments as
  * for fr_measure_b_grad.
  *
- * Work: images [first, last), and of each image the hypotheses [hyp * part / parts,
- * hyp * (part + 1) / parts).  With parts > 1 the parts run at once in other threads and meet at a
- * barrier every step (sync: two int64, shared: 2 * parts * 3 uint32): the gradient's exact sums take
- * their grid from the largest term over all the image's hypotheses.  work: fr_refine_work_floats of
- * this part's hypotheses. */
-void fr_measure_b_refine(int64_t first, int64_t last, int64_t part, int64_t parts, int64_t *sync, uint32_t *shared,
-                         int64_t n_seg, int64_t hyp, int64_t vertical, int64_t iterations,
+ * Work: images [first, last); work: fr_refine_work_floats(n_seg, hyp) floats. */
+void fr_measure_b_refine(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, int64_t vertical, int64_t iterations,
                          const float *line_along, const float *weight, const float *factor,
                          const float *coef, float background, float floor_value, const float *grad_out,
                          const float *pp, const float *lower, const float *span, const float *prior,
@@ -373,33 +354,32 @@ void fr_measure_b_refine(int64_t first, int64_t last, int64_t part, int64_t part
                          float grad_bound, int64_t periodic_pan,
                          vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, vml_fn v_sin, vml_fn v_cos, vml_fn v_sqrt,
                          float *work, float *u) {
-    const int64_t h0 = hyp * part / parts, hp = hyp * (part + 1) / parts - h0;
     double *grad = (double *)work;                 /* (3, 3hp) */
-    double *acc = grad + 9 * hp;                   /* (hp) */
-    float *block = work + 2 * (10 * hp + 1);
+    double *acc = grad + 9 * hyp;                   /* (hyp) */
+    float *block = work + 2 * (10 * hyp + 1);
     grad_work w;
-    grad_work_carve(&w, block, acc, hp);
-    float *rad = block + grad_floats(n_seg, hp);   /* (hp, 3) */
-    float *cosv = rad + 3 * hp, *sinv = cosv + 3 * hp;
-    float *focal = sinv + 3 * hp, *logf = focal + hp, *logr = logf + hp;
-    float *flat = logr + hp;                       /* (3, 3hp) VP-major */
-    float *m1 = flat + 9 * hp, *m2 = m1 + 4 * hp;  /* Adam's moments (hp, 4) */
-    float *go = m2 + 4 * hp, *rot = go + hp;      /* rot (hp, 9) */
-    float *root = rot + 9 * hp;                    /* (hp, 4) sqrt of the second moments */
+    grad_work_carve(&w, block, acc, hyp);
+    float *rad = block + grad_floats(n_seg, hyp);   /* (hyp, 3) */
+    float *cosv = rad + 3 * hyp, *sinv = cosv + 3 * hyp;
+    float *focal = sinv + 3 * hyp, *logf = focal + hyp, *logr = logf + hyp;
+    float *flat = logr + hyp;                       /* (3, 3hp) VP-major */
+    float *m1 = flat + 9 * hyp, *m2 = m1 + 4 * hyp;  /* Adam's moments (hyp, 4) */
+    float *go = m2 + 4 * hyp, *rot = go + hyp;      /* rot (hyp, 9) */
+    float *root = rot + 9 * hyp;                    /* (hyp, 4) sqrt of the second moments */
     for (int64_t b = first; b < last; b++) {
         const float *lines = line_along + b * 2 * n_seg * 3, *lo = lower + 4 * b, *sp_ = span + 4 * b;
-        float *ub = u + (b * hyp + h0) * 4;
-        for (int64_t j = 0; j < 4 * hp; j++) { m1[j] = 0.0f; m2[j] = 0.0f; }
-        for (int64_t h = 0; h < hp; h++) go[h] = grad_out[b];
+        float *ub = u + b * hyp * 4;
+        for (int64_t j = 0; j < 4 * hyp; j++) { m1[j] = 0.0f; m2[j] = 0.0f; }
+        for (int64_t h = 0; h < hyp; h++) go[h] = grad_out[b];
         for (int64_t step = 0; step < iterations; step++) {
-            for (int64_t h = 0; h < hp; h++) {
+            for (int64_t h = 0; h < hyp; h++) {
                 for (int k = 0; k < 3; k++) rad[3 * h + k] = (lo[k] + ub[4 * h + k] * sp_[k]) * DEG2RAD;
                 logf[h] = lo[3] + ub[4 * h + 3] * sp_[3];
             }
-            v_cos((int)(3 * hp), rad, cosv);
-            v_sin((int)(3 * hp), rad, sinv);
-            v_exp((int)hp, logf, focal);
-            for (int64_t h = 0; h < hp; h++) {
+            v_cos((int)(3 * hyp), rad, cosv);
+            v_sin((int)(3 * hyp), rad, sinv);
+            v_exp((int)hyp, logf, focal);
+            for (int64_t h = 0; h < hyp; h++) {
                 const float cp = cosv[3 * h], ct = cosv[3 * h + 1], cr = cosv[3 * h + 2];
                 const float sp = sinv[3 * h], st = sinv[3 * h + 1], sr = sinv[3 * h + 2];
                 const float spst = sp * st, cpst = cp * st;
@@ -408,38 +388,28 @@ void fr_measure_b_refine(int64_t first, int64_t last, int64_t part, int64_t part
                 r[3] = spst * cr - cp * sr; r[4] = ct * cr; r[5] = sp * sr + cpst * cr;
                 r[6] = sp * ct; r[7] = -st; r[8] = cp * ct;
                 for (int j = 0; j < 3; j++) {
-                    flat[0 * 3 * hp + j * hp + h] = focal[h] * r[j] + pp[2 * b] * r[6 + j];
-                    flat[1 * 3 * hp + j * hp + h] = focal[h] * r[3 + j] + pp[2 * b + 1] * r[6 + j];
-                    flat[2 * 3 * hp + j * hp + h] = r[6 + j];
+                    flat[0 * 3 * hyp + j * hyp + h] = focal[h] * r[j] + pp[2 * b] * r[6 + j];
+                    flat[1 * 3 * hyp + j * hyp + h] = focal[h] * r[3 + j] + pp[2 * b + 1] * r[6 + j];
+                    flat[2 * 3 * hyp + j * hyp + h] = r[6 + j];
                 }
             }
             uint32_t largest[3] = {0, 0, 0};
-            grad_terms(&w, n_seg, hp, vertical, lines, lines + n_seg * 3, weight + b * n_seg, factor + b * n_seg,
+            grad_terms(&w, n_seg, hyp, vertical, lines, lines + n_seg * 3, weight + b * n_seg, factor + b * n_seg,
                        flat, coef, background, floor_value, go, v_atan, v_exp, v_ln, largest);
-            if (parts > 1) {  /* the image's largest terms over every part, this step's half of `shared` */
-                uint32_t *mine = shared + ((step & 1) * parts + part) * 3;
-                for (int c = 0; c < 3; c++) mine[c] = largest[c];
-                barrier_wait(sync, parts);
-                for (int64_t q = 0; q < parts; q++)
-                    for (int c = 0; c < 3; c++) {
-                        const uint32_t theirs = shared[((step & 1) * parts + q) * 3 + c];
-                        largest[c] = theirs > largest[c] ? theirs : largest[c];
-                    }
-            }
-            grad_sums(&w, n_seg, hp, largest, grad);
+            grad_sums(&w, n_seg, hyp, largest, grad);
             if (prior != NULL) {
-                for (int64_t h = 0; h < hp; h++) logr[h] = focal[h] / prior[2 * b + 1];
-                v_ln((int)hp, logr, logr);
+                for (int64_t h = 0; h < hyp; h++) logr[h] = focal[h] / prior[2 * b + 1];
+                v_ln((int)hyp, logr, logr);
             }
             const float step_bias = steps[2 * step], step_lr = steps[2 * step + 1];
-            for (int64_t h = 0; h < hp; h++) {
+            for (int64_t h = 0; h < hyp; h++) {
                 const float cp = cosv[3 * h], sp = sinv[3 * h];
                 const float *r = rot + 9 * h;
                 float v[9], g[9];  /* V = K R and d obj / d V, [coordinate][VP] */
                 for (int c = 0; c < 3; c++)
                     for (int j = 0; j < 3; j++) {
-                        v[3 * c + j] = flat[c * 3 * hp + j * hp + h];
-                        g[3 * c + j] = (float)grad[c * 3 * hp + j * hp + h];
+                        v[3 * c + j] = flat[c * 3 * hyp + j * hyp + h];
+                        g[3 * c + j] = (float)grad[c * 3 * hyp + j * hyp + h];
                     }
                 float row0 = g[0] * r[0] + g[1] * r[1];
                 row0 = row0 + g[2] * r[2];
@@ -478,8 +448,8 @@ void fr_measure_b_refine(int64_t first, int64_t last, int64_t part, int64_t part
                     m2h[k] = m2h[k] * beta2 + (gk * gk) * one_minus_beta2;
                 }
             }
-            v_sqrt((int)(4 * hp), m2, root);  /* torch's sqrt of float32: MKL's, not always IEEE-rounded */
-            for (int64_t h = 0; h < hp; h++) {
+            v_sqrt((int)(4 * hyp), m2, root);  /* torch's sqrt of float32: MKL's, not always IEEE-rounded */
+            for (int64_t h = 0; h < hyp; h++) {
                 float *uh = ub + 4 * h;
                 for (int k = 0; k < 4; k++) {
                     const float denom = root[4 * h + k] / step_bias + eps;

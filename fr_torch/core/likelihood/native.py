@@ -33,9 +33,9 @@ Building and trusting them:
 Threads: the work items (image, tile of up to 256 hypotheses; an image for the gradient and the
 refinement) are split into ``torch.get_num_threads()`` contiguous ranges, each scored by one call
 from a worker thread with MKL single-threaded (ctypes releases the GIL); every item's result is its
-own, so the split cannot change a bit.  A refinement of fewer images than threads (one photo)
-splits each image's hypotheses over the threads instead, which meet once per step
-(:func:`measure_b_refine`).
+own, so the split cannot change a bit.  One image's refinement stays on one thread: its hypotheses
+share the gradient's fixed-point grid at every step, and threads meeting once per step ran slower
+than one thread on a busy machine.
 """
 from __future__ import annotations
 
@@ -142,7 +142,7 @@ def _load():
                      + [ctypes.c_void_p] * 6)
     refine = library.fr_measure_b_refine
     refine.restype = None
-    refine.argtypes = ([ctypes.c_int64] * 4 + [ctypes.c_void_p] * 2 + [ctypes.c_int64] * 4 + [ctypes.c_void_p] * 4
+    refine.argtypes = ([ctypes.c_int64] * 6 + [ctypes.c_void_p] * 4
                        + [ctypes.c_float] * 2 + [ctypes.c_void_p] * 5 + [ctypes.c_float] * 2 + [ctypes.c_void_p]
                        + [ctypes.c_float] * 6 + [ctypes.c_int64] + [ctypes.c_void_p] * 8)
     work = library.fr_refine_work_floats
@@ -229,7 +229,7 @@ def measure_b_scores(line_along: torch.Tensor, factor: torch.Tensor, scale: torc
     out = torch.empty(batch, hyp, dtype=torch.float64)
     if not 1 <= vertical_block <= TILE or hyp % vertical_block:
         raise ValueError(f"vertical_block {vertical_block} must divide the {hyp} hypotheses (and be <= {TILE})")
-    tile = TILE - TILE % vertical_block  # whole runs of the vertical VP
+    tile = _tile_width(batch, hyp, vertical_block)
     tiles = -(-hyp // tile)
     items = batch * tiles
 
@@ -240,6 +240,22 @@ def measure_b_scores(line_along: torch.Tensor, factor: torch.Tensor, scale: torc
 
     _in_threads(run, items)
     return out
+
+
+def _tile_width(batch: int, hyp: int, block: int) -> int:
+    """Hypotheses per work item of :func:`measure_b_scores`: at most :data:`TILE`, whole runs of
+    ``block`` (the vertical VP's), and with fewer images than threads small enough that each
+    image's tiles keep every thread busy with about equal shares.  A hypothesis' score does not
+    depend on its tile."""
+    widest = TILE - TILE % block
+    threads = max(1, torch.get_num_threads())
+    if batch >= threads:
+        return widest
+    per_image = -(-threads // batch)  # tiles each image needs for every thread to have one
+    runs = -(-hyp // block)
+    tiles = max(per_image, -(-hyp // widest))
+    tiles = -(-tiles // per_image) * per_image  # a multiple of the threads' share: equal loads
+    return min(widest, max(block, -(-runs // tiles) * block))
 
 
 def _in_threads(run, items: int) -> None:
@@ -286,7 +302,7 @@ def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Te
                      vertical_axis: int, grad_out: torch.Tensor, principal_point: torch.Tensor, lower: torch.Tensor,
                      span: torch.Tensor, prior: torch.Tensor | None, prior_centre: float, prior_flat: float,
                      steps: torch.Tensor, betas: tuple[float, float], eps: float, grad_bound: float,
-                     periodic_pan: bool, threads: int | None = None) -> None:
+                     periodic_pan: bool) -> None:
     """fR's refinement loop in one call (:func:`fr_torch.core.search.refine.refine_fused`, bit for
     bit the torch loop's steps); call only when ``available("refine")``.
 
@@ -294,13 +310,8 @@ def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Te
     roll, log f]; ``lower`` / ``span`` (B, 4) float32 the box in log f; ``grad_out`` (B,) float32,
     ``principal_point`` (B, 2) pixels; ``prior`` (B, 2) float32 [the focal prior's curvature weight,
     long side (pixels)] or None; ``steps`` (iterations, 2) float32 Adam's ``sqrt(1 - beta2^t)`` and
-    ``lr_t / (1 - beta1^t)``; the segments and constants as for :func:`measure_b_grad`; ``threads``:
-    how many to use (None: torch's count, at most one per core).
-
-    Threads: with at least as many images as threads, the images are split as in
-    :func:`measure_b_grad`; with fewer (one photo), each image's hypotheses are split over the
-    threads, which meet every step (the gradient's exact sums take their grid from all of an
-    image's hypotheses), so the split cannot change a bit.
+    ``lr_t / (1 - beta1^t)``; the segments and constants as for :func:`measure_b_grad`.  The images
+    are split over the threads as in :func:`measure_b_grad`.
     """
     function, work_floats = _state["functions"]["refine"], _state["functions"]["refine_work"]
     batch, n_seg = weight.shape
@@ -312,43 +323,15 @@ def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Te
     keep = (line_along, weight, factor, coef, inputs, prior)  # alive until every call returned
     beta1, beta2 = betas
 
-    def call(first: int, last: int, part: int, parts: int, sync, shared) -> None:
-        width = hyp * (part + 1) // parts - hyp * part // parts
-        work = torch.empty(int(work_floats(n_seg, width)), dtype=torch.float32)
-        function(first, last, part, parts, 0 if sync is None else sync.data_ptr(),
-                 0 if shared is None else shared.data_ptr(), n_seg, hyp, vertical_axis, iterations,
+    work_size = int(work_floats(n_seg, hyp))
+
+    def run(first: int, last: int) -> None:
+        work = torch.empty(work_size, dtype=torch.float32)
+        function(first, last, n_seg, hyp, vertical_axis, iterations,
                  line_along.data_ptr(), weight.data_ptr(), factor.data_ptr(), coef.data_ptr(), background, floor,
                  *(x.data_ptr() for x in inputs[:4]), 0 if prior is None else prior.data_ptr(),
                  prior_centre, prior_flat, inputs[4].data_ptr(), beta1, 1.0 - beta1, beta2, 1.0 - beta2, eps,
                  grad_bound, int(periodic_pan), *_state["vml"], work.data_ptr(), u.data_ptr())
 
-    threads = max(1, min(threads or min(torch.get_num_threads(), os.cpu_count() or 1), hyp))
-    if batch >= threads or threads == 1:
-        _in_threads(lambda first, last: call(first, last, 0, 1, None, None), batch)
-    else:
-        sync = torch.zeros(2, dtype=torch.int64)
-        shared = torch.zeros(2 * threads * 3, dtype=torch.int32)
-        _in_own_threads(lambda part: call(0, batch, part, threads, sync, shared), threads)
+    _in_threads(run, batch)
     del keep
-
-
-def _in_own_threads(run, parts: int) -> None:
-    """``run(part)`` for every part at once: part 0 in the calling thread, the others in threads
-    started for this call (the parts wait for each other every step, so none may queue behind
-    other work), each with MKL single-threaded while it runs."""
-    set_mkl_threads = _state["mkl_threads"]
-
-    def single(part: int) -> None:
-        previous = set_mkl_threads(1)
-        try:
-            run(part)
-        finally:
-            set_mkl_threads(previous)
-
-    others = [threading.Thread(target=single, args=(part,), name=f"fr-native-part{part}", daemon=True)
-              for part in range(1, parts)]
-    for thread in others:
-        thread.start()
-    single(0)
-    for thread in others:
-        thread.join()

@@ -248,7 +248,7 @@ def adam_in_box(u: torch.Tensor, box: UnitBox, iterations: int, lr0: float, lr_f
 
 
 def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, tolerance=0.0, patience=10,
-                  periodic_pan=False, geometry=None, fused=True, threads=None):
+                  periodic_pan=False, geometry=None, fused=True):
     dtype, device = features.weight.dtype, features.weight.device
     if lower.dim() == 2:  # one box per image
         lower, upper = lower[:, None, :], upper[:, None, :]
@@ -284,8 +284,7 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     cell = 1.0 / 8
     lr0, lr_final = 0.25 * cell, (0.02 if fast else 0.002) * cell
     if fused and analytic and geometry is None and tolerance <= 0 and lower.shape[1] == 1 and fused_refine_ok(features):
-        refine_fused(likelihood, features, u, box, grad_out, iterations, lr0, lr_final, periodic_pan,
-                     threads=threads)
+        refine_fused(likelihood, features, u, box, grad_out, iterations, lr0, lr_final, periodic_pan)
     else:
         adam_in_box(u, box, iterations, lr0, lr_final, gradient, periodic_pan, grad_bound=_GRAD_BOUND,
                     stop=Patience(tolerance, patience, total_length) if tolerance > 0 else None)
@@ -302,15 +301,13 @@ def fused_refine_ok(features: SegmentFeatures) -> bool:
 
 
 def refine_fused(likelihood: MixtureLikelihood, features: SegmentFeatures, u: torch.Tensor, box: UnitBox,
-                 grad_out: torch.Tensor, iterations: int, lr0: float, lr_final: float, periodic_pan: bool,
-                 threads: int | None = None) -> None:
+                 grad_out: torch.Tensor, iterations: int, lr0: float, lr_final: float, periodic_pan: bool) -> None:
     """:func:`adam_in_box` over :func:`objective_and_grad` (measure b, no lens, no stopping rule)
     as one call of the fused kernel (:func:`fr_torch.core.likelihood.native.measure_b_refine`): the
     same steps bit for bit, without a torch operator per step.
 
     ``u`` (B, L, 4) float32 box units, stepped in place; ``box`` with sides (B, 1, 4);
-    ``grad_out`` (B, 1) the loss's weight of each image's objective; ``threads``: the kernel's
-    threads (None: torch's count)."""
+    ``grad_out`` (B, 1) the loss's weight of each image's objective."""
     batch = u.shape[0]
     neg_inv_scale, log_coef, background, floor, log_bound = likelihood._b_constants(features.weight)
     factor, _ = sum_grid(features.weight, log_bound)
@@ -331,18 +328,18 @@ def refine_fused(likelihood: MixtureLikelihood, features: SegmentFeatures, u: to
                             box.span.reshape(batch, 4), prior, likelihood._prior_centre,
                             likelihood.params.focal_prior_flat_halfwidth,
                             torch.tensor(steps, dtype=torch.float64).reshape(-1, 2), BETAS, Adam.EPS, _GRAD_BOUND,
-                            periodic_pan, threads=threads)
+                            periodic_pan)
 
 
 def refine_kernel_matches_torch() -> bool:
     """The fused refinement (:func:`refine_fused`) against the torch loop on random scenes: two
     images, one with a known focal length, under the focal prior with its flat band and a periodic
-    pan; and one image without the prior whose hypotheses are split over three threads.  True when
-    every refined parameter has the same bits (a few hundredths of a second, once per process)."""
+    pan; and one image without the prior.  True when every refined parameter has the same bits (a
+    few hundredths of a second, once per process)."""
     generator = torch.Generator().manual_seed(66)
-    cases = ((LikelihoodParams(focal_prior_weight=0.3, focal_prior_flat_halfwidth=0.2), 2, 40, 24, True, False, 1),
-             (LikelihoodParams(), 1, 30, 16, False, True, 3))
-    for params, batch, n_seg, n_start, periodic, fast, threads in cases:
+    cases = ((LikelihoodParams(focal_prior_weight=0.3, focal_prior_flat_halfwidth=0.2), 2, 40, 24, True, False),
+             (LikelihoodParams(), 1, 30, 16, False, True))
+    for params, batch, n_seg, n_start, periodic, fast in cases:
         likelihood = MixtureLikelihood(params)
         endpoints = torch.rand(batch, n_seg, 4, generator=generator) * torch.tensor([640.0, 480.0, 640.0, 480.0])
         features = SegmentFeatures.from_endpoints(endpoints, torch.ones(batch, n_seg, dtype=torch.bool),
@@ -353,7 +350,7 @@ def refine_kernel_matches_torch() -> bool:
             upper[1, FOCAL] = lower[1, FOCAL] = 500.0
         starts = lower[:, None] + torch.rand(batch, n_start, 4, generator=generator) * (upper - lower)[:, None]
         results = [_refine_slice(likelihood, features, starts, lower, upper, 8, fast, periodic_pan=periodic,
-                                 fused=fused, threads=threads) for fused in (False, True)]
+                                 fused=fused) for fused in (False, True)]
         for expected, got in zip(*results):
             if not torch.equal(expected.contiguous().view(torch.uint8), got.contiguous().view(torch.uint8)):
                 return False
