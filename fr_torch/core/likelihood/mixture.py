@@ -52,6 +52,7 @@ from fr_torch.core.likelihood.objective import (
     measure_b_objective_and_grad,
     native_ok,
     objective_b_nograd,
+    sum_grid,
     vp_major,
 )
 from fr_torch.core.settings.config import Mode
@@ -398,8 +399,10 @@ class MixtureLikelihood:
             if torch.is_grad_enabled() and vps.requires_grad:
                 return MeasureBObjective.apply(features.line_along, features.weight, flat, *constants)
             with torch.no_grad():
+                grid = features.constant(("sum_grid", constants[-1]), lambda: sum_grid(features.weight, constants[-1])) \
+                    if native_ok(features.weight) else None  # the fused kernel's input, the same at every call
                 return objective_b_nograd(features.line_along, features.weight, flat, *constants,
-                                          workspace=workspace, vertical_block=vertical_block)
+                                          workspace=workspace, vertical_block=vertical_block, grid=grid)
         if self.params.model == "nomixture":
             x = self._deviations(features, rotation, focal).amin(-1)  # (B, N, H)
             log_x = torch.log(x + self.params.scale_horizontal / 100)

@@ -82,14 +82,25 @@ class SegmentGeometry:
         tensors in ``k``'s dtype (zeros without a prior)."""
         if not self.k_prior_weight:
             return torch.zeros_like(k), torch.zeros_like(k)
-        slope = -self.k_prior_weight * exact_sum(self.weight, -1).to(k)[:, None] * k
+        slope = -self.k_prior_weight * self.total_length().to(k)[:, None] * k
         return 0.5 * slope * k, slope
 
     @property
     def weight(self) -> torch.Tensor:
-        """(B, N) the photo's segment lengths, 0 for padding."""
-        d = self.endpoints[..., 2:] - self.endpoints[..., :2]
-        return _norm2(d) * self.mask
+        """(B, N) the photo's segment lengths, 0 for padding (computed once)."""
+        cached = self.__dict__.get("_weight_cache")
+        if cached is None:
+            d = self.endpoints[..., 2:] - self.endpoints[..., :2]
+            cached = self.__dict__["_weight_cache"] = _norm2(d) * self.mask
+        return cached
+
+    def total_length(self) -> torch.Tensor:
+        """(B,) float64 total segment length per image, pixels: :meth:`SegmentFeatures.total_length`
+        of the photo's segments (that of every virtual image of :meth:`features`), computed once."""
+        cached = self.__dict__.get("_total_length_cache")
+        if cached is None:
+            cached = self.__dict__["_total_length_cache"] = exact_sum(self.weight, 1)
+        return cached
 
     def features(self, k: torch.Tensor, derivative: bool = False):
         """Features of every image under G hypotheses of k each: ``k`` (B, G) -> SegmentFeatures of
@@ -112,9 +123,10 @@ class SegmentGeometry:
         line_along = torch.stack([-dy, dx, dy * m[..., 0] - dx * m[..., 1],
                                   dx, dy, -(dx * m[..., 0] + dy * m[..., 1])], -1)  # (B, G, N, 6)
         line_along = line_along.view(batch * groups, n_seg, 2, 3).transpose(1, 2).reshape(batch * groups, 2 * n_seg, 3)
-        weight, mask, principal_point, long_side = self._virtual_constants(groups)
+        weight, mask, principal_point, long_side, constants = self._virtual_constants(groups)
         features = SegmentFeatures(line_along[:, :n_seg], line_along[:, n_seg:], (length * 0.5).view(batch * groups, -1),
-                                   weight, mask, principal_point, long_side, line_along=line_along)
+                                   weight, mask, principal_point, long_side, line_along=line_along
+                                   ).sharing_constants(constants)
         if not derivative:
             return features
         d_q = offset * (-rho * factor * factor)[..., None]  # d q / dk
@@ -144,14 +156,17 @@ class SegmentGeometry:
 
     def _virtual_constants(self, groups: int):
         """The k-independent fields of :meth:`features` for G = ``groups``: weight, mask,
-        principal point, long side of the B * G virtual images (computed once per G)."""
+        principal point, long side of the B * G virtual images, and the store of the values
+        computed from them (:meth:`SegmentFeatures.sharing_constants`, seeded with the total
+        length), computed once per G."""
         cache = self.__dict__.setdefault("_constants_cache", {})
         if groups not in cache:
             weight = self.weight
             mask = self.mask & (weight > 0)
             dtype = self.endpoints.dtype
-            cache[groups] = tuple(x.repeat_interleave(groups, 0) for x in
-                                  (weight, mask, self.centre.to(dtype), self.long_side.to(dtype)))
+            fields = tuple(x.repeat_interleave(groups, 0) for x in
+                           (weight, mask, self.centre.to(dtype), self.long_side.to(dtype)))
+            cache[groups] = fields + ({"total_length": self.total_length().repeat_interleave(groups, 0)},)
         return cache[groups]
 
     def images(self, start: int, stop: int) -> "SegmentGeometry":
@@ -208,23 +223,32 @@ def chain_pairs(endpoints: torch.Tensor, mask: torch.Tensor, long_side: torch.Te
     """Pairs of segments that look like consecutive pieces of one line (the constants above).
 
     ``endpoints`` (B, M, 4) photo pixels, ``mask`` (B, M), ``long_side`` (B,).  Returns
-    (image (P,), i (P,), j (P,), weight (P,)) with i < j and weight = the shorter one's length."""
-    batch, count = endpoints.shape[:2]
-    ends = endpoints.reshape(batch, 2 * count, 2)  # segment m's endpoints at rows 2m, 2m + 1
-    gap = _norm2(ends[:, :, None, :] - ends[:, None, :, :]).view(batch, count, 2, count, 2).amin((2, 4))  # (B, M, M)
+    (image (P,), i (P,), j (P,), weight (P,)) with i < j and weight = the shorter one's length,
+    in (image, i, j) order.  The direction test, the cheapest, runs on all M^2 pairs; the gap and
+    lateral tests only on the pairs that pass it (about a third)."""
     delta = endpoints[..., 2:] - endpoints[..., :2]
     length = _norm2(delta).clamp_min(1e-9)
     unit = delta / length[..., None]
     aligned = _dot2(unit[:, :, None, :], unit[:, None, :, :]).abs() > math.cos(math.radians(CHAIN_MAX_ANGLE_DEG))
-    # homogeneous unit-normal lines; |line_i . end| = the end's distance from segment i's line
+    candidates = aligned & mask[:, :, None] & mask[:, None, :]
+    image, i, j = torch.triu(candidates, diagonal=1).nonzero(as_tuple=True)  # (C,) each
+    # homogeneous unit-normal lines; |line . end| = the end's distance from the segment's line
     lines = torch.stack([-unit[..., 1], unit[..., 0],
                          unit[..., 1] * endpoints[..., 0] - unit[..., 0] * endpoints[..., 1]], -1)  # (B, M, 3)
-    homogeneous = torch.cat([ends, torch.ones_like(ends[..., :1])], -1)  # (B, 2M, 3)
-    lateral = dot3(lines[:, :, None, :], homogeneous[:, None, :, :]).abs().view(batch, count, count, 2).amin(-1)  # j's nearer end
-    scale = long_side.to(endpoints)[:, None, None]
-    valid = (gap < CHAIN_GAP * scale) & aligned & (lateral < CHAIN_LATERAL * scale) \
-        & (lateral.transpose(1, 2) < CHAIN_LATERAL * scale) & mask[:, :, None] & mask[:, None, :]
-    image, i, j = torch.triu(valid, diagonal=1).nonzero(as_tuple=True)
+    ends_i = endpoints[image, i].view(-1, 2, 1, 2)  # (C, 2, 1, 2): segment i's endpoints
+    ends_j = endpoints[image, j].view(-1, 1, 2, 2)
+    apart = ends_i - ends_j  # (C, 2, 2, 2): every endpoint of i minus every endpoint of j
+    gap = torch.sqrt(_dot2(apart, apart).view(-1, 4).amin(-1))  # the nearest endpoints' distance (C,)
+
+    def nearer_lateral(line: torch.Tensor, ends: torch.Tensor) -> torch.Tensor:
+        """(C,) distance of the nearer of ``ends`` (C, 2, 2) from ``line`` (C, 3)."""
+        homogeneous = torch.cat([ends, torch.ones_like(ends[..., :1])], -1)  # (C, 2, 3)
+        return dot3(line[:, None, :], homogeneous).abs().amin(-1)
+
+    scale = long_side.to(endpoints)[image]
+    valid = (gap < CHAIN_GAP * scale) & (nearer_lateral(lines[image, i], ends_j.view(-1, 2, 2)) < CHAIN_LATERAL * scale) \
+        & (nearer_lateral(lines[image, j], ends_i.view(-1, 2, 2)) < CHAIN_LATERAL * scale)
+    image, i, j = image[valid], i[valid], j[valid]
     return image, i, j, torch.minimum(length[image, i], length[image, j])
 
 
