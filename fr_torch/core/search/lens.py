@@ -225,31 +225,34 @@ def chain_pairs(endpoints: torch.Tensor, mask: torch.Tensor, long_side: torch.Te
     ``endpoints`` (B, M, 4) photo pixels, ``mask`` (B, M), ``long_side`` (B,).  Returns
     (image (P,), i (P,), j (P,), weight (P,)) with i < j and weight = the shorter one's length,
     in (image, i, j) order.  The direction test, the cheapest, runs on all M^2 pairs; the gap and
-    lateral tests only on the pairs that pass it (about a third)."""
+    lateral tests only on the C pairs that pass it (about a third), coordinates laid out (.., C)."""
+    count = endpoints.shape[1]
     delta = endpoints[..., 2:] - endpoints[..., :2]
     length = _norm2(delta).clamp_min(1e-9)
     unit = delta / length[..., None]
     aligned = _dot2(unit[:, :, None, :], unit[:, None, :, :]).abs() > math.cos(math.radians(CHAIN_MAX_ANGLE_DEG))
-    candidates = aligned & mask[:, :, None] & mask[:, None, :]
-    image, i, j = torch.triu(candidates, diagonal=1).nonzero(as_tuple=True)  # (C,) each
-    # homogeneous unit-normal lines; |line . end| = the end's distance from the segment's line
+    image, i, j = torch.triu(aligned & mask[:, :, None] & mask[:, None, :], diagonal=1).nonzero(as_tuple=True)
+    # homogeneous unit-normal lines; |line . (x, y, 1)| = the point's distance from the segment's line
     lines = torch.stack([-unit[..., 1], unit[..., 0],
-                         unit[..., 1] * endpoints[..., 0] - unit[..., 0] * endpoints[..., 1]], -1)  # (B, M, 3)
-    ends_i = endpoints[image, i].view(-1, 2, 1, 2)  # (C, 2, 1, 2): segment i's endpoints
-    ends_j = endpoints[image, j].view(-1, 1, 2, 2)
-    apart = ends_i - ends_j  # (C, 2, 2, 2): every endpoint of i minus every endpoint of j
-    gap = torch.sqrt(_dot2(apart, apart).view(-1, 4).amin(-1))  # the nearest endpoints' distance (C,)
+                         unit[..., 1] * endpoints[..., 0] - unit[..., 0] * endpoints[..., 1]]).view(3, -1)  # (3, B * M)
+    row_i, row_j = image * count + i, image * count + j  # (C,) rows of the (B * M, ...) tensors
+    ends = endpoints.reshape(-1, 4).T.contiguous()  # (4, B * M): x1, y1, x2, y2
+    ends_i, ends_j = ends.index_select(1, row_i), ends.index_select(1, row_j)  # (4, C)
+    x_i, y_i, x_j, y_j = ends_i[0::2], ends_i[1::2], ends_j[0::2], ends_j[1::2]  # (2, C): both endpoints
+    dx, dy = x_i[:, None] - x_j[None], y_i[:, None] - y_j[None]  # (2, 2, C): i's endpoints minus j's
+    gap = torch.sqrt((dx * dx + dy * dy).view(4, -1).amin(0))  # the nearest endpoints' distance (C,)
 
-    def nearer_lateral(line: torch.Tensor, ends: torch.Tensor) -> torch.Tensor:
-        """(C,) distance of the nearer of ``ends`` (C, 2, 2) from ``line`` (C, 3)."""
-        homogeneous = torch.cat([ends, torch.ones_like(ends[..., :1])], -1)  # (C, 2, 3)
-        return dot3(line[:, None, :], homogeneous).abs().amin(-1)
+    def nearer_lateral(rows: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """(C,) distance from the lines of ``rows`` (C,) of the nearer of the points ``x``, ``y``
+        (2, C) (:func:`dot3` of the line and (x, y, 1), written out)."""
+        line = lines.index_select(1, rows)  # (3, C)
+        return (line[0] * x + line[1] * y + line[2]).abs().amin(0)
 
     scale = long_side.to(endpoints)[image]
-    valid = (gap < CHAIN_GAP * scale) & (nearer_lateral(lines[image, i], ends_j.view(-1, 2, 2)) < CHAIN_LATERAL * scale) \
-        & (nearer_lateral(lines[image, j], ends_i.view(-1, 2, 2)) < CHAIN_LATERAL * scale)
-    image, i, j = image[valid], i[valid], j[valid]
-    return image, i, j, torch.minimum(length[image, i], length[image, j])
+    valid = (gap < CHAIN_GAP * scale) & (nearer_lateral(row_i, x_j, y_j) < CHAIN_LATERAL * scale) \
+        & (nearer_lateral(row_j, x_i, y_i) < CHAIN_LATERAL * scale)
+    length = length.view(-1)
+    return image[valid], i[valid], j[valid], torch.minimum(length[row_i[valid]], length[row_j[valid]])
 
 
 def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> PlumbLine:
