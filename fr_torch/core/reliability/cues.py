@@ -91,7 +91,7 @@ def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, pa
         focal = points[..., FOCAL].to(dtype)
         log_p = likelihood.segment_log_p(sub, rotations(points.to(dtype)), focal)  # (b, N, 81)
         scores = likelihood.sum_over_segments(log_p, sub)  # (b, 81): the objective's data part
-        prior_values = likelihood.focal_prior(sub, focal)[0] if likelihood.params.focal_prior_weight else None
+        prior_values = likelihood.focal_prior(sub, focal, derivative=False)[0] if likelihood.params.focal_prior_weight else None
         if prior_values is not None:
             scores = scores + prior_values
         hessian = lattice_fit(scores, fit)[:, _HESSIAN_COLUMNS.to(device)].view(-1, 4, 4) / (step[:, None] * step[None, :])
