@@ -111,18 +111,17 @@ class SegmentGeometry:
         dtype = self.endpoints.dtype
         k = k.to(dtype)[:, :, None]  # (B, G, 1)
         centre, offset, rho = self._offsets()  # (B, 1, 1, 2), (B, 1, 2N, 2), (B, 1, 2N)
-        factor = 1.0 / (1.0 + k * rho)  # (B, G, 2N): undistorted = centre + factor * offset
+        factor = (1.0 + k * rho).reciprocal()  # (B, G, 2N): undistorted = centre + factor * offset
         q = offset * factor[..., None]
         qa, qb = q[:, :, :n_seg], q[:, :, n_seg:]
         delta = qb - qa
         length = _norm2(delta)
-        inv_length = 1.0 / length.clamp_min(1e-12)
+        inv_length = length.clamp_min(1e-12).reciprocal()
         d = delta * inv_length[..., None]
         m = centre + (qa + qb) * 0.5
         dx, dy = d[..., 0], d[..., 1]
-        line_along = torch.stack([-dy, dx, dy * m[..., 0] - dx * m[..., 1],
-                                  dx, dy, -(dx * m[..., 0] + dy * m[..., 1])], -1)  # (B, G, N, 6)
-        line_along = line_along.view(batch * groups, n_seg, 2, 3).transpose(1, 2).reshape(batch * groups, 2 * n_seg, 3)
+        mx, my = m[..., 0], m[..., 1]
+        line_along = _line_along_rows([-dy, dx, dy * mx - dx * my], [dx, dy, -(dx * mx + dy * my)])
         weight, mask, principal_point, long_side, constants = self._virtual_constants(groups)
         features = SegmentFeatures(line_along[:, :n_seg], line_along[:, n_seg:], (length * 0.5).view(batch * groups, -1),
                                    weight, mask, principal_point, long_side, line_along=line_along
@@ -134,11 +133,9 @@ class SegmentGeometry:
         d_d = (d_delta - d * _dot2(d, d_delta)[..., None]) * inv_length[..., None]
         d_m = (d_q[:, :, :n_seg] + d_q[:, :, n_seg:]) * 0.5
         ddx, ddy = d_d[..., 0], d_d[..., 1]
-        d_line_along = torch.stack([-ddy, ddx, ddy * m[..., 0] + dy * d_m[..., 0] - ddx * m[..., 1] - dx * d_m[..., 1],
-                                    ddx, ddy, -(ddx * m[..., 0] + dx * d_m[..., 0] + ddy * m[..., 1]
-                                                + dy * d_m[..., 1])], -1)
-        d_line_along = d_line_along.view(batch * groups, n_seg, 2, 3).transpose(1, 2).reshape(batch * groups,
-                                                                                               2 * n_seg, 3)
+        dmx, dmy = d_m[..., 0], d_m[..., 1]
+        d_line_along = _line_along_rows([-ddy, ddx, ddy * mx + dy * dmx - ddx * my - dx * dmy],
+                                        [ddx, ddy, -(ddx * mx + dx * dmx + ddy * my + dy * dmy)])
         return features, d_line_along
 
     def _offsets(self):
@@ -175,6 +172,13 @@ class SegmentGeometry:
                                self.radius[start:stop], self.long_side[start:stop], self.k_prior_weight)
 
 
+
+
+def _line_along_rows(line: list[torch.Tensor], along: list[torch.Tensor]) -> torch.Tensor:
+    """The three coefficients of ``line`` and of ``along``, (B, G, N) each, as the
+    :attr:`SegmentFeatures.line_along` rows of the B * G virtual images: (B * G, 2N, 3)."""
+    rows = torch.cat([torch.stack(line, -1), torch.stack(along, -1)], 2)  # (B, G, 2N, 3)
+    return rows.view(-1, rows.shape[2], 3)
 
 
 def _dot2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
