@@ -286,18 +286,20 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> Plu
     endpoints = torch.gather(geometry.endpoints, 1, index[..., None].expand(-1, -1, 4)).to(torch.float64)
     mask = torch.gather(geometry.mask & (weight > 0), 1, index)
     image, i, j, pair_weight = chain_pairs(endpoints, mask, geometry.long_side.to(torch.float64))
-    # the paired pieces' directions undistorted at every k of the grid: (P, K, 2) each
-    centre = geometry.centre.to(torch.float64)[image, None, None, :]
+    # the paired pieces' directions undistorted at every k of the grid: x and y, (P, K) each
+    centre = geometry.centre.to(torch.float64)[image]  # (P, 2)
     inv_r2 = (1.0 / geometry.radius.to(torch.float64) ** 2)[image, None, None]
 
-    def directions(pieces):  # (P, 4) -> (P, K, 2) unit directions
-        offset = pieces.view(-1, 1, 2, 2) - centre
-        undistorted = offset / (1.0 + grid.view(1, -1, 1) * _dot2(offset, offset) * inv_r2)[..., None]
-        direction = undistorted[:, :, 1] - undistorted[:, :, 0]
-        return direction / _norm2(direction)[..., None].clamp_min(1e-12)
+    def directions(pieces):  # (P, 4) -> the unit directions' x and y, (P, K) each
+        x, y = pieces[:, 0::2] - centre[:, :1], pieces[:, 1::2] - centre[:, 1:]  # (P, 2): both endpoints
+        factor = 1.0 + grid.view(1, -1, 1) * (x * x + y * y)[:, None, :] * inv_r2  # (P, K, 2)
+        x, y = x[:, None, :] / factor, y[:, None, :] / factor  # undistorted
+        dx, dy = x[..., 1] - x[..., 0], y[..., 1] - y[..., 0]
+        norm = torch.sqrt(dx * dx + dy * dy).clamp_min(1e-12)
+        return dx / norm, dy / norm
 
-    a, b = directions(endpoints[image, i]), directions(endpoints[image, j])
-    turn = torch.asin((a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]).abs().clamp(max=1.0))
+    (ax, ay), (bx, by) = directions(endpoints[image, i]), directions(endpoints[image, j])
+    turn = torch.asin((ax * by - ay * bx).abs().clamp(max=1.0))
     cost_terms = pair_weight[:, None] * turn.clamp(max=math.radians(TURN_CAP_DEG)) ** 2
     cap_cost = geometry.long_side.to(torch.float64) * math.radians(TURN_CAP_DEG) ** 2  # a pair's largest term
     cost = exact_index_sum(cost_terms, image, batch, cap_cost[:, None])
