@@ -169,7 +169,7 @@ def focal_profiles(estimator, features, estimates: torch.Tensor, log_ratios: np.
             best = torch.maximum(score_grid(likelihood, sub, starts, config.max_chunk_elements)[:, 0],
                                  start_scores.amax(1))
         if likelihood.params.focal_prior_weight:  # the data term alone: the prior is the caller's
-            best = best - likelihood.focal_prior(sub, focal.view(-1, 1).to(device))[0][:, 0].to(best)
+            best = best - likelihood.focal_prior(sub, focal.view(-1, 1).to(device), derivative=False)[0][:, 0].to(best)
         values = best.to(torch.float64).view(n, count).cpu().numpy()
         out[b0:b1] = np.where(np.isfinite(values), values, -np.inf)
     return out

@@ -91,12 +91,30 @@ class SegmentFeatures:
 
     def total_length(self) -> torch.Tensor:
         """(B,) float64 total segment length per image, pixels (an exact sum: the same bits in any
-        batch, :func:`fr_torch.core.exact.exact_sum`); computed once per object (the search asks
-        for it at every step), so the tensors must not change in place afterwards."""
-        cached = self.__dict__.get("_total_length")
-        if cached is None:
-            cached = self.__dict__["_total_length"] = exact_sum(self.weight, 1)
-        return cached
+        batch, :func:`fr_torch.core.exact.exact_sum`); computed once (:meth:`constant`: the search
+        asks for it at every step)."""
+        return self.constant("total_length", lambda: exact_sum(self.weight, 1))
+
+    def constant(self, key, make):
+        """``make()``, computed once and kept under ``key``: for values that depend on ``weight``,
+        ``mask``, ``principal_point`` and ``long_side`` alone, never on the lines (the total length,
+        the objective's fixed-point grid), which the search asks for at every call.  The tensors
+        must not change in place afterwards.  Features that hold the same such tensors may share
+        these values (:meth:`sharing_constants`)."""
+        store = self.__dict__.get("_constants")
+        if store is None:
+            store = self.__dict__["_constants"] = {}
+        if key not in store:
+            store[key] = make()
+        return store[key]
+
+    def sharing_constants(self, store: dict) -> "SegmentFeatures":
+        """These features with ``store`` (a dict) as the keeper of their :meth:`constant` values:
+        features built with the very same ``weight``, ``mask``, ``principal_point`` and
+        ``long_side`` tensors (other lines) pass one dict, so each value is computed once for all of
+        them.  Returns self."""
+        self.__dict__["_constants"] = store
+        return self
 
     def longest(self, count: int) -> "SegmentFeatures":
         """The ``count`` longest segments of each image (B, min(count, N), ...); padding stays last

@@ -52,6 +52,7 @@ from fr_torch.core.likelihood.objective import (
     measure_b_objective_and_grad,
     native_ok,
     objective_b_nograd,
+    sum_grid,
     vp_major,
 )
 from fr_torch.core.settings.config import Mode
@@ -347,16 +348,23 @@ class MixtureLikelihood:
         """
         value = self._data_objective(features, rotation, focal, workspace, vertical_block)
         if self.params.focal_prior_weight:
-            value = value + self.focal_prior(features, focal)[0]
+            value = value + self.focal_prior(features, focal, derivative=False)[0]
         return value
 
-    def focal_prior(self, features: SegmentFeatures, focal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def focal_prior(self, features: SegmentFeatures, focal: torch.Tensor,
+                    derivative: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The log focal prior (see :class:`LikelihoodParams`) and its derivative d/df (per pixel)
-        of the images of ``features`` (:meth:`focal_prior_of`).
+        of the images of ``features`` (:meth:`focal_prior_of`; their curvature
+        :meth:`focal_prior_curvature` is kept with the features, :meth:`SegmentFeatures.constant`).
 
-        ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``features.weight``'s dtype.
+        ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``features.weight``'s dtype (the
+        derivative None without ``derivative``).
         """
-        return self.focal_prior_of(features.total_length(), features.long_side, focal.to(features.weight.dtype))
+        dtype, params = features.weight.dtype, self.params
+        curvature = features.constant(
+            ("focal_prior_curvature", dtype, params.focal_prior_weight, params.focal_prior_pseudo_length),
+            lambda: self.focal_prior_curvature(features.total_length().to(dtype), features.long_side))
+        return self._focal_prior_at(curvature, features.long_side, focal.to(dtype), derivative)
 
     def focal_prior_of(self, total_length: torch.Tensor, long_side: torch.Tensor,
                        focal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -366,12 +374,19 @@ class MixtureLikelihood:
 
         ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``focal``'s dtype.
         """
-        weight = self.focal_prior_curvature(total_length.to(focal.dtype), long_side)[:, None]  # (B, 1)
+        return self._focal_prior_at(self.focal_prior_curvature(total_length.to(focal.dtype), long_side), long_side,
+                                    focal)
+
+    def _focal_prior_at(self, curvature: torch.Tensor, long_side: torch.Tensor, focal: torch.Tensor,
+                        derivative: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`focal_prior_of` from the images' :meth:`focal_prior_curvature` (B,) in ``focal``'s
+        dtype; the derivative None without ``derivative``."""
+        weight = curvature[:, None]  # (B, 1)
         offset = torch.log(focal / long_side[:, None]) - self._prior_centre
         flat = self.params.focal_prior_flat_halfwidth
         if flat:  # the distance to the flat band |log(f / f0)| <= h, signed
             offset = torch.sign(offset) * (offset.abs() - flat).clamp_min(0.0)
-        return -0.5 * weight * offset ** 2, -weight * offset / focal
+        return -0.5 * weight * offset ** 2, (-weight * offset / focal) if derivative else None
 
     def focal_prior_curvature(self, total_length: torch.Tensor, long_side: torch.Tensor) -> torch.Tensor:
         """``gamma * (W + W0)`` per image, (B,): minus the second derivative of the log focal prior
@@ -398,8 +413,10 @@ class MixtureLikelihood:
             if torch.is_grad_enabled() and vps.requires_grad:
                 return MeasureBObjective.apply(features.line_along, features.weight, flat, *constants)
             with torch.no_grad():
+                grid = features.constant(("sum_grid", constants[-1]), lambda: sum_grid(features.weight, constants[-1])) \
+                    if native_ok(features.weight) else None  # the fused kernel's input, the same at every call
                 return objective_b_nograd(features.line_along, features.weight, flat, *constants,
-                                          workspace=workspace, vertical_block=vertical_block)
+                                          workspace=workspace, vertical_block=vertical_block, grid=grid)
         if self.params.model == "nomixture":
             x = self._deviations(features, rotation, focal).amin(-1)  # (B, N, H)
             log_x = torch.log(x + self.params.scale_horizontal / 100)

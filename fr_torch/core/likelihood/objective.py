@@ -66,7 +66,7 @@ def _take(workspace: dict | None, name: str, shape, like: torch.Tensor) -> torch
 
 def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, background, floor, log_bound,
                        workspace: dict | None = None, vertical_block: int = 1, per_segment: bool = False,
-                       fused: bool = True) -> torch.Tensor:
+                       fused: bool = True, grid: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Measure-b objective (B, H) float64 for VP-major vanishing points ``flat`` (B, 3, 3H), no autograd;
     with ``per_segment`` each segment's log p_i instead, (B, N, H) in the segments' dtype (a view of
     the ``workspace`` buffer when one is given).
@@ -85,13 +85,15 @@ def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, backgr
     ``fused``: the objective of float32 CPU tensors comes from the fused kernel of
     :mod:`fr_torch.core.likelihood.native` where it is available (the same bits, the deviations never stored);
     False always takes the torch path written here, the reference the kernel is checked against.
+    ``grid``: :func:`sum_grid` of ``weight`` and ``log_bound`` when the caller keeps it (the fused
+    kernel's input; formed here when None).
     """
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
     if vertical_block > 1 and hyp % vertical_block:
         raise ValueError(f"vertical_block {vertical_block} does not divide the {hyp} hypotheses")
     if fused and not per_segment and vertical_block <= native.TILE and native_ok(weight):
-        factor, scale = sum_grid(weight, log_bound)
+        factor, scale = sum_grid(weight, log_bound) if grid is None else grid
         return native.measure_b_scores(line_along, factor, scale, flat, neg_inv_scale, log_coef, background, floor,
                                        VERTICAL_AXIS, vertical_block)
     block = max(1, vertical_block)

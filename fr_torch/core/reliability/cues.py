@@ -91,7 +91,7 @@ def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, pa
         focal = points[..., FOCAL].to(dtype)
         log_p = likelihood.segment_log_p(sub, rotations(points.to(dtype)), focal)  # (b, N, 81)
         scores = likelihood.sum_over_segments(log_p, sub)  # (b, 81): the objective's data part
-        prior_values = likelihood.focal_prior(sub, focal)[0] if likelihood.params.focal_prior_weight else None
+        prior_values = likelihood.focal_prior(sub, focal, derivative=False)[0] if likelihood.params.focal_prior_weight else None
         if prior_values is not None:
             scores = scores + prior_values
         hessian = lattice_fit(scores, fit)[:, _HESSIAN_COLUMNS.to(device)].view(-1, 4, 4) / (step[:, None] * step[None, :])
@@ -113,15 +113,24 @@ def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, pa
     return LocalFit(*(torch.cat([part[i] for part in parts]) for i in range(3)))
 
 
+#: Products ``values x fit column`` :func:`lattice_fit` forms at once: as many columns as keep them
+#: under this many elements (at least one); the coefficients do not depend on it.
+LATTICE_FIT_ELEMENTS = 1 << 16
+
+
 def lattice_fit(values: torch.Tensor, fit: torch.Tensor, dim: int = -1) -> torch.Tensor:
     """The fit's coefficients from lattice values: ``sum_h values[..., h, ...] fit[h, c]`` for the 81
     lattice points along ``dim`` of ``values`` and a fit (81, C); returns the other dimensions of
     ``values`` then C, float64.  Each coefficient is an exact sum over the lattice
-    (:func:`fr_torch.core.exact.exact_sum`; a matrix product's order would depend on the batch)."""
-    values = values.to(torch.float64)
+    (:func:`fr_torch.core.exact.exact_sum`; a matrix product's order would depend on the batch), of
+    as many columns at once as :data:`LATTICE_FIT_ELEMENTS` allows (one exact sum per slice either way)."""
+    values = values.to(torch.float64)[..., None]  # (..., 1): the columns go last
+    dim = dim % (values.dim() - 1)
     shape = [1] * values.dim()
-    shape[dim] = -1
-    return torch.stack([exact_sum(values * fit[:, c].view(shape), dim) for c in range(fit.shape[1])], -1)
+    shape[dim] = fit.shape[0]
+    step = max(1, LATTICE_FIT_ELEMENTS // values.numel())
+    return torch.cat([exact_sum(values * fit[:, c:c + step].reshape(shape[:-1] + [-1]), dim)
+                      for c in range(0, fit.shape[1], step)], -1)
 
 
 def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,

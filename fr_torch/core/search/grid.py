@@ -10,6 +10,7 @@ computation (the fused kernel on a CPU stores no deviations; else cache-sized ch
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -29,6 +30,15 @@ CPU_CHUNK_ELEMENTS = 1 << 20
 
 def _cell_centres(low: float, high: float, k: int) -> torch.Tensor:
     return low + (torch.arange(k, dtype=torch.float64) + 0.5) * (high - low) / k
+
+
+@functools.lru_cache(maxsize=32)
+def _grid_angles(pan_range: tuple[float, float], pitch_range: tuple[float, float], roll_range: tuple[float, float],
+                 k: int, device: torch.device) -> torch.Tensor:
+    """The grid's (k^3, 3) float64 [pan, pitch, roll] cell centres (degrees), pitch slowest, pan
+    fastest, on ``device``; made once per setting and device (read only: the grid copies it)."""
+    pan, pitch, roll = (_cell_centres(*box, k) for box in (pan_range, pitch_range, roll_range))
+    return torch.cartesian_prod(pitch, roll, pan)[:, [2, 0, 1]].to(device)
 
 
 def parameter_box(config: SearchConfig, long_side: torch.Tensor, known_focal: torch.Tensor | None):
@@ -93,12 +103,9 @@ def grid_hypotheses(config: SearchConfig, long_side: torch.Tensor, known_focal: 
         focal = known_focal.to(torch.float64)[:, None]
     else:
         focal = focal_grid(config, long_side)
-    pan = _cell_centres(*config.pan_range_deg, k)
-    pitch = _cell_centres(*config.pitch_range_deg, k)
-    roll = _cell_centres(*config.roll_range_deg, k)
-    # (k^3, 3) as [pan, pitch, roll], on the device of the inputs (a GPU batch's grid is built there:
-    # 128 KB per image, 0.5 GB for 4096 images, is not worth a host->device copy)
-    angles = torch.cartesian_prod(pitch, roll, pan)[:, [2, 0, 1]].to(focal.device)
+    # (k^3, 3) on the device of the inputs (a GPU batch's grid is built there: 128 KB per image,
+    # 0.5 GB for 4096 images, is not worth a host->device copy)
+    angles = _grid_angles(config.pan_range_deg, config.pitch_range_deg, config.roll_range_deg, k, focal.device)
     batch, n_focal = focal.shape
     hyp = torch.cat([angles.expand(batch, n_focal, -1, -1),
                      focal[:, :, None, None].expand(-1, -1, angles.shape[0], 1)], -1)

@@ -82,14 +82,25 @@ class SegmentGeometry:
         tensors in ``k``'s dtype (zeros without a prior)."""
         if not self.k_prior_weight:
             return torch.zeros_like(k), torch.zeros_like(k)
-        slope = -self.k_prior_weight * exact_sum(self.weight, -1).to(k)[:, None] * k
+        slope = -self.k_prior_weight * self.total_length().to(k)[:, None] * k
         return 0.5 * slope * k, slope
 
     @property
     def weight(self) -> torch.Tensor:
-        """(B, N) the photo's segment lengths, 0 for padding."""
-        d = self.endpoints[..., 2:] - self.endpoints[..., :2]
-        return _norm2(d) * self.mask
+        """(B, N) the photo's segment lengths, 0 for padding (computed once)."""
+        cached = self.__dict__.get("_weight_cache")
+        if cached is None:
+            d = self.endpoints[..., 2:] - self.endpoints[..., :2]
+            cached = self.__dict__["_weight_cache"] = _norm2(d) * self.mask
+        return cached
+
+    def total_length(self) -> torch.Tensor:
+        """(B,) float64 total segment length per image, pixels: :meth:`SegmentFeatures.total_length`
+        of the photo's segments (that of every virtual image of :meth:`features`), computed once."""
+        cached = self.__dict__.get("_total_length_cache")
+        if cached is None:
+            cached = self.__dict__["_total_length_cache"] = exact_sum(self.weight, 1)
+        return cached
 
     def features(self, k: torch.Tensor, derivative: bool = False):
         """Features of every image under G hypotheses of k each: ``k`` (B, G) -> SegmentFeatures of
@@ -100,21 +111,21 @@ class SegmentGeometry:
         dtype = self.endpoints.dtype
         k = k.to(dtype)[:, :, None]  # (B, G, 1)
         centre, offset, rho = self._offsets()  # (B, 1, 1, 2), (B, 1, 2N, 2), (B, 1, 2N)
-        factor = 1.0 / (1.0 + k * rho)  # (B, G, 2N): undistorted = centre + factor * offset
+        factor = (1.0 + k * rho).reciprocal()  # (B, G, 2N): undistorted = centre + factor * offset
         q = offset * factor[..., None]
         qa, qb = q[:, :, :n_seg], q[:, :, n_seg:]
         delta = qb - qa
         length = _norm2(delta)
-        inv_length = 1.0 / length.clamp_min(1e-12)
+        inv_length = length.clamp_min(1e-12).reciprocal()
         d = delta * inv_length[..., None]
         m = centre + (qa + qb) * 0.5
         dx, dy = d[..., 0], d[..., 1]
-        line_along = torch.stack([-dy, dx, dy * m[..., 0] - dx * m[..., 1],
-                                  dx, dy, -(dx * m[..., 0] + dy * m[..., 1])], -1)  # (B, G, N, 6)
-        line_along = line_along.view(batch * groups, n_seg, 2, 3).transpose(1, 2).reshape(batch * groups, 2 * n_seg, 3)
-        weight, mask, principal_point, long_side = self._virtual_constants(groups)
+        mx, my = m[..., 0], m[..., 1]
+        line_along = _line_along_rows([-dy, dx, dy * mx - dx * my], [dx, dy, -(dx * mx + dy * my)])
+        weight, mask, principal_point, long_side, constants = self._virtual_constants(groups)
         features = SegmentFeatures(line_along[:, :n_seg], line_along[:, n_seg:], (length * 0.5).view(batch * groups, -1),
-                                   weight, mask, principal_point, long_side, line_along=line_along)
+                                   weight, mask, principal_point, long_side, line_along=line_along
+                                   ).sharing_constants(constants)
         if not derivative:
             return features
         d_q = offset * (-rho * factor * factor)[..., None]  # d q / dk
@@ -122,11 +133,9 @@ class SegmentGeometry:
         d_d = (d_delta - d * _dot2(d, d_delta)[..., None]) * inv_length[..., None]
         d_m = (d_q[:, :, :n_seg] + d_q[:, :, n_seg:]) * 0.5
         ddx, ddy = d_d[..., 0], d_d[..., 1]
-        d_line_along = torch.stack([-ddy, ddx, ddy * m[..., 0] + dy * d_m[..., 0] - ddx * m[..., 1] - dx * d_m[..., 1],
-                                    ddx, ddy, -(ddx * m[..., 0] + dx * d_m[..., 0] + ddy * m[..., 1]
-                                                + dy * d_m[..., 1])], -1)
-        d_line_along = d_line_along.view(batch * groups, n_seg, 2, 3).transpose(1, 2).reshape(batch * groups,
-                                                                                               2 * n_seg, 3)
+        dmx, dmy = d_m[..., 0], d_m[..., 1]
+        d_line_along = _line_along_rows([-ddy, ddx, ddy * mx + dy * dmx - ddx * my - dx * dmy],
+                                        [ddx, ddy, -(ddx * mx + dx * dmx + ddy * my + dy * dmy)])
         return features, d_line_along
 
     def _offsets(self):
@@ -144,14 +153,17 @@ class SegmentGeometry:
 
     def _virtual_constants(self, groups: int):
         """The k-independent fields of :meth:`features` for G = ``groups``: weight, mask,
-        principal point, long side of the B * G virtual images (computed once per G)."""
+        principal point, long side of the B * G virtual images, and the store of the values
+        computed from them (:meth:`SegmentFeatures.sharing_constants`, seeded with the total
+        length), computed once per G."""
         cache = self.__dict__.setdefault("_constants_cache", {})
         if groups not in cache:
             weight = self.weight
             mask = self.mask & (weight > 0)
             dtype = self.endpoints.dtype
-            cache[groups] = tuple(x.repeat_interleave(groups, 0) for x in
-                                  (weight, mask, self.centre.to(dtype), self.long_side.to(dtype)))
+            fields = tuple(x.repeat_interleave(groups, 0) for x in
+                           (weight, mask, self.centre.to(dtype), self.long_side.to(dtype)))
+            cache[groups] = fields + ({"total_length": self.total_length().repeat_interleave(groups, 0)},)
         return cache[groups]
 
     def images(self, start: int, stop: int) -> "SegmentGeometry":
@@ -160,6 +172,13 @@ class SegmentGeometry:
                                self.radius[start:stop], self.long_side[start:stop], self.k_prior_weight)
 
 
+
+
+def _line_along_rows(line: list[torch.Tensor], along: list[torch.Tensor]) -> torch.Tensor:
+    """The three coefficients of ``line`` and of ``along``, (B, G, N) each, as the
+    :attr:`SegmentFeatures.line_along` rows of the B * G virtual images: (B * G, 2N, 3)."""
+    rows = torch.cat([torch.stack(line, -1), torch.stack(along, -1)], 2)  # (B, G, 2N, 3)
+    return rows.view(-1, rows.shape[2], 3)
 
 
 def _dot2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -208,24 +227,36 @@ def chain_pairs(endpoints: torch.Tensor, mask: torch.Tensor, long_side: torch.Te
     """Pairs of segments that look like consecutive pieces of one line (the constants above).
 
     ``endpoints`` (B, M, 4) photo pixels, ``mask`` (B, M), ``long_side`` (B,).  Returns
-    (image (P,), i (P,), j (P,), weight (P,)) with i < j and weight = the shorter one's length."""
-    batch, count = endpoints.shape[:2]
-    ends = endpoints.reshape(batch, 2 * count, 2)  # segment m's endpoints at rows 2m, 2m + 1
-    gap = _norm2(ends[:, :, None, :] - ends[:, None, :, :]).view(batch, count, 2, count, 2).amin((2, 4))  # (B, M, M)
+    (image (P,), i (P,), j (P,), weight (P,)) with i < j and weight = the shorter one's length,
+    in (image, i, j) order.  The direction test, the cheapest, runs on all M^2 pairs; the gap and
+    lateral tests only on the C pairs that pass it (about a third), coordinates laid out (.., C)."""
+    count = endpoints.shape[1]
     delta = endpoints[..., 2:] - endpoints[..., :2]
     length = _norm2(delta).clamp_min(1e-9)
     unit = delta / length[..., None]
     aligned = _dot2(unit[:, :, None, :], unit[:, None, :, :]).abs() > math.cos(math.radians(CHAIN_MAX_ANGLE_DEG))
-    # homogeneous unit-normal lines; |line_i . end| = the end's distance from segment i's line
+    image, i, j = torch.triu(aligned & mask[:, :, None] & mask[:, None, :], diagonal=1).nonzero(as_tuple=True)
+    # homogeneous unit-normal lines; |line . (x, y, 1)| = the point's distance from the segment's line
     lines = torch.stack([-unit[..., 1], unit[..., 0],
-                         unit[..., 1] * endpoints[..., 0] - unit[..., 0] * endpoints[..., 1]], -1)  # (B, M, 3)
-    homogeneous = torch.cat([ends, torch.ones_like(ends[..., :1])], -1)  # (B, 2M, 3)
-    lateral = dot3(lines[:, :, None, :], homogeneous[:, None, :, :]).abs().view(batch, count, count, 2).amin(-1)  # j's nearer end
-    scale = long_side.to(endpoints)[:, None, None]
-    valid = (gap < CHAIN_GAP * scale) & aligned & (lateral < CHAIN_LATERAL * scale) \
-        & (lateral.transpose(1, 2) < CHAIN_LATERAL * scale) & mask[:, :, None] & mask[:, None, :]
-    image, i, j = torch.triu(valid, diagonal=1).nonzero(as_tuple=True)
-    return image, i, j, torch.minimum(length[image, i], length[image, j])
+                         unit[..., 1] * endpoints[..., 0] - unit[..., 0] * endpoints[..., 1]]).view(3, -1)  # (3, B * M)
+    row_i, row_j = image * count + i, image * count + j  # (C,) rows of the (B * M, ...) tensors
+    ends = endpoints.reshape(-1, 4).T.contiguous()  # (4, B * M): x1, y1, x2, y2
+    ends_i, ends_j = ends.index_select(1, row_i), ends.index_select(1, row_j)  # (4, C)
+    x_i, y_i, x_j, y_j = ends_i[0::2], ends_i[1::2], ends_j[0::2], ends_j[1::2]  # (2, C): both endpoints
+    dx, dy = x_i[:, None] - x_j[None], y_i[:, None] - y_j[None]  # (2, 2, C): i's endpoints minus j's
+    gap = torch.sqrt((dx * dx + dy * dy).view(4, -1).amin(0))  # the nearest endpoints' distance (C,)
+
+    def nearer_lateral(rows: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """(C,) distance from the lines of ``rows`` (C,) of the nearer of the points ``x``, ``y``
+        (2, C) (:func:`dot3` of the line and (x, y, 1), written out)."""
+        line = lines.index_select(1, rows)  # (3, C)
+        return (line[0] * x + line[1] * y + line[2]).abs().amin(0)
+
+    scale = long_side.to(endpoints)[image]
+    valid = (gap < CHAIN_GAP * scale) & (nearer_lateral(row_i, x_j, y_j) < CHAIN_LATERAL * scale) \
+        & (nearer_lateral(row_j, x_i, y_i) < CHAIN_LATERAL * scale)
+    length = length.view(-1)
+    return image[valid], i[valid], j[valid], torch.minimum(length[row_i[valid]], length[row_j[valid]])
 
 
 def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> PlumbLine:
@@ -255,18 +286,20 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> Plu
     endpoints = torch.gather(geometry.endpoints, 1, index[..., None].expand(-1, -1, 4)).to(torch.float64)
     mask = torch.gather(geometry.mask & (weight > 0), 1, index)
     image, i, j, pair_weight = chain_pairs(endpoints, mask, geometry.long_side.to(torch.float64))
-    # the paired pieces' directions undistorted at every k of the grid: (P, K, 2) each
-    centre = geometry.centre.to(torch.float64)[image, None, None, :]
+    # the paired pieces' directions undistorted at every k of the grid: x and y, (P, K) each
+    centre = geometry.centre.to(torch.float64)[image]  # (P, 2)
     inv_r2 = (1.0 / geometry.radius.to(torch.float64) ** 2)[image, None, None]
 
-    def directions(pieces):  # (P, 4) -> (P, K, 2) unit directions
-        offset = pieces.view(-1, 1, 2, 2) - centre
-        undistorted = offset / (1.0 + grid.view(1, -1, 1) * _dot2(offset, offset) * inv_r2)[..., None]
-        direction = undistorted[:, :, 1] - undistorted[:, :, 0]
-        return direction / _norm2(direction)[..., None].clamp_min(1e-12)
+    def directions(pieces):  # (P, 4) -> the unit directions' x and y, (P, K) each
+        x, y = pieces[:, 0::2] - centre[:, :1], pieces[:, 1::2] - centre[:, 1:]  # (P, 2): both endpoints
+        factor = 1.0 + grid.view(1, -1, 1) * (x * x + y * y)[:, None, :] * inv_r2  # (P, K, 2)
+        x, y = x[:, None, :] / factor, y[:, None, :] / factor  # undistorted
+        dx, dy = x[..., 1] - x[..., 0], y[..., 1] - y[..., 0]
+        norm = torch.sqrt(dx * dx + dy * dy).clamp_min(1e-12)
+        return dx / norm, dy / norm
 
-    a, b = directions(endpoints[image, i]), directions(endpoints[image, j])
-    turn = torch.asin((a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]).abs().clamp(max=1.0))
+    (ax, ay), (bx, by) = directions(endpoints[image, i]), directions(endpoints[image, j])
+    turn = torch.asin((ax * by - ay * bx).abs().clamp(max=1.0))
     cost_terms = pair_weight[:, None] * turn.clamp(max=math.radians(TURN_CAP_DEG)) ** 2
     cap_cost = geometry.long_side.to(torch.float64) * math.radians(TURN_CAP_DEG) ** 2  # a pair's largest term
     cost = exact_index_sum(cost_terms, image, batch, cap_cost[:, None])

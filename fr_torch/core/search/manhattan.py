@@ -105,7 +105,7 @@ def families_objective(likelihood: MixtureLikelihood, features: SegmentFeatures,
                                            log_h + torch.log(weights)[:, None, :]], -1), -1)
     value = exact_sum(log_p, 1, weight=features.weight)
     if likelihood.params.focal_prior_weight:
-        value = value + likelihood.focal_prior(features, focal[:, None])[0][:, 0]
+        value = value + likelihood.focal_prior(features, focal[:, None], derivative=False)[0][:, 0]
     return value
 
 

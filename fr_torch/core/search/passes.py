@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from fr_torch.core.exact import cross3, dot3, exact_sum, first_argmax
+from fr_torch.core.exact import cross3, dot3, first_argmax
 from fr_torch.core.geometry.conventions import VERTICAL_AXIS
 from fr_torch.core.geometry.params import (
     ANGLES,
@@ -127,8 +127,8 @@ def tie_tolerance(segments) -> torch.Tensor:
     """(B,) float64: the score difference below which two hypotheses of an image are tied, nats
     (:data:`TIE_NATS_PER_PX` times the image's total segment length).  ``segments``: a
     :class:`~fr_torch.core.likelihood.measures.SegmentFeatures` or a
-    :class:`~fr_torch.core.search.lens.SegmentGeometry` (their (B, N) ``weight``, pixels)."""
-    return exact_sum(segments.weight, 1) * TIE_NATS_PER_PX
+    :class:`~fr_torch.core.search.lens.SegmentGeometry` (their ``total_length()``, pixels)."""
+    return segments.total_length() * TIE_NATS_PER_PX
 
 
 def near_best(scores: torch.Tensor, tolerance: torch.Tensor) -> torch.Tensor:
