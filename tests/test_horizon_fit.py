@@ -1,5 +1,6 @@
 """The horizon fit (fr_torch.core.search.horizon) and the per-photo choice of fit (SearchConfig.fit)."""
 import json
+import math
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.core.geometry.horizon import Horizon
 from fr_torch.core.geometry.params import CameraParams
 from fr_torch.core.likelihood.measures import SegmentFeatures
+from fr_torch.core.search.choice import mixture_loss
 from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
 from fr_torch.core.likelihood.segments import SegmentBatch
 from fr_torch.core.search.choice import CHOICE_FEATURES, HorizonChooser, fit_on_horizon, horizon_of
@@ -149,6 +151,34 @@ def test_the_horizon_fit_gives_the_same_bits_under_every_kernel_set(kernels):
     expected = json.loads(json.dumps([{k: v for k, v in r.to_json().items() if k != "runtime_s"} for r in here]))
     assert fresh_process_records(kernels)["horizon"] == expected
     assert [r["model"] for r in expected] == ["horizon", "horizon"]
+
+
+@pytest.mark.parametrize("kernels", _kernel_sets())
+def test_the_choice_of_fit_gives_the_same_bits_under_every_kernel_set(kernels):
+    """The reproducibility photos fitted with ``fit=choose`` (both fits and the choice's evidence,
+    ``cues.choice_*``) and the evidence ``mixture_loss`` on 20,000 values, in a process with another
+    ATEN_CPU_CAPABILITY and one thread: bit for bit what this process gives."""
+    from tests.test_reproducibility import _photos, _record
+
+    photos = _photos()
+    here = FREstimator(mode="fast", search_config=SearchConfig.from_config(fit="choose")).calibrate_segments(
+        [p[0] for p in photos], [p[1] for p in photos])
+    expected = [_record(r) for r in here]
+    assert fresh_process_records(kernels)["choose"] == expected
+    assert all(any(key.startswith("choice_") for key in r["cues"]) for r in expected)
+    assert fresh_process_records(kernels)["mixture_loss"] == mixture_loss(*_loss_inputs()).tolist()
+
+
+def _loss_inputs() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """20,000 objectives of two fits and total lengths spanning what photos give (the choice's
+    ``mixture_loss`` evidence over many values, beyond the few photos above)."""
+    generator = torch.Generator().manual_seed(67)
+    uniform = torch.rand(3, 20000, generator=generator, dtype=torch.float64)
+    # powers of ten through exp (the same bits under every kernel set; a float64 ``**`` is not)
+    total = torch.exp((2 + 3 * uniform[0]) * math.log(10.0))
+    manhattan = -total * (3 + uniform[1])
+    held = manhattan - total * torch.exp((-6 + 6 * uniform[2]) * math.log(10.0))
+    return manhattan, held, total
 
 
 def test_fit_settings_are_checked_once_into_a_type():

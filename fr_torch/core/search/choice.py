@@ -111,6 +111,15 @@ def border_heights(params: torch.Tensor, principal_point: torch.Tensor, image_si
     return -(a[:, None] * columns + c[:, None]) / b[:, None]
 
 
+def mixture_loss(manhattan_scores: torch.Tensor, held_scores: torch.Tensor, total_length: torch.Tensor) -> torch.Tensor:
+    """``log(1 + |L_m - L_h| / W)`` (B,) float64: how much the mixture objective loses between the
+    Manhattan fit's camera (``manhattan_scores``) and the camera on the horizon (``held_scores``),
+    per unit of the images' segment length ``total_length`` W (pixels).  Written ``log(1 + x)``:
+    ``torch.log1p``'s kernels round differently under the default CPU kernel set than under AVX2,
+    ``log``'s do not (:mod:`fr_torch.core.exact`)."""
+    return torch.log(1.0 + (manhattan_scores.to(torch.float64) - held_scores).abs() / total_length)
+
+
 def choice_features(features: SegmentFeatures, manhattan: torch.Tensor, manhattan_scores: torch.Tensor,
                     fit: "HorizonFit", held: torch.Tensor, held_scores: torch.Tensor, votes: torch.Tensor,
                     image_size: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -122,7 +131,7 @@ def choice_features(features: SegmentFeatures, manhattan: torch.Tensor, manhatta
     (share of the height); ``focal_ratio`` ``log(f_sweep / f_manhattan)``; ``tilt_change`` and
     ``manhattan_tilt`` in degrees."""
     total = features.total_length().clamp_min(1e-9)
-    loss = torch.log1p((manhattan_scores.to(torch.float64) - held_scores).abs() / total)
+    loss = mixture_loss(manhattan_scores, held_scores, total)
     shift = (border_heights(held, features.principal_point, image_size)
              - border_heights(manhattan, features.principal_point, image_size)).abs().amax(-1)
     tilt_m = horizon_angles(rotations(manhattan))["tilt_deg"]
