@@ -6,12 +6,14 @@ The grid: k cell centres per dimension, the focal length spaced uniformly in log
 (``SearchConfig.focal_grid``).  :func:`score_grid` scores every hypothesis as one batched tensor
 computation (the fused kernel on a CPU stores no deviations; else cache-sized chunks on a CPU and
 ``max_chunk_elements`` on a GPU; no chunk size depends on the thread count), and
-:func:`select_starts` keeps each image's ``top_l`` best.
+:func:`select_starts` keeps each image's ``top_l`` best.  With ``SearchConfig.grid_coarse_factor`` > 1,
+:func:`coarse_to_fine_scores` scores the k^4 grid only inside the best cells of a coarser grid.
 """
 from __future__ import annotations
 
 import functools
 import math
+from dataclasses import replace
 
 import torch
 
@@ -21,6 +23,7 @@ from fr_torch.core.geometry.params import ANGLES, FOCAL, rotations
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.settings.config import SearchConfig
+from fr_torch.errors import FRInputError
 
 # Grid deviations per chunk on CPU, whatever the thread count: float32 buffers of a few MB, 32 of
 # torch's 2^15-element grains (up to 32 threads share every op).  Scores are the same for any chunk
@@ -174,3 +177,73 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
                 scores[b0:b1, h0:h1] = likelihood.objective(sub, rotation[:, h0:h1], focal[:, h0:h1],
                                                             workspace=workspace, vertical_block=vertical_block)
     return scores.nan_to_num_(nan=-math.inf)  # a NaN score is never the best (topk ranks NaN first)
+
+
+def _cell_members(cells: torch.Tensor, coarse_k: int, factor: int, n_focal: int) -> torch.Tensor:
+    """Indices (B, M * s^D) int64 into the k^4 grid (k = ``coarse_k * factor``, order of
+    :func:`grid_hypotheses`) of the points inside coarse cells ``cells`` (B, M) int64 (indices into
+    the ``coarse_k`` grid); D = 4, or 3 when ``n_focal`` = 1 (a known focal).  Per cell the s^D
+    points run in grid order, pan fastest: runs of s share the vertical VP."""
+    s, k = factor, coarse_k * factor
+    focal_c = cells // coarse_k ** 3
+    pitch_c = cells // coarse_k ** 2 % coarse_k
+    roll_c = cells // coarse_k % coarse_k
+    pan_c = cells % coarse_k
+    steps = torch.arange(s, device=cells.device)
+    focal_steps = steps if n_focal > 1 else steps[:1]
+    offsets = torch.cartesian_prod(focal_steps, steps, steps, steps)  # (s^D, 4) [focal, pitch, roll, pan]
+    fine_focal = (focal_c * s if n_focal > 1 else focal_c)[..., None] + offsets[:, 0]
+    fine_pitch = (pitch_c * s)[..., None] + offsets[:, 1]
+    fine_roll = (roll_c * s)[..., None] + offsets[:, 2]
+    fine_pan = (pan_c * s)[..., None] + offsets[:, 3]
+    index = ((fine_focal * k + fine_pitch) * k + fine_roll) * k + fine_pan  # (B, M, s^D)
+    return index.reshape(cells.shape[0], -1)
+
+
+def coarse_to_fine_scores(likelihood: MixtureLikelihood, features: SegmentFeatures, config: SearchConfig,
+                          hypotheses: torch.Tensor, long_side: torch.Tensor,
+                          known_focal: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Stage 1 coarse to fine (``config.grid_coarse_factor`` = s > 1): the k^4 grid ``hypotheses``
+    (B, G, 4) of :func:`grid_hypotheses` scored only inside the best cells of the (k/s)^4 grid.
+
+    The coarse grid's cells are unions of s^4 cells of the k^4 grid (its cell centres and focal
+    spacing nest), so the coarse grid is scored (:func:`score_grid`), each image's
+    ``config.grid_coarse_cells`` best coarse cells are kept (equal scores in grid order) and the
+    k^4 grid's points inside them are scored: ``(k/s)^4 + grid_coarse_cells * s^4`` hypotheses per
+    image (k^3 analogues with a known focal; more cells where fewer points than ``top_l`` would be
+    scored).  ``long_side`` (B,) pixels and ``known_focal`` (B,) pixels or None: as given to
+    :func:`grid_hypotheses`.  FRInputError when k is not a multiple of s.
+
+    Returns (``grid_scores``, ``selectable``), both (B, G) float64 over the k^4 grid:
+    ``selectable`` holds the scores of the points scored and -inf elsewhere (what
+    :func:`select_starts` takes); ``grid_scores`` the same with every point not scored given its
+    coarse cell's score (a stand-in for the full grid's scores, for the ``grid_entropy`` cue).
+    When every coarse cell is kept, ``selectable`` equals :func:`score_grid` of the whole grid,
+    bit for bit.
+    """
+    factor = config.grid_coarse_factor
+    if config.grid_points_per_dim % factor:
+        raise FRInputError(f"grid_coarse_factor {factor} must divide grid_points_per_dim "
+                           f"{config.grid_points_per_dim}")
+    coarse_k = config.grid_points_per_dim // factor
+    coarse_config = replace(config, grid_points_per_dim=coarse_k, grid_coarse_factor=1)
+    device = hypotheses.device
+    coarse = grid_hypotheses(coarse_config, long_side.to(device),
+                             None if known_focal is None else known_focal.to(device))
+    coarse_scores = score_grid(likelihood, features, coarse, config.max_chunk_elements, vertical_block=coarse_k)
+    batch, count = hypotheses.shape[:2]
+    n_focal = count // config.grid_points_per_dim ** 3
+    per_cell = factor ** (4 if n_focal > 1 else 3)
+    kept = max(config.grid_coarse_cells, -(-config.top_l // per_cell))  # at least top_l points scored
+    cells = top_indices(coarse_scores, min(kept, coarse_scores.shape[1]), dim=1)
+    members = _cell_members(cells, coarse_k, factor, n_focal)  # (B, M s^D)
+    fine = torch.gather(hypotheses, 1, members[..., None].expand(-1, -1, hypotheses.shape[-1]))
+    fine_scores = score_grid(likelihood, features, fine, config.max_chunk_elements, vertical_block=factor)
+    shape = (batch, n_focal // factor if n_focal > 1 else 1, coarse_k, coarse_k, coarse_k)
+    upsampled = coarse_scores.view(shape)
+    for dim in range(1 if n_focal > 1 else 2, 5):
+        upsampled = upsampled.repeat_interleave(factor, dim)
+    grid_scores = upsampled.reshape(batch, count).clone()
+    grid_scores.scatter_(1, members, fine_scores)
+    selectable = torch.full_like(grid_scores, -math.inf).scatter_(1, members, fine_scores)
+    return grid_scores, selectable

@@ -1,7 +1,8 @@
 """The Manhattan fit (fR, Fast-fR): the engine's stages on the mixture likelihood of a pinhole camera.
 
 Stage 1 scores the k^4 grid over pan, pitch, roll and the focal length (:mod:`~fr_torch.core.search.grid`,
-each image's ``grid_segments`` longest segments), keeps the best ``top_l`` points, adds each one's
+each image's ``grid_segments`` longest segments; with ``grid_coarse_factor`` > 1 only inside the best
+cells of a coarser grid), keeps the best ``top_l`` points, adds each one's
 best point along its focal ridge and sharpens them by lattice passes
 (:mod:`~fr_torch.core.search.passes`); stage 2 refines them all with Adam inside the box
 (:mod:`~fr_torch.core.search.refine`), and the better of each start and its refinement wins.  The lens
@@ -32,7 +33,13 @@ from fr_torch.core.geometry.params import FOCAL, PAN, rotations
 from fr_torch.core.geometry.vanishing import AtlantaConfig, horizon_points, rank_vanishing_points
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
-from fr_torch.core.search.grid import grid_hypotheses, parameter_box, score_grid, select_starts
+from fr_torch.core.search.grid import (
+    coarse_to_fine_scores,
+    grid_hypotheses,
+    parameter_box,
+    score_grid,
+    select_starts,
+)
 from fr_torch.core.search.passes import SearchResult, subdivide_starts, sweep_focal
 from fr_torch.core.search.refine import UnitBox, adam_in_box, refine_starts
 from fr_torch.core.settings.config import FamiliesConfig, SearchConfig
@@ -51,10 +58,14 @@ def search_manhattan(likelihood: MixtureLikelihood, features: SegmentFeatures, c
     device = features.weight.device
     hypotheses = grid_hypotheses(config, long_side.to(device), None if known_focal is None else known_focal.to(device))
     grid_features = features.longest(config.grid_segments) if config.grid_segments else features
-    grid_scores = score_grid(likelihood, grid_features, hypotheses, config.max_chunk_elements,
-                             vertical_block=config.grid_points_per_dim)
+    if config.grid_coarse_factor > 1:  # coarse to fine: the k^4 grid only inside the best coarse cells
+        grid_scores, selectable = coarse_to_fine_scores(likelihood, grid_features, config, hypotheses,
+                                                        long_side, known_focal)
+    else:
+        grid_scores = selectable = score_grid(likelihood, grid_features, hypotheses, config.max_chunk_elements,
+                                              vertical_block=config.grid_points_per_dim)
     grid_counts = grid_features.mask.sum(-1)
-    starts, top_scores = select_starts(config, grid_scores, hypotheses)
+    starts, top_scores = select_starts(config, selectable, hypotheses)
     lower, upper = parameter_box(config, long_side, known_focal)
     starts, top_scores = sweep_focal(likelihood, features, starts, top_scores, config, lower, upper)
     starts, top_scores = subdivide_starts(likelihood, features, starts, top_scores, config, lower, upper)
