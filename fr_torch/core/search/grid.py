@@ -23,7 +23,6 @@ from fr_torch.core.geometry.params import ANGLES, FOCAL, rotations
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.settings.config import SearchConfig
-from fr_torch.errors import FRInputError
 
 # Grid deviations per chunk on CPU, whatever the thread count: float32 buffers of a few MB, 32 of
 # torch's 2^15-element grains (up to 32 threads share every op).  Scores are the same for any chunk
@@ -212,7 +211,7 @@ def coarse_to_fine_scores(likelihood: MixtureLikelihood, features: SegmentFeatur
     k^4 grid's points inside them are scored: ``(k/s)^4 + grid_coarse_cells * s^4`` hypotheses per
     image (k^3 analogues with a known focal; more cells where fewer points than ``top_l`` would be
     scored).  ``long_side`` (B,) pixels and ``known_focal`` (B,) pixels or None: as given to
-    :func:`grid_hypotheses`.  FRInputError when k is not a multiple of s.
+    :func:`grid_hypotheses` (:class:`SearchConfig` makes sure s divides k).
 
     Returns (``grid_scores``, ``selectable``), both (B, G) float64 over the k^4 grid:
     ``selectable`` holds the scores of the points scored and -inf elsewhere (what
@@ -222,9 +221,6 @@ def coarse_to_fine_scores(likelihood: MixtureLikelihood, features: SegmentFeatur
     bit for bit.
     """
     factor = config.grid_coarse_factor
-    if config.grid_points_per_dim % factor:
-        raise FRInputError(f"grid_coarse_factor {factor} must divide grid_points_per_dim "
-                           f"{config.grid_points_per_dim}")
     coarse_k = config.grid_points_per_dim // factor
     coarse_config = replace(config, grid_points_per_dim=coarse_k, grid_coarse_factor=1)
     device = hypotheses.device

@@ -201,8 +201,7 @@ class SearchConfig:
     (:func:`fr_torch.core.search.passes.subdivide_starts`); each scores 3^4 = 81 points per start.
     0 = the paper's two stages.
     ``grid_coarse_factor``: s, 1 = off (the default).  With s > 1 stage 1 is coarse to fine
-    (:func:`fr_torch.core.search.grid.coarse_to_fine_scores`; k must then be a multiple of s, else
-    the search raises FRInputError): it scores the (k/s)^4 grid of cells s times as large, keeps
+    (:func:`fr_torch.core.search.grid.coarse_to_fine_scores`; k must be a multiple of s): it scores the (k/s)^4 grid of cells s times as large, keeps
     each image's ``grid_coarse_cells`` best of them and scores only the k^4 grid's points inside
     those (s^4 per cell), so ``(k/s)^4 + grid_coarse_cells * s^4`` hypotheses instead of k^4; the
     starts are the best of those points.  Only the Manhattan search's stage 1 (the lens fit, the
@@ -253,7 +252,7 @@ class SearchConfig:
     focal_sweep_points: int = 16
     grid_passes: int = 3
     grid_coarse_factor: int = 1
-    grid_coarse_cells: int = 16
+    grid_coarse_cells: int = 32
     refine_iterations: int | None = None
     max_segments: int | None = None
     grid_segments: int | None = None
@@ -301,6 +300,9 @@ class SearchConfig:
         if self.grid_coarse_factor < 1 or self.grid_coarse_cells < 1:
             raise FRInputError("grid_coarse_factor and grid_coarse_cells must be >= 1, got "
                                f"{self.grid_coarse_factor}, {self.grid_coarse_cells}")
+        if self.grid_points_per_dim % self.grid_coarse_factor:
+            raise FRInputError(f"grid_coarse_factor {self.grid_coarse_factor} must divide grid_points_per_dim "
+                               f"{self.grid_points_per_dim}")
         if self.focal_sweep_points < 0:
             raise FRInputError(f"focal_sweep_points must be >= 0 (0 = off), got {self.focal_sweep_points}")
         minimum = {"refine_iterations": 0, "max_segments": 1, "grid_segments": 0}
