@@ -450,8 +450,9 @@ def test_refinement_adam_is_torch_adam_and_the_same_bits_in_any_layout():
     ours = torch.rand(3, 8, 4)
     shifted = torch.cat([torch.rand(1, 8, 4), ours.clone()])  # the same entries one image further on
     theirs = ours.clone().requires_grad_(True)
-    adam = search_refine.Adam(ours, 0.03, 0.8, betas=(0.5, 0.9))
-    adam_shifted = search_refine.Adam(shifted, 0.03, 0.8, betas=(0.5, 0.9))
+    steps = search_refine.adam_schedule(0.03, 0.03 * 0.8 ** (len(grads) - 1), len(grads), (0.5, 0.9))  # x0.8 a step
+    adam = search_refine.Adam(ours, steps, betas=(0.5, 0.9))
+    adam_shifted = search_refine.Adam(shifted, steps, betas=(0.5, 0.9))
     reference = torch.optim.Adam([theirs], lr=0.03, betas=(0.5, 0.9), foreach=False)
     schedule = torch.optim.lr_scheduler.ExponentialLR(reference, 0.8)
     for grad in grads:

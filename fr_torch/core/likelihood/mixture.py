@@ -360,11 +360,17 @@ class MixtureLikelihood:
         ``focal`` (B, H) pixels.  Returns two (B, H) tensors in ``features.weight``'s dtype (the
         derivative None without ``derivative``).
         """
+        dtype = features.weight.dtype
+        return self._focal_prior_at(self.focal_prior_curvature_for(features), features.long_side, focal.to(dtype),
+                                    derivative)
+
+    def focal_prior_curvature_for(self, features: SegmentFeatures) -> torch.Tensor:
+        """:meth:`focal_prior_curvature` of the images of ``features``, (B,) in ``features.weight``'s
+        dtype, computed once per features (:meth:`SegmentFeatures.constant`)."""
         dtype, params = features.weight.dtype, self.params
-        curvature = features.constant(
+        return features.constant(
             ("focal_prior_curvature", dtype, params.focal_prior_weight, params.focal_prior_pseudo_length),
             lambda: self.focal_prior_curvature(features.total_length().to(dtype), features.long_side))
-        return self._focal_prior_at(curvature, features.long_side, focal.to(dtype), derivative)
 
     def focal_prior_of(self, total_length: torch.Tensor, long_side: torch.Tensor,
                        focal: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -413,8 +419,7 @@ class MixtureLikelihood:
             if torch.is_grad_enabled() and vps.requires_grad:
                 return MeasureBObjective.apply(features.line_along, features.weight, flat, *constants)
             with torch.no_grad():
-                grid = features.constant(("sum_grid", constants[-1]), lambda: sum_grid(features.weight, constants[-1])) \
-                    if native_ok(features.weight) else None  # the fused kernel's input, the same at every call
+                grid = self.b_sum_grid(features) if native_ok(features.weight) else None  # the fused kernel's input
                 return objective_b_nograd(features.line_along, features.weight, flat, *constants,
                                           workspace=workspace, vertical_block=vertical_block, grid=grid)
         if self.params.model == "nomixture":
@@ -453,6 +458,13 @@ class MixtureLikelihood:
                 and not (features.line.requires_grad or features.along.requires_grad
                          or features.weight.requires_grad)
                 and self.params.prior_background > 1e-20)
+
+    def b_sum_grid(self, features: SegmentFeatures) -> tuple[torch.Tensor, torch.Tensor]:
+        """The fixed-point grid of the fused measure-b objective's exact sum over the segments of
+        ``features`` (:func:`fr_torch.core.likelihood.objective.sum_grid`: each segment's factor
+        (B, N), the scale (B,)), computed once per features (:meth:`SegmentFeatures.constant`)."""
+        log_bound = self._b_constants(features.weight)[-1]
+        return features.constant(("sum_grid", log_bound), lambda: sum_grid(features.weight, log_bound))
 
     def _b_constants(self, like: torch.Tensor):
         """(-1 / lambda (3, 1), log(prior / lambda) (3, 1), background density, exponent floor,

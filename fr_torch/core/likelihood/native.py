@@ -318,20 +318,19 @@ def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Te
     hyp, iterations = u.shape[1], steps.shape[0]
     line_along, weight, factor = line_along.contiguous(), weight.contiguous(), factor.contiguous()
     coef = torch.stack([neg_inv_scale.reshape(3), log_coef.reshape(3)], 1).to(torch.float32).contiguous()
-    inputs = [x.to(torch.float32).contiguous() for x in (grad_out.reshape(batch), principal_point, lower, span, steps)]
+    grad_out, principal_point, lower, span, steps = (x.to(torch.float32).contiguous() for x in
+                                                     (grad_out.reshape(batch), principal_point, lower, span, steps))
     prior = None if prior is None else prior.to(torch.float32).contiguous()
-    keep = (line_along, weight, factor, coef, inputs, prior)  # alive until every call returned
     beta1, beta2 = betas
-
     work_size = int(work_floats(n_seg, hyp))
 
     def run(first: int, last: int) -> None:
         work = torch.empty(work_size, dtype=torch.float32)
         function(first, last, n_seg, hyp, vertical_axis, iterations,
                  line_along.data_ptr(), weight.data_ptr(), factor.data_ptr(), coef.data_ptr(), background, floor,
-                 *(x.data_ptr() for x in inputs[:4]), 0 if prior is None else prior.data_ptr(),
-                 prior_centre, prior_flat, inputs[4].data_ptr(), beta1, 1.0 - beta1, beta2, 1.0 - beta2, eps,
-                 grad_bound, int(periodic_pan), *_state["vml"], work.data_ptr(), u.data_ptr())
+                 grad_out.data_ptr(), principal_point.data_ptr(), lower.data_ptr(), span.data_ptr(),
+                 0 if prior is None else prior.data_ptr(), prior_centre, prior_flat, steps.data_ptr(),
+                 beta1, 1.0 - beta1, beta2, 1.0 - beta2, eps, grad_bound, int(periodic_pan), *_state["vml"],
+                 work.data_ptr(), u.data_ptr())
 
     _in_threads(run, batch)
-    del keep

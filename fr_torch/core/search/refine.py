@@ -32,7 +32,6 @@ from fr_torch.core.likelihood import native
 from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood
 from fr_torch.core.likelihood.objective import (
     native_ok,
-    sum_grid,
     measure_b_backward,
     measure_b_forward,
     measure_b_objective_and_grad,
@@ -110,7 +109,7 @@ _GRAD_BOUND = 1e6
 
 class Adam:
     """Adam (Kingma & Ba; torch.optim's update: ``p -= lr / (1 - b1^t) * m / (sqrt(v) / sqrt(1 - b2^t)
-    + eps)``) on one tensor, with a step size that decays by ``gamma`` after every step.
+    + eps)``) on one tensor, its per-step scalars from ``schedule`` (:func:`adam_schedule`).
 
     Written in single torch operations, each rounded once: the update is the same bits on every
     kernel set and device (torch's fused Adam kernel takes fused multiply-adds on some and not on
@@ -120,19 +119,20 @@ class Adam:
 
     EPS = 1e-8  # added to the denominator
 
-    def __init__(self, param: torch.Tensor, lr: float, gamma: float, betas: tuple[float, float], eps: float = EPS):
-        self.param, self.lr, self.gamma, self.betas, self.eps = param, lr, gamma, betas, eps
+    def __init__(self, param: torch.Tensor, schedule: list[tuple[float, float]], betas: tuple[float, float],
+                 eps: float = EPS):
+        self.param, self.schedule, self.betas, self.eps = param, schedule, betas, eps
         self.exp_avg = torch.zeros_like(param)
         self.exp_avg_sq = torch.zeros_like(param)
         self.step_count = 0
 
     def step(self, grad: torch.Tensor, active: torch.Tensor | None = None) -> None:
-        """One Adam update of the parameter (in place) with gradient ``grad`` (same shape), then
-        the step size decays by ``gamma``.  ``active``: broadcastable bool mask; entries outside it
+        """One Adam update of the parameter (in place) with gradient ``grad`` (same shape), with
+        the schedule's next scalars.  ``active``: broadcastable bool mask; entries outside it
         keep their parameter and moments (converged images)."""
         beta1, beta2 = self.betas
+        bias, step_size = self.schedule[self.step_count]
         self.step_count += 1
-        bias, step_size = adam_scalars(self.lr, self.betas, self.step_count)
         with torch.no_grad():
             exp_avg = self.exp_avg * beta1 + grad * (1.0 - beta1)
             exp_avg_sq = self.exp_avg_sq * beta2 + (grad * grad) * (1.0 - beta2)
@@ -145,20 +145,21 @@ class Adam:
                 self.exp_avg = torch.where(active, exp_avg, self.exp_avg)
                 self.exp_avg_sq = torch.where(active, exp_avg_sq, self.exp_avg_sq)
                 self.param.sub_(torch.where(active, update, torch.zeros_like(update)))
-        self.lr = self.lr * self.gamma
 
 
-def adam_scalars(lr: float, betas: tuple[float, float], step_count: int) -> tuple[float, float]:
-    """Adam's two per-step scalars at step ``step_count`` (from 1) with step size ``lr``:
-    ``sqrt(1 - beta2^t)`` (the second moment's bias correction) and ``lr / (1 - beta1^t)``."""
+def adam_schedule(lr0: float, lr_final: float, iterations: int,
+                  betas: tuple[float, float]) -> list[tuple[float, float]]:
+    """Adam's two scalars at each of ``iterations`` steps whose step size decays geometrically from
+    ``lr0`` at the first to ``lr_final`` at the last: ``sqrt(1 - beta2^t)`` (the second moment's
+    bias correction) and ``lr_t / (1 - beta1^t)``, t from 1 (the torch loop's :class:`Adam` and the
+    fused kernel's, :func:`refine_fused`)."""
     beta1, beta2 = betas
-    return math.sqrt(1.0 - beta2 ** step_count), lr / (1.0 - beta1 ** step_count)
-
-
-def step_decay(lr0: float, lr_final: float, iterations: int) -> float:
-    """The factor by which the step size decays after every step: from ``lr0`` at the first of
-    ``iterations`` steps to ``lr_final`` at the last."""
-    return (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
+    decay = (lr_final / lr0) ** (1.0 / max(1, iterations - 1))
+    schedule, lr = [], lr0
+    for step_count in range(1, iterations + 1):
+        schedule.append((math.sqrt(1.0 - beta2 ** step_count), lr / (1.0 - beta1 ** step_count)))
+        lr = lr * decay
+    return schedule
 
 
 #: Adam's moment decays in the refinement (:func:`adam_in_box`).
@@ -226,7 +227,7 @@ def adam_in_box(u: torch.Tensor, box: UnitBox, iterations: int, lr0: float, lr_f
     finite (NaN, inf -> 0) and, with ``grad_bound``, clamped to +-``grad_bound``: no step makes a
     parameter non-finite.  ``stop``: the stopping rule (it reads the objectives), None = every step.
     """
-    optimiser = Adam(u, lr0, step_decay(lr0, lr_final, iterations), betas=BETAS)
+    optimiser = Adam(u, adam_schedule(lr0, lr_final, iterations, BETAS), BETAS)
     all_free = bool(box.free.all())
     for _ in range(iterations):
         objective, grad = gradient(u)
@@ -309,17 +310,12 @@ def refine_fused(likelihood: MixtureLikelihood, features: SegmentFeatures, u: to
     ``u`` (B, L, 4) float32 box units, stepped in place; ``box`` with sides (B, 1, 4);
     ``grad_out`` (B, 1) the loss's weight of each image's objective."""
     batch = u.shape[0]
-    neg_inv_scale, log_coef, background, floor, log_bound = likelihood._b_constants(features.weight)
-    factor, _ = sum_grid(features.weight, log_bound)
+    neg_inv_scale, log_coef, background, floor, _ = likelihood._b_constants(features.weight)
+    factor, _ = likelihood.b_sum_grid(features)
     prior = None
-    if likelihood.params.focal_prior_weight:  # MixtureLikelihood.focal_prior_of's weight and scale
-        curvature = likelihood.focal_prior_curvature(features.total_length().to(u.dtype), features.long_side)
-        prior = torch.stack([curvature, features.long_side.to(u.dtype)], 1)
-    decay = step_decay(lr0, lr_final, iterations)
-    steps, lr = [], lr0
-    for step_count in range(1, iterations + 1):  # Adam.step's scalars, step by step
-        steps.append(adam_scalars(lr, BETAS, step_count))
-        lr = lr * decay
+    if likelihood.params.focal_prior_weight:  # MixtureLikelihood.focal_prior's curvature and scale
+        prior = torch.stack([likelihood.focal_prior_curvature_for(features), features.long_side.to(u.dtype)], 1)
+    steps = adam_schedule(lr0, lr_final, iterations, BETAS)
     data = u.detach()
     if not data.is_contiguous():
         raise ValueError("refine_fused: u must be contiguous")
