@@ -63,15 +63,11 @@ class FRCalibrator:
                  likelihood: str | None = None, use_meta_segments: bool = False, name: str | None = None,
                  range=None, model: str | None = None, atlanta=None, distortion: str | None = None, k=None,
                  fit: str | None = None, families=None, **estimator_kwargs):
-        if range is not None:
-            base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
-            estimator_kwargs["search_config"] = base.with_fov_range(range)
-        if fit is not None:
-            base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
-            estimator_kwargs["search_config"] = base.with_fit(fit)
-        if families is not None:
-            base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
-            estimator_kwargs["search_config"] = base.with_families(families)
+        for value, setting in ((range, SearchConfig.with_fov_range), (fit, SearchConfig.with_fit),
+                               (families, SearchConfig.with_families)):
+            if value is not None:
+                base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
+                estimator_kwargs["search_config"] = setting(base, value)
         if model is not None:
             params = (estimator_kwargs.get("likelihood_params")
                       or LikelihoodParams.from_config(measure, likelihood, mode=mode))
