@@ -119,6 +119,18 @@ for step in "${steps[@]}"; do
       $FR eval --task horizon --dataset nyu-vp --split val --methods "$F" --out results/horizon/fit/nyu-vp-val
       $FR eval --dataset yud --split test --methods "fr,fr[fit=choose]" --out results/horizon/fit/camera-yud-test
       $FR eval --dataset nyu-vp --split val --methods "fr,fr[fit=choose]" --out results/horizon/fit/camera-nyu-vp-val
+      # issue 67: extra horizontal families (results/horizon/families/): chosen on YUD and synthetic-streets
+      # train, reported once on the test sets, NYU-VP val and ecd-tune
+      P='fr,fr[families=auto]'; H=results/horizon/families
+      for s in train test; do
+        $FR eval --task horizon --dataset yud --split $s --methods "$P" --out $H/yud-$s --no-plots
+        $FR eval --dataset yud --split $s --methods "$P" --out $H/yud-$s-camera --no-plots
+        $FR eval --task horizon --dataset synthetic-streets --split $s --limit 60 --methods "$P" \
+          --out $H/synthetic-streets-${s}60 --no-plots
+        $FR eval --dataset synthetic-streets --split $s --limit 60 --methods "$P" --out $H/synthetic-streets-${s}60-camera --no-plots
+      done
+      $FR eval --task horizon --dataset nyu-vp --split val --methods "$P" --out $H/nyu-vp-val --no-plots
+      $FR eval --task horizon --dataset ecd-tune --split all --methods "$P" --out $H/ecd-tune-all --no-plots
       # what fR's error is made of (results/horizon/analysis.md): fR variants cached in $FR_CACHE/horizon_analysis
       .venv/bin/python -m fr_eval.protocols.horizon_analysis run
       .venv/bin/python -m fr_eval.protocols.horizon_analysis report ;;

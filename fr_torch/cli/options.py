@@ -64,8 +64,8 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
     group.add_argument("--families", default=None, metavar="auto|off|SETTINGS",
                        help="extra horizontal families inside the likelihood (opt-in): after the Manhattan fit, up "
                             "to two more horizontal families with vanishing points on the horizon are refitted with f "
-                            "and R, their count per photo chosen by a penalised likelihood (BIC); 'auto' or key=value "
-                            "pairs joined by ':' (max_extra, prior, penalty, min_support, exclusion_deg, window_deg); "
+                            "and R, their count per photo chosen by a held-out likelihood of its own segments; 'auto' or "
+                            "key=value pairs joined by ':' (max_extra, prior, min_support, exclusion_deg, window_deg); "
                             "the extra vanishing points join ranked_vanishing_points")
     group.add_argument("--working-long-side", default=None, metavar="PX|input",
                        help=f"detect the lines on a copy of each image whose long side is at most PX pixels "

@@ -305,13 +305,14 @@ class MixtureLikelihood:
 
     def point_deviations(self, features: SegmentFeatures, vps: torch.Tensor, focal: torch.Tensor) -> torch.Tensor:
         """Deviation of every segment from A homogeneous VPs ``vps`` (B, A, 3) in pixels, (B, N, A),
-        internal units; ``focal`` (B,) pixels (measure e).  For measure e the VPs must be ``K d``
-        with unit directions ``d``, as a column of R gives."""
+        internal units; ``focal`` (B,) or (B, A) pixels (measure e: each VP's camera).  For measure
+        e the VPs must be ``K d`` with unit directions ``d``, as a column of R gives."""
         flat = vps.transpose(1, 2).to(features.line.dtype)  # (B, 3, A)
         s = incidence(features.line, flat)[..., None]  # (B, N, A, 1)
         t = incidence(features.along, flat)[..., None]
         v3 = flat[:, None, 2, :, None]  # (B, 1, A, 1)
-        focal = focal.to(flat.dtype)[:, None].expand(-1, flat.shape[-1])
+        focal = focal.to(flat.dtype)
+        focal = focal[:, None].expand(-1, flat.shape[-1]) if focal.dim() == 1 else focal
         return deviations_from_incidence(self.params.measure, s, t, v3, features, focal, self.params.range_px)[..., 0]
 
     def horizontal_log_density(self, x: torch.Tensor) -> torch.Tensor:

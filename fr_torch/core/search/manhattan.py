@@ -15,10 +15,11 @@ candidates ``a_j`` come from the Atlanta search of
 :func:`fr_torch.core.geometry.vanishing.rank_vanishing_points` (a 1-D search over azimuth among the
 segments the Manhattan mixture leaves to its background), then f, R and the azimuths are refined
 together under the mixture of 3 + m families and the background
-(``log p_i = log((1 - m prior) p_i^Manhattan + prior sum_j h_i(v_j))``, the horizontal family's
+(``log p_i = log((1 - sum_j w_j) p_i^Manhattan + sum_j w_j h_i(v_j))``, the horizontal family's
 density ``h``) by the same loop (:func:`~fr_torch.core.search.refine.adam_in_box`).  Every extra
-family moves with R, so its segments vote for the horizon and f.  Each photo keeps the count m of
-the largest penalised likelihood (BIC, :class:`~fr_torch.core.settings.config.FamiliesConfig`).
+family moves with R, so its segments vote for the horizon and f.  How many families a photo has is
+decided by a held-out likelihood of its own segments (:func:`held_out_gains`): families found on
+one half of the segments must explain the other half.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 
 import torch
 
-from fr_torch.core.exact import exact_sum, first_argmax
+from fr_torch.core.exact import exact_sum, first_argmax, small_sum
 from fr_torch.core.geometry.params import FOCAL, PAN, rotations
 from fr_torch.core.geometry.vanishing import AtlantaConfig, horizon_points, rank_vanishing_points
 from fr_torch.core.likelihood.measures import SegmentFeatures
@@ -76,6 +77,8 @@ def search_manhattan(likelihood: MixtureLikelihood, features: SegmentFeatures, c
 
 #: The range of an extra family's mixture weight in the joint refinement (:func:`fit_families`).
 WEIGHT_RANGE = (0.002, 0.4)
+#: EM steps of the extra families' mixture weights at a fixed camera (:func:`held_out_gains`, the refinement's start).
+FAMILY_WEIGHT_EM_STEPS = 20
 
 
 @dataclass
@@ -85,8 +88,8 @@ class FamiliesFit:
     ``azimuth_deg`` (B, max_extra) float64 the extra families' azimuths from ``R[:, 0]`` (degrees),
     NaN beyond the image's count; ``weight`` (B, max_extra) their mixture weights (NaN likewise);
     ``count`` (B,) int64 m; ``scores`` (B,) float64 the chosen model's
-    objective (data + focal prior); ``criterion`` (B, max_extra + 1) float64 the penalised gain of
-    each m (segment units, -inf where m had no candidates)."""
+    objective (data + focal prior); ``criterion`` (B, max_extra + 1) float64 each m's
+    :func:`held_out_gains` (segment units, -inf where m had no candidates)."""
 
     params: torch.Tensor
     azimuth_deg: torch.Tensor
@@ -97,49 +100,157 @@ class FamiliesFit:
 
 
 def families_objective(likelihood: MixtureLikelihood, features: SegmentFeatures, rows: torch.Tensor) -> torch.Tensor:
-    """The objective (B,) float64 of rows (B, 4 + 2m) [pan, pitch, roll (degrees), f (pixels),
-    a_1..a_m (degrees), w_1..w_m] under the mixture of the 3 Manhattan families, m extra horizontal
-    families at azimuths a_j with weights w_j (the Manhattan components and the background scaled
-    by ``1 - sum_j w_j``) and the background: ``sum_i len_i log p_i`` (exact sum, the gradient of a
-    plain one) plus the focal prior.  Differentiable in ``rows`` (the generic path of
-    :class:`MixtureLikelihood`)."""
-    extra = (rows.shape[-1] - 4) // 2
-    rotation = rotations(rows[:, :4])  # (B, 3, 3)
-    focal = rows[:, FOCAL]
-    log_p = torch.logsumexp(likelihood.component_log_densities(features, rotation[:, None], focal[:, None])[:, :, 0],
-                            -1)  # (B, N)
+    """The objective (B, H) float64 of H hypotheses per image, rows (B, H, 4 + 2m) [pan, pitch,
+    roll (degrees), f (pixels), a_1..a_m (degrees), w_1..w_m], under the mixture of the 3 Manhattan
+    families, m extra horizontal families at azimuths a_j with weights w_j (the Manhattan components
+    and the background scaled by ``1 - sum_j w_j``) and the background: ``sum_i len_i log p_i``
+    (an exact sum) plus the focal prior.  Every operation is elementwise or a sum in a fixed order
+    (:func:`~fr_torch.core.exact.small_sum`, :func:`~fr_torch.core.exact.exact_sum`; no
+    ``logsumexp`` or ``log1p``, whose float64 roundings differ between torch's kernel sets), so a
+    hypothesis's value is the same bits in any batch, padding, thread count and kernel set."""
+    batch, hypotheses, width = rows.shape
+    extra = (width - 4) // 2
+    rotation = rotations(rows.reshape(-1, width)[:, :4]).view(batch, hypotheses, 3, 3)
+    focal = rows[..., FOCAL]  # (B, H)
+    density = small_sum(torch.exp(likelihood.component_log_densities(features, rotation, focal)), -1)  # (B, N, H)
     if extra:
-        points = horizon_points(rotation, focal, features.principal_point, torch.deg2rad(rows[:, 4:4 + extra]))
-        log_h = likelihood.horizontal_log_density(likelihood.point_deviations(features, points, focal))  # (B, N, m)
-        weights = rows[:, 4 + extra:]
-        log_p = torch.logsumexp(torch.cat([log_p[..., None] + torch.log1p(-weights.sum(1))[:, None, None],
-                                           log_h + torch.log(weights)[:, None, :]], -1), -1)
-    value = exact_sum(log_p, 1, weight=features.weight)
+        density = _with_extra_families(likelihood, features, rotation, focal, density, rows[..., 4:4 + extra],
+                                       rows[..., 4 + extra:])
+    value = exact_sum(torch.log(density), 1, weight=features.weight[..., None])
     if likelihood.params.focal_prior_weight:
-        value = value + likelihood.focal_prior(features, focal[:, None], derivative=False)[0][:, 0]
+        value = value + likelihood.focal_prior(features, focal, derivative=False)[0]
     return value
 
 
+def _extra_densities(likelihood, features, rotation, focal, azimuth_deg):
+    """The densities h (B, N, H, m) of m horizontal families at azimuths (B, H, m) degrees from
+    ``R[:, 0]`` under H hypotheses (rotations (B, H, 3, 3), focal lengths (B, H) pixels), without
+    their weights."""
+    batch, hypotheses, extra = azimuth_deg.shape
+    points = horizon_points(rotation.reshape(-1, 3, 3), focal.reshape(-1),
+                            features.principal_point.repeat_interleave(hypotheses, 0),
+                            torch.deg2rad(azimuth_deg.reshape(-1, extra)))  # (B H, m, 3)
+    x = likelihood.point_deviations(features, points.reshape(batch, hypotheses * extra, 3),
+                                    focal.repeat_interleave(extra, 1))  # (B, N, H m)
+    return torch.exp(likelihood.horizontal_log_density(x)).view(batch, -1, hypotheses, extra)
+
+
+def _with_extra_families(likelihood, features, rotation, focal, manhattan_density, azimuth_deg, weights):
+    """The mixture density (B, N, H) ``(1 - sum_j w_j) p_i + sum_j w_j h_ij`` of the Manhattan mixture's
+    density p (B, N, H) and m extra families at azimuths (B, H, m) degrees with weights (B, H, m)."""
+    h = _extra_densities(likelihood, features, rotation, focal, azimuth_deg)
+    return (1.0 - small_sum(weights, -1))[:, None] * manhattan_density + small_sum(weights[:, None] * h, -1)
+
+
+def _mixture_weights(densities: torch.Tensor, weight: torch.Tensor, start: torch.Tensor,
+                     iterations: int = FAMILY_WEIGHT_EM_STEPS) -> torch.Tensor:
+    """The weights (B, C), summing to one, of a mixture of C fixed components with densities
+    ``densities`` (B, N, C) that maximise ``sum_i weight_i log sum_c a_c d_ic``: ``iterations`` EM
+    steps from ``start`` (B, C); ``weight`` (B, N) segment lengths (0: not counted)."""
+    total = exact_sum(weight, 1).clamp_min(1e-12)
+    share = start
+    for _ in range(iterations):
+        parts = share[:, None, :] * densities  # (B, N, C)
+        share = exact_sum(parts / small_sum(parts, -1)[..., None], 1, weight=weight[..., None]) / total[:, None]
+    return share
+
+
+def held_out_gains(likelihood: MixtureLikelihood, features: SegmentFeatures, manhattan: torch.Tensor,
+                   config: FamiliesConfig) -> torch.Tensor:
+    """How much m = 0..``max_extra`` extra horizontal families explain segments they were not found
+    on: (B, max_extra + 1) float64, segment units (log-likelihood times N / W); column 0 is 0, -inf
+    where either half of the photo had fewer than m candidates.
+
+    The segments are split in two halves by their index's parity (a fixed rule: the same halves in
+    any batch).  On each half, the Atlanta search (:func:`rank_vanishing_points`, ``config``'s
+    prior, support and exclusion) proposes azimuths at the Manhattan fit ``manhattan`` (B, 4); the
+    mixture of the three Manhattan families (together, their relative priors kept), the uniform
+    background and the first m proposed families has its weights fitted there by EM, for each m
+    including 0; the other half scores each fit, ``sum_i len_i log p_i`` over its segments, and
+    the gain of m is its score less that of m = 0.  The two halves' gains add up.
+
+    Why the background's weight is fitted too: the search's fixed background prior (a few percent)
+    is far below the clutter of most photos, and then any family at any azimuth explains some of
+    the clutter better than the background does, on both halves.  With the background's weight
+    fitted, a family gains on the other half only where segments really meet the horizon at its
+    azimuth more often than clutter does: the search over azimuths is priced by the photo's own
+    evidence, with no penalty constant."""
+    rotation, focal = rotations(manhattan), manhattan[:, FOCAL]
+    batch, most = manhattan.shape[0], config.max_extra
+    prior_background = likelihood.params.prior_background
+    components = torch.exp(likelihood.component_log_densities(features, rotation[:, None], focal[:, None])[:, :, 0])
+    base = torch.stack([small_sum(components[..., :3], -1) / (1.0 - prior_background),
+                        components[..., 3] / prior_background], -1)  # (B, N, 2) normalised densities
+    parity = torch.arange(features.weight.shape[1], device=features.weight.device) % 2
+    atlanta = AtlantaConfig(max_extra=most, prior=config.prior, min_support=config.min_support,
+                            exclusion_deg=config.exclusion_deg, free_segments=0)
+    gains = torch.zeros(batch, most + 1, dtype=manhattan.dtype, device=manhattan.device)
+    for half in (0, 1):
+        found_on = features.mask & (parity == half)
+        scored_on = features.weight * (features.mask & (parity != half))
+        found_features = SegmentFeatures(features.line, features.along, features.half_length,
+                                         features.weight * found_on, found_on, features.principal_point,
+                                         features.long_side)
+        candidates = _candidate_azimuths(rank_vanishing_points(likelihood, found_features, rotation, focal, atlanta),
+                                         most)
+        h = _extra_densities(likelihood, features, rotation[:, None], focal[:, None],
+                             torch.nan_to_num(candidates, nan=0.0)[:, None])[:, :, 0]  # (B, N, most)
+        scores = []
+        for m in range(most + 1):
+            densities = torch.cat([base, h[..., :m]], -1)
+            start = torch.tensor([1.0 - prior_background, prior_background] + [0.0] * m, dtype=base.dtype,
+                                 device=base.device) * (1.0 - m * config.prior)
+            start[2:] = config.prior
+            share = _mixture_weights(densities, features.weight * found_on, start.expand(batch, -1))
+            score = exact_sum(torch.log(small_sum(share[:, None, :] * densities, -1)), 1, weight=scored_on)
+            scores.append(score)
+            if m:
+                held = torch.isfinite(candidates[:, :m]).all(1)
+                gains[:, m] = gains[:, m] + torch.where(held, score - scores[0], torch.full_like(score, -math.inf))
+    count_n = features.mask.sum(1).to(gains.dtype).clamp_min(1.0)
+    return gains * (count_n / features.total_length().clamp_min(1e-9))[:, None]
+
+
+def _candidate_azimuths(ranked, most: int) -> torch.Tensor:
+    """The Atlanta families' azimuths (B, most) degrees in the order they were found, NaN where an
+    image has fewer."""
+    if not most:
+        return ranked.azimuth_deg[:, :0]
+    found = torch.stack([torch.where(ranked.family == 3 + j, ranked.azimuth_deg, torch.full_like(
+        ranked.azimuth_deg, -math.inf)).amax(1) for j in range(most)], 1)
+    return torch.where(torch.isfinite(found), found, torch.full_like(found, math.nan))
+
+
+#: The central differences' step of the extra families' refinement, in unit-box coordinates
+#: (:func:`_refine_families`).
+DIFFERENCE_STEP = 1e-6
+
+
 def _refine_families(likelihood, features, rows, lower, upper, iterations):
-    """Rows (B, 4 + 2m) refined by :func:`adam_in_box` in the box ``lower`` / ``upper`` (B, 4 + 2m)
-    on :func:`families_objective` per unit segment length; returns (rows, objective (B,))."""
+    """Rows (B, P = 4 + 2m) refined by :func:`adam_in_box` in the box ``lower`` / ``upper`` (B, P)
+    on :func:`families_objective` per unit segment length; returns (rows, objective (B,)).
+
+    The gradient is the central difference of the objective (step :data:`DIFFERENCE_STEP` in box
+    units), its 2P + 1 points scored as hypotheses of one call: every value is an exact sum over the
+    segments, so the step is the same bits in any batch, thread count and kernel set (autograd's
+    backward sums over the segments in an order that depends on all three)."""
     box = UnitBox(lower[:, None], upper[:, None])
     u = box.to_unit(rows[:, None]).detach()
-    total = features.total_length().clamp_min(1e-9)
+    total = features.total_length().clamp_min(1e-9)[:, None]
+    width = rows.shape[1]
+    offsets = torch.eye(width, dtype=u.dtype, device=u.device) * DIFFERENCE_STEP  # (P, P)
 
     def gradient(u_value):
-        with torch.enable_grad():
-            u_value = u_value.detach().requires_grad_(True)
-            objective = families_objective(likelihood, features, box.to_params(u_value)[:, 0])
-            finite = torch.where(torch.isfinite(objective), objective, torch.zeros_like(objective))
-            (grad,) = torch.autograd.grad(-(finite / total).sum(), u_value)
-        return objective.detach()[:, None], grad
+        points = torch.cat([u_value, u_value + offsets, u_value - offsets], 1)  # (B, 2P + 1, P)
+        value = families_objective(likelihood, features, box.to_params(points)) / total
+        slope = (value[:, 1:1 + width] - value[:, 1 + width:]) / (2 * DIFFERENCE_STEP)  # (B, P)
+        return value[:, :1], -slope[:, None]
 
     cell = 1.0 / 8
-    adam_in_box(u, box, iterations, 0.25 * cell, 0.002 * cell, gradient, periodic_pan=False, grad_bound=1e6)
     with torch.no_grad():
+        adam_in_box(u, box, iterations, 0.25 * cell, 0.002 * cell, gradient, periodic_pan=False, grad_bound=1e6)
         refined = box.to_params(u)[:, 0]
-        return refined, families_objective(likelihood, features, refined)
+        return refined, families_objective(likelihood, features, refined[:, None])[:, 0]
 
 
 def _azimuth_windows(candidates: torch.Tensor, window: float) -> torch.Tensor:
@@ -160,58 +271,55 @@ def fit_families(likelihood: MixtureLikelihood, features: SegmentFeatures, manha
     ``features`` after the Manhattan fit ``manhattan`` (B, 4) rows [pan, pitch, roll, f], inside the
     search box ``lower`` / ``upper`` (B, 4); ``iterations``: refinement steps.
 
-    Candidates: the Atlanta search (horizontal families only, ``config``'s prior, support and
-    exclusion) at the Manhattan fit.  For m = 1..``max_extra`` the first m candidates, their weights
-    (from ``prior``, within [:data:`WEIGHT_RANGE`]) and the camera are refined together (pan within
-    ``window_deg`` of its start, each azimuth within ``window_deg`` or half the distance to the
-    nearest other family, pitch, roll and f within the search box); the photo keeps the m of the
-    largest ``(L_m - L_0) N / W - penalty m log N`` (BIC with two parameters per family, azimuth
-    and weight; L: :func:`families_objective`, W: the total segment length, N: the segment count),
-    m = 0 on ties.  Computed in float64."""
+    How many (m in 0..``max_extra``): the largest :func:`held_out_gains` (m = 0 on ties, and where
+    no m gains).  Then, for a photo with m > 0, the first m candidates of the Atlanta search on all
+    its segments, their weights (EM at the Manhattan fit, within :data:`WEIGHT_RANGE`) and the
+    camera are refined together (pan within ``window_deg`` of its start, each azimuth within
+    ``window_deg`` or half the distance to the nearest other family, pitch, roll and f within the
+    search box) on :func:`families_objective`; if fewer than m candidates reach the support on all
+    segments, m is that number.  Each photo is refined alone with its own m (the same bits in any
+    batch).  Computed in float64."""
     dtype = torch.float64
     feats = SegmentFeatures(*(getattr(features, name).to(dtype) if torch.is_floating_point(getattr(features, name))
                               else getattr(features, name) for name in
                               ("line", "along", "half_length", "weight", "mask", "principal_point", "long_side")))
     manhattan, lower, upper = manhattan.to(dtype), lower.to(dtype), upper.to(dtype)
     batch, most = manhattan.shape[0], config.max_extra
+    device = manhattan.device
+    criterion = held_out_gains(likelihood, feats, manhattan, config) if most else \
+        torch.zeros(batch, 1, dtype=dtype, device=device)
     atlanta = AtlantaConfig(max_extra=max(1, most), prior=config.prior, min_support=config.min_support,
                             exclusion_deg=config.exclusion_deg, free_segments=0)
-    ranked = rank_vanishing_points(likelihood, feats, rotations(manhattan), manhattan[:, FOCAL], atlanta)
-    candidates = torch.stack([torch.where(ranked.family == 3 + j, ranked.azimuth_deg, torch.full_like(
-        ranked.azimuth_deg, -math.inf)).amax(1) for j in range(most)], 1) if most else manhattan[:, :0]
-    candidates = torch.where(torch.isfinite(candidates), candidates, torch.full_like(candidates, math.nan))
-    count_n = feats.mask.sum(1).to(dtype).clamp_min(1.0)
-    per_segment = count_n / feats.total_length().clamp_min(1e-9)
+    rotation, focal = rotations(manhattan), manhattan[:, FOCAL]
+    candidates = _candidate_azimuths(rank_vanishing_points(likelihood, feats, rotation, focal, atlanta), most)
+    available = torch.isfinite(candidates).sum(1)  # the Atlanta search finds families in order: a prefix
+    choice = torch.minimum(first_argmax(criterion, 1), available)  # (B,) m
+    rows = manhattan.clone()
+    azimuth = torch.full((batch, most), math.nan, dtype=dtype, device=device)
+    weight = torch.full((batch, most), math.nan, dtype=dtype, device=device)
     with torch.no_grad():
-        base = families_objective(likelihood, feats, manhattan)
-    criterion = torch.full((batch, most + 1), -math.inf, dtype=dtype, device=manhattan.device)
-    criterion[:, 0] = 0.0
-    fits, scores = [manhattan], [base]
+        scores = families_objective(likelihood, feats, manhattan[:, None])[:, 0]
     low_w, high_w = WEIGHT_RANGE
     for m in range(1, most + 1):
-        start = torch.nan_to_num(candidates[:, :m], nan=0.0)
-        held = torch.isfinite(candidates[:, :m]).all(1)
+        index = torch.nonzero(choice == m)[:, 0]
+        if not len(index):
+            continue
+        part = feats.take_images(index)
+        start_rows, start = manhattan[index], candidates[index, :m]
+        manhattan_density = small_sum(torch.exp(likelihood.component_log_densities(
+            part, rotation[index, None], focal[index, None])[:, :, 0]), -1)
+        h = _extra_densities(likelihood, part, rotation[index, None], focal[index, None], start[:, None])[:, :, 0]
+        share = torch.cat([torch.full_like(start[:, :1], 1.0 - m * config.prior), torch.full_like(start, config.prior)], 1)
+        weights = _mixture_weights(torch.cat([manhattan_density[..., None], h], -1), part.weight,
+                                   share)[:, 1:].clamp(*WEIGHT_RANGE)
         half = _azimuth_windows(start, config.window_deg)
-        weights = torch.full_like(start, config.prior)
-        rows = torch.cat([manhattan, start, weights], 1)
-        low = torch.cat([lower, start - half, torch.full_like(start, low_w)], 1)
-        high = torch.cat([upper, start + half, torch.full_like(start, high_w)], 1)
-        low[:, PAN], high[:, PAN] = manhattan[:, PAN] - config.window_deg, manhattan[:, PAN] + config.window_deg
-        refined, value = _refine_families(likelihood, feats, rows, low, high, iterations)
-        gain = (value - base) * per_segment - config.penalty * m * torch.log(count_n)
-        criterion[:, m] = torch.where(held & torch.isfinite(gain), gain, criterion[:, m])
-        fits.append(refined)
-        scores.append(value)
-    choice = first_argmax(criterion, 1)  # (B,) m
-    rows = torch.zeros(batch, 4, dtype=dtype, device=manhattan.device)
-    azimuth = torch.full((batch, most), math.nan, dtype=dtype, device=manhattan.device)
-    weight = torch.full((batch, most), math.nan, dtype=dtype, device=manhattan.device)
-    chosen_scores = torch.zeros(batch, dtype=dtype, device=manhattan.device)
-    for m, (fit, value) in enumerate(zip(fits, scores)):
-        pick = choice == m
-        rows = torch.where(pick[:, None], fit[:, :4], rows)
-        if m:
-            azimuth[:, :m] = torch.where(pick[:, None], torch.remainder(fit[:, 4:4 + m], 180.0), azimuth[:, :m])
-            weight[:, :m] = torch.where(pick[:, None], fit[:, 4 + m:], weight[:, :m])
-        chosen_scores = torch.where(pick, value, chosen_scores)
-    return FamiliesFit(rows, azimuth, weight, choice, chosen_scores, criterion)
+        low = torch.cat([lower[index], start - half, torch.full_like(start, low_w)], 1)
+        high = torch.cat([upper[index], start + half, torch.full_like(start, high_w)], 1)
+        low[:, PAN], high[:, PAN] = start_rows[:, PAN] - config.window_deg, start_rows[:, PAN] + config.window_deg
+        refined, value = _refine_families(likelihood, part, torch.cat([start_rows, start, weights], 1), low, high,
+                                          iterations)
+        rows[index] = refined[:, :4]
+        azimuth[index, :m] = torch.remainder(refined[:, 4:4 + m], 180.0)
+        weight[index, :m] = refined[:, 4 + m:]
+        scores[index] = value
+    return FamiliesFit(rows, azimuth, weight, choice, scores, criterion)

@@ -132,11 +132,11 @@ class FamiliesConfig:
 
     After the Manhattan fit, up to ``max_extra`` horizontal families with vanishing points on the
     horizon join the mixture (the Manhattan components and the background scaled by one minus their
-    weights); f, R, their azimuths and their weights (starting at ``prior``, which is also the
-    weight of the candidates' search) are refined together, and each photo keeps the count m in
-    0..``max_extra`` of the largest penalised likelihood ``(L_m - L_0) N / W - penalty * m log N``
-    (``penalty`` = 1: BIC with two parameters per family, azimuth and weight; L the length-weighted
-    objective, W the total segment length, N the segment count).
+    weights); f, R, their azimuths and their weights are refined together.  Each photo keeps the
+    count m in 0..``max_extra`` whose families, found on one half of its segments, best explain the
+    other half (:func:`fr_torch.core.search.manhattan.held_out_gains`; no penalty constant).
+    ``prior``: the weight of a candidate family in the Atlanta search that proposes them, and the
+    start of their weights' EM fit.
     ``min_support``: a candidate family must explain this share of the total segment length;
     ``exclusion_deg``: candidates lie at least this far (degrees) from every family in the model;
     ``window_deg``: each extra azimuth is refined within this many degrees of its candidate, and
@@ -146,7 +146,6 @@ class FamiliesConfig:
 
     max_extra: int = 2
     prior: float = 0.05
-    penalty: float = 1.0
     min_support: float = 0.01
     exclusion_deg: float = 5.0
     window_deg: float = 10.0
@@ -154,7 +153,7 @@ class FamiliesConfig:
     def __post_init__(self) -> None:
         if not (isinstance(self.max_extra, int) and 0 <= self.max_extra <= 4):
             raise FRInputError(f"families max_extra must be an integer in [0, 4], got {self.max_extra!r}")
-        checks = {"prior": (1e-4, 0.2), "penalty": (0.0, 1e3), "min_support": (0.0, 1.0),
+        checks = {"prior": (1e-4, 0.2), "min_support": (0.0, 1.0),
                   "exclusion_deg": (0.0, 45.0), "window_deg": (0.1, 45.0)}
         for name, (low, high) in checks.items():
             value = getattr(self, name)
