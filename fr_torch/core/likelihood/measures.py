@@ -121,14 +121,29 @@ class SegmentFeatures:
         (weight 0)."""
         if count >= self.weight.shape[1]:
             return self
-        index = top_indices(self.weight, count, dim=1)  # (B, count), equal lengths in segment order
+        return self._segments(top_indices(self.weight, count, dim=1))  # equal lengths in segment order
 
+    def _segments(self, index: torch.Tensor, keep: torch.Tensor | None = None) -> "SegmentFeatures":
+        """The segments ``index`` (B, M) int64 of each image, in that order: (B, M, ...); where
+        ``keep`` (B, N) bool is given, the segments it leaves out become padding (weight 0, mask False)."""
         def take(x: torch.Tensor) -> torch.Tensor:
             shaped = index.view(index.shape + (1,) * (x.dim() - 2)).expand(index.shape + x.shape[2:])
             return torch.gather(x, 1, shaped)
 
-        return SegmentFeatures(take(self.line), take(self.along), take(self.half_length), take(self.weight),
-                               take(self.mask), self.principal_point, self.long_side)
+        weight, mask = take(self.weight), take(self.mask)
+        if keep is not None:
+            mask = take(keep)
+            weight = weight * mask
+        return SegmentFeatures(take(self.line), take(self.along), take(self.half_length), weight, mask,
+                               self.principal_point, self.long_side)
+
+    def select(self, keep: torch.Tensor) -> "SegmentFeatures":
+        """The segments where ``keep`` (B, N) bool holds, in their order, packed to the front:
+        (B, M, ...) with M the largest count of an image; the rest is padding (weight 0, mask
+        False)."""
+        keep = keep & self.mask
+        width = int(keep.sum(1).max()) if keep.numel() else 0
+        return self._segments(top_indices(keep.to(torch.int8), width, dim=1), keep)  # kept first, in order
 
     def take_images(self, index: torch.Tensor) -> "SegmentFeatures":
         """Images ``index`` (M,) int64 of the batch, in that order, repeats allowed: (M, N, ...)

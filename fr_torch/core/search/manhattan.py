@@ -188,11 +188,8 @@ def held_out_gains(likelihood: MixtureLikelihood, features: SegmentFeatures, man
     for half in (0, 1):
         found_on = features.mask & (parity == half)
         scored_on = features.weight * (features.mask & (parity != half))
-        found_features = SegmentFeatures(features.line, features.along, features.half_length,
-                                         features.weight * found_on, found_on, features.principal_point,
-                                         features.long_side)
-        candidates = _candidate_azimuths(rank_vanishing_points(likelihood, found_features, rotation, focal, atlanta),
-                                         most)
+        candidates = _candidate_azimuths(rank_vanishing_points(likelihood, features.select(found_on), rotation, focal,
+                                                               atlanta), most)
         h = _extra_densities(likelihood, features, rotation[:, None], focal[:, None],
                              torch.nan_to_num(candidates, nan=0.0)[:, None])[:, :, 0]  # (B, N, most)
         scores = []
@@ -291,9 +288,13 @@ def fit_families(likelihood: MixtureLikelihood, features: SegmentFeatures, manha
     atlanta = AtlantaConfig(max_extra=max(1, most), prior=config.prior, min_support=config.min_support,
                             exclusion_deg=config.exclusion_deg, free_segments=0)
     rotation, focal = rotations(manhattan), manhattan[:, FOCAL]
-    candidates = _candidate_azimuths(rank_vanishing_points(likelihood, feats, rotation, focal, atlanta), most)
-    available = torch.isfinite(candidates).sum(1)  # the Atlanta search finds families in order: a prefix
-    choice = torch.minimum(first_argmax(criterion, 1), available)  # (B,) m
+    choice = first_argmax(criterion, 1)  # (B,) m
+    candidates = torch.full((batch, most), math.nan, dtype=dtype, device=device)
+    searched = torch.nonzero(choice > 0)[:, 0]  # the Atlanta search on all segments, where a family is kept
+    if len(searched):
+        candidates[searched] = _candidate_azimuths(rank_vanishing_points(
+            likelihood, feats.take_images(searched), rotation[searched], focal[searched], atlanta), most)
+    choice = torch.minimum(choice, torch.isfinite(candidates).sum(1))  # found in order: a prefix
     rows = manhattan.clone()
     azimuth = torch.full((batch, most), math.nan, dtype=dtype, device=device)
     weight = torch.full((batch, most), math.nan, dtype=dtype, device=device)
