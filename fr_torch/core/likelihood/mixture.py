@@ -317,10 +317,27 @@ class MixtureLikelihood:
 
     def horizontal_log_density(self, x: torch.Tensor) -> torch.Tensor:
         """log density (without the prior) of a horizontal family at deviations ``x`` (internal units)."""
-        scale = self.params.scale_horizontal
+        return self.family_log_density(x, self.params.scale_horizontal)
+
+    def family_log_density(self, x: torch.Tensor, scale) -> torch.Tensor:
+        """log density (without the prior) of a family at deviations ``x`` (internal units) whose
+        scale is ``scale`` (a number, or a tensor broadcastable to ``x``): exponential with mean
+        ``scale``, or for measure d half-normal with sigma ``scale``."""
+        half_normal = self.params.measure == "d"
+        if torch.is_tensor(scale):
+            log_norm = (math.log(math.sqrt(2 / math.pi)) if half_normal else 0.0) - torch.log(scale)
+        else:
+            log_norm = math.log(math.sqrt(2 / math.pi) / scale) if half_normal else -math.log(scale)
+        return log_norm - 0.5 * (x / scale) ** 2 if half_normal else log_norm - x / scale
+
+    def fitted_scale(self, x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+        """The scale of :meth:`family_log_density` that maximises ``sum weight log density(x)``
+        (the last dimension summed, exactly): the weighted mean of x, or for measure d the root
+        of the weighted mean of x^2.  ``x``, ``weight`` (..., N); returns (...)."""
+        total = exact_sum(weight, -1).clamp_min(1e-300)
         if self.params.measure == "d":
-            return math.log(math.sqrt(2 / math.pi) / scale) - 0.5 * (x / scale) ** 2
-        return -math.log(scale) - x / scale
+            return torch.sqrt(exact_sum(x * x, -1, weight=weight) / total)
+        return exact_sum(x, -1, weight=weight) / total
 
     def segment_log_likelihood(self, features: SegmentFeatures, rotation: torch.Tensor,
                                focal: torch.Tensor) -> torch.Tensor:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import torch
 
 from fr_torch.core.exact import exact_sum, first_argmax, small_sum
+from fr_torch.core.geometry.conventions import VERTICAL_AXIS, vanishing_points
 from fr_torch.core.geometry.params import FOCAL, PAN, rotations
 from fr_torch.core.geometry.vanishing import AtlantaConfig, horizon_points, rank_vanishing_points
 from fr_torch.core.likelihood.measures import SegmentFeatures
@@ -142,17 +143,59 @@ def _with_extra_families(likelihood, features, rotation, focal, manhattan_densit
     return (1.0 - small_sum(weights, -1))[:, None] * manhattan_density + small_sum(weights[:, None] * h, -1)
 
 
-def _mixture_weights(densities: torch.Tensor, weight: torch.Tensor, start: torch.Tensor,
-                     iterations: int = FAMILY_WEIGHT_EM_STEPS) -> torch.Tensor:
-    """The weights (B, C), summing to one, of a mixture of C fixed components with densities
-    ``densities`` (B, N, C) that maximise ``sum_i weight_i log sum_c a_c d_ic``: ``iterations`` EM
-    steps from ``start`` (B, C); ``weight`` (B, N) segment lengths (0: not counted)."""
+def _family_deviations(likelihood, features, rotation, focal, azimuth_deg):
+    """Deviations (B, N, 3 + m), internal units, of every segment from the three Manhattan vanishing
+    points ``K R[:, k]`` and from m horizontal families at azimuths (B, m) degrees from ``R[:, 0]``;
+    rotations (B, 3, 3), focal lengths (B,) pixels."""
+    points = torch.cat([vanishing_points(focal, features.principal_point, rotation).transpose(1, 2),
+                        horizon_points(rotation, focal, features.principal_point, torch.deg2rad(azimuth_deg))], 1)
+    return likelihood.point_deviations(features, points, focal)
+
+
+def _mixture_densities(likelihood, deviations, background, scales):
+    """The densities (B, N, C) of the C = 4 + m components of :func:`_fit_mixture` at ``scales``
+    (B, 2) [horizontal, vertical]: the families' (``deviations`` (B, N, 3 + m); column
+    ``VERTICAL_AXIS`` the vertical family's, the others horizontal) and the uniform ``background``
+    (B, N)."""
+    vertical = torch.zeros(deviations.shape[-1], dtype=torch.bool, device=deviations.device)
+    vertical[VERTICAL_AXIS] = True
+    scale = torch.where(vertical, scales[:, None, 1:], scales[:, None, :1])  # (B, 1, 3 + m)
+    return torch.cat([torch.exp(likelihood.family_log_density(deviations, scale)), background[..., None]], -1)
+
+
+def _fit_mixture(likelihood, deviations, background, weight, prior, iterations=FAMILY_WEIGHT_EM_STEPS):
+    """The mixture of the three Manhattan families, m extra horizontal families and the uniform
+    background that best explains the segments of ``weight`` (B, N) (lengths; 0: not counted),
+    by EM: every component's weight and the two scales (horizontal families, the vertical one)
+    fitted to the photo.  ``deviations`` (B, N, 3 + m) (:func:`_family_deviations`), ``background``
+    (B, N) the background's density; the start: the likelihood's priors and scales, each extra
+    family at ``prior``.  Returns (shares (B, 4 + m) [Manhattan 0..2, extras, background], scales
+    (B, 2) [horizontal, vertical], internal units); the scales stay within a factor 4 of the
+    likelihood's."""
+    params = likelihood.params
+    batch, _, families = deviations.shape
+    extra = families - 3
+    start = [params.prior_horizontal] * 3 + [0.0] * extra + [params.prior_background]
+    start[VERTICAL_AXIS] = params.prior_vertical
+    share = torch.tensor(start, dtype=deviations.dtype, device=deviations.device) * (1.0 - extra * prior)
+    share[3:3 + extra] = prior
+    share = share.expand(batch, -1)
+    configured = torch.tensor([params.scale_horizontal, params.scale_vertical], dtype=deviations.dtype,
+                              device=deviations.device)
+    scales = configured.expand(batch, -1)
+    vertical = torch.zeros(families, dtype=torch.bool, device=deviations.device)
+    vertical[VERTICAL_AXIS] = True
     total = exact_sum(weight, 1).clamp_min(1e-12)
-    share = start
     for _ in range(iterations):
-        parts = share[:, None, :] * densities  # (B, N, C)
-        share = exact_sum(parts / small_sum(parts, -1)[..., None], 1, weight=weight[..., None]) / total[:, None]
-    return share
+        parts = share[:, None, :] * _mixture_densities(likelihood, deviations, background, scales)  # (B, N, C)
+        resp = parts / small_sum(parts, -1)[..., None]
+        share = exact_sum(resp, 1, weight=weight[..., None]) / total[:, None]
+        held = weight[..., None] * resp[..., :families]  # (B, N, 3 + m)
+        fitted = [likelihood.fitted_scale(deviations[..., columns].transpose(1, 2).reshape(batch, -1),
+                                          held[..., columns].transpose(1, 2).reshape(batch, -1))
+                  for columns in (~vertical, vertical)]
+        scales = torch.minimum(torch.maximum(torch.stack(fitted, 1), configured / 4), configured * 4)
+    return share, scales
 
 
 def held_out_gains(likelihood: MixtureLikelihood, features: SegmentFeatures, manhattan: torch.Tensor,
@@ -164,23 +207,22 @@ def held_out_gains(likelihood: MixtureLikelihood, features: SegmentFeatures, man
     The segments are split in two halves by their index's parity (a fixed rule: the same halves in
     any batch).  On each half, the Atlanta search (:func:`rank_vanishing_points`, ``config``'s
     prior, support and exclusion) proposes azimuths at the Manhattan fit ``manhattan`` (B, 4); the
-    mixture of the three Manhattan families (together, their relative priors kept), the uniform
-    background and the first m proposed families has its weights fitted there by EM, for each m
-    including 0; the other half scores each fit, ``sum_i len_i log p_i`` over its segments, and
-    the gain of m is its score less that of m = 0.  The two halves' gains add up.
+    mixture of the three Manhattan families, the first m proposed families and the uniform
+    background is fitted there by EM (:func:`_fit_mixture`: every weight and the families' two
+    scales), for each m including 0; the other half scores each fit, ``sum_i len_i log p_i`` over
+    its segments, and the gain of m is its score less that of m = 0.  The two halves' gains add up.
 
-    Why the background's weight is fitted too: the search's fixed background prior (a few percent)
-    is far below the clutter of most photos, and then any family at any azimuth explains some of
-    the clutter better than the background does, on both halves.  With the background's weight
-    fitted, a family gains on the other half only where segments really meet the horizon at its
-    azimuth more often than clutter does: the search over azimuths is priced by the photo's own
-    evidence, with no penalty constant."""
+    Why the weights and scales are fitted to the photo in this test: with the search's fixed
+    background prior (a few percent) and one scale per family, a family at any azimuth explains
+    part of the clutter better than the background does, and a family beside a real one explains
+    that family's deviations' tails, on both halves.  Fitted, an extra family gains on the other
+    half only where segments meet the horizon at its azimuth more often than the rest of the model
+    explains: the search over azimuths is priced by the photo's own evidence, with no penalty
+    constant."""
     rotation, focal = rotations(manhattan), manhattan[:, FOCAL]
     batch, most = manhattan.shape[0], config.max_extra
-    prior_background = likelihood.params.prior_background
-    components = torch.exp(likelihood.component_log_densities(features, rotation[:, None], focal[:, None])[:, :, 0])
-    base = torch.stack([small_sum(components[..., :3], -1) / (1.0 - prior_background),
-                        components[..., 3] / prior_background], -1)  # (B, N, 2) normalised densities
+    background = torch.exp(likelihood.component_log_densities(features, rotation[:, None], focal[:, None])[:, :, 0, 3]) \
+        / likelihood.params.prior_background  # (B, N) the uniform density
     parity = torch.arange(features.weight.shape[1], device=features.weight.device) % 2
     atlanta = AtlantaConfig(max_extra=most, prior=config.prior, min_support=config.min_support,
                             exclusion_deg=config.exclusion_deg, free_segments=0)
@@ -190,20 +232,16 @@ def held_out_gains(likelihood: MixtureLikelihood, features: SegmentFeatures, man
         scored_on = features.weight * (features.mask & (parity != half))
         candidates = _candidate_azimuths(rank_vanishing_points(likelihood, features.select(found_on), rotation, focal,
                                                                atlanta), most)
-        h = _extra_densities(likelihood, features, rotation[:, None], focal[:, None],
-                             torch.nan_to_num(candidates, nan=0.0)[:, None])[:, :, 0]  # (B, N, most)
+        deviations = _family_deviations(likelihood, features, rotation, focal, torch.nan_to_num(candidates, nan=0.0))
         scores = []
         for m in range(most + 1):
-            densities = torch.cat([base, h[..., :m]], -1)
-            start = torch.tensor([1.0 - prior_background, prior_background] + [0.0] * m, dtype=base.dtype,
-                                 device=base.device) * (1.0 - m * config.prior)
-            start[2:] = config.prior
-            share = _mixture_weights(densities, features.weight * found_on, start.expand(batch, -1))
-            score = exact_sum(torch.log(small_sum(share[:, None, :] * densities, -1)), 1, weight=scored_on)
-            scores.append(score)
+            x = deviations[..., :3 + m]
+            share, scales = _fit_mixture(likelihood, x, background, features.weight * found_on, config.prior)
+            density = small_sum(share[:, None, :] * _mixture_densities(likelihood, x, background, scales), -1)
+            scores.append(exact_sum(torch.log(density), 1, weight=scored_on))
             if m:
                 held = torch.isfinite(candidates[:, :m]).all(1)
-                gains[:, m] = gains[:, m] + torch.where(held, score - scores[0], torch.full_like(score, -math.inf))
+                gains[:, m] = gains[:, m] + torch.where(held, scores[m] - scores[0], torch.full_like(scores[m], -math.inf))
     count_n = features.mask.sum(1).to(gains.dtype).clamp_min(1.0)
     return gains * (count_n / features.total_length().clamp_min(1e-9))[:, None]
 
@@ -307,12 +345,11 @@ def fit_families(likelihood: MixtureLikelihood, features: SegmentFeatures, manha
             continue
         part = feats.take_images(index)
         start_rows, start = manhattan[index], candidates[index, :m]
-        manhattan_density = small_sum(torch.exp(likelihood.component_log_densities(
-            part, rotation[index, None], focal[index, None])[:, :, 0]), -1)
-        h = _extra_densities(likelihood, part, rotation[index, None], focal[index, None], start[:, None])[:, :, 0]
-        share = torch.cat([torch.full_like(start[:, :1], 1.0 - m * config.prior), torch.full_like(start, config.prior)], 1)
-        weights = _mixture_weights(torch.cat([manhattan_density[..., None], h], -1), part.weight,
-                                   share)[:, 1:].clamp(*WEIGHT_RANGE)
+        background = torch.exp(likelihood.component_log_densities(
+            part, rotation[index, None], focal[index, None])[:, :, 0, 3]) / likelihood.params.prior_background
+        deviations = _family_deviations(likelihood, part, rotation[index], focal[index], start)
+        weights = _fit_mixture(likelihood, deviations, background, part.weight, config.prior)[0][:, 3:3 + m] \
+            .clamp(*WEIGHT_RANGE)  # the start: the extra families' shares fitted at the Manhattan camera
         half = _azimuth_windows(start, config.window_deg)
         low = torch.cat([lower[index], start - half, torch.full_like(start, low_w)], 1)
         high = torch.cat([upper[index], start + half, torch.full_like(start, high_w)], 1)
