@@ -111,14 +111,6 @@ for step in "${steps[@]}"; do
       $FR eval --task horizon --dataset yud --split test --methods "$M,oracle-fr" --out results/horizon/yud-test
       $FR eval --task horizon --dataset yud --split all --methods "$M,oracle-fr" --out results/horizon/yud-all
       $FR eval --task horizon --dataset nyu-vp --split val --methods fr,fast-fr --out results/horizon/nyu-vp-val
-      # issue 59: the horizon fit and the per-photo choice (--fit), its rule learned on NYU-VP train
-      .venv/bin/python -m fr_eval.protocols.horizon_choice train --no-cache
-      F='fr,fr[fit=choose],fr[fit=horizon]'
-      $FR eval --task horizon --dataset ecd-tune --split all --methods "$F,lee2009" --out results/horizon/fit/ecd-tune-all
-      $FR eval --task horizon --dataset yud --split test --methods "$F,lee2009" --out results/horizon/fit/yud-test
-      $FR eval --task horizon --dataset nyu-vp --split val --methods "$F" --out results/horizon/fit/nyu-vp-val
-      $FR eval --dataset yud --split test --methods "fr,fr[fit=choose]" --out results/horizon/fit/camera-yud-test
-      $FR eval --dataset nyu-vp --split val --methods "fr,fr[fit=choose]" --out results/horizon/fit/camera-nyu-vp-val
       # issue 67: extra horizontal families (results/horizon/families/): chosen on YUD and synthetic-streets
       # train, reported once on the test sets, NYU-VP val and ecd-tune
       P='fr,fr[families=auto]'; H=results/horizon/families

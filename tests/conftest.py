@@ -135,8 +135,8 @@ def checkout_env(**extra: str) -> dict[str, str]:
 
 
 #: What a fresh process calibrates (:func:`fresh_process_records`): the photos of
-#: tests/test_reproducibility.py (Fast-fR, and again with the per-photo choice of fit), the streets of
-#: tests/test_horizon_fit.py (the horizon fit), the scenes of tests/test_families.py (extra families) and one scene with fR; then whether the fused kernels ran and whether torch's compiler was imported.
+#: tests/test_reproducibility.py (Fast-fR), the scenes of tests/test_families.py (extra families) and one
+#: scene with fR; then whether the fused kernels ran and whether torch's compiler was imported.
 _FRESH_PROCESS_CODE = """
 import json, sys
 from fr_torch import FREstimator
@@ -144,27 +144,16 @@ from fr_torch.core.likelihood import native
 from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.core.settings.config import SearchConfig
 from fr_torch.synthetic import synthetic_segments
-from tests.test_horizon_fit import _street
 from tests.test_reproducibility import _photos, _record
 p = _photos()
 photos = FREstimator(mode='fast').calibrate_segments([x[0] for x in p], [x[1] for x in p])
-s = [_street(seed=1), _street(focal=500.0, size=(640, 480), seed=2, inclined=40)]
-horizon = FREstimator(mode='fast', search_config=SearchConfig.from_config(fit='horizon')).calibrate_segments(
-    [x[0] for x in s], [x[1] for x in s])
-choose = FREstimator(mode='fast', search_config=SearchConfig.from_config(fit='choose')).calibrate_segments(
-    [x[0] for x in p], [x[1] for x in p])
-from tests.test_horizon_fit import _loss_inputs
-from fr_torch.core.search.choice import mixture_loss
-losses = mixture_loss(*_loss_inputs()).tolist()
 from tests.test_families import _families_scenes
 f = _families_scenes()
 families = FREstimator(mode='fast', search_config=SearchConfig.from_config(families='auto')).calibrate_segments(
     [x[0] for x in f], [x[1] for x in f])
 scene, _ = synthetic_segments(500.0, rotation_from_angles(10.0, 5.0, 2.0).numpy(), 640, 480, n_per_family=30, seed=0)
 [fr] = FREstimator(mode='fr').calibrate_segments([scene], [(640, 480)])
-print(json.dumps({'photos': [_record(x) for x in photos], 'horizon': [_record(x) for x in horizon],
-                  'choose': [_record(x) for x in choose], 'mixture_loss': losses,
-                  'families': [_record(x) for x in families],
+print(json.dumps({'photos': [_record(x) for x in photos], 'families': [_record(x) for x in families],
                   'fr_ok': [fr.ok, fr.reason], 'native': native.available(),
                   'dynamo_imported': 'torch._dynamo' in sys.modules}))
 """
@@ -192,8 +181,6 @@ _fresh_records: dict[str, dict] = {}
 #: The tests that read :func:`fresh_process_records`: when one of them is collected, the fresh
 #: processes start as soon as collection ends and run beside the tests before it.
 FRESH_PROCESS_TESTS = {"test_every_cpu_kernel_set_gives_the_same_bits", "test_the_torch_path_gives_the_fused_kernels_bits",
-                       "test_the_horizon_fit_gives_the_same_bits_under_every_kernel_set",
-                       "test_the_choice_of_fit_gives_the_same_bits_under_every_kernel_set",
                        "test_the_families_give_the_same_bits_under_every_kernel_set",
                        "test_calibrating_does_not_import_the_compiler"}
 
@@ -213,10 +200,9 @@ def pytest_collection_finish(session):
 
 
 def fresh_process_records(name: str) -> dict:
-    """The JSON of one fresh process (:data:`_FRESH_PROCESS_CODE`): ``photos``, ``horizon``, ``choose``,
-    ``mixture_loss`` (the choice's evidence on :func:`tests.test_horizon_fit._loss_inputs`), ``families``
-    (:func:`tests.test_families._families_scenes` with ``families=auto``)
-    (records, ``runtime_s`` left out), ``fr_ok``, ``native``, ``dynamo_imported``.  ``name``: a
+    """The JSON of one fresh process (:data:`_FRESH_PROCESS_CODE`): ``photos``, ``families``
+    (:func:`tests.test_families._families_scenes` with ``families=auto``) (records, ``runtime_s``
+    left out), ``fr_ok``, ``native``, ``dynamo_imported``.  ``name``: a
     kernel set of :func:`cpu_kernel_sets` or ``torch-path``.  All of them start together (each is one
     thread: they share the cores), when collection ends (:func:`pytest_collection_finish`) or else at
     the first call; each runs once per session, and every check that compares across kernel sets or

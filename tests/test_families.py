@@ -57,6 +57,20 @@ def test_families_setting_is_parsed_once():
             FamiliesConfig.parse(bad)
 
 
+def test_the_fits_were_removed_with_a_one_line_reason(capsys):
+    """``fit`` (``--fit horizon|choose``) and its ``horizon`` settings are gone (the Manhattan fit is
+    the only search; every horizontal direction votes for the horizon with ``--families auto``):
+    both fail with one line that says so, for a release's time."""
+    from fr_torch.cli.main import main
+
+    for setting in ({"fit": "choose"}, {"fit": "manhattan"}, {"horizon": {"inlier_deg": 3}}):
+        with pytest.raises(FRInputError, match="removed in 0.2"):
+            SearchConfig.from_config(**setting)
+    assert main(["calibrate", "--fit", "horizon", "examples/room.png"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--fit" in err[0] and "--families auto" in err[0], err
+
+
 def test_a_fourth_horizontal_family_is_found_and_f_kept():
     segments, truth = _fourth_family_scene(40.0)
     [result] = _estimator("auto").calibrate_segments([segments], [SIZE])

@@ -6,7 +6,7 @@ as a log, live metrics.
   word, looked for (and its decoded form) in stdout, stderr, every file under ``--out``, the JSON
   lines and the metrics page of a 4-camera fleet, of one source, of ``fr calibrate`` and ``fr batch``;
 * the same photo through ``fr calibrate --json``, ``fr batch`` and ``fr track``: the same fields
-  (:data:`fr_torch.runtime.schema.FLAT_COLUMNS`), the same values, every ``choice_*`` cue;
+  (:data:`fr_torch.runtime.schema.FLAT_COLUMNS`), the same values, the search's settings;
 * the fleet's stderr (not a terminal): no ``\\r``, every line ``fr track: NAME: ...``, an outage one
   line and its end one line, a per-camera ``--reconnect``, a folder in a ``--reconnect`` fleet;
 * the metrics page, scraped while the fleet runs, and its values against calibration.json.
@@ -214,7 +214,7 @@ def _flat(record: dict) -> dict:
 
 
 def test_calibrate_batch_and_track_carry_the_same_fields_for_the_same_photo(tmp_path, capsys):
-    options = ["--fast", "--fit", "choose"]
+    options = ["--fast", "--pitch-range=-30,30"]
     listing = tmp_path / "calibrate.json"
     assert main(["calibrate", str(ROOM), *options, "--json", str(listing)]) == 0
     capsys.readouterr()
@@ -245,14 +245,12 @@ def test_calibrate_batch_and_track_carry_the_same_fields_for_the_same_photo(tmp_
             np.testing.assert_allclose(numbers, numbers[0], rtol=1e-6, atol=1e-9, err_msg=column)
         else:
             assert values[0] == values[1] == values[2] or (values[0] is None and pd.isna(values[2])), (column, values)
-    assert calibrate["model"] in ("manhattan", "horizon") and record["model"] == calibrate["model"]
-    choice = [f"cues_{name}" for name in ALL_CUES if name.startswith("choice_")]
-    assert len(choice) == 8 and all(flat_row[c] is not None and not pd.isna(record[c]) for c in choice)
-    # the fused calibration: the principal point, the horizon with its bound, the fit in the settings
+    assert calibrate["model"] == "manhattan" and record["model"] == calibrate["model"]
+    # the fused calibration: the principal point, the horizon with its bound, the search's range in the settings
     fused = summary["calibration"]
     assert fused["principal_point"] == calibrate["principal_point"]
     assert set(fused["horizon"]) == {"line", "left_y", "right_y", "bound_pct", "unbounded"}
-    assert summary["settings"]["fit"] == "choose"
+    assert summary["settings"]["pitch_range_deg"] == [-30.0, 30.0]
 
 
 def test_a_bound_that_says_nothing_is_null_and_flagged():

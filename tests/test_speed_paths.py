@@ -467,7 +467,7 @@ def test_refinement_adam_is_torch_adam_and_the_same_bits_in_any_layout():
 
 def test_calibrating_does_not_import_the_compiler():
     """torch.optim's first optimiser imports torch._dynamo (1-2 s); the refinement must not pay it.
-    A fresh process (:func:`tests.conftest.fresh_process_records`: Fast-fR on photos, the horizon fit
+    A fresh process (:func:`tests.conftest.fresh_process_records`: Fast-fR on photos, extra families
     and fR on a scene) never imported it."""
     from tests.conftest import fresh_process_records
 

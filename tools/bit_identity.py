@@ -3,10 +3,8 @@
 ``python tools/bit_identity.py save out.npz`` / ``... compare out.npz``: YUD train photos (LSD
 segments, detected once and cached next to the output) and synthetic scenes, calibrated in one batch
 and one by one, in both modes, in one batch with the division model's lens search
-(``distortion="division"``), and with the horizon fit and the per-photo choice of fit
-(``fit="horizon"`` / ``"choose"``, batched and one by one), and with extra horizontal families
-(``families="auto"``, batched and one by one); ``compare`` prints every field that
-differs in a single bit (exit 1).
+(``distortion="division"``), and with extra horizontal families (``families="auto"``, batched
+and one by one); ``compare`` prints every field that differs in a single bit (exit 1).
 Save with one checkout (``PYTHONPATH=<it>``), compare with another.
 ``--photos``, ``--synthetic``: how many of each.
 """
@@ -70,14 +68,6 @@ def run(segments, sizes) -> dict:
         batched = FREstimator(mode=mode, distortion="division").calibrate_segments(segments, sizes)
         for i, result in enumerate(batched):
             flatten(f"{mode}-division/batch/{i}", result, out)
-    for mode in ("fast", "fr"):  # the horizon fit and the per-photo choice, batched and one by one
-        for fit in ("horizon", "choose"):
-            estimator = FREstimator(mode=mode, search_config=SearchConfig.from_config(fit=fit))
-            for i, result in enumerate(estimator.calibrate_segments(segments, sizes)):
-                flatten(f"{mode}-{fit}/batch/{i}", result, out)
-            for i in range(len(segments)):
-                [result] = estimator.calibrate_segments([segments[i]], [sizes[i]])
-                flatten(f"{mode}-{fit}/single/{i}", result, out)
     for mode in ("fast", "fr"):  # extra horizontal families, batched and one by one
         estimator = FREstimator(mode=mode, search_config=SearchConfig.from_config(families="auto"))
         for i, result in enumerate(estimator.calibrate_segments(segments, sizes)):

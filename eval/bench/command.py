@@ -89,7 +89,7 @@ DEFAULT_OUT = REPO / "results" / "bench"
 #: Batch sizes of the GPU rows from JPEG files to results (section ``detectors``).
 DEVICE_E2E_BATCHES = (1, 256, 1024)
 SECTIONS = ("device", "latency", "detectors", "parallel", "cpu", "memory", "scaling", "contention",
-            "distortion", "fit")  # --sections, in running order
+            "distortion")  # --sections, in running order
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -120,7 +120,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "profile; memory; scaling = time against segments and grid size; contention = "
                              "per-photo time idle vs beside a busy neighbour vs 2 processes side by side; "
                              "distortion = fR / Fast-fR with --distortion pinhole, division, auto on photos and "
-                             "barrel-bent copies (issue 46); fit = fR / Fast-fR with --fit manhattan and choose (issue 59)")
+                             "barrel-bent copies (issue 46)")
     parser.add_argument("--from-jsonl", type=Path, default=None, metavar="JSONL",
                         help="measure nothing: write bench.md / bench.json / the figures to --out from the rows of "
                              "an earlier run's bench.jsonl (one that was cut short, say)")
@@ -201,9 +201,7 @@ def run(args: argparse.Namespace) -> int:
              + ("detectors" in sections) * (len(images) + len(devices[1:]) * len(modes) * 3)
              + ("contention" in sections) * len(modes) * len(contention_kinds)
              + ("distortion" in sections) * 2 * len(images[:1] if quick else images[:2])
-             * sum(mode in modes for mode, _ in bench_distortion.SETTINGS)
-             + ("fit" in sections) * len(images[:1] if quick else images[:2])
-             * sum(mode in modes for mode, _ in bench_distortion.FIT_SETTINGS))
+             * sum(mode in modes for mode, _ in bench_distortion.SETTINGS))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     budget = args.budget_s if args.budget_s is not None else (150.0 if device.startswith("cuda") else 0.0)
@@ -261,10 +259,6 @@ def run(args: argparse.Namespace) -> int:
                                                       repeats, progress,
                                                       bench_distortion.QUICK_BATCH if quick else bench_distortion.BATCH,
                                                       modes=modes)
-    fits = []
-    if "fit" in sections:
-        fits = bench_distortion.fit_rows(images[:1] if quick else images[:2], repeats, progress,
-                                         bench_distortion.QUICK_BATCH if quick else bench_distortion.BATCH, modes=modes)
     progress.close()
     tmp.cleanup()
 
@@ -273,8 +267,7 @@ def run(args: argparse.Namespace) -> int:
               "parallel": parallel, "outside_search": [r for r in outside if r],
               "grid_kernel": [r for r in kernels if r], "detectors": detectors, "contention": contention, "device_end_to_end": device_e2e,
               "profiles": [p for p in profiles if p], "skipped": progress.skipped,
-              "budget_s": budget, "sections": sorted(sections, key=SECTIONS.index), "distortion": distortion,
-              "fit": fits}
+              "budget_s": budget, "sections": sorted(sections, key=SECTIONS.index), "distortion": distortion}
     write_report(report, out)
     return 0
 

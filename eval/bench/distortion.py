@@ -1,6 +1,4 @@
-"""``fr bench --sections distortion`` and ``--sections fit``: the time the division model (issue 46)
-and the horizon fit (issue 59, ``--fit choose``; :data:`FIT_SETTINGS`, each mode against its own
-Manhattan fit) cost.
+"""``fr bench --sections distortion``: the time the division model (issue 46) costs.
 
 Per photo (batch 1, end to end from the file) and per image in batches of 16 given segments, fR
 and Fast-fR with ``--distortion pinhole`` (the default), ``division`` and ``auto``, on the
@@ -18,8 +16,6 @@ from pathlib import Path
 
 #: (mode, distortion) of the rows; the first is the yardstick of the ratios.
 SETTINGS = (("fr", "pinhole"), ("fr", "division"), ("fr", "auto"), ("fast", "pinhole"), ("fast", "division"))
-#: (mode, fit) of the ``fit`` section's rows; each mode's first row is the yardstick of its ratios.
-FIT_SETTINGS = (("fr", "manhattan"), ("fr", "choose"), ("fast", "manhattan"), ("fast", "choose"))
 #: k of the bent copies of the photos.
 BENT_K = -0.2
 #: Images per batch of the throughput rows (``--quick``: :data:`QUICK_BATCH`).
@@ -48,23 +44,6 @@ def distortion_rows(images: list[tuple[str, str]], repeats: int, progress, batch
     """Latency per photo (batch 1) and ms per image in batches of ``batch`` (the photo's
     segments repeated) of every :data:`SETTINGS` row of ``modes`` on every image, with the ratio
     to the image's first row (pinhole fR when ``modes`` has fR)."""
-    settings = [(mode, {"distortion": distortion}) for mode, distortion in SETTINGS if mode in modes]
-    return setting_rows(images, settings, repeats, progress, batch, "distortion", per_mode=False)
-
-
-def fit_rows(images: list[tuple[str, str]], repeats: int, progress, batch: int = BATCH,
-             modes: tuple[str, ...] = ("fr", "fast")) -> list[dict]:
-    """:func:`distortion_rows` for :data:`FIT_SETTINGS`: each mode's ``choose`` against its own
-    ``manhattan`` on the same photo."""
-    settings = [(mode, {"fit": fit}) for mode, fit in FIT_SETTINGS if mode in modes]
-    return setting_rows(images, settings, repeats, progress, batch, "fit", per_mode=True)
-
-
-def setting_rows(images: list[tuple[str, str]], settings: list[tuple[str, dict]], repeats: int, progress,
-                 batch: int, section: str, per_mode: bool) -> list[dict]:
-    """Latency per photo and ms per image in batches of ``batch`` of every (mode, estimator
-    options) of ``settings`` on every image, with the ratio to the image's first row (``per_mode``:
-    the first row of the same mode)."""
     from fr_eval.bench.timing import bench_estimator, median_times
 
     from fr_torch.detectors.registry import get_detector
@@ -77,11 +56,11 @@ def setting_rows(images: list[tuple[str, str]], settings: list[tuple[str, dict]]
         gray = to_gray8(load_image(path))
         segments = detector(gray)
         size = (gray.shape[1], gray.shape[0])
-        baselines = {}
-        for mode, options in settings:
-            if progress.out_of_time(f"{section} {label} {mode} {options}"):
+        baseline = None
+        for mode, distortion in SETTINGS:
+            if mode not in modes or progress.out_of_time(f"distortion {label} {mode} {distortion}"):
                 continue
-            est = bench_estimator(mode, **options)
+            est = bench_estimator(mode, distortion=distortion)
             est.calibrate_images([path])  # warm-up
             walls, stages = [], []
             for _ in range(repeats):
@@ -91,24 +70,24 @@ def setting_rows(images: list[tuple[str, str]], settings: list[tuple[str, dict]]
                 stages.append(result.runtime_s)
             batch_s = statistics.median(median_times(
                 lambda: est.calibrate_segments([segments] * batch, [size] * batch), max(1, min(repeats, 3))))
-            row = {"image": label, "mode": mode, **options, "segments": result.num_segments,
-                   "model": result.distortion_model if section == "distortion" else result.model,
+            row = {"image": label, "mode": mode, "distortion": distortion, "segments": result.num_segments,
+                   "model": result.distortion_model,
                    "k": result.distortion_k,
                    "latency_ms": 1000 * statistics.median(walls),
                    "grid_ms": 1000 * statistics.median(s.get("grid", 0.0) for s in stages),
                    "refine_ms": 1000 * statistics.median(s.get("refine", 0.0) for s in stages),
                    "cues_ms": 1000 * statistics.median(s.get("cues", 0.0) for s in stages),
                    "batch": batch, "batch_ms_per_image": 1000 * batch_s / batch}
-            baseline = baselines.setdefault(mode if per_mode else None, row)
+            baseline = baseline or row
             row["latency_ratio"] = row["latency_ms"] / baseline["latency_ms"]
             row["batch_ratio"] = row["batch_ms_per_image"] / baseline["batch_ms_per_image"]
             rows.append(row)
-            progress.update(1, section, row)
+            progress.update(1, "distortion", row)
     return rows
 
 
 def _table(title: str, yardstick: str, columns: list[str], rows: list[dict], first_cells) -> list[str]:
-    """A report table of :func:`setting_rows`: ``title``, the common wording with ``yardstick``
+    """A report table of :func:`distortion_rows`: ``title``, the common wording with ``yardstick``
     (what the ratios divide by), ``columns`` before the timing ones and ``first_cells(row)`` their
     cells."""
     if not rows:
@@ -132,11 +111,3 @@ def markdown_lines(rows: list[dict]) -> list[str]:
                   f"pinhole fR on the same photo. Bent photos: the photo through a barrel lens of k = {BENT_K:g} "
                   "(division model)", ["image", "mode", "distortion", "model found", "k"], rows,
                   lambda r: [r["image"], r["mode"], r["distortion"], r["model"], f"{r['k']:+.3f}"])
-
-
-def fit_markdown_lines(rows: list[dict]) -> list[str]:
-    """The report's table of :func:`fit_rows`."""
-    return _table("The horizon fit: what `--fit choose` costs (CPU)",
-                  "the same mode's `--fit manhattan` (the default) on the same photo",
-                  ["image", "mode", "fit", "model chosen"], rows,
-                  lambda r: [r["image"], r["mode"], r["fit"], r["model"]])

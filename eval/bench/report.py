@@ -74,7 +74,6 @@ def _markdown(report: dict) -> str:
         lines += _latency_lines(report)
     lines += bench_detectors.markdown_lines(report)
     lines += bench_distortion.markdown_lines(report.get("distortion", []))
-    lines += bench_distortion.fit_markdown_lines(report.get("fit", []))
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
               "| device | mode | batch | segments | images/s | ms/image | peak memory (MB) |",
               "|---|---|---|---|---|---|---|"]
@@ -207,7 +206,7 @@ def report_from_jsonl(path: Path) -> dict:
             "memory": by.get("memory", []), "scaling": scale if scale["segments"] or scale["grid"] else {},
             "parallel": by.get("parallel", []), "outside_search": by.get("outside_search", []),
             "grid_kernel": by.get("grid_kernel", []), "detectors": by.get("detectors", []), "contention": by.get("contention", []),
-            "distortion": by.get("distortion", []), "fit": by.get("fit", []),
+            "distortion": by.get("distortion", []),
             "device_end_to_end": by.get("device_end_to_end", []), "profiles": [], "skipped": [],
             "budget_s": machine.get("budget_s", 0.0), "sections": [], "from_jsonl": str(path)}
 

@@ -45,15 +45,14 @@ def scene_segments(n: int, seed: int = 0) -> np.ndarray:
     return seg[:n]
 
 
-def bench_estimator(mode: str, device="cpu", k: int | None = None, reliability: bool = True, distortion: str | None = None, fit: str | None = None):
+def bench_estimator(mode: str, device="cpu", k: int | None = None, reliability: bool = True, distortion: str | None = None):
     """The estimator of a bench row; ``reliability=False``: no reliability stage (and so, in fR, no
     ``focal_profile_gap`` cue: ``fr batch --no-reliability``); ``distortion``: the lens setting
-    (None: pinhole); ``fit``: :attr:`fr_torch.core.settings.config.SearchConfig.fit` (None: the config's)."""
+    (None: pinhole)."""
     from fr_torch import FREstimator
     from fr_torch.core.settings.config import SearchConfig
 
-    config = SearchConfig.from_config(**({"grid_points_per_dim": k} if k else {}),
-                                      **({"fit": fit} if fit else {}))
+    config = SearchConfig.from_config(**({"grid_points_per_dim": k} if k else {}))
     return FREstimator(mode=mode, device=device, search_config=config, distortion=distortion,
                        **({} if reliability else {"reliability": None}))
 

@@ -20,7 +20,7 @@ from typing import Any
 
 from fr_torch.core.geometry.vanishing import AtlantaConfig
 from fr_torch.core.settings.checks import finite_number, positive_number
-from fr_torch.core.settings.config import FITS, Mode, SearchConfig
+from fr_torch.core.settings.config import Mode, SearchConfig
 from fr_torch.core.settings.distortion import DistortionMode
 from fr_torch.errors import FRInputError
 from fr_torch.images.io import WORKING_LONG_SIDE, parse_working_long_side
@@ -32,7 +32,8 @@ MEASURE_CHOICES = tuple("abcde")
 def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True) -> None:
     """``--fast``, ``--measure``, ``--detector``, ``--likelihood``, ``--fov-range``,
     ``--pitch-range``, ``--roll-range``, ``--atlanta`` and (``device``) ``--device``; the removed
-    ``--compile`` is still parsed, to fail with a one-line reason (:data:`~fr_torch.core.settings.config.REMOVED_SETTINGS`)."""
+    ``--compile`` and ``--fit`` are still parsed, to fail with a one-line reason
+    (:data:`~fr_torch.core.settings.config.REMOVED_SETTINGS`)."""
     group = parser.add_argument_group("estimator")
     group.add_argument("--fast", action="store_true", help="Fast-fR: 10 refinement iterations")
     group.add_argument("--measure", choices=MEASURE_CHOICES, default=None, help="deviation measure (default b)")
@@ -55,12 +56,6 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
     group.add_argument("--k", type=float, default=None, metavar="K",
                        help="known radial distortion k of the division model (normalised by half the image diagonal; "
                             "negative = barrel); implies --distortion division unless auto is given")
-    group.add_argument("--fit", choices=FITS, default=None,
-                       help="what the search returns: manhattan (fR's mixture fit; the default of configs/search.json), "
-                            "horizon (the horizon fit: the vertical first, then f and the horizontal directions on "
-                            "its horizon, with a truncated vote, reported with fR's focal length; docs/horizon.md) or choose "
-                            "(per photo, by a rule learned on NYU-VP train from the photo's evidence); the JSON's "
-                            "model says which fit an estimate comes from")
     group.add_argument("--families", default=None, metavar="auto|off|SETTINGS",
                        help="extra horizontal families inside the likelihood (opt-in): after the Manhattan fit, up "
                             "to two more horizontal families with vanishing points on the horizon are refitted with f "
@@ -72,6 +67,7 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, device: bool = True
                             f"(default {WORKING_LONG_SIDE}; 'input' = the input's own resolution, slower for large "
                             f"photos); results are always in the input's pixels")
     group.add_argument("--compile", action="store_true", help=argparse.SUPPRESS)  # removed: one-line error
+    group.add_argument("--fit", default=None, help=argparse.SUPPRESS)  # removed: one-line error
     group.add_argument("--atlanta", nargs="?", const="on", default=None, metavar="SETTINGS",
                        help="also find extra horizontal vanishing points at free azimuths (Atlanta world) and rank "
                             "them with the Manhattan three in ranked_vanishing_points; f and R do not change. "
@@ -133,11 +129,11 @@ def camera_options(args: argparse.Namespace) -> tuple[float | None, tuple[float,
 
 
 def search_config(args: argparse.Namespace) -> SearchConfig:
-    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range``, ``--fit`` and ``--families``
+    """The :class:`SearchConfig` of ``--fov-range``, ``--pitch-range``, ``--roll-range`` and ``--families``
     over the shipped defaults; FRInputError (one line) naming a malformed option, or saying what
-    replaced the removed ``--compile``."""
-    overrides = {"compile_search": True} if getattr(args, "compile", False) else {}
-    config = SearchConfig.from_config(**overrides)
+    replaced the removed ``--compile`` or ``--fit``."""
+    removed = {"compile_search": getattr(args, "compile", False), "fit": getattr(args, "fit", None)}
+    config = SearchConfig.from_config(**{name: value for name, value in removed.items() if value})
     if getattr(args, "fov_range", None):
         try:
             config = config.with_fov_range(args.fov_range)
@@ -150,8 +146,6 @@ def search_config(args: argparse.Namespace) -> SearchConfig:
                 config = config.with_angle_range(name, value)
             except ValueError as exc:
                 raise FRInputError(f"--{name}-range: {exc}") from None
-    if getattr(args, "fit", None):
-        config = config.with_fit(args.fit)
     if getattr(args, "families", None):
         config = config.with_families(args.families)
     distortion, k = getattr(args, "distortion", None), getattr(args, "k", None)

@@ -246,13 +246,12 @@ def _tracker(args: argparse.Namespace) -> OnlineCalibrator:
 def _settings(args: argparse.Namespace, source: Source, reconnect: Reconnect, estimator: FREstimator,
               **more) -> dict:
     """calibration.json's ``settings``: the run's (every, fusion, real time, reconnection) and the
-    search's as ``fr calibrate`` would run it (``fit``, ranges in degrees, lens model, known focal
-    length)."""
+    search's as ``fr calibrate`` would run it (ranges in degrees, lens model, known focal length)."""
     realtime = source.live and args.realtime is not False
     search = estimator.search
     return {"every": args.every, "memory": args.memory, "change_k": args.change_k, "patience": args.patience,
             "realtime": realtime, "reconnect_give_up_s": reconnect.give_up_s if reconnect.enabled and source.live
-            else None, "fit": search.fit, "fov_range_deg": [search.fov_range.min_deg, search.fov_range.max_deg],
+            else None, "fov_range_deg": [search.fov_range.min_deg, search.fov_range.max_deg],
             "pitch_range_deg": list(search.pitch_range_deg), "roll_range_deg": list(search.roll_range_deg),
             "distortion": search.distortion.mode.value, "focal_px": None, "fov_range": None, "max_rate": None,
             **more}

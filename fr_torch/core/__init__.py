@@ -12,7 +12,7 @@ Rooms, lowest first; a module imports only its own room and the rooms below it
 3. :mod:`~fr_torch.core.likelihood` -- segments as the engine sees them, the deviation measures,
    the mixture, the fused objective and its C kernels.
 4. :mod:`~fr_torch.core.search` -- one engine (grid -> passes -> refine) and the fits that use it
-   (Manhattan, lens, horizon, the choice between them).
+   (Manhattan, with extra horizontal families, and lens).
 5. :mod:`~fr_torch.core.reliability` -- cues, the error model, the promise's bounds, sanity checks.
 6. :mod:`~fr_torch.core.estimator` (:class:`~fr_torch.core.estimator.SegmentEstimator`: padded
    segment batches through the rooms), :mod:`~fr_torch.core.result`

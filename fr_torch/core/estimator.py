@@ -40,7 +40,6 @@ from fr_torch.core.reliability.sanity import (
     sanity_check,
 )
 from fr_torch.core.result import CalibrationResult
-from fr_torch.core.search.choice import HorizonChooser, choose_fit
 from fr_torch.core.search.lens import SegmentGeometry, bend_test, search_with_k
 from fr_torch.core.search.manhattan import fit_families, search_manhattan
 from fr_torch.core.settings.checks import (
@@ -171,8 +170,6 @@ class SegmentEstimator:
         self.profile_gap = "focal_profile_gap" in model_cues if profile_gap is None else bool(profile_gap)
         # the spread cues that the bounds of `reliable` rest on (fr_torch.core.reliability.bounds)
         self.spreads = getattr(reliability, "needs_spreads", False) if spreads is None else bool(spreads)
-        # the per-photo choice between the Manhattan and the horizon fit (SearchConfig.fit = choose)
-        self.horizon_chooser = HorizonChooser.load() if self.search.fit == "choose" else None
 
     # ------------------------------------------------------------------ public API
 
@@ -306,15 +303,13 @@ class SegmentEstimator:
         geometry = SegmentGeometry.from_features(features, batch.endpoints, batch.image_size,
                                                  setting.k_prior_weight if lens == "division" else 0.0)
         k_estimate = None  # (B,) k of the division estimates
-        horizon_fit = torch.zeros(len(group), dtype=torch.bool)  # (B,) the horizon fit chosen (choose_fit)
         extra_azimuth = extra_weight = extra_count = None  # (B, m) degrees and (B,) of the extra families (SearchConfig.families)
-        choice_evidence = {}  # the choice's evidence (fr_torch.core.search.choice.CHOICE_FEATURES), cues choice_*
         fast = self.mode == "fast"
         t0 = time.perf_counter()
         if lens == "division":  # the lens fit: k with f and R
             found = search_with_k(self.likelihood, geometry, features, self.search, long_side, focal, self.iterations,
                                   fast)
-        else:  # the Manhattan fit, and the horizon fit where the setting chooses it
+        else:  # the Manhattan fit
             found = search_manhattan(self.likelihood, features, self.search, long_side, focal, self.iterations, fast)
         t1 = t0 + found.grid_seconds
         params, best_scores, tied = found.params, found.scores, found.tied
@@ -324,12 +319,6 @@ class SegmentEstimator:
             estimate = CameraParams(params[:, :DISTORTION].contiguous())
             features = geometry.features(params[:, DISTORTION, None])  # the segments as the estimate sees them
         else:
-            choice = choose_fit(self.likelihood, features, params, best_scores, found.lower, found.upper,
-                                batch.image_size, self.search, self.horizon_chooser)
-            horizon_fit, choice_evidence = choice.horizon, choice.evidence
-            params = torch.where(horizon_fit[:, None], choice.params.to(params.dtype), params)
-            best_scores = torch.where(horizon_fit, choice.scores.to(best_scores.dtype), best_scores)
-            tied = torch.where(horizon_fit, torch.zeros_like(tied), tied) | choice.tied
             if self.search.families is not None:  # extra horizontal families inside the likelihood
                 families = fit_families(self.likelihood, features, params, found.lower, found.upper,
                                         self.search.families, self.iterations)
@@ -350,7 +339,6 @@ class SegmentEstimator:
         ranked = rank_vanishing_points(self.likelihood, features, rotation, estimate.focal_px, self.atlanta,
                                        extra_azimuth, extra_weight)
         cues = image_cues(grid_scores, grid_counts, labels, log_p[:, 0], batch.mask, rotation)
-        cues.update({f"choice_{name}": value for name, value in choice_evidence.items()})
         if extra_count is not None:
             cues["extra_families"] = extra_count.to(torch.float64)
         cues.update(focal_cues(self.likelihood, self.search, features, estimate.data, best_scores, known_focal,
@@ -368,7 +356,6 @@ class SegmentEstimator:
         params_all = estimate.data.cpu().numpy()
         scores_all = best_scores.to(torch.float64).cpu().numpy()
         tied_all = tied.cpu().numpy()
-        horizon_all = horizon_fit.cpu().numpy()
         cues_all = {key: value.cpu().numpy() for key, value in cues.items()}
         ranked_points, ranked_support, ranked_family = (ranked.points.cpu().numpy(), ranked.support.cpu().numpy(),
                                                         ranked.family.cpu().numpy())
@@ -395,7 +382,7 @@ class SegmentEstimator:
             r.runtime_s = dict(timing, total=(time.perf_counter() - start_all) / len(group))
             if k_all is not None:
                 r.distortion_model, r.distortion_k = "division", float(k_all[j])
-            r.model = "horizon" if horizon_all[j] else "manhattan"
+            r.model = "manhattan"
             r.reliable, r.reason = sanity_check(r, self.min_segments, self.min_family_segments,
                                                  self.min_manhattan_fraction)
             bend = lines_bend_reason(r.cues, setting, r.width, r.height) if lens == "pinhole" else None

@@ -50,9 +50,8 @@ class CalibrationResult:
     which family each is: 0-2 the column of R (1 = vertical), 3.. an Atlanta family (an extra
     horizontal direction, ``atlanta`` option; :mod:`fr_torch.core.geometry.vanishing`).  M = 3 without it.
 
-    ``model``: the fit the estimate comes from, ``manhattan`` (fR's mixture fit) or ``horizon``
-    (:mod:`fr_torch.core.search.horizon`, chosen by :attr:`fr_torch.core.settings.config.SearchConfig.fit`);
-    None without an estimate.
+    ``model``: the fit the estimate comes from, ``manhattan`` (fR's mixture fit: every estimate's,
+    the division lens's and the extra families' included); None without an estimate.
 
     ``horizon`` (:class:`fr_torch.core.geometry.horizon.Horizon`, None without an estimate): the horizon in
     the input image's pixels, where it crosses the left and right borders, and its 90 % bound in %
@@ -93,8 +92,7 @@ class CalibrationResult:
     # the lens model of the estimate: "pinhole" or "division" with its normalised k (fr_torch.core.geometry.lens)
     distortion_model: str = "pinhole"
     distortion_k: float = 0.0
-    # the fit the estimate comes from: "manhattan" (fR's mixture fit) or "horizon"
-    # (fr_torch.core.search.horizon; SearchConfig.fit); None without an estimate
+    # the fit the estimate comes from: "manhattan" (fR's mixture fit); None without an estimate
     model: str | None = None
 
     @property

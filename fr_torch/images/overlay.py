@@ -125,8 +125,6 @@ def draw_overlay(image_bgr: np.ndarray, result: CalibrationResult) -> np.ndarray
                    f"tilt={result.tilt_deg:+.2f}  pan={result.pan_deg:+.1f} deg")
         if result.distortion_model != "pinhole":
             caption += f"  k={result.distortion_k:+.3f}"
-        if result.model == "horizon":
-            caption += "  (horizon fit)"
         horizon = result.horizon
         if horizon is not None and horizon.bound_pct is not None:
             caption += f"  horizon +-{horizon.bound_pct:.1f}% of h"

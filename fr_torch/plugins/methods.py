@@ -14,8 +14,8 @@ three; f and R unchanged; ``atlanta=max_extra=2:prior=0.05`` sets its parameters
 :class:`fr_torch.core.geometry.vanishing.AtlantaConfig`).  Every estimate carries fR's vanishing points
 ranked by support (``CameraEstimate.ranked_vanishing_points``).  ``fr[distortion=division]`` /
 ``fr[distortion=auto]`` (radial distortion estimated, see :mod:`fr_torch.core.geometry.lens`) and
-``fr[k=-0.2]`` (a known k); ``fr[fit=choose]`` / ``fr[fit=horizon]`` (what the search returns,
-:attr:`fr_torch.core.settings.config.SearchConfig.fit`); ``fr[working_long_side=640]`` /
+``fr[k=-0.2]`` (a known k); ``fr[families=auto]`` (extra horizontal families inside the likelihood,
+:class:`fr_torch.core.settings.config.FamiliesConfig`); ``fr[working_long_side=640]`` /
 ``fr[working_long_side=input]`` (the cap on the long side the lines are detected at,
 :func:`fr_torch.images.io.parse_working_long_side`).
 """
@@ -62,9 +62,8 @@ class FRCalibrator:
     def __init__(self, mode: str = "fr", measure: str | None = None, detector: str = "lsd", device: str = "cpu",
                  likelihood: str | None = None, use_meta_segments: bool = False, name: str | None = None,
                  range=None, model: str | None = None, atlanta=None, distortion: str | None = None, k=None,
-                 fit: str | None = None, families=None, **estimator_kwargs):
-        for value, setting in ((range, SearchConfig.with_fov_range), (fit, SearchConfig.with_fit),
-                               (families, SearchConfig.with_families)):
+                 families=None, **estimator_kwargs):
+        for value, setting in ((range, SearchConfig.with_fov_range), (families, SearchConfig.with_families)):
             if value is not None:
                 base = estimator_kwargs.get("search_config") or SearchConfig.from_config()
                 estimator_kwargs["search_config"] = setting(base, value)
@@ -81,7 +80,7 @@ class FRCalibrator:
             "measure": measure or None, "detector": detector if detector != "lsd" else None,
             "likelihood": likelihood or None, "range": range if isinstance(range, str) else None, "model": model,
             "atlanta": atlanta if self.estimator.atlanta is not None else None, "distortion": distortion, "k": k,
-            "fit": fit, "families": families, "working_long_side": estimator_kwargs.get("working_long_side")})
+            "families": families, "working_long_side": estimator_kwargs.get("working_long_side")})
 
     def estimate(self, image: np.ndarray | None, meta: ImageMeta) -> CameraEstimate:
         start = time.perf_counter()

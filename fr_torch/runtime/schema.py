@@ -20,12 +20,10 @@ from fr_torch.core.reliability.bounds import HORIZON_BOUND_CAP_PCT, HORIZON_TILT
 from fr_torch.core.reliability.model import CUE_NAMES, TARGETS
 from fr_torch.core.reliability.sanity import LINE_BEND_CUES
 from fr_torch.core.result import JSON_KEYS
-from fr_torch.core.search.choice import CHOICE_FEATURES
 
 #: Every cue a record carries, in this order: the reliability model's and the spreads
-#: (:data:`fr_torch.core.reliability.model.CUE_NAMES`), the "lines bend" check's, and ``choice_*``, the
-#: evidence of ``--fit choose`` (:data:`fr_torch.core.search.choice.CHOICE_FEATURES`).
-ALL_CUES = CUE_NAMES + LINE_BEND_CUES + tuple(f"choice_{name}" for name in CHOICE_FEATURES)
+#: (:data:`fr_torch.core.reliability.model.CUE_NAMES`) and the "lines bend" check's.
+ALL_CUES = CUE_NAMES + LINE_BEND_CUES
 #: The targets ``error_bound`` bounds.
 BOUND_TARGETS = ("focal_pct", "tilt_deg")
 #: The horizon promise's bound in ``error_bound`` (% of the image height; its limit in ``limits``).

@@ -13,10 +13,7 @@ The engine:
 The fits, each a choice of parameters, box and objective handed to the engine:
 
 * :mod:`~fr_torch.core.search.manhattan` -- fR / Fast-fR's mixture fit;
-* :mod:`~fr_torch.core.search.lens` -- the same with the division model's k as a fifth parameter;
-* :mod:`~fr_torch.core.search.horizon` -- the vertical first, then f on its horizon (a truncated
-  vote, refined by the same loop);
-* :mod:`~fr_torch.core.search.choice` -- which of the Manhattan and horizon fits a photo reports.
+* :mod:`~fr_torch.core.search.lens` -- the same with the division model's k as a fifth parameter.
 
 May import: likelihood, settings, geometry, :mod:`fr_torch.core.exact`; not reliability or the estimator.
 """

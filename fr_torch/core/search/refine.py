@@ -5,10 +5,9 @@ lower')``, the focal length as log f, a degenerate side fixed), projected back a
 pan wrapped around its 90-degree box where it is periodic (:func:`adam_in_box`).  :class:`Adam`
 is written in single torch operations (the same bits on every kernel set), :class:`Patience` is the
 per-image stopping rule.  The Manhattan and lens fits refine the mixture likelihood
-(:func:`refine`: the analytic gradient of measure b through :func:`objective_and_grad`, autograd
-otherwise); the horizon fit refines its smooth vote (:func:`fr_torch.core.search.horizon.refine_horizon`);
-both reach the parameters through the same chain rule from the vanishing points
-(:func:`chain_to_params`).
+(:func:`refine`: the analytic gradient of measure b through :func:`objective_and_grad`, which
+reaches the parameters by the chain rule from the vanishing points (:func:`chain_to_params`);
+autograd otherwise).
 
 Images are refined in independent slices of at most ``max_chunk_elements`` (``CPU_REFINE_ELEMENTS``
 on a CPU) deviations per step, and each hypothesis' update depends only on its own gradient: a

@@ -7,8 +7,8 @@
 * :mod:`~fr_torch.core.settings.distortion` -- the lens setting
   (:class:`~fr_torch.core.settings.distortion.DistortionSetting`: pinhole, division or auto);
 * :mod:`~fr_torch.core.settings.config` -- :class:`~fr_torch.core.settings.config.Mode`,
-  :class:`~fr_torch.core.settings.config.SearchConfig` (grid, passes, refinement, fit) and
-  :class:`~fr_torch.core.settings.config.HorizonFitConfig`.
+  :class:`~fr_torch.core.settings.config.SearchConfig` (grid, passes, refinement, lens, extra
+  families) and :class:`~fr_torch.core.settings.config.FamiliesConfig`.
 
 May import: geometry, :mod:`fr_torch.core.exact`, :mod:`fr_torch.errors`, :mod:`fr_torch.resources`.
 """

@@ -54,76 +54,17 @@ MODE_PRESETS: dict[Mode, dict[str, int]] = {
 }
 
 
-#: The fits a search can return (:attr:`SearchConfig.fit`): fR's Manhattan mixture fit, the horizon fit
-#: (:mod:`fr_torch.core.search.horizon`), or a per-photo choice between the two.
-FITS = ("manhattan", "horizon", "choose")
-
 #: Settings that no longer exist, each with the one-line error that says what replaced it (kept for
 #: a release, so that a configuration written for an older version fails with a reason).
 REMOVED_SETTINGS = {
     "compile_search": "compile_search (--compile) was removed in 0.2: the fused CPU kernels "
                       "(fr_torch.core.likelihood.native) replaced it and give the same bits as the default search; "
                       "drop the setting",
+    "fit": "fit (--fit horizon|choose) was removed in 0.2: the Manhattan fit is the only search (on held-out street "
+           "photos its horizon was the more accurate; docs/changelog.md); families=auto (--families auto) lets every "
+           "horizontal direction vote for the horizon; drop the setting",
+    "horizon": "horizon (the horizon fit's settings) was removed in 0.2 with fit (--fit): drop the setting",
 }
-
-
-@dataclass(frozen=True)
-class HorizonFitConfig:
-    """Settings of the horizon fit (:mod:`fr_torch.core.search.horizon`); angles in degrees.
-
-    ``inlier_deg``: a segment votes for a vanishing point within this angle (measure b), with a
-    weight falling from 1 to 0 there; ``kernel_deg``: the width of the refinement's smooth vote;
-    ``min_length``: segments shorter than this share of the image's long side take no part;
-    ``vertical_max_deg``: near-vertical segments (the vertical point's evidence) lie within this
-    angle of the image's vertical; ``vertical_proposers``: the longest this many of them propose
-    the point in pairs; ``vertical_rounds``: least-squares rounds on its inliers; ``focal_steps``:
-    focal lengths of the sweep (log-spaced over the box); ``proposers``: the longest this many
-    other segments propose horizontal points on each focal's horizon; ``voters``: the longest this
-    many segments vote (the longest this many near-vertical ones for the vertical point);
-    ``refine_iterations``: Adam steps of the refinement; ``chunk_elements``:
-    deviations scored at once in the sweep (bounds memory; results do not depend on it).
-    """
-
-    inlier_deg: float = 2.0
-    kernel_deg: float = 1.0
-    min_length: float = 0.0
-    vertical_max_deg: float = 30.0
-    vertical_proposers: int = 24
-    vertical_rounds: int = 3
-    focal_steps: int = 24
-    proposers: int = 48
-    voters: int = 200
-    refine_iterations: int = 20
-    chunk_elements: int = 1 << 22
-
-    def __post_init__(self):
-        for key in ("inlier_deg", "kernel_deg", "vertical_max_deg"):
-            value = float(getattr(self, key))
-            if not (math.isfinite(value) and 0.0 < value < 90.0):
-                raise FRInputError(f"horizon fit: {key} must lie in (0, 90) degrees, got {value:g}")
-            object.__setattr__(self, key, value)
-        if not (math.isfinite(self.min_length) and 0.0 <= self.min_length < 1.0):
-            raise FRInputError(f"horizon fit: min_length must lie in [0, 1), got {self.min_length:g}")
-        for key in ("vertical_proposers", "focal_steps", "proposers", "voters", "chunk_elements"):
-            if int(getattr(self, key)) < (2 if key == "vertical_proposers" else 1):
-                raise FRInputError(f"horizon fit: {key} must be at least {2 if key == 'vertical_proposers' else 1}")
-        for key in ("vertical_rounds", "refine_iterations"):
-            if int(getattr(self, key)) < 0:
-                raise FRInputError(f"horizon fit: {key} must be >= 0")
-
-    @classmethod
-    def parse(cls, value) -> "HorizonFitConfig":
-        """A HorizonFitConfig, a dict of its fields (a JSON config's ``horizon``) or None (defaults)."""
-        if value is None:
-            return cls()
-        if isinstance(value, cls):
-            return value
-        if not isinstance(value, dict):
-            raise FRInputError(f"horizon fit settings must be a JSON object, got {value!r}")
-        unknown = sorted(set(value) - {f.name for f in fields(cls)})
-        if unknown:
-            raise FRInputError(f"horizon fit: unknown setting(s) {', '.join(unknown)}")
-        return cls(**value)
 
 
 @dataclass(frozen=True)
@@ -228,12 +169,6 @@ class SearchConfig:
     parameters (``joint``, the 3^5 lattice); ``distortion_k_spacing``: the k spacing the passes
     start from (their first k step is a third of it).
     ``results/decisions/46.md`` says how they were chosen.
-    ``fit``: what the pinhole search returns (:data:`FITS`): ``manhattan`` (fR's mixture fit),
-    ``horizon`` (the horizon fit, :mod:`fr_torch.core.search.horizon`, where it finds a vertical) or
-    ``choose`` (per photo, by a rule learned on a train split from the photo's evidence,
-    :func:`fr_torch.core.search.choice.choose_fit`); ``horizon``: the horizon fit's settings
-    (:class:`HorizonFitConfig`, a dict is parsed on construction).  The division-lens search is
-    always the Manhattan fit.
     ``families``: extra horizontal families inside the likelihood after the Manhattan fit
     (:class:`FamiliesConfig`; ``"auto"``, a dict or key=value text is parsed on construction;
     None = off, the default): f and R are then refitted with them (pinhole search only).
@@ -264,16 +199,11 @@ class SearchConfig:
     distortion_plumb_line: bool = True
     distortion_lattice: str = "axis"
     distortion_k_spacing: float = 0.4
-    fit: str = "manhattan"
-    horizon: HorizonFitConfig = HorizonFitConfig()
     families: FamiliesConfig | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "fov_range", FovRange.parse(self.fov_range))
         object.__setattr__(self, "families", FamiliesConfig.parse(self.families))
-        object.__setattr__(self, "horizon", HorizonFitConfig.parse(self.horizon))
-        if self.fit not in FITS:
-            raise FRInputError(f"fit must be one of {', '.join(FITS)}, got {self.fit!r}")
         object.__setattr__(self, "distortion", DistortionSetting.parse(self.distortion))
         object.__setattr__(self, "distortion_grid_k", tuple(float(k) for k in self.distortion_grid_k))
         if not (self.distortion_grid_k or self.distortion_plumb_line) or self.distortion_grid_size < 0 \
@@ -367,10 +297,6 @@ class SearchConfig:
         setting = replace(current, mode=current.mode if mode is None else mode,
                           known_k=current.known_k if known_k is None else known_k)
         return replace(self, distortion=setting)
-
-    def with_fit(self, value: str) -> "SearchConfig":
-        """A copy returning the fit ``value`` (one of :data:`FITS`)."""
-        return replace(self, fit=str(value))
 
     def with_families(self, value) -> "SearchConfig":
         """A copy with the extra-families setting ``value`` (anything :meth:`FamiliesConfig.parse` takes)."""
