@@ -78,7 +78,8 @@ def search_manhattan(likelihood: MixtureLikelihood, features: SegmentFeatures, c
 
 #: The range of an extra family's mixture weight in the joint refinement (:func:`fit_families`).
 WEIGHT_RANGE = (0.002, 0.4)
-#: EM steps of the extra families' mixture weights at a fixed camera (:func:`held_out_gains`, the refinement's start).
+#: EM steps of :func:`_fit_mixture` (weights and scales at a fixed camera: :func:`held_out_gains`, the
+#: refinement's start).
 FAMILY_WEIGHT_EM_STEPS = 20
 
 
