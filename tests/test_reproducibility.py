@@ -245,8 +245,8 @@ def test_the_fused_refinement_reproduces_the_torch_loop():
 def test_the_fused_division_refinement_reproduces_the_torch_loop():
     """Where the kernels build, fR's 100-step refinement with the division model's k (each start's
     segments undistorted with its own k, the prior on k) runs as one kernel call whose answer is the
-    torch loop's bit for bit: a bent photo alone on one thread, alone with its starts split over two
-    threads, and twice in a batch."""
+    torch loop's bit for bit: a bent photo alone on one and on two threads, and twice in a batch
+    split over two threads."""
     from fr_torch.core.geometry.conventions import image_centre
     from fr_torch.core.likelihood.measures import SegmentFeatures
     from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood, native

@@ -11,6 +11,9 @@
  * term is rounded to the image's fixed-point grid (fr_torch/core/exact.py, exact_sum) and the
  * integers are added in double, where every order gives the same sum.  The per-segment deviations
  * are never stored: a tile of hypotheses is scored a few segments at a time in small buffers.
+ * `#pragma GCC ivdep` marks loops that write only arrays they do not read: GCC's run-time checks for
+ * their many input streams would exceed its limit and leave them unvectorised (the values are the
+ * same either way; other compilers ignore the pragma).
  */
 #include <float.h>
 #include <math.h>
@@ -161,6 +164,7 @@ typedef struct {
     float *s, *t, *x, *e;       /* (rows, 3H): incidence s, t; atan; exp */
     float *a, *d;               /* (3H): each column's -1/lambda and log(prior/lambda) */
     float *gs, *gt;             /* (3H): a segment's d obj / d s and d obj / d t */
+    float *grid;                /* (3H): each column's fixed-point grid (exact_columns) */
     float *p, *g;               /* (rows, H): p_i then log p_i; w_i / p_i * grad_out */
     float *terms;               /* (3, N, 3H): each coordinate's gradient terms */
     double *acc;                /* (H) the objective's exact sum; NULL: the gradient alone */
@@ -170,7 +174,7 @@ static int64_t grad_rows(int64_t hyp) { return CALL / (3 * hyp) > 1 ? CALL / (3 
 
 static size_t grad_floats(int64_t n_seg, int64_t hyp) {
     const int64_t width = 3 * hyp, cells = grad_rows(hyp) * width;
-    return (size_t)(4 * cells + 4 * width + 2 * grad_rows(hyp) * hyp + 3 * n_seg * width + 1);
+    return (size_t)(4 * cells + 5 * width + 2 * grad_rows(hyp) * hyp + 3 * n_seg * width + 1);
 }
 
 static void grad_work_carve(grad_work *w, float *block, double *acc, int64_t hyp) {
@@ -179,26 +183,32 @@ static void grad_work_carve(grad_work *w, float *block, double *acc, int64_t hyp
     const int64_t cells = w->rows * width;
     w->s = block; w->t = w->s + cells; w->x = w->t + cells; w->e = w->x + cells;
     w->a = w->e + cells; w->d = w->a + width; w->gs = w->d + width; w->gt = w->gs + width;
-    w->p = w->gt + width; w->g = w->p + w->rows * hyp; w->terms = w->g + w->rows * hyp;
+    w->grid = w->gt + width; w->p = w->grid + width; w->g = w->p + w->rows * hyp; w->terms = w->g + w->rows * hyp;
     w->acc = acc;
 }
 
 /* Pass 1 of one image's objective and gradient for its `hyp` hypotheses: measure_b_forward and the
  * terms of measure_b_backward (fr_torch/core/likelihood/objective.py) bit for bit.
  *
- * fb (3, 3H) VP-major vanishing points; lines / alongs (N, 3); weight_b, factor_b (N); go (H)
- * the upstream gradient.  Leaves sum_i round(log p_i * factor_i) in w->acc (H) (nothing without
- * w->acc; factor_b is then not read), every gradient term in w->terms and raises largest[c] to the
- * magnitude bits of coordinate c's largest |term|.
+ * rows: the segments' N line rows then N along rows (SegmentFeatures.line_along), 3 coefficients
+ * each, shared by the hypotheses ((2N, 3): coefficient c of row i at rows[3 i + c]) or, with `own`,
+ * each hypothesis' own ((2N, 3, H): at rows[(3 i + c) H + h]; the division model's virtual images,
+ * one per hypothesis).  fb (3, 3H) VP-major vanishing points; weight_b, factor_b (N); go (H) the
+ * upstream gradient.  Leaves sum_i round(log p_i * factor_i) in w->acc (H) (nothing without w->acc;
+ * factor_b is then not read), every gradient term in w->terms and raises largest (3, 3H) to the
+ * magnitude bits of each coordinate's and column's largest |term|.
  *
- * line_grad (2N, 3), or NULL: measure_b_backward with the vanishing points, d obj / d line_along
- * (the N line rows, then the N along rows; each row's sum over the 3H columns left to right), after
- * that pass has dropped the terms below float's normal range (|common| < FLT_MIN -> 0). */
-static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical,
-                       const float *lines, const float *alongs, const float *weight_b, const float *factor_b,
-                       const float *fb, const float *coef, float background, float floor_value, const float *go,
-                       vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, uint32_t largest[3], float *line_grad) {
-    const int64_t width = 3 * hyp, rows = w->rows;
+ * With `own` also line_grad (2N, 3, H): measure_b_backward with the vanishing points, d obj / d rows
+ * (each hypothesis' sum over its 3 columns, VP 0 to 2), after that pass has dropped the terms below
+ * float's normal range (|common| < FLT_MIN -> 0).  Inlined twice (grad_terms): a constant `own`
+ * leaves each loop contiguous or its coefficients loop-invariant. */
+static inline __attribute__((always_inline)) void
+grad_terms_of(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, const float *rows, const int own,
+              const float *weight_b, const float *factor_b, const float *fb, const float *coef, float background,
+              float floor_value, const float *go, vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, uint32_t *largest,
+              float *line_grad) {
+    const int64_t width = 3 * hyp, chunk = w->rows, stride = own ? hyp : 1;  /* between coefficients */
+    const float *along_rows = rows + 3 * n_seg * stride;
     float *s = w->s, *t = w->t, *x = w->x, *e = w->e, *a = w->a, *d = w->d, *gs = w->gs, *gt = w->gt;
     float *p = w->p, *g = w->g, *terms = w->terms;
     double *acc = w->acc;
@@ -208,18 +218,25 @@ static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t v
     for (int k = 0; k < 3; k++) if (k != vertical) horizontal[q++] = k;
     if (acc != NULL)
         for (int64_t h = 0; h < hyp; h++) acc[h] = 0.0;
-    for (int64_t i0 = 0; i0 < n_seg; i0 += rows) {
-        const int64_t count = n_seg - i0 < rows ? n_seg - i0 : rows;
+    for (int64_t i0 = 0; i0 < n_seg; i0 += chunk) {
+        const int64_t count = n_seg - i0 < chunk ? n_seg - i0 : chunk;
         for (int64_t r = 0; r < count; r++) {
-            const float *l = lines + 3 * (i0 + r), *m = alongs + 3 * (i0 + r);
-            for (int64_t j = 0; j < width; j++) {
-                float sj = l[0] * fb[j] + l[1] * fb[width + j];
-                sj = sj + l[2] * fb[2 * width + j];
-                float tj = m[0] * fb[j] + m[1] * fb[width + j];
-                tj = tj + m[2] * fb[2 * width + j];
-                s[r * width + j] = sj;
-                t[r * width + j] = tj;
-                x[r * width + j] = ratio(sj, tj);
+            const float *l = rows + 3 * (i0 + r) * stride, *m = along_rows + 3 * (i0 + r) * stride;
+            const float *l1 = l + stride, *l2 = l1 + stride, *m1 = m + stride, *m2 = m1 + stride;
+            for (int k = 0; k < 3; k++) {
+                const float *f0 = fb + k * hyp, *f1 = f0 + width, *f2 = f1 + width;
+                float *sr = s + r * width + k * hyp, *tr = t + r * width + k * hyp, *xr = x + r * width + k * hyp;
+#pragma GCC ivdep
+                for (int64_t h = 0; h < hyp; h++) {
+                    const int64_t o = own ? h : 0;
+                    float sj = l[o] * f0[h] + l1[o] * f1[h];
+                    sj = sj + l2[o] * f2[h];
+                    float tj = m[o] * f0[h] + m1[o] * f1[h];
+                    tj = tj + m2[o] * f2[h];
+                    sr[h] = sj;
+                    tr[h] = tj;
+                    xr[h] = ratio(sj, tj);
+                }
             }
         }
         v_atan((int)(count * width), x, x);
@@ -249,7 +266,7 @@ static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t v
         }
         for (int64_t r = 0; r < count; r++) {
             const int64_t i = i0 + r;
-            const float *l = lines + 3 * i, *m = alongs + 3 * i;
+            const float *l = rows + 3 * i * stride, *m = along_rows + 3 * i * stride;
             const float *sr = s + r * width, *tr = t + r * width, *er = e + r * width;
             for (int k = 0; k < 3; k++)  /* each VP's block of columns takes the hypothesis' g */
                 for (int64_t h = 0; h < hyp; h++) gs[k * hyp + h] = g[r * hyp + h];
@@ -261,57 +278,89 @@ static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t v
                 common = common * gs[j];
                 common = common * sign_of(sj * tj);
                 common = common / r2;
-                if (line_grad != NULL && fabsf(common) < FLT_MIN) common = 0.0f;  /* masked_fill_; NaN stays */
+                if (own && fabsf(common) < FLT_MIN) common = 0.0f;  /* masked_fill_; NaN stays NaN */
                 gs[j] = common * tj;
                 gt[j] = -(common * sj);
             }
             for (int c = 0; c < 3; c++) {
+                const float *lc = l + c * stride, *mc = m + c * stride;
                 float *row = terms + (c * n_seg + i) * width;
-                const float lc = l[c], mc = m[c];
-                uint32_t top = largest[c];
-                for (int64_t j = 0; j < width; j++) {
-                    const float term = lc * gs[j] + mc * gt[j];
-                    row[j] = term;
-                    const uint32_t bits = magnitude_bits(term);
-                    top = bits > top ? bits : top;
-                }
-                largest[c] = top;
-            }
-            if (line_grad != NULL)
-                for (int c = 0; c < 3; c++) {
-                    const float *column = fb + c * width;
-                    float line_c = gs[0] * column[0], along_c = gt[0] * column[0];
-                    for (int64_t j = 1; j < width; j++) {
-                        line_c = line_c + gs[j] * column[j];
-                        along_c = along_c + gt[j] * column[j];
+                uint32_t *top = largest + c * width;
+                for (int k = 0; k < 3; k++)
+#pragma GCC ivdep
+                    for (int64_t h = 0; h < hyp; h++) {
+                        const int64_t j = k * hyp + h, o = own ? h : 0;
+                        const float term = lc[o] * gs[j] + mc[o] * gt[j];
+                        row[j] = term;
+                        const uint32_t bits = magnitude_bits(term);
+                        top[j] = bits > top[j] ? bits : top[j];
                     }
-                    line_grad[3 * i + c] = line_c;
-                    line_grad[3 * (n_seg + i) + c] = along_c;
+            }
+            if (own)
+                for (int c = 0; c < 3; c++) {
+                    const float *f0 = fb + c * width, *f1 = f0 + hyp, *f2 = f1 + hyp;
+                    float *line_c = line_grad + (3 * i + c) * hyp, *along_c = line_grad + (3 * (n_seg + i) + c) * hyp;
+#pragma GCC ivdep
+                    for (int64_t h = 0; h < hyp; h++) {
+                        float sum = gs[h] * f0[h] + gs[hyp + h] * f1[h];
+                        line_c[h] = sum + gs[2 * hyp + h] * f2[h];
+                        sum = gt[h] * f0[h] + gt[hyp + h] * f1[h];
+                        along_c[h] = sum + gt[2 * hyp + h] * f2[h];
+                    }
                 }
         }
     }
 }
 
-/* Column sums of terms (rows, width) into out (width) double, exact on the grid set by the largest
- * |term| (`largest`, its magnitude bits): fr_torch/core/exact.py, exact_sum with that bound. */
-static void exact_columns(const float *terms, int64_t rows, int64_t width, uint32_t largest, double *out) {
-    union { uint32_t u; float f; } top = {largest};
-    const double grid = fixed_point_scale(top.f);  /* NaN when a term is NaN, as torch's amax */
-    const float grid32 = (float)grid;
-    for (int64_t j = 0; j < width; j++) out[j] = 0.0;
+static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, const float *rows, int own,
+                       const float *weight_b, const float *factor_b, const float *fb, const float *coef,
+                       float background, float floor_value, const float *go, vml_fn v_atan, vml_fn v_exp,
+                       vml_fn v_ln, uint32_t *largest, float *line_grad) {
+    if (own)
+        grad_terms_of(w, n_seg, hyp, vertical, rows, 1, weight_b, factor_b, fb, coef, background, floor_value, go,
+                      v_atan, v_exp, v_ln, largest, line_grad);
+    else
+        grad_terms_of(w, n_seg, hyp, vertical, rows, 0, weight_b, factor_b, fb, coef, background, floor_value, go,
+                      v_atan, v_exp, v_ln, largest, NULL);
+}
+
+/* Column sums of terms (rows, width) into out (width) double, each exact on the grid set by its
+ * largest |term| (`largest` (width), magnitude bits): fr_torch/core/exact.py, exact_sum with that
+ * bound.  grid (width): scratch. */
+static void exact_columns(const float *terms, int64_t rows, int64_t width, const uint32_t *largest, float *grid,
+                          double *out) {
+    for (int64_t j = 0; j < width; j++) {
+        union { uint32_t u; float f; } top = {largest[j]};
+        grid[j] = (float)fixed_point_scale(top.f);  /* a power of two (NaN for a NaN term, as torch's amax) */
+        out[j] = 0.0;
+    }
     for (int64_t i = 0; i < rows; i++) {
         const float *row = terms + i * width;
-        for (int64_t j = 0; j < width; j++) out[j] += (double)round_even(row[j] * grid32);
+        for (int64_t j = 0; j < width; j++) out[j] += (double)round_even(row[j] * grid[j]);
     }
-    for (int64_t j = 0; j < width; j++) out[j] = out[j] / grid;
+    for (int64_t j = 0; j < width; j++) out[j] = out[j] / (double)grid[j];
 }
 
 /* Pass 2: d objective / d fb (3, 3H) double into out, each coordinate's sum over segments exact on
- * the grid set by the image's largest |term| of that coordinate (`largest`, over every hypothesis
- * of the image). */
-static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, const uint32_t largest[3], double *out) {
+ * the grid set by its largest |term| (largest (3, 3H) from grad_terms, overwritten): over every
+ * hypothesis of the image, or with `own` over each hypothesis' 3 columns (one virtual image each). */
+static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, int own, uint32_t *largest, double *out) {
     const int64_t width = 3 * hyp;
-    for (int c = 0; c < 3; c++) exact_columns(w->terms + c * n_seg * width, n_seg, width, largest[c], out + c * width);
+    for (int c = 0; c < 3; c++) {
+        uint32_t *top = largest + c * width;
+        if (own)
+            for (int64_t h = 0; h < hyp; h++) {
+                uint32_t most = top[h] > top[hyp + h] ? top[h] : top[hyp + h];
+                most = most > top[2 * hyp + h] ? most : top[2 * hyp + h];
+                top[h] = top[hyp + h] = top[2 * hyp + h] = most;
+            }
+        else {
+            uint32_t most = 0;
+            for (int64_t j = 0; j < width; j++) most = top[j] > most ? top[j] : most;
+            for (int64_t j = 0; j < width; j++) top[j] = most;
+        }
+        exact_columns(w->terms + c * n_seg * width, n_seg, width, top, w->grid, out + c * width);
+    }
 }
 
 /* The refinement's objective and its gradient with respect to the vanishing points, per image:
@@ -320,7 +369,8 @@ static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, const uint
  * Images [first, last) of the batch; hyp hypotheses each (columns k * hyp + h of flat (B, 3, 3H));
  * weight (B, N), factor (B, N) and scale (B,) as for fr_measure_b_scores; grad_out (B, H) float32.
  * objective (B, H) double; grad (B, 3, 3H) double: d objective / d flat, each coordinate's sum over
- * segments exact on the grid set by the image's largest |term| of that coordinate. */
+ * segments exact on the grid set by the image's largest |term| of that coordinate.  Returns 1 when
+ * out of memory. */
 int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, int64_t vertical,
                       const float *line_along, const float *weight, const float *factor, const double *scale,
                       const float *flat, const float *coef, float background, float floor_value,
@@ -328,20 +378,21 @@ int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, i
                       double *objective, double *grad) {
     float *block = malloc(sizeof(float) * grad_floats(n_seg, hyp));
     double *acc = malloc(sizeof(double) * (size_t)(hyp + 1));
-    if (block == NULL || acc == NULL) { free(block); free(acc); return 1; }
+    uint32_t *largest = malloc(sizeof(uint32_t) * (size_t)(9 * hyp));
+    if (block == NULL || acc == NULL || largest == NULL) { free(block); free(acc); free(largest); return 1; }
     grad_work w;
     grad_work_carve(&w, block, acc, hyp);
     for (int64_t b = first; b < last; b++) {
-        const float *lines = line_along + b * 2 * n_seg * 3;
-        uint32_t largest[3] = {0, 0, 0};
-        grad_terms(&w, n_seg, hyp, vertical, lines, lines + n_seg * 3, weight + b * n_seg, factor + b * n_seg,
-                   flat + b * 9 * hyp, coef, background, floor_value, grad_out + b * hyp, v_atan, v_exp, v_ln,
-                   largest, NULL);
+        for (int64_t j = 0; j < 9 * hyp; j++) largest[j] = 0;
+        grad_terms(&w, n_seg, hyp, vertical, line_along + b * 2 * n_seg * 3, 0, weight + b * n_seg,
+                   factor + b * n_seg, flat + b * 9 * hyp, coef, background, floor_value, grad_out + b * hyp, v_atan,
+                   v_exp, v_ln, largest, NULL);
         for (int64_t h = 0; h < hyp; h++) objective[b * hyp + h] = acc[h] / scale[b];
-        grad_sums(&w, n_seg, hyp, largest, grad + b * 9 * hyp);
+        grad_sums(&w, n_seg, hyp, 0, largest, grad + b * 9 * hyp);
     }
     free(block);
     free(acc);
+    free(largest);
     return 0;
 }
 
@@ -350,58 +401,65 @@ int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, i
 
 #define DEG2RAD 0.017453292519943295f   /* (float)(pi / 180): torch.deg2rad of a float tensor */
 
-/* The division model's segments at one k: SegmentGeometry.features(k, derivative=True)
- * (fr_torch/core/search/lens.py) of one image, bit for bit.
+/* The division model's segments of one image at each of `hyp` values of k: SegmentGeometry.features(k,
+ * derivative=True) (fr_torch/core/search/lens.py), bit for bit.
  *
- * centre (2) the distortion centre, pixels; offset (2N, 2) the endpoints' offsets from it (the N
- * first endpoints, then the N second ones), rho (2N) their r^2 in units of the normalising radius^2
- * (SegmentGeometry.offsets).  rows (2N, 3): the undistorted segments' line then along rows
- * (SegmentFeatures.line_along); d_rows (2N, 3) their derivative with respect to k; scratch: 7N floats. */
-static void undistorted_rows(int64_t n_seg, float k, const float *centre, const float *offset, const float *rho,
-                             vml_fn v_sqrt, float *scratch, float *rows, float *d_rows) {
+ * k (H); centre (2) the distortion centre, pixels; offset (2N, 2) the endpoints' offsets from it (the
+ * N first endpoints, then the N second ones), rho (2N) their r^2 in units of the normalising
+ * radius^2 (SegmentGeometry.offsets).  rows (2N, 3, H): the undistorted segments' line then along
+ * rows (SegmentFeatures.line_along) under each k, coefficient c of row i for k[h] at
+ * rows[(3 i + c) H + h]; d_rows (2N, 3, H) their derivatives with respect to k; length: (N, H) scratch. */
+static void undistorted_rows(int64_t n_seg, int64_t hyp, const float *k, const float *centre, const float *offset,
+                             const float *rho, vml_fn v_sqrt, float *length, float *rows, float *d_rows) {
     const float min_length = (float)1e-12;  /* clamp_min(1e-12) of a float tensor */
-    float *factor = scratch, *q = factor + 2 * n_seg, *length = q + 4 * n_seg;
-    for (int64_t i = 0; i < 2 * n_seg; i++) {  /* undistorted = centre + factor * offset */
-        const float f = 1.0f / (1.0f + k * rho[i]);
-        factor[i] = f;
-        q[2 * i] = offset[2 * i] * f;
-        q[2 * i + 1] = offset[2 * i + 1] * f;
-    }
     for (int64_t i = 0; i < n_seg; i++) {
-        const float *qa = q + 2 * i, *qb = q + 2 * (n_seg + i);
-        const float dx = qb[0] - qa[0], dy = qb[1] - qa[1];
-        length[i] = dx * dx + dy * dy;
+        const float *oa = offset + 2 * i, *ob = offset + 2 * (n_seg + i);
+        const float ra = rho[i], rb = rho[n_seg + i];
+#pragma GCC ivdep
+        for (int64_t h = 0; h < hyp; h++) {  /* undistorted = centre + factor * offset */
+            const float factor_a = 1.0f / (1.0f + k[h] * ra), factor_b = 1.0f / (1.0f + k[h] * rb);
+            const float dx = ob[0] * factor_b - oa[0] * factor_a, dy = ob[1] * factor_b - oa[1] * factor_a;
+            length[i * hyp + h] = dx * dx + dy * dy;
+        }
     }
-    v_sqrt((int)n_seg, length, length);  /* torch's sqrt of float32: MKL's */
+    v_sqrt((int)(n_seg * hyp), length, length);  /* torch's sqrt of float32: MKL's */
     for (int64_t i = 0; i < n_seg; i++) {
         const int64_t a = i, b = n_seg + i;
-        const float *qa = q + 2 * a, *qb = q + 2 * b, *oa = offset + 2 * a, *ob = offset + 2 * b;
-        const float delta_x = qb[0] - qa[0], delta_y = qb[1] - qa[1];
-        const float inv_length = 1.0f / (length[i] < min_length ? min_length : length[i]);  /* NaN stays NaN */
-        const float dx = delta_x * inv_length, dy = delta_y * inv_length;
-        const float mx = centre[0] + (qa[0] + qb[0]) * 0.5f, my = centre[1] + (qa[1] + qb[1]) * 0.5f;
-        float *line = rows + 3 * a, *along = rows + 3 * b;
-        line[0] = -dy; line[1] = dx; line[2] = dy * mx - dx * my;
-        along[0] = dx; along[1] = dy; along[2] = -(dx * mx + dy * my);
-        const float ca = (-rho[a] * factor[a]) * factor[a], cb = (-rho[b] * factor[b]) * factor[b];  /* dq / dk */
-        const float dqa_x = oa[0] * ca, dqa_y = oa[1] * ca, dqb_x = ob[0] * cb, dqb_y = ob[1] * cb;
-        const float dd_x = dqb_x - dqa_x, dd_y = dqb_y - dqa_y;
-        const float along_dd = dx * dd_x + dy * dd_y;
-        const float ddx = (dd_x - dx * along_dd) * inv_length, ddy = (dd_y - dy * along_dd) * inv_length;
-        const float dmx = (dqa_x + dqb_x) * 0.5f, dmy = (dqa_y + dqb_y) * 0.5f;
-        float *d_line = d_rows + 3 * a, *d_along = d_rows + 3 * b;
-        float x = ddy * mx + dy * dmx;
-        x = x - ddx * my;
-        d_line[0] = -ddy; d_line[1] = ddx; d_line[2] = x - dx * dmy;
-        x = ddx * mx + dx * dmx;
-        x = x + ddy * my;
-        d_along[0] = ddx; d_along[1] = ddy; d_along[2] = -(x + dy * dmy);
+        const float *oa = offset + 2 * a, *ob = offset + 2 * b;
+        const float ra = rho[a], rb = rho[b];
+        float *line = rows + 3 * a * hyp, *along = rows + 3 * b * hyp;
+        float *d_line = d_rows + 3 * a * hyp, *d_along = d_rows + 3 * b * hyp;
+#pragma GCC ivdep
+        for (int64_t h = 0; h < hyp; h++) {
+            const float factor_a = 1.0f / (1.0f + k[h] * ra), factor_b = 1.0f / (1.0f + k[h] * rb);
+            const float qa_x = oa[0] * factor_a, qa_y = oa[1] * factor_a;
+            const float qb_x = ob[0] * factor_b, qb_y = ob[1] * factor_b;
+            const float delta_x = qb_x - qa_x, delta_y = qb_y - qa_y;
+            const float clamped = length[i * hyp + h] < min_length ? min_length : length[i * hyp + h];
+            const float inv_length = 1.0f / clamped;  /* NaN stays NaN */
+            const float dx = delta_x * inv_length, dy = delta_y * inv_length;
+            const float mx = centre[0] + (qa_x + qb_x) * 0.5f, my = centre[1] + (qa_y + qb_y) * 0.5f;
+            line[h] = -dy; line[hyp + h] = dx; line[2 * hyp + h] = dy * mx - dx * my;
+            along[h] = dx; along[hyp + h] = dy; along[2 * hyp + h] = -(dx * mx + dy * my);
+            const float ca = (-ra * factor_a) * factor_a, cb = (-rb * factor_b) * factor_b;  /* dq / dk = offset * ca */
+            const float dqa_x = oa[0] * ca, dqa_y = oa[1] * ca, dqb_x = ob[0] * cb, dqb_y = ob[1] * cb;
+            const float dd_x = dqb_x - dqa_x, dd_y = dqb_y - dqa_y;
+            const float along_dd = dx * dd_x + dy * dd_y;
+            const float ddx = (dd_x - dx * along_dd) * inv_length, ddy = (dd_y - dy * along_dd) * inv_length;
+            const float dmx = (dqa_x + dqb_x) * 0.5f, dmy = (dqa_y + dqb_y) * 0.5f;
+            float sum = ddy * mx + dy * dmx;
+            sum = sum - ddx * my;
+            d_line[h] = -ddy; d_line[hyp + h] = ddx; d_line[2 * hyp + h] = sum - dx * dmy;
+            sum = ddx * mx + dx * dmx;
+            sum = sum + ddy * my;
+            d_along[h] = ddx; d_along[hyp + h] = ddy; d_along[2 * hyp + h] = -(sum + dy * dmy);
+        }
     }
 }
 
 /* What every work item of fr_measure_b_refine shares: its arguments. */
 typedef struct {
-    int64_t n_seg, hyp, vertical, iterations, params;
+    int64_t n_seg, vertical, iterations, params;
     const float *line_along, *weight, *coef;
     float background, floor_value;
     const float *grad_out, *pp, *lower, *span, *prior;
@@ -413,93 +471,84 @@ typedef struct {
     vml_fn v_atan, v_exp, v_ln, v_sin, v_cos, v_sqrt;
 } refine_setup;
 
-/* fr_measure_b_refine's workspace for a work item of up to H hypotheses (refine_work_carve). */
+/* fr_measure_b_refine's workspace for an image of H hypotheses (refine_work_carve). */
 typedef struct {
-    double *grad;                         /* (3, 3H) d obj / d V, VP-major */
-    double *grad_k, *one;                 /* (H) d obj / dk; (3, 3) one hypothesis' d obj / d V */
-    grad_work pass;                       /* the gradient pass: all H hypotheses, or one (division) */
+    double *grad, *grad_k;                /* (3, 3H) d obj / d V, VP-major; (H) d obj / dk */
+    uint32_t *largest;                    /* (3, 3H) the gradient terms' largest magnitudes */
+    grad_work pass;                       /* the gradient pass */
     float *rad, *cosv, *sinv;             /* (H, 3) */
     float *focal, *logf, *logr, *k, *go;  /* (H) */
     float *flat, *rot;                    /* (3, 3H) VP-major; (H, 9) */
     float *m1, *m2, *root;                /* (H, P) Adam's moments, sqrt of the second */
-    float *fb;                            /* (3, 3) one hypothesis' VPs */
-    float *rows, *d_rows, *line_grad;     /* (2N, 3) one hypothesis' segments, d / dk, d obj / d rows */
-    float *k_terms, *scratch;             /* (2N); 7N */
+    float *rows, *d_rows, *line_grad;     /* (2N, 3, H) each hypothesis' segments, d / dk, d obj / d rows */
+    float *k_terms, *length;              /* (2N, H); (N, H) */
 } refine_work;
 
-/* Carves `block` (may be NULL: sizes only) into w for items of up to `hyp` hypotheses with
- * `params` parameters (5: the division model's buffers too); returns the floats used (doubles first,
- * two floats each). */
+/* Carves `block` (may be NULL: sizes only) into w for images of `hyp` hypotheses with `params`
+ * parameters (5: the division model's buffers too); returns the floats used (doubles first, two
+ * floats each). */
 static int64_t refine_work_carve(refine_work *w, float *block, int64_t n_seg, int64_t hyp, int64_t params) {
-    const int lens = params == 5;
+    const int64_t lens = params == 5 ? 1 : 0;
     int64_t at = 0;
-#define TAKE_DOUBLES(ptr, n) do { (ptr) = block != NULL ? (double *)(block + at) : NULL; at += 2 * (n); } while (0)
-#define TAKE(ptr, n) do { (ptr) = block != NULL ? block + at : NULL; at += (n); } while (0)
-    TAKE_DOUBLES(w->grad, 9 * hyp);
-    TAKE_DOUBLES(w->grad_k, hyp);
-    TAKE_DOUBLES(w->one, 9);
-    const int64_t pass_hyp = lens ? 1 : hyp;
-    if (block != NULL) grad_work_carve(&w->pass, block + at, NULL, pass_hyp);
-    at += (int64_t)grad_floats(n_seg, pass_hyp);
-    TAKE(w->rad, 3 * hyp); TAKE(w->cosv, 3 * hyp); TAKE(w->sinv, 3 * hyp);
-    TAKE(w->focal, hyp); TAKE(w->logf, hyp); TAKE(w->logr, hyp); TAKE(w->k, hyp); TAKE(w->go, hyp);
-    TAKE(w->flat, 9 * hyp); TAKE(w->rot, 9 * hyp);
-    TAKE(w->m1, params * hyp); TAKE(w->m2, params * hyp); TAKE(w->root, params * hyp);
-    TAKE(w->fb, 9);
-    const int64_t lens_rows = lens ? 2 * n_seg : 0;
-    TAKE(w->rows, 3 * lens_rows); TAKE(w->d_rows, 3 * lens_rows); TAKE(w->line_grad, 3 * lens_rows);
-    TAKE(w->k_terms, lens_rows); TAKE(w->scratch, lens ? 7 * n_seg : 0);
-#undef TAKE
-#undef TAKE_DOUBLES
+#define TAKE_AS(type, ptr, n) do { (ptr) = block != NULL ? (type *)(block + at) : NULL; at += (n); } while (0)
+    TAKE_AS(double, w->grad, 2 * 9 * hyp);
+    TAKE_AS(double, w->grad_k, 2 * hyp);
+    TAKE_AS(uint32_t, w->largest, 9 * hyp);
+    if (block != NULL) grad_work_carve(&w->pass, block + at, NULL, hyp);
+    at += (int64_t)grad_floats(n_seg, hyp);
+    TAKE_AS(float, w->rad, 3 * hyp); TAKE_AS(float, w->cosv, 3 * hyp); TAKE_AS(float, w->sinv, 3 * hyp);
+    TAKE_AS(float, w->focal, hyp); TAKE_AS(float, w->logf, hyp); TAKE_AS(float, w->logr, hyp);
+    TAKE_AS(float, w->k, hyp); TAKE_AS(float, w->go, hyp);
+    TAKE_AS(float, w->flat, 9 * hyp); TAKE_AS(float, w->rot, 9 * hyp);
+    TAKE_AS(float, w->m1, params * hyp); TAKE_AS(float, w->m2, params * hyp); TAKE_AS(float, w->root, params * hyp);
+    TAKE_AS(float, w->rows, lens * 6 * n_seg * hyp); TAKE_AS(float, w->d_rows, lens * 6 * n_seg * hyp);
+    TAKE_AS(float, w->line_grad, lens * 6 * n_seg * hyp);
+    TAKE_AS(float, w->k_terms, lens * 2 * n_seg * hyp); TAKE_AS(float, w->length, lens * n_seg * hyp);
+#undef TAKE_AS
     return at;
 }
 
-/* Floats of the workspace fr_measure_b_refine needs per thread for work items of up to `hyp`
- * hypotheses with `params` (4 or 5) parameters. */
+/* Floats of the workspace fr_measure_b_refine needs per thread for images of `hyp` hypotheses with
+ * `params` (4 or 5) parameters. */
 int64_t fr_refine_work_floats(int64_t n_seg, int64_t hyp, int64_t params) {
-    refine_work w;
+    refine_work w = {0};
     return refine_work_carve(&w, NULL, n_seg, hyp, params);
 }
 
-/* Hypothesis h's gradient under the division model (fr_torch/core/search/refine.py,
- * objective_and_grad with a geometry): its segments undistorted with its k (undistorted_rows), d obj
- * / d V (one virtual image: the exact sums' grids its own) into column h of w->grad, and d obj / dk
- * = exact sum over rows of (d obj / d row) . (d row / dk), plus the prior on k's share, into
- * w->grad_k[h] (double, as torch's float64 sum). */
-static void division_gradient(const refine_setup *s, const refine_work *w, int64_t b, int64_t h, int64_t count) {
-    const int64_t n_seg = s->n_seg, width = 3 * count;
-    undistorted_rows(n_seg, w->k[h], s->pp + 2 * b, s->offset + 4 * b * n_seg, s->rho + 2 * b * n_seg, s->v_sqrt,
-                     w->scratch, w->rows, w->d_rows);
-    for (int c = 0; c < 3; c++)
-        for (int j = 0; j < 3; j++) w->fb[3 * c + j] = w->flat[c * width + j * count + h];
-    uint32_t largest[3] = {0, 0, 0};
-    grad_terms(&w->pass, n_seg, 1, s->vertical, w->rows, w->rows + 3 * n_seg, s->weight + b * n_seg, NULL, w->fb,
-               s->coef, s->background, s->floor_value, w->go + h, s->v_atan, s->v_exp, s->v_ln, largest, w->line_grad);
-    grad_sums(&w->pass, n_seg, 1, largest, w->one);
-    for (int c = 0; c < 3; c++)
-        for (int j = 0; j < 3; j++) w->grad[c * width + j * count + h] = w->one[3 * c + j];
-    uint32_t top = 0;
-    for (int64_t i = 0; i < 2 * n_seg; i++) {
-        const float *gl = w->line_grad + 3 * i, *dl = w->d_rows + 3 * i;
-        float term = gl[0] * dl[0] + gl[1] * dl[1];
-        term = term + gl[2] * dl[2];
-        w->k_terms[i] = term;
-        const uint32_t bits = magnitude_bits(term);
-        top = bits > top ? bits : top;
+/* d obj / dk of hypotheses [0, count) of image b into w->grad_k (double, as torch's float64 sums),
+ * from d obj / d rows (w->line_grad) and d rows / dk (w->d_rows): each hypothesis' exact sum over
+ * its 2N rows of their dot products (fr_torch/core/search/refine.py, objective_and_grad with a
+ * geometry), plus the prior on k's share. */
+static void division_k_gradient(const refine_setup *s, const refine_work *w, int64_t b, int64_t count) {
+    uint32_t *top = w->largest;
+    for (int64_t h = 0; h < count; h++) top[h] = 0;
+    for (int64_t i = 0; i < 2 * s->n_seg; i++) {
+        const float *gl = w->line_grad + 3 * i * count, *dl = w->d_rows + 3 * i * count;
+        float *terms = w->k_terms + i * count;
+#pragma GCC ivdep
+        for (int64_t h = 0; h < count; h++) {
+            float term = gl[h] * dl[h] + gl[count + h] * dl[count + h];
+            term = term + gl[2 * count + h] * dl[2 * count + h];
+            terms[h] = term;
+            const uint32_t bits = magnitude_bits(term);
+            top[h] = bits > top[h] ? bits : top[h];
+        }
     }
-    double grad_k;
-    exact_columns(w->k_terms, 2 * n_seg, 1, top, &grad_k);
-    if (s->k_slope != NULL) grad_k = grad_k + (double)(w->go[h] * (s->k_slope[b] * w->k[h]));
-    w->grad_k[h] = grad_k;
+    exact_columns(w->k_terms, 2 * s->n_seg, count, top, w->pass.grid, w->grad_k);
+    if (s->k_slope != NULL)
+        for (int64_t h = 0; h < count; h++) {
+            const float d_prior = s->k_slope[b] * w->k[h];
+            w->grad_k[h] = w->grad_k[h] + (double)(w->go[h] * d_prior);
+        }
 }
 
-/* Every step of one work item: hypotheses ub (count, P) of image b, stepped in place (the module
- * comment of fr_measure_b_refine). */
+/* Every step of image b's hypotheses ub (count, P), stepped in place (the comment of
+ * fr_measure_b_refine). */
 static void refine_hypotheses(const refine_setup *s, const refine_work *w, int64_t b, int64_t count, float *ub) {
     const int64_t n_seg = s->n_seg, P = s->params, width = 3 * count;
     const int lens = s->offset != NULL;
-    const float *lines = s->line_along + b * 2 * n_seg * 3, *lo = s->lower + P * b, *sp_ = s->span + P * b;
-    const float *pp = s->pp + 2 * b, *prior = s->prior;
+    const float *lo = s->lower + P * b, *sp_ = s->span + P * b, *pp = s->pp + 2 * b, *prior = s->prior;
+    const float *rows = lens ? w->rows : s->line_along + b * 2 * n_seg * 3;
     double *grad = w->grad;
     float *rad = w->rad, *cosv = w->cosv, *sinv = w->sinv, *focal = w->focal, *logf = w->logf, *logr = w->logr;
     float *flat = w->flat, *rot = w->rot, *m1 = w->m1, *m2 = w->m2, *root = w->root, *go = w->go;
@@ -529,14 +578,14 @@ static void refine_hypotheses(const refine_setup *s, const refine_work *w, int64
                 flat[2 * width + j * count + h] = r[6 + j];
             }
         }
-        if (lens) {
-            for (int64_t h = 0; h < count; h++) division_gradient(s, w, b, h, count);
-        } else {  /* the image's hypotheses share the sums' grids */
-            uint32_t largest[3] = {0, 0, 0};
-            grad_terms(&w->pass, n_seg, count, s->vertical, lines, lines + n_seg * 3, s->weight + b * n_seg, NULL,
-                       flat, s->coef, s->background, s->floor_value, go, s->v_atan, s->v_exp, s->v_ln, largest, NULL);
-            grad_sums(&w->pass, n_seg, count, largest, grad);
-        }
+        if (lens)  /* each hypothesis' segments undistorted with its k */
+            undistorted_rows(n_seg, count, w->k, pp, s->offset + 4 * b * n_seg, s->rho + 2 * b * n_seg, s->v_sqrt,
+                             w->length, w->rows, w->d_rows);
+        for (int64_t j = 0; j < 9 * count; j++) w->largest[j] = 0;
+        grad_terms(&w->pass, n_seg, count, s->vertical, rows, lens, s->weight + b * n_seg, NULL, flat, s->coef,
+                   s->background, s->floor_value, go, s->v_atan, s->v_exp, s->v_ln, w->largest, w->line_grad);
+        grad_sums(&w->pass, n_seg, count, lens, w->largest, grad);
+        if (lens) division_k_gradient(s, w, b, count);
         if (prior != NULL) {
             for (int64_t h = 0; h < count; h++) logr[h] = focal[h] / prior[2 * b + 1];
             s->v_ln((int)count, logr, logr);
@@ -626,15 +675,12 @@ static void refine_hypotheses(const refine_setup *s, const refine_work *w, int64
  *
  * The division model (SegmentGeometry of fr_torch/core/search/lens.py): offset (B, 2N, 2) and rho
  * (B, 2N) as for undistorted_rows; k_slope (B,) the prior on k's -gamma W (d log p(k) / dk =
- * k_slope k), or NULL without it.  Each hypothesis is scored on its own undistorted segments, so
- * hypotheses are independent: a work item is any run of an image's hypotheses.  Without it the
- * image's hypotheses share the gradient's exact sums: a work item is a whole image.
+ * k_slope k), or NULL without it.  Each hypothesis is scored on its own undistorted segments, its
+ * exact sums on its own grids (one virtual image per hypothesis).
  *
- * Work items [first, last): item = b * tiles + tile index, hypotheses [index * tile, + tile) of
- * image b (tiles = 1 and tile = H without the division model); work: fr_refine_work_floats(n_seg,
- * tile, P) floats. */
-void fr_measure_b_refine(int64_t first, int64_t last, int64_t tiles, int64_t tile, int64_t n_seg, int64_t hyp,
-                         int64_t vertical, int64_t iterations,
+ * Images [first, last); work: fr_refine_work_floats(n_seg, hyp, P) floats. */
+void fr_measure_b_refine(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, int64_t vertical,
+                         int64_t iterations,
                          const float *line_along, const float *weight, const float *coef,
                          float background, float floor_value, const float *grad_out,
                          const float *pp, const float *lower, const float *span, const float *prior,
@@ -645,15 +691,11 @@ void fr_measure_b_refine(int64_t first, int64_t last, int64_t tiles, int64_t til
                          vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, vml_fn v_sin, vml_fn v_cos, vml_fn v_sqrt,
                          float *work, float *u) {
     const int64_t params = offset != NULL ? 5 : 4;
-    const refine_setup s = {n_seg, hyp, vertical, iterations, params, line_along, weight, coef, background,
-                            floor_value, grad_out, pp, lower, span, prior, prior_centre, prior_flat, steps, beta1,
+    const refine_setup s = {n_seg, vertical, iterations, params, line_along, weight, coef, background, floor_value,
+                            grad_out, pp, lower, span, prior, prior_centre, prior_flat, steps, beta1,
                             one_minus_beta1, beta2, one_minus_beta2, eps, grad_bound, periodic_pan, offset, rho,
                             k_slope, v_atan, v_exp, v_ln, v_sin, v_cos, v_sqrt};
-    refine_work w;
-    refine_work_carve(&w, work, n_seg, tile, params);
-    for (int64_t item = first; item < last; item++) {
-        const int64_t b = item / tiles, h0 = (item % tiles) * tile;
-        const int64_t count = hyp - h0 < tile ? hyp - h0 : tile;
-        if (count > 0) refine_hypotheses(&s, &w, b, count, u + (b * hyp + h0) * params);
-    }
+    refine_work w = {0};
+    refine_work_carve(&w, work, n_seg, hyp, params);
+    for (int64_t b = first; b < last; b++) refine_hypotheses(&s, &w, b, hyp, u + b * hyp * params);
 }

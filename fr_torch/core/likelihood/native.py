@@ -34,11 +34,10 @@ Building and trusting them:
 Threads: the work items (image, tile of up to 256 hypotheses; an image for the gradient and the
 refinement) are split into ``torch.get_num_threads()`` contiguous ranges, each scored by one call
 from a worker thread with MKL single-threaded (ctypes releases the GIL); every item's result is its
-own, so the split cannot change a bit.  One image's pinhole refinement stays on one thread: its
-hypotheses share the gradient's fixed-point grid at every step, and threads meeting once per step ran
-slower than one thread on a busy machine.  The division model's hypotheses are independent (each is
-its own virtual image, with its own grids), so with fewer images than threads its refinement also
-splits each image's hypotheses over them.
+own, so the split cannot change a bit.  One image's refinement stays on one thread: its hypotheses
+share the gradient's fixed-point grid at every step, and threads meeting once per step ran slower
+than one thread on a busy machine; the division model's hypotheses do not (each is its own virtual
+image), but splitting them over two threads on a busy machine also ran slower than one thread.
 """
 from __future__ import annotations
 
@@ -145,7 +144,7 @@ def _load():
                      + [ctypes.c_void_p] * 6)
     refine = library.fr_measure_b_refine
     refine.restype = None
-    refine.argtypes = ([ctypes.c_int64] * 8 + [ctypes.c_void_p] * 3
+    refine.argtypes = ([ctypes.c_int64] * 6 + [ctypes.c_void_p] * 3
                        + [ctypes.c_float] * 2 + [ctypes.c_void_p] * 5 + [ctypes.c_float] * 2 + [ctypes.c_void_p]
                        + [ctypes.c_float] * 6 + [ctypes.c_int64] + [ctypes.c_void_p] * 11)
     work = library.fr_refine_work_floats
@@ -324,8 +323,7 @@ def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Te
     ``principal_point``; rho (B, 2N) float32 their squared distance in units of the normalising radius;
     k_slope (B,) float32 the prior on k's ``-gamma W``, or None without that prior): every hypothesis
     is scored on the segments undistorted with its own k, ``line_along`` is not read.  The images are
-    split over the threads as in :func:`measure_b_grad`; with ``lens`` the hypotheses too (each has
-    its own sums' grids), so that one image keeps every thread busy.
+    split over the threads as in :func:`measure_b_grad`.
     """
     function, work_floats = _state["functions"]["refine"], _state["functions"]["refine_work"]
     batch, n_seg = weight.shape
@@ -336,26 +334,21 @@ def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Te
                                                      (grad_out.reshape(batch), principal_point, lower, span, steps))
     prior = None if prior is None else prior.to(torch.float32).contiguous()
     offset = rho = k_slope = None
-    tiles = 1
     if lens is not None:
         offset, rho, k_slope = (None if x is None else x.to(torch.float32).contiguous() for x in lens)
-        threads = max(1, torch.get_num_threads())
-        tiles = 1 if batch >= threads else min(hyp, -(-threads // batch))
-    tile = max(1, -(-hyp // tiles))
-    tiles = max(1, -(-hyp // tile))
     beta1, beta2 = betas
-    work_size = int(work_floats(n_seg, tile, params))
+    work_size = int(work_floats(n_seg, hyp, params))
 
     def pointer(x: torch.Tensor | None) -> int:
         return 0 if x is None else x.data_ptr()
 
     def run(first: int, last: int) -> None:
         work = torch.empty(work_size, dtype=torch.float32)
-        function(first, last, tiles, tile, n_seg, hyp, vertical_axis, iterations,
+        function(first, last, n_seg, hyp, vertical_axis, iterations,
                  line_along.data_ptr(), weight.data_ptr(), coef.data_ptr(), background, floor,
                  grad_out.data_ptr(), principal_point.data_ptr(), lower.data_ptr(), span.data_ptr(),
                  pointer(prior), prior_centre, prior_flat, steps.data_ptr(),
                  beta1, 1.0 - beta1, beta2, 1.0 - beta2, eps, grad_bound, int(periodic_pan),
                  pointer(offset), pointer(rho), pointer(k_slope), *_state["vml"], work.data_ptr(), u.data_ptr())
 
-    _in_threads(run, batch * tiles)
+    _in_threads(run, batch)
