@@ -217,8 +217,9 @@ def test_the_fused_refinement_reproduces_the_torch_loop():
     from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood, native
     from fr_torch.core.search.refine import _refine_slice, refine_kernel_matches_torch
 
-    if not native.available("refine"):
+    if not native.available():
         pytest.skip(f"fused kernels unavailable here ({native._state.get('error', 'FR_NATIVE=0')})")
+    assert native.available("refine")  # its first-use check passed
     assert refine_kernel_matches_torch()
     segments, size = _photos()[0]
     features = SegmentFeatures.from_endpoints(torch.as_tensor(segments, dtype=torch.float32)[None], None,
@@ -238,6 +239,54 @@ def test_the_fused_refinement_reproduces_the_torch_loop():
                               False, periodic_pan=True)
     finally:
         torch.set_num_threads(threads)
+    assert all(torch.equal(a[0], b[0]) and torch.equal(a[0], b[1]) for a, b in zip(expected, batch))
+
+
+def test_the_fused_division_refinement_reproduces_the_torch_loop():
+    """Where the kernels build, fR's 100-step refinement with the division model's k (each start's
+    segments undistorted with its own k, the prior on k) runs as one kernel call whose answer is the
+    torch loop's bit for bit: a bent photo alone on one and on two threads, and twice in a batch
+    split over two threads."""
+    from fr_torch.core.geometry.conventions import image_centre
+    from fr_torch.core.likelihood.measures import SegmentFeatures
+    from fr_torch.core.likelihood.mixture import LikelihoodParams, MixtureLikelihood, native
+    from fr_torch.core.search.lens import SegmentGeometry
+    from fr_torch.core.search.refine import _refine_slice, refine_kernel_matches_torch
+    from fr_torch.synthetic import distorted_segments
+
+    if not native.available():
+        pytest.skip(f"fused kernels unavailable here ({native._state.get('error', 'FR_NATIVE=0')})")
+    assert native.available("refine_lens")  # its first-use check passed
+    assert refine_kernel_matches_torch(SegmentGeometry.from_features)
+    rng = np.random.default_rng(66)
+    segments, labels = synthetic_segments(450.0, random_rotation(rng, pan=(-30, 30), pitch=(-15, 15), roll=(-8, 8)),
+                                          seed=66)
+    segments, _ = distorted_segments(segments, labels, -0.3, 640, 480)
+    endpoints, size = torch.as_tensor(segments, dtype=torch.float32)[None], torch.tensor([[640.0, 480.0]])
+    features = SegmentFeatures.from_endpoints(endpoints, None, torch.tensor([image_centre(640, 480)]))
+    likelihood = MixtureLikelihood(LikelihoodParams(focal_prior_weight=0.3, focal_prior_flat_halfwidth=0.2))
+    generator = torch.Generator().manual_seed(66)
+    lower = torch.tensor([[0.0, -45.0, -45.0, 150.0, -0.6]])
+    upper = torch.tensor([[90.0, 45.0, 45.0, 1500.0, 0.2]])
+    starts = lower[:, None] + torch.rand(1, 8, 5, generator=generator) * (upper - lower)[:, None]
+
+    def refined(threads, images=1, fused=True):
+        batch = features.take_images(torch.zeros(images, dtype=torch.long))
+        geometry = SegmentGeometry.from_features(batch, endpoints.repeat(images, 1, 1), size.repeat(images, 1),
+                                                 k_prior_weight=3.0)
+        previous = torch.get_num_threads()
+        torch.set_num_threads(threads)
+        try:
+            return _refine_slice(likelihood, batch, starts.repeat(images, 1, 1), lower.repeat(images, 1),
+                                 upper.repeat(images, 1), 100, False, periodic_pan=True, geometry=geometry, fused=fused)
+        finally:
+            torch.set_num_threads(previous)
+
+    expected = refined(1, fused=False)
+    assert expected[0][..., 4].min() < -0.1  # the refinement found the bend
+    for got in (refined(1), refined(2)):
+        assert all(torch.equal(a, b) for a, b in zip(expected, got))
+    batch = refined(2, images=2)
     assert all(torch.equal(a[0], b[0]) and torch.equal(a[0], b[1]) for a, b in zip(expected, batch))
 
 

@@ -6,7 +6,8 @@ round runs, for each checkout in turn, one process that times (a) the search per
 grid / refine / cues / total, wall and process CPU time; median of 2 passes) in Fast-fR and fR, and
 (b) images/s given 300 synthetic segments at batch 1 and 64 (``fr_eval.bench.timing``); then prints
 the medians over rounds, before -> after, as Markdown.  Interleaving keeps a shared machine's load
-out of the ratios; the load average at each start is reported beside them.
+out of the ratios; the load average at each start is reported beside them.  ``--distortion division``:
+the same figures with the division model's lens search (``FREstimator(distortion="division")``).
 """
 from __future__ import annotations
 
@@ -22,8 +23,9 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
-def measure(threads: int, what: str, cache: Path) -> dict:
-    """One process's figures (run inside the checkout being timed)."""
+def measure(threads: int, what: str, cache: Path, distortion: str | None = None) -> dict:
+    """One process's figures (run inside the checkout being timed); ``distortion``: the estimator's
+    lens setting (None: pinhole)."""
     import time
 
     import numpy as np
@@ -40,7 +42,7 @@ def measure(threads: int, what: str, cache: Path) -> dict:
         segments, sizes = segment_sets(cache, 8, 4)
         segments, sizes = segments[:4], sizes[:4]
         for mode in ("fast", "fr"):
-            estimator = FREstimator(mode=mode)
+            estimator = FREstimator(mode=mode, distortion=distortion)
             estimator.calibrate_segments(segments[:1], sizes[:1])
             rows = []
             for _ in range(2):
@@ -56,7 +58,7 @@ def measure(threads: int, what: str, cache: Path) -> dict:
 
         pool = [scene_segments(300, seed=i) for i in range(8)]
         for mode in ("fast", "fr"):
-            estimator = bench_estimator(mode, "cpu")
+            estimator = bench_estimator(mode, "cpu", distortion=distortion)
             for batch in (1, 64):
                 segs, sizes = [pool[i % 8] for i in range(batch)], [(640, 480)] * batch
                 estimator.calibrate_segments(segs[:2], sizes[:2])
@@ -78,10 +80,12 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--cache", type=Path, default=Path("/tmp/fr_speed_ab.segments.npz"))
+    parser.add_argument("--distortion", choices=("pinhole", "division"), default="pinhole")
     parser.add_argument("--measure", help=argparse.SUPPRESS)  # internal: one process's figures
     args = parser.parse_args()
     if args.measure:
-        print(json.dumps(measure(args.threads, args.measure, args.cache)))
+        distortion = None if args.distortion == "pinhole" else args.distortion
+        print(json.dumps(measure(args.threads, args.measure, args.cache, distortion)))
         return
     figures = collections.defaultdict(lambda: collections.defaultdict(list))
     loads = []
@@ -93,11 +97,13 @@ def main() -> None:
                                                                    os.environ.get("PYTHONPATH", "")]))
                 done = subprocess.run([sys.executable, __file__, "--before", args.before, "--after", args.after,
                                        "--threads", str(args.threads), "--cache", str(args.cache),
-                                       "--measure", what], capture_output=True, text=True, env=env, check=True)
+                                       "--distortion", args.distortion, "--measure", what],
+                                      capture_output=True, text=True, env=env, check=True)
                 for row, values in json.loads(done.stdout.strip().splitlines()[-1]).items():
                     for key, value in values.items():
                         figures[(row, key)][name].append(value)
-    print(f"{args.rounds} rounds, {args.threads} threads, load average {min(loads):.1f}-{max(loads):.1f}\n")
+    print(f"{args.rounds} rounds, {args.threads} threads, {args.distortion}, "
+          f"load average {min(loads):.1f}-{max(loads):.1f}\n")
     print("| | measure | before | after | ratio |\n| --- | --- | --- | --- | --- |")
     for (row, key), values in figures.items():
         before, after = statistics.median(values["before"]), statistics.median(values["after"])

@@ -1,15 +1,19 @@
 /* Fused measure-b scoring (fr_measure_b_scores), the refinement's objective with its gradient
- * (fr_measure_b_grad) and the refinement loop (fr_measure_b_refine):
- * fr_torch/core/likelihood/native.py builds, checks and calls this file.
+ * (fr_measure_b_grad) and the refinement loop, with or without the division model's k
+ * (fr_measure_b_refine): fr_torch/core/likelihood/native.py builds, checks and calls this file.
  *
  * Every value is the torch path's (fr_torch/core/likelihood/objective.py: objective_b_nograd,
- * measure_b_forward / measure_b_backward) bit for bit:
+ * measure_b_forward / measure_b_backward; fr_torch/core/search/refine.py and lens.py for the loop)
+ * bit for bit:
  * the same IEEE float32 operations in the same order (compiled with -ffp-contract=off, no fast
  * math), and atan / exp / log / sin / cos / sqrt through the same MKL VML routines torch's CPU
  * kernels call (their addresses are passed in by the caller).  Only the sum over segments is done differently: each
  * term is rounded to the image's fixed-point grid (fr_torch/core/exact.py, exact_sum) and the
  * integers are added in double, where every order gives the same sum.  The per-segment deviations
  * are never stored: a tile of hypotheses is scored a few segments at a time in small buffers.
+ * `#pragma GCC ivdep` marks loops that write only arrays they do not read: GCC's run-time checks for
+ * their many input streams would exceed its limit and leave them unvectorised (the values are the
+ * same either way; other compilers ignore the pragma).
  */
 #include <float.h>
 #include <math.h>
@@ -160,16 +164,17 @@ typedef struct {
     float *s, *t, *x, *e;       /* (rows, 3H): incidence s, t; atan; exp */
     float *a, *d;               /* (3H): each column's -1/lambda and log(prior/lambda) */
     float *gs, *gt;             /* (3H): a segment's d obj / d s and d obj / d t */
+    float *grid;                /* (3H): each column's fixed-point grid (exact_columns) */
     float *p, *g;               /* (rows, H): p_i then log p_i; w_i / p_i * grad_out */
     float *terms;               /* (3, N, 3H): each coordinate's gradient terms */
-    double *acc;                /* (H) */
+    double *acc;                /* (H) the objective's exact sum; NULL: the gradient alone */
 } grad_work;
 
 static int64_t grad_rows(int64_t hyp) { return CALL / (3 * hyp) > 1 ? CALL / (3 * hyp) : 1; }
 
 static size_t grad_floats(int64_t n_seg, int64_t hyp) {
     const int64_t width = 3 * hyp, cells = grad_rows(hyp) * width;
-    return (size_t)(4 * cells + 4 * width + 2 * grad_rows(hyp) * hyp + 3 * n_seg * width + 1);
+    return (size_t)(4 * cells + 5 * width + 2 * grad_rows(hyp) * hyp + 3 * n_seg * width + 1);
 }
 
 static void grad_work_carve(grad_work *w, float *block, double *acc, int64_t hyp) {
@@ -178,21 +183,32 @@ static void grad_work_carve(grad_work *w, float *block, double *acc, int64_t hyp
     const int64_t cells = w->rows * width;
     w->s = block; w->t = w->s + cells; w->x = w->t + cells; w->e = w->x + cells;
     w->a = w->e + cells; w->d = w->a + width; w->gs = w->d + width; w->gt = w->gs + width;
-    w->p = w->gt + width; w->g = w->p + w->rows * hyp; w->terms = w->g + w->rows * hyp;
+    w->grid = w->gt + width; w->p = w->grid + width; w->g = w->p + w->rows * hyp; w->terms = w->g + w->rows * hyp;
     w->acc = acc;
 }
 
 /* Pass 1 of one image's objective and gradient for its `hyp` hypotheses: measure_b_forward and the
  * terms of measure_b_backward (fr_torch/core/likelihood/objective.py) bit for bit.
  *
- * fb (3, 3H) VP-major vanishing points; lines / alongs (N, 3); weight_b, factor_b (N); go (H)
- * the upstream gradient.  Leaves sum_i round(log p_i * factor_i) in w->acc (H), every gradient
- * term in w->terms and raises largest[c] to the magnitude bits of coordinate c's largest |term|. */
-static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical,
-                       const float *lines, const float *alongs, const float *weight_b, const float *factor_b,
-                       const float *fb, const float *coef, float background, float floor_value, const float *go,
-                       vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, uint32_t largest[3]) {
-    const int64_t width = 3 * hyp, rows = w->rows;
+ * rows: the segments' N line rows then N along rows (SegmentFeatures.line_along), 3 coefficients
+ * each, shared by the hypotheses ((2N, 3): coefficient c of row i at rows[3 i + c]) or, with `own`,
+ * each hypothesis' own ((2N, 3, H): at rows[(3 i + c) H + h]; the division model's virtual images,
+ * one per hypothesis).  fb (3, 3H) VP-major vanishing points; weight_b, factor_b (N); go (H) the
+ * upstream gradient.  Leaves sum_i round(log p_i * factor_i) in w->acc (H) (nothing without w->acc;
+ * factor_b is then not read), every gradient term in w->terms and raises largest (3, 3H) to the
+ * magnitude bits of each coordinate's and column's largest |term|.
+ *
+ * With `own` also line_grad (2N, 3, H): measure_b_backward with the vanishing points, d obj / d rows
+ * (each hypothesis' sum over its 3 columns, VP 0 to 2), after that pass has dropped the terms below
+ * float's normal range (|common| < FLT_MIN -> 0).  Inlined twice (grad_terms): a constant `own`
+ * leaves each loop contiguous or its coefficients loop-invariant. */
+static inline __attribute__((always_inline)) void
+grad_terms_of(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, const float *rows, const int own,
+              const float *weight_b, const float *factor_b, const float *fb, const float *coef, float background,
+              float floor_value, const float *go, vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, uint32_t *largest,
+              float *line_grad) {
+    const int64_t width = 3 * hyp, chunk = w->rows, stride = own ? hyp : 1;  /* between coefficients */
+    const float *along_rows = rows + 3 * n_seg * stride;
     float *s = w->s, *t = w->t, *x = w->x, *e = w->e, *a = w->a, *d = w->d, *gs = w->gs, *gt = w->gt;
     float *p = w->p, *g = w->g, *terms = w->terms;
     double *acc = w->acc;
@@ -200,19 +216,27 @@ static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t v
         for (int64_t h = 0; h < hyp; h++) { a[k * hyp + h] = coef[2 * k]; d[k * hyp + h] = coef[2 * k + 1]; }
     int horizontal[2], q = 0;
     for (int k = 0; k < 3; k++) if (k != vertical) horizontal[q++] = k;
-    for (int64_t h = 0; h < hyp; h++) acc[h] = 0.0;
-    for (int64_t i0 = 0; i0 < n_seg; i0 += rows) {
-        const int64_t count = n_seg - i0 < rows ? n_seg - i0 : rows;
+    if (acc != NULL)
+        for (int64_t h = 0; h < hyp; h++) acc[h] = 0.0;
+    for (int64_t i0 = 0; i0 < n_seg; i0 += chunk) {
+        const int64_t count = n_seg - i0 < chunk ? n_seg - i0 : chunk;
         for (int64_t r = 0; r < count; r++) {
-            const float *l = lines + 3 * (i0 + r), *m = alongs + 3 * (i0 + r);
-            for (int64_t j = 0; j < width; j++) {
-                float sj = l[0] * fb[j] + l[1] * fb[width + j];
-                sj = sj + l[2] * fb[2 * width + j];
-                float tj = m[0] * fb[j] + m[1] * fb[width + j];
-                tj = tj + m[2] * fb[2 * width + j];
-                s[r * width + j] = sj;
-                t[r * width + j] = tj;
-                x[r * width + j] = ratio(sj, tj);
+            const float *l = rows + 3 * (i0 + r) * stride, *m = along_rows + 3 * (i0 + r) * stride;
+            const float *l1 = l + stride, *l2 = l1 + stride, *m1 = m + stride, *m2 = m1 + stride;
+            for (int k = 0; k < 3; k++) {
+                const float *f0 = fb + k * hyp, *f1 = f0 + width, *f2 = f1 + width;
+                float *sr = s + r * width + k * hyp, *tr = t + r * width + k * hyp, *xr = x + r * width + k * hyp;
+#pragma GCC ivdep
+                for (int64_t h = 0; h < hyp; h++) {
+                    const int64_t o = own ? h : 0;
+                    float sj = l[o] * f0[h] + l1[o] * f1[h];
+                    sj = sj + l2[o] * f2[h];
+                    float tj = m[o] * f0[h] + m1[o] * f1[h];
+                    tj = tj + m2[o] * f2[h];
+                    sr[h] = sj;
+                    tr[h] = tj;
+                    xr[h] = ratio(sj, tj);
+                }
             }
         }
         v_atan((int)(count * width), x, x);
@@ -233,14 +257,16 @@ static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t v
                 g[r * hyp + h] = (wi / sum) * go[h];
             }
         }
-        v_ln((int)(count * hyp), p, p);  /* p is log p from here on */
-        for (int64_t r = 0; r < count; r++) {
-            const float f = factor_b[i0 + r];
-            for (int64_t h = 0; h < hyp; h++) acc[h] += (double)round_even(p[r * hyp + h] * f);
+        if (acc != NULL) {
+            v_ln((int)(count * hyp), p, p);  /* p is log p from here on */
+            for (int64_t r = 0; r < count; r++) {
+                const float f = factor_b[i0 + r];
+                for (int64_t h = 0; h < hyp; h++) acc[h] += (double)round_even(p[r * hyp + h] * f);
+            }
         }
         for (int64_t r = 0; r < count; r++) {
             const int64_t i = i0 + r;
-            const float *l = lines + 3 * i, *m = alongs + 3 * i;
+            const float *l = rows + 3 * i * stride, *m = along_rows + 3 * i * stride;
             const float *sr = s + r * width, *tr = t + r * width, *er = e + r * width;
             for (int k = 0; k < 3; k++)  /* each VP's block of columns takes the hypothesis' g */
                 for (int64_t h = 0; h < hyp; h++) gs[k * hyp + h] = g[r * hyp + h];
@@ -252,41 +278,88 @@ static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t v
                 common = common * gs[j];
                 common = common * sign_of(sj * tj);
                 common = common / r2;
+                if (own && fabsf(common) < FLT_MIN) common = 0.0f;  /* masked_fill_; NaN stays NaN */
                 gs[j] = common * tj;
                 gt[j] = -(common * sj);
             }
             for (int c = 0; c < 3; c++) {
+                const float *lc = l + c * stride, *mc = m + c * stride;
                 float *row = terms + (c * n_seg + i) * width;
-                const float lc = l[c], mc = m[c];
-                uint32_t top = largest[c];
-                for (int64_t j = 0; j < width; j++) {
-                    const float term = lc * gs[j] + mc * gt[j];
-                    row[j] = term;
-                    const uint32_t bits = magnitude_bits(term);
-                    top = bits > top ? bits : top;
-                }
-                largest[c] = top;
+                uint32_t *top = largest + c * width;
+                for (int k = 0; k < 3; k++)
+#pragma GCC ivdep
+                    for (int64_t h = 0; h < hyp; h++) {
+                        const int64_t j = k * hyp + h, o = own ? h : 0;
+                        const float term = lc[o] * gs[j] + mc[o] * gt[j];
+                        row[j] = term;
+                        const uint32_t bits = magnitude_bits(term);
+                        top[j] = bits > top[j] ? bits : top[j];
+                    }
             }
+            if (own)
+                for (int c = 0; c < 3; c++) {
+                    const float *f0 = fb + c * width, *f1 = f0 + hyp, *f2 = f1 + hyp;
+                    float *line_c = line_grad + (3 * i + c) * hyp, *along_c = line_grad + (3 * (n_seg + i) + c) * hyp;
+#pragma GCC ivdep
+                    for (int64_t h = 0; h < hyp; h++) {
+                        float sum = gs[h] * f0[h] + gs[hyp + h] * f1[h];
+                        line_c[h] = sum + gs[2 * hyp + h] * f2[h];
+                        sum = gt[h] * f0[h] + gt[hyp + h] * f1[h];
+                        along_c[h] = sum + gt[2 * hyp + h] * f2[h];
+                    }
+                }
         }
     }
 }
 
+static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, const float *rows, int own,
+                       const float *weight_b, const float *factor_b, const float *fb, const float *coef,
+                       float background, float floor_value, const float *go, vml_fn v_atan, vml_fn v_exp,
+                       vml_fn v_ln, uint32_t *largest, float *line_grad) {
+    if (own)
+        grad_terms_of(w, n_seg, hyp, vertical, rows, 1, weight_b, factor_b, fb, coef, background, floor_value, go,
+                      v_atan, v_exp, v_ln, largest, line_grad);
+    else
+        grad_terms_of(w, n_seg, hyp, vertical, rows, 0, weight_b, factor_b, fb, coef, background, floor_value, go,
+                      v_atan, v_exp, v_ln, largest, NULL);
+}
+
+/* Column sums of terms (rows, width) into out (width) double, each exact on the grid set by its
+ * largest |term| (`largest` (width), magnitude bits): fr_torch/core/exact.py, exact_sum with that
+ * bound.  grid (width): scratch. */
+static void exact_columns(const float *terms, int64_t rows, int64_t width, const uint32_t *largest, float *grid,
+                          double *out) {
+    for (int64_t j = 0; j < width; j++) {
+        union { uint32_t u; float f; } top = {largest[j]};
+        grid[j] = (float)fixed_point_scale(top.f);  /* a power of two (NaN for a NaN term, as torch's amax) */
+        out[j] = 0.0;
+    }
+    for (int64_t i = 0; i < rows; i++) {
+        const float *row = terms + i * width;
+        for (int64_t j = 0; j < width; j++) out[j] += (double)round_even(row[j] * grid[j]);
+    }
+    for (int64_t j = 0; j < width; j++) out[j] = out[j] / (double)grid[j];
+}
+
 /* Pass 2: d objective / d fb (3, 3H) double into out, each coordinate's sum over segments exact on
- * the grid set by the image's largest |term| of that coordinate (`largest`, over every hypothesis
- * of the image). */
-static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, const uint32_t largest[3], double *out) {
+ * the grid set by its largest |term| (largest (3, 3H) from grad_terms, overwritten): over every
+ * hypothesis of the image, or with `own` over each hypothesis' 3 columns (one virtual image each). */
+static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, int own, uint32_t *largest, double *out) {
     const int64_t width = 3 * hyp;
     for (int c = 0; c < 3; c++) {
-        union { uint32_t u; float f; } top = {largest[c]};
-        const double grid = fixed_point_scale(top.f);  /* NaN when a term is NaN, as torch's amax */
-        const float grid32 = (float)grid;
-        double *o = out + c * width;
-        for (int64_t j = 0; j < width; j++) o[j] = 0.0;
-        for (int64_t i = 0; i < n_seg; i++) {
-            const float *row = w->terms + (c * n_seg + i) * width;
-            for (int64_t j = 0; j < width; j++) o[j] += (double)round_even(row[j] * grid32);
+        uint32_t *top = largest + c * width;
+        if (own)
+            for (int64_t h = 0; h < hyp; h++) {
+                uint32_t most = top[h] > top[hyp + h] ? top[h] : top[hyp + h];
+                most = most > top[2 * hyp + h] ? most : top[2 * hyp + h];
+                top[h] = top[hyp + h] = top[2 * hyp + h] = most;
+            }
+        else {
+            uint32_t most = 0;
+            for (int64_t j = 0; j < width; j++) most = top[j] > most ? top[j] : most;
+            for (int64_t j = 0; j < width; j++) top[j] = most;
         }
-        for (int64_t j = 0; j < width; j++) o[j] = o[j] / grid;
+        exact_columns(w->terms + c * n_seg * width, n_seg, width, top, w->grid, out + c * width);
     }
 }
 
@@ -296,7 +369,8 @@ static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, const uint
  * Images [first, last) of the batch; hyp hypotheses each (columns k * hyp + h of flat (B, 3, 3H));
  * weight (B, N), factor (B, N) and scale (B,) as for fr_measure_b_scores; grad_out (B, H) float32.
  * objective (B, H) double; grad (B, 3, 3H) double: d objective / d flat, each coordinate's sum over
- * segments exact on the grid set by the image's largest |term| of that coordinate. */
+ * segments exact on the grid set by the image's largest |term| of that coordinate.  Returns 1 when
+ * out of memory. */
 int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, int64_t vertical,
                       const float *line_along, const float *weight, const float *factor, const double *scale,
                       const float *flat, const float *coef, float background, float floor_value,
@@ -304,20 +378,21 @@ int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, i
                       double *objective, double *grad) {
     float *block = malloc(sizeof(float) * grad_floats(n_seg, hyp));
     double *acc = malloc(sizeof(double) * (size_t)(hyp + 1));
-    if (block == NULL || acc == NULL) { free(block); free(acc); return 1; }
+    uint32_t *largest = malloc(sizeof(uint32_t) * (size_t)(9 * hyp));
+    if (block == NULL || acc == NULL || largest == NULL) { free(block); free(acc); free(largest); return 1; }
     grad_work w;
     grad_work_carve(&w, block, acc, hyp);
     for (int64_t b = first; b < last; b++) {
-        const float *lines = line_along + b * 2 * n_seg * 3;
-        uint32_t largest[3] = {0, 0, 0};
-        grad_terms(&w, n_seg, hyp, vertical, lines, lines + n_seg * 3, weight + b * n_seg, factor + b * n_seg,
-                   flat + b * 9 * hyp, coef, background, floor_value, grad_out + b * hyp, v_atan, v_exp, v_ln,
-                   largest);
+        for (int64_t j = 0; j < 9 * hyp; j++) largest[j] = 0;
+        grad_terms(&w, n_seg, hyp, vertical, line_along + b * 2 * n_seg * 3, 0, weight + b * n_seg,
+                   factor + b * n_seg, flat + b * 9 * hyp, coef, background, floor_value, grad_out + b * hyp, v_atan,
+                   v_exp, v_ln, largest, NULL);
         for (int64_t h = 0; h < hyp; h++) objective[b * hyp + h] = acc[h] / scale[b];
-        grad_sums(&w, n_seg, hyp, largest, grad + b * 9 * hyp);
+        grad_sums(&w, n_seg, hyp, 0, largest, grad + b * 9 * hyp);
     }
     free(block);
     free(acc);
+    free(largest);
     return 0;
 }
 
@@ -326,144 +401,301 @@ int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, i
 
 #define DEG2RAD 0.017453292519943295f   /* (float)(pi / 180): torch.deg2rad of a float tensor */
 
-/* Floats of the workspace fr_measure_b_refine needs for images of `hyp` hypotheses (doubles
- * counted as two floats, first in the block). */
-int64_t fr_refine_work_floats(int64_t n_seg, int64_t hyp) {
-    return 2 * (10 * hyp + 1) + (int64_t)grad_floats(n_seg, hyp) + 43 * hyp;
+/* The division model's segments of one image at each of `hyp` values of k: SegmentGeometry.features(k,
+ * derivative=True) (fr_torch/core/search/lens.py), bit for bit.
+ *
+ * k (H); centre (2) the distortion centre, pixels; offset (2N, 2) the endpoints' offsets from it (the
+ * N first endpoints, then the N second ones), rho (2N) their r^2 in units of the normalising
+ * radius^2 (SegmentGeometry.offsets).  rows (2N, 3, H): the undistorted segments' line then along
+ * rows (SegmentFeatures.line_along) under each k, coefficient c of row i for k[h] at
+ * rows[(3 i + c) H + h]; d_rows (2N, 3, H) their derivatives with respect to k; length: (N, H) scratch. */
+static void undistorted_rows(int64_t n_seg, int64_t hyp, const float *k, const float *centre, const float *offset,
+                             const float *rho, vml_fn v_sqrt, float *length, float *rows, float *d_rows) {
+    const float min_length = (float)1e-12;  /* clamp_min(1e-12) of a float tensor */
+    for (int64_t i = 0; i < n_seg; i++) {
+        const float *oa = offset + 2 * i, *ob = offset + 2 * (n_seg + i);
+        const float ra = rho[i], rb = rho[n_seg + i];
+#pragma GCC ivdep
+        for (int64_t h = 0; h < hyp; h++) {  /* undistorted = centre + factor * offset */
+            const float factor_a = 1.0f / (1.0f + k[h] * ra), factor_b = 1.0f / (1.0f + k[h] * rb);
+            const float dx = ob[0] * factor_b - oa[0] * factor_a, dy = ob[1] * factor_b - oa[1] * factor_a;
+            length[i * hyp + h] = dx * dx + dy * dy;
+        }
+    }
+    v_sqrt((int)(n_seg * hyp), length, length);  /* torch's sqrt of float32: MKL's */
+    for (int64_t i = 0; i < n_seg; i++) {
+        const int64_t a = i, b = n_seg + i;
+        const float *oa = offset + 2 * a, *ob = offset + 2 * b;
+        const float ra = rho[a], rb = rho[b];
+        float *line = rows + 3 * a * hyp, *along = rows + 3 * b * hyp;
+        float *d_line = d_rows + 3 * a * hyp, *d_along = d_rows + 3 * b * hyp;
+#pragma GCC ivdep
+        for (int64_t h = 0; h < hyp; h++) {
+            const float factor_a = 1.0f / (1.0f + k[h] * ra), factor_b = 1.0f / (1.0f + k[h] * rb);
+            const float qa_x = oa[0] * factor_a, qa_y = oa[1] * factor_a;
+            const float qb_x = ob[0] * factor_b, qb_y = ob[1] * factor_b;
+            const float delta_x = qb_x - qa_x, delta_y = qb_y - qa_y;
+            const float clamped = length[i * hyp + h] < min_length ? min_length : length[i * hyp + h];
+            const float inv_length = 1.0f / clamped;  /* NaN stays NaN */
+            const float dx = delta_x * inv_length, dy = delta_y * inv_length;
+            const float mx = centre[0] + (qa_x + qb_x) * 0.5f, my = centre[1] + (qa_y + qb_y) * 0.5f;
+            line[h] = -dy; line[hyp + h] = dx; line[2 * hyp + h] = dy * mx - dx * my;
+            along[h] = dx; along[hyp + h] = dy; along[2 * hyp + h] = -(dx * mx + dy * my);
+            const float ca = (-ra * factor_a) * factor_a, cb = (-rb * factor_b) * factor_b;  /* dq / dk = offset * ca */
+            const float dqa_x = oa[0] * ca, dqa_y = oa[1] * ca, dqb_x = ob[0] * cb, dqb_y = ob[1] * cb;
+            const float dd_x = dqb_x - dqa_x, dd_y = dqb_y - dqa_y;
+            const float along_dd = dx * dd_x + dy * dd_y;
+            const float ddx = (dd_x - dx * along_dd) * inv_length, ddy = (dd_y - dy * along_dd) * inv_length;
+            const float dmx = (dqa_x + dqb_x) * 0.5f, dmy = (dqa_y + dqb_y) * 0.5f;
+            float sum = ddy * mx + dy * dmx;
+            sum = sum - ddx * my;
+            d_line[h] = -ddy; d_line[hyp + h] = ddx; d_line[2 * hyp + h] = sum - dx * dmy;
+            sum = ddx * mx + dx * dmx;
+            sum = sum + ddy * my;
+            d_along[h] = ddx; d_along[hyp + h] = ddy; d_along[2 * hyp + h] = -(sum + dy * dmy);
+        }
+    }
+}
+
+/* What every work item of fr_measure_b_refine shares: its arguments. */
+typedef struct {
+    int64_t n_seg, vertical, iterations, params;
+    const float *line_along, *weight, *coef;
+    float background, floor_value;
+    const float *grad_out, *pp, *lower, *span, *prior;
+    float prior_centre, prior_flat;
+    const float *steps;
+    float beta1, one_minus_beta1, beta2, one_minus_beta2, eps, grad_bound;
+    int64_t periodic_pan;
+    const float *offset, *rho, *k_slope;  /* the division model; offset NULL without it */
+    vml_fn v_atan, v_exp, v_ln, v_sin, v_cos, v_sqrt;
+} refine_setup;
+
+/* fr_measure_b_refine's workspace for an image of H hypotheses (refine_work_carve). */
+typedef struct {
+    double *grad, *grad_k;                /* (3, 3H) d obj / d V, VP-major; (H) d obj / dk */
+    uint32_t *largest;                    /* (3, 3H) the gradient terms' largest magnitudes */
+    grad_work pass;                       /* the gradient pass */
+    float *rad, *cosv, *sinv;             /* (H, 3) */
+    float *focal, *logf, *logr, *k, *go;  /* (H) */
+    float *flat, *rot;                    /* (3, 3H) VP-major; (H, 9) */
+    float *m1, *m2, *root;                /* (H, P) Adam's moments, sqrt of the second */
+    float *rows, *d_rows, *line_grad;     /* (2N, 3, H) each hypothesis' segments, d / dk, d obj / d rows */
+    float *k_terms, *length;              /* (2N, H); (N, H) */
+} refine_work;
+
+/* Carves `block` (may be NULL: sizes only) into w for images of `hyp` hypotheses with `params`
+ * parameters (5: the division model's buffers too); returns the floats used (doubles first, two
+ * floats each). */
+static int64_t refine_work_carve(refine_work *w, float *block, int64_t n_seg, int64_t hyp, int64_t params) {
+    const int64_t lens = params == 5 ? 1 : 0;
+    int64_t at = 0;
+#define TAKE_AS(type, ptr, n) do { (ptr) = block != NULL ? (type *)(block + at) : NULL; at += (n); } while (0)
+    TAKE_AS(double, w->grad, 2 * 9 * hyp);
+    TAKE_AS(double, w->grad_k, 2 * hyp);
+    TAKE_AS(uint32_t, w->largest, 9 * hyp);
+    if (block != NULL) grad_work_carve(&w->pass, block + at, NULL, hyp);
+    at += (int64_t)grad_floats(n_seg, hyp);
+    TAKE_AS(float, w->rad, 3 * hyp); TAKE_AS(float, w->cosv, 3 * hyp); TAKE_AS(float, w->sinv, 3 * hyp);
+    TAKE_AS(float, w->focal, hyp); TAKE_AS(float, w->logf, hyp); TAKE_AS(float, w->logr, hyp);
+    TAKE_AS(float, w->k, hyp); TAKE_AS(float, w->go, hyp);
+    TAKE_AS(float, w->flat, 9 * hyp); TAKE_AS(float, w->rot, 9 * hyp);
+    TAKE_AS(float, w->m1, params * hyp); TAKE_AS(float, w->m2, params * hyp); TAKE_AS(float, w->root, params * hyp);
+    TAKE_AS(float, w->rows, lens * 6 * n_seg * hyp); TAKE_AS(float, w->d_rows, lens * 6 * n_seg * hyp);
+    TAKE_AS(float, w->line_grad, lens * 6 * n_seg * hyp);
+    TAKE_AS(float, w->k_terms, lens * 2 * n_seg * hyp); TAKE_AS(float, w->length, lens * n_seg * hyp);
+#undef TAKE_AS
+    return at;
+}
+
+/* Floats of the workspace fr_measure_b_refine needs per thread for images of `hyp` hypotheses with
+ * `params` (4 or 5) parameters. */
+int64_t fr_refine_work_floats(int64_t n_seg, int64_t hyp, int64_t params) {
+    refine_work w = {0};
+    return refine_work_carve(&w, NULL, n_seg, hyp, params);
+}
+
+/* d obj / dk of hypotheses [0, count) of image b into w->grad_k (double, as torch's float64 sums),
+ * from d obj / d rows (w->line_grad) and d rows / dk (w->d_rows): each hypothesis' exact sum over
+ * its 2N rows of their dot products (fr_torch/core/search/refine.py, objective_and_grad with a
+ * geometry), plus the prior on k's share. */
+static void division_k_gradient(const refine_setup *s, const refine_work *w, int64_t b, int64_t count) {
+    uint32_t *top = w->largest;
+    for (int64_t h = 0; h < count; h++) top[h] = 0;
+    for (int64_t i = 0; i < 2 * s->n_seg; i++) {
+        const float *gl = w->line_grad + 3 * i * count, *dl = w->d_rows + 3 * i * count;
+        float *terms = w->k_terms + i * count;
+#pragma GCC ivdep
+        for (int64_t h = 0; h < count; h++) {
+            float term = gl[h] * dl[h] + gl[count + h] * dl[count + h];
+            term = term + gl[2 * count + h] * dl[2 * count + h];
+            terms[h] = term;
+            const uint32_t bits = magnitude_bits(term);
+            top[h] = bits > top[h] ? bits : top[h];
+        }
+    }
+    exact_columns(w->k_terms, 2 * s->n_seg, count, top, w->pass.grid, w->grad_k);
+    if (s->k_slope != NULL)
+        for (int64_t h = 0; h < count; h++) {
+            const float d_prior = s->k_slope[b] * w->k[h];
+            w->grad_k[h] = w->grad_k[h] + (double)(w->go[h] * d_prior);
+        }
+}
+
+/* Every step of image b's hypotheses ub (count, P), stepped in place (the comment of
+ * fr_measure_b_refine). */
+static void refine_hypotheses(const refine_setup *s, const refine_work *w, int64_t b, int64_t count, float *ub) {
+    const int64_t n_seg = s->n_seg, P = s->params, width = 3 * count;
+    const int lens = s->offset != NULL;
+    const float *lo = s->lower + P * b, *sp_ = s->span + P * b, *pp = s->pp + 2 * b, *prior = s->prior;
+    const float *rows = lens ? w->rows : s->line_along + b * 2 * n_seg * 3;
+    double *grad = w->grad;
+    float *rad = w->rad, *cosv = w->cosv, *sinv = w->sinv, *focal = w->focal, *logf = w->logf, *logr = w->logr;
+    float *flat = w->flat, *rot = w->rot, *m1 = w->m1, *m2 = w->m2, *root = w->root, *go = w->go;
+    for (int64_t j = 0; j < P * count; j++) { m1[j] = 0.0f; m2[j] = 0.0f; }
+    for (int64_t h = 0; h < count; h++) go[h] = s->grad_out[b];
+    for (int64_t step = 0; step < s->iterations; step++) {
+        for (int64_t h = 0; h < count; h++) {
+            const float *uh = ub + P * h;
+            for (int k = 0; k < 3; k++) rad[3 * h + k] = (lo[k] + uh[k] * sp_[k]) * DEG2RAD;
+            logf[h] = lo[3] + uh[3] * sp_[3];
+            if (lens) w->k[h] = lo[4] + uh[4] * sp_[4];
+        }
+        s->v_cos((int)(3 * count), rad, cosv);
+        s->v_sin((int)(3 * count), rad, sinv);
+        s->v_exp((int)count, logf, focal);
+        for (int64_t h = 0; h < count; h++) {
+            const float cp = cosv[3 * h], ct = cosv[3 * h + 1], cr = cosv[3 * h + 2];
+            const float sp = sinv[3 * h], st = sinv[3 * h + 1], sr = sinv[3 * h + 2];
+            const float spst = sp * st, cpst = cp * st;
+            float *r = rot + 9 * h;  /* rotation_from_cos_sin: row i of R */
+            r[0] = cp * cr + spst * sr; r[1] = ct * sr; r[2] = cpst * sr - sp * cr;
+            r[3] = spst * cr - cp * sr; r[4] = ct * cr; r[5] = sp * sr + cpst * cr;
+            r[6] = sp * ct; r[7] = -st; r[8] = cp * ct;
+            for (int j = 0; j < 3; j++) {
+                flat[0 * width + j * count + h] = focal[h] * r[j] + pp[0] * r[6 + j];
+                flat[1 * width + j * count + h] = focal[h] * r[3 + j] + pp[1] * r[6 + j];
+                flat[2 * width + j * count + h] = r[6 + j];
+            }
+        }
+        if (lens)  /* each hypothesis' segments undistorted with its k */
+            undistorted_rows(n_seg, count, w->k, pp, s->offset + 4 * b * n_seg, s->rho + 2 * b * n_seg, s->v_sqrt,
+                             w->length, w->rows, w->d_rows);
+        for (int64_t j = 0; j < 9 * count; j++) w->largest[j] = 0;
+        grad_terms(&w->pass, n_seg, count, s->vertical, rows, lens, s->weight + b * n_seg, NULL, flat, s->coef,
+                   s->background, s->floor_value, go, s->v_atan, s->v_exp, s->v_ln, w->largest, w->line_grad);
+        grad_sums(&w->pass, n_seg, count, lens, w->largest, grad);
+        if (lens) division_k_gradient(s, w, b, count);
+        if (prior != NULL) {
+            for (int64_t h = 0; h < count; h++) logr[h] = focal[h] / prior[2 * b + 1];
+            s->v_ln((int)count, logr, logr);
+        }
+        const float step_bias = s->steps[2 * step], step_lr = s->steps[2 * step + 1];
+        for (int64_t h = 0; h < count; h++) {
+            const float cp = cosv[3 * h], sp = sinv[3 * h];
+            const float *r = rot + 9 * h;
+            float v[9], g[9];  /* V = K R and d obj / d V, [coordinate][VP] */
+            for (int c = 0; c < 3; c++)
+                for (int j = 0; j < 3; j++) {
+                    v[3 * c + j] = flat[c * width + j * count + h];
+                    g[3 * c + j] = (float)grad[c * width + j * count + h];
+                }
+            float row0 = g[0] * r[0] + g[1] * r[1];
+            row0 = row0 + g[2] * r[2];
+            float row1 = g[3] * r[3] + g[4] * r[4];
+            row1 = row1 + g[5] * r[5];
+            float grad_f = row0 + row1;
+            if (prior != NULL) {
+                float offset = logr[h] - s->prior_centre;
+                if (s->prior_flat != 0.0f) {
+                    float excess = fabsf(offset) - s->prior_flat;
+                    excess = excess < 0.0f ? 0.0f : excess;  /* clamp_min(0); NaN stays NaN */
+                    offset = sign_of(offset) * excess;
+                }
+                const float d_prior = (-prior[2 * b] * offset) / focal[h];
+                grad_f = grad_f + go[h] * d_prior;
+            }
+            float m[9];  /* V.T G */
+            for (int i = 0; i < 3; i++)
+                for (int k = 0; k < 3; k++) {
+                    float x = v[i] * g[k] + v[3 + i] * g[3 + k];
+                    m[3 * i + k] = x + v[6 + i] * g[6 + k];
+                }
+            const float axial0 = m[7] - m[5], axial1 = m[2] - m[6], axial2 = m[3] - m[1];
+            const float grad_pitch = cp * axial0 - sp * axial2;
+            float grad_roll = r[6] * axial0 + r[7] * axial1;
+            grad_roll = grad_roll + r[8] * axial2;
+            const float NEG_DEG = -DEG2RAD;
+            const float gp[4] = {axial1 * NEG_DEG, grad_pitch * NEG_DEG, grad_roll * NEG_DEG, grad_f * focal[h]};
+            float gu[5];  /* the gradient in box units; k's product in double, as torch's float64 column */
+            for (int k = 0; k < 4; k++) gu[k] = gp[k] * sp_[k];
+            if (lens) gu[4] = (float)(w->grad_k[h] * (double)sp_[4]);
+            float *m1h = m1 + P * h, *m2h = m2 + P * h;
+            for (int k = 0; k < P; k++) {
+                float gk = gu[k];
+                if (!(sp_[k] > 0.0f)) gk = 0.0f;                       /* a fixed side */
+                if (gk != gk || gk > FLT_MAX || gk < -FLT_MAX) gk = 0.0f; /* nan_to_num(0, 0, 0) */
+                gk = gk < -s->grad_bound ? -s->grad_bound : (gk > s->grad_bound ? s->grad_bound : gk);
+                m1h[k] = m1h[k] * s->beta1 + gk * s->one_minus_beta1;
+                m2h[k] = m2h[k] * s->beta2 + (gk * gk) * s->one_minus_beta2;
+            }
+        }
+        s->v_sqrt((int)(P * count), m2, root);  /* torch's sqrt of float32: MKL's, not always IEEE-rounded */
+        for (int64_t h = 0; h < count; h++) {
+            float *uh = ub + P * h;
+            for (int k = 0; k < P; k++) {
+                const float denom = root[P * h + k] / step_bias + s->eps;
+                uh[k] = uh[k] - (m1[P * h + k] / denom) * step_lr;
+            }
+            if (s->periodic_pan) {  /* torch.remainder(u, 1) */
+                float mod = fmodf(uh[0], 1.0f);
+                uh[0] = (mod != 0.0f && mod < 0.0f) ? mod + 1.0f : mod;
+            }
+            for (int k = 0; k < P; k++) {  /* clamp_(0, 1); NaN stays NaN */
+                const float x = uh[k];
+                uh[k] = x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x);
+            }
+        }
+    }
 }
 
 /* fR's refinement (fr_torch/core/search/refine.py: _refine_slice with the analytic gradient,
  * adam_in_box, Adam, objective_and_grad, camera_vps, chain_to_params, the focal prior of
  * fr_torch/core/likelihood/mixture.py) for `iterations` steps in one call, bit for bit.
  *
- * u (B, H, 4) float32: the hypotheses in box units [pan, pitch, roll, log f], stepped in place.
- * lower, span (B, 4): the box (log f); a side with span <= 0 stays fixed.  pp (B, 2) principal
- * points, grad_out (B,) the loss's weight of each image's objective (-1 / its total length).
- * prior (B, 2): the focal prior's curvature weight and the image's long side, or NULL without one;
- * prior_centre, prior_flat its centre (log f / long side) and flat half-width.  steps (iterations, 2):
- * Adam's sqrt(1 - beta2^t) and lr_t / (1 - beta1^t) of step t, as float32.  The other arguments as
- * for fr_measure_b_grad.
+ * u (B, H, P) float32: the hypotheses in box units [pan, pitch, roll, log f] (P = 4), or [pan,
+ * pitch, roll, log f, k] (P = 5: the division model, with offset), stepped in place.
+ * lower, span (B, P): the box (log f); a side with span <= 0 stays fixed.  pp (B, 2) principal
+ * points (the distortion centres), grad_out (B,) the loss's weight of each image's objective (-1 /
+ * its total length).  prior (B, 2): the focal prior's curvature weight and the image's long side, or
+ * NULL without one; prior_centre, prior_flat its centre (log f / long side) and flat half-width.
+ * steps (iterations, 2): Adam's sqrt(1 - beta2^t) and lr_t / (1 - beta1^t) of step t, as float32.
+ * line_along (B, 2N, 3) the segments' rows (P = 4; not read for P = 5), weight (B, N), coef,
+ * background, floor_value as for fr_measure_b_grad.
  *
- * Work: images [first, last); work: fr_refine_work_floats(n_seg, hyp) floats. */
-void fr_measure_b_refine(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, int64_t vertical, int64_t iterations,
-                         const float *line_along, const float *weight, const float *factor,
-                         const float *coef, float background, float floor_value, const float *grad_out,
+ * The division model (SegmentGeometry of fr_torch/core/search/lens.py): offset (B, 2N, 2) and rho
+ * (B, 2N) as for undistorted_rows; k_slope (B,) the prior on k's -gamma W (d log p(k) / dk =
+ * k_slope k), or NULL without it.  Each hypothesis is scored on its own undistorted segments, its
+ * exact sums on its own grids (one virtual image per hypothesis).
+ *
+ * Images [first, last); work: fr_refine_work_floats(n_seg, hyp, P) floats. */
+void fr_measure_b_refine(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, int64_t vertical,
+                         int64_t iterations,
+                         const float *line_along, const float *weight, const float *coef,
+                         float background, float floor_value, const float *grad_out,
                          const float *pp, const float *lower, const float *span, const float *prior,
                          float prior_centre, float prior_flat, const float *steps,
                          float beta1, float one_minus_beta1, float beta2, float one_minus_beta2, float eps,
                          float grad_bound, int64_t periodic_pan,
+                         const float *offset, const float *rho, const float *k_slope,
                          vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, vml_fn v_sin, vml_fn v_cos, vml_fn v_sqrt,
                          float *work, float *u) {
-    double *grad = (double *)work;                 /* (3, 3hp) */
-    double *acc = grad + 9 * hyp;                   /* (hyp) */
-    float *block = work + 2 * (10 * hyp + 1);
-    grad_work w;
-    grad_work_carve(&w, block, acc, hyp);
-    float *rad = block + grad_floats(n_seg, hyp);   /* (hyp, 3) */
-    float *cosv = rad + 3 * hyp, *sinv = cosv + 3 * hyp;
-    float *focal = sinv + 3 * hyp, *logf = focal + hyp, *logr = logf + hyp;
-    float *flat = logr + hyp;                       /* (3, 3hp) VP-major */
-    float *m1 = flat + 9 * hyp, *m2 = m1 + 4 * hyp;  /* Adam's moments (hyp, 4) */
-    float *go = m2 + 4 * hyp, *rot = go + hyp;      /* rot (hyp, 9) */
-    float *root = rot + 9 * hyp;                    /* (hyp, 4) sqrt of the second moments */
-    for (int64_t b = first; b < last; b++) {
-        const float *lines = line_along + b * 2 * n_seg * 3, *lo = lower + 4 * b, *sp_ = span + 4 * b;
-        float *ub = u + b * hyp * 4;
-        for (int64_t j = 0; j < 4 * hyp; j++) { m1[j] = 0.0f; m2[j] = 0.0f; }
-        for (int64_t h = 0; h < hyp; h++) go[h] = grad_out[b];
-        for (int64_t step = 0; step < iterations; step++) {
-            for (int64_t h = 0; h < hyp; h++) {
-                for (int k = 0; k < 3; k++) rad[3 * h + k] = (lo[k] + ub[4 * h + k] * sp_[k]) * DEG2RAD;
-                logf[h] = lo[3] + ub[4 * h + 3] * sp_[3];
-            }
-            v_cos((int)(3 * hyp), rad, cosv);
-            v_sin((int)(3 * hyp), rad, sinv);
-            v_exp((int)hyp, logf, focal);
-            for (int64_t h = 0; h < hyp; h++) {
-                const float cp = cosv[3 * h], ct = cosv[3 * h + 1], cr = cosv[3 * h + 2];
-                const float sp = sinv[3 * h], st = sinv[3 * h + 1], sr = sinv[3 * h + 2];
-                const float spst = sp * st, cpst = cp * st;
-                float *r = rot + 9 * h;  /* rotation_from_cos_sin: row i of R */
-                r[0] = cp * cr + spst * sr; r[1] = ct * sr; r[2] = cpst * sr - sp * cr;
-                r[3] = spst * cr - cp * sr; r[4] = ct * cr; r[5] = sp * sr + cpst * cr;
-                r[6] = sp * ct; r[7] = -st; r[8] = cp * ct;
-                for (int j = 0; j < 3; j++) {
-                    flat[0 * 3 * hyp + j * hyp + h] = focal[h] * r[j] + pp[2 * b] * r[6 + j];
-                    flat[1 * 3 * hyp + j * hyp + h] = focal[h] * r[3 + j] + pp[2 * b + 1] * r[6 + j];
-                    flat[2 * 3 * hyp + j * hyp + h] = r[6 + j];
-                }
-            }
-            uint32_t largest[3] = {0, 0, 0};
-            grad_terms(&w, n_seg, hyp, vertical, lines, lines + n_seg * 3, weight + b * n_seg, factor + b * n_seg,
-                       flat, coef, background, floor_value, go, v_atan, v_exp, v_ln, largest);
-            grad_sums(&w, n_seg, hyp, largest, grad);
-            if (prior != NULL) {
-                for (int64_t h = 0; h < hyp; h++) logr[h] = focal[h] / prior[2 * b + 1];
-                v_ln((int)hyp, logr, logr);
-            }
-            const float step_bias = steps[2 * step], step_lr = steps[2 * step + 1];
-            for (int64_t h = 0; h < hyp; h++) {
-                const float cp = cosv[3 * h], sp = sinv[3 * h];
-                const float *r = rot + 9 * h;
-                float v[9], g[9];  /* V = K R and d obj / d V, [coordinate][VP] */
-                for (int c = 0; c < 3; c++)
-                    for (int j = 0; j < 3; j++) {
-                        v[3 * c + j] = flat[c * 3 * hyp + j * hyp + h];
-                        g[3 * c + j] = (float)grad[c * 3 * hyp + j * hyp + h];
-                    }
-                float row0 = g[0] * r[0] + g[1] * r[1];
-                row0 = row0 + g[2] * r[2];
-                float row1 = g[3] * r[3] + g[4] * r[4];
-                row1 = row1 + g[5] * r[5];
-                float grad_f = row0 + row1;
-                if (prior != NULL) {
-                    float offset = logr[h] - prior_centre;
-                    if (prior_flat != 0.0f) {
-                        float excess = fabsf(offset) - prior_flat;
-                        excess = excess < 0.0f ? 0.0f : excess;  /* clamp_min(0); NaN stays NaN */
-                        offset = sign_of(offset) * excess;
-                    }
-                    const float d_prior = (-prior[2 * b] * offset) / focal[h];
-                    grad_f = grad_f + go[h] * d_prior;
-                }
-                float m[9];  /* V.T G */
-                for (int i = 0; i < 3; i++)
-                    for (int k = 0; k < 3; k++) {
-                        float x = v[i] * g[k] + v[3 + i] * g[3 + k];
-                        m[3 * i + k] = x + v[6 + i] * g[6 + k];
-                    }
-                const float axial0 = m[7] - m[5], axial1 = m[2] - m[6], axial2 = m[3] - m[1];
-                const float grad_pitch = cp * axial0 - sp * axial2;
-                float grad_roll = r[6] * axial0 + r[7] * axial1;
-                grad_roll = grad_roll + r[8] * axial2;
-                const float NEG_DEG = -DEG2RAD;
-                float gp[4] = {axial1 * NEG_DEG, grad_pitch * NEG_DEG, grad_roll * NEG_DEG, grad_f * focal[h]};
-                float *m1h = m1 + 4 * h, *m2h = m2 + 4 * h;
-                for (int k = 0; k < 4; k++) {
-                    float gk = gp[k] * sp_[k];
-                    if (!(sp_[k] > 0.0f)) gk = 0.0f;                       /* a fixed side */
-                    if (gk != gk || gk > FLT_MAX || gk < -FLT_MAX) gk = 0.0f; /* nan_to_num(0, 0, 0) */
-                    gk = gk < -grad_bound ? -grad_bound : (gk > grad_bound ? grad_bound : gk);
-                    m1h[k] = m1h[k] * beta1 + gk * one_minus_beta1;
-                    m2h[k] = m2h[k] * beta2 + (gk * gk) * one_minus_beta2;
-                }
-            }
-            v_sqrt((int)(4 * hyp), m2, root);  /* torch's sqrt of float32: MKL's, not always IEEE-rounded */
-            for (int64_t h = 0; h < hyp; h++) {
-                float *uh = ub + 4 * h;
-                for (int k = 0; k < 4; k++) {
-                    const float denom = root[4 * h + k] / step_bias + eps;
-                    uh[k] = uh[k] - (m1[4 * h + k] / denom) * step_lr;
-                }
-                if (periodic_pan) {  /* torch.remainder(u, 1) */
-                    float mod = fmodf(uh[0], 1.0f);
-                    uh[0] = (mod != 0.0f && mod < 0.0f) ? mod + 1.0f : mod;
-                }
-                for (int k = 0; k < 4; k++) {  /* clamp_(0, 1); NaN stays NaN */
-                    const float x = uh[k];
-                    uh[k] = x < 0.0f ? 0.0f : (x > 1.0f ? 1.0f : x);
-                }
-            }
-        }
-    }
+    const int64_t params = offset != NULL ? 5 : 4;
+    const refine_setup s = {n_seg, vertical, iterations, params, line_along, weight, coef, background, floor_value,
+                            grad_out, pp, lower, span, prior, prior_centre, prior_flat, steps, beta1,
+                            one_minus_beta1, beta2, one_minus_beta2, eps, grad_bound, periodic_pan, offset, rho,
+                            k_slope, v_atan, v_exp, v_ln, v_sin, v_cos, v_sqrt};
+    refine_work w = {0};
+    refine_work_carve(&w, work, n_seg, hyp, params);
+    for (int64_t b = first; b < last; b++) refine_hypotheses(&s, &w, b, hyp, u + b * hyp * params);
 }

@@ -5,14 +5,14 @@ the whole refinement loop.
 (B, H) float64, :func:`measure_b_grad` the refinement's objective with its gradient
 (``measure_b_forward`` + ``measure_b_backward``) and :func:`measure_b_refine` every Adam step of a
 refinement (:func:`fr_torch.core.search.refine.refine_fused`: parameters to vanishing points, the
-gradient, the chain rule to the parameters, the focal prior, Adam and the box), bit for bit, without
-storing the (B, 2N, 3H) deviations: ``kernels_measure_b.c`` scores a tile of hypotheses a few
-segments at a time in buffers that stay in the L1 cache, with
-the same float32 operations in the same order as the torch path, ``atan`` / ``exp`` / ``log`` /
-``sin`` / ``cos`` / ``sqrt`` from the same MKL VML routines torch's CPU kernels call (torch's float32
-``sqrt`` is MKL's, not always the correctly rounded one), and the exact fixed-point sum over
-segments (:func:`fr_torch.core.exact.exact_sum`: every order of the integer additions gives the
-same sum).
+gradient, the chain rule to the parameters, the focal prior, Adam and the box; with the division
+model also each hypothesis' segments undistorted with its k, the chain rule to k and the prior on
+k), bit for bit, without storing the (B, 2N, 3H) deviations: ``kernels_measure_b.c`` scores a tile
+of hypotheses a few segments at a time in buffers that stay in the L1 cache, with the same float32
+operations in the same order as the torch path, ``atan`` / ``exp`` / ``log`` / ``sin`` / ``cos`` /
+``sqrt`` from the same MKL VML routines torch's CPU kernels call (torch's float32 ``sqrt`` is MKL's,
+not always the correctly rounded one), and the exact fixed-point sum over segments
+(:func:`fr_torch.core.exact.exact_sum`: every order of the integer additions gives the same sum).
 
 Building and trusting them:
 
@@ -24,8 +24,9 @@ Building and trusting them:
 * Before first use in a process the kernels are checked against the torch path on random segments
   and vanishing points (:func:`fr_torch.core.likelihood.mixture.kernels_match_torch`, registered by that
   module through :func:`register_check`), the refinement loop on random scenes
-  (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`, registered as ``"refine"``);
-  one differing bit and that kernel is not used.
+  (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`, registered as ``"refine"``), the
+  division model's refinement loop (the same check with the division model's segments, registered by
+  :mod:`fr_torch.core.search.lens` as ``"refine_lens"``); one differing bit and that kernel is not used.
 * Without a C compiler, without MKL in torch (torch's ``atan`` / ``exp`` / ``log`` are then other
   routines), with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False and the
   torch path runs: the same bits, slower.  ``tests/test_reproducibility.py`` runs both paths.
@@ -35,7 +36,8 @@ refinement) are split into ``torch.get_num_threads()`` contiguous ranges, each s
 from a worker thread with MKL single-threaded (ctypes releases the GIL); every item's result is its
 own, so the split cannot change a bit.  One image's refinement stays on one thread: its hypotheses
 share the gradient's fixed-point grid at every step, and threads meeting once per step ran slower
-than one thread on a busy machine.
+than one thread on a busy machine; the division model's hypotheses do not (each is its own virtual
+image), but splitting them over two threads on a busy machine also ran slower than one thread.
 """
 from __future__ import annotations
 
@@ -142,11 +144,11 @@ def _load():
                      + [ctypes.c_void_p] * 6)
     refine = library.fr_measure_b_refine
     refine.restype = None
-    refine.argtypes = ([ctypes.c_int64] * 6 + [ctypes.c_void_p] * 4
+    refine.argtypes = ([ctypes.c_int64] * 6 + [ctypes.c_void_p] * 3
                        + [ctypes.c_float] * 2 + [ctypes.c_void_p] * 5 + [ctypes.c_float] * 2 + [ctypes.c_void_p]
-                       + [ctypes.c_float] * 6 + [ctypes.c_int64] + [ctypes.c_void_p] * 8)
+                       + [ctypes.c_float] * 6 + [ctypes.c_int64] + [ctypes.c_void_p] * 11)
     work = library.fr_refine_work_floats
-    work.restype, work.argtypes = ctypes.c_int64, [ctypes.c_int64] * 2
+    work.restype, work.argtypes = ctypes.c_int64, [ctypes.c_int64] * 3
     return {"scores": scores, "grad": grad, "refine": refine, "refine_work": work}, vml
 
 
@@ -155,7 +157,8 @@ def register_check(check, name: str = "kernels") -> None:
     torch path's bits.  ``"kernels"``: the scores and the gradient
     (:func:`fr_torch.core.likelihood.mixture.kernels_match_torch`, registered when that module
     loads; without it no kernel is used); ``"refine"``: the refinement loop
-    (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`)."""
+    (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`); ``"refine_lens"``: the same
+    loop with the division model's k (the same check, registered by :mod:`fr_torch.core.search.lens`)."""
     _checks[name] = check
 
 
@@ -297,40 +300,55 @@ def measure_b_grad(line_along: torch.Tensor, weight: torch.Tensor, factor: torch
     return objective, grad
 
 
-def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Tensor, factor: torch.Tensor,
+def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Tensor,
                      neg_inv_scale: torch.Tensor, log_coef: torch.Tensor, background: float, floor: float,
                      vertical_axis: int, grad_out: torch.Tensor, principal_point: torch.Tensor, lower: torch.Tensor,
                      span: torch.Tensor, prior: torch.Tensor | None, prior_centre: float, prior_flat: float,
                      steps: torch.Tensor, betas: tuple[float, float], eps: float, grad_bound: float,
-                     periodic_pan: bool) -> None:
+                     periodic_pan: bool, lens: tuple | None = None) -> None:
     """fR's refinement loop in one call (:func:`fr_torch.core.search.refine.refine_fused`, bit for
-    bit the torch loop's steps); call only when ``available("refine")``.
+    bit the torch loop's steps); call only when ``available("refine")`` (``available("refine_lens")``
+    with ``lens``).
 
-    ``u`` (B, H, 4) float32 contiguous, stepped in place: the hypotheses in box units [pan, pitch,
-    roll, log f]; ``lower`` / ``span`` (B, 4) float32 the box in log f; ``grad_out`` (B,) float32,
-    ``principal_point`` (B, 2) pixels; ``prior`` (B, 2) float32 [the focal prior's curvature weight,
-    long side (pixels)] or None; ``steps`` (iterations, 2) float32 Adam's ``sqrt(1 - beta2^t)`` and
-    ``lr_t / (1 - beta1^t)``; the segments and constants as for :func:`measure_b_grad`.  The images
-    are split over the threads as in :func:`measure_b_grad`.
+    ``u`` (B, H, P) float32 contiguous, stepped in place: the hypotheses in box units [pan, pitch,
+    roll, log f] (P = 4) or [pan, pitch, roll, log f, k] (P = 5, with ``lens``); ``lower`` / ``span``
+    (B, P) float32 the box in log f; ``grad_out`` (B,) float32, ``principal_point`` (B, 2) pixels;
+    ``prior`` (B, 2) float32 [the focal prior's curvature weight, long side (pixels)] or None;
+    ``steps`` (iterations, 2) float32 Adam's ``sqrt(1 - beta2^t)`` and ``lr_t / (1 - beta1^t)``;
+    the segments (``line_along`` (B, 2N, 3), ``weight`` (B, N)) and constants as for
+    :func:`measure_b_grad`.
+
+    ``lens``: the division model (:class:`fr_torch.core.search.lens.SegmentGeometry`), a triple
+    (offset (B, 2N, 2) float32 the endpoints' offsets from the distortion centre, which is
+    ``principal_point``; rho (B, 2N) float32 their squared distance in units of the normalising radius;
+    k_slope (B,) float32 the prior on k's ``-gamma W``, or None without that prior): every hypothesis
+    is scored on the segments undistorted with its own k, ``line_along`` is not read.  The images are
+    split over the threads as in :func:`measure_b_grad`.
     """
     function, work_floats = _state["functions"]["refine"], _state["functions"]["refine_work"]
     batch, n_seg = weight.shape
-    hyp, iterations = u.shape[1], steps.shape[0]
-    line_along, weight, factor = line_along.contiguous(), weight.contiguous(), factor.contiguous()
+    hyp, params, iterations = u.shape[1], u.shape[2], steps.shape[0]
+    line_along, weight = line_along.contiguous(), weight.contiguous()
     coef = torch.stack([neg_inv_scale.reshape(3), log_coef.reshape(3)], 1).to(torch.float32).contiguous()
     grad_out, principal_point, lower, span, steps = (x.to(torch.float32).contiguous() for x in
                                                      (grad_out.reshape(batch), principal_point, lower, span, steps))
     prior = None if prior is None else prior.to(torch.float32).contiguous()
+    offset = rho = k_slope = None
+    if lens is not None:
+        offset, rho, k_slope = (None if x is None else x.to(torch.float32).contiguous() for x in lens)
     beta1, beta2 = betas
-    work_size = int(work_floats(n_seg, hyp))
+    work_size = int(work_floats(n_seg, hyp, params))
+
+    def pointer(x: torch.Tensor | None) -> int:
+        return 0 if x is None else x.data_ptr()
 
     def run(first: int, last: int) -> None:
         work = torch.empty(work_size, dtype=torch.float32)
         function(first, last, n_seg, hyp, vertical_axis, iterations,
-                 line_along.data_ptr(), weight.data_ptr(), factor.data_ptr(), coef.data_ptr(), background, floor,
+                 line_along.data_ptr(), weight.data_ptr(), coef.data_ptr(), background, floor,
                  grad_out.data_ptr(), principal_point.data_ptr(), lower.data_ptr(), span.data_ptr(),
-                 0 if prior is None else prior.data_ptr(), prior_centre, prior_flat, steps.data_ptr(),
-                 beta1, 1.0 - beta1, beta2, 1.0 - beta2, eps, grad_bound, int(periodic_pan), *_state["vml"],
-                 work.data_ptr(), u.data_ptr())
+                 pointer(prior), prior_centre, prior_flat, steps.data_ptr(),
+                 beta1, 1.0 - beta1, beta2, 1.0 - beta2, eps, grad_bound, int(periodic_pan),
+                 pointer(offset), pointer(rho), pointer(k_slope), *_state["vml"], work.data_ptr(), u.data_ptr())
 
     _in_threads(run, batch)

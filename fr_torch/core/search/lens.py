@@ -39,11 +39,12 @@ import torch
 from fr_torch.core.exact import dot3, exact_index_sum, exact_sum, first_argmax, top_indices
 from fr_torch.core.geometry.lens import normalising_radius
 from fr_torch.core.geometry.params import DISTORTION, from_log_focal
+from fr_torch.core.likelihood import native
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.search.grid import grid_cell, grid_hypotheses, into_box, parameter_box, score_grid, select_starts
 from fr_torch.core.search.passes import LATTICE, SearchResult, lattice_passes, sweep_focal, tie_tolerance
-from fr_torch.core.search.refine import refine_starts
+from fr_torch.core.search.refine import refine_kernel_matches_torch, refine_starts
 from fr_torch.core.settings.config import SearchConfig
 
 
@@ -82,8 +83,13 @@ class SegmentGeometry:
         tensors in ``k``'s dtype (zeros without a prior)."""
         if not self.k_prior_weight:
             return torch.zeros_like(k), torch.zeros_like(k)
-        slope = -self.k_prior_weight * self.total_length().to(k)[:, None] * k
+        slope = self.k_prior_slope(k)[:, None] * k
         return 0.5 * slope * k, slope
+
+    def k_prior_slope(self, like: torch.Tensor) -> torch.Tensor:
+        """``-gamma W`` per image, (B,) in ``like``'s dtype and device: the prior's derivative
+        (:meth:`k_log_prior`) is this times k."""
+        return -self.k_prior_weight * self.total_length().to(like)
 
     @property
     def weight(self) -> torch.Tensor:
@@ -110,7 +116,7 @@ class SegmentGeometry:
         n_seg = self.endpoints.shape[1]
         dtype = self.endpoints.dtype
         k = k.to(dtype)[:, :, None]  # (B, G, 1)
-        centre, offset, rho = self._offsets()  # (B, 1, 1, 2), (B, 1, 2N, 2), (B, 1, 2N)
+        centre, offset, rho = self.offsets()  # (B, 1, 1, 2), (B, 1, 2N, 2), (B, 1, 2N)
         factor = (1.0 + k * rho).reciprocal()  # (B, G, 2N): undistorted = centre + factor * offset
         q = offset * factor[..., None]
         qa, qb = q[:, :, :n_seg], q[:, :, n_seg:]
@@ -138,9 +144,10 @@ class SegmentGeometry:
                                         [ddx, ddy, -(ddx * mx + dx * dmx + ddy * my + dy * dmy)])
         return features, d_line_along
 
-    def _offsets(self):
+    def offsets(self):
         """(centre (B, 1, 1, 2), endpoint offsets from it (B, 1, 2N, 2): first endpoints then second
-        ones, their r^2 in units of the radius (B, 1, 2N)), computed once."""
+        ones, their r^2 in units of the radius (B, 1, 2N)), in the endpoints' dtype, computed once:
+        what :meth:`features` undistorts."""
         cached = self.__dict__.get("_offset_cache")
         if cached is None:
             dtype = self.endpoints.dtype
@@ -170,6 +177,10 @@ class SegmentGeometry:
         """Images ``start:stop`` (views)."""
         return SegmentGeometry(self.endpoints[start:stop], self.mask[start:stop], self.centre[start:stop],
                                self.radius[start:stop], self.long_side[start:stop], self.k_prior_weight)
+
+
+# the division model's refinement kernel, checked against the torch loop once per process (native.available)
+native.register_check(lambda: refine_kernel_matches_torch(SegmentGeometry.from_features), "refine_lens")
 
 
 

@@ -12,10 +12,11 @@ autograd otherwise).
 Images are refined in independent slices of at most ``max_chunk_elements`` (``CPU_REFINE_ELEMENTS``
 on a CPU) deviations per step, and each hypothesis' update depends only on its own gradient: a
 batch gives the same answer as images one by one.  On a CPU where the fused kernels build, the
-Manhattan refinement without a stopping rule runs all its steps in one kernel call
-(:func:`refine_fused`, :func:`fr_torch.core.likelihood.native.measure_b_refine`): the loop below, bit
-for bit, checked against it once per process (:func:`refine_kernel_matches_torch`).  Each mode runs its ``refine_iterations`` (fR
-100 with a decaying step size, Fast-fR 10; :data:`fr_torch.core.settings.config.MODE_PRESETS`).
+Manhattan refinement and the division model's (with k) without a stopping rule run all their steps
+in one kernel call (:func:`refine_fused`, :func:`fr_torch.core.likelihood.native.measure_b_refine`):
+the loop below, bit for bit, checked against it once per process (:func:`refine_kernel_matches_torch`,
+with and without k).  Each mode runs its ``refine_iterations`` (fR 100 with a decaying step size,
+Fast-fR 10; :data:`fr_torch.core.settings.config.MODE_PRESETS`).
 """
 from __future__ import annotations
 
@@ -283,8 +284,8 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     # Step sizes in box units: about a quarter of a grid cell at first, decaying geometrically.
     cell = 1.0 / 8
     lr0, lr_final = 0.25 * cell, (0.02 if fast else 0.002) * cell
-    if fused and analytic and geometry is None and tolerance <= 0 and lower.shape[1] == 1 and fused_refine_ok(features):
-        refine_fused(likelihood, features, u, box, grad_out, iterations, lr0, lr_final, periodic_pan)
+    if fused and analytic and tolerance <= 0 and lower.shape[1] == 1 and fused_refine_ok(features, geometry):
+        refine_fused(likelihood, features, u, box, grad_out, iterations, lr0, lr_final, periodic_pan, geometry)
     else:
         adam_in_box(u, box, iterations, lr0, lr_final, gradient, periodic_pan, grad_bound=_GRAD_BOUND,
                     stop=Patience(tolerance, patience, total_length) if tolerance > 0 else None)
@@ -294,23 +295,36 @@ def _refine_slice(likelihood, features, starts, lower, upper, iterations, fast, 
     return params.detach(), objective.detach()
 
 
-def fused_refine_ok(features: SegmentFeatures) -> bool:
+def fused_refine_ok(features: SegmentFeatures, geometry=None) -> bool:
     """Whether the refinement of these segments runs as one kernel call (:func:`refine_fused`):
-    float32 segments on a CPU where the fused kernels and the refinement loop's check pass."""
-    return native_ok(features.weight) and native.available("refine")
+    float32 segments on a CPU where the fused kernels and the refinement loop's check pass (with
+    ``geometry``, the division model's: float32 endpoints, the ``"refine_lens"`` check)."""
+    if geometry is None:
+        return native_ok(features.weight) and native.available("refine")
+    return native_ok(geometry.endpoints) and native_ok(features.weight) and native.available("refine_lens")
 
 
 def refine_fused(likelihood: MixtureLikelihood, features: SegmentFeatures, u: torch.Tensor, box: UnitBox,
-                 grad_out: torch.Tensor, iterations: int, lr0: float, lr_final: float, periodic_pan: bool) -> None:
-    """:func:`adam_in_box` over :func:`objective_and_grad` (measure b, no lens, no stopping rule)
-    as one call of the fused kernel (:func:`fr_torch.core.likelihood.native.measure_b_refine`): the
-    same steps bit for bit, without a torch operator per step.
+                 grad_out: torch.Tensor, iterations: int, lr0: float, lr_final: float, periodic_pan: bool,
+                 geometry=None) -> None:
+    """:func:`adam_in_box` over :func:`objective_and_grad` (measure b, no stopping rule) as one call
+    of the fused kernel (:func:`fr_torch.core.likelihood.native.measure_b_refine`): the same steps
+    bit for bit, without a torch operator per step.
 
-    ``u`` (B, L, 4) float32 box units, stepped in place; ``box`` with sides (B, 1, 4);
-    ``grad_out`` (B, 1) the loss's weight of each image's objective."""
-    batch = u.shape[0]
+    ``u`` (B, L, P) float32 box units, stepped in place; ``box`` with sides (B, 1, P);
+    ``grad_out`` (B, 1) the loss's weight of each image's objective.  With ``geometry``
+    (:class:`~fr_torch.core.search.lens.SegmentGeometry`, P = 5) the kernel undistorts every
+    hypothesis' segments with its k from the geometry's endpoint offsets, and the weights, the focal
+    prior's constants and the distortion centre are those of the virtual images
+    :meth:`~fr_torch.core.search.lens.SegmentGeometry.features` gives at any k."""
+    batch, params = u.shape[0], u.shape[2]
+    lens = None
+    if geometry is not None:
+        features = geometry.features(torch.zeros(batch, 1, dtype=u.dtype))  # the k-independent fields
+        _, offset, rho = geometry.offsets()
+        slope = geometry.k_prior_slope(u) if geometry.k_prior_weight else None
+        lens = (offset.reshape(batch, -1, 2), rho.reshape(batch, -1), slope)
     neg_inv_scale, log_coef, background, floor, _ = likelihood._b_constants(features.weight)
-    factor, _ = likelihood.b_sum_grid(features)
     prior = None
     if likelihood.params.focal_prior_weight:  # MixtureLikelihood.focal_prior's curvature and scale
         prior = torch.stack([likelihood.focal_prior_curvature_for(features), features.long_side.to(u.dtype)], 1)
@@ -318,34 +332,44 @@ def refine_fused(likelihood: MixtureLikelihood, features: SegmentFeatures, u: to
     data = u.detach()
     if not data.is_contiguous():
         raise ValueError("refine_fused: u must be contiguous")
-    native.measure_b_refine(data, features.line_along, features.weight, factor, neg_inv_scale, log_coef, background,
-                            floor, VERTICAL_AXIS, grad_out, features.principal_point, box.lower.reshape(batch, 4),
-                            box.span.reshape(batch, 4), prior, likelihood._prior_centre,
+    native.measure_b_refine(data, features.line_along, features.weight, neg_inv_scale, log_coef, background, floor,
+                            VERTICAL_AXIS, grad_out, features.principal_point, box.lower.reshape(batch, params),
+                            box.span.reshape(batch, params), prior, likelihood._prior_centre,
                             likelihood.params.focal_prior_flat_halfwidth,
                             torch.tensor(steps, dtype=torch.float64).reshape(-1, 2), BETAS, Adam.EPS, _GRAD_BOUND,
-                            periodic_pan)
+                            periodic_pan, lens)
 
 
-def refine_kernel_matches_torch() -> bool:
+def refine_kernel_matches_torch(geometry_from=None) -> bool:
     """The fused refinement (:func:`refine_fused`) against the torch loop on random scenes: two
     images, one with a known focal length, under the focal prior with its flat band and a periodic
-    pan; and one image without the prior.  True when every refined parameter has the same bits (a
-    few hundredths of a second, once per process)."""
+    pan; and one image without the prior.  With ``geometry_from``
+    (:meth:`fr_torch.core.search.lens.SegmentGeometry.from_features`, which that module registers as
+    the ``"refine_lens"`` check) the division model's refinement: rows with k, the segments
+    undistorted with each hypothesis' k, the prior on k in the first case.  True when every refined
+    parameter has the same bits (a few hundredths of a second, once per process)."""
     generator = torch.Generator().manual_seed(66)
     cases = ((LikelihoodParams(focal_prior_weight=0.3, focal_prior_flat_halfwidth=0.2), 2, 40, 24, True, False),
              (LikelihoodParams(), 1, 30, 16, False, True))
     for params, batch, n_seg, n_start, periodic, fast in cases:
         likelihood = MixtureLikelihood(params)
-        endpoints = torch.rand(batch, n_seg, 4, generator=generator) * torch.tensor([640.0, 480.0, 640.0, 480.0])
+        size = torch.tensor([[640.0, 480.0]]).expand(batch, 2)
+        endpoints = torch.rand(batch, n_seg, 4, generator=generator) * size.repeat(1, 2)[:, None]
         features = SegmentFeatures.from_endpoints(endpoints, torch.ones(batch, n_seg, dtype=torch.bool),
                                                   torch.tensor([[319.5, 239.5]]).expand(batch, 2))
-        lower = torch.tensor([[0.0, -40.0, -20.0, 200.0]]).repeat(batch, 1)
-        upper = torch.tensor([[90.0, 40.0, 20.0, 2000.0]]).repeat(batch, 1)
+        lower = torch.tensor([[0.0, -40.0, -20.0, 200.0, -0.6]]).repeat(batch, 1)
+        upper = torch.tensor([[90.0, 40.0, 20.0, 2000.0, 0.2]]).repeat(batch, 1)
         if batch > 1:  # the second image's focal length is known: a degenerate side
             upper[1, FOCAL] = lower[1, FOCAL] = 500.0
-        starts = lower[:, None] + torch.rand(batch, n_start, 4, generator=generator) * (upper - lower)[:, None]
+        geometry = None
+        if geometry_from is not None:  # the prior on k in the first case
+            geometry = geometry_from(features, endpoints, size, 3.0 if params.focal_prior_weight else 0.0)
+        else:
+            lower, upper = lower[:, :DISTORTION], upper[:, :DISTORTION]
+        offsets = torch.rand(batch, n_start, lower.shape[1], generator=generator)
+        starts = lower[:, None] + offsets * (upper - lower)[:, None]
         results = [_refine_slice(likelihood, features, starts, lower, upper, 8, fast, periodic_pan=periodic,
-                                 fused=fused) for fused in (False, True)]
+                                 geometry=geometry, fused=fused) for fused in (False, True)]
         for expected, got in zip(*results):
             if not torch.equal(expected.contiguous().view(torch.uint8), got.contiguous().view(torch.uint8)):
                 return False
