@@ -1,7 +1,7 @@
 """``fr track`` over a fleet of cameras (:mod:`fr_torch.video.fleet`): the sources file, the turns
 (fairness, the rate cap, a stalled or failing camera), and whole runs on synthetic HTTP cameras and
-a folder: per-camera records with the ``camera`` column, calibration.json, a rerun that appends,
-a stop by SIGTERM.
+folders: per-camera records with the ``camera`` column, calibration.json, a rerun that appends, the
+same records searched in worker processes or in the fleet's own, a stop by SIGTERM.
 
 The turn tests drive :func:`track_fleet` with scripted streams and a stand-in estimator, so what
 they check (who is served in which turn) does not depend on time.
@@ -242,6 +242,27 @@ def test_a_fleet_of_two_http_cameras_and_a_folder_then_a_rerun_appends(tmp_path,
         assert table["status"].iloc[3] != "started"  # the fusion continued
     assert len(_records(out / "frames")) == 3
     assert "frames: " in capsys.readouterr().err
+
+
+def test_a_fleet_records_the_same_searched_in_workers_or_in_its_process(tmp_path, capsys):
+    """Five folders of frames: each turn split over 2 worker processes (shards of 2 and 3 frames) or
+    searched in the fleet's own process as one batch of 5, every camera's records are the same
+    (but for the times): a frame's estimate depends on the frame alone."""
+    for i in range(5):
+        folder = tmp_path / f"cam{i}"
+        folder.mkdir()
+        camera = SyntheticCamera(**SMALL, hfov_deg=50 + 8 * i, room_seed=i)
+        for k in range(3):
+            (folder / f"f{k}.jpg").write_bytes(camera.jpeg(k))
+    folders = [str(tmp_path / f"cam{i}") for i in range(5)]
+    for workers in ("2", "0"):
+        assert main(["track", *folders, "--fast", "--workers", workers, "--out", str(tmp_path / f"out{workers}")]) == 0
+    capsys.readouterr()
+    timed = ["time", "age_s"] + [c for c in RECORD_KEYS if c.startswith("runtime_s")]
+    for i in range(5):
+        pooled, alone = (_records(tmp_path / f"out{w}" / f"cam{i}").drop(columns=timed) for w in ("2", "0"))
+        assert len(pooled) == 3
+        pd.testing.assert_frame_equal(pooled, alone)
 
 
 def test_sigterm_stops_a_fleet_with_every_record_on_disk_and_no_process_left(tmp_path):
