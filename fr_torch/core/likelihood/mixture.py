@@ -283,6 +283,14 @@ class MixtureLikelihood:
         half = features.half_length.clamp_min(1e-6)[:, :, None, None]  # c, d: uniform on [0, len/2]
         return math.log(p.prior_background) - torch.log(half)
 
+    def background_density(self, features: SegmentFeatures) -> torch.Tensor:
+        """The uniform background's density (without its prior) at every segment, (B, N), in
+        ``features.weight``'s dtype: the last column of :meth:`component_log_densities`, whose
+        value depends on the segments alone."""
+        x = features.weight[..., None, None]  # (B, N, 1, 1)
+        log_prior_density = self._log_background(x, features).expand_as(x)[..., 0, 0]
+        return torch.exp(log_prior_density) / self.params.prior_background
+
     def _deviations(self, features, rotation, focal) -> torch.Tensor:
         s, t, v3 = incidence_of(features, rotation, focal)
         return deviations_from_incidence(self.params.measure, s, t, v3, features, focal, self.params.range_px)

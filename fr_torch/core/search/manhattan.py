@@ -124,23 +124,24 @@ def families_objective(likelihood: MixtureLikelihood, features: SegmentFeatures,
     return value
 
 
-def _extra_densities(likelihood, features, rotation, focal, azimuth_deg):
-    """The densities h (B, N, H, m) of m horizontal families at azimuths (B, H, m) degrees from
-    ``R[:, 0]`` under H hypotheses (rotations (B, H, 3, 3), focal lengths (B, H) pixels), without
-    their weights."""
+def _horizon_deviations(likelihood, features, rotation, focal, azimuth_deg):
+    """Deviations (B, N, H, m), internal units, of every segment from m horizontal families at
+    azimuths (B, H, m) degrees from ``R[:, 0]`` under H hypotheses (rotations (B, H, 3, 3), focal
+    lengths (B, H) pixels)."""
     batch, hypotheses, extra = azimuth_deg.shape
     points = horizon_points(rotation.reshape(-1, 3, 3), focal.reshape(-1),
                             features.principal_point.repeat_interleave(hypotheses, 0),
                             torch.deg2rad(azimuth_deg.reshape(-1, extra)))  # (B H, m, 3)
     x = likelihood.point_deviations(features, points.reshape(batch, hypotheses * extra, 3),
                                     focal.repeat_interleave(extra, 1))  # (B, N, H m)
-    return torch.exp(likelihood.horizontal_log_density(x)).view(batch, -1, hypotheses, extra)
+    return x.view(batch, -1, hypotheses, extra)
 
 
 def _with_extra_families(likelihood, features, rotation, focal, manhattan_density, azimuth_deg, weights):
     """The mixture density (B, N, H) ``(1 - sum_j w_j) p_i + sum_j w_j h_ij`` of the Manhattan mixture's
     density p (B, N, H) and m extra families at azimuths (B, H, m) degrees with weights (B, H, m)."""
-    h = _extra_densities(likelihood, features, rotation, focal, azimuth_deg)
+    h = torch.exp(likelihood.horizontal_log_density(_horizon_deviations(likelihood, features, rotation, focal,
+                                                                        azimuth_deg)))  # (B, N, H, m)
     return (1.0 - small_sum(weights, -1))[:, None] * manhattan_density + small_sum(weights[:, None] * h, -1)
 
 
@@ -148,9 +149,17 @@ def _family_deviations(likelihood, features, rotation, focal, azimuth_deg):
     """Deviations (B, N, 3 + m), internal units, of every segment from the three Manhattan vanishing
     points ``K R[:, k]`` and from m horizontal families at azimuths (B, m) degrees from ``R[:, 0]``;
     rotations (B, 3, 3), focal lengths (B,) pixels."""
-    points = torch.cat([vanishing_points(focal, features.principal_point, rotation).transpose(1, 2),
-                        horizon_points(rotation, focal, features.principal_point, torch.deg2rad(azimuth_deg))], 1)
-    return likelihood.point_deviations(features, points, focal)
+    manhattan = likelihood.point_deviations(features, vanishing_points(focal, features.principal_point,
+                                                                       rotation).transpose(1, 2), focal)
+    extra = _horizon_deviations(likelihood, features, rotation[:, None], focal[:, None], azimuth_deg[:, None])
+    return torch.cat([manhattan, extra[:, :, 0]], -1)
+
+
+def _vertical_column(families: int, device) -> torch.Tensor:
+    """(families,) bool: True at the vertical Manhattan family's column (``VERTICAL_AXIS``)."""
+    vertical = torch.zeros(families, dtype=torch.bool, device=device)
+    vertical[VERTICAL_AXIS] = True
+    return vertical
 
 
 def _mixture_densities(likelihood, deviations, background, scales):
@@ -158,8 +167,7 @@ def _mixture_densities(likelihood, deviations, background, scales):
     (B, 2) [horizontal, vertical]: the families' (``deviations`` (B, N, 3 + m); column
     ``VERTICAL_AXIS`` the vertical family's, the others horizontal) and the uniform ``background``
     (B, N)."""
-    vertical = torch.zeros(deviations.shape[-1], dtype=torch.bool, device=deviations.device)
-    vertical[VERTICAL_AXIS] = True
+    vertical = _vertical_column(deviations.shape[-1], deviations.device)
     scale = torch.where(vertical, scales[:, None, 1:], scales[:, None, :1])  # (B, 1, 3 + m)
     return torch.cat([torch.exp(likelihood.family_log_density(deviations, scale)), background[..., None]], -1)
 
@@ -184,8 +192,7 @@ def _fit_mixture(likelihood, deviations, background, weight, prior, iterations=F
     configured = torch.tensor([params.scale_horizontal, params.scale_vertical], dtype=deviations.dtype,
                               device=deviations.device)
     scales = configured.expand(batch, -1)
-    vertical = torch.zeros(families, dtype=torch.bool, device=deviations.device)
-    vertical[VERTICAL_AXIS] = True
+    vertical = _vertical_column(families, deviations.device)
     total = exact_sum(weight, 1).clamp_min(1e-12)
     for _ in range(iterations):
         parts = share[:, None, :] * _mixture_densities(likelihood, deviations, background, scales)  # (B, N, C)
@@ -222,8 +229,7 @@ def held_out_gains(likelihood: MixtureLikelihood, features: SegmentFeatures, man
     constant."""
     rotation, focal = rotations(manhattan), manhattan[:, FOCAL]
     batch, most = manhattan.shape[0], config.max_extra
-    background = torch.exp(likelihood.component_log_densities(features, rotation[:, None], focal[:, None])[:, :, 0, 3]) \
-        / likelihood.params.prior_background  # (B, N) the uniform density
+    background = likelihood.background_density(features)  # (B, N)
     parity = torch.arange(features.weight.shape[1], device=features.weight.device) % 2
     atlanta = AtlantaConfig(max_extra=most, prior=config.prior, min_support=config.min_support,
                             exclusion_deg=config.exclusion_deg, free_segments=0)
@@ -346,10 +352,9 @@ def fit_families(likelihood: MixtureLikelihood, features: SegmentFeatures, manha
             continue
         part = feats.take_images(index)
         start_rows, start = manhattan[index], candidates[index, :m]
-        background = torch.exp(likelihood.component_log_densities(
-            part, rotation[index, None], focal[index, None])[:, :, 0, 3]) / likelihood.params.prior_background
         deviations = _family_deviations(likelihood, part, rotation[index], focal[index], start)
-        weights = _fit_mixture(likelihood, deviations, background, part.weight, config.prior)[0][:, 3:3 + m] \
+        weights = _fit_mixture(likelihood, deviations, likelihood.background_density(part), part.weight,
+                               config.prior)[0][:, 3:3 + m] \
             .clamp(*WEIGHT_RANGE)  # the start: the extra families' shares fitted at the Manhattan camera
         half = _azimuth_windows(start, config.window_deg)
         low = torch.cat([lower[index], start - half, torch.full_like(start, low_w)], 1)
