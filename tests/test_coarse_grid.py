@@ -89,7 +89,8 @@ def test_settings_checked_and_estimates_unchanged_with_every_cell(scenes):
     with pytest.raises(FRInputError, match="must divide"):  # k = 8: checked when the setting is parsed
         SearchConfig.from_config(grid_coarse_factor=3)
     sizes = [(640, 480)] * 2
-    plain = FREstimator(mode="fast").calibrate_segments(scenes, sizes)
+    plain = FREstimator(mode="fast", search_config=SearchConfig.from_config(grid_coarse_factor=1)
+                        ).calibrate_segments(scenes, sizes)
     every = FREstimator(mode="fast",
                         search_config=SearchConfig.from_config(grid_coarse_factor=2, grid_coarse_cells=256))
     for a, b in zip(plain, every.calibrate_segments(scenes, sizes)):

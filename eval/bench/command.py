@@ -233,6 +233,7 @@ def run(args: argparse.Namespace) -> int:
         detectors = bench_detectors.detector_rows(images, repeats, progress)
     for row in e2e:
         row["grid_floor_ms"] = grid_floor_ms(row, ns)
+        row["full_grid_floor_ms"] = grid_floor_ms(row, ns, scored=False)
     if "parallel" in sections:
         parallel = parallel_scaling(counts, par_batch, n_seg_tp, repeats, progress, modes)
     if "cpu" in sections:

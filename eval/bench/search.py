@@ -23,6 +23,7 @@ def transcendental_ns(device: str = "cpu") -> float:
 def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fast", "fr")) -> list[dict]:
     """Latency of calibrate_images on single images (batch 1), per stage, medians (ms), after a
     warm-up call."""
+    from fr_torch.core.search.grid import stage1_hypothesis_count
     from fr_torch.detectors.registry import get_detector
     from fr_torch.images.convert import to_gray8
     from fr_torch.images.io import load_image
@@ -51,6 +52,7 @@ def end_to_end(images: list[tuple[str, str]], repeats: int, progress, modes=("fa
             row["decode_ms"], row["lsd_ms"] = 1000 * decode, 1000 * lsd
             row["iterations"] = est.iterations
             row["grid_hypotheses"] = est.search.grid_points_per_dim ** 4
+            row["grid_hypotheses_scored"] = stage1_hypothesis_count(est.search)
             rows.append(row)
             progress.update(1, "end_to_end", row)
     return rows

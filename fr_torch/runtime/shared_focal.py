@@ -138,7 +138,8 @@ def focal_profiles(estimator, features, estimates: torch.Tensor, log_ratios: np.
         focal prior) maximised over the rotation at each focal length; -inf where not finite.
     """
     likelihood, config = estimator.likelihood, estimator.search
-    grid_config = replace(config, grid_points_per_dim=settings.angle_grid, top_l=settings.starts)
+    grid_config = replace(config, grid_points_per_dim=settings.angle_grid, top_l=settings.starts,
+                          grid_coarse_factor=1)  # the whole angle grid at each focal length
     device = features.weight.device
     count = len(log_ratios)
     out = np.full((estimates.shape[0], count), -np.inf)

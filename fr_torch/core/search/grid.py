@@ -199,6 +199,28 @@ def _cell_members(cells: torch.Tensor, coarse_k: int, factor: int, n_focal: int)
     return index.reshape(cells.shape[0], -1)
 
 
+def kept_coarse_cells(config: SearchConfig, known_focal: bool = False) -> int:
+    """How many coarse cells :func:`coarse_to_fine_scores` keeps per image: ``grid_coarse_cells``,
+    more where fewer than ``top_l`` points would be scored, at most every cell."""
+    factor = config.grid_coarse_factor
+    dims = 3 if known_focal else 4
+    per_cell = factor ** dims
+    kept = max(config.grid_coarse_cells, -(-config.top_l // per_cell))
+    return min(kept, (config.grid_points_per_dim // factor) ** dims)
+
+
+def stage1_hypothesis_count(config: SearchConfig, known_focal: bool = False) -> int:
+    """Hypotheses the Manhattan search's stage 1 scores per image: k^3 with a known focal length and
+    k^4 for the whole grid; coarse to fine (``grid_coarse_factor`` s > 1, focal length unknown), the
+    (k/s)^4 coarse cells plus the s^4 points of each kept cell (768 at the defaults)."""
+    factor = config.grid_coarse_factor
+    if known_focal:
+        return config.grid_points_per_dim ** 3
+    if factor == 1:
+        return config.grid_points_per_dim ** 4
+    return (config.grid_points_per_dim // factor) ** 4 + kept_coarse_cells(config) * factor ** 4
+
+
 def coarse_to_fine_scores(likelihood: MixtureLikelihood, features: SegmentFeatures, config: SearchConfig,
                           hypotheses: torch.Tensor, long_side: torch.Tensor,
                           known_focal: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -229,9 +251,7 @@ def coarse_to_fine_scores(likelihood: MixtureLikelihood, features: SegmentFeatur
     coarse_scores = score_grid(likelihood, features, coarse, config.max_chunk_elements, vertical_block=coarse_k)
     batch, count = hypotheses.shape[:2]
     n_focal = count // config.grid_points_per_dim ** 3
-    per_cell = factor ** (4 if n_focal > 1 else 3)
-    kept = max(config.grid_coarse_cells, -(-config.top_l // per_cell))  # at least top_l points scored
-    cells = top_indices(coarse_scores, min(kept, coarse_scores.shape[1]), dim=1)
+    cells = top_indices(coarse_scores, kept_coarse_cells(config, known_focal=n_focal == 1), dim=1)
     members = _cell_members(cells, coarse_k, factor, n_focal)  # (B, M s^D)
     fine = torch.gather(hypotheses, 1, members[..., None].expand(-1, -1, hypotheses.shape[-1]))
     fine_scores = score_grid(likelihood, features, fine, config.max_chunk_elements, vertical_block=factor)

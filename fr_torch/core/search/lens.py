@@ -327,10 +327,11 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> Plu
 
 def angle_grid_config(config: SearchConfig) -> SearchConfig:
     """The configuration of the k^4 grid at each k: ``grid_points_per_dim`` =
-    ``distortion_grid_size`` where set (the lattice passes' first step is a third of its cell)."""
+    ``distortion_grid_size`` where set (the lattice passes' first step is a third of its cell);
+    the lens search scores its whole grids (``grid_coarse_factor`` 1)."""
     if not config.distortion_grid_size:
-        return config
-    return replace(config, grid_points_per_dim=config.distortion_grid_size)
+        return replace(config, grid_coarse_factor=1)
+    return replace(config, grid_points_per_dim=config.distortion_grid_size, grid_coarse_factor=1)
 
 
 def k_values(config: SearchConfig, geometry: SegmentGeometry) -> torch.Tensor:

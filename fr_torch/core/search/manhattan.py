@@ -60,7 +60,8 @@ def search_manhattan(likelihood: MixtureLikelihood, features: SegmentFeatures, c
     device = features.weight.device
     hypotheses = grid_hypotheses(config, long_side.to(device), None if known_focal is None else known_focal.to(device))
     grid_features = features.longest(config.grid_segments) if config.grid_segments else features
-    if config.grid_coarse_factor > 1:  # coarse to fine: the k^4 grid only inside the best coarse cells
+    if config.grid_coarse_factor > 1 and known_focal is None:  # coarse to fine: the k^4 grid only inside
+        # the best coarse cells (a known focal length's k^3 grid is scored whole)
         grid_scores, selectable = coarse_to_fine_scores(likelihood, grid_features, config, hypotheses,
                                                         long_side, known_focal)
     else:

@@ -140,12 +140,14 @@ class SearchConfig:
     ``grid_passes``: coarse-to-fine passes around each start before refinement
     (:func:`fr_torch.core.search.passes.subdivide_starts`); each scores 3^4 = 81 points per start.
     0 = the paper's two stages.
-    ``grid_coarse_factor``: s, 1 = off (the default).  With s > 1 stage 1 is coarse to fine
-    (:func:`fr_torch.core.search.grid.coarse_to_fine_scores`; k must be a multiple of s): it scores the (k/s)^4 grid of cells s times as large, keeps
-    each image's ``grid_coarse_cells`` best of them and scores only the k^4 grid's points inside
-    those (s^4 per cell), so ``(k/s)^4 + grid_coarse_cells * s^4`` hypotheses instead of k^4; the
-    starts are the best of those points.  Only the Manhattan search's stage 1 (the lens fit, the
-    shared-focal search and the cues' known-focal grids score their whole grids).
+    ``grid_coarse_factor``: s; 1 = the whole k^4 grid; None (the default) = 2 where 2 divides k, else
+    1 (resolved on construction).  With s > 1 stage 1 is coarse to fine (:func:`fr_torch.core.search.grid.coarse_to_fine_scores`; k must be a multiple of s): it
+    scores the (k/s)^4 grid of cells s times as large, keeps each image's ``grid_coarse_cells``
+    (default 32) best of them and scores only the k^4 grid's points inside those (s^4 per cell), so
+    ``(k/s)^4 + grid_coarse_cells * s^4`` hypotheses instead of k^4 (768 instead of 4,096); the
+    starts are the best of those points.  Only the Manhattan search's stage 1 with the focal length
+    unknown (a known focal length's k^3 grid, the lens fit, the shared-focal search and the cues'
+    known-focal grids score their whole grids).
     ``results/grid/coarse_to_fine.md`` measures it.
     ``refine_iterations``: refinement steps; ``max_segments``: each image keeps at most this many
     of its longest segments (bounds the time per image whatever the photo); ``grid_segments``:
@@ -185,7 +187,7 @@ class SearchConfig:
     top_l: int = 4
     focal_sweep_points: int = 16
     grid_passes: int = 3
-    grid_coarse_factor: int = 1
+    grid_coarse_factor: int | None = None
     grid_coarse_cells: int = 32
     refine_iterations: int | None = None
     max_segments: int | None = None
@@ -226,6 +228,8 @@ class SearchConfig:
             raise FRInputError("grid_points_per_dim and top_l must be at least 1")
         if self.grid_passes < 0:
             raise FRInputError(f"grid_passes must be >= 0, got {self.grid_passes}")
+        if self.grid_coarse_factor is None:
+            object.__setattr__(self, "grid_coarse_factor", 2 if self.grid_points_per_dim % 2 == 0 else 1)
         if self.grid_coarse_factor < 1 or self.grid_coarse_cells < 1:
             raise FRInputError("grid_coarse_factor and grid_coarse_cells must be >= 1, got "
                                f"{self.grid_coarse_factor}, {self.grid_coarse_cells}")
