@@ -321,3 +321,17 @@ def test_check_tables_holds_a_regenerated_table_to_its_tolerance():
     assert compare(committed, committed.assign(focal_err_pct=[3.25 * (1 + 1e-8), 4.5]), 1e-6, 1e-9)[0]
     assert not compare(committed, committed.assign(focal_err_pct=[3.26, 4.5]), 1e-6, 1e-9)[0]
     assert not compare(committed, committed.assign(method=["fr", "fast-fr"]), 1e-6, 1e-9)[0]
+
+
+def test_check_tables_moves_are_counted_in_committed_standard_errors():
+    """check_tables --moves: each summary mean's move in units of its committed SE; timings and
+    unmoved means left out."""
+    import pandas as pd
+
+    from fr_eval.protocols.check_tables import standard_error_moves
+
+    committed = pd.DataFrame({"method": ["fr", "fast-fr"], "focal_err_pct_mean": [3.0, 5.0],
+                              "focal_err_pct_se": [0.5, 1.0], "runtime_s_mean": [0.1, 0.2], "runtime_s_se": [0.01, 0.01]})
+    current = committed.assign(focal_err_pct_mean=[3.75, 5.0], runtime_s_mean=[9.0, 9.0])
+    (move,) = standard_error_moves(committed, current)
+    assert (move["method"], move["metric"], move["se_moved"]) == ("fr", "focal_err_pct", 1.5)

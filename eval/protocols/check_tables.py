@@ -7,6 +7,12 @@ and columns, text columns equal, numeric columns equal within ``rtol`` (relative
 one line per file that differs and exits 1 when any differs beyond the tolerance.
 ``eval/reproduce.sh --check STEP...`` runs the steps and then this.
 
+``--moves`` asks the other question, for a change of the method: how far each mean moved in units
+of its committed standard error.  Every CSV with a ``method`` column and ``<metric>_mean`` /
+``<metric>_se`` columns gives one line per (method, metric) that moved: the committed mean ± SE,
+the new mean and the move in SEs; a move beyond ``--limit`` SEs (default 1) is flagged and makes
+the exit status 1.  Timing metrics are left out.
+
 The default tolerance, 1e-6 relative: on one machine a step reproduces bit for bit (``docs/
 reproducibility.md``); another CPU family's ``exp`` / ``log`` moves a photo's estimate by about
 1e-7 relative, and a table's mean by less.
@@ -15,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import math
 import re
 import subprocess
 import sys
@@ -67,13 +74,42 @@ def compare(committed: pd.DataFrame, current: pd.DataFrame, rtol: float, atol: f
     return True, f"within tolerance (largest {worst:.1e} in {where!r})" if worst else "identical"
 
 
+def standard_error_moves(committed: pd.DataFrame, current: pd.DataFrame) -> list[dict]:
+    """Per (method, metric) of a summary table: the committed mean and SE, the current mean and the
+    move in committed SEs (``inf`` where the SE is 0 and the mean moved; rows or metrics present in
+    only one table are left out)."""
+    if "method" not in committed.columns or "method" not in current.columns:
+        return []
+    metrics = [c[:-5] for c in committed.columns
+               if c.endswith("_mean") and f"{c[:-5]}_se" in committed.columns and not TIMING.search(c[:-5])
+               and f"{c[:-5]}_mean" in current.columns]
+    now = current.drop_duplicates("method").set_index("method")
+    moves = []
+    for _, row in committed.drop_duplicates("method").iterrows():
+        if row["method"] not in now.index:
+            continue
+        for metric in metrics:
+            old, se = float(row[f"{metric}_mean"]), float(row[f"{metric}_se"])
+            new = float(now.loc[row["method"], f"{metric}_mean"])
+            if not (np.isfinite(old) and np.isfinite(new)) or old == new:
+                continue
+            moves.append({"method": row["method"], "metric": metric, "old": old, "se": se, "new": new,
+                          "se_moved": (new - old) / se if se > 0 else math.copysign(math.inf, new - old)})
+    return moves
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m fr_eval.protocols.check_tables", description=__doc__.splitlines()[0])
     parser.add_argument("paths", nargs="*", default=["results"])
     parser.add_argument("--rev", default="HEAD", help="the committed version (default HEAD)")
     parser.add_argument("--rtol", type=float, default=1e-6)
     parser.add_argument("--atol", type=float, default=1e-9)
+    parser.add_argument("--moves", action="store_true",
+                        help="print how far each mean moved in committed standard errors instead")
+    parser.add_argument("--limit", type=float, default=1.0, help="--moves: flag moves beyond this many SEs")
     args = parser.parse_args(argv)
+    if args.moves:
+        return print_moves(args.paths, args.rev, args.limit)
     failed = 0
     for path in tracked_csvs(args.paths, args.rev):
         committed_text = subprocess.run(["git", "show", f"{args.rev}:{path}"], cwd=REPO, capture_output=True,
@@ -92,6 +128,25 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{failed} file(s) beyond rtol {args.rtol:g} / atol {args.atol:g}" if failed else
           f"every table within rtol {args.rtol:g} / atol {args.atol:g}")
     return 1 if failed else 0
+
+
+def print_moves(paths: list[str], rev: str, limit: float) -> int:
+    """``--moves``: one line per moved mean of every summary table under ``paths``; 1 when any
+    moved beyond ``limit`` committed SEs."""
+    beyond = 0
+    for path in tracked_csvs(paths, rev):
+        current_path = REPO / path
+        if not current_path.is_file():
+            continue
+        committed_text = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=REPO, capture_output=True,
+                                        text=True, check=True).stdout
+        for move in standard_error_moves(pd.read_csv(io.StringIO(committed_text)), pd.read_csv(current_path)):
+            flag = abs(move["se_moved"]) > limit
+            beyond += flag
+            print(f"{'!! ' if flag else '   '}{path} | {move['method']} | {move['metric']} | "
+                  f"{move['old']:.4g} ± {move['se']:.3g} -> {move['new']:.4g} | {move['se_moved']:+.2f} SE")
+    print(f"{beyond} mean(s) moved beyond {limit:g} SE" if beyond else f"every mean within {limit:g} SE")
+    return 1 if beyond else 0
 
 
 if __name__ == "__main__":
