@@ -27,6 +27,9 @@ Outputs (``--out``, default ``results/horizon/<dataset>-<split>``): ``horizon_er
 per method and photo: both border crossings of the estimate and of every ground truth, the error
 per definition, the bound, run time, failure reason), ``horizon_summary.{md,csv,tex}``,
 ``horizon_curves.png`` (the cumulative error curves, one panel per definition), ``run_info.json``.
+
+``--reuse METHODS`` (:mod:`fr_eval.protocols.reuse`) takes those methods' rows (run time included)
+from the ``horizon_errors.csv`` already in ``--out`` instead of running them.
 """
 from __future__ import annotations
 
@@ -45,6 +48,7 @@ import pandas as pd
 
 from fr_eval.machine import machine_description
 from fr_eval.paths import REPO
+from fr_eval.protocols import reuse
 from fr_eval.protocols.run_eval import (
     build_calibrators,
     evaluate_method,
@@ -217,20 +221,29 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: dataset {args.dataset!r} has no ground-truth horizon (a labelled horizon or a camera with "
               "K and a vertical); the horizon task runs on yud, ecd-tune, nyu-vp, ...", file=sys.stderr)
         return 2
-    calibrators = build_calibrators(args, methods, fov_range)
+    out_dir = Path(args.out) if args.out else REPO / "results" / "horizon" / safe_name(f"{args.dataset}-{args.split}")
+    try:
+        previous = reuse.previous_run(args, out_dir, "horizon_errors.csv", methods=methods, samples=samples, settings={
+            "task": "horizon", "dataset": args.dataset, "split": args.split, "pp": args.pp,
+            "known_focal": args.known_focal, "limit": args.limit, "fov_range_deg": list(fov_range)})
+    except reuse.ReuseError as exc:
+        return reuse.refuse(exc)
+    calibrators = build_calibrators(args, reuse.left_to_run(methods, previous), fov_range)
     if calibrators is None:
         return 2
-    out_dir = Path(args.out) if args.out else REPO / "results" / "horizon" / safe_name(f"{args.dataset}-{args.split}")
     out_dir.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     for spec in methods:
-        try:
-            rows += evaluate_method(spec, samples, pp_mode=args.pp, known_focal=args.known_focal, dataset=args.dataset,
-                                    device=args.device, calibrator=calibrators[spec], row_of=horizon_row,
-                                    progress=not args.no_progress)
-        except ValueError as exc:  # e.g. --pp calibrated on a dataset without a principal point
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
+        if spec not in calibrators:  # --reuse: the old run's rows
+            rows += previous.rows_of(spec, samples, blank=lambda s, spec=spec: horizon_row(spec, s, None, math.nan))
+        else:
+            try:
+                rows += evaluate_method(spec, samples, pp_mode=args.pp, known_focal=args.known_focal,
+                                        dataset=args.dataset, device=args.device, calibrator=calibrators[spec],
+                                        row_of=horizon_row, progress=not args.no_progress)
+            except ValueError as exc:  # e.g. --pp calibrated on a dataset without a principal point
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
         pd.DataFrame(rows).to_csv(out_dir / "horizon_errors.csv", index=False)  # after each method
     errors = pd.DataFrame(rows)
     summary = summary_rows(errors, definitions)
@@ -253,6 +266,8 @@ def run(args: argparse.Namespace) -> int:
             "fov_range_deg": list(fov_range), "device": args.device, "limit": args.limit,
             "python": platform.python_version(), "machine": machine_description(args.device),
             "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+    if previous is not None:
+        info["reused"] = previous.provenance()
     (out_dir / "run_info.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
     print((out_dir / "horizon_summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out_dir}/horizon_errors.csv, horizon_summary.md/.csv/.tex, "

@@ -39,7 +39,12 @@ Outputs (``--out``, default ``results/<dataset>``):
 * ``deviation_measures.{md,csv,tex}``: the same table restricted to ``[measure=x]`` variants, one
   row per deviation measure (written when such variants ran);
 * ``hist_<method>.png``: estimated vs GT roll, tilt and FOV histograms;
-* ``run_info.json``: the command line, settings and machine (CPU, cores, torch, threads).
+* ``run_info.json``: the command line, settings and machine (CPU, cores, torch, threads), the
+  weights caption of each learned row (``weights``) and, with ``--reuse``, where reused rows came from.
+
+``--reuse METHODS`` (:mod:`fr_eval.protocols.reuse`) takes those methods' rows from the
+``predictions.csv`` already in ``--out`` (and their weights caption from its ``run_info.json``)
+instead of building and running them; every output above is written as if they had run.
 """
 from __future__ import annotations
 
@@ -60,6 +65,7 @@ from tqdm import tqdm
 from fr_eval.datasets.registry import available_datasets, load_dataset
 from fr_eval.machine import machine_description
 from fr_eval.paths import REPO
+from fr_eval.protocols import reuse
 from fr_eval.scoring.metrics import (
     estimate_quantities,
     failure_reason,
@@ -159,6 +165,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated deviation measures (e.g. a,b,c,d,e): run every method as "
                              "<method>[measure=x] and write the deviation-measure table")
     parser.add_argument("--out", default=None, help="output folder (default results/<dataset>)")
+    reuse.add_argument(parser)
     parser.add_argument("--no-progress", action="store_true",
                         help="no progress bar (there is one only when stderr is a terminal)")
     parser.add_argument("--data-root", default=None, help="dataset root (default $FR_DATA or ../shared/data)")
@@ -454,19 +461,32 @@ def run(args: argparse.Namespace) -> int:
         return 2
     group_key = resolve_group_by(getattr(args, "group_by", "auto"), samples)
     fov_range = parse_fov_range(args)
-    calibrators = None if fov_range is None else build_calibrators(args, methods, fov_range)
-    if calibrators is None:
+    if fov_range is None:
         return 2
     out_dir = Path(args.out) if args.out else REPO / "results" / safe_name(args.dataset)
+    try:
+        previous = reuse.previous_run(args, out_dir, "predictions.csv", methods=methods, samples=samples, settings={
+            "task": "camera", "dataset": args.dataset, "split": args.split, "pp": args.pp,
+            "known_focal": args.known_focal, "limit": args.limit, "fov_range_deg": list(fov_range)})
+    except reuse.ReuseError as exc:
+        return reuse.refuse(exc)
+    calibrators = build_calibrators(args, reuse.left_to_run(methods, previous), fov_range)
+    if calibrators is None:
+        return 2
     out_dir.mkdir(parents=True, exist_ok=True)
 
     groups = {s.name: group_value(s, group_key) for s in samples} if group_key else {}
     all_rows: list[dict] = []
     summaries, group_summaries = [], []
     for spec in methods:
-        rows = evaluate_method(spec, samples, pp_mode=args.pp, known_focal=args.known_focal,
-                               dataset=args.dataset, device=args.device, calibrator=calibrators[spec],
-                               progress=not args.no_progress)
+        if spec in calibrators:
+            rows = evaluate_method(spec, samples, pp_mode=args.pp, known_focal=args.known_focal,
+                                   dataset=args.dataset, device=args.device, calibrator=calibrators[spec],
+                                   progress=not args.no_progress)
+        else:  # --reuse: the old run's rows, without their group (set below as for a fresh row)
+            rows = previous.rows_of(spec, samples, blank=lambda s, spec=spec: prediction_row(spec, s, None, math.nan))
+            for row in rows:
+                row.pop("group", None)
         if group_key:
             for row in rows:
                 row["group"] = groups.get(row["image"])
@@ -479,6 +499,10 @@ def run(args: argparse.Namespace) -> int:
         if not args.no_plots and not summary.not_supplied:
             histogram_figure(pd.DataFrame(rows), spec, out_dir / f"hist_{safe_name(spec)}.png",
                              title=f"{spec} on {args.dataset} ({args.split}): estimated vs ground truth")
+    weights = weights_texts(calibrators)
+    if previous is not None:
+        weights.update(reused_weights(previous))
+    weights = {spec: weights[spec] for spec in methods if weights.get(spec)}
     settings = (f"dataset {args.dataset}, split {args.split} ({len(samples)} images), principal point "
                 f"{args.pp}, focal {'known' if args.known_focal else 'estimated'}; "
                 + range_caption(methods, fov_range))
@@ -487,7 +511,7 @@ def run(args: argparse.Namespace) -> int:
             "images) and excluded from the error means only; run time (wall time of estimate(), all images, "
             "after one warm-up call) includes them. n/a = not estimated; n/a (not supplied) = the method's "
             f"weights / predictions were not supplied (no numbers). Settings: {settings}."
-            + weights_note(calibrators))
+            + weights_caption(weights))
     written = write_tables(summaries, out_dir, "summary", title=f"Calibration results: {args.dataset} {args.split}",
                            note=note)
     common = common_subset_summaries(all_rows, [s for s in summaries if not s.not_supplied])
@@ -518,7 +542,10 @@ def run(args: argparse.Namespace) -> int:
             "limit": args.limit, "fov_range_deg": list(fov_range), "python": platform.python_version(),
             # fR's figures move by ~0.1 point between CPUs (last-bit differences of vector maths carried through
             # 100 refinement steps; results/yud/README.md), so a table records the machine it came from.
-            "machine": machine_description(args.device), "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+            "machine": machine_description(args.device), "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "weights": weights}
+    if previous is not None:
+        info["reused"] = previous.provenance()
     (out_dir / "run_info.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
     print((out_dir / "summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out_dir}/predictions.csv, " + ", ".join(p.name for p in written))
@@ -565,12 +592,35 @@ def apply_weight_options(args: argparse.Namespace) -> None:
 def weights_note(calibrators: dict[str, Any]) -> str:
     """Caption text naming the weights of each learned row (methods with a ``weights`` property:
     file name + sha256), e.g. " Weights: ctrlc = gsv.onnx (sha256 ...)."; "" when there are none."""
-    parts = []
+    return weights_caption(weights_texts(calibrators))
+
+
+def weights_texts(calibrators: dict[str, Any]) -> dict[str, str]:
+    """``{spec: weights text}`` of the learned rows (methods with a ``weights`` property)."""
+    texts = {}
     for spec, calibrator in calibrators.items():
         try:
             weights = getattr(calibrator, "weights", None)
         except Exception as exc:  # noqa: BLE001 - an unreadable file still gets a caption
             weights = f"unreadable ({type(exc).__name__}: {exc})"
         if weights:
-            parts.append(f"{spec} = {weights}")
-    return f" Weights: {'; '.join(parts)}." if parts else ""
+            texts[spec] = str(weights)
+    return texts
+
+
+def weights_caption(texts: dict[str, str]) -> str:
+    """" Weights: a = ...; b = ..." from :func:`weights_texts`; "" when empty."""
+    return f" Weights: {'; '.join(f'{spec} = {text}' for spec, text in texts.items())}." if texts else ""
+
+
+def reused_weights(previous: reuse.PreviousRun) -> dict[str, str]:
+    """The weights texts of the reused rows: the old run_info.json's ``weights``, or, from a run that
+    did not record them there, the "Weights:" sentence of its summary.md."""
+    if isinstance(previous.info.get("weights"), dict):
+        texts = previous.info["weights"]
+    else:
+        path = previous.folder / "summary.md"
+        lines = path.read_text(encoding="utf-8").splitlines() if path.is_file() else []
+        sentence = next((line.rpartition(" Weights: ")[2] for line in lines if " Weights: " in line), "")
+        texts = dict(part.partition(" = ")[::2] for part in sentence.removesuffix(".").split("; ") if " = " in part)
+    return {spec: texts[spec] for spec in previous.methods if texts.get(spec)}

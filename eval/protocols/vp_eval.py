@@ -26,6 +26,11 @@ Outputs (``--out``, default ``results/vp/<dataset>-<split>``): ``vp_errors.csv``
 labelled VP: method, intrinsics, image, index, error), ``vp_summary.{md,csv,tex}`` (rows methods,
 columns AUC@5/10/20 and unmatched VPs per intrinsics setting, time per image), ``vp_recall.png``
 (recall curves up to 20 degrees), ``run_info.json``.
+
+``--reuse METHODS`` (:mod:`fr_eval.protocols.reuse`) takes those methods' rows (their variant rows
+``<method> (<name>)`` too) from the ``vp_errors.csv`` already in ``--out`` and their time per image
+from its ``vp_summary.csv``, instead of running them; the old run must have had the same
+``--intrinsics`` settings.
 """
 from __future__ import annotations
 
@@ -42,6 +47,7 @@ import pandas as pd
 from fr_eval.datasets.registry import load_dataset
 from fr_eval.machine import machine_description
 from fr_eval.paths import REPO
+from fr_eval.protocols import reuse
 from fr_eval.protocols.run_eval import (
     _call,
     _na_reason,
@@ -182,20 +188,33 @@ def run(args: argparse.Namespace) -> int:
         return 2
     fov_range = parse_fov_range(args)
     samples = None if fov_range is None else load_samples(args, load_vp_samples)
-    calibrators = None if samples is None else build_calibrators(args, methods, fov_range)
-    if calibrators is None:
+    if samples is None:
         return 2
     out_dir = Path(args.out) if args.out else REPO / "results" / "vp" / safe_name(f"{args.dataset}-{args.split}")
+    try:
+        previous = reuse.previous_run(args, out_dir, "vp_errors.csv", methods=methods, samples=samples,
+                                      per={"intrinsics": settings}, settings={
+                                          "task": "vp", "dataset": args.dataset, "split": args.split,
+                                          "limit": args.limit, "fov_range_deg": list(fov_range),
+                                          "intrinsics": settings})
+        times = {(spec, setting): previous.value("vp_summary.csv", spec, f"time_s_{setting}")
+                 for spec in reuse.reused_of(previous) for setting in settings}
+    except reuse.ReuseError as exc:
+        return reuse.refuse(exc)
+    calibrators = build_calibrators(args, reuse.left_to_run(methods, previous), fov_range)
+    if calibrators is None:
+        return 2
     out_dir.mkdir(parents=True, exist_ok=True)
-    error_rows, times = [], {}
+    error_rows = []
     for spec in methods:
-        calibrator = calibrators[spec]
-        reuse = None
-        for setting in settings:
-            if reuse is None or getattr(calibrator, "uses_intrinsics", True):
-                reuse = run_setting(spec, calibrator, samples, setting, args.dataset, args.device,
-                                    progress=not getattr(args, "no_progress", False))
-            points, wall, reasons = reuse
+        if spec not in calibrators:  # --reuse: the old run's rows (its time per image read above)
+            error_rows += previous.rows_of(spec, samples, variants=True)
+        calibrator, answers = calibrators.get(spec), None
+        for setting in settings if calibrator is not None else ():
+            if answers is None or getattr(calibrator, "uses_intrinsics", True):
+                answers = run_setting(spec, calibrator, samples, setting, args.dataset, args.device,
+                                      progress=not getattr(args, "no_progress", False))
+            points, wall, reasons = answers
             times[(spec, setting)] = float(np.mean(wall))
             for name, per_image in points.items():
                 for sample, pts, reason in zip(samples, per_image, reasons):
@@ -228,6 +247,8 @@ def run(args: argparse.Namespace) -> int:
             "fov_range_deg": list(fov_range), "device": args.device, "limit": args.limit,
             "python": platform.python_version(), "machine": machine_description(args.device),
             "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+    if previous is not None:
+        info["reused"] = previous.provenance()
     (out_dir / "run_info.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
     print((out_dir / "vp_summary.md").read_text(encoding="utf-8"))
     print(f"wrote {out_dir}/vp_errors.csv, vp_summary.md/.csv/.tex, vp_recall.png, run_info.json")
