@@ -59,7 +59,10 @@ for step in "${steps[@]}"; do
       for s in $CROP_SIZES; do  # built by the dataset step
         $FR eval --dataset yud-crop-$s --split test \
           --methods "fr,fr[range=paper],fast-fr,lee2009,simon2018,prior" --out results/yud-crop/$s
-      done ;;
+      done
+      # the held-out accuracy table (results/cross_dataset/accuracy.*): its "shipped" column is sota's
+      # and the crops' published runs, so it follows them (its runs: step lodo)
+      .venv/bin/python -m fr_eval.protocols.lodo table ;;
     detectors)  # Issue "detectors": LSD vs MCMLSD (paper's Table 3); issue 37: LSD vs torch-lines
       for d in yud zind-fr; do
         $FR eval --dataset $d --split test --no-plots --out results/detectors/$d \
@@ -79,8 +82,7 @@ for step in "${steps[@]}"; do
     lodo)  # Issue 35: leave-one-dataset-out protocol over YUD, ZInD-fR, NYU-VP and the YUD crops
            # (results/cross_dataset/; per-image predictions cached in $FR_CACHE/lodo); the reliable
            # promise's conformal scales go to configs/reliability.json (before the tables that use it)
-      .venv/bin/python -m fr_eval.protocols.lodo run
-      .venv/bin/python -m fr_eval.protocols.lodo table
+      .venv/bin/python -m fr_eval.protocols.lodo run   # its accuracy table: step crops (it reads sota's and crops' runs)
       .venv/bin/python -m fr_eval.protocols.lodo_reliability promise --write
       for rule in worst pooled; do
         .venv/bin/python -m fr_eval.protocols.lodo_reliability table --scale-rule $rule
@@ -88,6 +90,10 @@ for step in "${steps[@]}"; do
       done
       .venv/bin/python -m fr_eval.protocols.lodo_reliability table --bounds knn   # issue 35's bounds, for comparison
       .venv/bin/python -m fr_eval.protocols.lodo_reliability figure             # results/reliability/risk_coverage.png
+      # issue 67: the horizon promise held out, its shipped scales (configs/reliability.json) and ecd-tune, a set no choice saw
+      .venv/bin/python -m fr_eval.protocols.horizon_promise table
+      .venv/bin/python -m fr_eval.protocols.horizon_promise promise --write
+      .venv/bin/python -m fr_eval.protocols.horizon_promise final --dataset ecd-tune --split all
       # issue 45: the promise on torch-lines' segments vs LSD's, same photos (the promise's validated_detectors)
       .venv/bin/python -m fr_eval.protocols.detector_reliability run
       .venv/bin/python -m fr_eval.protocols.detector_reliability table ;;       # results/reliability/torch_lines.*
@@ -149,7 +155,7 @@ for step in "${steps[@]}"; do
       .venv/bin/python -m fr_eval.protocols.reproducibility run --label current
       .venv/bin/python -m fr_eval.protocols.reproducibility table --labels current ;;
     bench)  # Issue "speed": latency, throughput, memory, scaling (results/bench/)
-      $FR bench --threads 2 --stress --compile  # both cores of an idle 2-core machine (the target setting); --compile: the compiled-grid rows too
+      $FR bench --threads 2 --stress  # both cores of an idle 2-core machine (the target setting)
       # folder end to end, whole fr calibrate processes (re-append the hand-written paragraph of pipeline.md)
       .venv/bin/python -m fr_eval.bench.folder --copies 1,3 --workers 0,1,2,default --rounds 2 \
         --out results/bench/pipeline.md ;;

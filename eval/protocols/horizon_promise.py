@@ -70,6 +70,7 @@ from fr_torch.core.reliability.bounds import (
     worst_group_scale,
 )
 from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
+from fr_torch.output import write_text_atomic
 
 #: The ground truth a photo's horizon error is measured against: the first it has.
 TRUTH_ORDER = ("labelled", "frame")
@@ -365,7 +366,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     block = shipped_block(cache, args.limit, args.coverage)
     if args.write:
         config["promise"]["horizon"] = block
-        path.write_text(json.dumps(config, indent=1) + "\n")
+        write_text_atomic(path, json.dumps(config, indent=1) + "\n")  # searches running now read it whole
     print(json.dumps(block, indent=1))
     return 0
 

@@ -66,6 +66,7 @@ from fr_torch.core.reliability.bounds import (
 )
 from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
 from fr_torch.core.reliability.model import ERROR_COLUMNS, ReliabilityModel, model_cue_names
+from fr_torch.output import write_text_atomic
 
 TARGET_INDEX = {"roll_deg": 0, "tilt_deg": 1, "focal_pct": 2}
 ERROR_OF = {"focal_pct": "focal_err_pct", "tilt_deg": "tilt_err_deg"}
@@ -321,7 +322,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     block = shipped_promise(cache, limits, args.coverage, config.get("promise", {}).get("validated_detectors", ()))
     if args.write:
         config["promise"] = block
-        path.write_text(json.dumps(config, indent=1) + "\n")
+        write_text_atomic(path, json.dumps(config, indent=1) + "\n")  # searches running now read it whole
     print(json.dumps(block, indent=1))
     return 0
 
