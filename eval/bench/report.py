@@ -20,7 +20,7 @@ def _figure(scale: dict, path: Path) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, key, xkey, xlabel in ((axes[0], "segments", "segments", "segments per image"),
-                                  (axes[1], "grid", "hypotheses", "grid hypotheses k^4")):
+                                  (axes[1], "grid", "hypotheses", "stage-1 hypotheses scored")):
         rows = scale[key]
         if not rows:
             continue
@@ -106,7 +106,7 @@ def _markdown(report: dict) -> str:
                   "|---|---|---|---|---|"]
         for r in report["scaling"]["segments"]:
             lines.append(f"| {r['segments']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['cues_ms']:.1f} | {r['total_ms']:.1f} |")
-        lines += ["", "| k | hypotheses | grid | refine | total |", "|---|---|---|---|---|"]
+        lines += ["", "| k | hypotheses scored | grid | refine | total |", "|---|---|---|---|---|"]
         for r in report["scaling"]["grid"]:
             lines.append(f"| {r['k']} | {r['hypotheses']} | {r['grid_ms']:.1f} | {r['refine_ms']:.1f} | {r['total_ms']:.1f} |")
         lines += ["", "![scaling](scaling.png)", ""]

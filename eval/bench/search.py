@@ -113,7 +113,10 @@ def outside_search(batch: int, n_segments: int, device: str, repeats: int, progr
 
 
 def scaling(segment_counts, grid_sizes, device: str, repeats: int, progress, mode: str = "fast") -> dict:
-    """Per-image time (ms, batch 1, given segments) against N segments and against grid size k."""
+    """Per-image time (ms, batch 1, given segments) against N segments and against grid size k (with
+    the hypotheses stage 1 scores at each k: coarse to fine where 2 divides k)."""
+    from fr_torch.core.search.grid import stage1_hypothesis_count
+
     out = {"segments": [], "grid": []}
     est = bench_estimator(mode, device)
     for n in segment_counts:
@@ -138,7 +141,7 @@ def scaling(segment_counts, grid_sizes, device: str, repeats: int, progress, mod
         for _ in range(repeats):
             [r] = est_k.calibrate_segments([seg], [(640, 480)])
             runs.append(r.runtime_s)
-        out["grid"].append({"k": k, "hypotheses": k ** 4, "segments": 500,
+        out["grid"].append({"k": k, "hypotheses": stage1_hypothesis_count(est_k.search), "segments": 500,
                             **{f"{key}_ms": 1000 * statistics.median(x[key] for x in runs)
                                for key in ("grid", "refine", "cues", "total")}})
         progress.update(1, "scaling", out["grid"][-1])
