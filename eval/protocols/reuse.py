@@ -136,6 +136,13 @@ def _empty(value: Any) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value))
 
 
+def image_task_settings(args: argparse.Namespace, task: str, fov_range) -> dict[str, Any]:
+    """The settings a camera or horizon run must share with the run it reuses (``fov_range``: the
+    parsed FOV range): task, dataset, split, principal point, known focal, limit, FOV range."""
+    return {"task": task, "dataset": args.dataset, "split": args.split, "pp": args.pp,
+            "known_focal": args.known_focal, "limit": args.limit, "fov_range_deg": list(fov_range)}
+
+
 def previous_run(args: argparse.Namespace, out_dir: Path, per_image: str, settings: Mapping[str, Any],
                  methods: Sequence[str], samples: Sequence[Any],
                  per: Mapping[str, Iterable[str]] | None = None) -> PreviousRun | None:

@@ -465,9 +465,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     out_dir = Path(args.out) if args.out else REPO / "results" / safe_name(args.dataset)
     try:
-        previous = reuse.previous_run(args, out_dir, "predictions.csv", methods=methods, samples=samples, settings={
-            "task": "camera", "dataset": args.dataset, "split": args.split, "pp": args.pp,
-            "known_focal": args.known_focal, "limit": args.limit, "fov_range_deg": list(fov_range)})
+        previous = reuse.previous_run(args, out_dir, "predictions.csv", methods=methods, samples=samples,
+                                      settings=reuse.image_task_settings(args, "camera", fov_range))
     except reuse.ReuseError as exc:
         return reuse.refuse(exc)
     calibrators = build_calibrators(args, reuse.left_to_run(methods, previous), fov_range)
