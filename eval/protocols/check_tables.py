@@ -74,6 +74,12 @@ def compare(committed: pd.DataFrame, current: pd.DataFrame, rtol: float, atol: f
     return True, f"within tolerance (largest {worst:.1e} in {where!r})" if worst else "identical"
 
 
+def committed_text(path: str, rev: str) -> str:
+    """The text of the repository-relative ``path`` at ``rev``."""
+    return subprocess.run(["git", "show", f"{rev}:{path}"], cwd=REPO, capture_output=True, text=True,
+                          check=True).stdout
+
+
 def standard_error_moves(committed: pd.DataFrame, current: pd.DataFrame) -> list[dict]:
     """Per (method, metric) of a summary table: the committed mean and SE, the current mean and the
     move in committed SEs (``inf`` where the SE is 0 and the mean moved; rows or metrics present in
@@ -112,17 +118,15 @@ def main(argv: list[str] | None = None) -> int:
         return print_moves(args.paths, args.rev, args.limit)
     failed = 0
     for path in tracked_csvs(args.paths, args.rev):
-        committed_text = subprocess.run(["git", "show", f"{args.rev}:{path}"], cwd=REPO, capture_output=True,
-                                        text=True, check=True).stdout
+        committed = committed_text(path, args.rev)
         current_path = REPO / path
         if not current_path.is_file():
             print(f"{path}: missing now")
             failed += 1
             continue
-        current_text = current_path.read_text()
-        if current_text == committed_text:
+        if current_path.read_text() == committed:
             continue
-        ok, message = compare(pd.read_csv(io.StringIO(committed_text)), pd.read_csv(current_path), args.rtol, args.atol)
+        ok, message = compare(pd.read_csv(io.StringIO(committed)), pd.read_csv(current_path), args.rtol, args.atol)
         print(f"{path}: {message}")
         failed += not ok
     print(f"{failed} file(s) beyond rtol {args.rtol:g} / atol {args.atol:g}" if failed else
@@ -138,9 +142,8 @@ def print_moves(paths: list[str], rev: str, limit: float) -> int:
         current_path = REPO / path
         if not current_path.is_file():
             continue
-        committed_text = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=REPO, capture_output=True,
-                                        text=True, check=True).stdout
-        for move in standard_error_moves(pd.read_csv(io.StringIO(committed_text)), pd.read_csv(current_path)):
+        committed = pd.read_csv(io.StringIO(committed_text(path, rev)))
+        for move in standard_error_moves(committed, pd.read_csv(current_path)):
             flag = abs(move["se_moved"]) > limit
             beyond += flag
             print(f"{'!! ' if flag else '   '}{path} | {move['method']} | {move['metric']} | "

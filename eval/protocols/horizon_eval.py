@@ -48,13 +48,12 @@ import pandas as pd
 
 from fr_eval.machine import machine_description
 from fr_eval.paths import REPO
-from fr_eval.protocols import reuse
 from fr_eval.protocols.run_eval import (
-    build_calibrators,
     evaluate_method,
     load_samples,
     parse_fov_range,
     range_caption,
+    reuse_and_build,
     split_methods,
 )
 from fr_eval.scoring.horizon_metric import CUTOFF, definition_notes, estimate_horizon, lezama_auc, truth_horizons
@@ -222,14 +221,10 @@ def run(args: argparse.Namespace) -> int:
               "K and a vertical); the horizon task runs on yud, ecd-tune, nyu-vp, ...", file=sys.stderr)
         return 2
     out_dir = Path(args.out) if args.out else REPO / "results" / "horizon" / safe_name(f"{args.dataset}-{args.split}")
-    try:
-        previous = reuse.previous_run(args, out_dir, "horizon_errors.csv", methods=methods, samples=samples,
-                                      settings=reuse.image_task_settings(args, "horizon", fov_range))
-    except reuse.ReuseError as exc:
-        return reuse.refuse(exc)
-    calibrators = build_calibrators(args, reuse.left_to_run(methods, previous), fov_range)
-    if calibrators is None:
+    prepared = reuse_and_build(args, out_dir, "horizon_errors.csv", "horizon", methods, samples, fov_range)
+    if prepared is None:
         return 2
+    previous, calibrators = prepared
     out_dir.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     for spec in methods:

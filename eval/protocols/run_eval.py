@@ -464,14 +464,10 @@ def run(args: argparse.Namespace) -> int:
     if fov_range is None:
         return 2
     out_dir = Path(args.out) if args.out else REPO / "results" / safe_name(args.dataset)
-    try:
-        previous = reuse.previous_run(args, out_dir, "predictions.csv", methods=methods, samples=samples,
-                                      settings=reuse.image_task_settings(args, "camera", fov_range))
-    except reuse.ReuseError as exc:
-        return reuse.refuse(exc)
-    calibrators = build_calibrators(args, reuse.left_to_run(methods, previous), fov_range)
-    if calibrators is None:
+    prepared = reuse_and_build(args, out_dir, "predictions.csv", "camera", methods, samples, fov_range)
+    if prepared is None:
         return 2
+    previous, calibrators = prepared
     out_dir.mkdir(parents=True, exist_ok=True)
 
     groups = {s.name: group_value(s, group_key) for s in samples} if group_key else {}
@@ -563,6 +559,21 @@ def parse_fov_range(args: argparse.Namespace) -> FovRange | None:
     except ValueError as exc:
         print(f"error: --fov-range: {exc}", file=sys.stderr)
         return None
+
+
+def reuse_and_build(args: argparse.Namespace, out_dir: Path, per_image: str, task: str, methods: Sequence[str],
+                    samples: Sequence[Any], fov_range: FovRange) -> tuple[reuse.PreviousRun | None, dict[str, Any]] | None:
+    """A camera or horizon run's ``--reuse`` old run (None without the option; checked against this
+    run's settings, :func:`fr_eval.protocols.reuse.image_task_settings`) and the calibrators of the
+    methods it leaves to run; None after a one-line error (exit status 2)."""
+    try:
+        previous = reuse.previous_run(args, out_dir, per_image, methods=methods, samples=samples,
+                                      settings=reuse.image_task_settings(args, task, fov_range))
+    except reuse.ReuseError as exc:
+        reuse.refuse(exc)
+        return None
+    calibrators = build_calibrators(args, reuse.left_to_run(methods, previous), fov_range)
+    return None if calibrators is None else (previous, calibrators)
 
 
 def build_calibrators(args: argparse.Namespace, methods: Sequence[str], fov_range: FovRange) -> dict[str, Any] | None:
