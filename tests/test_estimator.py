@@ -98,16 +98,29 @@ def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
     """With ``grid_segments`` set, stage 1 scores each image's longest that many segments (0, all,
     by default in both modes' presets); the other stages always get every segment; negative counts
     are refused."""
+    import fr_torch.core.estimator as estimator_module
     import fr_torch.core.search.grid as grid
     import fr_torch.core.search.manhattan as manhattan
     from fr_torch.core.settings.config import SearchConfig
 
-    seen = []
-    original = grid.score_grid
-    record = lambda model, features, *a, **k: seen.append(features.weight.shape[1]) or original(  # noqa: E731
-        model, features, *a, **k)
+    seen, searching = [], []
+    original_score, original_search = grid.score_grid, manhattan.search_manhattan
+
+    def record(model, features, *a, **k):  # stage 1's grids only (the cues' focal profile scores grids too)
+        if searching:
+            seen.append(features.weight.shape[1])
+        return original_score(model, features, *a, **k)
+
+    def search(*a, **k):
+        searching.append(True)
+        try:
+            return original_search(*a, **k)
+        finally:
+            searching.pop()
+
     for module in (grid, manhattan):  # coarse to fine scores its two grids in grid.py
         monkeypatch.setattr(module, "score_grid", record)
+    monkeypatch.setattr(estimator_module, "search_manhattan", search)
     segments, _, _ = _scene(3, 70.0, 10.0, 5.0, 2.0)  # 3 x 60 + 30 % clutter
     assert SearchConfig.from_config().resolve("fast").grid_segments == 0  # default: all
     config = SearchConfig.from_config(grid_segments=250)
