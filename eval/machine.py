@@ -23,12 +23,16 @@ def cpu_model() -> str:
 
 def machine_description(device: str) -> dict:
     """The record of the machine a measurement ran on: CPU model, cores (all and usable), torch
-    version and threads, ``FR_THREADS``, ``device`` (and its GPU's name), Python, platform, load average."""
+    version and threads, ``FR_THREADS``, ``device`` (and its GPU's name), Python, platform, load average,
+    and oneMKL's code branch (:func:`fr_torch.core.likelihood.native.mkl_branch`: machines on other
+    branches give other bits)."""
     import torch
+
+    from fr_torch.core.likelihood.native import mkl_branch
 
     info = {"cpu": cpu_model(), "cores": os.cpu_count(), "usable_cores": usable_cores(), "torch": torch.__version__,
             "threads": torch.get_num_threads(), "fr_threads": os.environ.get("FR_THREADS", "auto"), "device": device, "python": platform.python_version(),
-            "platform": platform.platform()}
+            "platform": platform.platform(), "mkl_branch": mkl_branch()}
     try:
         info["load_average"] = [round(x, 2) for x in os.getloadavg()]
     except OSError:

@@ -1,6 +1,7 @@
 """One photo, one answer: the same bits in any batch, thread count and CPU kernel set, and run after
 run on a GPU (fr_torch.core.exact; results/reproducibility/ measures it on the datasets)."""
 import json
+import os
 
 import numpy as np
 import pytest
@@ -167,6 +168,24 @@ def test_every_cpu_kernel_set_gives_the_same_bits(reference, kernels):
     """The photos searched in a process with another ATEN_CPU_CAPABILITY: bit for bit the same records
     (CI machines differ in their CPUs; this is what a new one must reproduce)."""
     assert fresh_process_records(kernels)["photos"] == reference
+
+
+def test_the_mkl_branch_that_decides_the_bits_is_named():
+    """oneMKL picks its code branch by CPU, and its branches round float32 atan / exp / log
+    differently (an Intel Xeon's AVX512_E1 and a pinned AVX2 give other fR answers): the machine
+    record names the branch, the pinned one where ``MKL_CBWR`` pins it."""
+    import subprocess
+    import sys
+
+    from fr_torch.core.likelihood.native import MKL_BRANCHES, mkl_branch
+
+    here = mkl_branch()
+    assert here is None or here in MKL_BRANCHES.values()
+    if here is not None:
+        code = "from fr_torch.core.likelihood.native import mkl_branch; print(mkl_branch())"
+        pinned = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                                env={**os.environ, "MKL_CBWR": "COMPATIBLE"}).stdout.strip()
+        assert pinned == "COMPATIBLE"
 
 
 def test_the_torch_path_gives_the_fused_kernels_bits(reference):

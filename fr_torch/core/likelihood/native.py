@@ -86,6 +86,28 @@ def _torch_cpu_library() -> ctypes.CDLL | None:
     return None
 
 
+#: oneMKL's code branches (``MKL_CBWR_*`` constants of ``mkl_cbwr_get``) by number.
+MKL_BRANCHES = {3: "COMPATIBLE", 4: "SSE2", 6: "SSSE3", 7: "SSE4_1", 8: "SSE4_2", 9: "AVX", 10: "AVX2",
+                11: "AVX512_MIC", 12: "AVX512", 13: "AVX512_MIC_E1", 14: "AVX512_E1"}
+
+
+def mkl_branch() -> str | None:
+    """The oneMKL code branch torch's CPU library runs here: the one ``MKL_CBWR`` pins, else the one
+    MKL picks for this CPU (``"AVX512_E1"``, ``"AVX2"``, ...); None without MKL in torch.
+
+    The MKL VML routines behind float32 ``atan`` / ``exp`` / ``log`` (torch's and the fused
+    kernels') round differently on different branches, so two machines give the same bits only on
+    the same branch; measurement records (``fr_eval.machine``) name it."""
+    library = _torch_cpu_library()
+    try:
+        get, auto = library.mkl_serv_cbwr_get, library.mkl_serv_cbwr_get_auto_branch
+    except AttributeError:  # no library, or no MKL in it
+        return None
+    pinned = get(1)  # MKL_CBWR_BRANCH: 1 = not pinned
+    number = auto() if pinned <= 2 else pinned
+    return MKL_BRANCHES.get(number, str(number))
+
+
 def _cpu_flags() -> tuple[str, ...]:
     """``-mavx2`` where the CPU has AVX2 (the arithmetic loops run 8 floats at a time: about a
     quarter faster; the same bits, as no fused multiply-add is allowed), else nothing."""
