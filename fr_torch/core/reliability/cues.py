@@ -205,24 +205,25 @@ SPREAD_FOCAL_RATIOS = (0.87, 1.15)
 #: Images profiled together by :func:`focal_profile` (their segments are copied once per ratio:
 #: 256 x 8 copies of 750 segments are about 90 MB); the profile does not depend on it.
 PROFILE_CHUNK_IMAGES = 256
-#: Coarse cells each known-focal search of :func:`focal_profile` keeps when stage 1 is coarse to fine
-#: (``SearchConfig.grid_coarse_factor`` s > 1): 16 of the (k/s)^3 = 64 cells, so 64 + 16 x 8 = 192
-#: hypotheses per focal length instead of k^3 = 512.  Chosen on the train splits (YUD, ZInD-fR, 200
-#: NYU-VP photos; ``results/decisions/66.md``): the profile's best value unchanged at 94-100 % of the
-#: focal lengths searched, no ``reliable`` flag changed.
+#: Coarse cells each known-focal search of :func:`focal_profile_gap`'s profile (fR's eight focal
+#: lengths) keeps when stage 1 is coarse to fine (``SearchConfig.grid_coarse_factor`` s > 1): 16 of
+#: the (k/s)^3 = 64 cells, so 64 + 16 x 8 = 192 hypotheses per focal length instead of k^3 = 512.
+#: Chosen on the train splits (YUD, ZInD-fR, 200 NYU-VP photos; ``results/decisions/66.md``): the
+#: profile's best value unchanged at 94-100 % of the focal lengths searched, no ``reliable`` flag
+#: changed.  Fast-fR's two-point profile scores whole grids: there the coarse pass cost what it saved.
 PROFILE_COARSE_CELLS = 16
 
 
 def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
-                  config: SearchConfig, iterations: int,
-                  ratios: Sequence[float] = PROFILE_FOCAL_RATIOS) -> tuple[torch.Tensor, torch.Tensor]:
+                  config: SearchConfig, iterations: int, ratios: Sequence[float] = PROFILE_FOCAL_RATIOS,
+                  coarse_cells: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The objective's profile along f: the best hypothesis of a known-focal search at each
     f x ``ratios`` inside the search range.
 
     Each known-focal search is Fast-fR's stage 1 and refinement with the focal length fixed: the k^3
-    angle grid (coarse to fine as stage 1 is, keeping :data:`PROFILE_COARSE_CELLS` cells: 192
-    hypotheses at the defaults; the whole grid with ``grid_coarse_factor`` 1), its ``top_l`` best
-    points refined for ``iterations`` Adam steps.
+    angle grid (with ``coarse_cells``, coarse to fine as stage 1 is, keeping that many of the coarse
+    cells: 192 hypotheses at :data:`PROFILE_COARSE_CELLS` and the defaults; the whole grid without,
+    or with ``grid_coarse_factor`` 1), its ``top_l`` best points refined for ``iterations`` Adam steps.
 
     Args:
         likelihood: the estimator's model.
@@ -231,6 +232,7 @@ def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, para
         config: the search settings (FOV range, grid, top_l).
         iterations: Adam steps per start.
         ratios: R focal lengths as multiples of the estimate's.
+        coarse_cells: coarse cells kept per known-focal grid; None: the whole grid.
 
     Returns:
         ``(best, points)``: (B, R) float64 best objective at each ratio (-inf where f x ratio lies
@@ -241,7 +243,7 @@ def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, para
     device = features.weight.device
     if batch > PROFILE_CHUNK_IMAGES:  # each image's segments are copied once per ratio searched: bound the copies
         parts = [focal_profile(likelihood, features.images(b, b + PROFILE_CHUNK_IMAGES),
-                               params[b:b + PROFILE_CHUNK_IMAGES], config, iterations, ratios)
+                               params[b:b + PROFILE_CHUNK_IMAGES], config, iterations, ratios, coarse_cells)
                  for b in range(0, batch, PROFILE_CHUNK_IMAGES)]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     ratio_t = torch.tensor(tuple(ratios), dtype=torch.float64)
@@ -257,8 +259,8 @@ def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, para
         searched = features.take_images(image.to(device))
         long_rep, focal_rep = long_side[image], focal[image, ratio]
         hypotheses = grid_hypotheses(config, long_rep.to(device), focal_rep.to(device))  # built on the device
-        if config.grid_coarse_factor > 1:
-            profile_config = replace(config, grid_coarse_cells=PROFILE_COARSE_CELLS)
+        if coarse_cells is not None and config.grid_coarse_factor > 1:
+            profile_config = replace(config, grid_coarse_cells=coarse_cells)
             _, grid_scores = coarse_to_fine_scores(likelihood, searched, profile_config, hypotheses,
                                                    long_rep.to(device), focal_rep.to(device))
         else:
@@ -281,7 +283,8 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
                       profile: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """How much better the estimate scores than the best hypothesis at a clearly different focal
     length (a reliability cue): ``scores`` minus the best objective of :func:`focal_profile` over
-    :data:`PROFILE_FOCAL_RATIOS` (or ``profile``, its output when already computed).
+    :data:`PROFILE_FOCAL_RATIOS` with :data:`PROFILE_COARSE_CELLS` (or ``profile``, its output when
+    already computed).
 
     A large gap (hundreds of nats) means the segments single out the estimate's focal length; a
     small one, that another focal length explains them almost as well (two basins: the estimate
@@ -299,7 +302,9 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     """
     if params.shape[0] == 0:
         return torch.zeros(0, dtype=torch.float64, device=features.weight.device)
-    best = (profile if profile is not None else focal_profile(likelihood, features, params, config, iterations))[0]
+    if profile is None:
+        profile = focal_profile(likelihood, features, params, config, iterations, coarse_cells=PROFILE_COARSE_CELLS)
+    best = profile[0]
     gap = scores.to(torch.float64) - best.amax(1)
     return torch.where(torch.isfinite(gap), gap, torch.zeros_like(gap))
 
@@ -509,7 +514,8 @@ def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: Se
     cues = {"focal_prior_share": focal_prior_share(likelihood, features, params, fitted=fitted),
             "focal_spread": focal_spread(fitted.hessian, features.total_length())}
     if profile_gap:
-        profile = focal_profile(likelihood, features, params, search, FAST_REFINE_ITERATIONS)
+        profile = focal_profile(likelihood, features, params, search, FAST_REFINE_ITERATIONS,
+                                coarse_cells=PROFILE_COARSE_CELLS)
         cues["focal_profile_gap"] = focal_profile_gap(likelihood, features, params, scores, search,
                                                       FAST_REFINE_ITERATIONS, profile=profile)
         near = [PROFILE_FOCAL_RATIOS.index(r) for r in SPREAD_FOCAL_RATIOS]
