@@ -95,3 +95,20 @@ def test_settings_checked_and_estimates_unchanged_with_every_cell(scenes):
                         search_config=SearchConfig.from_config(grid_coarse_factor=2, grid_coarse_cells=256))
     for a, b in zip(plain, every.calibrate_segments(scenes, sizes)):
         assert a.camera.focal_px == b.camera.focal_px and np.array_equal(a.camera.rotation, b.camera.rotation)
+
+
+def test_the_focal_profile_with_every_cell_kept_is_the_whole_grids_profile(scenes):
+    """fR's focal profile (the gap cue's known-focal searches) scores its angle grids coarse to fine:
+    with every coarse cell kept it is the whole grid's profile, bit for bit."""
+    from fr_torch.core.reliability.cues import focal_profile
+
+    config = SearchConfig.from_config()
+    model = MixtureLikelihood(LikelihoodParams.from_config("b"))
+    features = _features(scenes)
+    params = torch.tensor([[15.0, 10.0, 5.0, focal_from_hfov(70.0, 640)],
+                           [-20.0, -15.0, 2.0, focal_from_hfov(100.0, 640)]], dtype=torch.float64)
+    whole = focal_profile(model, features, params, config, 10)
+    every = focal_profile(model, features, params, config, 10, coarse_cells=(config.grid_points_per_dim // 2) ** 3)
+    assert torch.equal(whole[0], every[0]) and torch.equal(whole[1], every[1])
+    fewer = focal_profile(model, features, params, config, 10, coarse_cells=16)
+    assert fewer[0].shape == whole[0].shape and torch.equal(torch.isfinite(fewer[0]), torch.isfinite(whole[0]))
