@@ -46,17 +46,24 @@ def grid_floor_ms(row: dict, ns: float, scored: bool = True) -> float:
     return count * row["segments"] * 3 * ns / 1e6
 
 
+def latency_ratio(row: dict, ns: float, scored: bool = True) -> float:
+    """An end-to-end row's total over its floor: wall ms / (decode + LSD + :func:`grid_floor_ms`), the
+    issue's "ratio to the floor" (1 = nothing but decoding, detection and the grid's own arithmetic)."""
+    return row["wall_ms"] / (row["decode_ms"] + row["lsd_ms"] + grid_floor_ms(row, ns, scored))
+
+
 def _latency_lines(report: dict) -> list[str]:
     """bench.md's end-to-end latency table."""
     lines = ["## End-to-end latency per image (CPU, batch 1, ms)", "",
               "| image | mode | segments | decode+LSD | grid | refine | cues | total | floor: decode | floor: LSD "
-              "| grid floor: scored | grid floor: k^4 |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| grid floor: scored | grid floor: k^4 | total ÷ floor (scored; k^4) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     ns = report["transcendental_ns"]
     for r in report["end_to_end"]:
         lines.append(f"| {r['image']} | {r['mode']} | {r['segments']} | {r['detect_ms']:.1f} | {r['grid_ms']:.1f} | "
                      f"{r['refine_ms']:.1f} | {r['cues_ms']:.1f} | **{r['wall_ms']:.1f}** | {r['decode_ms']:.1f} | "
-                     f"{r['lsd_ms']:.1f} | {grid_floor_ms(r, ns):.1f} | {grid_floor_ms(r, ns, scored=False):.1f} |")
+                     f"{r['lsd_ms']:.1f} | {grid_floor_ms(r, ns):.1f} | {grid_floor_ms(r, ns, scored=False):.1f} | "
+                     f"{latency_ratio(r, ns):.2f} ({latency_ratio(r, ns, scored=False):.2f}) |")
     lines += ["", "Grid floor = G x N x 3 deviations x (atan2 + exp ns/element measured in cache: "
               f"{ns:.2f} ns); G = the hypotheses stage 1 scored (coarse to fine: 768 per photo at the "
               "defaults) or the whole k^4 grid (4,096); the grid column also holds the focal sweep and the "
@@ -69,6 +76,7 @@ def _markdown(report: dict) -> str:
     lines = ["# fR speed benchmark", "",
              f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['torch']}, {m['threads']} threads, "
              f"device {m['device']}" + (f" ({m['gpu']})" if "gpu" in m else "")
+             + (f", MKL branch {m['mkl_branch']}" if m.get("mkl_branch") else "")
              + (f", load average {m.get('load_average')}" if m.get("load_average") else "") + ".",
              f"Command: `{report['command']}`; medians over {report['repeats']} runs after a warm-up "
              f"(GPU rows and large batches fewer: each row's `repeats` in bench.json).", ""]
