@@ -118,8 +118,7 @@ def test_fast_mode_grid_scores_the_longest_segments(monkeypatch):
         finally:
             searching.pop()
 
-    for module in (grid, manhattan):  # coarse to fine scores its two grids in grid.py
-        monkeypatch.setattr(module, "score_grid", record)
+    monkeypatch.setattr(grid, "score_grid", record)  # stage 1's grids are all scored in grid.py
     monkeypatch.setattr(estimator_module, "search_manhattan", search)
     segments, _, _ = _scene(3, 70.0, 10.0, 5.0, 2.0)  # 3 x 60 + 30 % clutter
     assert SearchConfig.from_config().resolve("fast").grid_segments == 0  # default: all

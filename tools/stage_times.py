@@ -26,6 +26,7 @@ def main() -> None:
 
     import fr_torch.core.estimator as estimator_module
     import fr_torch.core.reliability.cues as cues
+    import fr_torch.core.search.grid as grid
     import fr_torch.core.search.manhattan as manhattan
     import fr_torch.core.search.refine as refine
     from fr_eval.datasets.registry import load_dataset
@@ -47,7 +48,7 @@ def main() -> None:
                 spent[name] += time.perf_counter() - start
         setattr(module, name, wrapper)
 
-    for module, name in ((manhattan, "score_grid"), (manhattan, "sweep_focal"), (manhattan, "subdivide_starts"),
+    for module, name in ((grid, "score_grid"), (manhattan, "sweep_focal"), (manhattan, "subdivide_starts"),
                          (refine, "refine"), (estimator_module, "bend_test"), (estimator_module, "rank_vanishing_points")):
         timed(module, name)
     for name in ("local_quadratic", "focal_profile", "resample_spreads", "focal_profile_spread"):

@@ -19,13 +19,7 @@ from fr_torch.core.exact import exact_sum, first_argmax, small_matmul, small_sum
 from fr_torch.core.geometry.params import FOCAL, from_log_focal, rotations, to_log_focal
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
-from fr_torch.core.search.grid import (
-    coarse_to_fine_scores,
-    grid_hypotheses,
-    parameter_box,
-    score_grid,
-    select_starts,
-)
+from fr_torch.core.search.grid import grid_hypotheses, parameter_box, select_starts, stage1_scores
 from fr_torch.core.search.passes import LATTICE
 from fr_torch.core.search.refine import refine
 from fr_torch.core.settings.config import FAST_REFINE_ITERATIONS, SearchConfig
@@ -259,14 +253,10 @@ def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, para
         searched = features.take_images(image.to(device))
         long_rep, focal_rep = long_side[image], focal[image, ratio]
         hypotheses = grid_hypotheses(config, long_rep.to(device), focal_rep.to(device))  # built on the device
-        if coarse_cells is not None and config.grid_coarse_factor > 1:
-            profile_config = replace(config, grid_coarse_cells=coarse_cells)
-            _, grid_scores = coarse_to_fine_scores(likelihood, searched, profile_config, hypotheses,
-                                                   long_rep.to(device), focal_rep.to(device))
-        else:
-            grid_scores = score_grid(likelihood, searched, hypotheses, config.max_chunk_elements,
-                                     vertical_block=config.grid_points_per_dim)
-        starts, _ = select_starts(config, grid_scores, hypotheses)
+        grid_config = config if coarse_cells is None else replace(config, grid_coarse_cells=coarse_cells)
+        _, selectable = stage1_scores(likelihood, searched, grid_config, hypotheses, long_rep, focal_rep,
+                                      coarse=coarse_cells is not None)
+        starts, _ = select_starts(config, selectable, hypotheses)
         lower, upper = parameter_box(config, long_rep, focal_rep)
         refined, refined_scores = refine(likelihood, searched, starts, lower.to(device), upper.to(device), iterations,
                                          fast=True, periodic_pan=config.periodic_pan)

@@ -7,7 +7,8 @@ The grid: k cell centres per dimension, the focal length spaced uniformly in log
 computation (the fused kernel on a CPU stores no deviations; else cache-sized chunks on a CPU and
 ``max_chunk_elements`` on a GPU; no chunk size depends on the thread count), and
 :func:`select_starts` keeps each image's ``top_l`` best.  With ``SearchConfig.grid_coarse_factor`` > 1,
-:func:`coarse_to_fine_scores` scores the k^4 grid only inside the best cells of a coarser grid.
+:func:`coarse_to_fine_scores` scores the k^4 grid only inside the best cells of a coarser grid
+(:func:`stage1_scores` picks one or the other).
 """
 from __future__ import annotations
 
@@ -263,3 +264,18 @@ def coarse_to_fine_scores(likelihood: MixtureLikelihood, features: SegmentFeatur
     grid_scores.scatter_(1, members, fine_scores)
     selectable = torch.full_like(grid_scores, -math.inf).scatter_(1, members, fine_scores)
     return grid_scores, selectable
+
+
+def stage1_scores(likelihood: MixtureLikelihood, features: SegmentFeatures, config: SearchConfig,
+                  hypotheses: torch.Tensor, long_side: torch.Tensor, known_focal: torch.Tensor | None = None,
+                  coarse: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """The grid ``hypotheses`` (B, G, 4) of :func:`grid_hypotheses` scored for :func:`select_starts`:
+    coarse to fine (:func:`coarse_to_fine_scores`) where ``coarse`` and ``config.grid_coarse_factor``
+    > 1, else the whole grid (:func:`score_grid`).  ``long_side`` (B,) and ``known_focal`` (B,) pixels
+    or None: as given to :func:`grid_hypotheses`.  Returns (``grid_scores``, ``selectable``) as
+    :func:`coarse_to_fine_scores` does (both the whole grid's scores when it is scored whole)."""
+    if coarse and config.grid_coarse_factor > 1:
+        return coarse_to_fine_scores(likelihood, features, config, hypotheses, long_side, known_focal)
+    scores = score_grid(likelihood, features, hypotheses, config.max_chunk_elements,
+                        vertical_block=config.grid_points_per_dim)
+    return scores, scores

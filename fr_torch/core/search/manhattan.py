@@ -35,13 +35,7 @@ from fr_torch.core.geometry.params import FOCAL, PAN, rotations
 from fr_torch.core.geometry.vanishing import AtlantaConfig, horizon_points, rank_vanishing_points
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
-from fr_torch.core.search.grid import (
-    coarse_to_fine_scores,
-    grid_hypotheses,
-    parameter_box,
-    score_grid,
-    select_starts,
-)
+from fr_torch.core.search.grid import grid_hypotheses, parameter_box, select_starts, stage1_scores
 from fr_torch.core.search.passes import SearchResult, subdivide_starts, sweep_focal
 from fr_torch.core.search.refine import UnitBox, adam_in_box, refine_starts
 from fr_torch.core.settings.config import FamiliesConfig, SearchConfig
@@ -60,13 +54,9 @@ def search_manhattan(likelihood: MixtureLikelihood, features: SegmentFeatures, c
     device = features.weight.device
     hypotheses = grid_hypotheses(config, long_side.to(device), None if known_focal is None else known_focal.to(device))
     grid_features = features.longest(config.grid_segments) if config.grid_segments else features
-    if config.grid_coarse_factor > 1 and known_focal is None:  # coarse to fine: the k^4 grid only inside
-        # the best coarse cells (a known focal length's k^3 grid is scored whole)
-        grid_scores, selectable = coarse_to_fine_scores(likelihood, grid_features, config, hypotheses,
-                                                        long_side, known_focal)
-    else:
-        grid_scores = selectable = score_grid(likelihood, grid_features, hypotheses, config.max_chunk_elements,
-                                              vertical_block=config.grid_points_per_dim)
+    # coarse to fine: the k^4 grid only inside the best coarse cells (a known focal length's k^3 grid whole)
+    grid_scores, selectable = stage1_scores(likelihood, grid_features, config, hypotheses, long_side, known_focal,
+                                            coarse=known_focal is None)
     grid_counts = grid_features.mask.sum(-1)
     starts, top_scores = select_starts(config, selectable, hypotheses)
     lower, upper = parameter_box(config, long_side, known_focal)
