@@ -135,8 +135,9 @@ def checkout_env(**extra: str) -> dict[str, str]:
 
 
 #: What a fresh process calibrates (:func:`fresh_process_records`): the photos of
-#: tests/test_reproducibility.py (Fast-fR), the scenes of tests/test_families.py (extra families) and one
-#: scene with fR; then whether the fused kernels ran and whether torch's compiler was imported.
+#: tests/test_reproducibility.py (Fast-fR, and the first two with fR), the scenes of
+#: tests/test_families.py (extra families) and one scene with fR; then whether the fused kernels ran
+#: and whether torch's compiler was imported.
 _FRESH_PROCESS_CODE = """
 import json, sys
 from fr_torch import FREstimator
@@ -153,7 +154,9 @@ families = FREstimator(mode='fast', search_config=SearchConfig.from_config(famil
     [x[0] for x in f], [x[1] for x in f])
 scene, _ = synthetic_segments(500.0, rotation_from_angles(10.0, 5.0, 2.0).numpy(), 640, 480, n_per_family=30, seed=0)
 [fr] = FREstimator(mode='fr').calibrate_segments([scene], [(640, 480)])
+fr_photos = FREstimator(mode='fr').calibrate_segments([x[0] for x in p[:2]], [x[1] for x in p[:2]])
 print(json.dumps({'photos': [_record(x) for x in photos], 'families': [_record(x) for x in families],
+                  'fr_photos': [_record(x) for x in fr_photos],
                   'fr_ok': [fr.ok, fr.reason], 'native': native.available(),
                   'dynamo_imported': 'torch._dynamo' in sys.modules}))
 """
@@ -166,12 +169,23 @@ def cpu_kernel_sets() -> list[str]:
     return ["default"] + (["avx2"] if "avx2" in flags else []) + (["avx512"] if "avx512f" in flags else [])
 
 
+#: What the maths libraries run on other CPUs, pinned on this one: with the kernel set of an older CPU
+#: its oneMKL branch (``MKL_CBWR``: the vector maths behind torch's ``exp`` / ``log`` / ...) and its
+#: numpy SIMD level (``NPY_DISABLE_CPU_FEATURES``), so that a result depending on the CPU shows here.
+EMULATED_CPUS = {
+    "default": {"MKL_CBWR": "COMPATIBLE", "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR"},
+    "avx2": {"MKL_CBWR": "AVX2", "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR"},
+    "torch-path": {"MKL_CBWR": "COMPATIBLE"},
+}
+
+
 #: The fresh processes, by name: one per CPU kernel set (one thread), and ``torch-path`` (FR_NATIVE=0,
-#: one thread: the torch path of every score and gradient, what a machine without a C compiler runs).
+#: one thread: the torch path of every score and gradient, what a machine without a C compiler runs);
+#: each with :data:`EMULATED_CPUS`' libraries where it names some.
 def _fresh_process_env(name: str) -> dict[str, str]:
     if name == "torch-path":
-        return checkout_env(FR_NATIVE="0", FR_THREADS="1")
-    return checkout_env(ATEN_CPU_CAPABILITY=name, FR_THREADS="1")
+        return checkout_env(FR_NATIVE="0", FR_THREADS="1", **EMULATED_CPUS[name])
+    return checkout_env(ATEN_CPU_CAPABILITY=name, FR_THREADS="1", **EMULATED_CPUS.get(name, {}))
 
 
 _fresh_processes: dict[str, subprocess.Popen] = {}
@@ -201,8 +215,8 @@ def pytest_collection_finish(session):
 
 def fresh_process_records(name: str) -> dict:
     """The JSON of one fresh process (:data:`_FRESH_PROCESS_CODE`): ``photos``, ``families``
-    (:func:`tests.test_families._families_scenes` with ``families=auto``) (records, ``runtime_s``
-    left out), ``fr_ok``, ``native``, ``dynamo_imported``.  ``name``: a
+    (:func:`tests.test_families._families_scenes` with ``families=auto``), ``fr_photos`` (fR, the first
+    two photos) (records, ``runtime_s`` left out), ``fr_ok``, ``native``, ``dynamo_imported``.  ``name``: a
     kernel set of :func:`cpu_kernel_sets` or ``torch-path``.  All of them start together (each is one
     thread: they share the cores), when collection ends (:func:`pytest_collection_finish`) or else at
     the first call; each runs once per session, and every check that compares across kernel sets or

@@ -1,5 +1,6 @@
-"""One photo, one answer: the same bits in any batch, thread count and CPU kernel set, and run after
-run on a GPU (fr_torch.core.exact; results/reproducibility/ measures it on the datasets)."""
+"""One photo, one answer: the same bits in any batch, thread count, CPU kernel set and CPU (its maths
+libraries' dispatch), and run after run on a GPU (fr_torch.core.exact, fr_torch.core.exact_math;
+results/reproducibility/ measures it on the datasets)."""
 import json
 import os
 
@@ -8,7 +9,7 @@ import pytest
 import torch
 
 from fr_torch import FREstimator
-from fr_torch.core import exact
+from fr_torch.core import exact, exact_math
 from fr_torch.core.geometry.conventions import rotation_from_angles
 from fr_torch.core.search.passes import best_of_start_and_refined, different_solutions, first_near_best
 from fr_torch.runtime.device import DevicePolicy
@@ -45,7 +46,15 @@ def reference(estimator):
     return [_record(r) for r in estimator.calibrate_segments([p[0] for p in photos], [p[1] for p in photos])]
 
 
-@pytest.mark.parametrize("op", [torch.exp, torch.log, torch.atan, torch.sin, torch.cos, torch.sqrt])
+@pytest.fixture(scope="module")
+def fr_reference():
+    photos = _photos()[:2]
+    return [_record(r) for r in FREstimator(mode="fr").calibrate_segments([p[0] for p in photos],
+                                                                           [p[1] for p in photos])]
+
+
+@pytest.mark.parametrize("op", [exact_math.exp, exact_math.log, exact_math.atan, exact_math.sin, exact_math.cos,
+                                exact_math.sqrt])
 def test_the_functions_the_search_uses_round_alike_everywhere_in_a_tensor(op):
     """The premise of fr_torch.core.exact: these functions give an element the same bits wherever it
     sits (vector body or scalar tail of a kernel, any thread's share); torch's atan2 does not."""
@@ -164,16 +173,21 @@ def test_the_search_takes_one_path_at_every_thread_count(monkeypatch):
 
 
 @pytest.mark.parametrize("kernels", cpu_kernel_sets())
-def test_every_cpu_kernel_set_gives_the_same_bits(reference, kernels):
-    """The photos searched in a process with another ATEN_CPU_CAPABILITY: bit for bit the same records
-    (CI machines differ in their CPUs; this is what a new one must reproduce)."""
-    assert fresh_process_records(kernels)["photos"] == reference
+def test_every_cpu_kernel_set_gives_the_same_bits(reference, fr_reference, kernels):
+    """The photos searched in a process with another ATEN_CPU_CAPABILITY, and with the maths libraries
+    pinned to what an older CPU runs (tests/conftest.py, EMULATED_CPUS: oneMKL's COMPATIBLE or AVX2
+    branch, numpy without AVX-512 or AVX2): bit for bit the same records in both modes (CI machines
+    differ in their CPUs; this is what a new one must reproduce)."""
+    records = fresh_process_records(kernels)
+    assert records["photos"] == reference
+    assert records["fr_photos"] == fr_reference
 
 
-def test_the_mkl_branch_that_decides_the_bits_is_named():
-    """oneMKL picks its code branch by CPU, and its branches round float32 atan / exp / log
-    differently (an Intel Xeon's AVX512_E1 and a pinned AVX2 give other fR answers): the machine
-    record names the branch, the pinned one where ``MKL_CBWR`` pins it."""
+def test_the_mkl_branch_is_named():
+    """oneMKL picks its code branch by CPU, and its branches round torch's ``exp`` / ``log`` / ``atan``
+    ... differently; the search takes those from fr_torch.core.exact_math, and the machine record
+    names the branch (the pinned one where ``MKL_CBWR`` pins it) so that any difference left
+    elsewhere can be traced."""
     import subprocess
     import sys
 
@@ -188,17 +202,18 @@ def test_the_mkl_branch_that_decides_the_bits_is_named():
         assert pinned == "COMPATIBLE"
 
 
-def test_the_torch_path_gives_the_fused_kernels_bits(reference):
-    """FR_NATIVE=0, what a machine without a C compiler (or a torch without MKL) runs: the torch path
-    of every score and gradient, bit for bit the records of this process (whose fused kernels of
-    fr_torch.core.likelihood.native run when this machine can build them)."""
+def test_the_torch_path_gives_the_fused_kernels_bits(reference, fr_reference):
+    """FR_NATIVE=0, what a machine without a C compiler runs: the torch path of every score and
+    gradient (with oneMKL on its COMPATIBLE branch), bit for bit the records of this process (whose
+    fused kernels of fr_torch.core.likelihood.native run when this machine can build them)."""
     torch_path = fresh_process_records("torch-path")
     assert not torch_path["native"]
     assert torch_path["photos"] == reference
+    assert torch_path["fr_photos"] == fr_reference
 
 
 def test_the_fused_kernels_check_themselves_against_the_torch_path():
-    """Where the kernels build (a C compiler, torch with MKL), their first-use check passed; the
+    """Where the kernels build (a C compiler), their first-use check passed; the
     grid's scores and the refinement's gradient equal the torch path's on a scene bit for bit."""
     from fr_torch.core.geometry.conventions import image_centre, vanishing_points
     from fr_torch.core.geometry.params import rotations

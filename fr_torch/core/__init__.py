@@ -3,8 +3,9 @@
 Rooms, lowest first; a module imports only its own room and the rooms below it
 (:data:`ROOMS`; ``tests/test_layers.py`` checks it):
 
-0. :mod:`~fr_torch.core.exact` -- arithmetic that gives the same bits in any batch, thread count,
-   kernel set and device: exact sums, written-out products, tie rules.
+0. :mod:`~fr_torch.core.exact` and :mod:`~fr_torch.core.exact_math` -- arithmetic that gives the
+   same bits in any batch, thread count, kernel set and CPU: exact sums, written-out products,
+   small linear solves, tie rules, and ``exp`` / ``log`` / ``atan`` / ... spelled out.
 1. :mod:`~fr_torch.core.geometry` -- the camera model: conventions, the ``Camera`` value type, the
    horizon, parameter rows, the division lens, vanishing points and Atlanta families.
 2. :mod:`~fr_torch.core.settings` -- a user's settings parsed once into types: input checks, FOV
@@ -26,5 +27,5 @@ call.  ``docs/architecture.md`` draws the rooms and the path a photo's segments 
 
 #: The rooms, lowest first, each the names of its first level below ``fr_torch.core`` (a subpackage,
 #: or the top-level modules that form the room); its first name labels it.
-ROOMS = (("exact",), ("geometry",), ("settings",), ("likelihood",), ("search",), ("reliability",),
+ROOMS = (("exact", "exact_math"), ("geometry",), ("settings",), ("likelihood",), ("search",), ("reliability",),
          ("estimator", "result", "exports"))

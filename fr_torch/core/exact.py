@@ -1,8 +1,8 @@
 """Arithmetic whose result does not depend on where or with what it runs.
 
 A photo must get the same answer alone or in a batch, with any thread count, under every torch
-CPU kernel set (``ATEN_CPU_CAPABILITY``) and run after run on a GPU.  Four kinds of operation
-break that in plain torch, and the search avoids them through this module:
+CPU kernel set (``ATEN_CPU_CAPABILITY``), on any CPU, and run after run on a GPU.  Five kinds of
+operation break that in plain torch, and the search avoids them through this module:
 
 * **Sums in an order that depends on the layout.**  A reduction over padded segments, a matrix
   product (BLAS picks kernels, blocking and FMA by shape) or a vectorised ``sum`` (its lane count
@@ -13,27 +13,31 @@ break that in plain torch, and the search avoids them through this module:
 * **Products written as BLAS calls.**  :func:`dot3` and :func:`small_matmul` spell out dot
   products with single, correctly rounded multiplications and additions (IEEE 754), in a fixed
   order; a fused multiply-add, which some kernels use and others do not, is never asked for.
-* **Functions whose vector and scalar kernels round differently.**  torch's ``atan2`` runs a
-  vectorised approximation on the body of a tensor and the C library on its tail (and on the whole
-  tensor under the ``default`` kernel set), so an element's value depends on where it sits.
-  :func:`angle_of` takes ``atan`` of the ratio instead: ``exp``, ``log``, ``atan``, ``sin``,
-  ``cos`` and ``sqrt`` give the same bits at every position and under every kernel set on a CPU
-  (one implementation serves every position there; ``tests/test_reproducibility.py`` checks it).
-  ``log1p`` and ``pow`` with a non-integer exponent do not: of 100,000 float64 values, 6.6 % and
-  1.7 % differ between the ``default`` kernel set and AVX2 / AVX-512; the search writes
-  ``log(1 + x)`` and ``exp(y log x)`` (``x ** 2`` is one product everywhere).
+* **Functions that round differently by position, kernel set or CPU.**  torch's ``atan2`` runs a
+  vectorised approximation on the body of a tensor and the C library on its tail, so an element's
+  value depends on where it sits; ``log1p`` and ``pow`` differ between kernel sets; and torch's
+  ``exp``, ``log``, ``atan``, ``sqrt`` (and more) come from oneMKL, whose code branch, and so whose
+  last bits, depend on the CPU.  The search takes its elementary functions from
+  :mod:`fr_torch.core.exact_math` instead (IEEE operations in a fixed order), :func:`angle_of`
+  included.
+* **Linear algebra by LAPACK.**  Its solvers pick blocked kernels by CPU: :func:`small_solve`,
+  :func:`small_inverse` and :func:`positive_definite` do the small systems of the cues by
+  elimination, one rounding per step.
 * **Ties left to a kernel.**  ``topk`` and ``argmax`` may return any of equal entries;
   :func:`top_indices` and :func:`first_argmax` take the lowest index.
 
-What remains different between machines is the last bit of ``exp`` / ``log`` from one CPU family
-or device to another; ``tests/test_reproducibility.py`` and ``fr bench --sections reproducibility``
-measure it.  Shapes: any; ``dim`` arguments as in torch.
+``tests/test_reproducibility.py`` runs the search under every kernel set with oneMKL and numpy pinned
+to what other CPUs run (``tests/conftest.py``, ``EMULATED_CPUS``), and ``fr bench --sections
+reproducibility`` measures the datasets.  A GPU gives the same bits run after run but not the CPU's
+(CUDA's own ``exp`` / ``log`` / ...).  Shapes: any; ``dim`` arguments as in torch.
 """
 from __future__ import annotations
 
 import math
 
 import torch
+
+from fr_torch.core import exact_math
 
 #: Bits of the fixed-point grid below a term's bound: each term is kept to 2^-TERM_BITS of the
 #: power of two above its bound (float32's own precision is 2^-24 of the term).
@@ -57,7 +61,7 @@ def fixed_point_scale(bound: torch.Tensor) -> torch.Tensor:
     bound = bound.to(torch.float64)
     _, exponent = torch.frexp(bound)
     exponent = exponent.clamp_min(_MIN_EXPONENT).to(torch.float64)
-    scale = torch.pow(2.0, TERM_BITS - exponent)
+    scale = exact_math.power_of_two(TERM_BITS - exponent, torch.float64)
     return torch.where(torch.isfinite(bound), scale, bound)
 
 
@@ -157,16 +161,69 @@ def top_indices(x: torch.Tensor, count: int, dim: int = -1) -> torch.Tensor:
     return torch.sort(x, dim=dim, descending=True, stable=True).indices.narrow(dim, 0, count)
 
 
+def small_solve(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Solutions ``x`` of ``a x = b`` for batches of small systems, ``a`` (..., n, n), ``b`` (..., n,
+    m): Gauss-Jordan elimination with partial pivoting (the largest ``|pivot|``, the lowest row among
+    equal ones), every step an elementwise product, difference or quotient rounded once.  LAPACK's
+    solvers (``torch.linalg``) pick blocked kernels by CPU and so round differently from one CPU to
+    another; this gives the same bits anywhere.  Meant for n up to a few dozen.
+
+    Returns:
+        (x (..., n, m), ok (...,) bool): ok is False where a pivot is 0 or not finite (a singular or
+        non-finite system; x is then not meaningful).
+    """
+    n = a.shape[-1]
+    batch = a.shape[:-2]
+    aug = torch.cat([a, b.to(a.dtype)], -1).reshape(-1, n, n + b.shape[-1])
+    ok = torch.ones(aug.shape[0], dtype=torch.bool, device=a.device)
+    rows = torch.arange(n, device=a.device)
+    for col in range(n):
+        below = first_argmax(aug[:, col:, col].abs(), -1) + col  # (B,) the pivot's row
+        order = rows.expand(aug.shape[0], n).clone()
+        order[:, col] = below
+        order.scatter_(1, below[:, None], col)
+        aug = aug.gather(1, order[:, :, None].expand_as(aug))
+        pivot = aug[:, col, col]
+        ok &= (pivot != 0) & torch.isfinite(pivot)
+        row = aug[:, col, :] / pivot[:, None]
+        factor = aug[:, :, col].clone()
+        factor[:, col] = 0.0
+        aug = aug - factor[:, :, None] * row[:, None, :]
+        aug[:, col, :] = row
+    return aug[:, :, n:].reshape(*batch, n, b.shape[-1]), ok.reshape(batch)
+
+
+def small_inverse(a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverses of small square matrices (..., n, n) by :func:`small_solve` against the identity:
+    (inverse, ok) as there."""
+    eye = torch.eye(a.shape[-1], dtype=a.dtype, device=a.device).expand_as(a)
+    return small_solve(a, eye)
+
+
+def positive_definite(a: torch.Tensor) -> torch.Tensor:
+    """(...,) bool: True where the symmetric matrices ``a`` (..., n, n) are positive definite, i.e.
+    every pivot of their symmetric elimination (no pivoting; Sylvester's criterion) is positive and
+    finite.  Elementwise steps only: the same verdict on any CPU (an eigensolver's is LAPACK's)."""
+    m = a.reshape(-1, *a.shape[-2:]).clone()
+    ok = torch.ones(m.shape[0], dtype=torch.bool, device=a.device)
+    for col in range(m.shape[-1]):
+        pivot = m[:, col, col]
+        ok &= (pivot > 0) & torch.isfinite(pivot)
+        column = m[:, :, col] / pivot[:, None]
+        m = m - column[:, :, None] * m[:, col, None, :]
+    return ok.reshape(a.shape[:-2])
+
+
 def angle_of(s: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """``atan2(|s|, |t|)`` in [0, pi/2] radians, elementwise (``s``, ``t`` of one shape and dtype),
     as ``atan(|s / t|)``: 0 where s = t = 0, pi/2 where t = 0 alone.  torch's ``atan2`` is avoided
     (module docstring)."""
-    return torch.atan_(torch.div(s, t).abs_().nan_to_num_(nan=0.0))
+    return exact_math.atan(torch.div(s, t).abs_().nan_to_num_(nan=0.0))
 
 
 def angle_of_(s: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """:func:`angle_of` written into ``s`` (in place; returns ``s``)."""
-    return s.div_(t).abs_().nan_to_num_(nan=0.0).atan_()
+    return s.copy_(exact_math.atan(s.div_(t).abs_().nan_to_num_(nan=0.0)))
 
 
 def atan2(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from fr_torch.core.exact import atan2
+from fr_torch.core import exact_math
 
 VERTICAL_AXIS = 1  # column of R holding the (downward) vertical Manhattan direction
 Y_UP = (1.0, -1.0, 1.0)  # diag flipping the camera y axis (y-down <-> y-up frames)
@@ -60,7 +61,7 @@ def focal_from_hfov(hfov_deg, width):
             with np.errstate(all="ignore"):
                 return float(np.float64(w) / 2.0 / np.tan(np.radians(np.float64(hfov)) / 2.0))
     hfov = torch.as_tensor(hfov_deg, dtype=torch.float64) if not torch.is_tensor(hfov_deg) else hfov_deg
-    return (width / 2.0) / torch.tan(torch.deg2rad(hfov) / 2.0)
+    return (width / 2.0) / exact_math.tan(torch.deg2rad(hfov) / 2.0)
 
 
 def hfov_from_focal(focal_px, width):
@@ -74,7 +75,7 @@ def hfov_from_focal(focal_px, width):
             with np.errstate(all="ignore"):
                 return float(np.degrees(2.0 * np.arctan(np.float64(w) / 2.0 / np.float64(focal))))
     f = torch.as_tensor(focal_px, dtype=torch.float64) if not torch.is_tensor(focal_px) else focal_px
-    return torch.rad2deg(2.0 * torch.atan((width / 2.0) / f))
+    return torch.rad2deg(2.0 * exact_math.atan((width / 2.0) / f))
 
 
 def intrinsics(focal_px: torch.Tensor, principal_point: torch.Tensor) -> torch.Tensor:
@@ -104,7 +105,8 @@ def rotation_from_angles(pan_deg, pitch_deg, roll_deg) -> torch.Tensor:
     angles = torch.stack(torch.broadcast_tensors(
         *(torch.as_tensor(a, dtype=dtype, device=device) for a in (pan_deg, pitch_deg, roll_deg))), -1)
     rad = torch.deg2rad(angles)
-    return rotation_from_cos_sin(torch.cos(rad), torch.sin(rad))
+    sin, cos = exact_math.sin_cos(rad)
+    return rotation_from_cos_sin(cos, sin)
 
 
 def rotation_from_cos_sin(cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
@@ -142,9 +144,9 @@ def horizon_angles(rotation: torch.Tensor, vertical_axis: int = VERTICAL_AXIS) -
     c = world_up_in_camera_yup(rotation, vertical_axis)
     cy = c[..., 1].clamp_min(1e-12)
     return {
-        "roll_deg": torch.rad2deg(torch.atan(-c[..., 0] / cy)),
-        "tilt_deg": torch.rad2deg(torch.atan(c[..., 2] / cy)),
-        "pitch_deg": torch.rad2deg(torch.asin(c[..., 2].clamp(-1.0, 1.0))),
+        "roll_deg": torch.rad2deg(exact_math.atan(-c[..., 0] / cy)),
+        "tilt_deg": torch.rad2deg(exact_math.atan(c[..., 2] / cy)),
+        "pitch_deg": torch.rad2deg(exact_math.asin(c[..., 2].clamp(-1.0, 1.0))),
     }
 
 
@@ -206,7 +208,7 @@ def rotation_angle_deg(r_a, r_b):
     if torch.is_tensor(r_a) and torch.is_tensor(r_b):
         rel = r_a.transpose(-1, -2) @ r_b
         cos = ((rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
-        return torch.rad2deg(torch.acos(cos))
+        return torch.rad2deg(exact_math.acos(cos))
     rel = np.swapaxes(np.asarray(r_a, np.float64), -1, -2) @ np.asarray(r_b, np.float64)
     angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)))
     return float(angle) if np.ndim(angle) == 0 else angle

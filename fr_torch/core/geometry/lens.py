@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from fr_torch.core import exact_math
 
 #: Open interval of k over which the division model is one-to-one on the image (module docstring).
 K_LIMITS = (-1.0, 1.0)
@@ -36,7 +37,7 @@ def normalising_radius(width, height):
     """Half the image diagonal ``sqrt(w^2 + h^2) / 2`` (pixels): the unit of r in the division
     model.  Numbers in, float out; tensors in, tensor out."""
     if torch.is_tensor(width) or torch.is_tensor(height):
-        return torch.sqrt(torch.as_tensor(width) ** 2 + torch.as_tensor(height) ** 2) / 2
+        return exact_math.sqrt(torch.as_tensor(width) ** 2 + torch.as_tensor(height) ** 2) / 2
     return math.hypot(float(width), float(height)) / 2
 
 
@@ -61,7 +62,7 @@ def distort_points(points, k, centre, radius):
         offset = points - centre
         big_r2 = (offset ** 2).sum(-1) / radius ** 2
         disc = 1 - 4 * k * big_r2
-        scale = 2 / (1 + torch.sqrt(disc))
+        scale = 2 / (1 + exact_math.sqrt(disc))
         return centre + offset * torch.where(disc >= 0, scale, torch.full_like(scale, math.nan)).unsqueeze(-1)
     offset = np.asarray(points, np.float64) - centre
     big_r2 = (offset ** 2).sum(-1) / np.asarray(radius, np.float64) ** 2

@@ -19,6 +19,7 @@ import torch
 
 from fr_torch.core.exact import atan2
 from fr_torch.core.geometry.conventions import pan_from_rotation, rotation_from_cos_sin
+from fr_torch.core import exact_math
 
 #: Positions of the fields in the last dimension.
 PAN, PITCH, ROLL, FOCAL = 0, 1, 2, 3
@@ -33,18 +34,19 @@ NAMES = ("pan_deg", "pitch_deg", "roll_deg", "focal_px")
 def rotations(params: torch.Tensor) -> torch.Tensor:
     """World->camera R (..., 3, 3) of parameter rows (..., 4) (or (..., 3) angles alone)."""
     rad = torch.deg2rad(params[..., ANGLES])
-    return rotation_from_cos_sin(torch.cos(rad), torch.sin(rad))
+    sin, cos = exact_math.sin_cos(rad)
+    return rotation_from_cos_sin(cos, sin)
 
 
 def to_log_focal(params: torch.Tensor) -> torch.Tensor:
     """Rows (..., 4) or (..., 5) with the focal length replaced by its natural log (the refinement's
     space); a fifth field (k) is kept as it is."""
-    return torch.cat([params[..., ANGLES], torch.log(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
+    return torch.cat([params[..., ANGLES], exact_math.log(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
 
 
 def from_log_focal(params: torch.Tensor) -> torch.Tensor:
     """Inverse of :func:`to_log_focal`."""
-    return torch.cat([params[..., ANGLES], torch.exp(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
+    return torch.cat([params[..., ANGLES], exact_math.exp(params[..., FOCAL:FOCAL + 1]), params[..., FOCAL + 1:]], -1)
 
 
 class CameraParams:
@@ -110,6 +112,6 @@ def angles_from_search_rotation(rotation: torch.Tensor) -> torch.Tensor:
     :func:`fr_torch.core.geometry.params.rotations` (``R.T = Ry(pan) Rx(pitch) Rz(roll)``) for |pitch| < 90 deg, pan folded
     into [-45, 45) (:func:`fr_torch.core.geometry.conventions.pan_from_rotation`; the Manhattan frame is symmetric
     under quarter turns about the vertical)."""
-    pitch = torch.rad2deg(torch.asin((-rotation[..., 2, 1]).clamp(-1.0, 1.0)))
+    pitch = torch.rad2deg(exact_math.asin((-rotation[..., 2, 1]).clamp(-1.0, 1.0)))
     roll = torch.rad2deg(atan2(rotation[..., 0, 1], rotation[..., 1, 1]))
     return torch.stack([pan_from_rotation(rotation), pitch, roll], -1)

@@ -45,6 +45,7 @@ import torch
 from fr_torch.core.exact import cross3, dot3, exact_sum, first_argmax, small_sum, top_indices
 from fr_torch.core.geometry.conventions import signed_rows, vanishing_point_rows, vanishing_points
 from fr_torch.errors import FRInputError
+from fr_torch.core import exact_math
 
 #: Images whose Atlanta candidates are scored at once (bounds memory: N x A deviations each).
 ATLANTA_CHUNK_IMAGES = 4
@@ -180,7 +181,7 @@ def _unit_directions(focal: torch.Tensor, pp: torch.Tensor, points: torch.Tensor
     w = points[..., 2]
     d = torch.stack([(points[..., 0] - pp[:, None, 0] * w) / focal[:, None],
                      (points[..., 1] - pp[:, None, 1] * w) / focal[:, None], w], -1)
-    return d / torch.sqrt(dot3(d, d))[..., None].clamp_min(1e-300)
+    return d / exact_math.sqrt(dot3(d, d))[..., None].clamp_min(1e-300)
 
 
 def _pixels(focal: torch.Tensor, pp: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
@@ -207,7 +208,8 @@ def horizontal_directions(rotation: torch.Tensor, azimuth: torch.Tensor) -> torc
     """Unit horizontal directions ``cos a R[:, 0] + sin a R[:, 2]`` (B, A, 3) at azimuths ``a`` (B, A)
     or (A,) radians from the first Manhattan column of rotations (B, 3, 3) (world -> camera)."""
     azimuth = azimuth.expand(rotation.shape[0], -1) if azimuth.dim() == 1 else azimuth
-    return torch.cos(azimuth)[..., None] * rotation[:, None, :, 0] + torch.sin(azimuth)[..., None] * rotation[:, None, :, 2]
+    sin, cos = exact_math.sin_cos(azimuth)
+    return cos[..., None] * rotation[:, None, :, 0] + sin[..., None] * rotation[:, None, :, 2]
 
 
 def horizon_points(rotation: torch.Tensor, focal: torch.Tensor, principal_point: torch.Tensor,
@@ -227,7 +229,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta, fixed_azimuth_de
     weight = feats.weight  # (B, N), 0 for padding
     pp = feats.principal_point  # (B, 2)
     log_comp = likelihood.component_log_densities(feats, rotation[:, None], focal[:, None])[:, :, 0]  # (B, N, 4)
-    comp = torch.exp(log_comp)
+    comp = exact_math.exp(log_comp)
     mix = small_sum(comp, -1)  # (B, N) p_i
     extra = atlanta.max_extra if atlanta is not None else 0
     fixed = 0 if fixed_azimuth_deg is None else fixed_azimuth_deg.shape[1]
@@ -245,7 +247,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta, fixed_azimuth_de
         held = torch.isfinite(fixed_deg)  # (B, S)
         fixed_w = torch.where(held, fixed_weight.to(device=device, dtype=dtype), torch.zeros_like(fixed_deg))
         fixed_points = horizon_points(rotation, focal, pp, torch.deg2rad(torch.nan_to_num(fixed_deg, nan=0.0)))
-        density = fixed_w[:, None, :] * torch.exp(likelihood.horizontal_log_density(
+        density = fixed_w[:, None, :] * exact_math.exp(likelihood.horizontal_log_density(
             likelihood.point_deviations(feats, fixed_points, focal)))  # (B, N, S)
         manhattan_scale = 1.0 - small_sum(fixed_w, -1)
         mix = manhattan_scale[:, None] * mix + small_sum(density, -1)
@@ -258,7 +260,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta, fixed_azimuth_de
         grid = torch.arange(0.0, math.pi, step, dtype=dtype, device=device)  # (A,)
         grid_dirs = horizontal_directions(rotation, grid)  # (B, A, 3)
         grid_points = _pixels(focal, pp, grid_dirs)  # (B, A, 3)
-        grid_density = atlanta.prior * torch.exp(likelihood.horizontal_log_density(
+        grid_density = atlanta.prior * exact_math.exp(likelihood.horizontal_log_density(
             likelihood.point_deviations(feats, grid_points, focal)))  # (B, N, A)
         taken = rotation.transpose(1, 2).clone()  # (B, F, 3) unit directions of the families in the model
         if fixed:
@@ -273,14 +275,14 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta, fixed_azimuth_de
         def best_of(density, dirs, usable):
             """Index (B,) of the candidate with the largest gain, away from the families taken."""
             mixed = (1.0 - prior) * mix[..., None] + density  # (B, N, C)
-            gain = exact_sum(torch.log(mixed) - torch.log(mix)[..., None], 1, weight=weight[..., None])  # (B, C)
+            gain = exact_sum(exact_math.log(mixed) - exact_math.log(mix)[..., None], 1, weight=weight[..., None])  # (B, C)
             near = dot3(dirs[:, :, None, :], taken[:, None, :, :]).abs().gt(cos_window).any(-1)
             return first_argmax(gain.masked_fill(near | ~usable, -math.inf), 1)
 
         def score(chosen):
             """(gain (B,), support (B,), new mixture (B, N)) of adding a family of density ``chosen``."""
             mixed = (1.0 - prior) * mix + chosen
-            return (exact_sum(torch.log(mixed) - torch.log(mix), -1, weight=weight),
+            return (exact_sum(exact_math.log(mixed) - exact_math.log(mix), -1, weight=weight),
                     exact_sum(chosen / mixed, -1, weight=weight), mixed)
 
         for j in range(extra):
@@ -293,7 +295,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta, fixed_azimuth_de
                 background = comp[..., 3] * manhattan_scale[:, None] / mix
                 free_points, free_dirs, usable = _free_candidates(feats, weight * background, atlanta.free_segments,
                                                                   focal)
-                free_density = prior * torch.exp(likelihood.horizontal_log_density(
+                free_density = prior * exact_math.exp(likelihood.horizontal_log_density(
                     likelihood.point_deviations(feats, free_points, focal)))
                 pick = best_of(free_density, free_dirs, usable)
                 free_point, free_chosen = free_points[rows, pick], free_density[rows, :, pick]
@@ -301,7 +303,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta, fixed_azimuth_de
                     resp = free_chosen / ((1.0 - prior) * mix + free_chosen)
                     refit = refine_points(feats, free_point[:, None], (weight * resp)[..., None])
                     free_point = _pixels(focal, pp, _unit_directions(focal, pp, refit))[:, 0]
-                    free_chosen = prior * torch.exp(likelihood.horizontal_log_density(
+                    free_chosen = prior * exact_math.exp(likelihood.horizontal_log_density(
                         likelihood.point_deviations(feats, free_point[:, None], focal)[..., 0]))
                 free_gain, free_support, free_mixed = score(free_chosen)
                 free_dir = _unit_directions(focal, pp, free_point[:, None])[:, 0]
@@ -349,14 +351,14 @@ def refine_points(features, points: torch.Tensor, weights: torch.Tensor) -> torc
     conditioned = torch.stack([scale[:, None] * line[..., 0], scale[:, None] * line[..., 1],
                                line[..., 0] * pp[:, None, 0] + line[..., 1] * pp[:, None, 1] + line[..., 2]], -1)
     planar = conditioned[..., 0] * conditioned[..., 0] + conditioned[..., 1] * conditioned[..., 1]
-    conditioned = conditioned / torch.sqrt(planar)[..., None].clamp_min(1e-12)
+    conditioned = conditioned / exact_math.sqrt(planar)[..., None].clamp_min(1e-12)
     outer = conditioned[..., :, None] * conditioned[..., None, :]  # (B, N, 3, 3)
     moments = exact_sum(weights[..., None, None] * outer[:, :, None], 1)  # (B, M, 3, 3)
     _, vectors = torch.linalg.eigh(moments)
     v = vectors[..., 0]  # (B, M, 3) smallest eigenvalue
     pixels = torch.stack([scale[:, None] * v[..., 0] + pp[:, None, 0] * v[..., 2],
                           scale[:, None] * v[..., 1] + pp[:, None, 1] * v[..., 2], v[..., 2]], -1)
-    return signed_rows(pixels / torch.sqrt(dot3(pixels, pixels))[..., None].clamp_min(1e-300))
+    return signed_rows(pixels / exact_math.sqrt(dot3(pixels, pixels))[..., None].clamp_min(1e-300))
 
 
 def _as_dtype(features, dtype):

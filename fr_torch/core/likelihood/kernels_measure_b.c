@@ -6,8 +6,9 @@
  * measure_b_forward / measure_b_backward; fr_torch/core/search/refine.py and lens.py for the loop)
  * bit for bit:
  * the same IEEE float32 operations in the same order (compiled with -ffp-contract=off, no fast
- * math), and atan / exp / log / sin / cos / sqrt through the same MKL VML routines torch's CPU
- * kernels call (their addresses are passed in by the caller).  Only the sum over segments is done differently: each
+ * math), and atan / exp / log / sin / cos as fr_torch/core/exact_math.py writes them (the same operations on
+ * the same constants, below; no maths library), sqrt as the CPU's correctly rounded one.  Only the sum
+ * over segments is done differently: each
  * term is rounded to the image's fixed-point grid (fr_torch/core/exact.py, exact_sum) and the
  * integers are added in double, where every order gives the same sum.  The per-segment deviations
  * are never stored: a tile of hypotheses is scored a few segments at a time in small buffers.
@@ -18,8 +19,8 @@
 #include <float.h>
 #include <math.h>
 #include <stdint.h>
+#include <string.h>
 
-typedef void (*vml_fn)(int n, const float *a, float *r);
 
 #define TILE 256 /* at most this many hypotheses per tile: buffers of a few KB, in L1 */
 
@@ -32,14 +33,238 @@ static inline float round_even(float x) {
     return a < 0x1p23f ? rounded : x;  /* both sides computed: the loops vectorise */
 }
 
+/* ---- Elementary functions: fr_torch/core/exact_math.py's float32 exp, log, atan and (through float64)
+ * sin and cos, operation for operation, on the same constants (hexadecimal, so that both read the same
+ * bits).  Each is applied to an array by the array_* loops, which GCC vectorises. */
+
+static inline uint32_t float_bits(float x) { uint32_t u; memcpy(&u, &x, 4); return u; }
+static inline float bits_float(uint32_t u) { float x; memcpy(&x, &u, 4); return x; }
+
+static const float EXP_32[8] = {0x1p+0f, 0x1p+0f, 0x1p-1f, 0x1.555556p-3f, 0x1.555556p-5f, 0x1.111112p-7f,
+                                0x1.6c16c2p-10f, 0x1.a01a02p-13f};
+static const float LOG_32[4] = {0x1.555556p-1f, 0x1.99999ap-2f, 0x1.24924ap-2f, 0x1.c71c72p-3f};
+static const float ATAN_32[5] = {-0x1.555554p-2f, 0x1.99973ep-3f, -0x1.2421a8p-3f, 0x1.b82b1cp-4f, -0x1.089378p-4f};
+static const double SIN_64[8] = {-0x1.5555555555555p-3, 0x1.1111111111111p-7, -0x1.a01a01a01a01ap-13,
+                                 0x1.71de3a556c734p-19, -0x1.ae64567f544e4p-26, 0x1.6124613a86d09p-33,
+                                 -0x1.ae7f3e733b81fp-41, 0x1.952c77030ad4ap-49};
+static const double COS_64[8] = {0x1.5555555555555p-5, -0x1.6c16c16c16c17p-10, 0x1.a01a01a01a01ap-16,
+                                 -0x1.27e4fb7789f5cp-22, 0x1.1eed8eff8d898p-29, -0x1.93974a8c07c9dp-37,
+                                 0x1.ae7f3e733b81fp-45, -0x1.6827863b97d97p-53};
+
+#define HORNER(acc, x, c, n) do { acc = (c)[(n) - 1]; for (int q_ = (n) - 2; q_ >= 0; q_--) acc = acc * (x) + (c)[q_]; } while (0)
+
+static inline float exp32(float x) {
+    float n = round_even(x * 0x1.715476p+0f);
+    n = n < -126.0f ? -126.0f : n;
+    n = n > 127.0f ? 127.0f : n;
+    const float r = (x - n * 0x1.62e4p-1f) - n * 0x1.7f7d1cp-20f;
+    float p;
+    HORNER(p, r, EXP_32, 8);
+    const int32_t e = n == n ? (int32_t)n : 0;  /* NaN: p is NaN already */
+    float y = p * bits_float((uint32_t)(e + 127) << 23);
+    y = x > 0x1.62e43p+6f ? INFINITY : y;
+    return x < -0x1.5d589ep+6f ? 0.0f : y;
+}
+
+static inline float log32(float x) {
+    const int subnormal = x < 0x1p-126f;
+    const uint32_t word = float_bits(subnormal ? x * 0x1p23f : x);
+    int32_t e = (int32_t)(word >> 23) - 127 - (subnormal ? 23 : 0);
+    float m = bits_float((word & 0x7fffffu) | 0x3f800000u);  /* [1, 2) */
+    const int big = m > 0x1.6a09e6p+0f;
+    m = big ? m * 0.5f : m;
+    e = big ? e + 1 : e;
+    const float f = m - 1.0f;
+    const float s = f / (f + 2.0f);
+    const float z = s * s;
+    float h;
+    HORNER(h, z, LOG_32, 4);
+    const float log_m = s * 2.0f + s * (z * h);
+    const float ef = (float)e;
+    float y = ef * 0x1.62e4p-1f + (ef * 0x1.7f7d1cp-20f + log_m);
+    y = x == 0.0f ? -INFINITY : y;
+    y = x == INFINITY ? INFINITY : y;
+    return (x < 0.0f || x != x) ? NAN : y;
+}
+
+static inline float atan32(float x) {
+    const float a = fabsf(x);
+    const int middle = a > 0x1.a8279ap-2f, far = a > 0x1.3504f4p+1f;  /* tan(pi/8), tan(3pi/8) */
+    float num = middle ? a - 1.0f : a, den = middle ? a + 1.0f : 1.0f;
+    num = far ? -1.0f : num;
+    den = far ? a : den;
+    const float u = num / den;  /* |u| <= tan(pi/8) */
+    const float v = fabsf(u) < 0x1p-30f ? 0.0f : u;  /* atan(u) = u there, and no subnormal square (slow) */
+    const float z = v * v;
+    float h;
+    HORNER(h, z, ATAN_32, 5);
+    float r = u + u * (z * h);
+    r = middle ? r + 0x1.921fb6p-1f : r;
+    r = far ? r + 0x1.921fb6p-1f : r;  /* pi/2 - atan(1/a) = pi/4 + pi/4 + atan(-1/a) */
+    return copysignf(r, x);
+}
+
+/* sin and cos of float64 radians: exact_math's _sin_cos64 */
+static inline void sin_cos64(double x, double *sin_out, double *cos_out) {
+    if (fabs(x) > 0x1p20) {  /* torch.remainder(x, 2 pi) */
+        const double period = 2.0 * 0x1.921fb54442d18p+1;
+        double mod = fmod(x, period);
+        x = (mod != 0.0 && mod < 0.0) ? mod + period : mod;
+    }
+    const double k = nearbyint(x * 0x1.45f306dc9c883p-1);
+    const double r = ((x - k * 0x1.921fb544p+0) - k * 0x1.0b4611a6p-34) - k * 0x1.3198a2e037073p-69;
+    const double z = r * r;
+    double hs, hc;
+    HORNER(hs, z, SIN_64, 8);
+    HORNER(hc, z, COS_64, 8);
+    const double sin_r = r + r * (z * hs), cos_r = 1.0 + z * (-0.5 + z * hc);
+    int64_t quadrant = k == k && fabs(k) < 0x1p62 ? (int64_t)k % 4 : 0;
+    quadrant = quadrant < 0 ? quadrant + 4 : quadrant;
+    const int swap = quadrant == 1 || quadrant == 3;
+    double s = swap ? cos_r : sin_r, c = swap ? sin_r : cos_r;
+    s = quadrant >= 2 ? -s : s;
+    c = (quadrant == 1 || quadrant == 2) ? -c : c;
+    const int finite = isfinite(x);
+    *sin_out = finite ? s : NAN;
+    *cos_out = finite ? c : NAN;
+}
+
+/* sin and cos of float32 radians, each through sin_cos64 and rounded once */
+static inline void sin_cos32(float angle, float *sin_out, float *cos_out) {
+    double s, c;
+    sin_cos64((double)angle, &s, &c);
+    *sin_out = (float)s;
+    *cos_out = (float)c;
+}
+
+static const double EXP_64[14] = {0x1.0000000000000p+0, 0x1.0000000000000p+0, 0x1.0000000000000p-1, 0x1.5555555555555p-3,
+                                  0x1.5555555555555p-5, 0x1.1111111111111p-7, 0x1.6c16c16c16c17p-10, 0x1.a01a01a01a01ap-13,
+                                  0x1.a01a01a01a01ap-16, 0x1.71de3a556c734p-19, 0x1.27e4fb7789f5cp-22, 0x1.ae64567f544e4p-26,
+                                  0x1.1eed8eff8d898p-29, 0x1.6124613a86d09p-33};
+static const double LOG_64[10] = {0x1.5555555555555p-1, 0x1.999999999999ap-2, 0x1.2492492492492p-2, 0x1.c71c71c71c71cp-3,
+                                  0x1.745d1745d1746p-3, 0x1.3b13b13b13b14p-3, 0x1.1111111111111p-3, 0x1.e1e1e1e1e1e1ep-4,
+                                  0x1.af286bca1af28p-4, 0x1.8618618618618p-4};
+static const double ATAN_64[8] = {-0x1.5555555555555p-2, 0x1.999999999999ap-3, -0x1.2492492492492p-3, 0x1.c71c71c71c71cp-4,
+                                  -0x1.745d1745d1746p-4, 0x1.3b13b13b13b14p-4, -0x1.1111111111111p-4, 0x1.e1e1e1e1e1e1ep-5};
+static const double ATAN_EIGHTHS_64[9] = {0x0.0p+0, 0x1.fd5ba9aac2f6ep-4, 0x1.f5b75f92c80ddp-3, 0x1.6f61941e4def1p-2,
+                                          0x1.dac670561bb4fp-2, 0x1.1e00babdefeb4p-1, 0x1.4978fa3269ee1p-1,
+                                          0x1.700a7c5784634p-1, 0x1.921fb54442d18p-1};
+
+static inline uint64_t double_bits(double x) { uint64_t u; memcpy(&u, &x, 8); return u; }
+static inline double bits_double(uint64_t u) { double x; memcpy(&x, &u, 8); return x; }
+
+/* exp32 and log32 step for step in float64 (exact_math._exp / _log for float64) */
+static inline double exp64(double x) {
+    double n = nearbyint(x * 0x1.71547652b82fep+0);
+    n = n < -1022.0 ? -1022.0 : n;
+    n = n > 1023.0 ? 1023.0 : n;
+    const double r = (x - n * 0x1.62e42fefa38p-1) - n * 0x1.ef35793c7673p-45;
+    double p;
+    HORNER(p, r, EXP_64, 14);
+    const int64_t e = n == n ? (int64_t)n : 0;
+    double y = p * bits_double((uint64_t)(e + 1023) << 52);
+    y = x > 0x1.62e42fefa39efp+9 ? INFINITY : y;
+    return x < -0x1.6232bdd7abcd2p+9 ? 0.0 : y;
+}
+
+static inline double log64(double x) {
+    const int subnormal = x < 0x1p-1022;
+    const uint64_t word = double_bits(subnormal ? x * 0x1p52 : x);
+    int64_t e = (int64_t)(word >> 52) - 1023 - (subnormal ? 52 : 0);
+    double m = bits_double((word & 0xfffffffffffffull) | 0x3ff0000000000000ull);
+    const int big = m > 0x1.6a09e667f3bcdp+0;
+    m = big ? m * 0.5 : m;
+    e = big ? e + 1 : e;
+    const double f = m - 1.0;
+    const double s = f / (f + 2.0);
+    const double z = s * s;
+    double h;
+    HORNER(h, z, LOG_64, 10);
+    const double log_m = s * 2.0 + s * (z * h);
+    const double ef = (double)e;
+    double y = ef * 0x1.62e42fefa38p-1 + (ef * 0x1.ef35793c7673p-45 + log_m);
+    y = x == 0.0 ? -INFINITY : y;
+    y = x == INFINITY ? INFINITY : y;
+    return (x < 0.0 || x != x) ? NAN : y;
+}
+
+static inline double atan64(double x) {
+    const double a = fabs(x);
+    const int inverted = a > 1.0;
+    const double t = inverted ? 1.0 / a : a;
+    const double j = nearbyint(t * 8.0);
+    const double c = j * 0.125;
+    const double u = (t - c) / (t * c + 1.0);  /* |u| <= 1/16 */
+    const double z = u * u;
+    double h;
+    HORNER(h, z, ATAN_64, 8);
+    double r = u + u * (z * h);
+    r = ATAN_EIGHTHS_64[j == j ? (int64_t)j : 0] + r;
+    r = inverted ? 0x1.921fb54442d18p+0 - r : r;
+    return copysign(r, x);
+}
+
+/* exact_math's float64 functions over an array: op 0 atan, 1 exp, 2 log, 3 sqrt (correctly rounded),
+ * 4 sin and cos (r: n sines then n cosines), 5 tan (sin / cos). */
+void fr_elementary_f64(int64_t op, int64_t n, const double *a, double *r) {
+    for (int64_t i = 0; i < n; i++) {
+        if (op == 0) r[i] = atan64(a[i]);
+        else if (op == 1) r[i] = exp64(a[i]);
+        else if (op == 2) r[i] = log64(a[i]);
+        else if (op == 3) r[i] = sqrt(a[i]);
+        else {
+            double s, c;
+            sin_cos64(a[i], &s, &c);
+            if (op == 4) { r[i] = s; r[n + i] = c; }
+            else r[i] = s / c;
+        }
+    }
+}
+
+/* FR_WIDE (set by native.py on a CPU with AVX-512): these loops in 512-bit vectors, about a third faster
+ * than in 256-bit ones; the rest of the file stays at the base flags (AVX-512 made the refinement's short
+ * loops slower).  The same bits either way. */
+#if defined(FR_WIDE) && FR_WIDE
+#define WIDE __attribute__((target("avx512f,avx512dq,avx512vl,prefer-vector-width=512")))
+#else
+#define WIDE
+#endif
+
+WIDE static void array_atan(int64_t n, const float *a, float *r) {
+    for (int64_t i = 0; i < n; i++) r[i] = atan32(a[i]);
+}
+
+WIDE static void array_exp(int64_t n, const float *a, float *r) {
+    for (int64_t i = 0; i < n; i++) r[i] = exp32(a[i]);
+}
+
+WIDE static void array_ln(int64_t n, const float *a, float *r) {
+    for (int64_t i = 0; i < n; i++) r[i] = log32(a[i]);
+}
+
+static void array_sqrt(int64_t n, const float *a, float *r) {
+    for (int64_t i = 0; i < n; i++) r[i] = sqrtf(a[i]);
+}
+
+/* fr_torch/core/exact_math.py's float32 functions over an array (what it calls for CPU tensors once
+ * the kernels' check passed): op 0 atan, 1 exp, 2 log, 3 sqrt, 4 sin and cos (r: n sines then n
+ * cosines). */
+void fr_elementary_f32(int64_t op, int64_t n, const float *a, float *r) {
+    if (op == 0) array_atan(n, a, r);
+    else if (op == 1) array_exp(n, a, r);
+    else if (op == 2) array_ln(n, a, r);
+    else if (op == 3) array_sqrt(n, a, r);
+    else for (int64_t i = 0; i < n; i++) sin_cos32(a[i], r + i, r + n + i);
+}
+
 static inline float ratio(float s, float t) {
     const float r = fabsf(s / t);
     const float finite = r > FLT_MAX ? FLT_MAX : r;
     return r != r ? 0.0f : finite;
 }
 
-/* Elements per MKL call: each call costs about as much as a hundred elements, so rows of several
- * segments are gathered into one call. */
+/* Elements per pass of an elementary function (array_atan, array_exp, array_ln): rows of several
+ * segments go through each loop together. */
 #define CALL 1024
 
 /* One work item = (image b, tile of `tile` <= TILE hypotheses, a multiple of `block`).
@@ -54,7 +279,7 @@ void fr_measure_b_scores(int64_t first_item, int64_t last_item, int64_t tiles_pe
                          int64_t n_seg, int64_t hyp, int64_t block, int64_t vertical,
                          const float *line_along, const float *factor, const double *scale,
                          const float *flat, const float *coef, float background, float floor_value,
-                         vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, double *out) {
+                         double *out) {
     float col[3][3][TILE];               /* [VP][coordinate][hypothesis in tile] */
     float x[CALL + 3 * TILE], p[CALL + TILE];
     double acc[TILE];
@@ -96,7 +321,7 @@ void fr_measure_b_scores(int64_t first_item, int64_t last_item, int64_t tiles_pe
                     }
                 }
             }
-            v_atan((int)(count * stride), x, x);
+            array_atan(count * stride, x, x);
             for (int64_t r = 0; r < count; r++) {
                 float *row = x + r * stride;
                 for (int q = 0; q < 3; q++) {
@@ -110,7 +335,7 @@ void fr_measure_b_scores(int64_t first_item, int64_t last_item, int64_t tiles_pe
                     }
                 }
             }
-            v_exp((int)(count * stride), x, x);
+            array_exp(count * stride, x, x);
             for (int64_t r = 0; r < count; r++) {
                 const float *row = x + r * stride;
                 float *pr = p + r * width;
@@ -121,7 +346,7 @@ void fr_measure_b_scores(int64_t first_item, int64_t last_item, int64_t tiles_pe
                     pr[j] = sum + background;
                 }
             }
-            v_ln((int)(count * width), p, p);
+            array_ln(count * width, p, p);
             for (int64_t r = 0; r < count; r++) {
                 const float f = factor[b * n_seg + i0 + r];
                 const float *pr = p + r * width;
@@ -160,7 +385,7 @@ static inline uint32_t magnitude_bits(float x) {
 /* Buffers of the gradient pass for up to `hyp` hypotheses of an image with `n_seg` segments: one
  * block of floats (grad_floats) carved into the arrays below. */
 typedef struct {
-    int64_t rows;               /* segments per MKL call */
+    int64_t rows;               /* segments per pass of an elementary function */
     float *s, *t, *x, *e;       /* (rows, 3H): incidence s, t; atan; exp */
     float *a, *d;               /* (3H): each column's -1/lambda and log(prior/lambda) */
     float *gs, *gt;             /* (3H): a segment's d obj / d s and d obj / d t */
@@ -205,7 +430,7 @@ static void grad_work_carve(grad_work *w, float *block, double *acc, int64_t hyp
 static inline __attribute__((always_inline)) void
 grad_terms_of(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, const float *rows, const int own,
               const float *weight_b, const float *factor_b, const float *fb, const float *coef, float background,
-              float floor_value, const float *go, vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, uint32_t *largest,
+              float floor_value, const float *go, uint32_t *largest,
               float *line_grad) {
     const int64_t width = 3 * hyp, chunk = w->rows, stride = own ? hyp : 1;  /* between coefficients */
     const float *along_rows = rows + 3 * n_seg * stride;
@@ -239,13 +464,13 @@ grad_terms_of(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, 
                 }
             }
         }
-        v_atan((int)(count * width), x, x);
+        array_atan(count * width, x, x);
         for (int64_t r = 0; r < count; r++)
             for (int64_t j = 0; j < width; j++) {
                 float y = x[r * width + j] * a[j] + d[j];
                 e[r * width + j] = y < floor_value ? floor_value : y;
             }
-        v_exp((int)(count * width), e, e);
+        array_exp(count * width, e, e);
         for (int64_t r = 0; r < count; r++) {
             const float *er = e + r * width;
             const float wi = weight_b[i0 + r];
@@ -258,7 +483,7 @@ grad_terms_of(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, 
             }
         }
         if (acc != NULL) {
-            v_ln((int)(count * hyp), p, p);  /* p is log p from here on */
+            array_ln(count * hyp, p, p);  /* p is log p from here on */
             for (int64_t r = 0; r < count; r++) {
                 const float f = factor_b[i0 + r];
                 for (int64_t h = 0; h < hyp; h++) acc[h] += (double)round_even(p[r * hyp + h] * f);
@@ -314,14 +539,13 @@ grad_terms_of(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, 
 
 static void grad_terms(const grad_work *w, int64_t n_seg, int64_t hyp, int64_t vertical, const float *rows, int own,
                        const float *weight_b, const float *factor_b, const float *fb, const float *coef,
-                       float background, float floor_value, const float *go, vml_fn v_atan, vml_fn v_exp,
-                       vml_fn v_ln, uint32_t *largest, float *line_grad) {
+                       float background, float floor_value, const float *go, uint32_t *largest, float *line_grad) {
     if (own)
         grad_terms_of(w, n_seg, hyp, vertical, rows, 1, weight_b, factor_b, fb, coef, background, floor_value, go,
-                      v_atan, v_exp, v_ln, largest, line_grad);
+                      largest, line_grad);
     else
         grad_terms_of(w, n_seg, hyp, vertical, rows, 0, weight_b, factor_b, fb, coef, background, floor_value, go,
-                      v_atan, v_exp, v_ln, largest, NULL);
+                      largest, NULL);
 }
 
 /* Column sums of terms (rows, width) into out (width) double, each exact on the grid set by its
@@ -374,7 +598,7 @@ static void grad_sums(const grad_work *w, int64_t n_seg, int64_t hyp, int own, u
 int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, int64_t vertical,
                       const float *line_along, const float *weight, const float *factor, const double *scale,
                       const float *flat, const float *coef, float background, float floor_value,
-                      const float *grad_out, vml_fn v_atan, vml_fn v_exp, vml_fn v_ln,
+                      const float *grad_out,
                       double *objective, double *grad) {
     float *block = malloc(sizeof(float) * grad_floats(n_seg, hyp));
     double *acc = malloc(sizeof(double) * (size_t)(hyp + 1));
@@ -385,8 +609,8 @@ int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, i
     for (int64_t b = first; b < last; b++) {
         for (int64_t j = 0; j < 9 * hyp; j++) largest[j] = 0;
         grad_terms(&w, n_seg, hyp, vertical, line_along + b * 2 * n_seg * 3, 0, weight + b * n_seg,
-                   factor + b * n_seg, flat + b * 9 * hyp, coef, background, floor_value, grad_out + b * hyp, v_atan,
-                   v_exp, v_ln, largest, NULL);
+                   factor + b * n_seg, flat + b * 9 * hyp, coef, background, floor_value, grad_out + b * hyp,
+                   largest, NULL);
         for (int64_t h = 0; h < hyp; h++) objective[b * hyp + h] = acc[h] / scale[b];
         grad_sums(&w, n_seg, hyp, 0, largest, grad + b * 9 * hyp);
     }
@@ -410,7 +634,7 @@ int fr_measure_b_grad(int64_t first, int64_t last, int64_t n_seg, int64_t hyp, i
  * rows (SegmentFeatures.line_along) under each k, coefficient c of row i for k[h] at
  * rows[(3 i + c) H + h]; d_rows (2N, 3, H) their derivatives with respect to k; length: (N, H) scratch. */
 static void undistorted_rows(int64_t n_seg, int64_t hyp, const float *k, const float *centre, const float *offset,
-                             const float *rho, vml_fn v_sqrt, float *length, float *rows, float *d_rows) {
+                             const float *rho, float *length, float *rows, float *d_rows) {
     const float min_length = (float)1e-12;  /* clamp_min(1e-12) of a float tensor */
     for (int64_t i = 0; i < n_seg; i++) {
         const float *oa = offset + 2 * i, *ob = offset + 2 * (n_seg + i);
@@ -422,7 +646,7 @@ static void undistorted_rows(int64_t n_seg, int64_t hyp, const float *k, const f
             length[i * hyp + h] = dx * dx + dy * dy;
         }
     }
-    v_sqrt((int)(n_seg * hyp), length, length);  /* torch's sqrt of float32: MKL's */
+    array_sqrt(n_seg * hyp, length, length);
     for (int64_t i = 0; i < n_seg; i++) {
         const int64_t a = i, b = n_seg + i;
         const float *oa = offset + 2 * a, *ob = offset + 2 * b;
@@ -468,7 +692,6 @@ typedef struct {
     float beta1, one_minus_beta1, beta2, one_minus_beta2, eps, grad_bound;
     int64_t periodic_pan;
     const float *offset, *rho, *k_slope;  /* the division model; offset NULL without it */
-    vml_fn v_atan, v_exp, v_ln, v_sin, v_cos, v_sqrt;
 } refine_setup;
 
 /* fr_measure_b_refine's workspace for an image of H hypotheses (refine_work_carve). */
@@ -561,9 +784,8 @@ static void refine_hypotheses(const refine_setup *s, const refine_work *w, int64
             logf[h] = lo[3] + uh[3] * sp_[3];
             if (lens) w->k[h] = lo[4] + uh[4] * sp_[4];
         }
-        s->v_cos((int)(3 * count), rad, cosv);
-        s->v_sin((int)(3 * count), rad, sinv);
-        s->v_exp((int)count, logf, focal);
+        for (int64_t j = 0; j < 3 * count; j++) sin_cos32(rad[j], sinv + j, cosv + j);
+        array_exp(count, logf, focal);
         for (int64_t h = 0; h < count; h++) {
             const float cp = cosv[3 * h], ct = cosv[3 * h + 1], cr = cosv[3 * h + 2];
             const float sp = sinv[3 * h], st = sinv[3 * h + 1], sr = sinv[3 * h + 2];
@@ -579,16 +801,16 @@ static void refine_hypotheses(const refine_setup *s, const refine_work *w, int64
             }
         }
         if (lens)  /* each hypothesis' segments undistorted with its k */
-            undistorted_rows(n_seg, count, w->k, pp, s->offset + 4 * b * n_seg, s->rho + 2 * b * n_seg, s->v_sqrt,
+            undistorted_rows(n_seg, count, w->k, pp, s->offset + 4 * b * n_seg, s->rho + 2 * b * n_seg,
                              w->length, w->rows, w->d_rows);
         for (int64_t j = 0; j < 9 * count; j++) w->largest[j] = 0;
         grad_terms(&w->pass, n_seg, count, s->vertical, rows, lens, s->weight + b * n_seg, NULL, flat, s->coef,
-                   s->background, s->floor_value, go, s->v_atan, s->v_exp, s->v_ln, w->largest, w->line_grad);
+                   s->background, s->floor_value, go, w->largest, w->line_grad);
         grad_sums(&w->pass, n_seg, count, lens, w->largest, grad);
         if (lens) division_k_gradient(s, w, b, count);
         if (prior != NULL) {
             for (int64_t h = 0; h < count; h++) logr[h] = focal[h] / prior[2 * b + 1];
-            s->v_ln((int)count, logr, logr);
+            array_ln(count, logr, logr);
         }
         const float step_bias = s->steps[2 * step], step_lr = s->steps[2 * step + 1];
         for (int64_t h = 0; h < count; h++) {
@@ -640,7 +862,7 @@ static void refine_hypotheses(const refine_setup *s, const refine_work *w, int64
                 m2h[k] = m2h[k] * s->beta2 + (gk * gk) * s->one_minus_beta2;
             }
         }
-        s->v_sqrt((int)(P * count), m2, root);  /* torch's sqrt of float32: MKL's, not always IEEE-rounded */
+        array_sqrt(P * count, m2, root);
         for (int64_t h = 0; h < count; h++) {
             float *uh = ub + P * h;
             for (int k = 0; k < P; k++) {
@@ -688,13 +910,12 @@ void fr_measure_b_refine(int64_t first, int64_t last, int64_t n_seg, int64_t hyp
                          float beta1, float one_minus_beta1, float beta2, float one_minus_beta2, float eps,
                          float grad_bound, int64_t periodic_pan,
                          const float *offset, const float *rho, const float *k_slope,
-                         vml_fn v_atan, vml_fn v_exp, vml_fn v_ln, vml_fn v_sin, vml_fn v_cos, vml_fn v_sqrt,
-                         float *work, float *u) {
+                                                  float *work, float *u) {
     const int64_t params = offset != NULL ? 5 : 4;
     const refine_setup s = {n_seg, vertical, iterations, params, line_along, weight, coef, background, floor_value,
                             grad_out, pp, lower, span, prior, prior_centre, prior_flat, steps, beta1,
                             one_minus_beta1, beta2, one_minus_beta2, eps, grad_bound, periodic_pan, offset, rho,
-                            k_slope, v_atan, v_exp, v_ln, v_sin, v_cos, v_sqrt};
+                            k_slope};
     refine_work w = {0};
     refine_work_carve(&w, work, n_seg, hyp, params);
     for (int64_t b = first; b < last; b++) refine_hypotheses(&s, &w, b, hyp, u + b * hyp * params);

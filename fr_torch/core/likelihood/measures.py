@@ -36,6 +36,7 @@ import torch
 from fr_torch.core.exact import angle_of, dot3, exact_sum, small_sum, top_indices
 from fr_torch.core.geometry.conventions import vanishing_points
 from fr_torch.core.likelihood.segments import SegmentBatch
+from fr_torch.core import exact_math
 
 MEASURES = ("a", "b", "c", "d", "e")
 
@@ -77,7 +78,7 @@ class SegmentFeatures:
         principal point is the image centre, :func:`fr_torch.core.geometry.conventions.image_centre`)."""
         p1, p2 = endpoints[..., :2], endpoints[..., 2:]
         delta = p2 - p1
-        length = torch.sqrt(delta[..., 0] * delta[..., 0] + delta[..., 1] * delta[..., 1])
+        length = exact_math.sqrt(delta[..., 0] * delta[..., 0] + delta[..., 1] * delta[..., 1])
         if mask is None:
             mask = torch.ones_like(length, dtype=torch.bool)
         mask = mask & (length > 0)
@@ -209,7 +210,7 @@ def deviations_from_incidence(measure: str, s: torch.Tensor, t: torch.Tensor, v3
         normal_sq = (focal[:, None, :] ** 2 + offset[:, :, None] ** 2)[..., None]  # (B, N, H, 1)
         # asin(|s| / |n|) written as atan2(|s|, sqrt(|n|^2 - s^2)): the same angle, but finite with a
         # finite gradient in float32 where |s| / |n| rounds to 1 (asin' = inf there -> NaN parameters).
-        cos_part = torch.sqrt((normal_sq - abs_s * abs_s).clamp_min(normal_sq * 1e-12))
+        cos_part = exact_math.sqrt((normal_sq - abs_s * abs_s).clamp_min(normal_sq * 1e-12))
         return angle_of(abs_s, cos_part)
     abs_t = t.abs()
     # A midpoint exactly on the VP (s = t = 0) gets angle 0 with a finite gradient.
@@ -218,9 +219,9 @@ def deviations_from_incidence(measure: str, s: torch.Tensor, t: torch.Tensor, v3
         return angle
     half = features.half_length[:, :, None, None]
     if measure == "c":
-        return half * torch.sin(angle)
+        return half * exact_math.sin(angle)
     if measure == "d":
-        return torch.minimum(half * torch.tan(angle.clamp(max=math.pi / 2 - 1e-6)), half)
+        return torch.minimum(half * exact_math.tan(angle.clamp(max=math.pi / 2 - 1e-6)), half)
     raise ValueError(f"unknown deviation measure {measure!r}")
 
 
@@ -238,7 +239,7 @@ def deviations(measure: str, endpoints: torch.Tensor, vps: torch.Tensor, focal: 
         direction = torch.stack([(vps[:, :, 0] - pp[..., 0, :] * vps[:, :, 2]) / focal[..., None],
                                  (vps[:, :, 1] - pp[..., 1, :] * vps[:, :, 2]) / focal[..., None],
                                  vps[:, :, 2]], -2)
-        vps = vps / torch.sqrt(small_sum(direction * direction, -2))[:, :, None, :]
+        vps = vps / exact_math.sqrt(small_sum(direction * direction, -2))[:, :, None, :]
     columns = vps.transpose(-1, -2)[:, None]  # (B, 1, H, 3 VPs, 3 coordinates)
     s = dot3(features.line[:, :, None, None, :], columns)
     t = dot3(features.along[:, :, None, None, :], columns)

@@ -58,6 +58,7 @@ from fr_torch.core.likelihood.objective import (
 from fr_torch.core.settings.config import Mode
 from fr_torch.core.settings.fov import FOV_LIMITS_DEG, FovRange
 from fr_torch.resources import config_dir
+from fr_torch.core import exact_math
 
 MODELS = ("mixture", "nomixture")
 CONFIG_DIR = config_dir()  # the shipped configs/ folder (fr_torch/resources.py)
@@ -281,7 +282,7 @@ class MixtureLikelihood:
         if p.measure == "a":
             return x.new_full((1, 1, 1, 1), math.log(p.prior_background / p.range_px))
         half = features.half_length.clamp_min(1e-6)[:, :, None, None]  # c, d: uniform on [0, len/2]
-        return math.log(p.prior_background) - torch.log(half)
+        return math.log(p.prior_background) - exact_math.log(half)
 
     def background_density(self, features: SegmentFeatures) -> torch.Tensor:
         """The uniform background's density (without its prior) at every segment, (B, N), in
@@ -289,7 +290,7 @@ class MixtureLikelihood:
         value depends on the segments alone."""
         x = features.weight[..., None, None]  # (B, N, 1, 1)
         log_prior_density = self._log_background(x, features).expand_as(x)[..., 0, 0]
-        return torch.exp(log_prior_density) / self.params.prior_background
+        return exact_math.exp(log_prior_density) / self.params.prior_background
 
     def _deviations(self, features, rotation, focal) -> torch.Tensor:
         s, t, v3 = incidence_of(features, rotation, focal)
@@ -299,9 +300,9 @@ class MixtureLikelihood:
         """log(prior * density) of the 3 families and the background, (B, N, H, 4)."""
         prior, scale = self._family_constants(x)
         if self.params.measure == "d":
-            family = torch.log(prior * math.sqrt(2 / math.pi) / scale) - 0.5 * (x / scale) ** 2
+            family = exact_math.log(prior * math.sqrt(2 / math.pi) / scale) - 0.5 * (x / scale) ** 2
         else:
-            family = torch.log(prior / scale) - x / scale
+            family = exact_math.log(prior / scale) - x / scale
         background = self._log_background(x, features).expand_as(x[..., :1])
         return torch.cat([family, background], -1)
 
@@ -333,7 +334,7 @@ class MixtureLikelihood:
         ``scale``, or for measure d half-normal with sigma ``scale``."""
         half_normal = self.params.measure == "d"
         if torch.is_tensor(scale):
-            log_norm = (math.log(math.sqrt(2 / math.pi)) if half_normal else 0.0) - torch.log(scale)
+            log_norm = (math.log(math.sqrt(2 / math.pi)) if half_normal else 0.0) - exact_math.log(scale)
         else:
             log_norm = math.log(math.sqrt(2 / math.pi) / scale) if half_normal else -math.log(scale)
         return log_norm - 0.5 * (x / scale) ** 2 if half_normal else log_norm - x / scale
@@ -344,7 +345,7 @@ class MixtureLikelihood:
         of the weighted mean of x^2.  ``x``, ``weight`` (..., N); returns (...)."""
         total = exact_sum(weight, -1).clamp_min(1e-300)
         if self.params.measure == "d":
-            return torch.sqrt(exact_sum(x * x, -1, weight=weight) / total)
+            return exact_math.sqrt(exact_sum(x * x, -1, weight=weight) / total)
         return exact_sum(x, -1, weight=weight) / total
 
     def segment_log_likelihood(self, features: SegmentFeatures, rotation: torch.Tensor,
@@ -357,11 +358,11 @@ class MixtureLikelihood:
         x = self._deviations(features, rotation, focal)
         prior, scale = self._family_constants(x)
         if self.params.measure == "d":
-            density = torch.exp(-0.5 * (x / scale) ** 2) * (prior * math.sqrt(2 / math.pi) / scale)
+            density = exact_math.exp(-0.5 * (x / scale) ** 2) * (prior * math.sqrt(2 / math.pi) / scale)
         else:
-            density = torch.exp(x * (-1.0 / scale)) * (prior / scale)
-        background = torch.exp(self._log_background(density, features))[..., 0]
-        return torch.log(family_sum(density, -1) + background)
+            density = exact_math.exp(x * (-1.0 / scale)) * (prior / scale)
+        background = exact_math.exp(self._log_background(density, features))[..., 0]
+        return exact_math.log(family_sum(density, -1) + background)
 
     def objective(self, features: SegmentFeatures, rotation: torch.Tensor, focal: torch.Tensor,
                   workspace: dict | None = None, vertical_block: int = 1) -> torch.Tensor:
@@ -414,7 +415,7 @@ class MixtureLikelihood:
         """:meth:`focal_prior_of` from the images' :meth:`focal_prior_curvature` (B,) in ``focal``'s
         dtype; the derivative None without ``derivative``."""
         weight = curvature[:, None]  # (B, 1)
-        offset = torch.log(focal / long_side[:, None]) - self._prior_centre
+        offset = exact_math.log(focal / long_side[:, None]) - self._prior_centre
         flat = self.params.focal_prior_flat_halfwidth
         if flat:  # the distance to the flat band |log(f / f0)| <= h, signed
             offset = torch.sign(offset) * (offset.abs() - flat).clamp_min(0.0)
@@ -450,7 +451,7 @@ class MixtureLikelihood:
                                           workspace=workspace, vertical_block=vertical_block, grid=grid)
         if self.params.model == "nomixture":
             x = self._deviations(features, rotation, focal).amin(-1)  # (B, N, H)
-            log_x = torch.log(x + self.params.scale_horizontal / 100)
+            log_x = exact_math.log(x + self.params.scale_horizontal / 100)
             return -exact_sum(log_x, 1, weight=features.weight[:, :, None])
         log_p = self.segment_log_likelihood(features, rotation, focal)
         return exact_sum(log_p, 1, weight=features.weight[:, :, None])
@@ -504,7 +505,7 @@ class MixtureLikelihood:
             # p_i lies between the background density and the background plus every family's peak
             peak = background + float((prior / scale).sum())
             log_bound = max(abs(math.log(background)), abs(math.log(peak)))
-            cached = ((-1.0 / scale)[:, None].contiguous(), torch.log(prior / scale)[:, None].contiguous(),
+            cached = ((-1.0 / scale)[:, None].contiguous(), exact_math.log(prior / scale)[:, None].contiguous(),
                       background, EXP_FLOOR[like.dtype], log_bound)
             self._constants_cache[key] = cached
         return cached
@@ -525,8 +526,8 @@ class MixtureLikelihood:
             return torch.cat([q for q, _ in parts]), torch.cat([lp for _, lp in parts])
         log_components = self._component_log_densities(self._deviations(features, rotation, focal), features)
         largest = log_components.amax(-1, keepdim=True)
-        log_p = (largest + torch.log(small_sum(torch.exp(log_components - largest), -1)[..., None]))[..., 0]
-        return torch.exp(log_components - log_p[..., None]).transpose(1, 2), log_p.transpose(1, 2)
+        log_p = (largest + exact_math.log(small_sum(exact_math.exp(log_components - largest), -1)[..., None]))[..., 0]
+        return exact_math.exp(log_components - log_p[..., None]).transpose(1, 2), log_p.transpose(1, 2)
 
 
 def kernels_match_torch() -> bool:
@@ -537,7 +538,7 @@ def kernels_match_torch() -> bool:
     constants = MixtureLikelihood()._b_constants(torch.zeros(1))
     for batch, n_seg, hyp, block in ((2, 37, 10, 1), (1, 5, 9, 3), (2, 300, 6, 3), (1, 12, 300, 3), (2, 0, 4, 2)):
         line = torch.randn(batch, n_seg, 3, generator=generator)
-        line[..., :2] /= line[..., :2].norm(dim=-1, keepdim=True)
+        line[..., :2] /= exact_math.sqrt(line[..., 0:1] * line[..., 0:1] + line[..., 1:2] * line[..., 1:2])
         along = torch.randn(batch, n_seg, 3, generator=generator) * 300
         along[:, :3] = 0.0  # t = 0: s / t infinite
         line[:, 3:4] = 0.0  # with t = 0 too: s / t = 0 / 0

@@ -9,16 +9,16 @@ gradient, the chain rule to the parameters, the focal prior, Adam and the box; w
 model also each hypothesis' segments undistorted with its k, the chain rule to k and the prior on
 k), bit for bit, without storing the (B, 2N, 3H) deviations: ``kernels_measure_b.c`` scores a tile
 of hypotheses a few segments at a time in buffers that stay in the L1 cache, with the same float32
-operations in the same order as the torch path, ``atan`` / ``exp`` / ``log`` / ``sin`` / ``cos`` /
-``sqrt`` from the same MKL VML routines torch's CPU kernels call (torch's float32 ``sqrt`` is MKL's,
-not always the correctly rounded one), and the exact fixed-point sum over segments
+operations in the same order as the torch path, ``atan`` / ``exp`` / ``log`` / ``sin`` / ``cos``
+spelled out as :mod:`fr_torch.core.exact_math` writes them (no maths library: the same bits on every
+CPU), ``sqrt`` correctly rounded, and the exact fixed-point sum over segments
 (:func:`fr_torch.core.exact.exact_sum`: every order of the integer additions gives the same sum).
 
 Building and trusting them:
 
 * The C file is compiled once per machine with the system's C compiler (``cc``, :data:`FLAGS`:
   ``-O3 -ffp-contract=off``, no fast math, every product and sum rounded once, as torch's; plus
-  ``-mavx2`` on a CPU with AVX2) into ``$FR_NATIVE_CACHE`` (default ``~/.cache/fr_torch/native``),
+  ``-mavx2`` on a CPU with AVX2, :func:`_cpu_flags`) into ``$FR_NATIVE_CACHE`` (default ``~/.cache/fr_torch/native``),
   named by a hash of the source, the flags, the compiler and the torch version: about 1 s, once.
   Later processes load the cached library.
 * Before first use in a process the kernels are checked against the torch path on random segments
@@ -27,13 +27,12 @@ Building and trusting them:
   (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`, registered as ``"refine"``), the
   division model's refinement loop (the same check with the division model's segments, registered by
   :mod:`fr_torch.core.search.lens` as ``"refine_lens"``); one differing bit and that kernel is not used.
-* Without a C compiler, without MKL in torch (torch's ``atan`` / ``exp`` / ``log`` are then other
-  routines), with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False and the
-  torch path runs: the same bits, slower.  ``tests/test_reproducibility.py`` runs both paths.
+* Without a C compiler, with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False
+  and the torch path runs: the same bits, slower.  ``tests/test_reproducibility.py`` runs both paths.
 
 Threads: the work items (image, tile of up to 256 hypotheses; an image for the gradient and the
 refinement) are split into ``torch.get_num_threads()`` contiguous ranges, each scored by one call
-from a worker thread with MKL single-threaded (ctypes releases the GIL); every item's result is its
+from a worker thread (ctypes releases the GIL); every item's result is its
 own, so the split cannot change a bit.  One image's refinement stays on one thread: its hypotheses
 share the gradient's fixed-point grid at every step, and threads meeting once per step ran slower
 than one thread on a busy machine; the division model's hypotheses do not (each is its own virtual
@@ -43,6 +42,7 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import math
 import os
 import shutil
 import subprocess
@@ -74,8 +74,7 @@ def _cache_dir() -> Path:
 
 
 def _torch_cpu_library() -> ctypes.CDLL | None:
-    """torch's own CPU library (already loaded by ``import torch``), whose MKL VML entry points
-    (``vsAtan``, ``vsExp``, ``vsLn``) torch's float32 ``atan`` / ``exp`` / ``log`` call."""
+    """torch's own CPU library (already loaded by ``import torch``), where its oneMKL lives."""
     folder = Path(torch.__file__).parent / "lib"
     for name in ("libtorch_cpu.so", "libtorch_cpu.dylib"):
         if (folder / name).is_file():
@@ -95,9 +94,10 @@ def mkl_branch() -> str | None:
     """The oneMKL code branch torch's CPU library runs here: the one ``MKL_CBWR`` pins, else the one
     MKL picks for this CPU (``"AVX512_E1"``, ``"AVX2"``, ...); None without MKL in torch.
 
-    The MKL VML routines behind float32 ``atan`` / ``exp`` / ``log`` (torch's and the fused
-    kernels') round differently on different branches, so two machines give the same bits only on
-    the same branch; measurement records (``fr_eval.machine``) name it."""
+    MKL's vector maths (torch's CPU ``exp``, ``log``, ``atan``, ``sqrt``, ...) rounds differently on
+    different branches; the search takes these functions from :mod:`fr_torch.core.exact_math`
+    instead, and measurement records (``fr_eval.machine``) name the branch so that a difference
+    left elsewhere can be traced."""
     library = _torch_cpu_library()
     try:
         get, auto = library.mkl_serv_cbwr_get, library.mkl_serv_cbwr_get_auto_branch
@@ -110,12 +110,19 @@ def mkl_branch() -> str | None:
 
 def _cpu_flags() -> tuple[str, ...]:
     """``-mavx2`` where the CPU has AVX2 (the arithmetic loops run 8 floats at a time: about a
-    quarter faster; the same bits, as no fused multiply-add is allowed), else nothing."""
+    quarter faster), and ``FR_WIDE`` where it has AVX-512 (the elementary functions' loops in
+    512-bit vectors: the grid's scores about a quarter faster; the whole file in AVX-512 made the
+    refinement's short loops 2.7 times slower); the same bits either way, as no fused multiply-add
+    is allowed.  Nothing on other CPUs."""
     try:
         with open("/proc/cpuinfo") as info:
-            return ("-mavx2",) if "avx2" in info.read().split() else ()
+            flags = set(info.read().split())
     except OSError:
         return ()
+    chosen = ("-mavx2",) if "avx2" in flags else ()
+    if chosen and {"avx512f", "avx512dq", "avx512vl"} <= flags:
+        chosen += ("-DFR_WIDE=1",)
+    return chosen
 
 
 def _build() -> Path:
@@ -146,32 +153,95 @@ def _build() -> Path:
 
 
 def _load():
-    if not torch.backends.mkl.is_available():
-        raise RuntimeError("torch without MKL: its atan / exp / log are not the routines this kernel calls")
-    torch_cpu = _torch_cpu_library()
-    if torch_cpu is None:
-        raise RuntimeError("torch's CPU library not found")
-    vml = [ctypes.cast(getattr(torch_cpu, name), ctypes.c_void_p).value
-           for name in ("vsAtan", "vsExp", "vsLn", "vsSin", "vsCos", "vsSqrt")]
-    _state["mkl_threads"] = torch_cpu.MKL_Set_Num_Threads_Local  # MKL's thread count in the calling thread (C API)
-    _state["mkl_threads"].argtypes, _state["mkl_threads"].restype = [ctypes.c_int], ctypes.c_int
     library = ctypes.CDLL(str(_build()))
     scores = library.fr_measure_b_scores
     scores.restype = None
     scores.argtypes = ([ctypes.c_int64] * 8 + [ctypes.c_void_p] * 5 + [ctypes.c_float] * 2
-                       + [ctypes.c_void_p] * 4)
+                       + [ctypes.c_void_p])
     grad = library.fr_measure_b_grad
     grad.restype = ctypes.c_int
     grad.argtypes = ([ctypes.c_int64] * 5 + [ctypes.c_void_p] * 6 + [ctypes.c_float] * 2
-                     + [ctypes.c_void_p] * 6)
+                     + [ctypes.c_void_p] * 3)
     refine = library.fr_measure_b_refine
     refine.restype = None
     refine.argtypes = ([ctypes.c_int64] * 6 + [ctypes.c_void_p] * 3
                        + [ctypes.c_float] * 2 + [ctypes.c_void_p] * 5 + [ctypes.c_float] * 2 + [ctypes.c_void_p]
-                       + [ctypes.c_float] * 6 + [ctypes.c_int64] + [ctypes.c_void_p] * 11)
+                       + [ctypes.c_float] * 6 + [ctypes.c_int64] + [ctypes.c_void_p] * 5)
     work = library.fr_refine_work_floats
     work.restype, work.argtypes = ctypes.c_int64, [ctypes.c_int64] * 3
-    return {"scores": scores, "grad": grad, "refine": refine, "refine_work": work}, vml
+    functions = {"scores": scores, "grad": grad, "refine": refine, "refine_work": work}
+    for dtype, name in ((torch.float32, "fr_elementary_f32"), (torch.float64, "fr_elementary_f64")):
+        functions[dtype] = getattr(library, name)
+        functions[dtype].restype, functions[dtype].argtypes = None, [ctypes.c_int64] * 2 + [ctypes.c_void_p] * 2
+    return functions
+
+
+#: The compiled elementary loops' operation codes, by dtype (fr_elementary_f32 / _f64 of kernels_measure_b.c).
+_ELEMENTARY = {torch.float32: {"atan": 0, "exp": 1, "log": 2, "sqrt": 3, "sin_cos": 4},
+               torch.float64: {"atan": 0, "exp": 1, "log": 2, "sqrt": 3, "sin_cos": 4, "tan": 5}}
+
+
+def _elementary(name: str, dtype: torch.dtype = torch.float32):
+    """``f(x)`` for a CPU tensor of ``dtype`` through the compiled loop ``name`` of :data:`_ELEMENTARY`
+    (one call in the calling thread, or contiguous ranges over the kernels' threads for long
+    tensors); ``sin_cos`` returns (sin, cos)."""
+    function, op = _state["functions"][dtype], _ELEMENTARY[dtype][name]
+
+    def apply(x: torch.Tensor):
+        x = x.contiguous()
+        count = x.numel()
+        out = torch.empty((2,) + tuple(x.shape) if name == "sin_cos" else x.shape, dtype=dtype)
+        if name == "sin_cos" or count < _ELEMENTARY_SPLIT:
+            function(op, count, x.data_ptr(), out.data_ptr())
+        else:  # contiguous ranges over the kernels' threads: each value is its own, whatever the split
+            size = x.element_size()
+
+            def run(first: int, last: int) -> None:
+                start, stop = count * first // pieces, count * last // pieces
+                function(op, stop - start, x.data_ptr() + size * start, out.data_ptr() + size * start)
+            pieces = max(1, min(torch.get_num_threads(), count // _ELEMENTARY_SPLIT + 1))
+            _in_threads(run, pieces)
+        return (out[0], out[1]) if name == "sin_cos" else out
+    return apply
+
+
+#: Elements from which a compiled elementary loop is split over the threads.
+_ELEMENTARY_SPLIT = 16384
+
+
+def elementary_match_torch() -> bool:
+    """The compiled elementary loops against :mod:`fr_torch.core.exact_math`'s written-out functions
+    on random and special float32 and float64 values: True when every value has the same bits (NaN
+    as NaN)."""
+    from fr_torch.core import exact_math
+    generator = torch.Generator().manual_seed(66)
+    for dtype in _ELEMENTARY:
+        u = torch.rand(20000, generator=generator, dtype=torch.float64)
+        specials = torch.tensor([0.0, -0.0, 1.0, -1.0, 1e-40, -1e-40, 1e-310, 3e38, -3e38, 1e300, math.inf, -math.inf,
+                                 math.nan, 88.7, -87.4, 709.9, -708.5, 0.41421354, 2.4142137, 1e-30, 1e30],
+                                dtype=torch.float64)
+        angles = torch.cat([(u - 0.5) * 40, (u - 0.5) * 4e6, specials])
+        arguments = {"atan": torch.cat([(u - 0.5) * 20, exact_math.exp((u - 0.5) * 40), specials]),
+                     "exp": torch.cat([(u - 0.5) * 1500, (u - 0.5) * 180, specials]),
+                     "log": torch.cat([exact_math.exp((u - 0.5) * 1400), exact_math.exp((u - 0.5) * 170), specials]),
+                     "sqrt": torch.cat([exact_math.exp((u - 0.5) * 1400), exact_math.exp((u - 0.5) * 170), specials]),
+                     "sin_cos": angles, "tan": angles}
+        written = {"atan": exact_math._atan, "exp": exact_math._exp, "log": exact_math._log,
+                   "sqrt": exact_math._sqrt32 if dtype == torch.float32 else exact_math._sqrt64,
+                   "sin_cos": lambda x: tuple(v.to(x.dtype) for v in exact_math._sin_cos64(x.to(torch.float64))),
+                   "tan": lambda x: (lambda s, c: s / c)(*exact_math._sin_cos64(x))}
+        for name in _ELEMENTARY[dtype]:
+            x = arguments[name].to(dtype)
+            got, expected = _elementary(name, dtype)(x), written[name](x)
+            pairs = zip(got, expected) if name == "sin_cos" else [(got, expected)]
+            if not all(torch.equal(_bits(a), _bits(b)) for a, b in pairs):
+                return False
+    return True
+
+
+def _bits(x: torch.Tensor) -> torch.Tensor:
+    """A tensor's bits, every NaN as one (a NaN's sign and payload carry nothing)."""
+    return torch.where(torch.isnan(x), math.nan, x).view(torch.int32 if x.dtype == torch.float32 else torch.int64)
 
 
 def register_check(check, name: str = "kernels") -> None:
@@ -205,28 +275,36 @@ def _trust(name: str, verdicts: dict) -> None:
         return
     try:
         if "functions" not in _state:
-            _state["functions"], _state["vml"] = _load()
+            _state["functions"] = _load()
         verdicts[name] = True  # the check runs the kernel through the usual calls
         verdicts[name] = bool(_checks[name]())
+        if name == "kernels" and verdicts[name]:
+            _register_elementary()
         if not verdicts[name]:
             warnings.warn(f"fR: the fused CPU kernel ({name}) does not reproduce the torch path here; "
                           "running without it", RuntimeWarning, stacklevel=3)
-    except Exception as exc:  # no compiler, no MKL symbols, a failed build: the torch path
+    except Exception as exc:  # no compiler, a failed build: the torch path
         verdicts[name] = False
         _state["error"] = f"{type(exc).__name__}: {exc}"
 
 
+def _register_elementary() -> None:
+    """Hand the compiled float32 loops to :mod:`fr_torch.core.exact_math` when they give its bits."""
+    from fr_torch.core import exact_math
+    if elementary_match_torch():
+        exact_math.register_compiled({(name, dtype): _elementary(name, dtype)
+                                      for dtype, names in _ELEMENTARY.items() for name in names})
+    else:
+        warnings.warn("fR: the compiled elementary functions do not reproduce fr_torch.core.exact_math here; "
+                      "running without them", RuntimeWarning, stacklevel=4)
+
+
 def _pool() -> ThreadPoolExecutor:
-    """The kernels' worker threads (one per core at most, started on demand), each with MKL
-    single-threaded: the kernels' MKL calls are short, and MKL's own threads for each of them (its
-    default outside torch's parallel regions) cost several times the work.  Only these threads get
-    that setting; torch's keep theirs."""
+    """The kernels' worker threads (one per core at most, started on demand)."""
     pool = _state.get("pool")
     if pool is None or _state.get("pool_pid") != os.getpid():  # a forked child has none of its parent's threads
-        set_mkl_threads = _state["mkl_threads"]
         pool = _state["pool"] = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1),
-                                                   thread_name_prefix="fr-native",
-                                                   initializer=lambda: set_mkl_threads(1))
+                                                   thread_name_prefix="fr-native")
         _state["pool_pid"] = os.getpid()
     return pool
 
@@ -243,7 +321,7 @@ def measure_b_scores(line_along: torch.Tensor, factor: torch.Tensor, scale: torc
     ``background`` the background density and ``floor`` the exponent floor (as float32);
     ``vertical_block`` as in ``objective_b_nograd`` (must divide H).
     """
-    function, vml = _state["functions"]["scores"], _state["vml"][:3]
+    function = _state["functions"]["scores"]
     batch, n_seg = factor.shape
     hyp = flat.shape[2] // 3
     line_along = line_along.contiguous()
@@ -261,7 +339,7 @@ def measure_b_scores(line_along: torch.Tensor, factor: torch.Tensor, scale: torc
     def run(first: int, last: int) -> None:
         function(first, last, tiles, tile, n_seg, hyp, vertical_block, vertical_axis,
                  line_along.data_ptr(), factor.data_ptr(), scale.data_ptr(), flat.data_ptr(), coef.data_ptr(),
-                 background, floor, *vml, out.data_ptr())
+                 background, floor, out.data_ptr())
 
     _in_threads(run, items)
     return out
@@ -286,7 +364,7 @@ def _tile_width(batch: int, hyp: int, block: int) -> int:
 def _in_threads(run, items: int) -> None:
     """``run(first, last)`` over ``items`` work items, split into contiguous ranges over
     ``torch.get_num_threads()`` of the kernels' threads (:func:`_pool`; ctypes calls release the
-    GIL), one range even for one thread (the calling thread's MKL may be multi-threaded)."""
+    GIL), one range even for one thread."""
     threads = max(1, min(torch.get_num_threads(), items))
     bounds = [items * k // threads for k in range(threads + 1)]
     for future in [_pool().submit(run, bounds[k], bounds[k + 1]) for k in range(threads)]:
@@ -301,7 +379,7 @@ def measure_b_grad(line_along: torch.Tensor, weight: torch.Tensor, factor: torch
     :func:`fr_torch.core.likelihood.objective.measure_b_forward` then ``measure_b_backward``, bit for bit, in
     one pass per image; call only when :func:`available`.  Arguments as for
     :func:`measure_b_scores`, plus ``weight`` (B, N) float32."""
-    function, vml = _state["functions"]["grad"], _state["vml"][:3]
+    function = _state["functions"]["grad"]
     batch, n_seg = weight.shape
     hyp = flat.shape[2] // 3
     line_along, weight, factor = line_along.contiguous(), weight.contiguous(), factor.contiguous()
@@ -315,7 +393,7 @@ def measure_b_grad(line_along: torch.Tensor, weight: torch.Tensor, factor: torch
     def run(first: int, last: int) -> None:
         if function(first, last, n_seg, hyp, vertical_axis, line_along.data_ptr(), weight.data_ptr(),
                     factor.data_ptr(), scale.data_ptr(), flat.data_ptr(), coef.data_ptr(), background, floor,
-                    grad_out.data_ptr(), *vml, objective.data_ptr(), grad.data_ptr()):
+                    grad_out.data_ptr(), objective.data_ptr(), grad.data_ptr()):
             raise MemoryError("fr_measure_b_grad: out of memory")
 
     _in_threads(run, batch)
@@ -371,6 +449,6 @@ def measure_b_refine(u: torch.Tensor, line_along: torch.Tensor, weight: torch.Te
                  grad_out.data_ptr(), principal_point.data_ptr(), lower.data_ptr(), span.data_ptr(),
                  pointer(prior), prior_centre, prior_flat, steps.data_ptr(),
                  beta1, 1.0 - beta1, beta2, 1.0 - beta2, eps, grad_bound, int(periodic_pan),
-                 pointer(offset), pointer(rho), pointer(k_slope), *_state["vml"], work.data_ptr(), u.data_ptr())
+                 pointer(offset), pointer(rho), pointer(k_slope), work.data_ptr(), u.data_ptr())
 
     _in_threads(run, batch)

@@ -31,6 +31,7 @@ from fr_torch.core.exact import angle_of, angle_of_, exact_sum, fixed_point_scal
 from fr_torch.core.geometry.conventions import VERTICAL_AXIS
 from fr_torch.core.likelihood import native
 from fr_torch.core.likelihood.measures import incidence
+from fr_torch.core import exact_math
 
 
 def family_sum(density: torch.Tensor, dim: int) -> torch.Tensor:
@@ -106,7 +107,7 @@ def objective_b_nograd(line_along, weight, flat, neg_inv_scale, log_coef, backgr
                         workspace, "v")
     p = torch.add(h[:, :, 0], h[:, :, 1], out=_take(workspace, "p", (batch, n_seg, hyp), weight))
     p.view(batch, n_seg, hyp // block, block).add_(v[..., None])
-    p.add_(background).log_()
+    p.copy_(exact_math.log(p.add_(background)))
     if per_segment:
         return p
     return exact_sum(p, 1, bound=log_sum_bound(weight, log_bound), weight=weight[:, :, None])
@@ -145,7 +146,7 @@ def _family_density(line_along, columns, neg_inv_scale, log_coef, floor, workspa
                    tmp=_take(workspace, "incidence", shape, line_along))
     s = angle_of_(st[:, :n_seg], st[:, n_seg:])  # x = atan(|s / t|), in the s half
     s.view(batch, n_seg, groups, width // groups).mul_(neg_inv_scale).add_(log_coef)
-    return s.clamp_min_(floor).exp_()
+    return s.copy_(exact_math.exp(s.clamp_min_(floor)))
 
 
 def _without_vertical(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -166,9 +167,9 @@ def measure_b_forward(line_along, weight, flat, neg_inv_scale, log_coef, backgro
     st = incidence(line_along, flat)
     s, t = st[:, :n_seg], st[:, n_seg:]
     theta = angle_of(s, t).view(batch, n_seg, 3, hyp)
-    e = (theta * neg_inv_scale).add_(log_coef).clamp_min_(floor).exp_()  # prior/lambda exp(-x/lambda)
+    e = exact_math.exp((theta * neg_inv_scale).add_(log_coef).clamp_min_(floor))  # prior/lambda exp(-x/lambda)
     p = family_sum(e, 2).add_(background)
-    objective = exact_sum(torch.log(p), 1, bound=log_sum_bound(weight, log_bound), weight=weight[:, :, None])
+    objective = exact_sum(exact_math.log(p), 1, bound=log_sum_bound(weight, log_bound), weight=weight[:, :, None])
     return objective, (line_along, weight, s, t, e, p, neg_inv_scale)
 
 

@@ -15,6 +15,7 @@ import torch
 from fr_torch.core.geometry.conventions import image_centre
 from fr_torch.core.settings.checks import MAX_REACH_IMAGE_SIZES
 from fr_torch.errors import FRInputError
+from fr_torch.core import exact_math
 
 
 @dataclass(frozen=True)
@@ -142,4 +143,4 @@ class SegmentBatch:
         """Segment lengths in pixels, (B, N); zero for padding (``sqrt(dx^2 + dy^2)`` written out: the
         same bits on every kernel set, :mod:`fr_torch.core.exact`)."""
         d = self.endpoints[..., 2:] - self.endpoints[..., :2]
-        return torch.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) * self.mask
+        return exact_math.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]) * self.mask

@@ -52,6 +52,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from fr_torch.core import exact_math
+from fr_torch.core.exact_math import on_array
 from fr_torch.resources import config_dir
 
 PROMISE_TARGETS = ("focal_pct", "tilt_deg")
@@ -179,7 +181,8 @@ def horizon_sigma_pct(cues, focal_px, tilt_deg, height, floor_pct: float, focal_
     focal = np.asarray(focal_px, np.float64)
     pitch = np.radians(np.minimum(_values(cues, "pitch_resample_spread"), 2 * HORIZON_TILT_LIMIT_DEG))
     focal_sigma = np.where(np.asarray(focal_known, bool), 0.0, focal_sigma_pct(cues) / 100.0)
-    shift = np.hypot(focal * pitch / np.cos(tilt) ** 2, focal * np.abs(np.tan(tilt)) * focal_sigma)
+    shift = np.hypot(focal * pitch / on_array(exact_math.cos, tilt) ** 2,
+                     focal * np.abs(on_array(exact_math.tan, tilt)) * focal_sigma)
     with np.errstate(divide="ignore", invalid="ignore"):
         sigma = np.hypot(100.0 * shift / np.asarray(height, np.float64), floor_pct)
     return np.minimum(sigma, HORIZON_BOUND_CAP_PCT)

@@ -15,7 +15,8 @@ from typing import Sequence
 
 import torch
 
-from fr_torch.core.exact import exact_sum, first_argmax, small_matmul, small_sum
+from fr_torch.core.exact import (exact_sum, first_argmax, positive_definite, small_inverse, small_matmul, small_solve,
+                                 small_sum)
 from fr_torch.core.geometry.params import FOCAL, from_log_focal, rotations, to_log_focal
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
@@ -23,6 +24,7 @@ from fr_torch.core.search.grid import grid_hypotheses, parameter_box, select_sta
 from fr_torch.core.search.passes import LATTICE
 from fr_torch.core.search.refine import refine
 from fr_torch.core.settings.config import FAST_REFINE_ITERATIONS, SearchConfig
+from fr_torch.core import exact_math
 
 
 def _quadratic_fit_matrix() -> torch.Tensor:
@@ -31,7 +33,10 @@ def _quadratic_fit_matrix() -> torch.Tensor:
     x = LATTICE
     columns = [torch.ones(len(x), dtype=torch.float64)] + [x[:, j] for j in range(4)]
     columns += [x[:, i] * x[:, j] * (0.5 if i == j else 1.0) for i in range(4) for j in range(i, 4)]
-    return torch.linalg.pinv(torch.stack(columns, 1))
+    design = torch.stack(columns, 1)  # (81, 15): entries are multiples of 1/2, so every sum below is exact
+    normal = exact_sum(design[:, :, None] * design[:, None, :], 0)
+    fit, _ = small_solve(normal, design.T.contiguous())  # the pseudo-inverse (D'D)^-1 D' of a full-rank D
+    return fit
 
 
 #: Lattice spacing of :func:`focal_prior_share`: [pan, pitch, roll] in degrees, then log f (5 % of f).
@@ -158,10 +163,10 @@ def focal_prior_share(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     hessian, prior = fitted.hessian.clone(), fitted.prior_curvature
     hessian[:, 3, 3] += prior  # the likelihood's Hessian alone
     angles, focal_row = hessian[:, :3, :3], hessian[:, :3, 3:]
-    solved, info = torch.linalg.solve_ex(angles, focal_row)
+    solved, solvable = small_solve(angles, focal_row)
     profile = -(hessian[:, 3, 3] - small_sum((focal_row * solved)[..., 0], -1))  # per (log f)^2
     share = prior / (prior + profile.clamp_min(0.0))
-    ok = torch.isfinite(share) & (info == 0)
+    ok = torch.isfinite(share) & solvable
     return torch.where(ok, share.clamp(0.0, 1.0) + 0.0, torch.ones_like(share))  # + 0.0: no -0.0 in the output
 
 
@@ -179,10 +184,10 @@ def focal_spread(hessian: torch.Tensor, total_length: torch.Tensor) -> torch.Ten
         not the scale, is what the error model uses).  :data:`MAX_SPREAD` where the fit has no
         maximum along log f (or is not finite).
     """
-    covariance, info = torch.linalg.inv_ex(-hessian)
+    covariance, invertible = small_inverse(-hessian)
     variance = covariance[:, 3, 3] * total_length.to(covariance)
-    ok = (info == 0) & torch.isfinite(variance) & (variance > 0)
-    return torch.where(ok, variance.clamp_min(0.0).sqrt(), torch.full_like(variance, MAX_SPREAD)).clamp_max(MAX_SPREAD)
+    ok = invertible & torch.isfinite(variance) & (variance > 0)
+    return torch.where(ok, exact_math.sqrt(variance.clamp_min(0.0)), torch.full_like(variance, MAX_SPREAD)).clamp_max(MAX_SPREAD)
 
 
 #: Value of :func:`focal_spread` where the objective has no maximum along log f.
@@ -328,7 +333,7 @@ def _resampled_sd(differences: torch.Tensor, mask: torch.Tensor) -> torch.Tensor
     n = weight.sum(-1).clamp_min(2.0)  # a count: exact in any order
     mean = exact_sum(differences * weight, -1) / n
     centred = (differences - mean[..., None]) * weight
-    return (exact_sum(centred * centred, -1) * n / (n - 1)).sqrt()
+    return exact_math.sqrt(exact_sum(centred * centred, -1) * n / (n - 1))
 
 
 def focal_profile_spread(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
@@ -405,15 +410,15 @@ def resample_spreads(fitted: LocalFit, known_focal: bool = False) -> dict[str, t
     hessian[:, 3, 3] += fitted.prior_curvature  # the likelihood's Hessian alone
     free = slice(0, 3) if known_focal else slice(0, 4)
     h, j = hessian[:, free, free], fitted.gradient_spread[:, free, free]
-    inverse, info = torch.linalg.inv_ex(h)
+    inverse, invertible = small_inverse(h)
     covariance = small_matmul(small_matmul(inverse, j), inverse)
-    peak = torch.linalg.eigvalsh(0.5 * (h + h.transpose(-1, -2)))[:, -1] < 0  # a maximum of the likelihood
-    ok = (info == 0) & peak
+    peak = positive_definite(-0.5 * (h + h.transpose(-1, -2)))  # a maximum of the likelihood
+    ok = invertible & peak
 
     def spread(index):
         variance = covariance[:, index, index]
         good = ok & torch.isfinite(variance) & (variance >= 0)
-        return torch.where(good, variance.clamp_min(0.0).sqrt(), torch.full_like(variance, MAX_SPREAD)).clamp_max(MAX_SPREAD)
+        return torch.where(good, exact_math.sqrt(variance.clamp_min(0.0)), torch.full_like(variance, MAX_SPREAD)).clamp_max(MAX_SPREAD)
 
     focal = torch.zeros(hessian.shape[0], dtype=torch.float64, device=hessian.device) if known_focal else spread(3)
     return {"focal_resample_spread": focal, "pitch_resample_spread": spread(1)}
@@ -435,11 +440,11 @@ def focal_conditioning(rotation: torch.Tensor) -> torch.Tensor:
         0: its focal length is left to the prior.  No f enters (the directions alone decide).
     """
     squares = rotation * rotation
-    norm = torch.sqrt(small_sum(squares, -2)).clamp_min(1e-12)  # (..., 3) column lengths
-    off_axis = torch.sqrt(squares[..., 0, :] + squares[..., 1, :]) / norm  # sin(theta_i)
+    norm = exact_math.sqrt(small_sum(squares, -2)).clamp_min(1e-12)  # (..., 3) column lengths
+    off_axis = exact_math.sqrt(squares[..., 0, :] + squares[..., 1, :]) / norm  # sin(theta_i)
     along_axis = rotation[..., 2, :].abs() / norm  # cos(theta_i)
     product = off_axis * along_axis
-    return torch.sqrt(small_sum(product * product, -1))
+    return exact_math.sqrt(small_sum(product * product, -1))
 
 
 def image_cues(grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[str, torch.Tensor]:
@@ -463,8 +468,8 @@ def image_cues(grid_scores, grid_counts, labels, log_p, mask, rotation) -> dict[
     counts = torch.stack([((labels == k) & mask).sum(-1) for k in range(3)], -1)
     scaled = grid_scores.to(torch.float64) / grid_counts.clamp_min(1)[:, None].to(torch.float64)
     largest = scaled.amax(-1, keepdim=True)
-    log_q = scaled - largest - torch.log(exact_sum(torch.exp(scaled - largest), -1, keepdim=True))  # log softmax
-    entropy = -exact_sum(log_q.exp() * log_q, -1)
+    log_q = scaled - largest - exact_math.log(exact_sum(exact_math.exp(scaled - largest), -1, keepdim=True))  # log softmax
+    entropy = -exact_sum(exact_math.exp(log_q) * log_q, -1)
     mean_log = exact_sum(log_p * mask, -1) / n
     return {"min_family_segments": counts.min(-1).values.to(torch.float64),
             "grid_entropy": entropy.to(torch.float64),

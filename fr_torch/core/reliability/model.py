@@ -76,6 +76,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fr_torch.core import exact_math
+from fr_torch.core.exact_math import on_array
 from fr_torch.core.likelihood.mixture import LikelihoodParams
 from fr_torch.core.reliability.bounds import ReliabilityPromise
 from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
@@ -99,17 +101,25 @@ CONDITIONING_FLOOR = 1e-3
 PRIOR_SHARE_FLOOR = 1e-2
 SPREAD_FLOOR = 1e-4
 PROFILE_GAP_SCALE = 100.0  # nats: asinh(gap / scale) is linear within +-scale, logarithmic beyond
+
+
+def _log(a) -> np.ndarray:
+    """Natural log of an array through :mod:`fr_torch.core.exact_math` (numpy's runs other code on
+    other CPUs)."""
+    return on_array(exact_math.log, a)
+
+
 # Raw cue -> feature, per cue name (module docstring, "Cue normalisation").
 _CUE_TRANSFORMS = {
-    "min_family_segments": (lambda c: np.log1p(np.clip(c, 0.0, None)), "ln1p(min_family_segments)"),
-    "grid_entropy": (lambda c: np.log(np.clip(c, 0.0, None) + ENTROPY_FLOOR), "ln(grid_entropy + 1e-6)"),
+    "min_family_segments": (lambda c: _log(1.0 + np.clip(c, 0.0, None)), "ln1p(min_family_segments)"),
+    "grid_entropy": (lambda c: _log(np.clip(c, 0.0, None) + ENTROPY_FLOOR), "ln(grid_entropy + 1e-6)"),
     "mean_log_likelihood": (lambda c: c, "mean_log_likelihood"),
-    "focal_conditioning": (lambda c: np.log(np.clip(c, 0.0, None) + CONDITIONING_FLOOR),
+    "focal_conditioning": (lambda c: _log(np.clip(c, 0.0, None) + CONDITIONING_FLOOR),
                            "ln(focal_conditioning + 1e-3)"),
-    "focal_prior_share": (lambda c: np.log(np.clip(c, 0.0, 1.0) + PRIOR_SHARE_FLOOR), "ln(focal_prior_share + 1e-2)"),
-    "focal_profile_gap": (lambda c: np.arcsinh(np.asarray(c, np.float64) / PROFILE_GAP_SCALE),
+    "focal_prior_share": (lambda c: _log(np.clip(c, 0.0, 1.0) + PRIOR_SHARE_FLOOR), "ln(focal_prior_share + 1e-2)"),
+    "focal_profile_gap": (lambda c: on_array(exact_math.asinh, np.asarray(c, np.float64) / PROFILE_GAP_SCALE),
                           "asinh(focal_profile_gap / 100)"),
-    **{name: (lambda c: np.log(np.clip(c, 0.0, None) + SPREAD_FLOOR), f"ln({name} + 1e-4)")
+    **{name: (lambda c: _log(np.clip(c, 0.0, None) + SPREAD_FLOOR), f"ln({name} + 1e-4)")
        for name in ("focal_spread",) + SPREAD_CUE_NAMES},
 }
 

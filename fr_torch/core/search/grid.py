@@ -24,6 +24,7 @@ from fr_torch.core.geometry.params import ANGLES, FOCAL, rotations
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core import exact_math
 
 # Grid deviations per chunk on CPU, whatever the thread count: float32 buffers of a few MB, 32 of
 # torch's 2^15-element grains (up to 32 threads share every op).  Scores are the same for any chunk
@@ -74,7 +75,7 @@ def log_spaced_focals(f_lo: torch.Tensor, f_hi: torch.Tensor, count: int) -> tor
     """``count`` focal lengths per image, (B, count) float64 pixels, at the centres of ``count``
     equal cells in log f between ``f_lo`` and ``f_hi`` ((B,) float64 pixels)."""
     fraction = (torch.arange(count, dtype=torch.float64, device=f_lo.device) + 0.5) / count
-    return torch.exp(f_lo.log()[:, None] + fraction * (f_hi / f_lo).log()[:, None])
+    return exact_math.exp(f_lo.log()[:, None] + fraction * (f_hi / f_lo).log()[:, None])
 
 
 def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:
@@ -134,7 +135,7 @@ def grid_cell(config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor) ->
     focal).  ``lower``, ``upper``: (B, 4) from :func:`parameter_box`."""
     k = config.grid_points_per_dim
     angles = (upper[:, ANGLES] - lower[:, ANGLES]) / k
-    log_focal = (upper[:, 3:].log() - lower[:, 3:].log()) / k
+    log_focal = (exact_math.log(upper[:, 3:]) - exact_math.log(lower[:, 3:])) / k
     return torch.cat([angles, log_focal], -1)
 
 

@@ -46,6 +46,7 @@ from fr_torch.core.search.grid import grid_cell, grid_hypotheses, into_box, para
 from fr_torch.core.search.passes import LATTICE, SearchResult, lattice_passes, sweep_focal, tie_tolerance
 from fr_torch.core.search.refine import refine_kernel_matches_torch, refine_starts
 from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core import exact_math
 
 
 @dataclass
@@ -200,7 +201,7 @@ def _dot2(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def _norm2(a: torch.Tensor) -> torch.Tensor:
     """Length of (..., 2) vectors, ``sqrt(a_x^2 + a_y^2)`` rounded as :func:`_dot2` (not
     ``vector_norm``, whose kernel's order may differ between kernel sets)."""
-    return torch.sqrt(_dot2(a, a))
+    return exact_math.sqrt(_dot2(a, a))
 
 
 
@@ -255,7 +256,7 @@ def chain_pairs(endpoints: torch.Tensor, mask: torch.Tensor, long_side: torch.Te
     ends_i, ends_j = ends.index_select(1, row_i), ends.index_select(1, row_j)  # (4, C)
     x_i, y_i, x_j, y_j = ends_i[0::2], ends_i[1::2], ends_j[0::2], ends_j[1::2]  # (2, C): both endpoints
     dx, dy = x_i[:, None] - x_j[None], y_i[:, None] - y_j[None]  # (2, 2, C): i's endpoints minus j's
-    gap = torch.sqrt((dx * dx + dy * dy).view(4, -1).amin(0))  # the nearest endpoints' distance (C,)
+    gap = exact_math.sqrt((dx * dx + dy * dy).view(4, -1).amin(0))  # the nearest endpoints' distance (C,)
 
     def nearer_lateral(rows: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """(C,) distance from the lines of ``rows`` (C,) of the nearer of the points ``x``, ``y``
@@ -306,11 +307,11 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> Plu
         factor = 1.0 + grid.view(1, -1, 1) * (x * x + y * y)[:, None, :] * inv_r2  # (P, K, 2)
         x, y = x[:, None, :] / factor, y[:, None, :] / factor  # undistorted
         dx, dy = x[..., 1] - x[..., 0], y[..., 1] - y[..., 0]
-        norm = torch.sqrt(dx * dx + dy * dy).clamp_min(1e-12)
+        norm = exact_math.sqrt(dx * dx + dy * dy).clamp_min(1e-12)
         return dx / norm, dy / norm
 
     (ax, ay), (bx, by) = directions(endpoints[image, i]), directions(endpoints[image, j])
-    turn = torch.asin((ax * by - ay * bx).abs().clamp(max=1.0))
+    turn = exact_math.asin((ax * by - ay * bx).abs().clamp(max=1.0))
     cost_terms = pair_weight[:, None] * turn.clamp(max=math.radians(TURN_CAP_DEG)) ** 2
     cap_cost = geometry.long_side.to(torch.float64) * math.radians(TURN_CAP_DEG) ** 2  # a pair's largest term
     cost = exact_index_sum(cost_terms, image, batch, cap_cost[:, None])

@@ -39,6 +39,7 @@ from fr_torch.core.search.grid import grid_hypotheses, parameter_box, select_sta
 from fr_torch.core.search.passes import SearchResult, subdivide_starts, sweep_focal
 from fr_torch.core.search.refine import UnitBox, adam_in_box, refine_starts
 from fr_torch.core.settings.config import FamiliesConfig, SearchConfig
+from fr_torch.core import exact_math
 
 
 def search_manhattan(likelihood: MixtureLikelihood, features: SegmentFeatures, config: SearchConfig,
@@ -105,11 +106,11 @@ def families_objective(likelihood: MixtureLikelihood, features: SegmentFeatures,
     extra = (width - 4) // 2
     rotation = rotations(rows.reshape(-1, width)[:, :4]).view(batch, hypotheses, 3, 3)
     focal = rows[..., FOCAL]  # (B, H)
-    density = small_sum(torch.exp(likelihood.component_log_densities(features, rotation, focal)), -1)  # (B, N, H)
+    density = small_sum(exact_math.exp(likelihood.component_log_densities(features, rotation, focal)), -1)  # (B, N, H)
     if extra:
         density = _with_extra_families(likelihood, features, rotation, focal, density, rows[..., 4:4 + extra],
                                        rows[..., 4 + extra:])
-    value = exact_sum(torch.log(density), 1, weight=features.weight[..., None])
+    value = exact_sum(exact_math.log(density), 1, weight=features.weight[..., None])
     if likelihood.params.focal_prior_weight:
         value = value + likelihood.focal_prior(features, focal, derivative=False)[0]
     return value
@@ -131,7 +132,7 @@ def _horizon_deviations(likelihood, features, rotation, focal, azimuth_deg):
 def _with_extra_families(likelihood, features, rotation, focal, manhattan_density, azimuth_deg, weights):
     """The mixture density (B, N, H) ``(1 - sum_j w_j) p_i + sum_j w_j h_ij`` of the Manhattan mixture's
     density p (B, N, H) and m extra families at azimuths (B, H, m) degrees with weights (B, H, m)."""
-    h = torch.exp(likelihood.horizontal_log_density(_horizon_deviations(likelihood, features, rotation, focal,
+    h = exact_math.exp(likelihood.horizontal_log_density(_horizon_deviations(likelihood, features, rotation, focal,
                                                                         azimuth_deg)))  # (B, N, H, m)
     return (1.0 - small_sum(weights, -1))[:, None] * manhattan_density + small_sum(weights[:, None] * h, -1)
 
@@ -160,7 +161,7 @@ def _mixture_densities(likelihood, deviations, background, scales):
     (B, N)."""
     vertical = _vertical_column(deviations.shape[-1], deviations.device)
     scale = torch.where(vertical, scales[:, None, 1:], scales[:, None, :1])  # (B, 1, 3 + m)
-    return torch.cat([torch.exp(likelihood.family_log_density(deviations, scale)), background[..., None]], -1)
+    return torch.cat([exact_math.exp(likelihood.family_log_density(deviations, scale)), background[..., None]], -1)
 
 
 def _fit_mixture(likelihood, deviations, background, weight, prior, iterations=FAMILY_WEIGHT_EM_STEPS):
@@ -236,7 +237,7 @@ def held_out_gains(likelihood: MixtureLikelihood, features: SegmentFeatures, man
             x = deviations[..., :3 + m]
             share, scales = _fit_mixture(likelihood, x, background, features.weight * found_on, config.prior)
             density = small_sum(share[:, None, :] * _mixture_densities(likelihood, x, background, scales), -1)
-            scores.append(exact_sum(torch.log(density), 1, weight=scored_on))
+            scores.append(exact_sum(exact_math.log(density), 1, weight=scored_on))
             if m:
                 held = torch.isfinite(candidates[:, :m]).all(1)
                 gains[:, m] = gains[:, m] + torch.where(held, scores[m] - scores[0], torch.full_like(scores[m], -math.inf))

@@ -36,6 +36,7 @@ from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
 from fr_torch.core.search.grid import grid_cell, into_box, log_spaced_focals, score_grid
 from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core import exact_math
 
 
 def _focal_ridge_rotations(rotation: torch.Tensor, ratio: torch.Tensor) -> torch.Tensor:
@@ -49,7 +50,7 @@ def _focal_ridge_rotations(rotation: torch.Tensor, ratio: torch.Tensor) -> torch
     of the VPs allows); the third column completes a right-handed frame.  Returns (..., m, 3, 3).
     """
     def unit(d):
-        return d / torch.sqrt(dot3(d, d))[..., None]
+        return d / exact_math.sqrt(dot3(d, d))[..., None]
 
     def rescaled(direction):  # (..., 3) -> (..., m, 3), unit length
         d = direction[..., None, :].expand(ratio.shape + (3,))
@@ -152,7 +153,7 @@ def different_solutions(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     angles = (a[..., ANGLES] - b[..., ANGLES]).abs()
     pan = torch.remainder(angles[..., 0], 90.0)
     angles = torch.cat([torch.minimum(pan, 90.0 - pan)[..., None], angles[..., 1:]], -1)
-    apart = (angles > SOLUTION_ANGLE_DEG).any(-1) | ((a[..., FOCAL] / b[..., FOCAL]).log().abs() > SOLUTION_FOCAL)
+    apart = (angles > SOLUTION_ANGLE_DEG).any(-1) | (exact_math.log(a[..., FOCAL] / b[..., FOCAL]).abs() > SOLUTION_FOCAL)
     if a.shape[-1] > DISTORTION:
         apart = apart | ((a[..., DISTORTION] - b[..., DISTORTION]).abs() > 0.02)
     return apart

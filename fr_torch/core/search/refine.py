@@ -39,6 +39,7 @@ from fr_torch.core.likelihood.objective import (
 )
 from fr_torch.core.search.passes import best_of_start_and_refined, tie_tolerance
 from fr_torch.core.settings.config import SearchConfig
+from fr_torch.core import exact_math
 
 CPU_REFINE_ELEMENTS = 1 << 20  # deviations per refinement slice on CPU (~25 live tensors of 4 MB)
 
@@ -136,7 +137,7 @@ class Adam:
         with torch.no_grad():
             exp_avg = self.exp_avg * beta1 + grad * (1.0 - beta1)
             exp_avg_sq = self.exp_avg_sq * beta2 + (grad * grad) * (1.0 - beta2)
-            denom = exp_avg_sq.sqrt() / bias + self.eps
+            denom = exact_math.sqrt(exp_avg_sq) / bias + self.eps
             update = exp_avg / denom * step_size
             if active is None:
                 self.exp_avg, self.exp_avg_sq = exp_avg, exp_avg_sq
@@ -404,9 +405,9 @@ def objective_and_grad(likelihood: MixtureLikelihood, features: SegmentFeatures,
     params = lower + u * span
     batch, n_hyp = params.shape[:2]
     rad = torch.deg2rad(params[..., ANGLES])
-    cos, sin = torch.cos(rad), torch.sin(rad)
+    sin, cos = exact_math.sin_cos(rad)
     rotation = rotation_from_cos_sin(cos, sin)  # (B, L, 3, 3)
-    focal = torch.exp(params[..., FOCAL])
+    focal = exact_math.exp(params[..., FOCAL])
     if geometry is not None:
         features, d_line_along = geometry.features(params[..., DISTORTION], derivative=True)  # B * L images
     pp = features.principal_point[:, None, :]  # (B, 1, 2)
