@@ -1,6 +1,6 @@
 """Elementary functions whose bits do not depend on the CPU: ``exp``, ``log``, ``atan``, ``asin``,
 ``acos``, ``asinh``, ``sin``, ``cos``, ``tan`` and ``sqrt`` of float32 and float64 tensors (and of
-numpy arrays, :func:`on_array`).
+Python numbers, :func:`of`, and numpy arrays, :func:`on_array`).
 
 torch's CPU kernels take these functions from oneMKL's vector maths (VML), and MKL picks a code
 branch per CPU family: the same input gives other last bits on another CPU.  Of 2,000,000 random
@@ -8,17 +8,22 @@ inputs, MKL's COMPATIBLE branch (the one it runs on CPUs it does not know) and i
 differ on 1.6 % of float32 ``exp`` values, 4.4 % of ``atan``, 17 % of ``sqrt``, and on 0.1–4.5 % of
 the float64 functions; a search that takes hundreds of steps from such values ends elsewhere in the
 last bits, and sometimes in another basin.  numpy's ``log``, ``exp``, ``tan``, ``arctan`` and
-``log1p`` likewise run other code on a CPU without AVX-512.  The functions here are built from operations IEEE 754
-rounds the same way everywhere (``+``, ``-``, ``*``, ``/``, comparisons, rounding to an integer and
-bit moves), one rounding each, in a fixed order, never fused: the same bits on any CPU, under every
-torch kernel set and every MKL branch (``tests/test_exact_math.py`` runs each branch).  The fused
-kernels (``fr_torch/core/likelihood/kernels_measure_b.c``) spell out the same float32 operations in
-C, so that they and the torch path give the same bits.
+``log1p`` likewise run other code on a CPU without AVX-512.
 
-Accuracy (against float64 / high-precision references, ``tests/test_exact_math.py``): float32
-``exp``, ``log`` and ``atan`` within 2 units in the last place; ``sqrt`` correctly rounded; float64
-functions within 2 units in the last place for arguments a camera search meets (``sin`` / ``cos``
-/ ``tan`` of |x| < 2^20 radians).  ``exp`` flushes results below the smallest normal number to 0.
+The functions here are built from operations IEEE 754 rounds the same way everywhere (``+``, ``-``,
+``*``, ``/``, comparisons, rounding to an integer, bit moves), one rounding each, in a fixed order,
+never fused: range reduction, a polynomial, the power of two written into the exponent bits.  The
+same bits on any CPU, under every torch kernel set and every MKL branch (``tests/test_exact_math.py``
+runs them in processes pinned to other branches).  ``fr_torch/core/likelihood/kernels_measure_b.c``
+spells out the same operations in C, inside the fused kernels and as loops over whole tensors that
+:mod:`fr_torch.core.likelihood.native` registers here (:func:`register_compiled`) once they have given
+these functions' bits: one call instead of some thirty torch operations.
+
+Accuracy (``tests/test_exact_math.py``, against float64 references for float32 and long double ones
+for float64; maximum error in units in the last place): float32 ``exp`` 1.2, ``log`` 1.8, ``atan``
+2.2, ``asin`` / ``acos`` / ``asinh`` 2.7-3.4, ``sin`` / ``cos`` / ``tan`` 0.5 (through float64);
+float64 1-3; ``sqrt`` correctly rounded in both.  ``sin`` / ``cos`` / ``tan`` reduce their
+argument exactly below 2^20 radians.  ``exp`` flushes results below the smallest normal number to 0.
 
 On a GPU (any device but the CPU) each function is torch's own: CUDA's maths library gives the same
 bits run after run on a device, and its functions do not dispatch by CPU.  Differentiable: each
@@ -360,6 +365,12 @@ def asinh(x: torch.Tensor) -> torch.Tensor:
     u = y + 1.0
     log1p = torch.where(u == 1.0, y, log(u) - ((u - 1.0) - y) / u)
     return torch.copysign(log1p, x)
+
+
+def of(function, value: float) -> float:
+    """``function`` (one of this module's) of a Python number, in float64: the C library's ``math``
+    functions also pick their code by CPU (glibc's FMA variants)."""
+    return float(function(torch.tensor(float(value), dtype=torch.float64)))
 
 
 def on_array(function, a) -> "np.ndarray":

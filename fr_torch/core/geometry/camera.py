@@ -14,6 +14,7 @@ from functools import cached_property
 import numpy as np
 import torch
 
+from fr_torch.core import exact_math
 from fr_torch.core.geometry.conventions import (
     angles_from_rotation,
     focal_from_hfov,
@@ -29,7 +30,8 @@ from fr_torch.core.geometry.conventions import (
 
 def pitch_from_tilt(tilt_deg: float, roll_deg: float) -> float:
     """Optical-axis pitch (degrees) from the paper's tilt and roll: ``tan(pitch) = tan(tilt) cos(roll)``."""
-    return math.degrees(math.atan(math.tan(math.radians(tilt_deg)) * math.cos(math.radians(roll_deg))))
+    tan, cos = (exact_math.of(f, math.radians(a)) for f, a in ((exact_math.tan, tilt_deg), (exact_math.cos, roll_deg)))
+    return math.degrees(exact_math.of(exact_math.atan, tan * cos))
 
 
 @dataclass(frozen=True)

@@ -56,7 +56,7 @@ def focal_from_hfov(hfov_deg, width):
     if not (torch.is_tensor(hfov_deg) or torch.is_tensor(width)):
         hfov, w = _scalar(hfov_deg), _scalar(width)
         try:
-            return w / 2.0 / math.tan(math.radians(hfov) / 2.0)
+            return w / 2.0 / exact_math.of(exact_math.tan, math.radians(hfov) / 2.0)
         except (ValueError, ZeroDivisionError):  # 0 or inf: the tensor path's inf / NaN
             with np.errstate(all="ignore"):
                 return float(np.float64(w) / 2.0 / np.tan(np.radians(np.float64(hfov)) / 2.0))
@@ -70,7 +70,7 @@ def hfov_from_focal(focal_px, width):
     if not (torch.is_tensor(focal_px) or torch.is_tensor(width)):
         focal, w = _scalar(focal_px), _scalar(width)
         try:
-            return math.degrees(2.0 * math.atan(w / 2.0 / focal))
+            return math.degrees(2.0 * exact_math.of(exact_math.atan, w / 2.0 / focal))
         except ZeroDivisionError:  # f = 0: the tensor path's +-180 (NaN for w = 0)
             with np.errstate(all="ignore"):
                 return float(np.degrees(2.0 * np.arctan(np.float64(w) / 2.0 / np.float64(focal))))

@@ -269,7 +269,7 @@ def _rank_chunk(likelihood, features, rotation, focal, atlanta, fixed_azimuth_de
         total = exact_sum(weight, -1).clamp_min(1e-12)
         active = torch.ones(batch, dtype=torch.bool, device=device)
         rows = torch.arange(batch, device=device)
-        cos_window = math.cos(math.radians(atlanta.exclusion_deg))
+        cos_window = exact_math.of(exact_math.cos, math.radians(atlanta.exclusion_deg))
         prior = atlanta.prior
 
         def best_of(density, dirs, usable):

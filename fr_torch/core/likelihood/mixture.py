@@ -263,7 +263,7 @@ class MixtureLikelihood:
     def __init__(self, params: LikelihoodParams | None = None):
         self.params = params or LikelihoodParams.from_config()
         # log(f0 / L): the focal prior's centre as a focal length per pixel of the long side
-        self._prior_centre = math.log(focal_from_hfov(self.params.focal_prior_hfov_deg, 1.0))
+        self._prior_centre = exact_math.of(exact_math.log, focal_from_hfov(self.params.focal_prior_hfov_deg, 1.0))
 
     def _family_constants(self, like: torch.Tensor):
         """Per-family prior and scale, (3,) tensors, vertical parameters on column 1."""
@@ -278,11 +278,11 @@ class MixtureLikelihood:
         """log(prior * uniform density) of the background, broadcastable to (B, N, H, 1)."""
         p = self.params
         if p.measure in ("b", "e"):
-            return x.new_full((1, 1, 1, 1), math.log(p.prior_background / (math.pi / 2)))
+            return x.new_full((1, 1, 1, 1), exact_math.of(exact_math.log, p.prior_background / (math.pi / 2)))
         if p.measure == "a":
-            return x.new_full((1, 1, 1, 1), math.log(p.prior_background / p.range_px))
+            return x.new_full((1, 1, 1, 1), exact_math.of(exact_math.log, p.prior_background / p.range_px))
         half = features.half_length.clamp_min(1e-6)[:, :, None, None]  # c, d: uniform on [0, len/2]
-        return math.log(p.prior_background) - exact_math.log(half)
+        return exact_math.of(exact_math.log, p.prior_background) - exact_math.log(half)
 
     def background_density(self, features: SegmentFeatures) -> torch.Tensor:
         """The uniform background's density (without its prior) at every segment, (B, N), in
@@ -334,9 +334,9 @@ class MixtureLikelihood:
         ``scale``, or for measure d half-normal with sigma ``scale``."""
         half_normal = self.params.measure == "d"
         if torch.is_tensor(scale):
-            log_norm = (math.log(math.sqrt(2 / math.pi)) if half_normal else 0.0) - exact_math.log(scale)
+            log_norm = (exact_math.of(exact_math.log, math.sqrt(2 / math.pi)) if half_normal else 0.0) - exact_math.log(scale)
         else:
-            log_norm = math.log(math.sqrt(2 / math.pi) / scale) if half_normal else -math.log(scale)
+            log_norm = exact_math.of(exact_math.log, math.sqrt(2 / math.pi) / scale) if half_normal else -exact_math.of(exact_math.log, scale)
         return log_norm - 0.5 * (x / scale) ** 2 if half_normal else log_norm - x / scale
 
     def fitted_scale(self, x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -504,7 +504,7 @@ class MixtureLikelihood:
             background = p.prior_background / (math.pi / 2)
             # p_i lies between the background density and the background plus every family's peak
             peak = background + float((prior / scale).sum())
-            log_bound = max(abs(math.log(background)), abs(math.log(peak)))
+            log_bound = max(abs(exact_math.of(exact_math.log, background)), abs(exact_math.of(exact_math.log, peak)))
             cached = ((-1.0 / scale)[:, None].contiguous(), exact_math.log(prior / scale)[:, None].contiguous(),
                       background, EXP_FLOOR[like.dtype], log_bound)
             self._constants_cache[key] = cached

@@ -44,6 +44,7 @@ Missing spread cues give no bound and ``reliable = False``.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field
@@ -144,9 +145,9 @@ def horizon_bound_pct(bounds: Mapping[str, float] | None, focal_px: float, tilt_
     limit = math.radians(HORIZON_TILT_LIMIT_DEG)
     tilt = min(max(math.radians(tilt_deg), -limit), limit)
     reach = math.radians(min(float(tilt_bound), 2 * HORIZON_TILT_LIMIT_DEG))
-    shift = max(abs(math.tan(min(tilt + reach, limit)) - math.tan(tilt)),
-                abs(math.tan(tilt) - math.tan(max(tilt - reach, -limit))))
-    bound = 100.0 * float(focal_px) * (shift + abs(math.tan(tilt)) * float(focal_bound) / 100.0) / float(height)
+    tan = functools.partial(exact_math.of, exact_math.tan)
+    shift = max(abs(tan(min(tilt + reach, limit)) - tan(tilt)), abs(tan(tilt) - tan(max(tilt - reach, -limit))))
+    bound = 100.0 * float(focal_px) * (shift + abs(tan(tilt)) * float(focal_bound) / 100.0) / float(height)
     return min(bound, HORIZON_BOUND_CAP_PCT)
 
 

@@ -75,7 +75,7 @@ def log_spaced_focals(f_lo: torch.Tensor, f_hi: torch.Tensor, count: int) -> tor
     """``count`` focal lengths per image, (B, count) float64 pixels, at the centres of ``count``
     equal cells in log f between ``f_lo`` and ``f_hi`` ((B,) float64 pixels)."""
     fraction = (torch.arange(count, dtype=torch.float64, device=f_lo.device) + 0.5) / count
-    return exact_math.exp(f_lo.log()[:, None] + fraction * (f_hi / f_lo).log()[:, None])
+    return exact_math.exp(exact_math.log(f_lo)[:, None] + fraction * exact_math.log(f_hi / f_lo)[:, None])
 
 
 def focal_grid(config: SearchConfig, long_side: torch.Tensor) -> torch.Tensor:

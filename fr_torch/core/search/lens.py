@@ -246,7 +246,7 @@ def chain_pairs(endpoints: torch.Tensor, mask: torch.Tensor, long_side: torch.Te
     delta = endpoints[..., 2:] - endpoints[..., :2]
     length = _norm2(delta).clamp_min(1e-9)
     unit = delta / length[..., None]
-    aligned = _dot2(unit[:, :, None, :], unit[:, None, :, :]).abs() > math.cos(math.radians(CHAIN_MAX_ANGLE_DEG))
+    aligned = _dot2(unit[:, :, None, :], unit[:, None, :, :]).abs() > exact_math.of(exact_math.cos, math.radians(CHAIN_MAX_ANGLE_DEG))
     image, i, j = torch.triu(aligned & mask[:, :, None] & mask[:, None, :], diagonal=1).nonzero(as_tuple=True)
     # homogeneous unit-normal lines; |line . (x, y, 1)| = the point's distance from the segment's line
     lines = torch.stack([-unit[..., 1], unit[..., 0],
