@@ -38,10 +38,18 @@ def horizon_line(K, rotation, vertical_axis: int = VERTICAL_AXIS) -> np.ndarray 
     K, rotation = np.asarray(K, np.float64), np.asarray(rotation, np.float64)
     if not (np.isfinite(K).all() and np.isfinite(rotation).all()):
         return None
-    try:
-        line = np.linalg.solve(K.T, rotation[:, vertical_axis])
-    except np.linalg.LinAlgError:
-        return None
+    v = rotation[:, vertical_axis]
+    if K[1, 0] == 0 and K[2, 0] == 0 and K[2, 1] == 0 and np.all(np.diag(K) != 0):
+        # K^T is lower triangular: forward substitution, one rounding per step (LAPACK's solver
+        # picks its kernel by CPU)
+        x0 = v[0] / K[0, 0]
+        x1 = (v[1] - K[0, 1] * x0) / K[1, 1]
+        line = np.array([x0, x1, ((v[2] - K[0, 2] * x0) - K[1, 2] * x1) / K[2, 2]])
+    else:
+        try:
+            line = np.linalg.solve(K.T, v)
+        except np.linalg.LinAlgError:
+            return None
     return normalised_line(line, at_infinity=1e-12)
 
 

@@ -103,6 +103,15 @@ SPREAD_FLOOR = 1e-4
 PROFILE_GAP_SCALE = 100.0  # nats: asinh(gap / scale) is linear within +-scale, logarithmic beyond
 
 
+def _sum_in_order(a: np.ndarray) -> np.ndarray:
+    """Sum over the last axis from its first entry to its last, one rounding per addition: numpy's
+    ``sum`` adds in an order set by its SIMD width, which differs from CPU to CPU."""
+    total = a[..., 0].copy()
+    for j in range(1, a.shape[-1]):
+        total += a[..., j]
+    return total
+
+
 def _log(a) -> np.ndarray:
     """Natural log of an array through :mod:`fr_torch.core.exact_math` (numpy's runs other code on
     other CPUs)."""
@@ -286,7 +295,7 @@ class ReliabilityModel:
         """Raw cues (n, c) in the order of :attr:`cue_names` -> whitened features (n, c)."""
         x = cue_features(cues, self.cue_names) - self.feature_mean
         # per row, a sum over the cues in one order (a matrix product's order would depend on n)
-        return (x[:, None, :] * self.feature_components[None]).sum(-1) / np.sqrt(self.feature_variance)
+        return _sum_in_order(x[:, None, :] * self.feature_components[None]) / np.sqrt(self.feature_variance)
 
     def predict(self, cues: np.ndarray | dict | Sequence[dict]) -> np.ndarray:
         """Predicted absolute errors (n, 3) [roll deg, tilt deg, focal %] from raw cues (n, c) in the
@@ -301,9 +310,9 @@ class ReliabilityModel:
         good = np.flatnonzero(np.isfinite(w).all(1))
         for b0 in range(0, len(good), PREDICT_BLOCK):
             rows = good[b0:b0 + PREDICT_BLOCK]
-            d2 = ((w[rows, None, :] - self._train_w[None]) ** 2).sum(-1)
+            d2 = _sum_in_order((w[rows, None, :] - self._train_w[None]) ** 2)
             idx = np.argsort(d2, axis=1, kind="stable")[:, :self.k]
-            out[rows] = self.train_errors[idx].mean(1)
+            out[rows] = _sum_in_order(np.moveaxis(self.train_errors[idx], 1, -1)) / self.k
         return out
 
     @property
