@@ -170,10 +170,12 @@ def cpu_kernel_sets() -> list[str]:
 
 
 #: What the maths libraries run on other CPUs, pinned on this one: with the kernel set of an older CPU
-#: its oneMKL branch (``MKL_CBWR``: the vector maths behind torch's ``exp`` / ``log`` / ...) and its
-#: numpy SIMD level (``NPY_DISABLE_CPU_FEATURES``), so that a result depending on the CPU shows here.
+#: its oneMKL branch (``MKL_CBWR``: the vector maths behind torch's ``exp`` / ``log`` / ...), its
+#: numpy SIMD level (``NPY_DISABLE_CPU_FEATURES``) and OpenBLAS's kernels (``OPENBLAS_CORETYPE``), so
+#: that a result depending on the CPU shows here.
 EMULATED_CPUS = {
-    "default": {"MKL_CBWR": "COMPATIBLE", "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR"},
+    "default": {"MKL_CBWR": "COMPATIBLE", "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR",
+                "OPENBLAS_CORETYPE": "Prescott"},
     "avx2": {"MKL_CBWR": "AVX2", "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR"},
     "torch-path": {"MKL_CBWR": "COMPATIBLE"},
 }
