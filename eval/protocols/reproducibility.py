@@ -5,9 +5,10 @@ here) and NYU-VP val (the dataset's segments) in fresh processes, one per settin
 ``... table`` compares every setting with the reference one (batch 64, in process, ``FR_THREADS=2``,
 the machine's own kernel set) in ``results/reproducibility/`` (``README.md``, ``table.md``,
 ``rows.csv``).  Settings (:data:`SETTINGS`): batch sizes 1 / 7 / 64, worker processes 0 / 2,
-``FR_THREADS`` 1 / 2 and torch's CPU kernel sets ``ATEN_CPU_CAPABILITY`` = default / avx2 /
-avx512 (where the CPU has it) / the native one; and ``--shared-focal`` on groups of 10 YUD test
-photos under every kernel set.
+``FR_THREADS`` 1 / 2, torch's CPU kernel sets ``ATEN_CPU_CAPABILITY`` = default / avx2 /
+avx512 (where the CPU has it) / the native one, and an older CPU's maths libraries
+(:data:`SETTING_ENV`: oneMKL, numpy and OpenBLAS pinned to the code they run on a CPU they do not
+know); and ``--shared-focal`` on groups of 10 YUD test photos under every kernel set.
 
 Per setting and mode the table gives: photos whose focal length differs at all from the
 reference's, the largest relative focal difference, basin changes (focal more than 1 % or the
@@ -45,6 +46,14 @@ SETTINGS = {
     "kernels default": (64, 0, "2", "default"),
     "kernels avx2": (64, 0, "2", "avx2"),
     "kernels avx512": (64, 0, "2", "avx512"),
+    "older CPU's libraries": (64, 0, "2", "default"),
+}
+#: Environment of a setting beyond its four fields: what another CPU's maths libraries would run,
+#: pinned on this one (oneMKL's COMPATIBLE branch, numpy without AVX2 / AVX-512, OpenBLAS's oldest
+#: kernels), with the oldest kernel set.
+SETTING_ENV = {
+    "older CPU's libraries": {"MKL_CBWR": "COMPATIBLE", "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR",
+                              "OPENBLAS_CORETYPE": "Prescott"},
 }
 SHARED_KERNELS = (None, "default", "avx2", "avx512")
 GROUP_SIZE = 10
@@ -175,7 +184,7 @@ def run(args) -> int:
         target = raw / f"{mode}__{name.replace(' ', '_')}.jsonl"
         if target.is_file() and not args.again:
             continue
-        env = dict(env_base, FR_THREADS=threads)
+        env = dict(env_base, FR_THREADS=threads, **SETTING_ENV.get(name, {}))
         env.pop("ATEN_CPU_CAPABILITY", None)
         if kernels:
             env["ATEN_CPU_CAPABILITY"] = kernels
