@@ -27,6 +27,10 @@ Building and trusting them:
   (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`, registered as ``"refine"``), the
   division model's refinement loop (the same check with the division model's segments, registered by
   :mod:`fr_torch.core.search.lens` as ``"refine_lens"``); one differing bit and that kernel is not used.
+* The same library holds :mod:`fr_torch.core.exact_math`'s functions as loops over whole tensors
+  (``fr_elementary_f32`` / ``_f64``); once the kernels' check passed and these loops give
+  ``exact_math``'s written-out bits (:func:`elementary_match_torch`), they are handed to it
+  (``exact_math.register_compiled``), and the torch code outside the kernels calls them.
 * Without a C compiler, with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False
   and the torch path runs: the same bits, slower.  ``tests/test_reproducibility.py`` runs both paths.
 
