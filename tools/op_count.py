@@ -7,7 +7,8 @@ thread, after one warm-up call; counts the top-level operator events ``torch.pro
 (nested ``aten::`` calls inside a composite op are not counted twice) and prints a Markdown table.
 ``--chunking device`` lifts the CPU's cache-sized chunks (``fr_torch.core.search.grid.CPU_CHUNK_ELEMENTS``,
 ``CPU_REFINE_ELEMENTS``) so the batch is cut as on a GPU (``SearchConfig.max_chunk_elements``): the
-count is then the proxy for a GPU's kernel launches; ``cpu`` (default) counts what a CPU runs.
+count is then the proxy for a GPU's kernel launches (with :mod:`fr_torch.core.exact_math`'s functions
+as torch's own, as on a GPU); ``cpu`` (default) counts what a CPU runs.
 Run it with ``PYTHONPATH=<another checkout>`` to count another version of the library.
 """
 from __future__ import annotations
@@ -27,6 +28,10 @@ def count_operators(mode: str, batch: int, n_segments: int, chunking: str = "cpu
 
     if chunking == "device":
         grid.CPU_CHUNK_ELEMENTS = refine.CPU_REFINE_ELEMENTS = 1 << 40
+        # on a GPU fr_torch.core.exact_math's functions are torch's own, one operator each (on a CPU
+        # without the compiled loops they are written out in some thirty)
+        import fr_torch.core.exact_math as exact_math
+        exact_math._native = lambda x: True
 
     est = bench_estimator(mode, "cpu")
     pool = [scene_segments(n_segments, seed=i) for i in range(8)]

@@ -86,8 +86,9 @@ def _native(x: torch.Tensor) -> bool:
 
 
 #: Compiled loops of these same functions, by (name, dtype), name one of "atan", "exp", "log",
-#: "sqrt", "sin_cos" and (float64) "tan", each ``f(x) -> y`` for a CPU tensor of that dtype: registered
-#: by :mod:`fr_torch.core.likelihood.native` once they have given this module's bits on its check
+#: "sqrt", "sin_cos" and (float64) "tan", each ``f(x) -> y`` for a CPU tensor of that dtype, and by
+#: (name, "numpy") for a float64 numpy array (:func:`on_array`; "sin" and "cos" too): registered by
+#: :mod:`fr_torch.core.likelihood.native` once they have given this module's bits on its check
 #: (:func:`register_compiled`).
 _COMPILED: dict = {}
 
@@ -370,11 +371,17 @@ def asinh(x: torch.Tensor) -> torch.Tensor:
 def of(function, value: float) -> float:
     """``function`` (one of this module's) of a Python number, in float64: the C library's ``math``
     functions also pick their code by CPU (glibc's FMA variants)."""
-    return float(function(torch.tensor(float(value), dtype=torch.float64)))
+    return float(on_array(function, value))
 
 
 def on_array(function, a) -> "np.ndarray":
     """``function`` (one of this module's) of a number or numpy array, as a float64 numpy array of
-    the same shape: numpy's own ``log``, ``tan``, ... run other code on other CPUs."""
+    the same shape: numpy's own ``log``, ``tan``, ... run other code on other CPUs.  Through the
+    registered compiled loop straight on the array where there is one (no torch operation: these
+    run per photo), else through a tensor."""
     import numpy as np
-    return function(torch.as_tensor(np.asarray(a, np.float64))).numpy()
+    a = np.asarray(a, np.float64)
+    flat = np.ascontiguousarray(a.reshape(-1))
+    compiled = _COMPILED.get((function.__name__, "numpy"))
+    values = compiled(flat) if compiled is not None else function(torch.from_numpy(flat)).numpy()
+    return values.reshape(a.shape)
