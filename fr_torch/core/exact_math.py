@@ -68,6 +68,7 @@ SQRT2_64 = _H("0x1.6a09e667f3bcdp+0")
 ATAN_EIGHTHS_64 = tuple(map(_H, (
     "0x0p+0", "0x1.fd5ba9aac2f6ep-4", "0x1.f5b75f92c80ddp-3", "0x1.6f61941e4def1p-2", "0x1.dac670561bb4fp-2",
     "0x1.1e00babdefeb4p-1", "0x1.4978fa3269ee1p-1", "0x1.700a7c5784634p-1", "0x1.921fb54442d18p-1")))
+_ATAN_EIGHTHS_TABLE = torch.tensor(ATAN_EIGHTHS_64, dtype=torch.float64)  # CPU: the written-out path's only device
 ATAN_64 = tuple((-1.0) ** k / (2 * k + 1) for k in range(1, 9))  # u^3 .. u^17
 PI_2_64 = _H("0x1.921fb54442d18p+0")
 TWO_OVER_PI_64 = _H("0x1.45f306dc9c883p-1")
@@ -181,8 +182,7 @@ def _atan(x: torch.Tensor) -> torch.Tensor:
     u = (t - c) / (t * c + 1.0)  # |u| <= 1/16
     z = u * u
     r = u + u * (z * _horner(z, ATAN_64))
-    table = torch.tensor(ATAN_EIGHTHS_64, dtype=torch.float64)
-    r = table[j.nan_to_num(0.0).to(torch.int64)] + r
+    r = _ATAN_EIGHTHS_TABLE[j.nan_to_num(0.0).to(torch.int64)] + r
     r = torch.where(inverted, PI_2_64 - r, r)
     return torch.copysign(r, x)
 
@@ -290,7 +290,7 @@ def atan(x: torch.Tensor) -> torch.Tensor:
 def sqrt(x: torch.Tensor) -> torch.Tensor:
     """Square root, correctly rounded (float32 through the float64 root: rounding twice is exact
     for a square root), elementwise; NaN below 0."""
-    return _evaluate("sqrt", x, _sqrt64 if x.dtype == torch.float64 else _sqrt32, lambda x, y: 0.5 / y)
+    return _evaluate("sqrt", x, WRITTEN_OUT["sqrt"], lambda x, y: 0.5 / y)
 
 
 def _sqrt32(x: torch.Tensor) -> torch.Tensor:
@@ -300,8 +300,21 @@ def _sqrt32(x: torch.Tensor) -> torch.Tensor:
     return _sqrt64(x.to(torch.float64)).to(torch.float32)
 
 
-def _through64(function, x: torch.Tensor) -> torch.Tensor:
-    return function(x.to(torch.float64)).to(x.dtype) if x.dtype == torch.float32 else function(x)
+def _sin_cos(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(sin x, cos x) in ``x``'s dtype, through float64 (a float32 result rounded once)."""
+    s, c = _sin_cos64(x.to(torch.float64))
+    return s.to(x.dtype), c.to(x.dtype)
+
+
+def _tan(x: torch.Tensor) -> torch.Tensor:
+    s, c = _sin_cos64(x.to(torch.float64))
+    return (s / c).to(x.dtype)
+
+
+#: The written-out functions by the names of the compiled loops that must reproduce them
+#: (:func:`register_compiled`; ``fr_torch.core.likelihood.native.elementary_match_torch`` checks).
+WRITTEN_OUT = {"atan": _atan, "exp": _exp, "log": _log, "sin_cos": _sin_cos, "tan": _tan,
+               "sqrt": lambda x: _sqrt64(x) if x.dtype == torch.float64 else _sqrt32(x)}
 
 
 def sin(x: torch.Tensor) -> torch.Tensor:
@@ -310,7 +323,7 @@ def sin(x: torch.Tensor) -> torch.Tensor:
         return torch.sin(x)
     if _compiled("sin_cos", x) is not None:
         return sin_cos(x)[0]
-    return _apply(x, lambda v: _through64(lambda w: _sin_cos64(w)[0], v), lambda x, y: cos(x))
+    return _apply(x, lambda v: _sin_cos(v)[0], lambda x, y: cos(x))
 
 
 def cos(x: torch.Tensor) -> torch.Tensor:
@@ -319,7 +332,7 @@ def cos(x: torch.Tensor) -> torch.Tensor:
         return torch.cos(x)
     if _compiled("sin_cos", x) is not None:
         return sin_cos(x)[1]
-    return _apply(x, lambda v: _through64(lambda w: _sin_cos64(w)[1], v), lambda x, y: -sin(x))
+    return _apply(x, lambda v: _sin_cos(v)[1], lambda x, y: -sin(x))
 
 
 def sin_cos(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -327,18 +340,12 @@ def sin_cos(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     if _native(x) or (torch.is_grad_enabled() and x.requires_grad):
         return sin(x), cos(x)
     compiled = _compiled("sin_cos", x)
-    if compiled is not None:
-        return compiled(x)
-    s, c = _sin_cos64(x.to(torch.float64))
-    return s.to(x.dtype), c.to(x.dtype)
+    return compiled(x) if compiled is not None else _sin_cos(x)
 
 
 def tan(x: torch.Tensor) -> torch.Tensor:
     """Tangent of radians, elementwise: sin / cos, each as above."""
-    def value(v):
-        s, c = _sin_cos64(v.to(torch.float64))
-        return (s / c).to(v.dtype)
-    return _evaluate("tan", x, value, lambda x, y: y * y + 1.0)
+    return _evaluate("tan", x, _tan, lambda x, y: y * y + 1.0)
 
 
 def asin(x: torch.Tensor) -> torch.Tensor:

@@ -207,18 +207,13 @@ static inline double atan64(double x) {
 /* exact_math's float64 functions over an array: op 0 atan, 1 exp, 2 log, 3 sqrt (correctly rounded),
  * 4 sin and cos (r: n sines then n cosines), 5 tan (sin / cos). */
 void fr_elementary_f64(int64_t op, int64_t n, const double *a, double *r) {
-    for (int64_t i = 0; i < n; i++) {
-        if (op == 0) r[i] = atan64(a[i]);
-        else if (op == 1) r[i] = exp64(a[i]);
-        else if (op == 2) r[i] = log64(a[i]);
-        else if (op == 3) r[i] = sqrt(a[i]);
-        else {
-            double s, c;
-            sin_cos64(a[i], &s, &c);
-            if (op == 4) { r[i] = s; r[n + i] = c; }
-            else r[i] = s / c;
-        }
-    }
+    double s, c;
+    if (op == 0) for (int64_t i = 0; i < n; i++) r[i] = atan64(a[i]);
+    else if (op == 1) for (int64_t i = 0; i < n; i++) r[i] = exp64(a[i]);
+    else if (op == 2) for (int64_t i = 0; i < n; i++) r[i] = log64(a[i]);
+    else if (op == 3) for (int64_t i = 0; i < n; i++) r[i] = sqrt(a[i]);
+    else if (op == 4) for (int64_t i = 0; i < n; i++) sin_cos64(a[i], r + i, r + n + i);
+    else for (int64_t i = 0; i < n; i++) { sin_cos64(a[i], &s, &c); r[i] = s / c; }
 }
 
 /* FR_WIDE (set by native.py on a CPU with AVX-512): these loops in 512-bit vectors, about a third faster

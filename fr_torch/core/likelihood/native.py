@@ -246,13 +246,9 @@ def elementary_match_torch() -> bool:
                      "log": torch.cat([exact_math.exp((u - 0.5) * 1400), exact_math.exp((u - 0.5) * 170), specials]),
                      "sqrt": torch.cat([exact_math.exp((u - 0.5) * 1400), exact_math.exp((u - 0.5) * 170), specials]),
                      "sin_cos": angles, "tan": angles}
-        written = {"atan": exact_math._atan, "exp": exact_math._exp, "log": exact_math._log,
-                   "sqrt": exact_math._sqrt32 if dtype == torch.float32 else exact_math._sqrt64,
-                   "sin_cos": lambda x: tuple(v.to(x.dtype) for v in exact_math._sin_cos64(x.to(torch.float64))),
-                   "tan": lambda x: (lambda s, c: s / c)(*exact_math._sin_cos64(x))}
         for name in _ELEMENTARY[dtype]:
             x = arguments[name].to(dtype)
-            got, expected = _elementary(name, dtype)(x), written[name](x)
+            got, expected = _elementary(name, dtype)(x), exact_math.WRITTEN_OUT[name](x)
             pairs = zip(got, expected) if name == "sin_cos" else [(got, expected)]
             if not all(torch.equal(_bits(a), _bits(b)) for a, b in pairs):
                 return False
@@ -309,7 +305,8 @@ def _trust(name: str, verdicts: dict) -> None:
 
 
 def _register_elementary() -> None:
-    """Hand the compiled float32 loops to :mod:`fr_torch.core.exact_math` when they give its bits."""
+    """Hand the compiled loops (float32 and float64 tensors, float64 numpy arrays) to
+    :mod:`fr_torch.core.exact_math` when they give its bits."""
     from fr_torch.core import exact_math
     if elementary_match_torch():
         exact_math.register_compiled({(name, dtype): _elementary(name, dtype)
