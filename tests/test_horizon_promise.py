@@ -46,10 +46,19 @@ def test_horizon_sigma_terms_in_quadrature():
 
 def test_horizon_promise_bound_violation_and_config(tmp_path):
     promise = HorizonPromise(limit_pct=5.0, scales={"fr": 3.0}, floor_pct=0.5)
-    bound = promise.bound(SPREADS, "fr", F, 0.0, H)
+    bound = float(promise.bounds(SPREADS, "fr", F, 0.0, H))
     assert bound == pytest.approx(3.0 * math.hypot(100 * F * math.radians(0.2) / H, 0.5))
     assert promise.violation(bound) is None and bound <= 5.0
-    assert math.isnan(promise.bound(SPREADS, "fast", F, 0.0, H))  # no scale for the mode
+    assert math.isnan(promise.bounds(SPREADS, "fast", F, 0.0, H))  # no scale for the mode
+    # a batch at once: each row's bound bit for bit, NaN for a missing number, the cap
+    rng = np.random.default_rng(3)
+    rows = [{name: float(v * rng.uniform(0.1, 30.0)) for name, v in SPREADS.items()} for _ in range(40)]
+    focal, tilt = rng.uniform(200.0, 3000.0, 40), rng.uniform(-80.0, 80.0, 40)
+    focal[5] = math.nan
+    table = {name: np.array([row[name] for row in rows]) for name in SPREADS}
+    many = promise.bounds(table, "fr", focal, tilt, np.full(40, H))
+    one = [float(promise.bounds(row, "fr", f, t, H)) for row, f, t in zip(rows, focal, tilt)]
+    assert np.array_equal(many, np.array(one), equal_nan=True) and math.isnan(many[5])
     assert promise.violation(7.25) == "90 % bound of the horizon 7.2 % of the height > 5 %"
     assert "its cues are missing" in promise.violation(math.nan)
     assert "do not bound the horizon" in promise.violation(HORIZON_BOUND_CAP_PCT)

@@ -4,7 +4,8 @@
 segments, detected once and cached next to the output) and synthetic scenes, calibrated in one batch
 and one by one, in both modes, in one batch with the division model's lens search
 (``distortion="division"``), and with extra horizontal families (``families="auto"``, batched
-and one by one); ``compare`` prints every field that differs in a single bit (exit 1).
+and one by one); every field of the results, the error bounds and both promises included;
+``compare`` prints every field that differs in a single bit (exit 1).
 Save with one checkout (``PYTHONPATH=<it>``), compare with another.
 ``--photos``, ``--synthetic``: how many of each.
 """
@@ -45,12 +46,17 @@ def segment_sets(cache: Path, photos: int, synthetic: int):
 
 def flatten(prefix: str, result, out: dict) -> None:
     for name in ("focal_px", "rotation", "log_likelihood", "principal_point", "labels", "ranked_vanishing_points",
-                 "vanishing_point_support", "manhattan_fraction", "ok", "reliable", "reason", "distortion_k", "model"):
+                 "vanishing_point_support", "manhattan_fraction", "ok", "reliable", "reason", "distortion_k", "model",
+                 "horizon_reliable", "horizon_reason"):
         value = getattr(result, name, None)
         out[f"{prefix}/{name}"] = np.asarray(value if value is not None else np.nan)
-    for group in ("cues", "predicted_error"):
+    for group in ("cues", "predicted_error", "error_bound"):
         for key, value in sorted((getattr(result, group) or {}).items()):
-            out[f"{prefix}/{group}/{key}"] = np.asarray(value)
+            if isinstance(value, dict):  # the bounds' limits
+                for inner, limit in sorted(value.items()):
+                    out[f"{prefix}/{group}/{key}/{inner}"] = np.asarray(limit)
+            else:
+                out[f"{prefix}/{group}/{key}"] = np.asarray(value if value is not None else np.nan)
 
 
 def run(segments, sizes) -> dict:

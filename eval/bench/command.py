@@ -59,7 +59,7 @@ Run ``fr bench [--quick] [--device cuda] [--out DIR] [--threads T]`` or ``python
 The sections live in the modules beside this one: :mod:`fr_eval.bench.search` (latency, throughput,
 work outside the search, scaling), :mod:`fr_eval.bench.gpu` (the grid kernel), :mod:`fr_eval.bench.parallel`,
 :mod:`fr_eval.bench.profiling` (profiler tables, peak memory), :mod:`fr_eval.bench.detectors`,
-:mod:`fr_eval.bench.contention`; :mod:`fr_eval.bench.report` writes bench.md / bench.json / the figures.
+:mod:`fr_eval.bench.contention`, :mod:`fr_eval.bench.cold` (a new process's first search); :mod:`fr_eval.bench.report` writes bench.md / bench.json / the figures.
 """
 from __future__ import annotations
 
@@ -72,6 +72,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fr_eval.bench import cold as bench_cold
 from fr_eval.bench import detectors as bench_detectors
 from fr_eval.bench import distortion as bench_distortion
 from fr_eval.bench.gpu import grid_kernel
@@ -88,7 +89,7 @@ from fr_torch.runtime.workers import usable_cores
 DEFAULT_OUT = REPO / "results" / "bench"
 #: Batch sizes of the GPU rows from JPEG files to results (section ``detectors``).
 DEVICE_E2E_BATCHES = (1, 256, 1024)
-SECTIONS = ("device", "latency", "detectors", "parallel", "cpu", "memory", "scaling", "contention",
+SECTIONS = ("device", "latency", "cold", "detectors", "parallel", "cpu", "memory", "scaling", "contention",
             "distortion")  # --sections, in running order
 
 
@@ -114,7 +115,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default 150 with a CUDA device, else none; 0 = none)")
     parser.add_argument("--sections", default=",".join(SECTIONS), metavar="S,S,...",
                         help="what to measure (default all): device = throughput, outside-search work and "
-                             "profile on the --device GPU; latency = end to end per photo; detectors = LSD vs "
+                             "profile on the --device GPU; latency = end to end per photo; cold = a new process's first "
+                             "search against its second (fr calibrate); detectors = LSD vs "
                              "torch-lines per photo on the CPU (and JPEG-to-result on a GPU); parallel = CPU "
                              "threads vs worker processes; cpu = CPU throughput, outside-search work and "
                              "profile; memory; scaling = time against segments and grid size; contention = "
@@ -193,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
         mem_settings = []
     modes = ("fast",) if quick else ("fast", "fr")
     contention_kinds = ("segments",) if quick else ("segments", "images")
-    steps = (("latency" in sections) * len(modes) * len(images)
+    steps = (("latency" in sections) * len(modes) * len(images) + ("cold" in sections) * len(modes)
              + len(gpu) * (len(modes) * len(device_batches) + 2 + len(modes))
              + ("cpu" in sections) * (len(modes) * len(batches) + ("fr" in modes) * len(batches) + 2)
              + len(mem_settings) + ("scaling" in sections) * (len(seg_counts) + len(grid_sizes))
@@ -229,6 +231,9 @@ def run(args: argparse.Namespace) -> int:
             profiles.append(profile_table(dev, outside_batch, n_seg_tp, out, progress, mode))
     if "latency" in sections:
         e2e = end_to_end(images, repeats, progress, modes)
+    cold = []
+    if "cold" in sections:  # a YUD photo where there is one
+        cold = bench_cold.cold_rows(images[min(1, len(images) - 1)], modes, 2 if quick else 5, progress)
     if "detectors" in sections:
         detectors = bench_detectors.detector_rows(images, repeats, progress)
     for row in e2e:
@@ -264,7 +269,7 @@ def run(args: argparse.Namespace) -> int:
     tmp.cleanup()
 
     report = {"machine": machine_description(device), "command": command, "quick": quick, "repeats": repeats,
-              "transcendental_ns": ns, "end_to_end": e2e, "throughput": tp, "memory": mem, "scaling": scale,
+              "transcendental_ns": ns, "end_to_end": e2e, "cold_start": cold, "throughput": tp, "memory": mem, "scaling": scale,
               "parallel": parallel, "outside_search": [r for r in outside if r],
               "grid_kernel": [r for r in kernels if r], "detectors": detectors, "contention": contention, "device_end_to_end": device_e2e,
               "profiles": [p for p in profiles if p], "skipped": progress.skipped,

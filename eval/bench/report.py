@@ -6,6 +6,7 @@ import json
 import sys
 from pathlib import Path
 
+from fr_eval.bench import cold as bench_cold
 from fr_eval.bench import detectors as bench_detectors
 from fr_eval.bench import distortion as bench_distortion
 from fr_eval.bench.contention import summary_lines
@@ -85,6 +86,7 @@ def _markdown(report: dict) -> str:
                   "had measured when it ended.", ""]
     if report["end_to_end"]:
         lines += _latency_lines(report)
+    lines += bench_cold.markdown_lines(report.get("cold_start", []))
     lines += bench_detectors.markdown_lines(report)
     lines += bench_distortion.markdown_lines(report.get("distortion", []))
     lines += ["## Throughput given segments (grid + refinement + cues)", "",
@@ -215,7 +217,8 @@ def report_from_jsonl(path: Path) -> dict:
             "command": machine.get("command", f"(rows of {path})"), "quick": False,
             "repeats": machine.get("repeats", "?"),
             "transcendental_ns": (by.get("transcendental") or [{"ns_per_element": float("nan")}])[0]["ns_per_element"],
-            "end_to_end": by.get("end_to_end", []), "throughput": by.get("throughput", []),
+            "end_to_end": by.get("end_to_end", []), "cold_start": by.get("cold", []),
+            "throughput": by.get("throughput", []),
             "memory": by.get("memory", []), "scaling": scale if scale["segments"] or scale["grid"] else {},
             "parallel": by.get("parallel", []), "outside_search": by.get("outside_search", []),
             "grid_kernel": by.get("grid_kernel", []), "detectors": by.get("detectors", []), "contention": by.get("contention", []),

@@ -15,6 +15,7 @@ from fr_torch.core.result import CalibrationResult
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.focal_prior import image_priors
 from fr_torch.runtime.pipeline import calibrate_paths
+from fr_torch.runtime.workers import settle_heap
 from fr_torch.runtime.shared_focal import apply_focal_priors
 
 CRASH_ENV = "FR_BATCH_CRASH"
@@ -42,6 +43,7 @@ class BatchWorker:
         self.options = dict(options)
         self.estimator = FREstimator(**options["estimator"],
                                      reliability="default" if options.get("reliability", True) else None)
+        settle_heap()
         self.extras = list(extras)
         self.crash = crash if crash is not None else os.environ.get(CRASH_ENV)
 

@@ -26,7 +26,7 @@ from fr_torch.runtime.device_pipeline import device_path_gap
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.pipeline import calibrate_paths
 from fr_torch.runtime.schema import result_record
-from fr_torch.runtime.workers import start_worker_server
+from fr_torch.runtime.workers import settle_heap, start_worker_server
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
     focal_px, principal_point = camera_options(args)  # per image: within a 1-179 deg field of view
     batch_size = policy.default_batch_size if args.batch_size is None else args.batch_size
     estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
+    settle_heap()
     if device_path_gap(estimator) is None:  # decoded and detected on the GPU: no host workers
         workers = 0
     else:

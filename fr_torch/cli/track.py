@@ -31,7 +31,7 @@ from fr_torch.errors import FRInputError
 from fr_torch.redaction import redact_text
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.pipeline import CalibrationPool
-from fr_torch.runtime.workers import interrupt_on_signals, start_worker_server, usable_cores
+from fr_torch.runtime.workers import interrupt_on_signals, settle_heap, start_worker_server, usable_cores
 from fr_torch.video.fleet import FleetCamera, camera_specs, track_fleet
 from fr_torch.video.fusion import OnlineCalibrator
 from fr_torch.video.metrics import MetricsAddress, MetricsServer
@@ -236,6 +236,7 @@ def _estimator(args: argparse.Namespace, fov_range: str | None = None) -> tuple[
     model = estimator.reliability
     if model is None and not args.no_reliability and scope_gap is None:
         print(f"fr track: no reliability model for {mode}: all reliable frames weigh the same", file=sys.stderr)
+    settle_heap()
     return estimator, model is not None
 
 

@@ -23,6 +23,7 @@ from fr_torch.images.lens import undistorted_path, write_undistorted
 from fr_torch.output import dumps, json_safe, output_folder, write_text_atomic
 from fr_torch.runtime.estimator import FREstimator
 from fr_torch.runtime.pipeline import calibrate_paths
+from fr_torch.runtime.workers import settle_heap
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
     output_folder(args.out, "--out")
     focal_px, principal_point = camera_options(args)
     estimator = FREstimator(**estimator_kwargs(args), reliability=None if args.no_reliability else "default")
+    settle_heap()
     failures = 0
     for chunk, results in calibrate_paths(estimator, [str(p) for p in args.images], policy.default_batch_size, 0,
                                           focal_px, principal_point):

@@ -24,7 +24,7 @@ import torch
 
 from fr_torch.core.exact import first_argmax
 from fr_torch.core.geometry.camera import Camera
-from fr_torch.core.geometry.conventions import image_centre
+from fr_torch.core.geometry.conventions import hfov_from_focal, image_centre
 from fr_torch.core.geometry.params import DISTORTION, FOCAL, CameraParams, rotations
 from fr_torch.core.geometry.vanishing import AtlantaConfig, rank_vanishing_points
 from fr_torch.core.likelihood.measures import SegmentFeatures
@@ -360,6 +360,8 @@ class SegmentEstimator:
         ranked_points, ranked_support, ranked_family = (ranked.points.cpu().numpy(), ranked.support.cpu().numpy(),
                                                         ranked.family.cpu().numpy())
         cameras = Camera.many(size_np[:, 0], size_np[:, 1], params_all[:, FOCAL], pp_np, rotation_all)
+        long_side_fov_all = hfov_from_focal(torch.from_numpy(params_all[:, FOCAL].astype(np.float64)),
+                                            torch.from_numpy(size_np.max(1))).numpy()
         k_all = None if k_estimate is None else k_estimate.to(torch.float64).cpu().numpy()
         # Finite parameters, objective and rotation give finite hfov, angles and VPs (f > 0 in the box).
         finite = np.isfinite(params_all).all(-1) & np.isfinite(scores_all) & np.isfinite(rotation_all).all((-1, -2))
@@ -391,7 +393,8 @@ class SegmentEstimator:
             if tied_all[j]:
                 r.reliable, r.reason = False, "; ".join(x for x in (r.reason, TIE_REASON) if x)
             # non-finite -> ok=False; focal or an angle at its range's edge -> unreliable
-            check_result(r, self.search, known_focal, finite=bool(finite[j]), search_params=params_all[j])
+            check_result(r, self.search, known_focal, finite=bool(finite[j]), search_params=params_all[j],
+                         long_side_fov_deg=float(long_side_fov_all[j]))
             if auto and bend and r.ok:
                 bent.append(item)
         if bent:  # the division search for the images whose lines bend; they keep the check's cues and time

@@ -27,10 +27,15 @@ Building and trusting them:
   (:func:`fr_torch.core.search.refine.refine_kernel_matches_torch`, registered as ``"refine"``), the
   division model's refinement loop (the same check with the division model's segments, registered by
   :mod:`fr_torch.core.search.lens` as ``"refine_lens"``); one differing bit and that kernel is not used.
+  Each verdict is recorded beside the library (:func:`_verdict_file`, named by a hash of the
+  library, the torch path's sources, the CPU and the settings that pick library code): a later
+  process on the same machine, code and settings takes it instead of checking again (the same
+  check gives the same bits); delete the file to check again.
 * The same library holds :mod:`fr_torch.core.exact_math`'s functions as loops over whole tensors
-  (``fr_elementary_f32`` / ``_f64``); once the kernels' check passed and these loops give
-  ``exact_math``'s written-out bits (:func:`elementary_match_torch`), they are handed to it
-  (``exact_math.register_compiled``), and the torch code outside the kernels calls them.
+  (``fr_elementary_f32`` / ``_f64``); when the library loads and these loops give ``exact_math``'s
+  written-out bits (:func:`elementary_match_torch`), they are handed to it
+  (``exact_math.register_compiled``) before the kernels' checks run: the torch code outside the
+  kernels, the checks' torch path included, calls them.
 * Without a C compiler, with ``FR_NATIVE=0``, or when the check fails, :func:`available` is False
   and the torch path runs: the same bits, slower.  ``tests/test_reproducibility.py`` runs both paths.
 
@@ -46,8 +51,10 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
+import json
 import math
 import os
+import platform
 import shutil
 import subprocess
 import tempfile
@@ -157,7 +164,8 @@ def _build() -> Path:
 
 
 def _load():
-    library = ctypes.CDLL(str(_build()))
+    _state["library"] = _build()
+    library = ctypes.CDLL(str(_state["library"]))
     scores = library.fr_measure_b_scores
     scores.restype = None
     scores.argtypes = ([ctypes.c_int64] * 8 + [ctypes.c_void_p] * 5 + [ctypes.c_float] * 2
@@ -285,17 +293,17 @@ def available(name: str = "kernels") -> bool:
 
 
 def _trust(name: str, verdicts: dict) -> None:
-    """Load the kernels (once) and run ``name``'s check, recording the verdict."""
+    """Load the kernels (once) and run ``name``'s check, recording the verdict (or take it from
+    this machine's earlier run of the same check, :func:`_verdict_file`)."""
     if name != "kernels" and not available("kernels"):
         verdicts[name] = False
         return
     try:
         if "functions" not in _state:
             _state["functions"] = _load()
+            _register_elementary()  # each loop is used only where it gives exact_math's bits
         verdicts[name] = True  # the check runs the kernel through the usual calls
-        verdicts[name] = bool(_checks[name]())
-        if name == "kernels" and verdicts[name]:
-            _register_elementary()
+        verdicts[name] = _checked(name, _checks[name])
         if not verdicts[name]:
             warnings.warn(f"fR: the fused CPU kernel ({name}) does not reproduce the torch path here; "
                           "running without it", RuntimeWarning, stacklevel=3)
@@ -304,11 +312,65 @@ def _trust(name: str, verdicts: dict) -> None:
         _state["error"] = f"{type(exc).__name__}: {exc}"
 
 
+def _verdict_file() -> Path:
+    """Where this machine keeps the checks' verdicts for the loaded library: the file's name holds
+    a hash of everything a verdict follows from -- the library (its name: source, flags, compiler,
+    torch's version), the torch path (every source file of :mod:`fr_torch.core`), the CPU (its
+    model and flags) and the settings that pick other library code (``ATEN_CPU_CAPABILITY``, MKL's,
+    numpy's and OpenBLAS's).  Another version of any of these finds no file and checks again."""
+    core = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256(_state["library"].name.encode())
+    for path in sorted(core.rglob("*.py")):
+        digest.update(path.relative_to(core).as_posix().encode() + path.read_bytes())
+    try:
+        with open("/proc/cpuinfo") as info:
+            first = info.read().split("\n\n")[0]
+        digest.update("\n".join(line for line in first.splitlines()
+                                if line.split(":")[0].strip() in ("vendor_id", "cpu family", "model", "model name",
+                                                                  "flags")).encode())
+    except OSError:
+        digest.update(platform.processor().encode() + platform.machine().encode())
+    for variable in _CPU_SETTINGS:
+        digest.update(f"{variable}={os.environ.get(variable, '')}".encode())
+    return _state["library"].with_name(f"verdicts-{digest.hexdigest()[:16]}.json")
+
+
+#: Environment variables that pick other code in torch, MKL, numpy or OpenBLAS (:func:`_verdict_file`).
+_CPU_SETTINGS = ("ATEN_CPU_CAPABILITY", "MKL_CBWR", "MKL_ENABLE_INSTRUCTIONS", "NPY_DISABLE_CPU_FEATURES",
+                 "OPENBLAS_CORETYPE")
+
+
+def _checked(name: str, check) -> bool:
+    """``check()``'s verdict for ``name``: this machine's recorded one when there is one
+    (:func:`_verdict_file`: the same check of the same code on the same CPU gives the same bits), else
+    the check's, then recorded (written atomically; a file that cannot be read or written only
+    means the check runs again)."""
+    try:
+        path = _state.get("verdict_file")
+        if path is None:
+            path = _state["verdict_file"] = _verdict_file()
+        recorded = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        path, recorded = None, {}
+    if isinstance(recorded, dict) and isinstance(recorded.get(name), bool):
+        return recorded[name]
+    verdict = bool(check())
+    if path is not None:
+        try:
+            recorded = {**(recorded if isinstance(recorded, dict) else {}), name: verdict}
+            with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as out:
+                json.dump(recorded, out)
+            os.replace(out.name, path)
+        except OSError:
+            pass
+    return verdict
+
+
 def _register_elementary() -> None:
     """Hand the compiled loops (float32 and float64 tensors, float64 numpy arrays) to
     :mod:`fr_torch.core.exact_math` when they give its bits."""
     from fr_torch.core import exact_math
-    if elementary_match_torch():
+    if _checked("elementary", elementary_match_torch):
         exact_math.register_compiled({(name, dtype): _elementary(name, dtype)
                                       for dtype, names in _ELEMENTARY.items() for name in names})
         exact_math.register_compiled({(name, "numpy"): _elementary_numpy(name) for name in

@@ -77,8 +77,8 @@ NO_INFORMATION = {"focal_pct": 100.0, "tilt_deg": 90.0}
 
 
 def _values(cues, name: str) -> np.ndarray:
-    """Cue ``name`` of one ``cues`` dict (a float) or of a table with that column, as float64 (NaN where
-    missing or not finite)."""
+    """Cue ``name`` of one ``cues`` dict (a float), of a mapping of cue name -> (n,) values or of a
+    table with that column, as float64 (NaN where missing)."""
     if isinstance(cues, Mapping):
         value = cues.get(name, math.nan)
         return np.asarray(math.nan if value is None else value, np.float64)
@@ -104,6 +104,8 @@ SIGMAS = {"focal_pct": focal_sigma_pct, "tilt_deg": tilt_sigma_deg}
 #: The largest tilt (deg) the horizon bound evaluates ``tan`` at: a tilt bound reaching 90 deg says the
 #: lines leave the horizon open (the bound is then huge, not infinite).
 HORIZON_TILT_LIMIT_DEG = 89.0
+#: The cues :func:`horizon_sigma_pct` reads.
+HORIZON_CUE_NAMES = ("pitch_resample_spread", "focal_profile_spread", "focal_resample_spread")
 #: The largest horizon bound reported (% of the image height): ten image heights already say that the
 #: lines leave the horizon open (a Fast-fR estimate that stopped away from a peak has a tilt bound
 #: beyond 90 deg, which would read as tens of thousands of percent).
@@ -167,7 +169,8 @@ def horizon_sigma_pct(cues, focal_px, tilt_deg, height, floor_pct: float, focal_
     :data:`HORIZON_BOUND_CAP_PCT`.
 
     Args:
-        cues: one result's cues dict or a table with the cue columns (as :func:`focal_sigma_pct`).
+        cues: one result's cues dict, a mapping of cue name -> (n,) values or a table with the
+            cue columns (:data:`HORIZON_CUE_NAMES`).
         focal_px: estimated focal length(s), pixels.
         tilt_deg: estimated (paper's) tilt(s), degrees.
         height: image height(s), pixels.
@@ -175,7 +178,7 @@ def horizon_sigma_pct(cues, focal_px, tilt_deg, height, floor_pct: float, focal_
         focal_known: the focal length was given (bool or (n,) bools).
 
     Returns:
-        float64 array (0-d for a dict, (n,) for a table); NaN where a cue or number is missing.
+        float64 array (0-d for one result's cues, (n,) for n); NaN where a cue or number is missing.
     """
     limit = math.radians(HORIZON_TILT_LIMIT_DEG)
     tilt = np.clip(np.radians(np.asarray(tilt_deg, np.float64)), -limit, limit)
@@ -247,15 +250,17 @@ class HorizonPromise:
                    scales={m: float(v) for m, v in block.get("scales", {}).items()},
                    floor_pct=float(block.get("floor_pct", 0.0)), or_focal_tilt=bool(block.get("or_focal_tilt", False)))
 
-    def bound(self, cues: Mapping[str, float], mode: str, focal_px: float | None, tilt_deg: float | None,
-              height: float, focal_known: bool = False) -> float:
-        """The 90 % bound of one estimate's horizon error, % of the image height (at most
-        :data:`HORIZON_BOUND_CAP_PCT`); NaN when the mode has no scale or a number is missing."""
+    def bounds(self, cues, mode: str, focal_px, tilt_deg, height, focal_known=False) -> np.ndarray:
+        """The 90 % bounds of estimates' horizon errors, % of the image height (at most
+        :data:`HORIZON_BOUND_CAP_PCT`), for a batch at once: ``cues`` a mapping of cue name -> (n,)
+        values (or one result's cues dict), the numbers (n,) (NaN for a missing one), as
+        :func:`horizon_sigma_pct`.  Returns float64 (n,) (0-d for one result); NaN where the mode has
+        no scale or a number is missing."""
         scale = self.scales.get(mode)
-        if scale is None or focal_px is None or tilt_deg is None:
-            return math.nan
-        sigma = float(horizon_sigma_pct(cues, focal_px, tilt_deg, height, self.floor_pct, focal_known))
-        return min(scale * sigma, HORIZON_BOUND_CAP_PCT) if math.isfinite(sigma) else math.nan
+        sigma = horizon_sigma_pct(cues, focal_px, tilt_deg, height, self.floor_pct, focal_known)
+        if scale is None:
+            return np.full_like(sigma, math.nan)
+        return np.where(np.isfinite(sigma), np.minimum(scale * sigma, HORIZON_BOUND_CAP_PCT), math.nan)
 
     def violation(self, bound: float, coverage: float = DEFAULT_COVERAGE, focal_tilt_kept: bool = False) -> str | None:
         """Why the horizon promise does not hold (None when it does): its bound, e.g. ``"90 % bound of

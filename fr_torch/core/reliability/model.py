@@ -79,7 +79,7 @@ import numpy as np
 from fr_torch.core import exact_math
 from fr_torch.core.exact_math import on_array
 from fr_torch.core.likelihood.mixture import LikelihoodParams
-from fr_torch.core.reliability.bounds import ReliabilityPromise
+from fr_torch.core.reliability.bounds import HORIZON_CUE_NAMES, ReliabilityPromise
 from fr_torch.core.reliability.cues import SPREAD_CUE_NAMES
 from fr_torch.core.settings.config import Mode
 from fr_torch.resources import config_dir
@@ -393,7 +393,8 @@ class ReliabilityModel:
         if not todo:
             return
         predictions = self.predict(cues_array([r.cues for r, _ in todo], self.cue_names))
-        for (result, given), row in zip(todo, predictions.tolist()):
+        horizon_bounds = self._horizon_bounds(todo, mode or mine)
+        for (result, given), row, horizon_bound in zip(todo, predictions.tolist(), horizon_bounds):
             predicted = dict(zip(TARGETS, row))
             if given:
                 predicted["focal_pct"] = 0.0
@@ -403,7 +404,7 @@ class ReliabilityModel:
                 result.error_bound = {"coverage": self.promise.coverage,  # None: no bound (missing cues)
                                       **{k: (v if math.isfinite(v) else None) for k, v in bounds.items()},
                                       "limits": dict(self.promise.limits), "enforced": self.promise.enforce}
-                self._horizon_promise(result, mode or mine, given)
+                self._horizon_promise(result, float(horizon_bound))
                 if not self.promise.enforce:
                     bounds = None  # reported only: `reliable` keeps the thresholds below
             if bounds is not None:
@@ -425,16 +426,29 @@ class ReliabilityModel:
                 result.reliable = False
                 result.reason = f"{result.reason}; {message}" if result.reason else message
 
-    def _horizon_promise(self, result, mode: str, given: bool) -> None:
-        """The horizon promise of one result (before the focal / tilt promise touches ``reliable``):
-        ``error_bound["horizon_pct"]`` and its limit, ``horizon_reliable`` (the sanity checks passed
-        -- ``reliable`` still True -- and the bound within its limit or, with ``or_focal_tilt``, the
-        focal / tilt bounds within theirs) and ``horizon_reason``.  No-op without a horizon block in
-        the promise."""
+    def _horizon_bounds(self, todo: Sequence, mode: str) -> list[float]:
+        """The horizon promise's bounds (% of the height; NaN: none) of ``todo`` ((result,
+        focal given) pairs), computed for all of them at once."""
+        horizon = self.promise.horizon if self.promise is not None else None
+        if horizon is None:
+            return [math.nan] * len(todo)
+
+        def column(values) -> np.ndarray:
+            return np.array([math.nan if v is None else float(v) for v in values], np.float64)
+
+        cues = {name: column(r.cues.get(name) for r, _ in todo) for name in HORIZON_CUE_NAMES}
+        return horizon.bounds(cues, mode, column(r.focal_px for r, _ in todo), column(r.tilt_deg for r, _ in todo),
+                              column(r.height for r, _ in todo), np.array([given for _, given in todo], bool)).tolist()
+
+    def _horizon_promise(self, result, bound: float) -> None:
+        """The horizon promise of one result (before the focal / tilt promise touches ``reliable``)
+        given its bound (:meth:`_horizon_bounds`): ``error_bound["horizon_pct"]`` and its limit,
+        ``horizon_reliable`` (the sanity checks passed -- ``reliable`` still True -- and the bound
+        within its limit or, with ``or_focal_tilt``, the focal / tilt bounds within theirs) and
+        ``horizon_reason``.  No-op without a horizon block in the promise."""
         horizon = self.promise.horizon
         if horizon is None:
             return
-        bound = horizon.bound(result.cues, mode, result.focal_px, result.tilt_deg, result.height, given)
         result.error_bound["horizon_pct"] = bound if math.isfinite(bound) else None
         result.error_bound["limits"]["horizon_pct"] = horizon.limit_pct
         focal_tilt = {k: v if v is not None else math.nan for k, v in result.error_bound.items() if k in self.promise.limits}

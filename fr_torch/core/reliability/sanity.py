@@ -34,7 +34,7 @@ def angle_edge_reason(name: str, low: float, high: float) -> str:
 
 def check_result(result, config: SearchConfig, known_focal: bool = False,
                  edge_tolerance_deg: float = 0.25, finite: bool | None = None,
-                 search_params: Sequence[float] | None = None) -> None:
+                 search_params: Sequence[float] | None = None, long_side_fov_deg: float | None = None) -> None:
     """Final checks on an estimator result (in place; ``result`` has the fields of
     :class:`fr_torch.core.result.CalibrationResult`).
 
@@ -53,7 +53,8 @@ def check_result(result, config: SearchConfig, known_focal: bool = False,
 
     ``finite``: the caller's batched finiteness check of the same values (the estimator checks its
     parameters, objective and rotation, from which every derived value follows finitely); None =
-    check the record's values here.
+    check the record's values here.  ``long_side_fov_deg``: the estimate's FOV across the long side
+    (degrees), when the caller computed it for its batch; None = from ``result.focal_px`` here.
     """
     if not result.ok:
         return
@@ -80,7 +81,9 @@ def check_result(result, config: SearchConfig, known_focal: bool = False,
                                                         or value >= high - edge_tolerance_deg):
                 reasons.append(angle_edge_reason(name, low, high))
     if not known_focal:
-        if config.fov_range.at_edge(result.focal_px, max(result.width, result.height), edge_tolerance_deg):
+        at_edge = config.fov_range.at_edge(result.focal_px, max(result.width, result.height), edge_tolerance_deg) \
+            if long_side_fov_deg is None else config.fov_range.fov_at_edge(long_side_fov_deg, edge_tolerance_deg)
+        if at_edge:
             reasons.append(EDGE_REASON)
     if reasons:
         result.reliable = False

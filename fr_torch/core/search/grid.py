@@ -139,6 +139,14 @@ def grid_cell(config: SearchConfig, lower: torch.Tensor, upper: torch.Tensor) ->
     return torch.cat([angles, log_focal], -1)
 
 
+def chunk_budget(max_chunk_elements: int, device: torch.device) -> int:
+    """How many elements a chunk of per-segment (or per-pair) work may hold on ``device``: the
+    configuration's ``max_chunk_elements`` on a GPU, at most :data:`CPU_CHUNK_ELEMENTS` on a CPU
+    (a cache-sized chunk, the same at every thread count); at least 1.  Chunking never changes a
+    value (every sum across a chunk's rows is exact)."""
+    return max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, CPU_CHUNK_ELEMENTS))
+
+
 def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypotheses: torch.Tensor,
                max_chunk_elements: int, vertical_block: int = 1) -> torch.Tensor:
     """Length-weighted log-likelihood of every hypothesis, (B, G) float64, in chunks of hypotheses
@@ -157,8 +165,8 @@ def score_grid(likelihood: MixtureLikelihood, features: SegmentFeatures, hypothe
     if vertical_block < 1 or count % vertical_block:
         vertical_block = 1
     # CPU: a fixed cache-sized chunk at any thread count (the fused kernel stores no deviations: no chunk)
-    cpu_budget = max_chunk_elements if likelihood.stores_no_deviations(features) else CPU_CHUNK_ELEMENTS
-    budget = max(1, max_chunk_elements if device.type != "cpu" else min(max_chunk_elements, cpu_budget))
+    budget = max(1, max_chunk_elements) if likelihood.stores_no_deviations(features) and device.type == "cpu" \
+        else chunk_budget(max_chunk_elements, device)
     per_hypothesis = n_seg * 3
     hyp_chunk = max(1, min(count, budget // per_hypothesis))
     hyp_chunk = max(vertical_block, hyp_chunk - hyp_chunk % vertical_block)  # whole runs

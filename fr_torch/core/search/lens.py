@@ -42,6 +42,7 @@ from fr_torch.core.geometry.params import DISTORTION, from_log_focal
 from fr_torch.core.likelihood import native
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
+from fr_torch.core.search import grid as grid_module
 from fr_torch.core.search.grid import grid_cell, grid_hypotheses, into_box, parameter_box, score_grid, select_starts
 from fr_torch.core.search.passes import LATTICE, SearchResult, lattice_passes, sweep_focal, tie_tolerance
 from fr_torch.core.search.refine import refine_kernel_matches_torch, refine_starts
@@ -218,8 +219,6 @@ CHAIN_SEGMENTS = 200
 TURN_CAP_DEG = 3.0
 #: Spacing of the values of k :func:`plumb_line` tries over the k range.
 PLUMB_K_STEP = 0.01
-#: Images whose pairs are found together (each costs CHAIN_SEGMENTS^2 pair tests).
-PLUMB_CHUNK_IMAGES = 16
 #: The k spacing of :func:`bend_test`'s lattice passes (first step +-0.1).
 PLUMB_K_SPACING = 0.3
 
@@ -271,7 +270,7 @@ def chain_pairs(endpoints: torch.Tensor, mask: torch.Tensor, long_side: torch.Te
     return image[valid], i[valid], j[valid], torch.minimum(length[row_i[valid]], length[row_j[valid]])
 
 
-def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> PlumbLine:
+def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float], max_chunk_elements: int) -> PlumbLine:
     """The plumb-line test: straight lines of the scene are straight in the undistorted image.
 
     Pairs of consecutive pieces of one line (:func:`chain_pairs`, among each image's
@@ -279,12 +278,15 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float]) -> Plu
     on a grid over ``k_range`` (spacing :data:`PLUMB_K_STEP`, 0 included) the pieces are undistorted
     and ``C(k) = sum_pairs w min(theta, cap)^2`` (w the shorter piece's length, cap
     :data:`TURN_CAP_DEG`).  Independent of f and R: a cheap estimate of k before the search
-    and the evidence of the "lines bend" check.  Returns a :class:`PlumbLine` (k = 0, share 0 where
-    an image has no pairs)."""
+    and the evidence of the "lines bend" check.  Images are paired up in chunks of at most
+    ``max_chunk_elements`` pair tests (:func:`~fr_torch.core.search.grid.chunk_budget`; an image
+    costs CHAIN_SEGMENTS^2 of them; no value depends on the chunks).  Returns a :class:`PlumbLine`
+    (k = 0, share 0 where an image has no pairs)."""
     batch = geometry.endpoints.shape[0]
-    if batch > PLUMB_CHUNK_IMAGES:
-        parts = [plumb_line(geometry.images(b, b + PLUMB_CHUNK_IMAGES), k_range)
-                 for b in range(0, batch, PLUMB_CHUNK_IMAGES)]
+    chunk = max(1, grid_module.chunk_budget(max_chunk_elements, geometry.endpoints.device) // CHAIN_SEGMENTS ** 2)
+    if batch > chunk:
+        parts = [plumb_line(geometry.images(b, b + chunk), k_range, max_chunk_elements)
+                 for b in range(0, batch, chunk)]
         return PlumbLine(*(torch.cat([getattr(p, name) for p in parts]) for name in ("k", "share", "pairs")))
     device = geometry.endpoints.device
     low, high = k_range
@@ -346,7 +348,7 @@ def k_values(config: SearchConfig, geometry: SegmentGeometry) -> torch.Tensor:
     low, high = setting.k_range
     values = [torch.tensor(config.distortion_grid_k, dtype=torch.float64).expand(batch, -1)]
     if config.distortion_plumb_line:
-        values.insert(0, plumb_line(geometry, setting.k_range).k.cpu()[:, None])
+        values.insert(0, plumb_line(geometry, setting.k_range, config.max_chunk_elements).k.cpu()[:, None])
     return torch.cat(values, 1).clamp(low, high)
 
 
@@ -517,7 +519,7 @@ def bend_test(likelihood: MixtureLikelihood, geometry: SegmentGeometry, features
     ``line_bend_k`` (its k), ``line_bend_plumb_k``, ``line_bend_share`` and ``line_bend_pairs`` (the
     plumb line's k, share and pairs)."""
     k_low, k_high = config.distortion.k_range
-    plumb = plumb_line(geometry, config.distortion.k_range)
+    plumb = plumb_line(geometry, config.distortion.k_range, config.max_chunk_elements)
     long_side = geometry.long_side.to("cpu", torch.float64)
     lower, upper = parameter_box(config, long_side, known_focal)
     start = into_box(params.to(torch.float64).cpu(), lower, upper, config.periodic_pan)

@@ -97,8 +97,11 @@ class FovRange:
 
     def at_edge(self, focal_px: float, long_side: float, tolerance_deg: float = 0.25) -> bool:
         """True when ``focal_px`` gives a long-side FOV within ``tolerance_deg`` of either end."""
-        fov = hfov_from_focal(focal_px, long_side)
-        return fov <= self.min_deg + tolerance_deg or fov >= self.max_deg - tolerance_deg
+        return self.fov_at_edge(hfov_from_focal(focal_px, long_side), tolerance_deg)
+
+    def fov_at_edge(self, fov_deg: float, tolerance_deg: float = 0.25) -> bool:
+        """True when the long-side FOV ``fov_deg`` lies within ``tolerance_deg`` of either end."""
+        return fov_deg <= self.min_deg + tolerance_deg or fov_deg >= self.max_deg - tolerance_deg
 
     def log_focal_midpoint_deg(self) -> float:
         """The FOV (degrees) whose focal length is the geometric mean of the range's two ends."""
