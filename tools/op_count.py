@@ -6,8 +6,9 @@ batch size (the CPU proxy for a GPU's kernel launches).
 thread, after one warm-up call; counts the top-level operator events ``torch.profiler`` records
 (nested ``aten::`` calls inside a composite op are not counted twice) and prints a Markdown table.
 ``--chunking device`` lifts the CPU's cache-sized chunks (``fr_torch.core.search.grid.CPU_CHUNK_ELEMENTS``,
-``CPU_REFINE_ELEMENTS``) so the batch is cut as on a GPU (``SearchConfig.max_chunk_elements``): the
-count is then the proxy for a GPU's kernel launches (with :mod:`fr_torch.core.exact_math`'s functions
+``CPU_REFINE_ELEMENTS``; the cues' ``SEGMENT_CHUNK_IMAGES``, ``LATTICE_FIT_ELEMENTS`` and
+``PROFILE_CHUNK_IMAGES`` set to a GPU's answer) so the batch is cut as on a GPU
+(``SearchConfig.max_chunk_elements``): the count is then the proxy for a GPU's kernel launches (with :mod:`fr_torch.core.exact_math`'s functions
 as torch's own, as on a GPU); ``cpu`` (default) counts what a CPU runs.
 Run it with ``PYTHONPATH=<another checkout>`` to count another version of the library.
 """
@@ -16,6 +17,16 @@ from __future__ import annotations
 import argparse
 
 import torch
+
+
+def _device_like(batch: int, n_segments: int):
+    """(features-like, max_chunk_elements) giving :func:`fr_torch.core.reliability.cues.segment_chunk_images`'s
+    answer on a GPU for ``batch`` images of ``n_segments`` at the configuration's default."""
+    from types import SimpleNamespace
+
+    from fr_torch.core.settings.config import SearchConfig
+    weight = SimpleNamespace(device=torch.device("cuda"), shape=(batch, n_segments))
+    return SimpleNamespace(weight=weight), SearchConfig.max_chunk_elements
 
 
 def count_operators(mode: str, batch: int, n_segments: int, chunking: str = "cpu") -> tuple[int, int]:
@@ -28,6 +39,11 @@ def count_operators(mode: str, batch: int, n_segments: int, chunking: str = "cpu
 
     if chunking == "device":
         grid.CPU_CHUNK_ELEMENTS = refine.CPU_REFINE_ELEMENTS = 1 << 40
+        import fr_torch.core.reliability.cues as cues  # the cues' lattice terms: a GPU's chunks
+        like, elements = _device_like(batch, n_segments)
+        cues.SEGMENT_CHUNK_IMAGES = cues.segment_chunk_images(like, elements)
+        cues.LATTICE_FIT_ELEMENTS = 1 << 40
+        cues.PROFILE_CHUNK_IMAGES = cues.profile_chunk_images(like, len(cues.PROFILE_FOCAL_RATIOS), elements)
         # on a GPU fr_torch.core.exact_math's functions are torch's own, one operator each (on a CPU
         # without the compiled loops they are written out in some thirty)
         import fr_torch.core.exact_math as exact_math

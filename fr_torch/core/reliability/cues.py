@@ -65,7 +65,8 @@ class LocalFit:
     gradient_spread: torch.Tensor
 
 
-def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor) -> LocalFit:
+def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
+                    max_chunk_elements: int = SearchConfig.max_chunk_elements) -> LocalFit:
     """A local Laplace approximation of the objective around each estimate, and the segments' spread.
 
     Every segment's term ``len_i log p_i`` (:meth:`~fr_torch.core.likelihood.mixture.MixtureLikelihood.segment_log_p`)
@@ -74,12 +75,13 @@ def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, pa
     spacing smooths the kinks of the exponential likelihood): the Hessian; the focal prior's values
     on the lattice are fitted the same way.  Each term alone is fitted the same way: its gradient,
     whose spread over the segments is ``gradient_spread``.  Images are taken
-    :data:`SEGMENT_CHUNK_IMAGES` at a time (bounded memory; the values do not depend on it).
+    :func:`segment_chunk_images` at a time (bounded memory; the values do not depend on it).
 
     Args:
         likelihood: the estimator's model (its focal prior included).
         features: the segments of B images.
         params: (B, 4) estimates [pan, pitch, roll (degrees), f (pixels)].
+        max_chunk_elements: the configuration's bound on a GPU's chunks (:func:`segment_chunk_images`).
 
     Returns:
         :class:`LocalFit`.
@@ -89,9 +91,10 @@ def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, pa
     fit = _QUADRATIC_FIT.to(device).T  # (81, 15)
     lattice = LATTICE.to(device)
     parts = []
-    for b in range(0, params.shape[0], SEGMENT_CHUNK_IMAGES):
-        sub = features.images(b, b + SEGMENT_CHUNK_IMAGES)
-        centre = to_log_focal(params[b:b + SEGMENT_CHUNK_IMAGES].to(device=device, dtype=torch.float64))
+    chunk = segment_chunk_images(features, max_chunk_elements)
+    for b in range(0, params.shape[0], chunk):
+        sub = features.images(b, b + chunk)
+        centre = to_log_focal(params[b:b + chunk].to(device=device, dtype=torch.float64))
         points = from_log_focal(centre[:, None, :] + lattice * step)  # (b, 81, 4)
         focal = points[..., FOCAL].to(dtype)
         log_p = likelihood.segment_log_p(sub, rotations(points.to(dtype)), focal)  # (b, N, 81)
@@ -118,8 +121,9 @@ def local_quadratic(likelihood: MixtureLikelihood, features: SegmentFeatures, pa
     return LocalFit(*(torch.cat([part[i] for part in parts]) for i in range(3)))
 
 
-#: Products ``values x fit column`` :func:`lattice_fit` forms at once: as many columns as keep them
-#: under this many elements (at least one); the coefficients do not depend on it.
+#: Products ``values x fit column`` :func:`lattice_fit` forms at once on a CPU: as many columns as
+#: keep them under this many elements (at least one; on a GPU every column, the caller's chunk bounds
+#: them); the coefficients do not depend on it.
 LATTICE_FIT_ELEMENTS = 1 << 16
 
 
@@ -128,12 +132,13 @@ def lattice_fit(values: torch.Tensor, fit: torch.Tensor, dim: int = -1) -> torch
     lattice points along ``dim`` of ``values`` and a fit (81, C); returns the other dimensions of
     ``values`` then C, float64.  Each coefficient is an exact sum over the lattice
     (:func:`fr_torch.core.exact.exact_sum`; a matrix product's order would depend on the batch), of
-    as many columns at once as :data:`LATTICE_FIT_ELEMENTS` allows (one exact sum per slice either way)."""
+    as many columns at once as :data:`LATTICE_FIT_ELEMENTS` allows on a CPU, every one on a GPU (one
+    exact sum per slice either way)."""
     values = values.to(torch.float64)[..., None]  # (..., 1): the columns go last
     dim = dim % (values.dim() - 1)
     shape = [1] * values.dim()
     shape[dim] = fit.shape[0]
-    step = max(1, LATTICE_FIT_ELEMENTS // values.numel())
+    step = max(1, LATTICE_FIT_ELEMENTS // values.numel()) if values.device.type == "cpu" else fit.shape[1]
     return torch.cat([exact_sum(values * fit[:, c:c + step].reshape(shape[:-1] + [-1]), dim)
                       for c in range(0, fit.shape[1], step)], -1)
 
@@ -201,9 +206,21 @@ PROFILE_FOCAL_RATIOS = (0.6, 0.7, 0.8, 0.87, 1.15, 1.25, 1.43, 1.67)
 #: The profile points of :func:`focal_profile_spread`: the nearest on either side of the estimate
 #: (13 % shorter, 15 % longer), just beyond the 10 % a reliable focal length may be off.
 SPREAD_FOCAL_RATIOS = (0.87, 1.15)
-#: Images profiled together by :func:`focal_profile` (their segments are copied once per ratio:
-#: 256 x 8 copies of 750 segments are about 90 MB); the profile does not depend on it.
+#: Images profiled together by :func:`focal_profile` on a CPU (their segments are copied once per
+#: ratio: 256 x 8 copies of 750 segments are about 90 MB); the profile does not depend on it.
 PROFILE_CHUNK_IMAGES = 256
+#: Numbers a copied segment holds in :func:`focal_profile` (about 60 bytes: the 90 MB above).
+PROFILE_COPY_NUMBERS = 16
+
+
+def profile_chunk_images(features: SegmentFeatures, count: int, max_chunk_elements: int) -> int:
+    """How many images :func:`focal_profile` profiles at ``count`` focal lengths at once:
+    :data:`PROFILE_CHUNK_IMAGES` on a CPU; on a GPU as many as keep their segments' copies
+    (:data:`PROFILE_COPY_NUMBERS` numbers each) within ``max_chunk_elements``."""
+    if features.weight.device.type == "cpu":
+        return PROFILE_CHUNK_IMAGES
+    per_image = PROFILE_COPY_NUMBERS * max(1, features.weight.shape[1]) * max(1, count)
+    return max(1, max_chunk_elements // per_image)
 #: Coarse cells each known-focal search of :func:`focal_profile_gap`'s profile (fR's eight focal
 #: lengths) keeps when stage 1 is coarse to fine (``SearchConfig.grid_coarse_factor`` s > 1): 16 of
 #: the (k/s)^3 = 64 cells, so 64 + 16 x 8 = 192 hypotheses per focal length instead of k^3 = 512.
@@ -240,10 +257,11 @@ def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, para
     """
     batch, count = params.shape[0], len(ratios)
     device = features.weight.device
-    if batch > PROFILE_CHUNK_IMAGES:  # each image's segments are copied once per ratio searched: bound the copies
-        parts = [focal_profile(likelihood, features.images(b, b + PROFILE_CHUNK_IMAGES),
-                               params[b:b + PROFILE_CHUNK_IMAGES], config, iterations, ratios, coarse_cells)
-                 for b in range(0, batch, PROFILE_CHUNK_IMAGES)]
+    chunk = profile_chunk_images(features, count, config.max_chunk_elements)
+    if batch > chunk:  # each image's segments are copied once per ratio searched: bound the copies
+        parts = [focal_profile(likelihood, features.images(b, b + chunk), params[b:b + chunk], config, iterations,
+                               ratios, coarse_cells)
+                 for b in range(0, batch, chunk)]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     ratio_t = torch.tensor(tuple(ratios), dtype=torch.float64)
     long_side = features.long_side.to("cpu", torch.float64)
@@ -304,9 +322,18 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
     return torch.where(torch.isfinite(gap), gap, torch.zeros_like(gap))
 
 
-#: Images whose per-segment objectives :func:`segment_objectives` holds at once (81 lattice points x
-#: 750 segments x 64 images in float64 are about 30 MB); the values do not depend on it.
+#: Images whose per-segment terms the cues hold at once on a CPU (81 lattice points x 750 segments x
+#: 64 images in float64 are about 30 MB; :func:`segment_chunk_images`); the values do not depend on it.
 SEGMENT_CHUNK_IMAGES = 64
+
+
+def segment_chunk_images(features: SegmentFeatures, max_chunk_elements: int) -> int:
+    """How many images' per-segment lattice terms a cue holds at once: :data:`SEGMENT_CHUNK_IMAGES`
+    on a CPU; on a GPU as many as keep the largest of them, (N, 81, 4) per image, within
+    ``max_chunk_elements`` (the configuration's, :class:`~fr_torch.core.settings.config.SearchConfig`)."""
+    if features.weight.device.type == "cpu":
+        return SEGMENT_CHUNK_IMAGES
+    return max(1, max_chunk_elements // (max(1, features.weight.shape[1]) * len(LATTICE) * 4))
 
 
 def segment_objectives(likelihood: MixtureLikelihood, features: SegmentFeatures, points: torch.Tensor) -> torch.Tensor:
@@ -367,10 +394,11 @@ def focal_profile_spread(likelihood: MixtureLikelihood, features: SegmentFeature
     device = features.weight.device
     count = len(ratios)
     out = []
-    for b in range(0, params.shape[0], SEGMENT_CHUNK_IMAGES):
-        sub = features.images(b, b + SEGMENT_CHUNK_IMAGES)
-        here = params[b:b + SEGMENT_CHUNK_IMAGES].to(device=device, dtype=torch.float64)
-        terms = segment_objectives(likelihood, sub, torch.cat([here[:, None], points[b:b + SEGMENT_CHUNK_IMAGES]], 1))
+    chunk = segment_chunk_images(features, config.max_chunk_elements)
+    for b in range(0, params.shape[0], chunk):
+        sub = features.images(b, b + chunk)
+        here = params[b:b + chunk].to(device=device, dtype=torch.float64)
+        terms = segment_objectives(likelihood, sub, torch.cat([here[:, None], points[b:b + chunk]], 1))
         differences = terms[:, :1] - terms[:, 1:]  # (b, R, N)
         z = exact_sum(differences, -1) / _resampled_sd(differences, sub.mask[:, None, :]).clamp_min(1e-12)
         out.append(z)
@@ -503,9 +531,10 @@ def focal_cues(likelihood: MixtureLikelihood, search: SearchConfig, features: Se
         cues = {name: zeros for name in names}
         if spreads:
             cues.update(focal_profile_spread=zeros,
-                        **resample_spreads(local_quadratic(likelihood, features, params), known_focal=True))
+                        **resample_spreads(local_quadratic(likelihood, features, params, search.max_chunk_elements),
+                                           known_focal=True))
         return cues
-    fitted = local_quadratic(likelihood, features, params)
+    fitted = local_quadratic(likelihood, features, params, search.max_chunk_elements)
     cues = {"focal_prior_share": focal_prior_share(likelihood, features, params, fitted=fitted),
             "focal_spread": focal_spread(fitted.hessian, features.total_length())}
     if profile_gap:
