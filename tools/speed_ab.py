@@ -5,7 +5,8 @@ round runs, for each checkout in turn, one process that times (a) the search per
 4 YUD train photos (LSD segments, detected once and cached in ``--cache``; the ``runtime_s`` stages
 grid / refine / cues / total, wall and process CPU time; median of 2 passes) in Fast-fR and fR, and
 (b) images/s given 300 synthetic segments at batch 1 and 64 (``fr_eval.bench.timing``); then prints
-the medians over rounds, before -> after, as Markdown.  Interleaving keeps a shared machine's load
+the medians over rounds, before -> after, as Markdown.  Each process imports the library and the
+harness (``fr_eval``) of its own checkout.  Interleaving keeps a shared machine's load
 out of the ratios; the load average at each start is reported beside them.  ``--distortion division``:
 the same figures with the division model's lens search (``FREstimator(distortion="division")``).
 """
@@ -18,6 +19,7 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -89,11 +91,18 @@ def main() -> None:
         return
     figures = collections.defaultdict(lambda: collections.defaultdict(list))
     loads = []
+    links = tempfile.TemporaryDirectory()  # each checkout's harness under its installed names
+    for name, checkout in (("before", args.before), ("after", args.after)):
+        folder = Path(links.name) / name
+        folder.mkdir()
+        (folder / "fr_eval").symlink_to(Path(checkout).resolve() / "eval")
+        (folder / "fr_baselines").symlink_to(Path(checkout).resolve() / "baselines")
     for _ in range(args.rounds):
         for what in ("latency", "throughput"):
             for name, checkout in (("before", args.before), ("after", args.after)):
                 loads.append(os.getloadavg()[0])
                 env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(checkout).resolve()),
+                                                                   str(Path(links.name) / name),
                                                                    os.environ.get("PYTHONPATH", "")]))
                 done = subprocess.run([sys.executable, __file__, "--before", args.before, "--after", args.after,
                                        "--threads", str(args.threads), "--cache", str(args.cache),
