@@ -45,3 +45,12 @@ def test_the_record_follows_the_library_the_cpu_settings_and_the_sources(tmp_pat
     assert native._verdict_file() != first
     monkeypatch.setitem(native._state, "library", tmp_path / "measure_b-1111.so")
     assert native._verdict_file().name != first.name
+
+
+def test_a_record_that_cannot_be_written_leaves_nothing_behind(verdict_file, monkeypatch):
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(native.json, "dump", full_disk)
+    assert native._checked("kernels", lambda: True) is True  # the check's verdict, not recorded
+    assert list(verdict_file.parent.iterdir()) == []

@@ -356,13 +356,16 @@ def _checked(name: str, check) -> bool:
         return recorded[name]
     verdict = bool(check())
     if path is not None:
+        recorded = {**(recorded if isinstance(recorded, dict) else {}), name: verdict}
+        temporary = None
         try:
-            recorded = {**(recorded if isinstance(recorded, dict) else {}), name: verdict}
             with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as out:
+                temporary = out.name
                 json.dump(recorded, out)
-            os.replace(out.name, path)
+            os.replace(temporary, path)
         except OSError:
-            pass
+            if temporary is not None:
+                Path(temporary).unlink(missing_ok=True)
     return verdict
 
 
