@@ -327,13 +327,21 @@ def focal_profile_gap(likelihood: MixtureLikelihood, features: SegmentFeatures, 
 SEGMENT_CHUNK_IMAGES = 64
 
 
+#: Grid deviations' worth of memory one element of the cues' largest lattice tensor, (N, 81, 4)
+#: float64 products, takes with the exact sum's temporaries (about six such tensors of 8 bytes
+#: against a grid deviation's 7): :func:`segment_chunk_images`.
+LATTICE_ELEMENT_COST = 6
+
+
 def segment_chunk_images(features: SegmentFeatures, max_chunk_elements: int) -> int:
     """How many images' per-segment lattice terms a cue holds at once: :data:`SEGMENT_CHUNK_IMAGES`
-    on a CPU; on a GPU as many as keep the largest of them, (N, 81, 4) per image, within
-    ``max_chunk_elements`` (the configuration's, :class:`~fr_torch.core.settings.config.SearchConfig`)."""
+    on a CPU; on a GPU as many as keep the largest of them, (N, 81, 4) per image at
+    :data:`LATTICE_ELEMENT_COST` each, within ``max_chunk_elements`` (the configuration's,
+    :class:`~fr_torch.core.settings.config.SearchConfig`: about 1 GB at its default)."""
     if features.weight.device.type == "cpu":
         return SEGMENT_CHUNK_IMAGES
-    return max(1, max_chunk_elements // (max(1, features.weight.shape[1]) * len(LATTICE) * 4))
+    per_image = max(1, features.weight.shape[1]) * len(LATTICE) * 4 * LATTICE_ELEMENT_COST
+    return max(1, max_chunk_elements // per_image)
 
 
 def segment_objectives(likelihood: MixtureLikelihood, features: SegmentFeatures, points: torch.Tensor) -> torch.Tensor:

@@ -219,6 +219,9 @@ CHAIN_SEGMENTS = 200
 TURN_CAP_DEG = 3.0
 #: Spacing of the values of k :func:`plumb_line` tries over the k range.
 PLUMB_K_STEP = 0.01
+#: Elements of the chunk budget one pair test of :func:`chain_pairs` takes (its float64 direction
+#: products and boolean masks alive at once, about four grid deviations' worth).
+PAIR_TEST_COST = 4
 #: The k spacing of :func:`bend_test`'s lattice passes (first step +-0.1).
 PLUMB_K_SPACING = 0.3
 
@@ -278,12 +281,13 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float], max_ch
     on a grid over ``k_range`` (spacing :data:`PLUMB_K_STEP`, 0 included) the pieces are undistorted
     and ``C(k) = sum_pairs w min(theta, cap)^2`` (w the shorter piece's length, cap
     :data:`TURN_CAP_DEG`).  Independent of f and R: a cheap estimate of k before the search
-    and the evidence of the "lines bend" check.  Images are paired up in chunks of at most
-    ``max_chunk_elements`` pair tests (:func:`~fr_torch.core.search.grid.chunk_budget`; an image
-    costs CHAIN_SEGMENTS^2 of them; no value depends on the chunks).  Returns a :class:`PlumbLine`
+    and the evidence of the "lines bend" check.  Images are paired up in chunks within
+    ``max_chunk_elements`` (:func:`~fr_torch.core.search.grid.chunk_budget`; an image costs
+    CHAIN_SEGMENTS^2 pair tests of :data:`PAIR_TEST_COST` each; no value depends on the chunks).  Returns a :class:`PlumbLine`
     (k = 0, share 0 where an image has no pairs)."""
     batch = geometry.endpoints.shape[0]
-    chunk = max(1, grid_module.chunk_budget(max_chunk_elements, geometry.endpoints.device) // CHAIN_SEGMENTS ** 2)
+    pair_cost = CHAIN_SEGMENTS ** 2 * PAIR_TEST_COST
+    chunk = max(1, grid_module.chunk_budget(max_chunk_elements, geometry.endpoints.device) // pair_cost)
     if batch > chunk:
         parts = [plumb_line(geometry.images(b, b + chunk), k_range, max_chunk_elements)
                  for b in range(0, batch, chunk)]
