@@ -211,16 +211,6 @@ SPREAD_FOCAL_RATIOS = (0.87, 1.15)
 PROFILE_CHUNK_IMAGES = 256
 #: Numbers a copied segment holds in :func:`focal_profile` (about 60 bytes: the 90 MB above).
 PROFILE_COPY_NUMBERS = 16
-
-
-def profile_chunk_images(features: SegmentFeatures, count: int, max_chunk_elements: int) -> int:
-    """How many images :func:`focal_profile` profiles at ``count`` focal lengths at once:
-    :data:`PROFILE_CHUNK_IMAGES` on a CPU; on a GPU as many as keep their segments' copies
-    (:data:`PROFILE_COPY_NUMBERS` numbers each) within ``max_chunk_elements``."""
-    if features.weight.device.type == "cpu":
-        return PROFILE_CHUNK_IMAGES
-    per_image = PROFILE_COPY_NUMBERS * max(1, features.weight.shape[1]) * max(1, count)
-    return max(1, max_chunk_elements // per_image)
 #: Coarse cells each known-focal search of :func:`focal_profile_gap`'s profile (fR's eight focal
 #: lengths) keeps when stage 1 is coarse to fine (``SearchConfig.grid_coarse_factor`` s > 1): 16 of
 #: the (k/s)^3 = 64 cells, so 64 + 16 x 8 = 192 hypotheses per focal length instead of k^3 = 512.
@@ -228,6 +218,23 @@ def profile_chunk_images(features: SegmentFeatures, count: int, max_chunk_elemen
 #: profile's best value unchanged at 94-100 % of the focal lengths searched, no ``reliable`` flag
 #: changed.  Fast-fR's two-point profile scores whole grids: there the coarse pass cost what it saved.
 PROFILE_COARSE_CELLS = 16
+
+
+def _images_per_chunk(features: SegmentFeatures, cpu_images: int, per_image: int, max_chunk_elements: int) -> int:
+    """Images a cue takes at once: ``cpu_images`` on a CPU (cache and memory sized); on a GPU as
+    many as keep ``per_image`` elements each within ``max_chunk_elements`` (the configuration's,
+    :class:`~fr_torch.core.settings.config.SearchConfig`); at least one.  No value depends on it."""
+    if features.weight.device.type == "cpu":
+        return cpu_images
+    return max(1, max_chunk_elements // max(1, per_image))
+
+
+def profile_chunk_images(features: SegmentFeatures, count: int, max_chunk_elements: int) -> int:
+    """How many images :func:`focal_profile` profiles at ``count`` focal lengths at once:
+    :data:`PROFILE_CHUNK_IMAGES` on a CPU; on a GPU as many as keep their segments' copies
+    (:data:`PROFILE_COPY_NUMBERS` numbers each) within ``max_chunk_elements``."""
+    per_image = PROFILE_COPY_NUMBERS * max(1, features.weight.shape[1]) * max(1, count)
+    return _images_per_chunk(features, PROFILE_CHUNK_IMAGES, per_image, max_chunk_elements)
 
 
 def focal_profile(likelihood: MixtureLikelihood, features: SegmentFeatures, params: torch.Tensor,
@@ -338,10 +345,8 @@ def segment_chunk_images(features: SegmentFeatures, max_chunk_elements: int) -> 
     on a CPU; on a GPU as many as keep the largest of them, (N, 81, 4) per image at
     :data:`LATTICE_ELEMENT_COST` each, within ``max_chunk_elements`` (the configuration's,
     :class:`~fr_torch.core.settings.config.SearchConfig`: about 1 GB at its default)."""
-    if features.weight.device.type == "cpu":
-        return SEGMENT_CHUNK_IMAGES
     per_image = max(1, features.weight.shape[1]) * len(LATTICE) * 4 * LATTICE_ELEMENT_COST
-    return max(1, max_chunk_elements // per_image)
+    return _images_per_chunk(features, SEGMENT_CHUNK_IMAGES, per_image, max_chunk_elements)
 
 
 def segment_objectives(likelihood: MixtureLikelihood, features: SegmentFeatures, points: torch.Tensor) -> torch.Tensor:

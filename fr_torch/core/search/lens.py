@@ -42,8 +42,8 @@ from fr_torch.core.geometry.params import DISTORTION, from_log_focal
 from fr_torch.core.likelihood import native
 from fr_torch.core.likelihood.measures import SegmentFeatures
 from fr_torch.core.likelihood.mixture import MixtureLikelihood
-from fr_torch.core.search import grid as grid_module
-from fr_torch.core.search.grid import grid_cell, grid_hypotheses, into_box, parameter_box, score_grid, select_starts
+from fr_torch.core.search.grid import (chunk_budget, grid_cell, grid_hypotheses, into_box, parameter_box, score_grid,
+                                       select_starts)
 from fr_torch.core.search.passes import LATTICE, SearchResult, lattice_passes, sweep_focal, tie_tolerance
 from fr_torch.core.search.refine import refine_kernel_matches_torch, refine_starts
 from fr_torch.core.settings.config import SearchConfig
@@ -287,7 +287,7 @@ def plumb_line(geometry: "SegmentGeometry", k_range: tuple[float, float], max_ch
     (k = 0, share 0 where an image has no pairs)."""
     batch = geometry.endpoints.shape[0]
     pair_cost = CHAIN_SEGMENTS ** 2 * PAIR_TEST_COST
-    chunk = max(1, grid_module.chunk_budget(max_chunk_elements, geometry.endpoints.device) // pair_cost)
+    chunk = max(1, chunk_budget(max_chunk_elements, geometry.endpoints.device) // pair_cost)
     if batch > chunk:
         parts = [plumb_line(geometry.images(b, b + chunk), k_range, max_chunk_elements)
                  for b in range(0, batch, chunk)]
