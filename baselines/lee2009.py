@@ -43,7 +43,6 @@ from scipy.spatial.transform import Rotation
 from fr_torch.core.geometry.camera import Camera
 from fr_torch.core.geometry.conventions import focal_from_hfov
 from fr_torch.core.settings.fov import FovRange
-from fr_torch.errors import FRInputError
 from fr_torch.plugins.interface import CameraEstimate, ImageMeta, TimedCalibrator
 
 from . import vp_geometry as vg
@@ -80,18 +79,10 @@ class Lee2009(TimedCalibrator):
 
     def _estimate(self, image, meta: ImageMeta) -> CameraEstimate:
         try:
-            segments = vg.input_segments(image, meta)
-        except FRInputError as exc:
-            return CameraEstimate.failure(self.name, f"bad input: {exc}")
-        width, height = vg.image_size(image, meta)
-        if width <= 0 or height <= 0:
-            return CameraEstimate.failure(self.name, "unknown image size")
-        pp = vg.principal_point(meta, width, height)
-        lengths = vg.segment_lengths(segments)
-        keep = lengths >= self.min_length_frac * math.hypot(width, height)
-        segments, lengths = segments[keep], lengths[keep]
-        if len(segments) < self.min_segments:
-            return CameraEstimate.failure(self.name, f"too few line segments ({len(segments)})")
+            segments, lengths, width, height, pp = vg.long_segments(image, meta, self.min_length_frac,
+                                                                    self.min_segments)
+        except vg.NoInput as exc:
+            return CameraEstimate.failure(self.name, str(exc))
 
         found = vg.vertical_vp(segments, self.vertical_max_deg, self.inlier_deg)
         if found is None:

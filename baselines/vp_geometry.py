@@ -63,6 +63,32 @@ def input_segments(image: np.ndarray | None, meta: ImageMeta) -> np.ndarray:
     return detect_segments(image, segment_filter=SegmentFilter(max_segments=None))
 
 
+class NoInput(Exception):
+    """Why a vertical-first baseline cannot start on an image: its message is the failure's reason."""
+
+
+def long_segments(image: np.ndarray | None, meta: ImageMeta, min_length_frac: float,
+                  min_segments: int) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
+    """The input of the vertical-first baselines (Lee 2009, Simon 2018): the segments of
+    :func:`input_segments` at least ``min_length_frac`` of the image diagonal long.
+
+    Returns (segments (M, 4) pixels, their lengths (M,) pixels, width, height, principal point (2,)
+    pixels).  Raises :class:`NoInput` (the failure's reason) for a malformed input, an unknown image
+    size or fewer than ``min_segments`` such segments."""
+    try:
+        segments = input_segments(image, meta)
+    except FRInputError as exc:
+        raise NoInput(f"bad input: {exc}") from exc
+    width, height = image_size(image, meta)
+    if width <= 0 or height <= 0:
+        raise NoInput("unknown image size")
+    lengths = segment_lengths(segments)
+    keep = lengths >= min_length_frac * math.hypot(width, height)
+    if int(keep.sum()) < min_segments:
+        raise NoInput(f"too few line segments ({int(keep.sum())})")
+    return segments[keep], lengths[keep], width, height, principal_point(meta, width, height)
+
+
 # --------------------------------------------------------------------------- lines and VPs
 
 def segment_lengths(segments: np.ndarray) -> np.ndarray:
