@@ -1,17 +1,21 @@
 #!/usr/bin/env bash
-# The prepared GPU run (one call of the lent device, re-runnable as it is): CUDA tests, the device
-# path from JPEG bytes to results stage by stage (tools/gpu_probe.py) and `fr bench --device cuda`.
+# The prepared GPU run (one call of the lent device, re-runnable as it is): one answer per photo on
+# the device (run to run, and against the CPU), CUDA tests, the device path from JPEG bytes to
+# results stage by stage (tools/gpu_probe.py) and `fr bench --device cuda`.
 #
-#   bash tools/gpu_check.sh OUT [PHASES]     PHASES: comma list of setup,tests,probe,cli,bench,vp,distortion (default all)
+#   bash tools/gpu_check.sh OUT [PHASES]     PHASES: comma list of setup,identity,tests,probe,cli,bench,vp,distortion
+#                                            (default all but vp)
 #
-# Inputs travel with the working tree: the kornia wheels in .whl/ (the device's image lacks kornia)
-# and data_local/gpu/ (yorkurbandb/P*/P*.jpg of the YUD test photos and yud_test.txt, copied from
-# $FR_DATA/yorkurbandb; nyu_vp/data/ with NYU-VP's val files and vps_0000.csv; models/consac/ with
-# CONSAC's weights, user-supplied: never committed). Each phase is
-# time-boxed; everything it writes goes to OUT (the device tool's $OUT comes back).
+# Inputs travel with the working tree, made here first by `bash tools/gpu_inputs.sh` (`--vp` for the
+# vp phase) and named in the call's carry (".whl", "data_local/gpu"): the kornia wheels in .whl/ (the
+# device's image lacks kornia) and data_local/gpu/ (the YUD test photos, tools/bit_identity.py's
+# segments and this machine's answers; NYU-VP's val files and CONSAC's weights with --vp). Each
+# phase is time-boxed; everything it writes goes to OUT (the device tool's $OUT comes back).
+# Device time is scarce (15 minutes a session, the machine's start included): name the phases the
+# session needs, identity and bench first.
 set -uo pipefail
 DEST=${1:?usage: gpu_check.sh OUT [PHASES]}
-PHASES=${2:-setup,tests,probe,bench,cli,vp,distortion}
+PHASES=${2:-setup,identity,tests,probe,bench,cli,distortion}
 # The phases write to a work folder; after each one everything so far is packed into
 # DEST/gpu_run.tgz (the device tool brings back at most 8 files, and a run cut by its time limit
 # still returns the last pack).
@@ -36,6 +40,23 @@ if has setup; then
   pack
 fi
 export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
+
+if has identity; then  # one answer per photo: the GPU run to run, the GPU against the device's CPU and this one's
+  stamp identity
+  SEG=data_local/gpu/bit_identity.segments.npz
+  ID="timeout ${IDENTITY_TIMEOUT:-150} python3 tools/bit_identity.py"
+  $ID save "$OUT/identity_cuda.npz" --segments $SEG --device cuda 2>&1 | tail -2
+  $ID compare "$OUT/identity_cuda.npz" --segments $SEG --device cuda 2>&1 | tail -31 | tee "$OUT/identity_rerun.txt"
+  $ID save "$OUT/identity_cpu.npz" --segments $SEG --threads 8 2>&1 | tail -1
+  for against in "$OUT/identity_cpu.npz" data_local/gpu/bit_identity_cpu.npz; do  # the device's CPU, the CPU of the machine that made the inputs
+    echo "GPU against $against:" | tee -a "$OUT/identity_report.txt"
+    python3 tools/bit_identity.py report "$OUT/identity_cuda.npz" --against "$against" 2>&1 | tee -a "$OUT/identity_report.txt"
+  done
+  echo "the device's CPU against the inputs' CPU:" | tee -a "$OUT/identity_report.txt"
+  python3 tools/bit_identity.py report "$OUT/identity_cpu.npz" --against data_local/gpu/bit_identity_cpu.npz 2>&1 \
+    | tee -a "$OUT/identity_report.txt"
+  pack
+fi
 
 if has tests; then
   stamp tests
