@@ -69,7 +69,7 @@ def test_documented_options_exist():
     string literal argparse, or a script such as eval/reproduce.sh, is given), so a renamed or removed
     option cannot stay documented."""
     declared = set()
-    for folder in ("fr_torch", "eval", "baselines"):
+    for folder in ("fr_torch", "eval", "baselines", "tools"):
         for source in [*(REPO / folder).rglob("*.py"), *(REPO / folder).rglob("*.sh")]:
             declared |= set(re.findall(r"""["'](--[a-z][a-z0-9-]*)["'=]""", source.read_text(encoding="utf-8")))
     missing = {}
