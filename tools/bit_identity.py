@@ -28,15 +28,13 @@ def segment_sets(cache: Path, photos: int, synthetic: int):
     if cache.is_file():
         data = np.load(cache, allow_pickle=True)
         return list(data["segments"]), [tuple(s) for s in data["sizes"]]
-    from fr_eval.datasets.registry import load_dataset
+    from fr_eval.datasets.registry import detected_segments, load_dataset
     from fr_torch.detectors.lsd import LSDDetector
-    from fr_torch.images.io import read_working
     from fr_torch.synthetic import random_rotation, synthetic_segments
     detector = LSDDetector()
     segments, sizes = [], []
     for sample in load_dataset("yud", split="train")[:photos]:
-        gray, _, _ = read_working(str(sample.image_path), sample.name)
-        segments.append(np.asarray(detector(gray), dtype=np.float32))
+        segments.append(np.asarray(detected_segments(sample, detector), dtype=np.float32))
         sizes.append((sample.width, sample.height))
     rng = np.random.default_rng(60)
     for _ in range(synthetic):

@@ -30,10 +30,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     import fr_torch.core.likelihood.native as native
-    from fr_eval.datasets.registry import load_dataset
+    from fr_eval.datasets.registry import detected_segments, load_dataset
     from fr_torch import FREstimator
     from fr_torch.detectors.lsd import LSDDetector
-    from fr_torch.images.io import read_working
 
     totals = {"score": 0, "score_ms": 0.0, "refine": 0, "refine_ms": 0.0}
     scores, refine = native.measure_b_scores, native.measure_b_refine
@@ -61,8 +60,7 @@ def main() -> None:
     detector = LSDDetector()
     photos = []
     for sample in load_dataset("yud", split="train")[:args.photos]:
-        gray, _, _ = read_working(str(sample.image_path), sample.name)
-        photos.append((detector(gray), (sample.width, sample.height)))
+        photos.append((detected_segments(sample, detector), (sample.width, sample.height)))
     estimator = FREstimator(mode=args.mode)
     estimator.calibrate_segments([photos[0][0]], [photos[0][1]])
     totals.update(score=0, score_ms=0.0, refine=0, refine_ms=0.0)

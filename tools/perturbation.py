@@ -21,20 +21,14 @@ def main() -> None:
     parser.add_argument("--eps", type=float, default=1e-7)
     args = parser.parse_args()
 
-    from fr_eval.datasets.registry import load_dataset
+    from fr_eval.datasets.registry import detected_segments, load_dataset
     from fr_torch import FREstimator
     from fr_torch.detectors.lsd import LSDDetector
-    from fr_torch.images.io import read_working
 
     detector = LSDDetector()
     photos = []
     for sample in load_dataset(args.dataset, split=args.split):
-        if sample.image_path is not None:
-            gray, _, _ = read_working(str(sample.image_path), sample.name)
-            segments = detector(gray)
-        else:
-            segments = np.asarray(sample.extra["detected_segments"], np.float64)
-        photos.append((segments, (sample.width, sample.height), sample.camera.focal_px))
+        photos.append((detected_segments(sample, detector), (sample.width, sample.height), sample.camera.focal_px))
     estimator = FREstimator(mode=args.mode)
     rng = np.random.default_rng(0)
     sizes = [p[1] for p in photos]

@@ -29,10 +29,9 @@ def main() -> None:
     import fr_torch.core.search.grid as grid
     import fr_torch.core.search.manhattan as manhattan
     import fr_torch.core.search.refine as refine
-    from fr_eval.datasets.registry import load_dataset
+    from fr_eval.datasets.registry import detected_segments, load_dataset
     from fr_torch import FREstimator
     from fr_torch.detectors.lsd import LSDDetector
-    from fr_torch.images.io import read_working
 
     spent = collections.defaultdict(float)
 
@@ -56,8 +55,7 @@ def main() -> None:
     detector = LSDDetector()
     photos = []
     for sample in load_dataset("yud", split="test")[:args.photos]:
-        gray, _, _ = read_working(str(sample.image_path), sample.name)
-        photos.append((detector(gray), (sample.width, sample.height)))
+        photos.append((detected_segments(sample, detector), (sample.width, sample.height)))
     estimator = FREstimator(mode=args.mode)
     estimator.calibrate_segments([photos[0][0]], [photos[0][1]])
     spent.clear()

@@ -69,6 +69,19 @@ class CalibrationSample:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+def detected_segments(sample: CalibrationSample, detector: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """The line segments fR sees in ``sample``, (N, 4) ``[x1, y1, x2, y2]`` pixels: ``detector`` (e.g.
+    :class:`fr_torch.detectors.lsd.LSDDetector`) on its photo read as ``fr calibrate`` reads it
+    (:func:`fr_torch.images.io.read_working`); for a dataset without pixels, its own detections
+    (``extra["detected_segments"]``, float64; NYU-VP's LSD segments)."""
+    if sample.image_path is None:
+        return np.asarray(sample.extra["detected_segments"], np.float64)
+    from fr_torch.images.io import read_working
+
+    gray, _, _ = read_working(str(sample.image_path), sample.name)
+    return detector(gray)
+
+
 DatasetLoader = Callable[..., Sequence[CalibrationSample]]
 
 # Modules that register datasets when imported (a module that does not exist is skipped); other

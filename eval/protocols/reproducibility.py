@@ -90,21 +90,15 @@ def available_settings() -> dict:
 def prepare_inputs(path: Path, data_root=None, limit: int | None = None) -> dict:
     """The photos every setting calibrates, saved to ``path`` (.npz): YUD test with LSD segments and
     NYU-VP val with its own; returns a summary {dataset: count}."""
-    from fr_eval.datasets.registry import load_dataset
+    from fr_eval.datasets.registry import detected_segments, load_dataset
     from fr_torch.detectors.lsd import LSDDetector
-    from fr_torch.images.io import read_working
 
     detector = LSDDetector()
     arrays, summary = {}, {}
     for dataset, split in (("yud", "test"), ("nyu-vp", "val")):
         samples = load_dataset(dataset, root=data_root, split=split)[:limit]
         for i, sample in enumerate(samples):
-            if sample.image_path is not None:
-                gray, _, _ = read_working(str(sample.image_path), sample.name)
-                segments = detector(gray)
-            else:
-                segments = np.asarray(sample.extra["detected_segments"], np.float64)
-            arrays[f"{dataset}/{i}/segments"] = np.asarray(segments, np.float64)
+            arrays[f"{dataset}/{i}/segments"] = np.asarray(detected_segments(sample, detector), np.float64)
             arrays[f"{dataset}/{i}/meta"] = np.array([sample.width, sample.height,
                                                       sample.camera.focal_px if sample.camera else np.nan])
             arrays[f"{dataset}/{i}/name"] = np.array(sample.name)
