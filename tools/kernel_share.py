@@ -15,6 +15,7 @@ arithmetic's floor; ``search_ms`` minus the kernels' times is the work around th
 from __future__ import annotations
 
 import argparse
+import inspect
 import statistics
 import time
 
@@ -36,6 +37,7 @@ def main() -> None:
 
     totals = {"score": 0, "score_ms": 0.0, "refine": 0, "refine_ms": 0.0}
     scores, refine = native.measure_b_scores, native.measure_b_refine
+    signature = inspect.signature(refine)
 
     def counted_scores(line_along, factor, scale, flat, *rest, **options):
         images, segments = factor.shape
@@ -47,7 +49,7 @@ def main() -> None:
             totals["score_ms"] += 1e3 * (time.perf_counter() - start)
 
     def counted_refine(u, line_along, weight, *rest, **options):
-        steps = options["steps"] if "steps" in options else rest[12]  # (S, 2): Adam's per-step scalars
+        steps = signature.bind(u, line_along, weight, *rest, **options).arguments["steps"]  # (S, 2): Adam's per step
         images, starts = u.shape[:2]
         totals["refine"] += len(steps) * images * starts * weight.shape[1] * 3
         start = time.perf_counter()
